@@ -1,0 +1,30 @@
+# Two commands do all set-up on a fresh machine: `make evaluate` and `make test`.
+PYTHON ?= python3.11
+VENV ?= .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: evaluate test benchmark venv clean
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+## Benchmark the default descriptor and the ground-truth rankings on the built-in synthetic scene.
+evaluate: $(STAMP)
+	$(BIN)/python evaluate.py $(ARGS)
+
+## Run the test suite.
+test: $(STAMP)
+	$(BIN)/python -m pytest $(ARGS)
+
+## Print speed figures (see benchmarks/README.md).
+benchmark: $(STAMP)
+	for script in benchmarks/bench_*.py; do $(BIN)/python $$script || exit 1; done
+
+clean:
+	rm -rf $(VENV) outputs multirun .cache

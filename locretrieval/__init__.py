@@ -1,0 +1,7 @@
+"""locretrieval: image retrieval for visual localization (Humenberger et al., IJCV 2022)."""
+
+# pycolmap exports its own deflate/inflate symbols: importing zlib first keeps later
+# compression calls (numpy savez_compressed, PNG writers) from crashing the process.
+import zlib  # noqa: F401
+
+__version__ = "0.1.0"

@@ -1,0 +1,5 @@
+"""Global image descriptors."""
+
+from locretrieval.models.base import GlobalDescriptor
+
+__all__ = ["GlobalDescriptor"]

@@ -1,0 +1,37 @@
+"""The interface every global descriptor implements."""
+
+from __future__ import annotations
+
+import abc
+from typing import Any
+
+import numpy as np
+
+from locretrieval.scene import ImageSet
+
+
+class GlobalDescriptor(abc.ABC):
+    """Maps images to L2-normalised ``float32`` global descriptors ``[N, D]``.
+
+    ``name`` labels the ranking in results. ``identity()`` returns everything that
+    determines the output (configuration, weight-file hash, preprocessing); the descriptor
+    cache is keyed by it. Models with data-dependent parts (DenseVLAD's vocabulary and PCA)
+    set ``learns_from_database`` and learn them in ``fit``, so their cache key also depends
+    on the database.
+    """
+
+    learns_from_database: bool = False
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def fit(self, database: ImageSet) -> None:
+        """Learn data-dependent parameters on the database images (default: nothing)."""
+
+    @abc.abstractmethod
+    def describe(self, images: ImageSet) -> np.ndarray:
+        """Descriptors ``float32 [len(images), D]``, each row of unit L2 norm."""
+
+    @abc.abstractmethod
+    def identity(self) -> dict[str, Any]:
+        """JSON-serialisable description of what produces the descriptors."""
