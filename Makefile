@@ -22,7 +22,7 @@ evaluate: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest $(ARGS)
 
-## Print speed figures (see benchmarks/README.md).
+## Print speed figures (benchmarks/, listed in the README).
 benchmark: $(STAMP)
 	for script in benchmarks/bench_*.py; do $(BIN)/python $$script || exit 1; done
 

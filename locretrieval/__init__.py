@@ -4,4 +4,6 @@
 # compression calls (numpy savez_compressed, PNG writers) from crashing the process.
 import zlib  # noqa: F401
 
+from locretrieval import config  # noqa: F401,E402  (registers the config resolvers)
+
 __version__ = "0.1.0"

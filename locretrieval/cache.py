@@ -7,7 +7,7 @@ import hashlib
 import json
 import os
 import tempfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -46,3 +46,27 @@ def load_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """Read every array of an ``.npz`` file into memory."""
     with np.load(path, allow_pickle=False) as data:
         return {name: data[name] for name in data.files}
+
+
+def cached_arrays(
+    path: str | os.PathLike | None, compute: Callable[[], Mapping[str, np.ndarray]]
+) -> tuple[dict[str, np.ndarray], bool]:
+    """``(arrays, hit)``: the arrays stored at ``path``, else ``compute()`` saved there.
+
+    ``path=None`` disables caching (always computes, ``hit`` False).
+    """
+    if path is not None and Path(path).is_file():
+        return load_arrays(path), True
+    arrays = dict(compute())
+    if path is not None:
+        save_arrays(path, arrays)
+    return arrays, False
+
+
+def file_signature(path: str | os.PathLike | None) -> tuple[int, int]:
+    """``(size in bytes, modification time in ns)`` of a file, ``(-1, -1)`` if absent: part of cache keys."""
+    try:
+        status = os.stat(path) if path is not None else None
+    except FileNotFoundError:
+        status = None
+    return (status.st_size, status.st_mtime_ns) if status is not None else (-1, -1)

@@ -130,16 +130,26 @@ def rotation_errors_deg(q_estimated: np.ndarray, q_reference: np.ndarray) -> np.
     return np.degrees(2.0 * np.arctan2(sine, dot))
 
 
+def quaternion_outer_products(q: np.ndarray) -> np.ndarray:
+    """``q q^T`` of quaternions ``[..., 4]``, flattened to ``[..., 16]``."""
+    q = np.asarray(q, dtype=np.float64)
+    return (q[..., :, None] * q[..., None, :]).reshape(*q.shape[:-1], 16)
+
+
+def dominant_quaternion(moments: np.ndarray) -> np.ndarray:
+    """Unit eigenvector (wxyz, w >= 0) of the largest eigenvalue of ``[..., 16]`` 4x4 moments."""
+    _, vectors = np.linalg.eigh(moments.reshape(*moments.shape[:-1], 4, 4))
+    return normalize_quaternions(vectors[..., :, -1])
+
+
 def average_quaternions(q: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """Weighted rotation average of ``q [..., k, 4]`` with ``weights [..., k]``.
 
     The eigenvector of the largest eigenvalue of ``sum_i w_i q_i q_i^T`` (Markley et al.
     2007), which is invariant to the sign of each ``q_i``. Returned wxyz with w >= 0.
     """
-    q = np.asarray(q, dtype=np.float64)
-    M = np.einsum("...k,...ki,...kj->...ij", np.asarray(weights, dtype=np.float64), q, q)
-    _, vectors = np.linalg.eigh(M)
-    return normalize_quaternions(vectors[..., :, -1])
+    moments = np.asarray(weights, dtype=np.float64)[..., None, :] @ quaternion_outer_products(q)
+    return dominant_quaternion(moments[..., 0, :])
 
 
 def frustum_halfspaces(

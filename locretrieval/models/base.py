@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from locretrieval.scene import ImageSet
+from locretrieval.scene import ImageSet, Scene
 
 
 class GlobalDescriptor(abc.ABC):
@@ -25,8 +25,19 @@ class GlobalDescriptor(abc.ABC):
     def __init__(self, name: str) -> None:
         self.name = name
 
+    def bind_scene(self, scene: Scene) -> None:
+        """Take scene-level side data the model reads besides the images, e.g. published
+        feature files under ``scene.sources`` (default: nothing). Called before `identity`."""
+
     def fit(self, database: ImageSet) -> None:
         """Learn data-dependent parameters on the database images (default: nothing)."""
+
+    def fitted_state(self) -> dict[str, np.ndarray]:
+        """The arrays `fit` learned (default: none); the descriptor cache stores them."""
+        return {}
+
+    def load_fitted_state(self, state: dict[str, np.ndarray]) -> None:
+        """Restore what `fit` learned from `fitted_state` arrays (default: nothing to restore)."""
 
     @abc.abstractmethod
     def describe(self, images: ImageSet) -> np.ndarray:

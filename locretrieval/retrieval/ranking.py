@@ -25,7 +25,8 @@ class Ranking:
     ``indices [Q, K]`` are database indices, best first, ``EMPTY`` (-1) for unfilled slots
     (always at the end of a row). ``scores [Q, K]`` are similarities, higher is better (a
     ground truth whose natural score is a distance stores its negation). ``kind`` says
-    whether a descriptor or a ground-truth definition produced it. Descriptor rankings keep
+    whether a descriptor, a ground-truth definition (an upper bound) or a baseline (e.g.
+    random, a lower bound) produced it. Descriptor rankings keep
     the L2-normalised descriptors ``query_descriptors [Q, D]`` and ``database_descriptors
     [N, D]``, which BDI and CSI weighting need.
     """
@@ -33,7 +34,7 @@ class Ranking:
     name: str
     indices: np.ndarray
     scores: np.ndarray
-    kind: Literal["descriptor", "groundtruth"]
+    kind: Literal["descriptor", "groundtruth", "baseline"]
     query_descriptors: np.ndarray | None = None
     database_descriptors: np.ndarray | None = None
 
@@ -47,7 +48,7 @@ class Ranking:
         filled = indices != EMPTY
         if (filled[:, 1:] & ~filled[:, :-1]).any():
             raise ValueError(f"ranking {self.name!r}: empty slots must come after filled ones")
-        if self.kind not in ("descriptor", "groundtruth"):
+        if self.kind not in ("descriptor", "groundtruth", "baseline"):
             raise ValueError(f"ranking {self.name!r}: unknown kind {self.kind!r}")
         if self.query_descriptors is not None:
             if self.database_descriptors is None or len(self.query_descriptors) != len(indices):
@@ -81,18 +82,6 @@ class Ranking:
             self.scores[:, :k],
             self.kind,
             self.query_descriptors,
-            self.database_descriptors,
-        )
-
-    def subset(self, query_indices: np.ndarray) -> "Ranking":
-        """The rows of the given queries (indices or boolean mask)."""
-        rows = np.asarray(query_indices)
-        return Ranking(
-            self.name,
-            self.indices[rows],
-            self.scores[rows],
-            self.kind,
-            None if self.query_descriptors is None else self.query_descriptors[rows],
             self.database_descriptors,
         )
 
@@ -137,9 +126,22 @@ def ranking_from_scores(
     name: str,
     scores: np.ndarray,
     depth: int,
-    kind: Literal["descriptor", "groundtruth"],
+    kind: Literal["descriptor", "groundtruth", "baseline"],
     valid: np.ndarray | None = None,
 ) -> Ranking:
     """`Ranking` of a dense ``[Q, N]`` similarity matrix; see `top_k`."""
     indices, top_scores = top_k(scores, depth, valid)
     return Ranking(name, indices, top_scores, kind)
+
+
+def random_ranking(num_queries: int, num_database: int, depth: int, seed: int) -> Ranking:
+    """A seeded uniformly random ranking without repeats: the lower bound of every paradigm."""
+    depth = min(depth, num_database)
+    rng = np.random.default_rng(seed)
+    rows_per_chunk = max(1, (1 << 24) // num_database)
+    chunks = [np.empty((0, depth), dtype=np.int64)]
+    for start in range(0, num_queries, rows_per_chunk):
+        keys = rng.random((min(rows_per_chunk, num_queries - start), num_database))
+        chunks.append(top_k(-keys, depth)[0])  # the `depth` smallest keys, in increasing order
+    indices = np.concatenate(chunks)
+    return Ranking("random", indices, np.zeros(indices.shape, dtype=np.float32), "baseline")

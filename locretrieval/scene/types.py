@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from locretrieval import geometry
+from locretrieval.cache import file_signature
 
 #: COLMAP camera models and the indices of (fx, fy, cx, cy) in their parameter vectors.
 #: Single-focal models repeat the focal length.
@@ -88,6 +89,8 @@ class ImageSet:
     ``blur``, ``dynamic`` or the name of the query set an image came from.
     ``depth_paths``/``mask_paths`` are optional per-image files (float32 depth along the
     optical axis; uint8 masks, non-zero on dynamic objects), ``None`` where absent.
+    ``image_roots`` (optional) gives each image its own root, for sets read from several
+    folders (e.g. Aachen's query_day + query_night); read files through ``paths``.
     """
 
     names: list[str]
@@ -98,6 +101,7 @@ class ImageSet:
     tags: list[frozenset[str]] = field(default_factory=list)
     depth_paths: list[Path | None] | None = None
     mask_paths: list[Path | None] | None = None
+    image_roots: list[Path] | None = None
 
     def __post_init__(self) -> None:
         n = len(self.names)
@@ -111,6 +115,7 @@ class ImageSet:
             ("tags", self.tags),
             ("depth_paths", self.depth_paths),
             ("mask_paths", self.mask_paths),
+            ("image_roots", self.image_roots),
         ):
             if values is not None and len(values) != n:
                 raise ValueError(f"ImageSet has {n} names but {len(values)} {label}")
@@ -130,7 +135,8 @@ class ImageSet:
 
     @property
     def paths(self) -> list[Path]:
-        return [self.image_root / name for name in self.names]
+        roots = self.image_roots or [self.image_root] * len(self.names)
+        return [root / name for root, name in zip(roots, self.names)]
 
     @property
     def has_pose(self) -> np.ndarray:
@@ -173,16 +179,19 @@ class ImageSet:
             tags=pick(self.tags),
             depth_paths=pick(self.depth_paths),
             mask_paths=pick(self.mask_paths),
+            image_roots=pick(self.image_roots),
         )
 
-    def fingerprint(self) -> str:
-        """Hash of names, cameras, poses and image file sizes: keys caches of derived data."""
+    def fingerprint(self, include_poses: bool = True) -> str:
+        """Hash of names, cameras, image file sizes and times, and (``include_poses``) poses:
+        keys caches of derived data (without poses for what depends on the pixels only)."""
         digest = hashlib.sha256()
         for name, camera, path in zip(self.names, self.cameras, self.paths):
-            size = path.stat().st_size if path.exists() else -1
-            digest.update(f"{name}|{camera.model}|{camera.width}|{camera.height}|{camera.params}|{size}\n".encode())
-        digest.update(np.nan_to_num(self.qvec, nan=7.0).round(9).tobytes())
-        digest.update(np.nan_to_num(self.tvec, nan=7.0).round(9).tobytes())
+            signature = file_signature(path)
+            digest.update(f"{name}|{camera.model}|{camera.width}|{camera.height}|{camera.params}|{signature}\n".encode())
+        if include_poses:
+            digest.update(np.nan_to_num(self.qvec, nan=7.0).round(9).tobytes())
+            digest.update(np.nan_to_num(self.tvec, nan=7.0).round(9).tobytes())
         return digest.hexdigest()[:16]
 
 
@@ -206,11 +215,3 @@ class Scene:
             missing = [n for n, ok in zip(self.database.names, self.database.has_pose) if not ok]
             raise ValueError(f"scene {self.name!r}: database images without pose: {missing[:5]}")
 
-    @property
-    def queries_have_poses(self) -> bool:
-        return bool(len(self.queries)) and bool(self.queries.has_pose.all())
-
-    def fingerprint(self) -> str:
-        return hashlib.sha256(
-            f"{self.name}|{self.database.fingerprint()}|{self.queries.fingerprint()}".encode()
-        ).hexdigest()[:16]

@@ -1,0 +1,72 @@
+"""DenseVLAD speed: images/s of `describe` at the default resolution (longer side 640 px).
+
+    .venv/bin/python benchmarks/bench_densevlad.py [--images 12] [--width 640 --height 480]
+        [--step 2] [--device auto]
+
+Writes random-texture images to a temporary folder, fits the model on them (vocabulary +
+PCA, timed separately) and times `describe` on as many other images; image decoding and
+resizing are included.
+"""
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+from scipy.ndimage import gaussian_filter
+
+import locretrieval  # noqa: F401
+from locretrieval.models import DenseVLAD
+from locretrieval.scene import Camera, ImageSet
+
+
+def texture_images(root: Path, prefix: str, count: int, width: int, height: int, seed: int) -> ImageSet:
+    rng = np.random.default_rng(seed)
+    names = []
+    for index in range(count):
+        noise = gaussian_filter(rng.random((height, width)), 2.0)
+        pixels = (255 * (noise - noise.min()) / (noise.max() - noise.min())).astype(np.uint8)
+        names.append(f"{prefix}/{index:04d}.png")
+        (root / names[-1]).parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(pixels).save(root / names[-1])
+    camera = Camera("PINHOLE", width, height, (500.0, 500.0, width / 2, height / 2))
+    return ImageSet(names, root, [camera] * count, np.tile([1.0, 0, 0, 0], (count, 1)), np.zeros((count, 3)))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--images", type=int, default=12, help="database images, and as many described ones")
+    parser.add_argument("--width", type=int, default=640)
+    parser.add_argument("--height", type=int, default=480)
+    parser.add_argument("--max-side", type=int, default=640)
+    parser.add_argument("--step", type=int, default=2)
+    parser.add_argument("--batch-size", type=int, default=4)
+    parser.add_argument("--device", default="auto")
+    args = parser.parse_args()
+
+    with tempfile.TemporaryDirectory() as folder:
+        root = Path(folder)
+        database = texture_images(root, "db", args.images, args.width, args.height, seed=0)
+        queries = texture_images(root, "query", args.images, args.width, args.height, seed=1)
+        model = DenseVLAD(max_side=args.max_side, step=args.step, batch_size=args.batch_size, device=args.device)
+        start = time.perf_counter()
+        model.fit(database)
+        fit_seconds = time.perf_counter() - start
+        model.describe(queries.subset(np.arange(1)))  # warm-up
+        if model.device.type == "cuda":
+            torch.cuda.synchronize()
+        start = time.perf_counter()
+        descriptors = model.describe(queries)
+        describe_seconds = time.perf_counter() - start
+
+    print(f"device {model.device} ({torch.get_num_threads()} torch threads), images {args.width}x{args.height} "
+          f"-> max side {args.max_side}, step {args.step} px, bins {list(model.bin_sizes)}")
+    print(f"fit on {args.images} images (vocabulary + PCA to {descriptors.shape[1]} dims): {fit_seconds:.2f} s")
+    print(f"describe {args.images} images: {describe_seconds:.2f} s = {args.images / describe_seconds:.2f} images/s")
+
+
+if __name__ == "__main__":
+    main()

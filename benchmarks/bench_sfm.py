@@ -1,0 +1,101 @@
+"""Paradigms 2a/2b speed on the built-in synthetic scene (default: 128 database + 64 queries, 480x360).
+
+    .venv/bin/python benchmarks/bench_sfm.py [--cache-dir .cache] [--workers 2] [--queries 64]
+
+Prints SIFT extraction images/s, matching ms/pair, the per-query time of local SfM (k=10)
+and global SfM (k=5) once features and matches are cached, and the time of one sweep over
+all k against the sum of separate runs per k (each from an empty match cache). The scene is
+rendered into ``<cache-dir>/synthetic`` on first use; SfM caches go to a temporary folder.
+"""
+
+import argparse
+import logging
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+import locretrieval  # noqa: F401  (imports zlib before pycolmap)
+from locretrieval.groundtruth import relative_pose_groundtruth
+from locretrieval.localization import global_sfm, local_sfm
+from locretrieval.localization.features import extract_features
+from locretrieval.localization.matching import PairMatcher
+from locretrieval.localization.sfm import SfmInputs, common_settings, query_tasks
+from locretrieval.localization.workers import resolve_workers
+from locretrieval.retrieval import random_ranking
+from locretrieval.scene import Scene
+from locretrieval.scene.datasets import load_synthetic_dataset
+from locretrieval.scene.synthetic import DEFAULT_CONFIG
+
+LOCAL_KS, GLOBAL_KS = [5, 10, 20], [1, 5, 10, 20, 50]
+GLOBAL_MAP = {"pairs": {"far": 25.0, "max_per_image": 20}}
+
+
+def timed(function, *args, **kwargs) -> tuple[float, object]:
+    start = time.perf_counter()
+    result = function(*args, **kwargs)
+    return time.perf_counter() - start, result
+
+
+def fresh_cache(features_from: Path) -> Path:
+    """A new cache folder beside ``features_from`` holding only its features (so matching starts from nothing)."""
+    folder = Path(tempfile.mkdtemp(dir=features_from.parent))
+    shutil.copytree(features_from / "features", folder / "features")
+    return folder
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cache-dir", type=Path, default=Path(".cache"), help="where the synthetic scene is (rendered if missing)")
+    parser.add_argument("--workers", type=int, default=0, help="worker processes (0: one per core)")
+    parser.add_argument("--queries", type=int, default=64, help="queries of the scene used")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    workers = resolve_workers(args.workers)
+
+    # the render settings of configs/data/synthetic.yaml, so that `make evaluate`'s scene is reused
+    full = load_synthetic_dataset("synthetic_mall", args.cache_dir, {**DEFAULT_CONFIG, "device": "auto", "workers": workers})
+    scene = Scene(full.name, full.database, full.queries.subset(np.arange(min(args.queries, len(full.queries)))))
+    camera = scene.database.cameras[0]
+    print(f"scene: {len(scene.database)} database images, {len(scene.queries)} queries, {camera.width}x{camera.height}, {workers} worker(s)")
+    with tempfile.TemporaryDirectory(prefix="bench_sfm-") as root:
+        benchmark(scene, Path(root) / "base", workers)
+
+
+def benchmark(scene: Scene, base: Path, workers: int) -> None:
+    database, queries = scene.database, scene.queries
+    serial, _ = timed(extract_features, database.subset(np.arange(16)), None, base / "serial", 1)
+    print(f"SIFT (pycolmap, CPU, 1 process): {16 / serial:.1f} images/s")
+    elapsed, _ = timed(extract_features, database, None, base, workers)
+    elapsed_queries, _ = timed(extract_features, queries, None, base, workers)
+    total = len(database) + len(queries)
+    print(f"SIFT, {workers} worker(s), {total} images (pool start included): {total / (elapsed + elapsed_queries):.1f} images/s")
+
+    groundtruth = relative_pose_groundtruth(database, queries).ranking
+    rankings = [groundtruth, random_ranking(len(queries), len(database), 50, 0)]
+    config = {"workers": workers}
+
+    settings = common_settings({"workers": 1})
+    matcher = PairMatcher(queries, extract_features(queries, None, base), database, extract_features(database, None, base), {}, base)
+    pairs = [(queries.names[q], database.names[i]) for q in range(min(8, len(queries))) for i in range(0, len(database), 2)]
+    elapsed, matched = timed(matcher.ensure, pairs, 1)
+    print(f"matching (mutual NN + ratio, 1 process): {1000 * elapsed / matched:.1f} ms/pair")
+
+    for name, module, ks, extra in (("local_sfm", local_sfm, LOCAL_KS, {}), ("global_sfm", global_sfm, GLOBAL_KS, {"map": GLOBAL_MAP})):
+        cache = fresh_cache(base)
+        sweep, _ = timed(module.run, scene, rankings, {**config, **extra, "k": ks}, cache)
+        separate = sum(timed(module.run, scene, rankings, {**config, **extra, "k": [k]}, fresh_cache(base))[0] for k in ks)
+        print(f"{name}: one sweep over k={ks}, 2 rankings: {sweep:.1f} s; separate runs per k: {separate:.1f} s in all")
+
+        inputs = SfmInputs.prepare(scene, settings, cache)
+        k = 10 if name == "local_sfm" else 5
+        shared = (inputs, "database") if name == "local_sfm" else (inputs, global_sfm.global_map(inputs, GLOBAL_MAP, cache))
+        tasks = query_tasks([groundtruth], [[k]])
+        elapsed, _ = timed(lambda: [module.localize_query(shared, task) for task in tasks])
+        print(f"{name}: {1000 * elapsed / len(tasks):.0f} ms per query at k={k} (cached features and matches, 1 process)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,124 @@
+"""`GroundTruth`: a ground-truth ranking, its binary relevance and the statistics of Table 1."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import sparse
+from tqdm import tqdm
+
+from locretrieval.retrieval import EMPTY, Ranking, top_k
+from locretrieval.scene import ImageSet
+
+#: Query-database pairs scored at once; bounds the memory of every definition.
+PAIRS_PER_CHUNK = 1 << 17
+
+#: ``score_block(query_rows) -> (similarity, rankable, relevant)``, each ``[len(rows), N]``:
+#: the similarity of every pair (higher is better), which pairs may be ranked at all, and
+#: which are relevant.
+ScoreBlock = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """A ground-truth definition evaluated on a scene (paper Sec. 3.6.3).
+
+    ``ranking [Q, K]`` holds the top ``K`` (= ``depth``, 50 by default) database images per
+    query by the definition's score, used like a descriptor's ranking (the upper bound).
+    ``relevance`` is a boolean sparse ``[Q, N]`` matrix of *all* relevant database images,
+    not only the top ``K``. ``query_has_pose [Q]`` marks queries with a known pose; the
+    others have an all-``EMPTY`` ranking row and no relevant image.
+    """
+
+    ranking: Ranking
+    relevance: sparse.csr_matrix
+    query_has_pose: np.ndarray
+
+    def __post_init__(self) -> None:
+        name = self.ranking.name
+        if self.ranking.kind != "groundtruth":
+            raise ValueError(f"ground truth {name!r}: ranking kind is {self.ranking.kind!r}, not 'groundtruth'")
+        if self.relevance.dtype != bool or self.relevance.shape[0] != self.ranking.num_queries:
+            raise ValueError(
+                f"ground truth {name!r}: relevance must be bool [{self.ranking.num_queries}, N], "
+                f"got {self.relevance.dtype} {self.relevance.shape}"
+            )
+        if self.query_has_pose.shape != (self.ranking.num_queries,):
+            raise ValueError(f"ground truth {name!r}: query_has_pose must have one entry per query")
+        unposed = ~self.query_has_pose
+        if (self.ranking.lengths[unposed] > 0).any() or self.relevance[np.flatnonzero(unposed)].nnz:
+            raise ValueError(f"ground truth {name!r}: queries without a pose must have no ranking and no relevance")
+
+    @property
+    def name(self) -> str:
+        return self.ranking.name
+
+    @property
+    def num_database(self) -> int:
+        return self.relevance.shape[1]
+
+    def statistics(self) -> dict[str, float | int]:
+        """The statistics of the paper's Table 1, over the queries with a known pose.
+
+        - ``avg_relevant``: mean number of relevant database images per query, counting
+          *all* of them (not capped at the ranking depth);
+        - ``avg_relevant_in_ranking``: the same count within the top-``depth`` ranking; the
+          paper's "avg. k" saturates at 50, so it most likely counted this one;
+        - ``missing_pct``: percentage of queries without any relevant database image;
+        - ``queries``, ``queries_without_pose``: queries in all, and those left out of the
+          statistics because their pose is unknown.
+        """
+        posed = np.flatnonzero(self.query_has_pose)
+        relevant_per_query = np.diff(self.relevance.indptr)
+        relevant = relevant_per_query[posed]
+        # Pairs as keys row * N + column: the ranked pairs that are relevant, per query.
+        relevant_keys = np.repeat(np.arange(len(relevant_per_query)), relevant_per_query) * self.num_database
+        relevant_keys += self.relevance.indices
+        rows, slots = np.nonzero(self.ranking.indices != EMPTY)
+        ranked_keys = rows * self.num_database + self.ranking.indices[rows, slots]
+        in_ranking = np.bincount(rows[np.isin(ranked_keys, relevant_keys)], minlength=self.ranking.num_queries)[posed]
+        has_queries = len(posed) > 0
+        return {
+            "queries": self.ranking.num_queries,
+            "queries_without_pose": self.ranking.num_queries - len(posed),
+            "depth": self.ranking.depth,
+            "avg_relevant": float(relevant.mean()) if has_queries else float("nan"),
+            "avg_relevant_in_ranking": float(in_ranking.mean()) if has_queries else float("nan"),
+            "missing_pct": float(100.0 * (relevant == 0).mean()) if has_queries else float("nan"),
+        }
+
+
+def groundtruth_from_scores(
+    name: str, database: ImageSet, queries: ImageSet, depth: int, score_block: ScoreBlock
+) -> GroundTruth:
+    """Rank and threshold the queries with a pose, a chunk of queries at a time.
+
+    ``score_block`` is only called with rows of queries that have a pose; the ranking keeps
+    the ``depth`` best rankable pairs per query (ties: lower database index first). Every
+    database image must have a pose.
+    """
+    if not database.has_pose.all():
+        missing = [n for n, posed in zip(database.names, database.has_pose) if not posed]
+        raise ValueError(f"ground truth {name!r}: database images without a pose: {missing[:5]}")
+    query_has_pose = queries.has_pose
+    num_queries, num_database = len(queries), len(database)
+    width = min(depth, num_database)
+    indices = np.full((num_queries, width), EMPTY, dtype=np.int64)
+    scores = np.zeros((num_queries, width), dtype=np.float32)
+    relevant_rows, relevant_columns = [np.empty(0, dtype=np.int64)], [np.empty(0, dtype=np.int64)]
+    posed = np.flatnonzero(query_has_pose)
+    rows_per_chunk = max(1, PAIRS_PER_CHUNK // num_database)
+    chunks = [posed[start : start + rows_per_chunk] for start in range(0, len(posed), rows_per_chunk)]
+    for rows in tqdm(chunks, desc=name, unit="chunk", disable=None if len(chunks) > 1 else True, leave=False):
+        similarity, rankable, relevant = score_block(rows)
+        indices[rows], scores[rows] = top_k(similarity, depth, rankable)
+        block_rows, block_columns = np.nonzero(relevant)
+        relevant_rows.append(rows[block_rows])
+        relevant_columns.append(block_columns)
+    rows, columns = np.concatenate(relevant_rows), np.concatenate(relevant_columns)
+    relevance = sparse.csr_matrix(
+        (np.ones(len(rows), dtype=bool), (rows, columns)), shape=(num_queries, num_database)
+    )
+    return GroundTruth(Ranking(name, indices, scores, "groundtruth"), relevance, query_has_pose)

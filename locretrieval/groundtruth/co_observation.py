@@ -1,0 +1,121 @@
+"""Co-observation ground truth (paper Sec. 3.6.3, "Shared 3D observations").
+
+A joint map of the database and the queries is triangulated with their known poses: the
+image pairs are chosen by frustum overlap (database pairs as for the global SfM map, and
+each query with its most overlapping database images), matched, verified against the
+epipolar geometry of the known poses and triangulated together with COLMAP's triangulator
+(`locretrieval.localization`). The score of (q, t) is the number of 3D points observed by
+both; pairs sharing none are not ranked, and a pair is relevant when it shares at least
+``min_shared`` points (the paper: one).
+
+Features, matches and the database part of the pair selection are those of the SfM
+paradigms (the same caches when the settings agree).
+"""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import sparse
+
+from locretrieval.groundtruth.base import GroundTruth, groundtruth_from_scores
+from locretrieval.localization.features import extract_features
+from locretrieval.localization.pairs import database_pairs, overlapping_pairs, pair_settings
+from locretrieval.localization.matching import PairMatcher, matching_settings
+from locretrieval.localization.sparse_map import SparseMap
+from locretrieval.localization.triangulation import triangulate_known_poses, triangulation_settings
+from locretrieval.scene import ImageSet
+
+
+def co_observation_groundtruth(
+    database: ImageSet,
+    queries: ImageSet,
+    *,
+    depth: int = 50,
+    name: str = "gt_co_observation",
+    cache_dir: str | Path | None = None,
+    features: Mapping[str, Any] | None = None,
+    matching: Mapping[str, Any] | None = None,
+    triangulation: Mapping[str, Any] | None = None,
+    pairs: Mapping[str, Any] | None = None,
+    query_pairs: int = 20,
+    min_shared: int = 1,
+    workers: int | None = 1,
+) -> GroundTruth:
+    """Database images ranked by the number of 3D points they share with each query.
+
+    ``pairs``: frustum-overlap pair selection of the database (`localization.pairs`);
+    the queries use the same frusta, each paired with its ``query_pairs`` most overlapping
+    database images. ``features``/``matching``/``triangulation``: as for the SfM paradigms.
+    Features and matches are cached under ``cache_dir`` (a temporary folder when None).
+    """
+    if min_shared < 1:
+        raise ValueError(f"min_shared must be >= 1 shared 3D point, got {min_shared}")
+    if cache_dir is None:
+        with tempfile.TemporaryDirectory(prefix="co_observation-") as folder:
+            return co_observation_groundtruth(
+                database, queries, depth=depth, name=name, cache_dir=folder, features=features, matching=matching,
+                triangulation=triangulation, pairs=pairs, query_pairs=query_pairs, min_shared=min_shared, workers=workers,
+            )
+    shared = shared_points(database, queries, Path(cache_dir), features, matching, triangulation, pairs, query_pairs, workers)
+
+    def score_block(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        counts = shared[rows].toarray().astype(np.float64)
+        return counts, counts > 0, counts >= min_shared
+
+    return groundtruth_from_scores(name, database, queries, depth, score_block)
+
+
+def shared_points(
+    database: ImageSet, queries: ImageSet, cache_dir: Path, features: Mapping[str, Any] | None,
+    matching: Mapping[str, Any] | None, triangulation: Mapping[str, Any] | None, pairs: Mapping[str, Any] | None,
+    query_pairs: int, workers: int | None,
+) -> sparse.csr_matrix:
+    """``[Q, N]`` number of joint-map points observed by query q and database image t
+    (zero rows for queries without a pose)."""
+    posed = np.flatnonzero(queries.has_pose)
+    posed_queries = queries.subset(posed)
+    pair_config = pair_settings(pairs)
+    database_features = extract_features(database, features, cache_dir, workers)
+    query_features = extract_features(posed_queries, features, cache_dir, workers)
+    settings = matching_settings(matching)
+    database_matcher = PairMatcher(database, database_features, database, database_features, settings, cache_dir)
+    query_matcher = PairMatcher(posed_queries, query_features, database, database_features, settings, cache_dir)
+
+    database_pair_rows = database_pairs(database, pair_config)
+    query_pair_rows = overlapping_pairs(posed_queries, database, {**pair_config, "max_per_image": query_pairs}, exclude_self=False)
+    named_database = [(database.names[a], database.names[b]) for a, b in database_pair_rows]
+    named_queries = [(posed_queries.names[q], database.names[t]) for q, t in query_pair_rows]
+    database_matcher.ensure(named_database, workers, "poses")
+    query_matcher.ensure(named_queries, workers, "poses")
+    database_matches = database_matcher.load(named_database, "poses")
+    query_matches = query_matcher.load(named_queries, "poses")
+
+    # joint image order: database 0..N-1, then the posed queries
+    offset = len(database)
+    matches = {(int(a), int(b)): database_matches[pair] for (a, b), pair in zip(database_pair_rows, named_database)}
+    matches.update({(int(t), offset + int(q)): query_matches[pair][:, ::-1] for (q, t), pair in zip(query_pair_rows, named_queries)})
+    keypoints = database_features.keypoints(database.names)
+    query_keypoints = query_features.keypoints(posed_queries.names)
+    joint: SparseMap = triangulate_known_poses(
+        database.cameras + posed_queries.cameras,
+        np.concatenate([database.qvec, posed_queries.qvec]),
+        np.concatenate([database.tvec, posed_queries.tvec]),
+        [keypoints[n] for n in database.names] + [query_keypoints[n] for n in posed_queries.names],
+        matches,
+        triangulation_settings(triangulation),
+    )
+    observed = _incidence(joint.observed_points(), joint.num_points)
+    counts = (observed[offset:] @ observed[:offset].T).tocoo()
+    return sparse.csr_matrix((counts.data, (posed[counts.row], counts.col)), shape=(len(queries), len(database)))
+
+
+def _incidence(points_per_image: list[np.ndarray], num_points: int) -> sparse.csr_matrix:
+    """Binary ``[images, points]`` matrix: image i observes point p."""
+    rows = np.repeat(np.arange(len(points_per_image)), [len(p) for p in points_per_image])
+    columns = np.concatenate(points_per_image) if points_per_image else np.empty(0, dtype=np.int64)
+    return sparse.csr_matrix((np.ones(len(rows), dtype=np.int64), (rows, columns)), shape=(len(points_per_image), num_points))

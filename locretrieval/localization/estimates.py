@@ -1,0 +1,58 @@
+"""`PoseEstimates`: what every paradigm returns for one ranking and one method."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from locretrieval import geometry
+
+#: Failure reason of a query whose estimate exists.
+LOCALIZED = ""
+
+
+@dataclass
+class PoseEstimates:
+    """Estimated world-to-camera poses of every query for each k.
+
+    ``qvec [len(ks), Q, 4]`` (wxyz) and ``tvec [len(ks), Q, 3]`` are NaN where no estimate
+    exists; ``failures [len(ks), Q]`` then holds the reason (``""`` where estimated).
+    """
+
+    ranking: str
+    ranking_kind: str
+    paradigm: str
+    method: str
+    ks: list[int]
+    qvec: np.ndarray
+    tvec: np.ndarray
+    failures: np.ndarray
+
+    def __post_init__(self) -> None:
+        shape = (len(self.ks), self.qvec.shape[1])
+        if self.qvec.shape != (*shape, 4) or self.tvec.shape != (*shape, 3) or self.failures.shape != shape:
+            raise ValueError(
+                f"{self.ranking}/{self.paradigm}/{self.method}: inconsistent estimate shapes "
+                f"{self.qvec.shape}, {self.tvec.shape}, {self.failures.shape} for ks={self.ks}"
+            )
+        missing = ~np.isfinite(self.qvec).all(-1) | ~np.isfinite(self.tvec).all(-1)
+        if (missing & (self.failures == LOCALIZED)).any():
+            raise ValueError(f"{self.ranking}/{self.paradigm}/{self.method}: a missing estimate has no failure reason")
+
+    @property
+    def estimated(self) -> np.ndarray:
+        """Boolean ``[len(ks), Q]``: an estimate exists."""
+        return self.failures == LOCALIZED
+
+    def errors(self, q_reference: np.ndarray, t_reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Position (scene units) and rotation (degrees) errors ``[len(ks), Q]`` (paper eq. 3-4).
+
+        NaN where there is no estimate or no reference pose.
+        """
+        c_estimated = geometry.camera_centers(self.qvec, self.tvec)
+        c_reference = geometry.camera_centers(q_reference, t_reference)
+        return (
+            geometry.position_errors(c_estimated, c_reference[None]),
+            geometry.rotation_errors_deg(self.qvec, np.asarray(q_reference)[None]),
+        )

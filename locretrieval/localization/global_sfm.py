@@ -1,0 +1,111 @@
+"""Paradigm 2b, global SfM (paper Sec. 3.3 and 3.9): register queries in one map of the database.
+
+The global map is either
+
+- triangulated from the database with its known poses: database pairs selected by frustum
+  overlap (`database_pairs`: the pairs whose truncated frusta inscribe a sphere of radius
+  above ``map.pairs.min_radius`` metres, at most the ``max_per_image`` most overlapping per
+  image; the paper used radius >= 10 m, or the 50 most overlapping for dense sets), matched,
+  verified against the known poses' epipolar geometry and triangulated with COLMAP's
+  triangulator; built once per scene, features and options, and cached in
+  ``<cache_dir>/maps/``; or
+- an existing COLMAP model (``map.colmap_model``, e.g. the published ``colmap-sfm`` maps),
+  whose 2D points must be the configured features (`read_colmap_map`).
+
+Each query is matched to its top-k images (cached pairs, verified per
+``matching.query_verification``); the map points observed by the matched database keypoints
+give 2D-3D correspondences, and LO-RANSAC P3P with refinement gives its pose.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from locretrieval.cache import config_key
+from locretrieval.localization.colmap_model import read_colmap_map
+from locretrieval.localization.estimates import PoseEstimates
+from locretrieval.localization.pairs import database_pairs, pair_settings
+from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS
+from locretrieval.localization.sfm import (
+    Outcome, QueryTask, SfmInputs, check_keys, common_settings, plain_config, register_query, run_queries,
+)
+from locretrieval.localization.sparse_map import SparseMap
+from locretrieval.localization.triangulation import triangulate_known_poses
+from locretrieval.retrieval import Ranking
+from locretrieval.scene import Scene
+
+log = logging.getLogger(__name__)
+
+#: Bump when the meaning of cached maps changes.
+CACHE_VERSION = 1
+
+
+def run(scene: Scene, rankings: Sequence[Ranking], config: Mapping[str, Any], cache_dir: Path | None = None) -> list[PoseEstimates]:
+    """Paradigm entry point: the pose of every query for every ranking and every ``config["k"]``."""
+    if cache_dir is None:
+        raise ValueError("global_sfm needs a cache directory for its features, matches and map")
+    config = plain_config(config)
+    check_keys("global_sfm", config, ["map"])
+    settings = common_settings(config)
+    ks = [ranking.clamp_ks(config["k"]) for ranking in rankings]
+    inputs = SfmInputs.prepare(scene, settings, Path(cache_dir))
+    sparse_map = global_map(inputs, config.get("map") or {}, Path(cache_dir))
+    inputs.match_queries(rankings, ks)
+    return run_queries("global_sfm", rankings, ks, localize_query, (inputs, sparse_map), settings["workers"])
+
+
+def global_map(inputs: SfmInputs, config: Mapping[str, Any], cache_dir: Path) -> SparseMap:
+    """The database's map: an existing COLMAP model, or triangulated with known poses (cached)."""
+    unknown = sorted(set(config) - {"colmap_model", "pairs"})
+    if unknown:
+        raise ValueError(f"unknown global_sfm.map settings {unknown}; known: ['colmap_model', 'pairs']")
+    database = inputs.scene.database
+    keypoints = inputs.database_features.keypoints(database.names)
+    if config.get("colmap_model"):
+        log.info("global map: COLMAP model %s", config["colmap_model"])
+        return read_colmap_map(config["colmap_model"], database.names, [keypoints[n] for n in database.names])
+    pairs_config = pair_settings(config.get("pairs"))
+    settings = inputs.settings
+    key = config_key(
+        CACHE_VERSION, settings["features"], settings["matching"]["ratio"], settings["matching"]["max_epipolar_error"],
+        settings["triangulation"], pairs_config,
+    )
+    path = cache_dir / "maps" / f"{database.fingerprint()}-{key}.npz"
+    if path.exists():
+        log.info("global map loaded from %s", path)
+        return SparseMap.load(path)
+    pairs = database_pairs(database, pairs_config)
+    named = [(database.names[a], database.names[b]) for a, b in pairs]
+    inputs.database_pairs.ensure(named, settings["workers"], "poses")
+    matches = inputs.database_pairs.load(named, "poses")
+    sparse_map = triangulate_known_poses(
+        database.cameras, database.qvec, database.tvec, [keypoints[n] for n in database.names],
+        {(int(a), int(b)): matches[pair] for (a, b), pair in zip(pairs, named)}, settings["triangulation"],
+    )
+    sparse_map.save(path)
+    log.info("global map: %d points from %d database images (%d pairs), saved to %s", sparse_map.num_points, len(database), len(pairs), path)
+    return sparse_map
+
+
+def localize_query(shared: tuple[SfmInputs, SparseMap], task: QueryTask) -> list[list[Outcome]]:
+    """Outcomes ``[ranking][k]`` of one query registered in the global map."""
+    inputs, sparse_map = shared
+    images = sorted({i for top in task.top for i in top})
+    query_keypoints, query_matches = inputs.query_matches(task.query, images)
+    slots = {i: i for i in images}
+    outcomes = []
+    for top, ks in zip(task.top, task.ks):
+        per_k = []
+        for k in ks:
+            selected = top[:k]
+            if not selected:
+                per_k.append(EMPTY_RETRIEVAL)
+            elif not any((sparse_map.observations[i] >= 0).any() for i in selected):
+                per_k.append(NO_3D_POINTS)
+            else:
+                per_k.append(register_query(inputs, task.query, query_keypoints, {i: query_matches[i] for i in selected}, sparse_map, slots))
+        outcomes.append(per_k)
+    return outcomes

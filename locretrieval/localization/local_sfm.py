@@ -1,0 +1,140 @@
+"""Paradigm 2a, local SfM (paper Sec. 3.2 and 3.9): a map built on the fly from the top-k images.
+
+For each query, ranking and k:
+
+1. the map images are the query's top-k database images (their known poses are kept fixed);
+2. map-map matches (``map_matches``):
+   - ``database`` (the paper's protocol): every pair of the k images is matched (mutual
+     nearest neighbours + ratio test). Database pairs are matched once for all queries,
+     rankings and k and cached;
+   - ``query``: derived from the query's matches (Sec. 4.1.2, discussion): if query keypoint
+     q1 matches m1 in one map image and m2 in another, (m1, m2) is a map-map match; no
+     database pair is matched at all;
+   either way, map-map matches are then kept only within ``matching.max_epipolar_error``
+   pixels of the epipolar geometry of the two known poses;
+3. COLMAP's triangulator builds tracks across the k images and triangulates them
+   (`triangulate_known_poses`; two-view tracks kept, ``triangulation`` options);
+4. the query's matches to the k images (verified per ``matching.query_verification``) give
+   2D-3D correspondences through the triangulated keypoints, and LO-RANSAC P3P with
+   non-linear refinement (``pnp`` options) estimates its pose.
+
+A query is not localised (with its reason) when its ranking is empty, k < 2 images are
+available ("too few images"), the map has no point, or PnP fails.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from locretrieval.localization.estimates import PoseEstimates
+from locretrieval.localization.matching import epipolar_inliers
+from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
+from locretrieval.localization.sfm import (
+    Outcome, QueryTask, SfmInputs, check_keys, common_settings, plain_config, register_query, run_queries,
+)
+from locretrieval.localization.triangulation import triangulate_known_poses
+from locretrieval.retrieval import EMPTY, Ranking
+from locretrieval.scene import Scene
+
+MAP_MATCHES = ("database", "query")
+
+
+def run(scene: Scene, rankings: Sequence[Ranking], config: Mapping[str, Any], cache_dir: Path | None = None) -> list[PoseEstimates]:
+    """Paradigm entry point: the pose of every query for every ranking and every ``config["k"]``."""
+    if cache_dir is None:
+        raise ValueError("local_sfm needs a cache directory for its features and matches")
+    config = plain_config(config)
+    check_keys("local_sfm", config, ["map_matches"])
+    settings = common_settings(config)
+    map_matches = config.get("map_matches", "database")
+    if map_matches not in MAP_MATCHES:
+        raise ValueError(f"local_sfm.map_matches must be one of {MAP_MATCHES}, got {map_matches!r}")
+    ks = [ranking.clamp_ks(config["k"]) for ranking in rankings]
+    inputs = SfmInputs.prepare(scene, settings, Path(cache_dir))
+    inputs.match_queries(rankings, ks)
+    if map_matches == "database":
+        names = scene.database.names
+        pairs = [(names[a], names[b]) for a, b in local_map_pairs(rankings, ks)]
+        inputs.database_pairs.ensure(pairs, settings["workers"], "poses")
+    return run_queries("local_sfm", rankings, ks, localize_query, (inputs, map_matches), settings["workers"])
+
+
+def local_map_pairs(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> np.ndarray:
+    """Distinct database pairs ``[P, 2]`` (a < b) of any local map: both among one query's top ``max(k)``."""
+    pairs = [np.empty((0, 2), dtype=np.int64)]
+    for ranking, ranking_ks in zip(rankings, ks):
+        top = ranking.indices[:, : max(ranking_ks)]
+        first, second = np.triu_indices(top.shape[1], 1)
+        a, b = top[:, first].ravel(), top[:, second].ravel()
+        valid = (a != EMPTY) & (b != EMPTY) & (a != b)
+        pairs.append(np.column_stack([np.minimum(a, b), np.maximum(a, b)])[valid])
+    return np.unique(np.concatenate(pairs), axis=0)
+
+
+def localize_query(shared: tuple[SfmInputs, str], task: QueryTask) -> list[list[Outcome]]:
+    """Outcomes ``[ranking][k]`` of one query; maps shared by rankings are triangulated once."""
+    inputs, map_matches = shared
+    database = inputs.scene.database
+    images = sorted({i for top in task.top for i in top})
+    query_keypoints, query_matches = inputs.query_matches(task.query, images)
+    map_pairs = _map_matches(inputs, task, map_matches, query_matches, len(query_keypoints))
+    keypoints = inputs.database_features.keypoints([database.names[i] for i in images])
+    maps = {}
+    outcomes = []
+    for top, ks in zip(task.top, task.ks):
+        per_k = []
+        for k in ks:
+            selected = tuple(top[:k])
+            if not selected:
+                per_k.append(EMPTY_RETRIEVAL)
+                continue
+            if len(selected) < 2:
+                per_k.append(TOO_FEW_IMAGES)
+                continue
+            slots = {i: s for s, i in enumerate(selected)}
+            if selected not in maps:
+                maps[selected] = triangulate_known_poses(
+                    [database.cameras[i] for i in selected], database.qvec[list(selected)], database.tvec[list(selected)],
+                    [keypoints[database.names[i]] for i in selected],
+                    {(slots[a], slots[b]): map_pairs[(a, b)] for a in selected for b in selected if a < b},
+                    inputs.settings["triangulation"],
+                )
+            sparse_map = maps[selected]
+            if not sparse_map.num_points:
+                per_k.append(NO_3D_POINTS)
+                continue
+            per_k.append(register_query(inputs, task.query, query_keypoints, {i: query_matches[i] for i in selected}, sparse_map, slots))
+        outcomes.append(per_k)
+    return outcomes
+
+
+def _map_matches(
+    inputs: SfmInputs, task: QueryTask, map_matches: str, query_matches: Mapping[int, np.ndarray], num_query_keypoints: int
+) -> dict[tuple[int, int], np.ndarray]:
+    """Pose-verified matches of every database pair ``(a, b)``, a < b, within one ranking's top images."""
+    database = inputs.scene.database
+    pairs = sorted({(min(a, b), max(a, b)) for top in task.top for a in top for b in top if a != b})
+    if map_matches == "database":
+        loaded = inputs.database_pairs.load([(database.names[a], database.names[b]) for a, b in pairs], "poses")
+        return {(a, b): loaded[(database.names[a], database.names[b])] for a, b in pairs}
+    keypoints = inputs.database_features.keypoints(sorted({database.names[i] for pair in pairs for i in pair}))
+    partner = {}
+    for image, matches in query_matches.items():
+        partner[image] = np.full(num_query_keypoints, -1, dtype=np.int64)
+        partner[image][matches[:, 0]] = matches[:, 1]
+    derived = {}
+    for a, b in pairs:
+        both = (partner[a] >= 0) & (partner[b] >= 0)
+        matches = np.column_stack([partner[a][both], partner[b][both]]).astype(np.int32)
+        keep = epipolar_inliers(
+            keypoints[database.names[a]], keypoints[database.names[b]], matches,
+            database.cameras[a], (database.qvec[a], database.tvec[a]),
+            database.cameras[b], (database.qvec[b], database.tvec[b]),
+            float(inputs.settings["matching"]["max_epipolar_error"]),
+        )
+        derived[(a, b)] = matches[keep]
+    return derived

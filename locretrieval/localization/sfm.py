@@ -1,0 +1,187 @@
+"""What the SfM paradigms (2a local, 2b global) share: settings, feature and match caches,
+the union of query-database pairs over all rankings, per-query workers, and the results.
+
+Every ranking is handled in the same run so that features and matches are shared: the query
+pairs are the union over rankings of each query with its top ``max(k)`` database images, each
+matched once; the per-query work then reads only cached inputs.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from locretrieval.localization.estimates import LOCALIZED, PoseEstimates
+from locretrieval.localization.features import FeatureStore, extract_features, feature_settings
+from locretrieval.localization.matching import PairMatcher, matching_settings
+from locretrieval.localization.pnp import NO_KEYPOINTS, TOO_FEW_MATCHES, estimate_absolute_pose, pnp_settings
+from locretrieval.localization.sparse_map import SparseMap
+from locretrieval.localization.triangulation import triangulation_settings
+from locretrieval.localization.workers import parallel_map, resolve_workers
+from locretrieval.retrieval import EMPTY, Ranking
+from locretrieval.scene import Scene
+
+log = logging.getLogger(__name__)
+
+#: A query's result for one ranking and one k: world-to-camera (q wxyz, t), or a failure reason.
+Outcome = tuple[np.ndarray, np.ndarray] | str
+
+
+def plain_config(config: Mapping[str, Any] | DictConfig) -> dict[str, Any]:
+    """A paradigm section as plain containers, interpolations resolved."""
+    if isinstance(config, DictConfig):
+        return OmegaConf.to_container(config, resolve=True)  # type: ignore[return-value]
+    return dict(config)
+
+
+#: Keys of every SfM paradigm section.
+COMMON_KEYS = ("enabled", "k", "features", "matching", "triangulation", "pnp", "workers")
+
+
+def check_keys(paradigm: str, config: Mapping[str, Any], extra: Sequence[str] = ()) -> None:
+    """Unknown keys of a paradigm section (typos) are an error naming them."""
+    unknown = sorted(set(config) - set(COMMON_KEYS) - set(extra))
+    if unknown:
+        raise ValueError(f"unknown {paradigm} settings {unknown}; known: {sorted({*COMMON_KEYS, *extra})}")
+
+
+def common_settings(config: Mapping[str, Any]) -> dict[str, Any]:
+    """The checked ``features``, ``matching``, ``triangulation``, ``pnp`` and ``workers`` settings."""
+    return {
+        "features": feature_settings(config.get("features")),
+        "matching": matching_settings(config.get("matching")),
+        "triangulation": triangulation_settings(config.get("triangulation")),
+        "pnp": pnp_settings(config.get("pnp")),
+        "workers": resolve_workers(config.get("workers")),
+    }
+
+
+@dataclass
+class SfmInputs:
+    """Cached features and matches of a scene, picklable for worker processes."""
+
+    scene: Scene
+    settings: dict[str, Any]
+    database_features: FeatureStore
+    query_features: FeatureStore
+    database_pairs: PairMatcher
+    query_pairs: PairMatcher
+
+    @classmethod
+    def prepare(cls, scene: Scene, settings: dict[str, Any], cache_dir: Path) -> "SfmInputs":
+        """Extract (or reuse) the local features of both image sets."""
+        workers = settings["workers"]
+        database_features = extract_features(scene.database, settings["features"], cache_dir, workers)
+        query_features = extract_features(scene.queries, settings["features"], cache_dir, workers)
+        return cls(
+            scene,
+            settings,
+            database_features,
+            query_features,
+            PairMatcher(scene.database, database_features, scene.database, database_features, settings["matching"], cache_dir),
+            PairMatcher(scene.queries, query_features, scene.database, database_features, settings["matching"], cache_dir),
+        )
+
+    @property
+    def query_verification(self) -> str:
+        return self.settings["matching"]["query_verification"]
+
+    def match_queries(self, rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> int:
+        """Match every query to its top ``max(k)`` images of every ranking; returns new pairs matched."""
+        queries, database = self.scene.queries.names, self.scene.database.names
+        pairs = set()
+        for ranking, ranking_ks in zip(rankings, ks):
+            top = ranking.indices[:, : max(ranking_ks)]
+            rows, slots = np.nonzero(top != EMPTY)
+            pairs.update((queries[q], database[i]) for q, i in zip(rows, top[rows, slots]))
+        return self.query_pairs.ensure(pairs, self.settings["workers"], self.query_verification)
+
+    def query_matches(self, query: int, database: Sequence[int]) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+        """The query's keypoints and its (verified) matches to each database image."""
+        name = self.scene.queries.names[query]
+        keypoints = self.query_features.keypoints([name])[name]
+        names = [self.scene.database.names[i] for i in database]
+        matches = self.query_pairs.load([(name, other) for other in names], self.query_verification)
+        return keypoints, {i: matches[(name, other)] for i, other in zip(database, names)}
+
+
+def correspondences(
+    query_keypoints: np.ndarray, query_matches: Mapping[int, np.ndarray], sparse_map: SparseMap, slots: Mapping[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """2D-3D correspondences ``(points2D [m, 2], points3D [m, 3])`` of a query through the map
+    points its matched database keypoints observe; ``slots`` maps database index -> image
+    index in ``sparse_map``. A (query keypoint, 3D point) pair reached twice counts once."""
+    pairs = []
+    for database_index, matches in query_matches.items():
+        ids = sparse_map.observations[slots[database_index]][matches[:, 1]]
+        observed = ids >= 0
+        pairs.append(np.column_stack([matches[observed, 0], ids[observed]]))
+    if not pairs:
+        return np.empty((0, 2)), np.empty((0, 3))
+    unique = np.unique(np.concatenate(pairs).astype(np.int64), axis=0)
+    return query_keypoints[unique[:, 0]].astype(np.float64), sparse_map.points[unique[:, 1]]
+
+
+def register_query(
+    inputs: SfmInputs, query: int, query_keypoints: np.ndarray, query_matches: Mapping[int, np.ndarray],
+    sparse_map: SparseMap, slots: Mapping[int, int],
+) -> Outcome:
+    """The query's pose from its correspondences with ``sparse_map``, or the failure reason."""
+    if not len(query_keypoints):
+        return NO_KEYPOINTS
+    points2D, points3D = correspondences(query_keypoints, query_matches, sparse_map, slots)
+    if not len(points2D):
+        return TOO_FEW_MATCHES
+    result = estimate_absolute_pose(points2D, points3D, inputs.scene.queries.cameras[query], inputs.settings["pnp"])
+    return result if isinstance(result, str) else result[:2]
+
+
+@dataclass(frozen=True)
+class QueryTask:
+    """One query's top database images per ranking (``EMPTY`` removed) and the ks of each."""
+
+    query: int
+    top: tuple[tuple[int, ...], ...]
+    ks: tuple[tuple[int, ...], ...]
+
+
+def query_tasks(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> list[QueryTask]:
+    """Per query, its top ``max(k)`` database images of each ranking."""
+    rows = [ranking.indices[:, : max(ranking_ks)] for ranking, ranking_ks in zip(rankings, ks)]
+    return [
+        QueryTask(q, tuple(tuple(int(i) for i in row[q] if i != EMPTY) for row in rows), tuple(map(tuple, ks)))
+        for q in range(rankings[0].num_queries)
+    ]
+
+
+def run_queries(
+    paradigm: str, rankings: Sequence[Ranking], ks: Sequence[list[int]],
+    localize: Callable[[Any, QueryTask], list[list[Outcome]]], shared: Any, workers: int,
+) -> list[PoseEstimates]:
+    """Run ``localize(shared, task)`` (outcomes ``[ranking][k]`` of one query) on every query
+    in worker processes and gather one `PoseEstimates` per ranking; failures are logged."""
+    tasks = query_tasks(rankings, ks)
+    outcomes = list(parallel_map(localize, tasks, workers, paradigm, shared))
+    estimates = []
+    for r, (ranking, ranking_ks) in enumerate(zip(rankings, ks)):
+        shape = (len(ranking_ks), ranking.num_queries)
+        qvec, tvec = np.full((*shape, 4), np.nan), np.full((*shape, 3), np.nan)
+        failures = np.full(shape, LOCALIZED, dtype=object)
+        for q, per_query in enumerate(outcomes):
+            for n, outcome in enumerate(per_query[r]):
+                if isinstance(outcome, str):
+                    failures[n, q] = outcome
+                else:
+                    qvec[n, q], tvec[n, q] = outcome
+        reasons = Counter(reason for reason in failures.ravel() if reason != LOCALIZED)
+        if reasons:
+            log.info("%s / %s: not localised %s (over %d queries x k=%s)", paradigm, ranking.name, dict(reasons), ranking.num_queries, ranking_ks)
+        estimates.append(PoseEstimates(ranking.name, ranking.kind, paradigm, "pnp", ranking_ks, qvec, tvec, failures.astype(str)))
+    return estimates

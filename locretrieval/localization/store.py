@@ -1,0 +1,121 @@
+"""`ShardedStore`: a folder of HDF5 files holding keyed records of arrays, written atomically.
+
+Local features and matches are computed in batches by worker processes; each batch becomes
+one new shard file (moved into place only when complete), so a killed run loses at most
+the batches in flight and a restarted one computes only the records still missing. Shards
+are never modified after they are written, which makes concurrent readers safe.
+
+A record is a set of named arrays (the same names in every record of a shard) stored under
+a key (any string, e.g. an image name or a pair of them). A shard stores, per array name,
+the records' arrays concatenated along their first axis with their lengths, and the keys in
+order, so reading a shard is a few dataset reads; recently read shards stay in memory.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from locretrieval.cache import atomic_path, config_key
+
+SHARD_SUFFIX = ".h5"
+#: Shards kept in memory per store (least recently used dropped first).
+CACHED_SHARDS = 64
+
+
+class ShardedStore:
+    """Records ``key -> {array name: array}`` spread over the shard files of ``folder``."""
+
+    def __init__(self, folder: str | Path) -> None:
+        self.folder = Path(folder)
+        self._index: dict[str, Path] | None = None
+        self._cache: OrderedDict[Path, dict[str, dict[str, np.ndarray]]] = OrderedDict()
+
+    def __getstate__(self) -> dict:
+        """Pickled for worker processes without the in-memory shards."""
+        return {**self.__dict__, "_cache": OrderedDict()}
+
+    @property
+    def index(self) -> dict[str, Path]:
+        """Key -> shard holding it, read from the shard files on first use (see `refresh`)."""
+        if self._index is None:
+            index = {}
+            # "[!.]": not the hidden temporary files of shards being written (`atomic_path`)
+            shards = sorted(self.folder.glob(f"[!.]*{SHARD_SUFFIX}")) if self.folder.is_dir() else []
+            for shard in shards:
+                with _open(shard) as file:
+                    index.update((key, shard) for key in file["keys"].asstr()[()])
+            self._index = index
+        return self._index
+
+    def refresh(self) -> None:
+        """Forget the index so that shards written by other processes are seen."""
+        self._index = None
+
+    def __contains__(self, key: str) -> bool:
+        return key in self.index
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def missing(self, keys: Iterable[str]) -> list[str]:
+        """The keys without a record, in the given order, without repeats."""
+        index = self.index
+        return list(dict.fromkeys(key for key in keys if key not in index))
+
+    def read(self, keys: Iterable[str]) -> dict[str, dict[str, np.ndarray]]:
+        """The records of ``keys``; a missing key is a `KeyError`."""
+        records = {}
+        for key in keys:
+            shard = self.index.get(key)
+            if shard is None:
+                raise KeyError(f"{self.folder}: no record {key!r}")
+            records[key] = self._shard(shard)[key]
+        return records
+
+    def _shard(self, shard: Path) -> dict[str, dict[str, np.ndarray]]:
+        if shard in self._cache:
+            self._cache.move_to_end(shard)
+            return self._cache[shard]
+        with _open(shard) as file:
+            keys = list(file["keys"].asstr()[()])
+            records: dict[str, dict[str, np.ndarray]] = {key: {} for key in keys}
+            for name in file["data"]:
+                bounds = np.cumsum(file["lengths"][name][()])[:-1]
+                for key, part in zip(keys, np.split(file["data"][name][()], bounds)):
+                    records[key][name] = part
+        self._cache[shard] = records
+        if len(self._cache) > CACHED_SHARDS:
+            self._cache.popitem(last=False)
+        return records
+
+    def write(self, records: Mapping[str, Mapping[str, np.ndarray]]) -> Path | None:
+        """Store ``records`` (same array names in each) as one new shard, atomically."""
+        if not records:
+            return None
+        keys = list(records)
+        names = sorted(records[keys[0]])
+        if any(sorted(arrays) != names for arrays in records.values()):
+            raise ValueError(f"{self.folder}: records of one shard must hold the same arrays {names}")
+        path = self.folder / f"{config_key(sorted(keys))}{SHARD_SUFFIX}"
+        with atomic_path(path) as temporary:
+            with h5py.File(temporary, "w") as file:
+                file.create_dataset("keys", data=np.array(keys, dtype=object), dtype=h5py.string_dtype())
+                for name in names:
+                    arrays = [np.asarray(records[key][name]) for key in keys]
+                    file.create_dataset(f"data/{name}", data=np.concatenate(arrays))
+                    file.create_dataset(f"lengths/{name}", data=np.array([len(a) for a in arrays], dtype=np.int64))
+        if self._index is not None:
+            self._index.update((key, path) for key in keys)
+        return path
+
+
+def _open(shard: Path) -> h5py.File:
+    try:
+        return h5py.File(shard, "r")
+    except OSError as error:
+        raise OSError(f"cannot read cache shard {shard} ({error}); delete it to recompute its records") from error

@@ -1,0 +1,94 @@
+"""Sparse maps triangulated from images with known poses (COLMAP's point triangulator, in memory).
+
+`triangulate_known_poses` builds a pycolmap ``Reconstruction`` holding the images with their
+fixed world-to-camera poses and keypoints, a ``CorrespondenceGraph`` of the verified pairwise
+matches, and runs ``IncrementalTriangulator`` over every image (tracks are formed through
+the correspondence graph, across all images), then completes and merges tracks and filters
+points by reprojection error and triangulation angle. Poses are never changed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+import locretrieval  # noqa: F401  (imports zlib before pycolmap)
+import pycolmap
+from locretrieval.localization.colmap_model import to_pycolmap_camera, to_rigid3d
+from locretrieval.localization.sparse_map import SparseMap
+from locretrieval.scene import Camera
+
+DEFAULT_TRIANGULATION: dict[str, Any] = {
+    "min_angle": 1.5,  # degrees: smallest triangulation angle of a point
+    "max_reprojection_error": 4.0,  # pixels: observations beyond are dropped (and points left with < 2)
+    "ignore_two_view_tracks": False,  # COLMAP's default (True) halves the points of small maps
+    "random_seed": 0,  # RANSAC seed of the triangulator (deterministic maps)
+}
+
+
+def triangulation_settings(config: Mapping[str, Any] | None) -> dict[str, Any]:
+    """Triangulation options with defaults filled in; unknown keys are an error."""
+    settings = {**DEFAULT_TRIANGULATION, **dict(config or {})}
+    unknown = sorted(set(settings) - set(DEFAULT_TRIANGULATION))
+    if unknown:
+        raise ValueError(f"unknown triangulation settings {unknown}; known: {sorted(DEFAULT_TRIANGULATION)}")
+    return settings
+
+
+def triangulate_known_poses(
+    cameras: Sequence[Camera],
+    qvec: np.ndarray,
+    tvec: np.ndarray,
+    keypoints: Sequence[np.ndarray],
+    matches: Mapping[tuple[int, int], np.ndarray],
+    config: Mapping[str, Any] | None = None,
+) -> SparseMap:
+    """Triangulate the images ``i`` (camera, world-to-camera pose ``qvec[i]`` wxyz / ``tvec[i]``,
+    keypoints ``[n_i, 2]`` in COLMAP's pixel convention) from verified ``matches[(i, j)]``
+    (``[m, 2]`` keypoint indices of image i, image j)."""
+    settings = triangulation_settings(config)
+    reconstruction = pycolmap.Reconstruction()
+    graph = pycolmap.CorrespondenceGraph()
+    for index, (camera, image_keypoints) in enumerate(zip(cameras, keypoints)):
+        image_id = index + 1
+        reconstruction.add_camera_with_trivial_rig(to_pycolmap_camera(camera, image_id))
+        image = pycolmap.Image(
+            name=str(index), keypoints=np.asarray(image_keypoints, dtype=np.float64).reshape(-1, 2),
+            camera_id=image_id, image_id=image_id,
+        )
+        reconstruction.add_image_with_trivial_frame(image, to_rigid3d(qvec[index], tvec[index]))
+        graph.add_image(image_id, len(image_keypoints))
+    for (first, second), pair_matches in matches.items():
+        if len(pair_matches):
+            geometry = pycolmap.TwoViewGeometry()
+            geometry.inlier_matches = np.asarray(pair_matches, dtype=np.uint32).reshape(-1, 2)
+            graph.add_two_view_geometry(first + 1, second + 1, geometry)
+    graph.finalize()
+
+    options = pycolmap.IncrementalTriangulatorOptions()
+    options.min_angle = float(settings["min_angle"])
+    options.ignore_two_view_tracks = bool(settings["ignore_two_view_tracks"])
+    options.random_seed = int(settings["random_seed"])
+    observation_manager = pycolmap.ObservationManager(reconstruction, graph)
+    triangulator = pycolmap.IncrementalTriangulator(graph, reconstruction, observation_manager)
+    for image_id in range(1, len(cameras) + 1):
+        if graph.num_correspondences_for_image(image_id):
+            triangulator.triangulate_image(options, image_id)
+    triangulator.complete_all_tracks(options)
+    triangulator.merge_all_tracks(options)
+    observation_manager.filter_all_points3D(float(settings["max_reprojection_error"]), float(settings["min_angle"]))
+    return _sparse_map(reconstruction, [len(k) for k in keypoints])
+
+
+def _sparse_map(reconstruction: pycolmap.Reconstruction, num_keypoints: Sequence[int]) -> SparseMap:
+    point_ids = sorted(reconstruction.point3D_ids())
+    row_of = {point_id: row for row, point_id in enumerate(point_ids)}
+    points = np.array([reconstruction.points3D[i].xyz for i in point_ids], dtype=np.float64).reshape(-1, 3)
+    observations = [np.full(n, -1, dtype=np.int64) for n in num_keypoints]
+    for point_id in point_ids:
+        row = row_of[point_id]
+        for element in reconstruction.points3D[point_id].track.elements:
+            observations[element.image_id - 1][element.point2D_idx] = row
+    return SparseMap(points, observations)

@@ -1,0 +1,113 @@
+"""Run independent tasks in worker processes (spawned: pycolmap and torch keep threads).
+
+Starting a worker costs seconds (it imports torch and pycolmap), so one pool per worker
+count is started on first use and reused by every later call of this process. The data
+that all tasks of a call share is pickled once to a temporary file, and each worker loads
+it once per call.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import pickle
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from functools import partial
+from pathlib import Path
+from typing import Any, TypeVar
+
+from tqdm import tqdm
+
+Task = TypeVar("Task")
+Result = TypeVar("Result")
+
+#: How often a worker checks that the process that started it is still alive.
+PARENT_CHECK_SECONDS = 1.0
+#: Pools of this process by worker count.
+_pools: dict[int, ProcessPoolExecutor] = {}
+#: In a worker: (file, object) of the shared data of the call in progress.
+_shared: tuple[str, Any] | None = None
+
+
+def resolve_workers(workers: int | None) -> int:
+    """``workers`` as a positive count; ``None`` or 0 means one per CPU core."""
+    if workers is None or int(workers) == 0:
+        return os.cpu_count() or 1
+    if int(workers) < 0:
+        raise ValueError(f"workers must be >= 0 (0 or null: one per core), got {workers}")
+    return int(workers)
+
+
+def _initialize_worker() -> None:
+    """One thread per worker (the processes already use every core); exit with the parent."""
+    import torch
+
+    import locretrieval  # noqa: F401  (imports zlib before pycolmap)
+
+    torch.set_num_threads(1)
+    import pycolmap
+
+    pycolmap.logging.minloglevel = 2
+    threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
+
+
+def _exit_with_parent(parent: int) -> None:
+    """A killed run's workers would wait for tasks forever (they hold their queue's both ends)."""
+    while os.getppid() == parent:
+        time.sleep(PARENT_CHECK_SECONDS)
+    os._exit(1)
+
+
+def _call(function: Callable[..., Any], shared_file: str | None, task: Any) -> Any:
+    global _shared
+    if shared_file is None:
+        return function(task)
+    if _shared is None or _shared[0] != shared_file:
+        with open(shared_file, "rb") as stream:
+            _shared = (shared_file, pickle.load(stream))
+    return function(_shared[1], task)
+
+
+def _pool(workers: int) -> ProcessPoolExecutor:
+    if workers not in _pools:
+        context = multiprocessing.get_context("spawn")
+        _pools[workers] = ProcessPoolExecutor(workers, mp_context=context, initializer=_initialize_worker)
+    return _pools[workers]
+
+
+def parallel_map(
+    function: Callable[..., Result], tasks: Sequence[Task], workers: int | None, description: str, shared: Any = None
+) -> Iterator[Result]:
+    """``function(task)``, or ``function(shared, task)`` when ``shared`` is given, for every
+    task, in order, with a progress bar.
+
+    ``workers == 1`` (or a single task) runs in this process (tests, debugging); otherwise
+    this process's pool of spawned workers runs them. ``function`` must be a module-level
+    function and ``shared``, the tasks and the results picklable.
+    """
+    workers = resolve_workers(workers)
+    progress: Any = tqdm(total=len(tasks), desc=description, unit="task", disable=None, leave=False)
+    with progress:
+        if workers == 1 or len(tasks) <= 1:
+            for task in tasks:
+                yield function(task) if shared is None else function(shared, task)
+                progress.update()
+            return
+        with tempfile.TemporaryDirectory(prefix="locretrieval-shared-") as folder:
+            shared_file = None
+            if shared is not None:
+                shared_file = str(Path(folder) / "shared.pickle")
+                with open(shared_file, "wb") as stream:
+                    pickle.dump(shared, stream, protocol=pickle.HIGHEST_PROTOCOL)
+            try:
+                for result in _pool(workers).map(partial(_call, function, shared_file), tasks, chunksize=1):
+                    yield result
+                    progress.update()
+            except BrokenProcessPool:
+                _pools.pop(workers).shutdown(cancel_futures=True)
+                raise

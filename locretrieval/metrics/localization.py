@@ -1,0 +1,117 @@
+"""Localization metrics (paper Sec. 3.6.1): % of queries within (X m, Y deg), per-query errors."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+
+from locretrieval.localization.estimates import PoseEstimates
+from locretrieval.scene import ImageSet
+
+#: Columns of the tidy localization table, one row per
+#: dataset x subset x ranking x paradigm x method x k x threshold.
+RESULT_COLUMNS = [
+    "dataset",
+    "subset",
+    "ranking",
+    "ranking_kind",
+    "paradigm",
+    "method",
+    "k",
+    "position_threshold_m",
+    "rotation_threshold_deg",
+    "localized_pct",
+    "num_queries",
+]
+
+#: Columns of the per-query error table (errors NaN where the query was not localised).
+QUERY_ERROR_COLUMNS = [
+    "dataset",
+    "ranking",
+    "ranking_kind",
+    "paradigm",
+    "method",
+    "k",
+    "query",
+    "position_error_m",
+    "rotation_error_deg",
+    "failure",
+]
+
+
+def localized(
+    position_errors: np.ndarray, rotation_errors: np.ndarray, thresholds: Sequence[Sequence[float]]
+) -> np.ndarray:
+    """Boolean ``[T, ...]``: error below ``(X m, Y deg)`` strictly, for each threshold.
+
+    A NaN error (no estimate) is never localised.
+    """
+    X, Y = np.asarray(thresholds, dtype=np.float64).reshape(-1, 2).T
+    expand = (slice(None),) + (None,) * np.ndim(position_errors)
+    with np.errstate(invalid="ignore"):
+        return (position_errors[None] < X[expand]) & (rotation_errors[None] < Y[expand])
+
+
+def localization_table(
+    dataset: str,
+    estimates: Sequence[PoseEstimates],
+    queries: ImageSet,
+    thresholds: Sequence[Sequence[float]],
+    subsets: Mapping[str, np.ndarray],
+) -> pd.DataFrame:
+    """Tidy % localised over the queries with a reference pose, for each subset mask.
+
+    A subset with no evaluable query yields no rows.
+    """
+    evaluable = queries.has_pose
+    rows = []
+    for e in estimates:
+        hits = localized(*e.errors(queries.qvec, queries.tvec), thresholds)  # [T, len(ks), Q]
+        for subset, mask in subsets.items():
+            members = np.asarray(mask, dtype=bool) & evaluable
+            if not members.any():
+                continue
+            percentages = 100.0 * hits[:, :, members].mean(axis=-1)  # [T, len(ks)]
+            for (X, Y), per_k in zip(thresholds, percentages):
+                for k, value in zip(e.ks, per_k):
+                    rows.append(
+                        (dataset, subset, e.ranking, e.ranking_kind, e.paradigm, e.method, k, X, Y, value, int(members.sum()))
+                    )
+    return pd.DataFrame(rows, columns=RESULT_COLUMNS)
+
+
+def query_error_table(dataset: str, estimates: Sequence[PoseEstimates], queries: ImageSet) -> pd.DataFrame:
+    """One row per ranking x paradigm x method x k x query with its errors and failure reason."""
+    frames = []
+    for e in estimates:
+        position, rotation = e.errors(queries.qvec, queries.tvec)
+        n_ks, n_queries = position.shape
+        frames.append(
+            pd.DataFrame(
+                {
+                    "dataset": dataset,
+                    "ranking": e.ranking,
+                    "ranking_kind": e.ranking_kind,
+                    "paradigm": e.paradigm,
+                    "method": e.method,
+                    "k": np.repeat(e.ks, n_queries),
+                    "query": np.tile(np.asarray(queries.names, dtype=object), n_ks),
+                    "position_error_m": position.ravel(),
+                    "rotation_error_deg": rotation.ravel(),
+                    "failure": e.failures.ravel(),
+                }
+            )
+        )
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=QUERY_ERROR_COLUMNS)
+
+
+def query_subsets(queries: ImageSet) -> dict[str, np.ndarray]:
+    """``all`` plus one subset per query tag (when tags split the queries)."""
+    subsets = {"all": np.ones(len(queries), dtype=bool)}
+    for tag in queries.all_tags:
+        mask = queries.tag_mask(tag)
+        if not mask.all():
+            subsets[tag] = mask
+    return subsets

@@ -1,0 +1,231 @@
+"""The extraction engine: images -> `RetrievalNet` -> L2-normalised ``float32 [N, D]`` descriptors.
+
+Images are decoded and resized in DataLoader workers (PIL, RGB), batched by size (each batch
+holds images of one size; batches are formed from the image sizes the caller knows, e.g.
+the cameras, and split again if a file's real size differs), sent to the device as
+``uint8``, normalised there, run at every scale the model declares, and written into a
+preallocated ``[N, D]`` array (or a caller's ``np.memmap``). Only the batches in flight are
+held in memory, so the footprint does not grow with the number of images.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image
+from torch.utils.data import DataLoader, Dataset
+from tqdm import tqdm
+
+from locretrieval.device import resolve_device
+from locretrieval.models.heads import RetrievalNet, l2_normalize
+from locretrieval.scene.images import read_image
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+@dataclass(frozen=True)
+class Preprocessing:
+    """How an image file becomes network input.
+
+    ``max_side``: images whose longer side exceeds it are shrunk (aspect kept, sides rounded)
+    with PIL's bilinear filter, which antialiases when shrinking; ``None`` keeps full size.
+    ``scales``: the network runs on the image resized by each factor (bilinear, half-pixel
+    centres, no antialiasing, as ``tf.image.resize``); per-scale descriptors are summed, then
+    L2-normalised. Input is ``(rgb / 255 - mean) / std`` per RGB channel.
+    """
+
+    max_side: int | None = None
+    scales: tuple[float, ...] = (1.0,)
+    mean: tuple[float, ...] = IMAGENET_MEAN
+    std: tuple[float, ...] = IMAGENET_STD
+
+    def __post_init__(self) -> None:
+        for name in ("scales", "mean", "std"):
+            object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
+        if self.max_side is not None:
+            object.__setattr__(self, "max_side", int(self.max_side))
+            if self.max_side <= 0:
+                raise ValueError(f"max_side must be positive or null, got {self.max_side}")
+        if not self.scales or min(self.scales) <= 0:
+            raise ValueError(f"scales must be a non-empty list of positive factors, got {list(self.scales)}")
+        if len(self.mean) != 3 or len(self.std) != 3 or min(self.std) <= 0:
+            raise ValueError(f"mean and std need 3 values (RGB), std positive; got mean={self.mean}, std={self.std}")
+
+    def target_size(self, width: int, height: int) -> tuple[int, int]:
+        """``(width, height)`` after the ``max_side`` resize."""
+        longest = max(width, height)
+        if self.max_side is None or longest <= self.max_side:
+            return width, height
+        factor = self.max_side / longest
+        return max(1, round(width * factor)), max(1, round(height * factor))
+
+    def identity(self) -> dict[str, Any]:
+        return {**asdict(self), "resize": "PIL bilinear to max_side; scales: bilinear half-pixel"}
+
+
+@dataclass(frozen=True)
+class ExtractionSettings:
+    """``device``: ``auto|cpu|cuda``; float16 autocast only on CUDA and when ``mixed_precision``."""
+
+    device: str = "auto"
+    batch_size: int = 4
+    num_workers: int = 2
+    mixed_precision: bool = True
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.batch_size < 1 or self.num_workers < 0:
+            raise ValueError(f"batch_size must be >= 1 and num_workers >= 0, got {self.batch_size}, {self.num_workers}")
+
+
+@dataclass
+class ExtractionStats:
+    """Where the time went. ``decode_s``/``resize_s`` are summed over images (they run in
+    parallel when there are workers); ``forward_s`` is device time: transfer, normalisation,
+    every scale and copying the result back; ``forward_calls`` counts network batches."""
+
+    images: int = 0
+    forward_calls: int = 0
+    decode_s: float = 0.0
+    resize_s: float = 0.0
+    forward_s: float = 0.0
+    wall_s: float = 0.0
+    sizes: set[tuple[int, int]] = field(default_factory=set)
+
+
+class LoadedImage(NamedTuple):
+    index: int
+    image: torch.Tensor  # uint8 [3, H, W]
+    decode_s: float
+    resize_s: float
+
+
+class ImageFiles(Dataset):
+    """Decodes (RGB) and shrinks image files to ``preprocessing.max_side``."""
+
+    def __init__(self, paths: Sequence[Path], preprocessing: Preprocessing) -> None:
+        self.paths = list(paths)
+        self.preprocessing = preprocessing
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __getitem__(self, index: int) -> LoadedImage:
+        start = time.perf_counter()
+        pixels = read_image(self.paths[index])
+        decoded = time.perf_counter()
+        height, width = pixels.shape[:2]
+        size = self.preprocessing.target_size(width, height)
+        if size != (width, height):
+            pixels = np.asarray(Image.fromarray(pixels).resize(size, Image.Resampling.BILINEAR))
+        resized = time.perf_counter()
+        image = torch.from_numpy(np.require(pixels, requirements=["C", "W"])).permute(2, 0, 1)
+        return LoadedImage(index, image, decoded - start, resized - decoded)
+
+
+def size_batches(sizes: Sequence[tuple[int, int]], batch_size: int) -> list[list[int]]:
+    """Batches of image indices sharing a size, sizes in order of first appearance."""
+    groups: dict[tuple[int, int], list[int]] = {}
+    for index, size in enumerate(sizes):
+        groups.setdefault(tuple(size), []).append(index)
+    return [group[i : i + batch_size] for group in groups.values() for i in range(0, len(group), batch_size)]
+
+
+def _as_list(items: list[LoadedImage]) -> list[LoadedImage]:
+    return items
+
+
+def _split_by_shape(items: list[LoadedImage]) -> list[list[LoadedImage]]:
+    groups: dict[tuple[int, ...], list[LoadedImage]] = {}
+    for item in items:
+        groups.setdefault(tuple(item.image.shape), []).append(item)
+    return list(groups.values())
+
+
+def scaled_size(height: int, width: int, scale: float) -> tuple[int, int]:
+    return max(1, round(height * scale)), max(1, round(width * scale))
+
+
+def describe_batch(
+    network: RetrievalNet, images: torch.Tensor, preprocessing: Preprocessing, mixed_precision: bool = False
+) -> torch.Tensor:
+    """Unit descriptors ``float32 [B, D]`` of ``uint8 [B, 3, H, W]`` RGB images (on the network's
+    device): normalise, run every scale, sum the per-scale descriptors, L2, ``finalize``."""
+    device = images.device
+    mean = torch.tensor(preprocessing.mean, device=device).view(1, 3, 1, 1) * 255.0
+    std = torch.tensor(preprocessing.std, device=device).view(1, 3, 1, 1) * 255.0
+    x = (images.float() - mean) / std
+    if device.type == "cuda":
+        x = x.contiguous(memory_format=torch.channels_last)
+    total = None
+    for scale in preprocessing.scales:
+        scaled = x
+        if scale != 1.0:
+            size = scaled_size(x.shape[2], x.shape[3], scale)
+            scaled = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+        with torch.autocast(device.type, dtype=torch.float16, enabled=mixed_precision and device.type == "cuda"):
+            descriptors = network(scaled).float()
+        total = descriptors if total is None else total + descriptors
+    return network.finalize(l2_normalize(total)).float()
+
+
+def extract_descriptors(
+    network: RetrievalNet,
+    paths: Sequence[Path],
+    preprocessing: Preprocessing,
+    settings: ExtractionSettings,
+    sizes: Sequence[tuple[int, int]] | None = None,
+    out: np.ndarray | None = None,
+    label: str = "describing",
+) -> tuple[np.ndarray, ExtractionStats]:
+    """Descriptors ``float32 [len(paths), network.output_dim]`` and timing statistics.
+
+    ``sizes``: ``(width, height)`` of each file as stored (e.g. from the cameras), used to
+    batch equal sizes together; without them every batch holds one image. ``out``: a
+    preallocated ``float32 [N, D]`` array (e.g. ``np.lib.format.open_memmap``) to write into.
+    """
+    started = time.perf_counter()
+    device = resolve_device(settings.device)
+    network = network.eval().to(device)
+    if device.type == "cuda":
+        network = network.to(memory_format=torch.channels_last)
+    shape = (len(paths), network.output_dim)
+    if out is None:
+        out = np.empty(shape, dtype=np.float32)
+    elif out.shape != shape or out.dtype != np.float32:
+        raise ValueError(f"output array is {out.dtype} {out.shape}; expected float32 {shape}")
+    if sizes is not None and len(sizes) != len(paths):
+        raise ValueError(f"{len(sizes)} image sizes given for {len(paths)} images")
+    batches = size_batches(sizes, settings.batch_size) if sizes is not None else [[i] for i in range(len(paths))]
+    loader = DataLoader(
+        ImageFiles(paths, preprocessing),
+        batch_sampler=batches,
+        num_workers=settings.num_workers,
+        collate_fn=_as_list,
+        pin_memory=device.type == "cuda",
+    )
+    stats = ExtractionStats()
+    with torch.inference_mode(), tqdm(total=len(paths), unit="img", desc=label, disable=not settings.progress) as bar:
+        for items in loader:
+            for group in _split_by_shape(items):
+                start = time.perf_counter()
+                images = torch.stack([item.image for item in group]).to(device, non_blocking=True)
+                descriptors = describe_batch(network, images, preprocessing, settings.mixed_precision)
+                out[[item.index for item in group]] = descriptors.cpu().numpy()
+                stats.forward_s += time.perf_counter() - start
+                stats.forward_calls += 1
+                stats.sizes.add((images.shape[3], images.shape[2]))
+            stats.images += len(items)
+            stats.decode_s += sum(item.decode_s for item in items)
+            stats.resize_s += sum(item.resize_s for item in items)
+            bar.update(len(items))
+    stats.wall_s = time.perf_counter() - started
+    return out, stats

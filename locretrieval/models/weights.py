@@ -1,0 +1,201 @@
+"""Weight files: where the authors publish them, content hashes, safe loading, our checkpoints.
+
+Nothing is downloaded: every loader takes a local path. A missing file raises
+`MissingWeightsError` naming the file expected and where its authors publish it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pickle
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torchvision
+
+from locretrieval.cache import atomic_path
+
+#: Environment variable naming the folder of the weight-hash cache (default ~/.cache/locretrieval).
+HASH_CACHE_ENV = "LOCRETRIEVAL_HASH_CACHE"
+#: ``format`` field of the checkpoints this package writes.
+CHECKPOINT_FORMAT = "locretrieval-checkpoint-v1"
+
+
+@dataclass(frozen=True)
+class WeightSource:
+    """The file a model expects and where its authors publish it."""
+
+    expected: str
+    publisher: str
+
+
+WEIGHT_SOURCES: dict[str, WeightSource] = {
+    "netvlad": WeightSource(
+        "Pitts30K_struct.mat, the struct form of vd16_pitts30k_conv5_3_vlad_preL2_intra_white.mat",
+        "Relja Arandjelovic publishes the MatConvNet object file at https://www.di.ens.fr/willow/research/netvlad/ "
+        "(code: https://github.com/Relja/netvlad); convert it with net_class2struct.m "
+        "(https://github.com/uzh-rpg/netvlad_tf_open), or use the struct file hloc hosts at "
+        "https://cvg-data.inf.ethz.ch/hloc/netvlad/Pitts30K_struct.mat",
+    ),
+    "apgem": WeightSource(
+        "Resnet101-AP-GeM-LM18.pt",
+        "NAVER LABS Europe's deep-image-retrieval (dirtorch) README lists it under pre-trained models, "
+        "https://github.com/naver/deep-image-retrieval",
+    ),
+    "delg": WeightSource(
+        "a checkpoint converted from r101delg_gldv2clean_20200914 (scripts/convert_weights.py delg), "
+        "or that SavedModel folder itself when tensorflow is installed",
+        "the TensorFlow model garden's DELF project publishes "
+        "https://storage.googleapis.com/delf/r101delg_gldv2clean_20200914.tar.gz "
+        "(https://github.com/tensorflow/models/tree/master/research/delf)",
+    ),
+}
+
+
+def torchvision_source(backbone: str) -> WeightSource:
+    """Where torchvision publishes ImageNet weights for ``backbone`` (its default weights)."""
+    url = torchvision.models.get_model_weights(backbone).DEFAULT.url
+    return WeightSource(f"{url.rsplit('/', 1)[-1]} (torchvision's ImageNet weights for {backbone})", f"torchvision: {url}")
+
+
+class MissingWeightsError(FileNotFoundError):
+    """A weight file the configuration names is not there."""
+
+
+def require_weights(path: str | os.PathLike | None, source: WeightSource, model: str) -> Path:
+    """``path`` as a `Path` if it exists; otherwise a `MissingWeightsError` saying what to get where."""
+    if path is not None and Path(path).exists():
+        return Path(path)
+    where = "no model.weights path is set" if path is None else f"weight file not found: {path}"
+    raise MissingWeightsError(
+        f"model {model!r}: {where}. Expected {source.expected}. Where to get it: {source.publisher}. "
+        "Download it and set model.weights=/path/to/file (nothing is downloaded at run time)."
+    )
+
+
+def _hash_cache_file() -> Path:
+    folder = os.environ.get(HASH_CACHE_ENV) or Path.home() / ".cache" / "locretrieval"
+    return Path(folder) / "weight_hashes.json"
+
+
+def _files_of(path: Path) -> list[Path]:
+    return [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+
+
+def content_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 of a file, or of a folder's files (relative names and contents, sorted).
+
+    Cached on disk by resolved path, sizes and modification times (`HASH_CACHE_ENV`), so an
+    unchanged multi-hundred-megabyte weight file is hashed once, not on every run.
+    """
+    path = Path(path).resolve()
+    files = _files_of(path)
+    signature = [[str(f.relative_to(path)) if f != path else "", f.stat().st_size, f.stat().st_mtime_ns] for f in files]
+    cache_file = _hash_cache_file()
+    try:
+        cache = json.loads(cache_file.read_text())
+    except (OSError, ValueError):
+        cache = {}
+    entry = cache.get(str(path))
+    if isinstance(entry, dict) and entry.get("signature") == signature:
+        return entry["sha256"]
+    digest = hashlib.sha256()
+    for file in files:
+        if file != path:
+            digest.update(f"{file.relative_to(path)}\n".encode())
+        with open(file, "rb") as stream:
+            for block in iter(lambda: stream.read(1 << 20), b""):
+                digest.update(block)
+    cache[str(path)] = {"signature": signature, "sha256": digest.hexdigest()}
+    try:
+        with atomic_path(cache_file) as temporary:
+            temporary.write_text(json.dumps(cache, indent=1))
+    except OSError:
+        pass  # a read-only home only costs re-hashing next run
+    return digest.hexdigest()
+
+
+#: numpy objects pickled inside the authors' checkpoints (old and numpy-2 module paths).
+_NUMPY_GLOBALS = [
+    (np._core.multiarray._reconstruct, "numpy.core.multiarray._reconstruct"),
+    (np._core.multiarray._reconstruct, "numpy._core.multiarray._reconstruct"),
+    (np._core.multiarray.scalar, "numpy.core.multiarray.scalar"),
+    (np._core.multiarray.scalar, "numpy._core.multiarray.scalar"),
+    np.ndarray,
+    np.dtype,
+    *(getattr(np.dtypes, name) for name in dir(np.dtypes) if name.endswith("DType")),
+]
+
+
+def load_torch_file(path: str | os.PathLike, allowed: Iterable[Any] = ()) -> Any:
+    """``torch.load`` with the restricted (``weights_only``) unpickler.
+
+    Only tensors, containers, numpy arrays and the ``allowed`` globals (objects or
+    ``(object, "module.Name")`` pairs, see ``torch.serialization.safe_globals``) are rebuilt;
+    anything else is refused with an error naming the file.
+    """
+    try:
+        with torch.serialization.safe_globals([*_NUMPY_GLOBALS, *allowed]):
+            return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as error:
+        parts = [part.strip() for part in str(error).split("\n\n") if part.strip()]
+        reason = " ".join(parts[1:-1]) or str(error)  # torch's explanation between its boilerplate
+        if "global" in reason.lower() or "can only build" in reason.lower():
+            raise ValueError(f"{path}: refused to unpickle an object this loader does not allow: {reason}") from error
+        raise ValueError(f"{path}: not a readable PyTorch file ({reason})") from error
+    except RuntimeError as error:
+        raise ValueError(f"{path}: not a readable PyTorch file: {error}") from error
+
+
+def save_checkpoint(
+    path: str | os.PathLike,
+    model: str,
+    architecture: Mapping[str, Any],
+    preprocessing: Mapping[str, Any],
+    state_dict: Mapping[str, torch.Tensor],
+    extra: Mapping[str, Any] | None = None,
+) -> None:
+    """Write a plain checkpoint (loadable with ``weights_only=True``) atomically.
+
+    ``model``: the zoo name (``netvlad``, ``apgem``, ``delg``, ``gem``, ``netvlad_head``);
+    ``architecture`` and ``preprocessing``: JSON-like settings the loader checks against its
+    configuration; ``extra``: model-specific tensors (e.g. AP-GeM's PCA).
+    """
+    payload = {
+        "format": CHECKPOINT_FORMAT,
+        "model": model,
+        "architecture": plain(dict(architecture)),
+        "preprocessing": plain(dict(preprocessing)),
+        "state_dict": {key: value.detach().cpu().contiguous() for key, value in state_dict.items()},
+        "extra": dict(extra or {}),
+    }
+    with atomic_path(path) as temporary:
+        torch.save(payload, temporary)
+
+
+def plain(value: Any) -> Any:
+    """``value`` as plain JSON types (tuples become lists), for storing and comparing settings."""
+    return json.loads(json.dumps(value))
+
+
+def is_checkpoint(content: Any) -> bool:
+    return isinstance(content, dict) and content.get("format") == CHECKPOINT_FORMAT
+
+
+def check_checkpoint(content: Mapping[str, Any], path: Path, model: str, architecture: Mapping[str, Any]) -> None:
+    """Raise unless ``content`` is our checkpoint of ``model`` with the configured ``architecture``."""
+    if content.get("model") != model:
+        raise ValueError(f"{path}: a locretrieval checkpoint of model {content.get('model')!r}, not {model!r}")
+    stored = content["architecture"]
+    differing = {
+        key: (stored.get(key), value) for key, value in plain(dict(architecture)).items() if stored.get(key) != value
+    }
+    if differing:
+        details = ", ".join(f"{key}: file {a!r} vs config {b!r}" for key, (a, b) in differing.items())
+        raise ValueError(f"{path}: checkpoint architecture differs from the configuration ({details})")

@@ -1,0 +1,241 @@
+"""`build_report`: the report of one or several finished runs, from their tables alone."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+
+from locretrieval.metrics.correlation import dataset_pearson, dataset_spearman, paired_metrics, query_pearson
+from locretrieval.metrics.retrieval import METRICS
+from locretrieval.report import markdown, plots
+from locretrieval.report.tables import RunTables, load_runs
+
+log = logging.getLogger(__name__)
+
+#: Section titles of the retrieval metrics, after the paradigms they stand for (Sec. 4.2).
+METRIC_TITLES = {
+    "precision": "Landmark retrieval (P@k, paradigm 3a)",
+    "recall": "Place recognition (R@k, paradigm 3b)",
+    "map": "mAP@k",
+}
+
+#: Correlation tables written next to the report.
+CORRELATION_FILES = {
+    "pearson": "correlation_dataset_pearson.csv",
+    "spearman": "correlation_dataset_spearman.csv",
+    "query": "correlation_query_pearson.csv.gz",
+}
+
+
+@dataclass
+class Correlations:
+    """The tables of `dataset_pearson`, `dataset_spearman` and `query_pearson`."""
+
+    pearson: pd.DataFrame
+    spearman: pd.DataFrame
+    query: pd.DataFrame
+
+
+def build_report(
+    run_dirs: Sequence[str | Path],
+    output_dir: str | Path,
+    primary_groundtruth: str | None = None,
+    figure_formats: Sequence[str] = ("png", "pdf"),
+) -> Path:
+    """Regenerate ``report.md``, ``figures/`` (in ``figure_formats``), ``tables/`` (Markdown + LaTeX) and
+    the correlation tables in ``output_dir`` from the tables of the runs at or below
+    ``run_dirs`` (a multirun's runs are concatenated, repeated ground-truth rows dropped).
+
+    Correlations and the subset figure use ``primary_groundtruth`` (default: the relative
+    pose definition, the paper's choice, else the first ground truth by name).
+    Returns the path of ``report.md``.
+    """
+    output_dir = Path(output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    tables = load_runs(run_dirs)
+    correlations = compute_correlations(tables)
+    for name, file in CORRELATION_FILES.items():
+        getattr(correlations, name).to_csv(output_dir / file, index=False)
+    groundtruth = choose_groundtruth(tables.retrieval, primary_groundtruth)
+    colors = plots.ranking_colors(pd.concat([tables.results["ranking"], tables.retrieval["ranking"]]))
+    datasets = sorted(set(tables.results["dataset"]) | set(tables.retrieval["dataset"]))
+    writer = markdown.ReportWriter(output_dir, f"locretrieval report: {', '.join(datasets) or 'no results'}")
+    figures = plots.FigureFolder(output_dir / "figures", tuple(figure_formats))
+    overview(writer, tables, groundtruth)
+    groundtruth_section(writer, tables)
+    localization_section(writer, tables, figures, colors)
+    retrieval_section(writer, tables, figures, colors)
+    revisited_section(writer, tables)
+    correlation_section(writer, tables, correlations, groundtruth, figures, colors)
+    subset_section(writer, tables, groundtruth, figures, colors)
+    failure_section(writer, tables)
+    path = writer.write(output_dir / "report.md")
+    log.info("report written to %s", path)
+    return path
+
+
+def compute_correlations(tables: RunTables) -> Correlations:
+    """The three analyses of Sec. 3.7 over the descriptor rankings of ``tables``."""
+    return Correlations(
+        pearson=dataset_pearson(tables.retrieval, tables.results),
+        spearman=dataset_spearman(tables.retrieval, tables.results),
+        query=query_pearson(tables.query_retrieval, tables.query_errors),
+    )
+
+
+def choose_groundtruth(retrieval: pd.DataFrame, requested: str | None) -> str | None:
+    """The ground truth of the correlation analysis (see `build_report`)."""
+    available = sorted(retrieval["groundtruth"].unique())
+    if requested is not None:
+        if requested not in available:
+            raise ValueError(f"ground truth {requested!r} is not in the runs' retrieval tables; available: {available}")
+        return requested
+    preferred = [name for name in available if "relative_pose" in name]
+    chosen = (preferred or available or [None])[0]
+    if chosen is not None:
+        log.info("correlations use ground truth %r (available: %s)", chosen, available)
+    return chosen
+
+
+def overview(writer: markdown.ReportWriter, tables: RunTables, groundtruth: str | None) -> None:
+    results = tables.results
+    rankings = pd.concat([results[["ranking", "ranking_kind"]], tables.retrieval[["ranking", "ranking_kind"]]])
+    rankings = rankings.drop_duplicates().sort_values(["ranking_kind", "ranking"])
+    paradigms = results.groupby("paradigm")["k"].unique()
+    writer.bullets(
+        {
+            "runs": ", ".join(f"`{run}`" for run in tables.run_dirs),
+            "rankings": ", ".join(f"{r.ranking} ({r.ranking_kind})" for r in rankings.itertuples()) or "none",
+            "paradigms": ", ".join(f"{p} (k={sorted(int(k) for k in ks)})" for p, ks in paradigms.items()) or "none",
+            "subsets": ", ".join(sorted(set(results["subset"]) | set(tables.retrieval["subset"]))) or "none",
+            "ground truth of the correlation analysis": groundtruth or "none",
+        }
+    )
+    for run, summary in tables.summaries.items():
+        writer.heading(f"Run `{run}`", 3)
+        writer.bullets(summary)
+
+
+def groundtruth_section(writer: markdown.ReportWriter, tables: RunTables) -> None:
+    statistics = tables.groundtruth_statistics
+    if statistics.empty:
+        return
+    writer.heading("Ground-truth statistics (paper Table 1)")
+    caption = "Relevant database images per query (queries with a pose)."
+    writer.table(statistics.set_index(["dataset", "groundtruth"]), "table1_groundtruth_statistics", caption)
+
+
+def localization_section(writer: markdown.ReportWriter, tables: RunTables, figures: plots.FigureFolder, colors: dict) -> None:
+    results = tables.results
+    writer.heading("Localization (paper Figs. 4-6)")
+    if results.empty:
+        writer.text("No localization results: no query has a reference pose.")
+        return
+    written = plots.plot_localization_vs_k(results, figures, colors=colors)
+    for (dataset, paradigm, method), _ in results.groupby(["dataset", "paradigm", "method"], sort=True):
+        writer.heading(f"{dataset}: {paradigm}, {method}", 3)
+        writer.figures([f for f in written if f.stem == plots.safe_name(f"{dataset}_{paradigm}_{method}")])
+        pivot = markdown.pivot_localization(results[results["dataset"] == dataset], paradigm, method)
+        writer.table(pivot, f"localization_{dataset}_{paradigm}_{method}", "% of queries localized (all queries).", ".1f")
+
+
+def retrieval_section(writer: markdown.ReportWriter, tables: RunTables, figures: plots.FigureFolder, colors: dict) -> None:
+    retrieval = tables.retrieval
+    if retrieval.empty:
+        return
+    writer.heading("Retrieval metrics (paper Figs. 7 and 10)")
+    writer.text(
+        "P@k: relevant images among the top k / k. R@k: queries with a relevant image in the top k. "
+        "mAP@k: AP over the top k normalised by min(#relevant, k), over queries with a relevant image."
+    )
+    writer.figures(plots.plot_retrieval_curves(retrieval, figures, colors=colors))
+    summary = markdown.retrieval_summary(retrieval)
+    writer.table(summary, "retrieval_summary", "Retrieval metrics in % (all queries).", ".1f")
+
+
+def revisited_section(writer: markdown.ReportWriter, tables: RunTables) -> None:
+    if tables.revisited.empty:
+        return
+    writer.heading("Revisited Oxford and Paris (paper Table 2)")
+    writer.table(markdown.revisited_summary(tables.revisited), "table2_revisited", "mAP (%) per protocol.", ".1f")
+
+
+def correlation_section(
+    writer: markdown.ReportWriter,
+    tables: RunTables,
+    correlations: Correlations,
+    groundtruth: str | None,
+    figures: plots.FigureFolder,
+    colors: dict,
+) -> None:
+    if groundtruth is None or correlations.pearson.empty:
+        return
+    writer.heading(f"Correlation between retrieval and localization (paper Sec. 3.7), relevance: {groundtruth}")
+    writer.text(
+        "Pearson: per descriptor, over k, between the retrieval metric and % localized (Tables 3 and 6). "
+        "Spearman: per k, over the descriptors (Tables 4 and 5). Violins: per query, over k, between the "
+        "retrieval metric and the negated position error (Figs. 8 and 11). Undefined coefficients "
+        "(constant series, fewer than 2 points) print as –; every coefficient is in "
+        f"{', '.join(CORRELATION_FILES.values())}."
+    )
+    paired = paired_metrics(tables.retrieval, tables.results)
+    for metric in [m for m in METRIC_TITLES if m in set(correlations.pearson["retrieval_metric"])]:
+        pearson, spearman, pairs = (
+            _selected(frame, groundtruth, metric) for frame in (correlations.pearson, correlations.spearman, paired)
+        )
+        query = _selected(correlations.query, groundtruth, METRICS[metric])
+        writer.heading(METRIC_TITLES[metric], 3)
+        writer.figures(plots.plot_correlation_scatter(pairs, pearson, figures, colors))
+        stem = f"{metric}_{groundtruth}"
+        writer.table(markdown.correlation_matrix(pearson, "ranking"), f"pearson_{stem}", "Pearson r over k, per descriptor.")
+        caption = "Spearman rho over the descriptors, per k."
+        writer.table(markdown.correlation_matrix(spearman, "k"), f"spearman_{stem}", caption)
+        if len(query):
+            writer.figures(plots.plot_query_violins(query, figures, colors))
+        analyses = {"pearson": pearson, "spearman": spearman, "per query": query}
+        undefined = pd.concat([markdown.undefined_summary(frame).assign(analysis=name) for name, frame in analyses.items()])
+        if len(undefined):
+            table = undefined[["analysis", "undefined_reason", "count"]].to_markdown(index=False)
+            writer.text("Undefined coefficients:", table)
+
+
+def _selected(frame: pd.DataFrame, groundtruth: str, metric: str) -> pd.DataFrame:
+    """Rows of one ground truth and retrieval metric, over all queries."""
+    rows = frame[(frame["groundtruth"] == groundtruth) & (frame["retrieval_metric"] == metric)]
+    return rows[rows["subset"] == "all"] if "subset" in rows else rows
+
+
+def subset_section(
+    writer: markdown.ReportWriter, tables: RunTables, groundtruth: str | None, figures: plots.FigureFolder, colors: dict
+) -> None:
+    subsets = set(tables.results["subset"]) | set(tables.retrieval["subset"])
+    if subsets <= {"all"}:
+        return
+    writer.heading("Subsets (paper Sec. 4.3, Fig. 12)")
+    sizes = markdown.subset_sizes(tables.results, tables.retrieval)
+    writer.table(sizes, "subset_sizes", "Queries evaluated per subset.", ".0f")
+    if len(tables.subsets):
+        per_image = tables.subsets.groupby("dataset").agg(
+            images=("image", "size"),
+            median_blur_score=("blur_score", "median"),
+            median_dynamic_fraction=("dynamic_fraction", "median"),
+            mask_source=("mask_source", "first"),
+        )
+        caption = "Blur scores (FFT, blurry when <= threshold) and dynamic fractions of the queries."
+        writer.table(per_image, "subset_scores", caption)
+    writer.figures(plots.plot_subset_comparison(tables.results, tables.retrieval, groundtruth, figures, colors))
+    if len(tables.results):
+        best = markdown.best_by_subset(tables.results)
+        writer.table(best, "best_by_subset", "Best % localized over k at the loosest threshold.", ".1f")
+
+
+def failure_section(writer: markdown.ReportWriter, tables: RunTables) -> None:
+    if tables.query_errors.empty:
+        return
+    writer.heading("Failures")
+    failures = markdown.failure_summary(tables.query_errors)
+    writer.text(failures.to_markdown(index=False) if len(failures) else "Every query received an estimate.")

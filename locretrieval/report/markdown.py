@@ -1,0 +1,131 @@
+"""Markdown and LaTeX tables of the report, and the ``report.md`` writer."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import pandas as pd
+
+from locretrieval.report.plots import safe_name, threshold_label
+
+
+class ReportWriter:
+    """Accumulates the markdown of a report whose figures and tables live below ``directory``."""
+
+    def __init__(self, directory: Path, title: str) -> None:
+        self.directory = directory
+        self.lines = [f"# {title}", ""]
+
+    def heading(self, text: str, level: int = 2) -> None:
+        self.lines += [f"{'#' * level} {text}", ""]
+
+    def text(self, *paragraphs: str) -> None:
+        for paragraph in paragraphs:
+            self.lines += [paragraph, ""]
+
+    def bullets(self, items: dict[str, object]) -> None:
+        self.lines += [f"- **{key}**: {value}" for key, value in items.items()] + [""]
+
+    def figures(self, paths: Sequence[Path]) -> None:
+        for path in paths:
+            self.lines += [f"![{path.stem}]({path.relative_to(self.directory).as_posix()})", ""]
+
+    def table(self, frame: pd.DataFrame, stem: str, caption: str, floatfmt: str = ".2f", index: bool = True) -> None:
+        """Embed ``frame`` and write it as ``tables/<stem>.md`` and ``tables/<stem>.tex``."""
+        stem = safe_name(stem)
+        markdown = write_table(frame, self.directory / "tables", stem, caption, floatfmt, index)
+        self.lines += [f"{caption} ([LaTeX](tables/{stem}.tex))", "", markdown, ""]
+
+    def write(self, path: Path) -> Path:
+        path.write_text("\n".join(self.lines).rstrip() + "\n")
+        return path
+
+
+def write_table(
+    frame: pd.DataFrame, directory: Path, stem: str, caption: str, floatfmt: str = ".2f", index: bool = True
+) -> str:
+    """Write ``frame`` as ``<stem>.md`` and ``<stem>.tex`` (booktabs); returns the markdown.
+
+    Missing values (e.g. undefined correlations) print as ``–`` (``--`` in LaTeX).
+    """
+    directory.mkdir(parents=True, exist_ok=True)
+    flat = frame.reset_index() if index else frame
+    names = flat.columns.names
+    flat.columns = [
+        " ".join(_label(n, v) for n, v in zip(names, c)) if isinstance(c, tuple) else str(c) for c in flat.columns
+    ]
+    markdown = flat.astype(object).where(flat.notna(), None).to_markdown(index=False, floatfmt=floatfmt, missingval="–")
+    (directory / f"{stem}.md").write_text(markdown + "\n")
+    latex = frame.to_latex(
+        index=index,
+        float_format=lambda value: format(value, floatfmt),
+        na_rep="--",
+        escape=True,
+        caption=caption,
+        label=f"tab:{stem}",
+    )
+    (directory / f"{stem}.tex").write_text(latex)
+    return markdown
+
+
+def _label(level: str | None, value: object) -> str:
+    return f"k={value}" if level == "k" and value != "" else str(value)
+
+
+def pivot_localization(table: pd.DataFrame, paradigm: str, method: str, subset: str = "all") -> pd.DataFrame:
+    """``ranking x (threshold, k)`` table of % localised for one paradigm/method."""
+    rows = table[(table["paradigm"] == paradigm) & (table["method"] == method) & (table["subset"] == subset)]
+    rows = rows.assign(
+        threshold=[f"{x:g}m,{y:g}°" for x, y in zip(rows["position_threshold_m"], rows["rotation_threshold_deg"])]
+    )
+    return rows.pivot_table(index="ranking", columns=["threshold", "k"], values="localized_pct").round(1)
+
+
+def failure_summary(query_errors: pd.DataFrame) -> pd.DataFrame:
+    """How many (query, k) estimates failed, per ranking x paradigm x method x reason."""
+    failed = query_errors[query_errors["failure"].fillna("") != ""]
+    return (
+        failed.groupby(["ranking", "paradigm", "method", "failure"]).size().rename("count").reset_index()
+        if len(failed)
+        else pd.DataFrame(columns=["ranking", "paradigm", "method", "failure", "count"])
+    )
+
+
+def correlation_matrix(correlations: pd.DataFrame, across: str) -> pd.DataFrame:
+    """Coefficients as ``(dataset, paradigm, method, threshold) x across`` (``ranking``
+    for Pearson, Tables 3 and 6; ``k`` for Spearman, Tables 4 and 5)."""
+    thresholds = zip(correlations["position_threshold_m"], correlations["rotation_threshold_deg"])
+    rows = correlations.assign(threshold=[threshold_label(x, y) for x, y in thresholds])
+    return rows.set_index(["dataset", "paradigm", "method", "threshold", across])["coefficient"].unstack(across)
+
+
+def undefined_summary(correlations: pd.DataFrame) -> pd.DataFrame:
+    """How many coefficients are undefined, per reason."""
+    undefined = correlations[correlations["undefined_reason"] != ""]
+    return undefined.groupby("undefined_reason").size().rename("count").reset_index()
+
+
+def retrieval_summary(retrieval: pd.DataFrame, ks: Sequence[int] = (1, 5, 10, 20, 50)) -> pd.DataFrame:
+    """P@k, R@k and mAP@k in % for a few k: ``(dataset, ground truth, ranking) x (metric, k)``."""
+    rows = retrieval[(retrieval["subset"] == "all") & retrieval["k"].isin(list(ks))]
+    return rows.pivot_table(index=["dataset", "groundtruth", "ranking"], columns=["metric", "k"], values="value").mul(100)
+
+
+def revisited_summary(revisited: pd.DataFrame) -> pd.DataFrame:
+    """mAP in % per ranking x (dataset, protocol), the paper's Table 2."""
+    rows = revisited[revisited["metric"] == "map"]
+    return rows.pivot_table(index="ranking", columns=["dataset", "protocol"], values="value").mul(100)
+
+
+def subset_sizes(results: pd.DataFrame, retrieval: pd.DataFrame) -> pd.DataFrame:
+    """Evaluated queries per dataset x subset."""
+    columns = ["dataset", "subset", "num_queries"]
+    sizes = pd.concat([results[columns], retrieval.loc[retrieval["metric"] != "map", columns]])
+    return sizes.groupby(["dataset", "subset"])["num_queries"].max().unstack("subset")
+
+
+def best_by_subset(results: pd.DataFrame) -> pd.DataFrame:
+    """Best % localised over k at the loosest threshold, per paradigm x method x ranking x subset."""
+    loosest = results[results["position_threshold_m"] == results["position_threshold_m"].max()]
+    return loosest.groupby(["paradigm", "method", "ranking", "subset"])["localized_pct"].max().unstack("subset")

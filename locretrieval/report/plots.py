@@ -1,0 +1,289 @@
+"""Figures drawn from the tidy result tables only (no recomputation), as PNG and/or PDF.
+
+Descriptor rankings are solid lines, ground-truth rankings dashed (the upper bounds of
+paper Figs. 4-6) and baselines dotted; a ranking keeps its colour in every figure.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib import ticker  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+#: Line style per ranking kind: descriptors solid, ground truth dashed (paper Fig. 4).
+LINE_STYLES = {"descriptor": "-", "groundtruth": "--", "baseline": ":"}
+REFERENCE_METHOD = "ewb"
+METRIC_LABELS = {"precision": "P@k", "recall": "R@k", "map": "mAP@k"}
+PANEL_WIDTH, PANEL_HEIGHT = 4.2, 3.6
+PERCENT_LIMITS = (-2, 102)  # a little room around 0 and 100 %
+THRESHOLD_COLUMNS = ["position_threshold_m", "rotation_threshold_deg"]
+#: One correlation figure per dataset x ground truth x retrieval metric.
+FIGURE_KEYS = ["dataset", "groundtruth", "retrieval_metric"]
+
+
+def ranking_colors(names: Iterable[str]) -> dict[str, str]:
+    """A stable colour per ranking name (sorted names over matplotlib's colour cycle)."""
+    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    return {name: cycle[n % len(cycle)] for n, name in enumerate(sorted(set(names)))}
+
+
+def safe_name(text: str) -> str:
+    """``text`` usable as a file name: characters other than letters, digits, ``._-`` become ``_``."""
+    return re.sub(r"[^A-Za-z0-9._-]", "_", text)
+
+
+@dataclass(frozen=True)
+class FigureFolder:
+    """Where figures go and in which formats (``png``, ``pdf``, ...); the first is linked in reports."""
+
+    path: Path
+    formats: tuple[str, ...] = ("png", "pdf")
+
+    def save(self, figure: plt.Figure, stem: str) -> Path:
+        """Write the figure once per format (name made `safe_name`); returns the first file."""
+        self.path.mkdir(parents=True, exist_ok=True)
+        figure.tight_layout()
+        written = [self.path / f"{safe_name(stem)}.{suffix}" for suffix in self.formats]
+        for file in written:
+            figure.savefig(file, dpi=110)
+        plt.close(figure)
+        return written[0]
+
+
+def _panels(count: int) -> tuple[plt.Figure, np.ndarray]:
+    figure, axes = plt.subplots(1, count, figsize=(PANEL_WIDTH * count, PANEL_HEIGHT), squeeze=False)
+    return figure, axes[0]
+
+
+def threshold_label(position: float, rotation: float) -> str:
+    return f"{position:g} m, {rotation:g}°"
+
+
+def headline_threshold(results: pd.DataFrame, paradigm: str) -> tuple[float, float]:
+    """The threshold the paper shows for a paradigm: the loosest for pose approximation
+    (Fig. 4, "low accuracy"), the tightest for the SfM paradigms (Figs. 5-6, "high")."""
+    thresholds = results.loc[results["paradigm"] == paradigm, THRESHOLD_COLUMNS]
+    ordered = thresholds.drop_duplicates().sort_values(THRESHOLD_COLUMNS)
+    row = ordered.iloc[-1] if paradigm == "approximation" else ordered.iloc[0]
+    return float(row["position_threshold_m"]), float(row["rotation_threshold_deg"])
+
+
+def at_headline_thresholds(results: pd.DataFrame) -> pd.DataFrame:
+    """Rows of each paradigm at its `headline_threshold`."""
+    keep = np.zeros(len(results), dtype=bool)
+    for paradigm in results["paradigm"].unique():
+        position, rotation = headline_threshold(results, paradigm)
+        keep |= (
+            (results["paradigm"] == paradigm)
+            & (results["position_threshold_m"] == position)
+            & (results["rotation_threshold_deg"] == rotation)
+        ).to_numpy()
+    return results[keep]
+
+
+def curves_for_method(table: pd.DataFrame, paradigm: str, method: str) -> pd.DataFrame:
+    """Rows to draw for one paradigm/method panel.
+
+    Rankings that have ``method`` use it; rankings without it (ground truth in pose
+    approximation, where BDI/CSI need descriptors) are drawn with EWB, as in the paper.
+    """
+    rows = table[table["paradigm"] == paradigm]
+    own = rows[rows["method"] == method]
+    fallback = rows[(rows["method"] == REFERENCE_METHOD) & ~rows["ranking"].isin(own["ranking"])]
+    return pd.concat([own, fallback])
+
+
+def _log_k_axis(axis: plt.Axes, ks: Iterable[int]) -> None:
+    """Logarithmic k axis labelled with the k values drawn (1, 2, 5, 10, ... when there are many)."""
+    ks = sorted({int(k) for k in ks})
+    nice = [m * 10**e for e in range(4) for m in (1, 2, 5) if ks[0] <= m * 10**e <= ks[-1]]
+    axis.set_xscale("log")
+    axis.set_xticks(ks if len(ks) <= 10 else nice, minor=False)
+    axis.xaxis.set_major_formatter(ticker.ScalarFormatter())
+    axis.xaxis.set_minor_locator(ticker.NullLocator())
+    axis.set_xlabel("k (retrieved images)")
+
+
+def _line(
+    axis: plt.Axes, rows: pd.DataFrame, x: str, y: str, label: str, kind: str, color: str, style: str | None = None
+) -> None:
+    """One curve; markers only on short curves, where they do not hide the dashes."""
+    rows = rows.sort_values(x)
+    marker = "o" if len(rows) <= 15 else None
+    axis.plot(rows[x], rows[y], style or LINE_STYLES.get(kind, "-"), color=color, marker=marker, markersize=3, label=label)
+
+
+def plot_localization_vs_k(
+    table: pd.DataFrame, figures: FigureFolder, subset: str = "all", colors: Mapping[str, str] | None = None
+) -> list[Path]:
+    """One figure per dataset x paradigm x method: % localised vs k, a panel per threshold
+    (paper Figs. 4-6), ground truth dashed."""
+    colors = colors or ranking_colors(table["ranking"])
+    table = table[table["subset"] == subset]
+    written = []
+    for (dataset, paradigm), rows in table.groupby(["dataset", "paradigm"], sort=True):
+        for method in sorted(rows["method"].unique()):
+            curves = curves_for_method(rows, paradigm, method)
+            thresholds = curves[THRESHOLD_COLUMNS].drop_duplicates().sort_values(THRESHOLD_COLUMNS)
+            figure, axes = _panels(len(thresholds))
+            for axis, (position, rotation) in zip(axes, thresholds.itertuples(index=False)):
+                at = curves[(curves["position_threshold_m"] == position) & (curves["rotation_threshold_deg"] == rotation)]
+                for (ranking, kind, used), line in at.groupby(["ranking", "ranking_kind", "method"], sort=True):
+                    _line(axis, line, "k", "localized_pct", f"{ranking} ({used})", kind, colors[ranking])
+                _log_k_axis(axis, at["k"])
+                axis.set(ylabel="% localized", ylim=PERCENT_LIMITS, title=threshold_label(position, rotation))
+                axis.grid(True, alpha=0.3)
+            axes[-1].legend(fontsize=7, loc="best")
+            figure.suptitle(f"{dataset} ({subset}): {paradigm}, {method}")
+            suffix = "" if subset == "all" else f"_{subset}"
+            written.append(figures.save(figure, f"{dataset}_{paradigm}_{method}{suffix}"))
+    return written
+
+
+def plot_retrieval_curves(
+    retrieval: pd.DataFrame, figures: FigureFolder, subset: str = "all", colors: Mapping[str, str] | None = None
+) -> list[Path]:
+    """One figure per dataset x metric: P@k (Fig. 7), R@k (Fig. 10) or mAP@k vs k in %,
+    a panel per ground truth, every ranking a line."""
+    colors = colors or ranking_colors(retrieval["ranking"])
+    retrieval = retrieval[retrieval["subset"] == subset]
+    written = []
+    for (dataset, metric), rows in retrieval.groupby(["dataset", "metric"], sort=True):
+        groundtruths = sorted(rows["groundtruth"].unique())
+        figure, axes = _panels(len(groundtruths))
+        for axis, groundtruth in zip(axes, groundtruths):
+            curves = rows[rows["groundtruth"] == groundtruth]
+            for (ranking, kind), line in curves.groupby(["ranking", "ranking_kind"], sort=True):
+                _line(axis, line.assign(percent=100 * line["value"]), "k", "percent", ranking, kind, colors[ranking])
+            axis.set(
+                xlabel="k (retrieved images)",
+                ylabel=f"{METRIC_LABELS.get(metric, metric)} (%)",
+                ylim=PERCENT_LIMITS,
+                title=f"relevance: {groundtruth}",
+            )
+            axis.grid(True, alpha=0.3)
+        axes[-1].legend(fontsize=7, loc="best")
+        figure.suptitle(f"{dataset} ({subset}): {METRIC_LABELS.get(metric, metric)}")
+        written.append(figures.save(figure, f"{dataset}_{metric}_at_k"))
+    return written
+
+
+def plot_correlation_scatter(
+    paired: pd.DataFrame, pearson: pd.DataFrame, figures: FigureFolder, colors: Mapping[str, str]
+) -> list[Path]:
+    """Retrieval metric vs % localised, a point per descriptor and k and a least-squares line
+    per descriptor (paper Figs. 8-9): one figure per dataset x ground truth x metric, a
+    panel per paradigm/method at its headline threshold.
+
+    ``paired`` holds retrieval rows joined with localisation rows (columns of both tables,
+    ``retrieval_metric``/``retrieval_value``); ``pearson`` the matching `dataset_pearson` rows.
+    """
+    written = []
+    keys = ["dataset", "groundtruth", "retrieval_metric", "paradigm", "method", *THRESHOLD_COLUMNS, "ranking"]
+    coefficients = pearson.set_index(keys)["coefficient"]
+    for (dataset, groundtruth, metric), rows in paired.groupby(FIGURE_KEYS, sort=True):
+        rows = at_headline_thresholds(rows)
+        panels = sorted(rows.groupby(["paradigm", "method"]).groups)
+        figure, axes = _panels(len(panels))
+        for axis, (paradigm, method) in zip(axes, panels):
+            panel = rows[(rows["paradigm"] == paradigm) & (rows["method"] == method)]
+            position, rotation = panel[THRESHOLD_COLUMNS].iloc[0]
+            for ranking, points in panel.groupby("ranking", sort=True):
+                x, y = 100 * points["retrieval_value"].to_numpy(), points["localized_pct"].to_numpy()
+                r = coefficients.get((dataset, groundtruth, metric, paradigm, method, position, rotation, ranking), np.nan)
+                axis.scatter(x, y, s=14, color=colors[ranking], label=f"{ranking} (r={r:.2f})")
+                if np.ptp(x) > 0:
+                    slope, intercept = np.polyfit(x, y, 1)
+                    ends = np.array([x.min(), x.max()])
+                    axis.plot(ends, slope * ends + intercept, "-", color=colors[ranking], linewidth=1)
+            axis.set(
+                xlabel=f"{METRIC_LABELS.get(metric, metric)} (%)",
+                ylabel="% localized",
+                title=f"{paradigm}, {method} ({threshold_label(position, rotation)})",
+            )
+            axis.grid(True, alpha=0.3)
+            axis.legend(fontsize=7, loc="best")
+        figure.suptitle(f"{dataset}: {METRIC_LABELS.get(metric, metric)} ({groundtruth}) vs localization")
+        written.append(figures.save(figure, f"{dataset}_scatter_{metric}_{groundtruth}"))
+    return written
+
+
+def plot_query_violins(query_pearson: pd.DataFrame, figures: FigureFolder, colors: Mapping[str, str]) -> list[Path]:
+    """Distribution of per-query Pearson coefficients (paper Figs. 8 and 11 violins): one
+    figure per dataset x ground truth x metric, a panel per paradigm/method, a violin per
+    descriptor; queries with an undefined coefficient are counted under the axis."""
+    written = []
+    for (dataset, groundtruth, metric), rows in query_pearson.groupby(FIGURE_KEYS, sort=True):
+        panels = sorted(rows.groupby(["paradigm", "method"]).groups)
+        figure, axes = _panels(len(panels))
+        for axis, (paradigm, method) in zip(axes, panels):
+            panel = rows[(rows["paradigm"] == paradigm) & (rows["method"] == method)]
+            rankings = sorted(panel["ranking"].unique())
+            labels = []
+            for position, ranking in enumerate(rankings, start=1):
+                values = panel.loc[panel["ranking"] == ranking, "coefficient"]
+                defined = values.dropna().to_numpy()
+                labels.append(f"{ranking}\n{len(defined)}/{len(values)} def.")
+                if len(defined) > 1 and np.ptp(defined) > 0:
+                    parts = axis.violinplot(defined, positions=[position], showmedians=True)
+                    for body in parts["bodies"]:
+                        body.set_facecolor(colors[ranking])
+                elif len(defined):
+                    axis.scatter(np.full(len(defined), position), defined, color=colors[ranking], s=10)
+            axis.set_xticks(range(1, len(rankings) + 1), labels, fontsize=7)
+            axis.set(ylim=(-1.05, 1.05), ylabel="per-query Pearson r", title=f"{paradigm}, {method}")
+            axis.grid(True, axis="y", alpha=0.3)
+        figure.suptitle(f"{dataset}: per-query {METRIC_LABELS.get(metric, metric)} ({groundtruth}) vs -pose error")
+        written.append(figures.save(figure, f"{dataset}_violin_{metric}_{groundtruth}"))
+    return written
+
+
+def plot_subset_comparison(
+    results: pd.DataFrame, retrieval: pd.DataFrame, groundtruth: str | None, figures: FigureFolder, colors: Mapping[str, str]
+) -> list[Path]:
+    """All queries (solid) vs a subset (dashed) for every descriptor (paper Fig. 12): one
+    figure per dataset x subset, panels for % localised per paradigm/method at its headline
+    threshold, then P@k and R@k against ``groundtruth``."""
+    results = at_headline_thresholds(results[results["ranking_kind"] == "descriptor"])
+    retrieval = retrieval[(retrieval["ranking_kind"] == "descriptor") & (retrieval["groundtruth"] == groundtruth)]
+    retrieval = retrieval[retrieval["metric"].isin(["precision", "recall"])].assign(percent=lambda t: 100 * t["value"])
+    written = []
+    for dataset in sorted(set(results["dataset"]) | set(retrieval["dataset"])):
+        localization = results[results["dataset"] == dataset]
+        ranked = retrieval[retrieval["dataset"] == dataset]
+        subsets = sorted((set(localization["subset"]) | set(ranked["subset"])) - {"all"})
+        panels = [("localization", key) for key in sorted(localization.groupby(["paradigm", "method"]).groups)]
+        panels += [("retrieval", metric) for metric in sorted(ranked["metric"].unique())]
+        for subset in subsets if panels else []:
+            figure, axes = _panels(len(panels))
+            for axis, (source, key) in zip(axes, panels):
+                if source == "localization":
+                    rows = localization[(localization["paradigm"] == key[0]) & (localization["method"] == key[1])]
+                    y, ylabel = "localized_pct", "% localized"
+                    position, rotation = rows[THRESHOLD_COLUMNS].iloc[0]
+                    title = f"{key[0]}, {key[1]} ({threshold_label(position, rotation)})"
+                else:
+                    rows = ranked[ranked["metric"] == key]
+                    y, ylabel, title = "percent", f"{METRIC_LABELS[key]} (%)", f"{METRIC_LABELS[key]} ({groundtruth})"
+                for ranking, line in rows.groupby("ranking", sort=True):
+                    for members, style in (("all", "-"), (subset, "--")):
+                        part = line[line["subset"] == members]
+                        if len(part):
+                            count = int(part["num_queries"].iloc[0])
+                            _line(axis, part, "k", y, f"{ranking} {members} ({count})", "descriptor", colors[ranking], style)
+                _log_k_axis(axis, rows["k"])
+                axis.set(ylabel=ylabel, ylim=PERCENT_LIMITS, title=title)
+                axis.grid(True, alpha=0.3)
+                axis.legend(fontsize=6, loc="best")
+            figure.suptitle(f"{dataset}: all queries (solid) vs {subset} (dashed)")
+            written.append(figures.save(figure, f"{dataset}_subset_{subset}"))
+    return written

@@ -1,0 +1,199 @@
+"""The tidy tables of finished runs, read and combined (one run, or a multirun's runs)."""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pandas as pd
+from omegaconf import OmegaConf
+
+from locretrieval.metrics.localization import QUERY_ERROR_COLUMNS, RESULT_COLUMNS
+from locretrieval.metrics.retrieval import QUERY_RETRIEVAL_COLUMNS, RETRIEVAL_COLUMNS
+from locretrieval.metrics.revisited import REVISITED_COLUMNS
+from locretrieval.metrics.subsets import SUBSET_COLUMNS
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TableSpec:
+    """A run's table file, the columns it must hold and those that identify a row."""
+
+    file: str
+    columns: list[str]
+    keys: list[str]
+
+
+def _spec(file: str, columns: list[str], values: Sequence[str]) -> TableSpec:
+    return TableSpec(file, columns, [c for c in columns if c not in values])
+
+
+#: Tables of a run directory; only ``results`` is required.
+TABLES: dict[str, TableSpec] = {
+    "results": _spec("results.csv", RESULT_COLUMNS, ["localized_pct", "num_queries"]),
+    "query_errors": _spec("query_errors.csv.gz", QUERY_ERROR_COLUMNS, ["position_error_m", "rotation_error_deg", "failure"]),
+    "retrieval": _spec("retrieval.csv", RETRIEVAL_COLUMNS, ["value", "num_queries"]),
+    "query_retrieval": _spec("query_retrieval.csv.gz", QUERY_RETRIEVAL_COLUMNS, ["value"]),
+    "groundtruth_statistics": TableSpec(
+        "groundtruth_statistics.csv", columns=["dataset", "groundtruth"], keys=["dataset", "groundtruth"]
+    ),
+    "subsets": TableSpec("subsets.csv", SUBSET_COLUMNS, ["dataset", "image"]),
+    "revisited": _spec("revisited.csv", REVISITED_COLUMNS, ["value", "num_queries"]),
+}
+
+#: Columns read as text, verbatim (never as numbers or NaN): names and labels.
+TEXT_COLUMNS = {
+    "dataset", "subset", "ranking", "ranking_kind", "groundtruth", "paradigm", "method", "metric",
+    "query", "image", "failure", "mask_source", "protocol",
+}  # fmt: skip
+
+#: Optional free-form summary of a run (``{"label": value}``), shown in the report.
+SUMMARY_FILE = "summary.json"
+
+
+@dataclass
+class RunTables:
+    """Every table of one or several runs, concatenated without duplicate rows."""
+
+    run_dirs: list[Path]
+    results: pd.DataFrame
+    query_errors: pd.DataFrame
+    retrieval: pd.DataFrame
+    query_retrieval: pd.DataFrame
+    groundtruth_statistics: pd.DataFrame
+    subsets: pd.DataFrame
+    revisited: pd.DataFrame
+    summaries: dict[str, dict] = field(default_factory=dict)
+
+
+def find_run_dirs(paths: Sequence[str | Path]) -> list[Path]:
+    """Run directories (holding ``results.csv``) among ``paths`` or below them (a multirun)."""
+    found: list[Path] = []
+    for path in map(Path, paths):
+        if (path / TABLES["results"].file).is_file():
+            found.append(path)
+            continue
+        below = sorted(p.parent for p in path.rglob(TABLES["results"].file)) if path.is_dir() else []
+        if not below:
+            raise FileNotFoundError(f"no {TABLES['results'].file} in {path} or below it: not a finished evaluation run")
+        found += below
+    return list(dict.fromkeys(found))
+
+
+def read_table(path: Path, spec: TableSpec) -> pd.DataFrame:
+    """One table file; a missing optional file or a header-only file gives an empty table."""
+    if not path.is_file():
+        return pd.DataFrame(columns=spec.columns)
+    try:
+        header = list(pd.read_csv(path, nrows=0).columns)
+    except pd.errors.EmptyDataError:
+        return pd.DataFrame(columns=spec.columns)
+    missing = [c for c in spec.columns if c not in header]
+    if missing:
+        raise ValueError(f"{path}: missing columns {missing} (found {header})")
+    text = [c for c in header if c in TEXT_COLUMNS]
+    return pd.read_csv(
+        path,
+        dtype={c: str for c in text},
+        keep_default_na=False,
+        na_values={c: [""] for c in header if c not in text},
+    )
+
+
+def conflicting_rows(frames: Sequence[tuple[Path, pd.DataFrame]], spec: TableSpec) -> pd.DataFrame:
+    """The rows of several runs' tables (column ``_run`` added) whose keys repeat with different values."""
+    frames = [(run, frame) for run, frame in frames if len(frame)]
+    if not frames:
+        return pd.DataFrame(columns=[*spec.columns, "_run"])
+    table = pd.concat([frame.assign(_run=str(run)) for run, frame in frames], ignore_index=True)
+    values = [c for c in table.columns if c not in spec.keys and c != "_run"]
+    distinct = table.drop_duplicates(subset=spec.keys + values)
+    return distinct[distinct.duplicated(subset=spec.keys, keep=False)]
+
+
+def combine(frames: Sequence[tuple[Path, pd.DataFrame]], spec: TableSpec) -> pd.DataFrame:
+    """Concatenate one table of several runs, dropping rows repeated across runs.
+
+    Rows with the same keys (e.g. a ground-truth ranking evaluated in every run of a
+    multirun over models) are kept once. Repeated keys with different values are an error
+    for descriptor rankings (`load_runs` renames those first); for ground-truth and baseline
+    rankings and per-image tables they are logged and the first run's row kept.
+    """
+    frames = [(run, frame) for run, frame in frames if len(frame)]
+    if not frames:
+        return pd.DataFrame(columns=spec.columns)
+    conflicting = conflicting_rows(frames, spec)
+    if len(conflicting):
+        descriptor = _descriptor_rows(conflicting)
+        example = (descriptor if len(descriptor) else conflicting).iloc[0]
+        message = (
+            f"{len(conflicting)} rows of {spec.file} differ between runs for the same keys, e.g. "
+            f"{example[spec.keys].to_dict()} in {sorted(set(conflicting['_run']))}"
+        )
+        if len(descriptor):
+            raise ValueError(message + ": two different descriptors share a ranking name; report them separately")
+        log.warning("%s; keeping the first run's values", message)
+    table = pd.concat([frame for _, frame in frames], ignore_index=True)
+    return table.drop_duplicates(subset=spec.keys).reset_index(drop=True)
+
+
+def _descriptor_rows(table: pd.DataFrame) -> pd.DataFrame:
+    if "ranking_kind" in table:
+        return table[table["ranking_kind"] == "descriptor"]
+    return table if "ranking" in table else table.iloc[:0]  # revisited.csv: descriptor rankings only
+
+
+def run_variants(run_dirs: Sequence[Path]) -> dict[Path, str]:
+    """A label per run: the Hydra command-line overrides (``.hydra/overrides.yaml``) that are not
+    shared by every run, e.g. ``paradigms.approximation.alpha=4``; the directory name otherwise."""
+    overrides = {}
+    for run in run_dirs:
+        path = run / ".hydra" / "overrides.yaml"
+        overrides[run] = [str(item) for item in (OmegaConf.load(path) if path.is_file() else [])]
+    shared = set.intersection(*(set(items) for items in overrides.values())) if overrides else set()
+    labels = {run: ", ".join(item for item in items if item not in shared) for run, items in overrides.items()}
+    return {run: label or run.name for run, label in labels.items()}
+
+
+def label_variants(raw: dict[Path, dict[str, pd.DataFrame]]) -> None:
+    """Rename, in place, each descriptor ranking whose rows differ between runs (one model
+    evaluated under several settings, e.g. a sweep over the CSI exponent) to ``name [variant]``."""
+    clashing: set[str] = set()
+    for name, spec in TABLES.items():
+        conflicting = _descriptor_rows(conflicting_rows([(run, tables[name]) for run, tables in raw.items()], spec))
+        clashing |= set(conflicting["ranking"]) if len(conflicting) else set()
+    if not clashing:
+        return
+    variants = run_variants(list(raw))
+    if len(set(variants.values())) < len(variants):
+        raise ValueError(
+            f"descriptor rankings {sorted(clashing)} differ between runs {sorted(map(str, raw))} that no Hydra override "
+            "or directory name tells apart: two different descriptors share a ranking name; report them separately"
+        )
+    log.info("rankings %s differ between runs: labelled by run (%s)", sorted(clashing), "; ".join(variants.values()))
+    for run, tables in raw.items():
+        for table in tables.values():
+            if "ranking" in table and len(table):
+                renamed = table["ranking"].isin(clashing)
+                table.loc[renamed, "ranking"] = table.loc[renamed, "ranking"] + f" [{variants[run]}]"
+
+
+def load_runs(paths: Sequence[str | Path]) -> RunTables:
+    """Read and combine the tables of the runs at or below ``paths``."""
+    run_dirs = find_run_dirs(paths)
+    raw = {run: {name: read_table(run / spec.file, spec) for name, spec in TABLES.items()} for run in run_dirs}
+    label_variants(raw)
+    tables = {name: combine([(run, raw[run][name]) for run in run_dirs], spec) for name, spec in TABLES.items()}
+    summaries = {}
+    for run in run_dirs:
+        if (run / SUMMARY_FILE).is_file():
+            try:
+                summaries[str(run)] = json.loads((run / SUMMARY_FILE).read_text())
+            except json.JSONDecodeError as error:
+                raise ValueError(f"{run / SUMMARY_FILE}: not valid JSON ({error})") from error
+    log.info("report over %d run(s): %s", len(run_dirs), ", ".join(map(str, run_dirs)))
+    return RunTables(run_dirs=run_dirs, summaries=summaries, **tables)

@@ -1,0 +1,130 @@
+"""Benchmark datasets as Hydra-instantiable loaders (``configs/data/*.yaml``).
+
+Every data config names kapture folders relative to a data root (``LOCRETRIEVAL_DATA`` or
+``paths.data_dir``), the query tags, how LTVL files name images and the frustum far plane
+of the ground truth. Folder entries may be glob patterns (RobotCar Seasons v2 has one
+mapping folder per location: ``RobotCar_Seasons-v2/*/mapping``).
+"""
+
+from __future__ import annotations
+
+import glob
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+from locretrieval.cache import config_key
+from locretrieval.scene.kapture_io import LTVL_NAME_STYLES, load_kapture_scene
+from locretrieval.scene.types import Scene
+
+log = logging.getLogger(__name__)
+
+
+class DatasetNotFoundError(FileNotFoundError):
+    """A dataset folder is missing; the message says where it was expected and how to get it."""
+
+
+def _as_list(folders: str | Path | Sequence[str | Path]) -> list[str]:
+    return [str(folders)] if isinstance(folders, (str, Path)) else [str(folder) for folder in folders]
+
+
+def resolve_folders(root: Path, entries: Sequence[str], missing_message: str) -> list[list[Path]]:
+    """The folders of each entry (a path or glob pattern relative to ``root``; absolute paths
+    stay as they are), sorted; raises `DatasetNotFoundError` for an entry matching none."""
+    resolved = []
+    for entry in entries:
+        target = root / Path(entry).expanduser()
+        if glob.has_magic(entry):
+            matches = sorted(Path(path) for path in glob.glob(str(target)) if Path(path).is_dir())
+        else:
+            matches = [target] if target.is_dir() else []
+        if not matches:
+            raise DatasetNotFoundError(f"kapture folder not found: {target}\n{missing_message}")
+        resolved.append(matches)
+    return resolved
+
+
+def _missing_message(name: str, root: Path, mapping: list[str], queries: list[str], install: str) -> str:
+    return "\n".join(
+        [
+            f"Dataset {name!r} expects, under the data root {root}:",
+            f"  mapping: {', '.join(mapping)}",
+            f"  queries: {', '.join(queries)}",
+            "The data root is $LOCRETRIEVAL_DATA if set, else paths.data_dir "
+            "(e.g. `python evaluate.py paths.data_dir=/datasets`).",
+            f"To obtain the dataset (run from {root}):",
+            *(f"  {line}" for line in install.strip().splitlines()),
+        ]
+    )
+
+
+def load_dataset(
+    name: str,
+    root: str | Path,
+    mapping: str | Sequence[str],
+    queries: str | Sequence[str],
+    query_tags: Sequence[str] | None = None,
+    name_tags: Mapping[str, str] | None = None,
+    ltvl_name_style: str = "full",
+    frustum_far: float = 50.0,
+    install: str = "",
+) -> Scene:
+    """A `Scene` from kapture folders under ``root``.
+
+    ``mapping``/``queries``: folders (or glob patterns) relative to ``root``. ``query_tags``:
+    one tag per query entry, given to every folder it matches (default: the folder name).
+    ``name_tags``: ``{tag: regex}`` on image names (e.g. RobotCar's day/night conditions).
+    ``ltvl_name_style`` and ``frustum_far`` (metres) are read by the pipeline from the config;
+    they are checked here so a typo fails before any work. ``install``: the commands that
+    obtain the dataset, shown when a folder is missing.
+    """
+    if ltvl_name_style not in LTVL_NAME_STYLES:
+        raise ValueError(f"dataset {name!r}: unknown ltvl_name_style {ltvl_name_style!r}; expected one of {LTVL_NAME_STYLES}")
+    if not float(frustum_far) > 0:
+        raise ValueError(f"dataset {name!r}: frustum_far must be a positive distance in metres, got {frustum_far}")
+    root = Path(root).expanduser()
+    mapping_entries, query_entries = _as_list(mapping), _as_list(queries)
+    if query_tags is not None and len(query_tags) != len(query_entries):
+        raise ValueError(f"dataset {name!r}: {len(query_tags)} query_tags {list(query_tags)} for {len(query_entries)} query entries {query_entries}")
+    message = _missing_message(name, root, mapping_entries, query_entries, install)
+    try:
+        mapping_matches = resolve_folders(root, mapping_entries, message)
+        query_matches = resolve_folders(root, query_entries, message)
+    except DatasetNotFoundError as error:
+        log.error("%s", error)  # hydra.utils.instantiate re-raises it on one line; the log keeps the layout
+        raise
+    mapping_folders = [folder for matches in mapping_matches for folder in matches]
+    query_folders = [folder for matches in query_matches for folder in matches]
+    tags = None
+    if query_tags is not None:
+        tags = [str(tag) for tag, matches in zip(query_tags, query_matches) for _ in matches]
+    return load_kapture_scene(name, mapping_folders, query_folders, tags, dict(name_tags) if name_tags else None)
+
+
+def load_synthetic_dataset(
+    name: str,
+    cache_dir: str | Path,
+    render: Mapping,
+    ltvl_name_style: str = "full",
+    frustum_far: float = 25.0,
+) -> Scene:
+    """The built-in synthetic scene: rendered once per ``render`` config into
+    ``<cache_dir>/synthetic/<key>/{mapping,query}`` (kapture), then read like any dataset.
+
+    ``render`` holds the renderer's keys (`locretrieval.scene.synthetic.DEFAULT_CONFIG`);
+    the folder key hashes the fully resolved config, so any change renders a new scene.
+    """
+    from locretrieval.scene.synthetic import resolve_config, render_synthetic_dataset
+
+    config = resolve_config(render)
+    folder = Path(cache_dir) / "synthetic" / config_key({k: v for k, v in config.items() if k not in RENDER_ONLY_KEYS})
+    if not (folder / "synthetic_config.json").is_file():
+        log.info("rendering the synthetic scene into %s", folder)
+        render_synthetic_dataset(config, folder)
+    else:
+        log.info("synthetic scene cached in %s", folder)
+    return load_dataset(name, folder, "mapping", ["query"], ["query"], None, ltvl_name_style, frustum_far)
+
+
+#: Renderer keys that change how fast a scene renders, not what it contains.
+RENDER_ONLY_KEYS = ("workers",)

@@ -1,0 +1,501 @@
+"""Kapture folders -> `ImageSet` / `Scene`, and poses -> LTVL submission files.
+
+Poses are world-to-camera ``(q, t)``, ``q`` wxyz, exactly as kapture stores them in
+``sensors/trajectories.txt``. A trajectory may be given per camera or per rig; for a rig it
+is ``rig_from_world`` and ``sensors/rigs.txt`` holds ``cam_from_rig``, so
+``cam_from_world = cam_from_rig o rig_from_world``.
+
+Parsing goes through ``kapture.io.csv``. Its readers skip or crash on bad lines without
+saying where, so each text file first gets a light pass here that reports ``file:line``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import re
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+
+import kapture
+import kapture.io.csv as kapture_csv
+import numpy as np
+import quaternion
+
+from locretrieval import geometry
+from locretrieval.cache import atomic_path
+from locretrieval.scene.types import CAMERA_MODELS, Camera, ImageSet, Scene
+
+log = logging.getLogger(__name__)
+
+SENSORS_FILE = Path(kapture_csv.CSV_FILENAMES[kapture.Sensors])
+RIGS_FILE = Path(kapture_csv.CSV_FILENAMES[kapture.Rigs])
+TRAJECTORIES_FILE = Path(kapture_csv.CSV_FILENAMES[kapture.Trajectories])
+RECORDS_CAMERA_FILE = Path(kapture_csv.CSV_FILENAMES[kapture.RecordsCamera])
+RECORDS_DEPTH_FILE = Path(kapture_csv.CSV_FILENAMES[kapture.RecordsDepth])
+RECORDS_DATA_DIR = Path("sensors", "records_data")
+#: locretrieval extensions to the kapture layout (written by the synthetic renderer).
+TAGS_FILE = Path("tags.txt")
+MASKS_DIR = Path("masks")
+#: Suffix of the depth sensor paired with a camera: ``<camera_id>_depth``.
+DEPTH_SENSOR_SUFFIX = "_depth"
+
+#: How `write_ltvl` writes image names (cf. kapture's ``kapture_export_LTVL2020``):
+#: ``full`` as kapture lists them (GangnamStation, Baidu), ``basename`` the file name only
+#: (Aachen, InLoc), ``strip_prefix`` without the first folder (RobotCar:
+#: ``night/rear/123.jpg`` -> ``rear/123.jpg``, the camera name then the file name).
+LTVL_NAME_STYLES = ("full", "basename", "strip_prefix")
+
+
+class KaptureFormatError(ValueError):
+    """A line of a kapture text file that cannot be used."""
+
+    def __init__(self, path: Path, line: int, text: str, problem: str) -> None:
+        super().__init__(f"{path}:{line}: {problem} (line: {text.strip()!r})")
+
+
+@dataclass(frozen=True)
+class _Row:
+    path: Path
+    line: int
+    text: str
+    fields: list[str]
+
+    def error(self, problem: str) -> KaptureFormatError:
+        return KaptureFormatError(self.path, self.line, self.text, problem)
+
+    def timestamp(self) -> int:
+        try:
+            return int(self.fields[0])
+        except ValueError:
+            raise self.error(f"timestamp {self.fields[0]!r} is not an integer") from None
+
+    def floats(self, start: int, stop: int, what: str) -> list[float]:
+        try:
+            return [float(value) for value in self.fields[start:stop]]
+        except ValueError:
+            raise self.error(f"non-numeric {what} {self.fields[start:stop]}") from None
+
+
+def _read_rows(path: Path, min_fields: int, max_fields: int | None) -> list[_Row]:
+    """Non-comment lines of a kapture CSV file, split like kapture does, field counts checked."""
+    rows = []
+    with path.open() as stream:
+        for number, text in enumerate(stream, start=1):
+            if not text.strip() or text.lstrip().startswith("#"):
+                continue
+            fields = [value.strip() for value in text.split(",")]
+            if len(fields) < min_fields or (max_fields is not None and len(fields) > max_fields):
+                expected = str(min_fields) if min_fields == max_fields else f"at least {min_fields}"
+                raise KaptureFormatError(path, number, text, f"expected {expected} comma-separated fields, got {len(fields)}")
+            rows.append(_Row(path, number, text, fields))
+    return rows
+
+
+def _check_unique(rows: list[_Row], key_fields: int, what: str) -> None:
+    seen: dict[tuple[str, ...], int] = {}
+    for row in rows:
+        key = tuple(row.fields[:key_fields])
+        if key in seen:
+            raise row.error(f"duplicate {what} {key} (first on line {seen[key]})")
+        seen[key] = row.line
+
+
+def _check_poses(rows: list[_Row], start: int) -> None:
+    """Fields ``qw, qx, qy, qz, tx, ty, tz`` from ``start``: numbers and unit quaternions.
+
+    kapture allows an empty rotation or translation (a partial pose); those stay empty.
+    """
+    rotations, rotation_rows, translations, translation_rows = [], [], [], []
+    for row in rows:
+        rotation, translation = row.fields[start : start + 4], row.fields[start + 4 : start + 7]
+        for group, name in ((rotation, "rotation"), (translation, "translation")):
+            if any(group) and not all(group):
+                raise row.error(f"{name} is partly empty")
+        if all(rotation):
+            rotations.append(row.floats(start, start + 4, "quaternion"))
+            rotation_rows.append(row)
+        if all(translation):
+            translations.append(row.floats(start + 4, start + 7, "translation"))
+            translation_rows.append(row)
+    bad = geometry.invalid_quaternion_rows(np.array(rotations).reshape(-1, 4))
+    if bad.size:
+        norm = np.linalg.norm(rotations[bad[0]])
+        raise rotation_rows[bad[0]].error(
+            f"quaternion (qw, qx, qy, qz) is not a finite unit quaternion (norm {norm:.6g}, tolerance {geometry.UNIT_NORM_TOLERANCE})"
+        )
+    infinite = np.flatnonzero(~np.isfinite(np.array(translations).reshape(-1, 3)).all(axis=1))
+    if infinite.size:
+        raise translation_rows[infinite[0]].error("translation is not finite")
+
+
+def _check_sensors(path: Path) -> dict[str, _Row]:
+    """Sensor id -> its line; camera and depth sensors must have a kapture model and its parameters."""
+    rows = _read_rows(path, 3, None)
+    _check_unique(rows, 1, "sensor id")
+    for row in rows:
+        if row.fields[2] not in kapture.ALL_CAMERA_SENSOR_TYPES:
+            continue
+        if len(row.fields) < 4 or row.fields[3] not in kapture.CameraType.__members__:
+            model = row.fields[3] if len(row.fields) > 3 else ""
+            raise row.error(
+                f"sensor {row.fields[0]!r}: unknown camera model {model!r}; kapture models: "
+                f"{sorted(kapture.CameraType.__members__)}"
+            )
+        expected = kapture.CAMERA_TYPE_PARAMS_COUNT[kapture.CameraType[row.fields[3]]]
+        if len(row.fields) - 4 != expected:
+            raise row.error(f"sensor {row.fields[0]!r}: camera model {row.fields[3]} takes {expected} values (width, height, parameters), got {len(row.fields) - 4}")
+        row.floats(4, len(row.fields), "camera parameters")
+    return {row.fields[0]: row for row in rows}
+
+
+def _check_rigs(path: Path, sensors: dict[str, _Row]) -> None:
+    rows = _read_rows(path, 9, 9)
+    _check_unique(rows, 2, "rig/sensor pair")
+    rig_ids = {row.fields[0] for row in rows}
+    for row in rows:
+        rig_id, sensor_id = row.fields[:2]
+        if rig_id in sensors:
+            raise row.error(f"rig id {rig_id!r} is also a sensor id in {sensors[rig_id].path}")
+        if sensor_id in rig_ids:
+            raise row.error(f"nested rig {sensor_id!r} in rig {rig_id!r} is not supported")
+        if sensor_id not in sensors:
+            raise row.error(f"rig {rig_id!r} holds sensor {sensor_id!r}, which is not in {SENSORS_FILE}")
+        if not all(row.fields[2:]):
+            raise row.error(f"rig {rig_id!r}: the pose of sensor {sensor_id!r} has empty fields")
+    _check_poses(rows, 2)
+
+
+def _check_trajectories(path: Path, devices: set[str]) -> None:
+    rows = _read_rows(path, 9, 9)
+    _check_unique(rows, 2, "(timestamp, device)")
+    for row in rows:
+        row.timestamp()
+        if row.fields[1] not in devices:
+            raise row.error(f"trajectory for unknown sensor or rig {row.fields[1]!r} (not in {SENSORS_FILE} or {RIGS_FILE})")
+    _check_poses(rows, 2)
+
+
+def _check_records(path: Path, sensors: dict[str, _Row], sensor_types: tuple[str, ...]) -> list[_Row]:
+    rows = _read_rows(path, 3, 3)
+    _check_unique(rows, 2, "(timestamp, sensor)")
+    for row in rows:
+        row.timestamp()
+        sensor = sensors.get(row.fields[1])
+        if sensor is None:
+            raise row.error(f"record of unknown sensor {row.fields[1]!r} (not in {SENSORS_FILE})")
+        if sensor.fields[2] not in sensor_types:
+            raise row.error(f"sensor {row.fields[1]!r} is of type {sensor.fields[2]!r}, expected {' or '.join(sensor_types)}")
+        if not row.fields[2]:
+            raise row.error("empty file name")
+    return rows
+
+
+def _check_camera_supported(sensor: _Row) -> None:
+    model = sensor.fields[3]
+    if model not in CAMERA_MODELS:
+        raise sensor.error(
+            f"camera {sensor.fields[0]!r} has model {model}, which locretrieval cannot use; "
+            f"supported (calibrated COLMAP) models: {sorted(CAMERA_MODELS)}"
+        )
+    width, height = sensor.floats(4, 6, "image size")
+    if not (width.is_integer() and height.is_integer() and width > 0 and height > 0):
+        raise sensor.error(f"camera {sensor.fields[0]!r}: image size {width} x {height} is not a positive integer size")
+
+
+def _to_camera(sensor: kapture.Camera) -> Camera:
+    width, height, *params = sensor.camera_params
+    return Camera(sensor.camera_type.name, int(width), int(height), tuple(params))
+
+
+def _pose_arrays(poses: Sequence[kapture.PoseTransform | None]) -> tuple[np.ndarray, np.ndarray]:
+    """``q [N, 4]`` (wxyz) and ``t [N, 3]``; NaN rows where the pose or a part of it is unknown."""
+    q = np.full((len(poses), 4), np.nan)
+    t = np.full((len(poses), 3), np.nan)
+    known = [i for i, pose in enumerate(poses) if pose is not None and pose.r is not None and pose.t is not None]
+    if known:
+        q[known] = quaternion.as_float_array(np.array([poses[i].r for i in known]))
+        t[known] = np.array([poses[i].t for i in known]).reshape(-1, 3)
+    return q, t
+
+
+def _inverse_poses(q: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``b_from_a`` of poses ``a_from_b`` (wxyz, t): ``(q*, -R^T t)``."""
+    return geometry.quaternion_conjugate(q), geometry.camera_centers(q, t)
+
+
+def _image_poses(
+    keys: list[tuple[int, str]], trajectories: kapture.Trajectories, rigs: kapture.Rigs
+) -> tuple[np.ndarray, np.ndarray]:
+    """World-to-camera poses of the images ``(timestamp, camera_id)``; NaN without a trajectory.
+
+    A camera's own trajectory wins. Otherwise, for the first rig holding the camera that has
+    a trajectory at that timestamp, ``cam_from_world = cam_from_rig o rig_from_world``; when
+    only another camera of the rig has one (RobotCar Seasons v2 gives the rear camera's pose
+    only), ``rig_from_world = (other_from_rig)^-1 o other_from_world``.
+    """
+    own = [trajectories.get(ts, {}).get(camera) for ts, camera in keys]
+    partial = sum(pose is not None and (pose.r is None or pose.t is None) for pose in own)
+    if partial:
+        log.warning("%d images have a partial pose (empty rotation or translation); their pose is unknown", partial)
+    q, t = _pose_arrays(own)
+    camera_rigs: dict[str, list[str]] = {}
+    for rig_id, members in rigs.items():
+        for sensor_id in members:
+            camera_rigs.setdefault(sensor_id, []).append(rig_id)
+    identity = kapture.PoseTransform()
+    rows, cam_from_rig, anchor_from_rig, anchor_from_world = [], [], [], []
+    for i, (ts, camera) in enumerate(keys):
+        if own[i] is not None:
+            continue
+        poses_at_ts = trajectories.get(ts, {})
+        for rig_id in camera_rigs.get(camera, []):
+            anchor = rig_id if rig_id in poses_at_ts else next((s for s in rigs[rig_id] if s in poses_at_ts), None)
+            if anchor is not None:
+                rows.append(i)
+                cam_from_rig.append(rigs[rig_id][camera])
+                anchor_from_rig.append(identity if anchor == rig_id else rigs[rig_id][anchor])
+                anchor_from_world.append(poses_at_ts[anchor])
+                break
+    if rows:
+        rig_from_world = geometry.compose_poses(*_inverse_poses(*_pose_arrays(anchor_from_rig)), *_pose_arrays(anchor_from_world))
+        q[rows], t[rows] = geometry.compose_poses(*_pose_arrays(cam_from_rig), *rig_from_world)
+    return q, t
+
+
+def _read_tags_file(path: Path, names: list[str]) -> list[set[str]]:
+    """Per-image tags from ``tags.txt`` (``# image_name, tags`` then ``name, tag1 tag2 ...``)."""
+    index = {name: i for i, name in enumerate(names)}
+    tags: list[set[str]] = [set() for _ in names]
+    with path.open() as stream:
+        for number, text in enumerate(stream, start=1):
+            if not text.strip() or text.lstrip().startswith("#"):
+                continue
+            name, separator, values = text.partition(",")
+            if not separator:
+                raise KaptureFormatError(path, number, text, "expected 'image_name, tag1 tag2 ...'")
+            if name.strip() not in index:
+                raise KaptureFormatError(path, number, text, f"image {name.strip()!r} is not in {RECORDS_CAMERA_FILE}")
+            tags[index[name.strip()]].update(values.split())
+    return tags
+
+
+def _check_files_exist(folder: Path, names: Sequence[str], what: str) -> None:
+    missing = [name for name in names if not os.path.isfile(os.path.join(folder, name))]
+    if missing:
+        raise FileNotFoundError(
+            f"{len(missing)} {what} file(s) listed in the kapture folder are missing from {folder}, "
+            f"e.g. {missing[:3]}"
+        )
+
+
+def load_image_set(kapture_root: str | Path, tag: str | None = None) -> ImageSet:
+    """The images of one kapture folder, in (timestamp, sensor id) order.
+
+    Names are as ``records_camera.txt`` lists them, relative to ``image_root =
+    <kapture_root>/sensors/records_data``. Poses are world-to-camera (wxyz, t), NaN for images
+    without a trajectory (or without ``trajectories.txt``). ``tag`` is added to every image,
+    plus the per-image tags of ``<kapture_root>/tags.txt``. Depth maps come from
+    ``records_depth.txt`` entries of sensor ``<camera_id>_depth`` at the image's timestamp,
+    masks from ``<kapture_root>/masks/<image name>``. Principal points are kept as stated.
+    """
+    root = Path(kapture_root)
+    for required in (SENSORS_FILE, RECORDS_CAMERA_FILE):
+        if not (root / required).is_file():
+            raise FileNotFoundError(f"not a kapture folder: {root / required} is missing")
+    sensors = _check_sensors(root / SENSORS_FILE)
+    has_rigs = (root / RIGS_FILE).is_file()
+    if has_rigs:
+        _check_rigs(root / RIGS_FILE, sensors)
+    records = _check_records(root / RECORDS_CAMERA_FILE, sensors, ("camera",))
+    if not records:
+        raise ValueError(f"{root / RECORDS_CAMERA_FILE} lists no image")
+    for camera_id in {row.fields[1] for row in records}:
+        _check_camera_supported(sensors[camera_id])
+    rigs = kapture_csv.rigs_from_file(str(root / RIGS_FILE)) if has_rigs else kapture.Rigs()
+    has_trajectories = (root / TRAJECTORIES_FILE).is_file()
+    if has_trajectories:
+        _check_trajectories(root / TRAJECTORIES_FILE, set(sensors) | set(rigs))
+    has_depth = (root / RECORDS_DEPTH_FILE).is_file()
+    if has_depth:
+        _check_records(root / RECORDS_DEPTH_FILE, sensors, tuple(kapture.ALL_CAMERA_SENSOR_TYPES))
+
+    kapture_sensors = kapture_csv.sensors_from_file(str(root / SENSORS_FILE))
+    records_camera = kapture_csv.records_camera_from_file(str(root / RECORDS_CAMERA_FILE))
+    trajectories = kapture_csv.trajectories_from_file(str(root / TRAJECTORIES_FILE)) if has_trajectories else kapture.Trajectories()
+    records_depth = kapture_csv.records_depth_from_file(str(root / RECORDS_DEPTH_FILE)) if has_depth else kapture.RecordsDepth()
+
+    entries = list(kapture.flatten(records_camera, is_sorted=True))
+    keys = [(ts, camera) for ts, camera, _ in entries]
+    names = [name for _, _, name in entries]
+    duplicates = sorted(name for name, count in Counter(names).items() if count > 1)
+    if duplicates:
+        raise ValueError(f"{root / RECORDS_CAMERA_FILE}: image file(s) listed more than once: {duplicates[:3]}")
+    image_root = root / RECORDS_DATA_DIR
+    _check_files_exist(image_root, names, "image")
+    cameras = {camera: _to_camera(kapture_sensors[camera]) for camera in {c for _, c in keys}}
+    qvec, tvec = _image_poses(keys, trajectories, rigs)
+
+    depth_names = [records_depth.get(ts, {}).get(camera + DEPTH_SENSOR_SUFFIX) for ts, camera in keys]
+    depth_paths = None
+    if any(depth_names):
+        _check_files_exist(image_root, [d for d in depth_names if d], "depth map")
+        depth_paths = [image_root / d if d else None for d in depth_names]
+    mask_paths = None
+    if (root / MASKS_DIR).is_dir():
+        masks = root / MASKS_DIR
+        mask_paths = [masks / name if os.path.isfile(os.path.join(masks, name)) else None for name in names]
+
+    tags = _read_tags_file(root / TAGS_FILE, names) if (root / TAGS_FILE).is_file() else [set() for _ in names]
+    if tag:
+        for image_tags in tags:
+            image_tags.add(tag)
+    return ImageSet(
+        names=names,
+        image_root=image_root,
+        cameras=[cameras[camera] for _, camera in keys],
+        qvec=qvec,
+        tvec=tvec,
+        tags=[frozenset(t) for t in tags],
+        depth_paths=depth_paths,
+        mask_paths=mask_paths,
+    )
+
+
+def concatenate_image_sets(image_sets: Sequence[ImageSet]) -> ImageSet:
+    """One set holding several (e.g. Aachen's query_day and query_night), in order.
+
+    Every image keeps its own root (``ImageSet.image_roots``); ``image_root`` becomes the
+    folders' common parent. Image names must be unique across the sets.
+    """
+    if len(image_sets) == 1:
+        return image_sets[0]
+    if not image_sets:
+        raise ValueError("no image set to concatenate")
+    folder_of: dict[str, Path] = {}
+    for image_set in image_sets:
+        for name in image_set.names:
+            if name in folder_of:
+                raise ValueError(f"image name {name!r} is in both {folder_of[name]} and {image_set.image_root}")
+            folder_of[name] = image_set.image_root
+
+    def joined(attribute: str) -> list | None:
+        values = [getattr(image_set, attribute) for image_set in image_sets]
+        if all(value is None for value in values):
+            return None
+        return [x for image_set, value in zip(image_sets, values) for x in (value or [None] * len(image_set))]
+
+    return ImageSet(
+        names=[name for image_set in image_sets for name in image_set.names],
+        image_root=Path(os.path.commonpath([image_set.image_root for image_set in image_sets])),
+        cameras=[camera for image_set in image_sets for camera in image_set.cameras],
+        qvec=np.concatenate([image_set.qvec for image_set in image_sets]),
+        tvec=np.concatenate([image_set.tvec for image_set in image_sets]),
+        tags=[tags for image_set in image_sets for tags in image_set.tags],
+        depth_paths=joined("depth_paths"),
+        mask_paths=joined("mask_paths"),
+        image_roots=[root for image_set in image_sets for root in (image_set.image_roots or [image_set.image_root] * len(image_set))],
+    )
+
+
+def add_name_tags(image_set: ImageSet, patterns: Mapping[str, str]) -> ImageSet:
+    """The set with ``tag`` added to every image whose name matches its regular expression
+    (``re.search``), e.g. RobotCar's ``{"night": "^night(-rain)?/"}``."""
+    compiled = {}
+    for tag, pattern in patterns.items():
+        try:
+            compiled[tag] = re.compile(pattern)
+        except re.error as error:
+            raise ValueError(f"name tag {tag!r}: invalid regular expression {pattern!r}: {error}") from error
+    tags = [
+        tags | {tag for tag, regex in compiled.items() if regex.search(name)}
+        for name, tags in zip(image_set.names, image_set.tags)
+    ]
+    return dataclasses.replace(image_set, tags=tags)
+
+
+def _posed_database(image_set: ImageSet, folders: Sequence[Path]) -> ImageSet:
+    """Mapping images that can serve as database images: those with a pose (others logged)."""
+    posed = image_set.has_pose
+    if not posed.all():
+        unposed = [name for name, ok in zip(image_set.names, posed) if not ok]
+        log.warning(
+            "%d of %d mapping images in %s have no pose and are left out of the database, e.g. %s",
+            len(unposed), len(image_set), ", ".join(map(str, folders)), unposed[:3],
+        )
+    return image_set.subset(posed)
+
+
+def load_kapture_scene(
+    name: str,
+    mapping: str | Path | Sequence[str | Path],
+    queries: Sequence[str | Path],
+    query_tags: Sequence[str] | None = None,
+    name_tags: Mapping[str, str] | None = None,
+) -> Scene:
+    """A scene from kapture folders: database from the mapping folder(s), queries from the
+    query folders (concatenated, names unique).
+
+    Each query folder's images are tagged with ``query_tags`` (default: the folder name, e.g.
+    ``query_day``); ``name_tags`` ``{tag: regex}`` tag database and query images by name.
+    Mapping images without a pose are left out of the database (logged).
+    ``Scene.sources`` lists all folders.
+    """
+    mapping_folders = [Path(mapping)] if isinstance(mapping, (str, Path)) else [Path(folder) for folder in mapping]
+    query_folders = [Path(folder) for folder in queries]
+    if not mapping_folders or not query_folders:
+        raise ValueError(f"scene {name!r} needs at least one mapping and one query folder, got {mapping_folders} and {query_folders}")
+    tags = [folder.name for folder in query_folders] if query_tags is None else list(query_tags)
+    if len(tags) != len(query_folders):
+        raise ValueError(f"scene {name!r}: {len(tags)} query tags {tags} for {len(query_folders)} query folders")
+    database = _posed_database(concatenate_image_sets([load_image_set(folder) for folder in mapping_folders]), mapping_folders)
+    query_set = concatenate_image_sets([load_image_set(folder, tag) for folder, tag in zip(query_folders, tags)])
+    if name_tags:
+        database, query_set = add_name_tags(database, name_tags), add_name_tags(query_set, name_tags)
+    return Scene(name=name, database=database, queries=query_set, sources=mapping_folders + query_folders)
+
+
+def ltvl_name(name: str, style: str) -> str:
+    """The image name LTVL expects for ``name`` (a records_data path) under ``style``."""
+    if style == "full":
+        return name
+    if style == "basename":
+        return PurePosixPath(name).name
+    if style == "strip_prefix":
+        prefix, separator, rest = name.partition("/")
+        if not separator or not rest:
+            raise ValueError(f"LTVL name style 'strip_prefix': image name {name!r} has no leading folder to strip")
+        return rest
+    raise ValueError(f"unknown LTVL name style {style!r}; expected one of {LTVL_NAME_STYLES}")
+
+
+def write_ltvl(
+    path: str | Path, names: Sequence[str], qvec: np.ndarray, tvec: np.ndarray, name_style: str = "full"
+) -> int:
+    """Write a visuallocalization.net submission: ``name qw qx qy qz tx ty tz`` per line.
+
+    Poses are world-to-camera (wxyz quaternion, translation -- not the camera centre), as
+    kapture stores them. Rows with a NaN pose are not written; returns how many were skipped.
+    """
+    if name_style not in LTVL_NAME_STYLES:
+        raise ValueError(f"unknown LTVL name style {name_style!r}; expected one of {LTVL_NAME_STYLES}")
+    qvec = np.asarray(qvec, dtype=np.float64)
+    tvec = np.asarray(tvec, dtype=np.float64)
+    if qvec.shape != (len(names), 4) or tvec.shape != (len(names), 3):
+        raise ValueError(f"write_ltvl: {len(names)} names need qvec [N, 4] and tvec [N, 3], got {qvec.shape} and {tvec.shape}")
+    known = np.isfinite(qvec).all(axis=1) & np.isfinite(tvec).all(axis=1)
+    written = [ltvl_name(name, name_style) for name, ok in zip(names, known) if ok]
+    clashes = sorted(n for n, count in Counter(written).items() if count > 1)
+    if clashes:
+        raise ValueError(f"write_ltvl: name style {name_style!r} maps several images to the same name, e.g. {clashes[:3]}")
+    spaced = [n for n in written if any(c.isspace() for c in n)]
+    if spaced:
+        raise ValueError(f"write_ltvl: LTVL lines are space-separated, image names must not contain whitespace: {spaced[:3]}")
+    values = np.concatenate([qvec, tvec], axis=1)[known]
+    lines = [f"{name} {' '.join(repr(float(v)) for v in row)}\n" for name, row in zip(written, values)]
+    with atomic_path(path) as temporary:
+        temporary.write_text("".join(lines))
+    return int((~known).sum())

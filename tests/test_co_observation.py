@@ -1,0 +1,121 @@
+"""Co-observation ground truth: shared 3D points of a joint map, checked against rendered depth."""
+
+import kapture.io.records as kapture_records
+import numpy as np
+import pytest
+from scipy.stats import spearmanr
+
+import locretrieval  # noqa: F401  (imports zlib before pycolmap)
+from locretrieval import geometry
+from locretrieval.groundtruth import compute_groundtruths
+from locretrieval.groundtruth.co_observation import co_observation_groundtruth, shared_points
+from locretrieval.localization import matching
+from locretrieval.localization.features import extract_features
+from locretrieval.retrieval import EMPTY
+from locretrieval.scene import ImageSet
+from locretrieval.scene.kapture_io import load_kapture_scene
+from locretrieval.scene.synthetic import render_synthetic_dataset
+
+SCENE = {"width": 256, "height": 192, "num_database": 40, "num_queries": 8, "texture_size": 128, "length": 20.0,
+         "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
+         "hard_query_fraction": 0.0, "workers": 1, "seed": 2}
+PAIRS = {"far": 25.0, "max_per_image": 10}
+SETTINGS = {"pairs": PAIRS, "query_pairs": 10, "workers": 1}
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("co_observation_scene")
+    render_synthetic_dataset(SCENE, root)
+    return load_kapture_scene("tiny", [root / "mapping"], [root / "query"])
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("co_observation_cache")
+
+
+@pytest.fixture(scope="module")
+def shared(scene, cache):
+    return shared_points(scene.database, scene.queries, cache, None, None, None, PAIRS, 10, 1).toarray()
+
+
+def depth_map(images: ImageSet, index: int) -> np.ndarray:
+    camera = images.cameras[index]
+    return kapture_records.depth_map_from_file(str(images.depth_paths[index]), (camera.width, camera.height))
+
+
+def covisible_keypoints(scene, cache) -> np.ndarray:
+    """``[Q, N]``: query keypoints whose rendered surface point is also seen by database image t
+    (projects inside it, in front, at the depth it renders there), from depth maps alone."""
+    database, queries = scene.database, scene.queries
+    keypoints = extract_features(queries, None, cache).keypoints(queries.names)
+    depths = [depth_map(database, t) for t in range(len(database))]
+    counts = np.zeros((len(queries), len(database)), dtype=np.int64)
+    for q, name in enumerate(queries.names):
+        pixels = keypoints[name]
+        z = depth_map(queries, q)[pixels[:, 1].astype(int), pixels[:, 0].astype(int)]
+        rays = np.column_stack([pixels, np.ones(len(pixels))]) @ np.linalg.inv(queries.cameras[q].calibration_matrix()).T
+        world = (rays * z[:, None] - queries.tvec[q]) @ geometry.quaternion_to_matrix(queries.qvec[q])
+        for t, depth in enumerate(depths):
+            camera = database.cameras[t]
+            local = world @ geometry.quaternion_to_matrix(database.qvec[t]).T + database.tvec[t]
+            projected = local @ camera.calibration_matrix().T
+            uv = projected[:, :2] / projected[:, 2:]
+            inside = (local[:, 2] > 0.1) & (uv >= 0).all(1) & (uv[:, 0] < camera.width) & (uv[:, 1] < camera.height)
+            rendered = depth[uv[inside, 1].astype(int), uv[inside, 0].astype(int)]
+            counts[q, t] = np.sum(np.abs(rendered - local[inside, 2]) < 0.05 * local[inside, 2])
+    return counts
+
+
+def test_shared_points_agree_with_covisibility_by_depth(scene, cache, shared):
+    covisible = covisible_keypoints(scene, cache)
+    assert shared.sum() > 100
+    # a shared point is one query keypoint whose point the database image sees: a pair can
+    # share no more points than it has covisible keypoints, up to a few wrong matches (on
+    # repeated textures); covisibility also counts views too different for SIFT to match
+    sharing = shared > 0
+    excess = shared - covisible
+    assert (excess[sharing] > 2).mean() < 0.05 and (excess <= 5).all()
+    assert (covisible[shared >= 5] >= 5).all()
+    # the scores rank pairs like covisibility does
+    assert spearmanr(shared.ravel(), covisible.ravel()).statistic > 0.5
+    # every query shares points with one of its most covisible images
+    best = np.argsort(-covisible, axis=1)[:, :3]
+    assert all(shared[q, best[q]].max() > 0 for q in range(len(shared)))
+
+
+def test_groundtruth_ranks_by_shared_points_through_the_registry(scene, cache, shared, monkeypatch):
+    database, queries = scene.database, scene.queries
+    config = {"depth": 10, "definitions": {"coobs": {"type": "co_observation", "min_shared": 5, **SETTINGS}}}
+    groundtruth = compute_groundtruths(database, queries, config, cache_dir=cache)["coobs"]
+    assert groundtruth.name == "gt_coobs" and groundtruth.ranking.kind == "groundtruth"
+    indices, scores = groundtruth.ranking.indices, groundtruth.ranking.scores
+    for q in range(len(queries)):
+        ranked = indices[q][indices[q] != EMPTY]
+        np.testing.assert_array_equal(scores[q, : len(ranked)], shared[q, ranked])
+        assert (np.diff(scores[q, : len(ranked)]) <= 0).all()
+        assert len(ranked) == min(10, int((shared[q] > 0).sum()))
+    np.testing.assert_array_equal(groundtruth.relevance.toarray(), shared >= 5)
+    statistics = groundtruth.statistics()
+    assert statistics["avg_relevant"] == pytest.approx((shared >= 5).sum(1).mean())
+    # cached: nothing is matched again
+    calls = []
+    monkeypatch.setattr(matching, "mutual_nearest_neighbours", lambda *args: calls.append(1))
+    again = compute_groundtruths(database, queries, config, cache_dir=cache)["coobs"]
+    np.testing.assert_array_equal(again.ranking.indices, indices)
+    assert not calls
+    with pytest.raises(ValueError, match=r"unknown parameters \['min_shard'\]"):
+        compute_groundtruths(database, queries, {"definitions": {"co_observation": {"min_shard": 1}}})
+
+
+def test_queries_without_a_pose_get_no_ranking(scene, tmp_path):
+    database, queries = scene.database, scene.queries
+    qvec = queries.qvec.copy()
+    qvec[0] = np.nan
+    unposed = ImageSet(queries.names, queries.image_root, queries.cameras, qvec, queries.tvec, queries.tags, queries.depth_paths)
+    groundtruth = co_observation_groundtruth(database, unposed, depth=5, **SETTINGS)  # no cache_dir: a temporary one
+    assert (groundtruth.ranking.indices[0] == EMPTY).all() and not groundtruth.query_has_pose[0]
+    assert (groundtruth.ranking.indices[1:, 0] != EMPTY).all()
+    with pytest.raises(ValueError, match="min_shared must be >= 1"):
+        co_observation_groundtruth(database, queries, min_shared=0, cache_dir=tmp_path)

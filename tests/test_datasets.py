@@ -1,0 +1,138 @@
+"""Dataset configs composed with Hydra and instantiated against tiny kapture layouts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.errors import InstantiationException
+from hydra.utils import instantiate
+from test_kapture_io import PINHOLE, pose, write_kapture
+
+from locretrieval.scene import Scene
+from locretrieval.scene.datasets import DatasetNotFoundError
+from locretrieval.scene.kapture_io import LTVL_NAME_STYLES, ltvl_name
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+DATASETS = ["aachen", "baidu", "robotcar", "gangnam", "inloc"]
+
+
+def compose_data(dataset: str, *overrides: str):
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return compose(overrides=[f"+data={dataset}", "+paths=default", *overrides])
+
+
+@pytest.fixture(autouse=True)
+def no_data_env(monkeypatch):
+    monkeypatch.delenv("LOCRETRIEVAL_DATA", raising=False)
+
+
+def kapture_folder(root: Path, names: list[str], posed: bool) -> Path:
+    """A one-camera kapture folder; images posed at distinct positions when ``posed``."""
+    records = {(i, "phone"): name for i, name in enumerate(names)}
+    trajectories = {(i, "phone"): pose("z", 10.0 * i, [float(i), 0.0, 1.0])[0] for i in range(len(names))} if posed else None
+    return write_kapture(root, {"phone": PINHOLE}, records, trajectories)
+
+
+def test_every_data_config_has_the_same_keys():
+    configs = {dataset: compose_data(dataset, "paths.data_dir=/d").data for dataset in [*DATASETS, "kapture"]}
+    assert len({frozenset(cfg) for cfg in configs.values()}) == 1
+    assert {"_target_", "name", "root", "mapping", "queries", "ltvl_name_style", "frustum_far"} <= set(configs["aachen"])
+    for dataset in DATASETS:
+        cfg = configs[dataset]
+        assert cfg.name == dataset
+        assert cfg.ltvl_name_style in LTVL_NAME_STYLES
+        assert cfg.frustum_far in (25.0, 50.0)
+        assert cfg.root == "/d"
+
+
+@pytest.mark.parametrize("dataset", DATASETS)
+def test_missing_dataset_names_expected_path_and_how_to_get_it(dataset, tmp_path):
+    cfg = compose_data(dataset, f"paths.data_dir={tmp_path}/nowhere")
+    with pytest.raises(InstantiationException) as raised:
+        instantiate(cfg.data)
+    error = raised.value.__cause__
+    assert isinstance(error, DatasetNotFoundError)
+    first = cfg.data.mapping if isinstance(cfg.data.mapping, str) else cfg.data.mapping[0]
+    message = str(error)
+    assert f"kapture folder not found: {tmp_path}/nowhere/{first}" in message
+    assert "kapture_download_dataset.py update" in message and "kapture_download_dataset.py install" in message
+    assert "LOCRETRIEVAL_DATA" in message and "paths.data_dir" in message
+
+
+def test_aachen_layout_loads_with_day_night_tags_from_env_root(tmp_path, monkeypatch):
+    base = tmp_path / "Aachen-Day-Night-v1.1"
+    kapture_folder(base / "mapping", ["db/1.jpg", "db/2.jpg"], posed=True)
+    kapture_folder(base / "query_day", ["query/day/milestone/a.jpg"], posed=False)
+    kapture_folder(base / "query_night", ["query/night/nexus5x/b.jpg"], posed=False)
+    monkeypatch.setenv("LOCRETRIEVAL_DATA", str(tmp_path))
+    cfg = compose_data("aachen", "paths.root_dir=/not/used")
+    scene = instantiate(cfg.data)
+    assert isinstance(scene, Scene) and scene.name == "aachen"
+    assert scene.database.names == ["db/1.jpg", "db/2.jpg"]
+    assert scene.queries.names == ["query/day/milestone/a.jpg", "query/night/nexus5x/b.jpg"]
+    assert scene.queries.tags == [frozenset({"day"}), frozenset({"night"})]
+    assert not scene.queries.has_pose.any()
+    assert [ltvl_name(n, cfg.data.ltvl_name_style) for n in scene.queries.names] == ["a.jpg", "b.jpg"]
+    assert scene.sources == [base / "mapping", base / "query_day", base / "query_night"]
+
+
+def test_robotcar_v2_locations_and_conditions(tmp_path):
+    base = tmp_path / "RobotCar_Seasons-v2"
+    kapture_folder(base / "01" / "mapping", ["overcast-reference/rear/1.jpg", "overcast-reference/rear/2.jpg"], posed=True)
+    kapture_folder(base / "02" / "mapping", ["overcast-reference/rear/3.jpg", "snow/rear/4.jpg"], posed=True)
+    kapture_folder(base / "01" / "query", ["night-rain/rear/5.jpg", "dawn/rear/6.jpg"], posed=False)
+    kapture_folder(base / "02" / "query", ["night/rear/7.jpg"], posed=False)
+    cfg = compose_data("robotcar", f"paths.data_dir={tmp_path}")
+    scene = instantiate(cfg.data)
+    assert len(scene.database) == 4
+    assert scene.queries.names == ["night-rain/rear/5.jpg", "dawn/rear/6.jpg", "night/rear/7.jpg"]
+    assert scene.queries.tag_mask("night").tolist() == [True, False, True]
+    assert scene.queries.tag_mask("day").tolist() == [False, True, False]
+    assert all("query" in tags for tags in scene.queries.tags)
+    assert scene.queries.paths[2] == base / "02/query/sensors/records_data/night/rear/7.jpg"
+    assert [ltvl_name(n, cfg.data.ltvl_name_style) for n in scene.queries.names] == ["rear/5.jpg", "rear/6.jpg", "rear/7.jpg"]
+
+
+@pytest.mark.parametrize(
+    ("dataset", "mapping", "queries", "tags"),
+    [
+        ("baidu", "baidu-mall/mapping", ["baidu-mall/query"], [{"query"}]),
+        ("gangnam", "GangnamStation/B2/release/mapping", ["GangnamStation/B2/release/validation", "GangnamStation/B2/release/test"], [{"validation"}, {"test"}]),
+        ("inloc", "InLoc/mapping", ["InLoc/query"], [{"query"}]),
+    ],
+)
+def test_dataset_layouts_load(tmp_path, dataset, mapping, queries, tags):
+    kapture_folder(tmp_path / mapping, ["db/1.jpg"], posed=True)
+    for i, folder in enumerate(queries):
+        kapture_folder(tmp_path / folder, [f"q{i}/{i}.jpg"], posed=i == 0)
+    scene = instantiate(compose_data(dataset, f"paths.data_dir={tmp_path}").data)
+    assert scene.name == dataset
+    assert scene.database.names == ["db/1.jpg"]
+    assert scene.queries.names == [f"q{i}/{i}.jpg" for i in range(len(queries))]
+    assert scene.queries.tags == [frozenset(t) for t in tags]
+    assert scene.sources == [tmp_path / folder for folder in [mapping, *queries]]
+
+
+def test_generic_kapture_config(tmp_path):
+    mapping = kapture_folder(tmp_path / "map", ["a.jpg"], posed=True)
+    query = kapture_folder(tmp_path / "late_queries", ["b.jpg"], posed=True)
+    cfg = compose_data("kapture", "paths.data_dir=/unused", f"data.mapping={mapping}", f"data.queries=[{query}]")
+    scene = instantiate(cfg.data)
+    assert scene.name == "kapture"
+    assert scene.queries.tags == [frozenset({"late_queries"})]
+    assert scene.queries.has_pose.all()
+    relative = compose_data("kapture", f"paths.data_dir={tmp_path}", "data.mapping=map", "data.queries=[late_queries]", "data.query_tags=[late]")
+    assert instantiate(relative.data).queries.tags == [frozenset({"late"})]
+    with pytest.raises(Exception, match="Missing mandatory value: data.mapping"):
+        instantiate(compose_data("kapture", "paths.data_dir=/unused").data)
+
+
+def test_bad_dataset_settings_fail_before_loading(tmp_path):
+    with pytest.raises(InstantiationException, match="unknown ltvl_name_style 'short'"):
+        instantiate(compose_data("baidu", f"paths.data_dir={tmp_path}", "data.ltvl_name_style=short").data)
+    with pytest.raises(InstantiationException, match="frustum_far must be a positive distance"):
+        instantiate(compose_data("baidu", f"paths.data_dir={tmp_path}", "data.frustum_far=0").data)
+    with pytest.raises(InstantiationException, match=r"1 query_tags \['x'\] for 2 query entries"):
+        instantiate(compose_data("gangnam", f"paths.data_dir={tmp_path}", "data.query_tags=[x]").data)

@@ -1,0 +1,244 @@
+import logging
+import math
+from pathlib import Path
+
+import kornia
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from scipy.ndimage import gaussian_filter
+
+from locretrieval.models import DenseVLAD
+from locretrieval.models.densevlad import dense_rootsift, grid_layout, normalize_vlad, vlad_residuals
+from locretrieval.retrieval import describe_scene, search
+from locretrieval.scene import Camera, ImageSet, Scene
+
+# Small, fast settings: images are resized to 128 px; the algorithm is the default one.
+SMALL = dict(max_side=128, step=3, vocabulary_samples=20_000, kmeans_iterations=10, device="cpu")
+
+
+def texture(seed: int, size: int = 176) -> np.ndarray:
+    """Grey random texture with structure at two scales, uint8."""
+    rng = np.random.default_rng(seed)
+    image = gaussian_filter(rng.random((size, size)), 1.5) + 0.6 * gaussian_filter(rng.random((size, size)), 4.0)
+    image = (image - image.min()) / (image.max() - image.min())
+    return (255 * image).astype(np.uint8)
+
+
+def image_set(root: Path, images: dict[str, np.ndarray]) -> ImageSet:
+    for name, pixels in images.items():
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(pixels).save(root / name)
+    cameras = [Camera("PINHOLE", w, h, (100.0, 100.0, w / 2, h / 2)) for h, w in (p.shape for p in images.values())]
+    count = len(images)
+    positions = np.arange(3 * count).reshape(count, 3)
+    return ImageSet(list(images), root, cameras, np.tile([1.0, 0, 0, 0], (count, 1)), positions)
+
+
+@pytest.fixture(scope="module")
+def textures_scene(tmp_path_factory) -> Scene:
+    """Six textures; each query is a shifted, slightly larger crop of one of them (resized back)."""
+    root = tmp_path_factory.mktemp("textures")
+    sources = {seed: texture(seed) for seed in range(6)}
+    database = image_set(root, {f"db/{seed}.png": pixels[:128, :128] for seed, pixels in sources.items()})
+    queries = image_set(root, {f"query/{seed}.png": sources[seed][9:147, 5:143] for seed in (4, 0, 2)})
+    return Scene("textures", database, queries)
+
+
+@pytest.fixture(scope="module")
+def fitted(textures_scene) -> DenseVLAD:
+    model = DenseVLAD(**SMALL)
+    model.fit(textures_scene.database)
+    return model
+
+
+# -- dense RootSIFT -----------------------------------------------------------------------
+
+
+def explicit_rootsift(image: torch.Tensor, bin_size: int, step: int, max_bin_size: int) -> np.ndarray:
+    """Per-point loops over cells: bilinear pooling of kornia's gradient histograms, Gaussian
+    cell window (1.5 bins), SIFT normalisation with clipping at 0.2, then RootSIFT."""
+    sigma = math.sqrt((bin_size / 6.0) ** 2 - 0.25)
+    size = 2 * math.ceil(3 * sigma) + 1
+    smoothed = kornia.filters.gaussian_blur2d(image, (size, size), (sigma, sigma))
+    histograms = kornia.feature.DenseSIFTDescriptor().get_gradient_histograms(smoothed)[0].double().numpy()
+    _, height, width = histograms.shape
+    first_y, rows = grid_layout(height, max_bin_size, step)
+    first_x, cols = grid_layout(width, max_bin_size, step)
+    window = [math.exp(-0.5 * ((cell - 1.5) / 1.5) ** 2) for cell in range(4)]
+
+    def bilinear(centre: int, length: int) -> np.ndarray:
+        return np.maximum(0.0, 1.0 - np.abs(np.arange(length) - centre) / bin_size)
+
+    out = []
+    for row in range(rows):
+        for col in range(cols):
+            vector = []
+            for cell_y in range(4):
+                for cell_x in range(4):
+                    y = first_y + row * step - (3 * bin_size) // 2 + cell_y * bin_size
+                    x = first_x + col * step - (3 * bin_size) // 2 + cell_x * bin_size
+                    weights = np.outer(bilinear(y, height), bilinear(x, width)) * window[cell_y] * window[cell_x]
+                    vector.extend((histograms * weights).sum(axis=(1, 2)))
+            vector = np.minimum(np.array(vector) / np.linalg.norm(vector), 0.2)
+            vector /= np.linalg.norm(vector)
+            out.append(np.sqrt(vector / vector.sum()))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("bin_size", [4, 6])
+def test_dense_rootsift_matches_explicit_loops(bin_size):
+    image = torch.from_numpy(texture(7, 64)[:44, :52].astype(np.float32) / 255.0)[None, None]
+    descriptors, contrast = dense_rootsift(image, bin_size, step=3, max_bin_size=6)
+    expected = explicit_rootsift(image, bin_size, step=3, max_bin_size=6)
+    assert descriptors.shape == (1, len(expected), 128)
+    np.testing.assert_allclose(descriptors[0].numpy(), expected, atol=2e-5)
+    assert (contrast > 0).all()
+
+
+def test_dense_rootsift_is_nonnegative_unit_norm_and_zero_on_flat_images():
+    images = torch.stack([
+        torch.from_numpy(texture(3, 96).astype(np.float32) / 255.0)[None],
+        torch.full((1, 96, 96), 0.5),
+    ])
+    descriptors, contrast = dense_rootsift(images, 8, step=2, max_bin_size=10)
+    first, count = grid_layout(96, 10, 2)
+    assert (first, count) == (15, 33)
+    assert descriptors.shape == (2, 33 * 33, 128)
+    assert (descriptors[0] >= 0).all()
+    np.testing.assert_allclose(descriptors[0].norm(dim=-1).numpy(), 1.0, atol=1e-5)
+    # RootSIFT: the squares form an L1-normalised (non-negative) SIFT.
+    np.testing.assert_allclose((descriptors[0] ** 2).sum(-1).numpy(), 1.0, atol=1e-5)
+    assert (contrast[1] == 0).all() and (descriptors[1] == 0).all()
+
+
+# -- VLAD -----------------------------------------------------------------------------------
+
+
+def explicit_vlad(descriptors: np.ndarray, valid: np.ndarray, centroids: np.ndarray) -> np.ndarray:
+    residuals = np.zeros_like(centroids, dtype=np.float64)
+    for descriptor, keep in zip(descriptors, valid):
+        if keep:
+            word = int(np.argmin(((descriptor - centroids) ** 2).sum(axis=1)))
+            residuals[word] += descriptor - centroids[word]
+    for word in range(len(centroids)):
+        norm = np.linalg.norm(residuals[word])
+        if norm > 0:
+            residuals[word] /= norm
+    vector = residuals.reshape(-1)
+    return vector / np.linalg.norm(vector)
+
+
+def test_vlad_matches_explicit_loops():
+    rng = np.random.default_rng(0)
+    descriptors = rng.random((2, 40, 6))
+    centroids = rng.random((5, 6))
+    valid = rng.random((2, 40)) > 0.3
+    valid[1, :] &= ~(np.arange(40) < 20)
+    torch_inputs = [torch.from_numpy(a) for a in (descriptors, valid, centroids)]
+    vlads = normalize_vlad(vlad_residuals(*torch_inputs)).numpy()
+    for image in range(2):
+        np.testing.assert_allclose(vlads[image], explicit_vlad(descriptors[image], valid[image], centroids), atol=1e-12)
+
+
+def test_vlad_intra_normalisation_and_global_norm():
+    rng = np.random.default_rng(1)
+    centroids = torch.from_numpy(rng.normal(size=(4, 8)))
+    # Only words 0 and 2 receive descriptors (each descriptor sits next to its word).
+    descriptors = centroids[[0, 0, 2, 0, 2]][None] + 0.01 * torch.from_numpy(rng.normal(size=(1, 5, 8)))
+    vlad = normalize_vlad(vlad_residuals(descriptors, torch.ones(1, 5, dtype=torch.bool), centroids))
+    blocks = vlad.view(4, 8).norm(dim=-1).numpy()
+    np.testing.assert_allclose(blocks, [2**-0.5, 0.0, 2**-0.5, 0.0], atol=1e-12)
+    assert vlad.norm().item() == pytest.approx(1.0)
+
+
+# -- the model -----------------------------------------------------------------------------
+
+
+def test_fitted_model_shapes_norms_and_small_database_pca(textures_scene, fitted):
+    state = fitted.fitted_state()
+    assert state["centroids"].shape == (128, 128)
+    np.testing.assert_allclose(np.linalg.norm(state["centroids"], axis=1), 1.0, atol=1e-5)
+    # Six database images: at most 5 principal components instead of 4096.
+    assert state["pca_projection"].shape == (128 * 128, 5) and state["pca_mean"].shape == (128 * 128,)
+    queries = fitted.describe(textures_scene.queries)
+    assert queries.shape == (3, 5) and queries.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(queries, axis=1), 1.0, atol=1e-5)
+
+
+def test_fit_and_describe_are_deterministic(textures_scene, fitted, caplog):
+    again = DenseVLAD(**SMALL)
+    with caplog.at_level(logging.INFO, logger="locretrieval.models.densevlad"):
+        again.fit(textures_scene.database)
+    assert "6 database images support 5 PCA dimensions (configured 4096)" in caplog.text
+    for name, value in fitted.fitted_state().items():
+        np.testing.assert_array_equal(again.fitted_state()[name], value, err_msg=name)
+    np.testing.assert_array_equal(again.describe(textures_scene.queries), fitted.describe(textures_scene.queries))
+
+
+def test_database_descriptors_from_fit_equal_a_fresh_pass(textures_scene, fitted):
+    fresh = DenseVLAD(**SMALL)
+    fresh.load_fitted_state(fitted.fitted_state())
+    recomputed = fresh.describe(textures_scene.database)
+    np.testing.assert_allclose(fitted.describe(textures_scene.database), recomputed, atol=1e-6)
+
+
+def test_shifted_crops_retrieve_their_source_texture(textures_scene, fitted):
+    database = fitted.describe(textures_scene.database)
+    queries = fitted.describe(textures_scene.queries)
+    ranking = search(queries, database, depth=3, name="densevlad")
+    np.testing.assert_array_equal(ranking.indices[:, 0], [4, 0, 2])
+    assert (ranking.scores[:, 0] > ranking.scores[:, 1] + 0.1).all()
+
+
+def test_describe_scene_cache_restores_the_fitted_model(tmp_path, textures_scene):
+    class Counting(DenseVLAD):
+        describe_calls = 0
+
+        def describe(self, images):
+            Counting.describe_calls += 1
+            return super().describe(images)
+
+    first = Counting(**SMALL)
+    database, queries = describe_scene(first, textures_scene, tmp_path)
+    assert Counting.describe_calls == 2
+    fresh = Counting(**SMALL)
+    cached_database, cached_queries = describe_scene(fresh, textures_scene, tmp_path)
+    assert Counting.describe_calls == 2
+    np.testing.assert_array_equal(cached_database, database)
+    np.testing.assert_array_equal(cached_queries, queries)
+    np.testing.assert_allclose(fresh.describe(textures_scene.queries), queries, atol=1e-6)
+
+
+def test_resizing_makes_the_descriptor_resolution_independent(tmp_path, fitted):
+    pixels = texture(11, 256)[:192, :256]
+    images = image_set(tmp_path, {
+        "full.png": pixels,
+        "half.png": np.asarray(Image.fromarray(pixels).resize((128, 96), Image.BILINEAR)),
+    })
+    full, half = fitted.describe(images)
+    assert float(full @ half) > 0.9
+
+
+def test_errors(tmp_path, textures_scene):
+    with pytest.raises(RuntimeError, match="not fitted"):
+        DenseVLAD(**SMALL).describe(textures_scene.queries)
+    with pytest.raises(ValueError, match="step must be positive"):
+        DenseVLAD(step=0)
+    tiny = image_set(tmp_path, {"a.png": texture(1, 64), "b.png": texture(2, 64)})
+    with pytest.raises(ValueError, match=r"a\.png .* too small for SIFT bins of 10 px"):
+        DenseVLAD(**{**SMALL, "max_side": 24}).fit(tiny)
+    flat = image_set(tmp_path / "flat", {name: np.full((64, 64), 90, np.uint8) for name in ("a.png", "b.png")})
+    with pytest.raises(ValueError, match="fewer than the 128 visual words"):
+        DenseVLAD(**SMALL).fit(flat)
+    with pytest.raises(ValueError, match="at least 2 database images"):
+        DenseVLAD(**SMALL).fit(textures_scene.database.subset(np.array([0])))
+
+
+def test_runs_on_the_configured_device(textures_scene, fitted):
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA GPU on this machine")
+    gpu = DenseVLAD(**{**SMALL, "device": "cuda"})
+    gpu.load_fitted_state(fitted.fitted_state())
+    np.testing.assert_allclose(gpu.describe(textures_scene.queries), fitted.describe(textures_scene.queries), atol=1e-3)

@@ -1,0 +1,123 @@
+"""End to end: `evaluate.py` on a tiny rendered scene, in-process and through the Hydra CLI."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+import locretrieval  # noqa: F401
+from locretrieval.evaluation import check_unique_names, enabled_paradigms, evaluate
+from locretrieval.retrieval import random_ranking
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY_SCENE = [
+    "data.render.width=160",
+    "data.render.height=120",
+    "data.render.num_database=32",
+    "data.render.num_queries=16",
+    "data.render.texture_size=64",
+    "data.render.length=20.0",
+    "data.render.workers=1",
+    "data.render.seed=3",
+    "model.max_side=160",
+    "model.step=4",
+    "subsets.blur_width=160",
+]
+KS = [1, 2, 5, 10]
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("evaluate")
+    overrides = [f"paths.root_dir={root}", f"paradigms.k=[{','.join(map(str, KS))}]", *TINY_SCENE]
+    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
+        cfg = compose(config_name="evaluate", overrides=overrides)
+    output = root / "run"
+    evaluate(cfg, output)
+    return root, output
+
+
+RANKINGS = ("densevlad", "gt_relative_pose", "gt_frustum", "gt_co_observation", "random")
+K_PER_PARADIGM = {"approximation": set(KS), "local_sfm": {5, 10, 20}, "global_sfm": {1, 5, 10, 20, 32}}  # 50 > 32 images: clamped
+
+
+def expected_methods():
+    approximation = {("approximation", "densevlad", m) for m in ("ewb", "bdi", "csi")}
+    approximation |= {("approximation", r, "ewb") for r in RANKINGS[1:]}
+    return approximation | {(p, r, "pnp") for p in ("local_sfm", "global_sfm") for r in RANKINGS}
+
+
+def test_result_table_has_one_row_per_paradigm_method_k_threshold_and_subset(run):
+    _, output = run
+    results = pd.read_csv(output / "results.csv")
+    assert set(zip(results["paradigm"], results["ranking"], results["method"])) == expected_methods()
+    for paradigm, ks in K_PER_PARADIGM.items():
+        assert set(results.loc[results["paradigm"] == paradigm, "k"]) == ks, paradigm
+    subsets = results["subset"].nunique()
+    expected_rows = sum(len(K_PER_PARADIGM[p]) for p, _, _ in expected_methods()) * 3 * subsets
+    assert len(results) == expected_rows
+    assert results["localized_pct"].between(0, 100).all()
+    assert (results.loc[results["subset"] == "all", "num_queries"] == 16).all()
+
+
+def test_ground_truth_beats_random(run):
+    _, output = run
+    results = pd.read_csv(output / "results.csv")
+    loose = results[(results["subset"] == "all") & (results["position_threshold_m"] == 5.0)]
+    at_k1 = loose[(loose["paradigm"] == "approximation") & (loose["k"] == 1)].set_index("ranking")["localized_pct"]
+    assert at_k1["gt_relative_pose"] > at_k1["random"]
+    local_sfm = loose[(loose["paradigm"] == "local_sfm") & (loose["k"] == 5)].set_index("ranking")["localized_pct"]
+    assert local_sfm["gt_co_observation"] > local_sfm["random"]
+
+
+def test_run_writes_every_output(run):
+    _, output = run
+    for name in ("report.md", "query_errors.csv.gz", "retrieval.csv", "groundtruth_statistics.csv", "summary.json", "config.yaml"):
+        assert (output / name).is_file(), name
+    errors = pd.read_csv(output / "query_errors.csv.gz", keep_default_na=False)
+    assert len(errors) == sum(len(K_PER_PARADIGM[p]) for p, _, _ in expected_methods()) * 16
+    failed = errors["position_error_m"] == ""
+    assert (errors.loc[failed, "failure"] != "").all(), "every failed query carries its reason"
+    ltvl = output / "ltvl" / "densevlad" / "approximation_csi_k5.txt"
+    lines = ltvl.read_text().splitlines()
+    assert len(lines) == 16 and all(len(line.split()) == 8 for line in lines)
+    assert "![synthetic_mall_approximation_ewb](figures/synthetic_mall_approximation_ewb.png)" in (output / "report.md").read_text()
+
+
+def test_multirun_from_the_command_line(run):
+    root, _ = run  # the scene and the descriptors are cached under root/.cache by the first run
+    command = [sys.executable, str(ROOT / "evaluate.py"), "-m", f"paths.root_dir={root}", "paradigms.approximation.alpha=4,8",
+               f"hydra.sweep.dir={root}/multirun", "baselines.random=false", "output.ltvl=false", *TINY_SCENE]
+    completed = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert completed.returncode == 0, completed.stderr[-3000:]
+    runs = sorted((root / "multirun").glob("*/results.csv"))
+    assert len(runs) == 2
+    csi = [pd.read_csv(path).query("method == 'csi' and k == 10 and subset == 'all'")["localized_pct"].tolist() for path in runs]
+    assert len(csi[0]) == 3
+    assert "descriptor cache hit" in completed.stderr + completed.stdout or "cached" in completed.stderr + completed.stdout
+    report = subprocess.run([sys.executable, str(ROOT / "report.py"), str(root / "multirun"), "--output", str(root / "report"),
+                             "--formats", "png"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert report.returncode == 0, report.stderr[-3000:]
+    text = (root / "report" / "report.md").read_text()
+    # CSI's interpolated poses change with alpha: densevlad is reported once per setting
+    assert "densevlad [paradigms.approximation.alpha=4]" in text and "densevlad [paradigms.approximation.alpha=8]" in text
+
+
+def test_paradigm_sections_are_checked():
+    paradigms = OmegaConf.load(ROOT / "configs" / "paradigms" / "default.yaml")
+    assert enabled_paradigms(paradigms) == ["approximation", "local_sfm", "global_sfm"]
+    paradigms.local_sfm.enabled = False
+    assert enabled_paradigms(paradigms) == ["approximation", "global_sfm"]
+    paradigms.globl_sfm = {"enabled": True}
+    with pytest.raises(ValueError, match=r"unknown sections \['globl_sfm'\]"):
+        enabled_paradigms(paradigms)
+
+
+def test_rankings_sharing_a_name_are_an_error():
+    check_unique_names([random_ranking(3, 5, 2, seed=0)])
+    with pytest.raises(ValueError, match=r"\['random'\] are named twice"):
+        check_unique_names([random_ranking(3, 5, 2, seed=0), random_ranking(3, 5, 2, seed=1)])

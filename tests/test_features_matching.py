@@ -1,0 +1,254 @@
+"""Local features (pycolmap SIFT, kapture files), matching, verification and their caches."""
+
+from pathlib import Path
+
+import kapture
+import kapture.io.csv as kapture_csv
+import kapture.io.features as kapture_features
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import locretrieval  # noqa: F401  (imports zlib before pycolmap)
+from locretrieval import geometry
+from locretrieval.localization import features as features_module
+from locretrieval.localization import matching
+from locretrieval.localization.features import extract_features
+from locretrieval.localization.matching import (
+    PairMatcher, epipolar_inliers, essential_matrix, mutual_nearest_neighbours, sampson_errors,
+)
+from locretrieval.localization.store import ShardedStore
+from locretrieval.scene import Camera, ImageSet
+from locretrieval.scene.kapture_io import load_kapture_scene
+from locretrieval.scene.synthetic import render_synthetic_dataset
+
+SCENE = {"width": 256, "height": 192, "num_database": 40, "num_queries": 6, "texture_size": 128, "length": 20.0,
+         "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
+         "hard_query_fraction": 0.0, "workers": 1, "seed": 1}
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("features_scene")
+    render_synthetic_dataset(SCENE, root)
+    return load_kapture_scene("tiny", [root / "mapping"], [root / "query"])
+
+
+# ----------------------------------------------------------------------------------- the store
+
+
+def test_sharded_store_round_trip_and_missing_keys(tmp_path):
+    store = ShardedStore(tmp_path / "store")
+    assert store.missing(["a", "b/c", "a"]) == ["a", "b/c"]
+    store.write({"a": {"x": np.arange(6).reshape(3, 2)}, "b/c": {"x": np.empty((0, 2), dtype=np.int64)}})
+    store.write({"d\ne": {"x": np.ones((1, 2), dtype=np.int64)}})
+    reread = ShardedStore(tmp_path / "store")
+    assert len(reread) == 3 and reread.missing(["a", "z", "d\ne"]) == ["z"]
+    records = reread.read(["b/c", "a"])
+    np.testing.assert_array_equal(records["a"]["x"], np.arange(6).reshape(3, 2))
+    assert records["b/c"]["x"].shape == (0, 2)
+    assert sorted(p.name.startswith(".") for p in (tmp_path / "store").iterdir()) == [False, False]  # no temporaries
+    with pytest.raises(KeyError, match="no record 'z'"):
+        reread.read(["z"])
+    (tmp_path / "store" / ".0123.h5.tmp4af.h5").write_bytes(b"half-written by another process")
+    assert len(ShardedStore(tmp_path / "store")) == 3
+
+
+# ------------------------------------------------------------------------------------ features
+
+
+def test_sift_features_are_cached_and_in_full_resolution_pixels(scene, tmp_path):
+    database = scene.database.subset(np.arange(4))
+    full = extract_features(database, {"type": "sift"}, tmp_path, workers=1)
+    shards = sorted(full.folder.iterdir())
+    again = extract_features(database, {"type": "sift"}, tmp_path, workers=1)
+    assert sorted(again.folder.iterdir()) == shards  # nothing recomputed
+    half = extract_features(database, {"type": "sift", "sift": {"max_side": 128}}, tmp_path, workers=1)
+    assert half.folder != full.folder
+    for name in database.names:
+        keypoints, descriptors = full.load([name])[name]
+        assert len(keypoints) > 10 and descriptors.shape == (len(keypoints), 128) and descriptors.dtype == np.uint8
+        small = half.keypoints([name])[name]
+        # scaled back to the 256 x 192 image: spans it, stays inside it
+        assert small[:, 0].max() > 200 and (small >= 0).all() and (small[:, 0] <= 256).all() and (small[:, 1] <= 192).all()
+        # half-resolution keypoints land on full-resolution ones (same structures, coarser)
+        distance = np.linalg.norm(small[:, None] - keypoints[None], axis=-1).min(axis=1)
+        assert np.median(distance) < 1.5
+
+
+def test_feature_extraction_in_worker_processes_matches_in_process(scene, tmp_path, monkeypatch):
+    monkeypatch.setattr(features_module, "IMAGES_PER_SHARD", 4)  # three tasks for two workers
+    database = scene.database.subset(np.arange(12))
+    parallel = extract_features(database, {"type": "sift"}, tmp_path / "parallel", workers=2)
+    serial = extract_features(database, {"type": "sift"}, tmp_path / "serial", workers=1)
+    assert len(list(parallel.folder.glob("*.h5"))) == 3
+    for name in database.names:
+        for a, b in zip(parallel.load([name])[name], serial.load([name])[name]):
+            np.testing.assert_array_equal(a, b)
+
+
+def write_kapture_features(root: Path, names: list[str], keypoints: list[np.ndarray], descriptors: list[np.ndarray]) -> None:
+    """Keypoints and descriptors files as the published kapture features (e.g. R2D2) are laid out."""
+    kapture_dir = str(root)
+    kapture_csv.keypoints_to_file(
+        kapture_csv.get_feature_csv_fullpath(kapture.Keypoints, "r2d2", kapture_dir), kapture.Keypoints("r2d2", np.float32, 3)
+    )
+    kapture_csv.descriptors_to_file(
+        kapture_csv.get_feature_csv_fullpath(kapture.Descriptors, "r2d2", kapture_dir),
+        kapture.Descriptors("r2d2", np.float32, 128, "r2d2", "L2"),
+    )
+    for name, points, values in zip(names, keypoints, descriptors):
+        kapture_features.image_keypoints_to_file(kapture_features.get_keypoints_fullpath("r2d2", kapture_dir, name), points)
+        kapture_features.image_descriptors_to_file(kapture_features.get_descriptors_fullpath("r2d2", kapture_dir, name), values)
+
+
+def test_kapture_features_are_read_with_the_pixel_offset(tmp_path):
+    rng = np.random.default_rng(0)
+    names = ["db/a.jpg", "db/sub/b.jpg"]
+    root = tmp_path / "mapping"
+    camera = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
+    images = ImageSet(names, root / "sensors" / "records_data", [camera] * 2, np.tile([1.0, 0, 0, 0], (2, 1)), np.zeros((2, 3)))
+    keypoints = [rng.uniform(0, 40, (n, 3)).astype(np.float32) for n in (7, 3)]
+    descriptors = [rng.normal(size=(n, 128)).astype(np.float32) for n in (7, 3)]
+    write_kapture_features(root, names, keypoints, descriptors)
+    config = {"type": "kapture", "kapture": {"name": "r2d2", "pixel_offset": 0.5}}
+    store = extract_features(images, config, tmp_path / "cache", workers=1)
+    for name, points, values in zip(names, keypoints, descriptors):
+        read_points, read_values = store.load([name])[name]
+        np.testing.assert_allclose(read_points, points[:, :2] + 0.5)
+        np.testing.assert_array_equal(read_values, values)
+    (root / "reconstruction" / "descriptors" / "r2d2" / "db" / "sub" / "b.jpg.desc").unlink()
+    with pytest.raises(FileNotFoundError, match=r"descriptors 'r2d2' of image 'db/sub/b.jpg' not found: .*b\.jpg\.desc"):
+        extract_features(images, {**config, "kapture": {"name": "r2d2", "pixel_offset": 0.0}}, tmp_path / "cache", workers=1)
+    with pytest.raises(ValueError, match="unknown kapture feature settings"):
+        extract_features(images, {"type": "kapture", "kapture": {"nmae": "r2d2"}}, tmp_path / "cache")
+
+
+# ------------------------------------------------------------------------------------ matching
+
+
+def reference_matches(first: np.ndarray, second: np.ndarray, ratio: float) -> set[tuple[int, int]]:
+    """Mutual nearest neighbours with the ratio test, by explicit distances (float64)."""
+    a = first / np.linalg.norm(first, axis=1, keepdims=True)
+    b = second / np.linalg.norm(second, axis=1, keepdims=True)
+    distances = np.linalg.norm(a[:, None] - b[None], axis=-1)
+    result = set()
+    for i, row in enumerate(distances):
+        order = np.argsort(row)
+        j = order[0]
+        if row[j] <= ratio * row[order[1]] and np.argmin(distances[:, j]) == i:
+            result.add((i, int(j)))
+    return result
+
+
+def test_mutual_nearest_neighbours_match_an_explicit_computation():
+    rng = np.random.default_rng(1)
+    first = rng.normal(size=(60, 16))
+    # partners: noisy copies of a shuffled part of `first`, plus distractors; one empty
+    others = []
+    for size in (40, 75, 0, 1):
+        rows = rng.permutation(60)[: min(size, 30)]
+        others.append(np.concatenate([first[rows] + 0.3 * rng.normal(size=(len(rows), 16)), rng.normal(size=(size - len(rows), 16))]))
+    matches = mutual_nearest_neighbours(first, others, 0.8)
+    for other, found in zip(others, matches):
+        assert found.dtype == np.int32 and found.shape[1] == 2
+        if len(other) >= 2:
+            assert {tuple(m) for m in found.tolist()} == reference_matches(first, other, 0.8)
+    assert len(matches[0]) > 10 and len(matches[2]) == 0
+    assert len(matches[3]) <= 1  # a single partner descriptor: no ratio test, mutual check only
+
+
+def geometric_error(x0: np.ndarray, x1: np.ndarray, q0, t0, q1, t1) -> float:
+    """The gold-standard error: distance to the closest pair of exact projections of one
+    3D point (optimal triangulation by least squares), in normalised coordinates."""
+    from scipy.optimize import least_squares
+
+    R0, R1 = geometry.quaternion_to_matrix(q0), geometry.quaternion_to_matrix(q1)
+
+    def residuals(point):
+        a, b = R0 @ point + t0, R1 @ point + t1
+        return np.concatenate([a[:2] / a[2] - x0, b[:2] / b[2] - x1])
+
+    start = np.linalg.solve(R0, np.append(x0, 1.0) * 6.0 - t0)
+    return float(np.linalg.norm(least_squares(residuals, start, xtol=1e-15, ftol=1e-15).fun))
+
+
+def test_sampson_error_approximates_the_geometric_error_and_bounds_matches_in_pixels():
+    rng = np.random.default_rng(2)
+    q0, q1 = (np.roll(Rotation.from_rotvec(rng.normal(0, 0.1, 3)).as_quat(), 1) for _ in range(2))
+    t0, t1 = np.zeros(3), np.array([1.0, 0.1, 0.0])
+    points = rng.uniform([-2, -2, 4], [2, 2, 8], (50, 3))
+    cam0 = points @ geometry.quaternion_to_matrix(q0).T + t0
+    cam1 = points @ geometry.quaternion_to_matrix(q1).T + t1
+    x0, x1 = cam0[:, :2] / cam0[:, 2:], cam1[:, :2] / cam1[:, 2:]
+    essential = essential_matrix(q0, t0, q1, t1)
+    assert sampson_errors(x0, x1, essential).max() < 1e-10
+    noisy = x1 + rng.normal(0, 0.004, x1.shape)
+    expected = [geometric_error(a, b, q0, t0, q1, t1) for a, b in zip(x0[:10], noisy[:10])]
+    np.testing.assert_allclose(sampson_errors(x0[:10], noisy[:10], essential), expected, rtol=0.02)
+    # in pixels (f = 500): 25 exact matches, 25 moved 10 px off their epipolar line
+    camera = Camera("PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0))
+    line = np.column_stack([x0, np.ones(50)]) @ essential.T
+    normal = line[:, :2] / np.linalg.norm(line[:, :2], axis=1, keepdims=True)
+    moved = np.where((np.arange(50) < 25)[:, None], x1, x1 + 0.02 * normal)
+    matches = np.column_stack([np.arange(50), np.arange(50)])
+    inliers = epipolar_inliers(x0 * 500 + [320, 240], moved * 500 + [320, 240], matches, camera, (q0, t0), camera, (q1, t1), max_error=2.0)
+    np.testing.assert_array_equal(inliers, np.arange(50) < 25)
+
+
+def test_matches_are_cached_per_pair_and_reused_for_larger_sets(scene, tmp_path, monkeypatch):
+    database = scene.database
+    features = extract_features(database, {"type": "sift"}, tmp_path, workers=1)
+    matcher = PairMatcher(database, features, database, features, {}, tmp_path)
+    calls = []
+    real = matching.mutual_nearest_neighbours
+    monkeypatch.setattr(matching, "mutual_nearest_neighbours", lambda first, others, ratio: calls.append(len(others)) or real(first, others, ratio))
+    names = database.names
+    # same heading at neighbouring stations (8 cameras per station)
+    small = [(names[0], names[8]), (names[9], names[1]), (names[8], names[16])]
+    assert matcher.ensure(small, workers=1, verification="poses") == 3
+    assert sum(calls) == 3
+    # the same pairs, reversed or repeated, are not matched again; a larger set matches only its new pairs
+    assert matcher.ensure([(names[8], names[0]), (names[1], names[9]), (names[0], names[0])], workers=1, verification="poses") == 0
+    larger = small + [(names[0], names[16]), (names[17], names[1])]
+    assert matcher.ensure(larger, workers=1, verification="poses") == 2
+    assert sum(calls) == 5
+    forward = matcher.load([(names[1], names[9])], "poses")[(names[1], names[9])]
+    backward = matcher.load([(names[9], names[1])], "poses")[(names[9], names[1])]
+    np.testing.assert_array_equal(backward, forward[:, ::-1])
+    # verification keeps a subset of the raw matches, and a new matcher reads the cache
+    raw = PairMatcher(database, features, database, features, {}, tmp_path).load([(names[1], names[9])])[(names[1], names[9])]
+    assert len(forward) and {tuple(m) for m in forward.tolist()} <= {tuple(m) for m in raw.tolist()}
+    with pytest.raises(KeyError, match="no record"):
+        matcher.load([(names[5], names[6])])
+
+
+def test_pose_verification_keeps_the_true_matches_by_the_rendered_depth(scene, tmp_path):
+    """A raw match is true when the depth of the first image maps its keypoint onto the
+    second; verification against the known poses keeps every true match and rejects only
+    wrong ones (wrong matches along the epipolar line, e.g. on repeated floor tiles, remain)."""
+    import kapture.io.records as kapture_records
+
+    database = scene.database
+    features = extract_features(database, {"type": "sift"}, tmp_path, workers=1)
+    matcher = PairMatcher(database, features, database, features, {}, tmp_path)
+    first, second = 1, 9  # looking across the corridor from neighbouring stations
+    pair = (database.names[first], database.names[second])
+    matcher.ensure([pair], workers=1, verification="poses")
+    raw = matcher.load([pair])[pair]
+    verified = {tuple(m) for m in matcher.load([pair], "poses")[pair].tolist()}
+    keypoints = features.keypoints(list(pair))
+    camera = database.cameras[first]
+    depth = kapture_records.depth_map_from_file(str(database.depth_paths[first]), (camera.width, camera.height))
+    pixels = keypoints[pair[0]][raw[:, 0]]
+    z = depth[pixels[:, 1].astype(int), pixels[:, 0].astype(int)]
+    rays = np.column_stack([pixels, np.ones(len(pixels))]) @ np.linalg.inv(camera.calibration_matrix()).T
+    R0, R1 = (geometry.quaternion_to_matrix(database.qvec[i]) for i in (first, second))
+    world = (rays * z[:, None] - database.tvec[first]) @ R0
+    projected = (world @ R1.T + database.tvec[second]) @ database.cameras[second].calibration_matrix().T
+    error = np.linalg.norm(projected[:, :2] / projected[:, 2:] - keypoints[pair[1]][raw[:, 1]], axis=1)
+    kept = np.array([tuple(m) in verified for m in raw.tolist()])
+    true = error < 1.0
+    assert true.sum() >= 15
+    assert kept[true].all()
+    assert (~kept).any() and (error[~kept] > 4.0).all()

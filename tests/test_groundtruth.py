@@ -1,0 +1,315 @@
+import logging
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+from scipy.optimize import linprog
+from scipy.spatial.transform import Rotation
+
+from locretrieval import geometry
+from locretrieval.groundtruth import (
+    GroundTruth,
+    TruncatedFrusta,
+    compute_groundtruths,
+    frustum_groundtruth,
+    overlap_radii,
+    relative_pose_groundtruth,
+)
+from locretrieval.groundtruth import chebyshev
+from locretrieval.groundtruth.chebyshev import chebyshev_radius
+from locretrieval.groundtruth.frustum import INITIAL_BASIS, may_overlap
+from locretrieval.retrieval import EMPTY
+from locretrieval.scene import Camera, ImageSet
+
+# Square symmetric camera: half field of view 45 degrees (tan = 50 / 50).
+WIDE = Camera("PINHOLE", 100, 100, (50.0, 50.0, 50.0, 50.0))
+# Same image, twice the focal length: half field of view atan(0.5).
+NARROW = Camera("PINHOLE", 100, 100, (100.0, 100.0, 50.0, 50.0))
+NEAR = 0.1
+
+
+def about(axis: str, degrees: float) -> np.ndarray:
+    """wxyz quaternion of a rotation by ``degrees`` about a coordinate axis."""
+    x, y, z, w = Rotation.from_euler(axis, degrees, degrees=True).as_quat()
+    return np.array([w, x, y, z])
+
+
+def image_set(qvec, centers, cameras=None, prefix="img") -> ImageSet:
+    """Images with world-to-camera rotations ``qvec`` at world ``centers`` (NaN: no pose)."""
+    qvec = np.asarray(qvec, dtype=float).reshape(-1, 4)
+    centers = np.asarray(centers, dtype=float).reshape(-1, 3)
+    n = len(qvec)
+    tvec = geometry.translations_from_centers(qvec, centers)
+    return ImageSet([f"{prefix}/{i}.jpg" for i in range(n)], "/nonexistent", cameras or [WIDE] * n, qvec, tvec)
+
+
+def inscribed_radius_symmetric(tan_half_fov: float, far: float) -> float:
+    """Closed form for a square symmetric pyramid truncated at ``far`` (near plane inactive).
+
+    A ball on the axis at depth z touches the side planes at radius z sin(a) and the far
+    plane at far - z; both are equal at the optimum: r = far sin(a) / (1 + sin(a)).
+    """
+    sine = np.sin(np.arctan(tan_half_fov))
+    return far * sine / (1.0 + sine)
+
+
+def linprog_radius(A: np.ndarray, b: np.ndarray) -> float:
+    """Signed Chebyshev radius of ``A x <= b`` by scipy's HiGHS (rows of A unit-norm)."""
+    G = np.hstack([A, np.linalg.norm(A, axis=1, keepdims=True)])
+    solution = linprog([0.0, 0.0, 0.0, -1.0], A_ub=G, b_ub=b, bounds=[(None, None)] * 4, method="highs")
+    assert solution.status == 0
+    return -solution.fun
+
+
+def random_cameras(rng: np.random.Generator, count: int, spread: float) -> ImageSet:
+    """Random orientations, centres in a cube of side ``spread`` and varied intrinsics."""
+    x, y, z, w = Rotation.random(count, random_state=rng.integers(1 << 31)).as_quat().T
+    cameras = [
+        Camera("PINHOLE", 640, 480, (f, f * rng.uniform(0.9, 1.1), 320 + rng.uniform(-40, 40), 240 + rng.uniform(-30, 30)))
+        for f in rng.uniform(250.0, 900.0, count)
+    ]
+    return image_set(np.stack([w, x, y, z], 1), rng.uniform(0, spread, (count, 3)), cameras)
+
+
+def frusta(images: ImageSet, far: float) -> TruncatedFrusta:
+    return TruncatedFrusta.of_images(images, np.arange(len(images)), NEAR, far)
+
+
+def reference_radii(first: TruncatedFrusta, second: TruncatedFrusta) -> np.ndarray:
+    """Signed linprog optimum of each pair's 12 half-spaces."""
+    return np.array(
+        [
+            linprog_radius(np.concatenate([first.A[i], second.A[i]]), np.concatenate([first.b[i], second.b[i]]))
+            for i in range(len(first))
+        ]
+    )
+
+
+# ---------------------------------------------------------------- relative camera pose
+
+
+@pytest.fixture
+def pose_scene():
+    """A query at the origin (identity rotation) and five database images with known errors.
+
+    (c_diff m, R_diff deg) -> s = c/25 + R/45: d0 (10, 0) 0.4; d1 (0, 30) 0.667;
+    d2 (20, 60) 2.133; d3 (30, 0) 1.2; d4 (5, 20) 0.644. Relevant: d0, d1, d4.
+    """
+    database = image_set(
+        [about("x", 0), about("y", 30), about("z", 60), about("x", 0), about("x", 20)],
+        [[10, 0, 0], [0, 0, 0], [20, 0, 0], [0, 30, 0], [3, 4, 0]],
+        prefix="db",
+    )
+    queries = image_set([about("x", 0), [np.nan] * 4, about("z", 10)], [[0, 0, 0], [np.nan] * 3, [500, 0, 0]], prefix="q")
+    return database, queries
+
+
+def test_relative_pose_scores_order_and_relevance(pose_scene):
+    database, queries = pose_scene
+    gt = relative_pose_groundtruth(database, queries, depth=50)
+    expected_s = {0: 10 / 25, 4: 5 / 25 + 20 / 45, 1: 30 / 45, 3: 30 / 25, 2: 20 / 25 + 60 / 45}
+    assert gt.ranking.name == "gt_relative_pose" and gt.ranking.kind == "groundtruth"
+    assert gt.ranking.indices[0].tolist() == [0, 4, 1, 3, 2]
+    np.testing.assert_allclose(gt.ranking.scores[0], [-expected_s[i] for i in (0, 4, 1, 3, 2)], rtol=1e-6)
+    assert gt.relevance[0].indices.tolist() == [0, 1, 4]
+    # The query without a pose: no ranking, no relevance. The far query: ranked, none relevant.
+    assert (gt.ranking.indices[1] == EMPTY).all() and gt.relevance[1].nnz == 0
+    assert gt.ranking.lengths[2] == 5 and gt.relevance[2].nnz == 0
+    assert gt.relevance.dtype == bool and gt.relevance.shape == (3, 5)
+
+
+def test_relative_pose_thresholds_and_depth(pose_scene):
+    database, queries = pose_scene
+    gt = relative_pose_groundtruth(database, queries, depth=2, position_threshold=12.0, rotation_threshold=25.0)
+    # s = c/12 + R/25: d0 0.833, d4 1.217, d1 1.2, d3 2.5, d2 4.07; relevant: c < 12 and R < 25.
+    assert gt.ranking.indices[0].tolist() == [0, 1]
+    assert gt.relevance[0].indices.tolist() == [0, 4]
+
+
+def test_relative_pose_ignores_quaternion_signs(pose_scene):
+    database, queries = pose_scene
+    flipped_database = image_set(database.qvec, database.centers, prefix="db")
+    flipped_queries = image_set(queries.qvec, queries.centers, prefix="q")
+    flipped_database.qvec[:] = -database.qvec  # ImageSet normalises to w >= 0: force the sign back
+    flipped_queries.qvec[:] = -queries.qvec
+    a = relative_pose_groundtruth(database, queries)
+    b = relative_pose_groundtruth(flipped_database, flipped_queries)
+    np.testing.assert_array_equal(a.ranking.indices, b.ranking.indices)
+    np.testing.assert_allclose(a.ranking.scores, b.ranking.scores, atol=1e-6)
+    assert (a.relevance != b.relevance).nnz == 0
+
+
+def test_statistics_count_all_relevant_images_over_posed_queries(pose_scene):
+    database, queries = pose_scene
+    statistics = relative_pose_groundtruth(database, queries, depth=2).statistics()
+    # Query 0: 3 relevant, 2 of them in its top 2 (d0, d4); query 2: none; query 1: no pose.
+    assert statistics == {
+        "queries": 3,
+        "queries_without_pose": 1,
+        "depth": 2,
+        "avg_relevant": 1.5,
+        "avg_relevant_in_ranking": 1.0,
+        "missing_pct": 50.0,
+    }
+
+
+def test_statistics_without_any_posed_query(pose_scene):
+    database, queries = pose_scene
+    statistics = relative_pose_groundtruth(database, queries.subset([1])).statistics()
+    assert statistics["queries_without_pose"] == 1 and np.isnan(statistics["avg_relevant"])
+
+
+def test_groundtruth_rejects_rankings_for_queries_without_pose(pose_scene):
+    database, queries = pose_scene
+    gt = relative_pose_groundtruth(database, queries)
+    with pytest.raises(ValueError, match="without a pose"):
+        GroundTruth(gt.ranking, gt.relevance, np.array([True, True, False]))
+
+
+# ---------------------------------------------------------------- frustum overlap
+
+
+def test_identical_frusta_give_the_inscribed_radius_of_one():
+    images = image_set([about("y", 0), about("y", 0)], [[0, 0, 0], [0, 0, 0]], [WIDE, NARROW])
+    radii = overlap_radii(frusta(images, 10.0), frusta(images, 10.0))
+    np.testing.assert_allclose(radii, [inscribed_radius_symmetric(1.0, 10.0), inscribed_radius_symmetric(0.5, 10.0)], rtol=1e-9)
+    # A non-square, off-centre camera against scipy linprog on its own 6 half-spaces.
+    odd = image_set(about("x", 30), [1, 2, 3], [Camera("PINHOLE", 640, 360, (400.0, 420.0, 300.0, 200.0))])
+    single = frusta(odd, 10.0)
+    assert overlap_radii(single, single)[0] == pytest.approx(linprog_radius(single.A[0], single.b[0]), rel=1e-9)
+
+
+def test_contained_frustum_gives_the_radius_of_the_smaller_one():
+    wide = image_set(about("y", 0), [0, 0, 0], [WIDE])
+    narrow = image_set(about("y", 0), [0, 0, 0], [NARROW])
+    shorter = overlap_radii(frusta(wide, 10.0), frusta(wide, 4.0))[0]
+    assert shorter == pytest.approx(inscribed_radius_symmetric(1.0, 4.0), rel=1e-9)
+    narrower = overlap_radii(frusta(wide, 10.0), frusta(narrow, 10.0))[0]
+    assert narrower == pytest.approx(inscribed_radius_symmetric(0.5, 10.0), rel=1e-9)
+
+
+def test_disjoint_and_touching_frusta_have_zero_radius():
+    # Back to back at one centre (the near planes keep them apart), 100 m apart, and
+    # facing each other with far planes meeting in the plane z = 10 (touching only).
+    first = image_set([about("y", 0)] * 3, [[0, 0, 0]] * 3)
+    second = image_set([about("y", 180), about("y", 0), about("y", 180)], [[0, 0, 0], [100, 0, 0], [0, 0, 20]])
+    radii = overlap_radii(frusta(first, 10.0), frusta(second, 10.0))
+    assert radii[:2].tolist() == [0.0, 0.0]
+    assert radii[2] == 0.0
+    assert not may_overlap(frusta(first, 10.0)[:2], frusta(second, 10.0)[:2]).any()
+
+
+@pytest.fixture(scope="module")
+def random_pairs():
+    """300 random frustum pairs (far 20 m, centres within 15 m) and their linprog radii."""
+    rng = np.random.default_rng(0)
+    first, second = frusta(random_cameras(rng, 300, 15.0), 20.0), frusta(random_cameras(rng, 300, 15.0), 20.0)
+    return first, second, reference_radii(first, second)
+
+
+def signed_radii(first: TruncatedFrusta, second: TruncatedFrusta) -> np.ndarray:
+    A = np.concatenate([first.A, second.A], axis=1)
+    b = np.concatenate([first.b, second.b], axis=1)
+    return chebyshev_radius(A, b, INITIAL_BASIS)  # every pair, empty intersections included
+
+
+def test_batched_solver_equals_linprog_on_random_pairs(random_pairs):
+    first, second, expected = random_pairs
+    assert 0.2 < (expected > 0).mean() < 0.8  # both overlapping and empty pairs are exercised
+    np.testing.assert_allclose(signed_radii(first, second), expected, rtol=1e-6, atol=1e-6 * 20.0)
+    np.testing.assert_allclose(overlap_radii(first, second), np.maximum(expected, 0.0), rtol=1e-6, atol=1e-6 * 20.0)
+
+
+@pytest.mark.parametrize("constant, value", [("DANTZIG_PIVOTS", 0), ("MAX_PIVOTS", 2)])
+def test_bland_rule_and_linprog_fallback_agree_with_linprog(random_pairs, monkeypatch, caplog, constant, value):
+    first, second, expected = random_pairs
+    monkeypatch.setattr(chebyshev, constant, value)
+    with caplog.at_level(logging.INFO, logger=chebyshev.__name__):
+        radii = signed_radii(first, second)
+    np.testing.assert_allclose(radii, expected, rtol=1e-6, atol=1e-6 * 20.0)
+    assert ("re-solved with scipy linprog" in caplog.text) == (constant == "MAX_PIVOTS")
+
+
+def test_prefilter_keeps_every_pair_that_linprog_says_overlaps():
+    rng = np.random.default_rng(1)
+    first, second = frusta(random_cameras(rng, 400, 40.0), 15.0), frusta(random_cameras(rng, 400, 40.0), 15.0)
+    kept = may_overlap(first, second)
+    expected = reference_radii(first, second)
+    assert (~kept).sum() > 100  # the prefilter does discard pairs
+    assert (expected[~kept] <= 1e-9).all()
+    assert (expected > 1e-9).sum() > 20
+
+
+def test_frustum_groundtruth_ranks_by_radius_and_skips_empty_pairs():
+    rng = np.random.default_rng(2)
+    database = random_cameras(rng, 40, 25.0)
+    queries = random_cameras(rng, 6, 25.0)
+    queries.qvec[4] = np.nan  # a query without a pose
+    gt = frustum_groundtruth(database, queries, depth=10, far=15.0, min_radius=0.5)
+    posed = np.flatnonzero(queries.has_pose)
+    query_frusta = TruncatedFrusta.of_images(queries, posed, NEAR, 15.0)
+    database_frusta = frusta(database, 15.0)
+    for row, q in enumerate(posed):
+        pairs = np.full(len(database), row)
+        expected = np.maximum(reference_radii(query_frusta[pairs], database_frusta), 0.0)
+        order = np.argsort(-expected, kind="stable")
+        order = order[expected[order] > 1e-9][:10]
+        assert gt.ranking.indices[q, : len(order)].tolist() == order.tolist()
+        assert (gt.ranking.indices[q, len(order) :] == EMPTY).all()
+        np.testing.assert_allclose(gt.ranking.scores[q, : len(order)], expected[order], rtol=1e-5)
+        assert gt.relevance[q].indices.tolist() == np.flatnonzero(expected > 0.5).tolist()
+    assert (gt.ranking.indices[4] == EMPTY).all() and gt.relevance[4].nnz == 0
+    assert gt.relevance.nnz > 0 and (gt.ranking.lengths[posed] < 10).any()
+
+
+def test_bad_planes_and_unposed_database_images_are_rejected(pose_scene):
+    database, queries = pose_scene
+    with pytest.raises(ValueError, match="near < far"):
+        frustum_groundtruth(database, queries, near=5.0, far=2.0)
+    database.tvec[3] = np.nan
+    with pytest.raises(ValueError, match=r"database images without a pose: \['db/3.jpg'\]"):
+        relative_pose_groundtruth(database, queries)
+
+
+# ---------------------------------------------------------------- configuration and cache
+
+
+def test_compute_groundtruths_reads_the_default_config(pose_scene, tmp_path):
+    database, queries = pose_scene
+    defaults = OmegaConf.load("configs/groundtruth/default.yaml")
+    assert "co_observation" in defaults.definitions  # needs SfM settings; tested in test_co_observation
+    del defaults.definitions["co_observation"]
+    cfg = OmegaConf.merge({"data": {"frustum_far": 30.0}}, {"groundtruth": defaults})
+    groundtruths = compute_groundtruths(database, queries, cfg.groundtruth)
+    assert list(groundtruths) == ["relative_pose", "frustum"]
+    assert groundtruths["frustum"].name == "gt_frustum"
+    direct = frustum_groundtruth(database, queries, far=30.0)
+    np.testing.assert_array_equal(groundtruths["frustum"].ranking.indices, direct.ranking.indices)
+
+
+def test_definition_types_and_errors(pose_scene):
+    database, queries = pose_scene
+    config = {"depth": 3, "definitions": {"frustum_25m": {"type": "frustum", "far": 25.0}}}
+    gt = compute_groundtruths(database, queries, config)["frustum_25m"]
+    assert gt.name == "gt_frustum_25m" and gt.ranking.depth == 3
+    with pytest.raises(ValueError, match="unknown type 'coobs'"):
+        compute_groundtruths(database, queries, {"definitions": {"coobs": {}}})
+    with pytest.raises(ValueError, match=r"unknown parameters \['farr'\]"):
+        compute_groundtruths(database, queries, {"definitions": {"frustum": {"farr": 3}}})
+
+
+def test_cache_round_trip(pose_scene, tmp_path):
+    database, queries = pose_scene
+    config = {"definitions": {"relative_pose": {}, "frustum": {"far": 40.0}}}
+    first = compute_groundtruths(database, queries, config, cache_dir=tmp_path)
+    files = sorted((tmp_path / "groundtruth").glob("*.npz"))
+    assert len(files) == 2
+    second = compute_groundtruths(database, queries, config, cache_dir=tmp_path)
+    for name, gt in first.items():
+        assert second[name].name == gt.name
+        np.testing.assert_array_equal(second[name].ranking.indices, gt.ranking.indices)
+        np.testing.assert_array_equal(second[name].ranking.scores, gt.ranking.scores)
+        assert (second[name].relevance != gt.relevance).nnz == 0
+        assert second[name].statistics() == gt.statistics()
+    compute_groundtruths(database, queries, {"definitions": {"frustum": {"far": 20.0}}}, cache_dir=tmp_path)
+    assert len(list((tmp_path / "groundtruth").glob("*.npz"))) == 3

@@ -1,0 +1,58 @@
+import numpy as np
+import pytest
+
+from locretrieval import geometry
+from locretrieval.localization.estimates import PoseEstimates
+from locretrieval.metrics.localization import localization_table, localized, query_error_table, query_subsets
+from locretrieval.scene import Camera, ImageSet
+
+CAMERA = Camera("SIMPLE_PINHOLE", 64, 48, (50.0, 32.0, 24.0))
+THRESHOLDS = [[0.25, 2.0], [0.5, 5.0], [5.0, 10.0]]
+
+
+def queries_with_poses():
+    q = np.tile([1.0, 0, 0, 0], (4, 1))
+    t = np.zeros((4, 3))
+    q[3] = t[3] = np.nan  # no reference pose: never evaluated
+    tags = [frozenset({"day"}), frozenset({"night"}), frozenset({"day"}), frozenset({"night"})]
+    return ImageSet([f"q/{i}.png" for i in range(4)], "/x", [CAMERA] * 4, q, t, tags)
+
+
+def estimate(position_offsets, rotation_degrees):
+    """Estimates whose errors are the given offsets (m, along x) and angles (deg, about z)."""
+    offsets = np.asarray(position_offsets, dtype=float)
+    angles = np.radians(np.asarray(rotation_degrees, dtype=float))
+    qvec = np.stack([np.cos(angles / 2), 0 * angles, 0 * angles, np.sin(angles / 2)], -1)[None]
+    centers = np.stack([offsets, 0 * offsets, 0 * offsets], -1)[None]
+    tvec = geometry.translations_from_centers(qvec, centers)
+    failures = np.where(np.isnan(offsets), "no estimate", "")[None]
+    qvec[np.isnan(offsets)[None]] = np.nan
+    tvec[np.isnan(offsets)[None]] = np.nan
+    return PoseEstimates("r", "descriptor", "approximation", "ewb", [1], qvec, tvec, failures)
+
+
+def test_thresholds_are_strict_and_nan_is_not_localized():
+    hits = localized(np.array([0.25, 0.2, np.nan]), np.array([1.0, 1.0, 1.0]), [[0.25, 2.0]])
+    assert hits.tolist() == [[False, True, False]]
+
+
+def test_localization_table_percentages():
+    queries = queries_with_poses()
+    e = estimate([0.1, 0.4, np.nan, 0.0], [1.0, 3.0, 0.0, 0.0])
+    table = localization_table("toy", [e], queries, THRESHOLDS, query_subsets(queries))
+    lookup = table.set_index(["subset", "position_threshold_m"])["localized_pct"]
+    assert lookup[("all", 0.25)] == pytest.approx(100 / 3)
+    assert lookup[("all", 0.5)] == pytest.approx(200 / 3)
+    assert lookup[("day", 5.0)] == pytest.approx(50.0)  # query 2 has no estimate
+    assert lookup[("night", 0.5)] == pytest.approx(100.0)  # query 3 has no reference pose
+    assert set(table["num_queries"]) == {3, 2, 1}
+    assert len(table) == 3 * 3  # subsets x thresholds x k
+
+
+def test_query_error_table_matches_hand_computed_errors():
+    queries = queries_with_poses()
+    table = query_error_table("toy", [estimate([0.1, 0.4, np.nan, 0.0], [1.0, 3.0, 0.0, 0.0])], queries)
+    np.testing.assert_allclose(table["position_error_m"][:2], [0.1, 0.4], atol=1e-9)
+    np.testing.assert_allclose(table["rotation_error_deg"][:2], [1.0, 3.0], atol=1e-9)
+    assert table["failure"].tolist() == ["", "", "no estimate", ""]
+    assert np.isnan(table["position_error_m"][3])

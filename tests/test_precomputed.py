@@ -1,0 +1,174 @@
+import logging
+import os
+from pathlib import Path
+
+import kapture
+import kapture.io.csv
+import kapture.io.features
+import numpy as np
+import pytest
+
+from locretrieval.models import PrecomputedDescriptor
+from locretrieval.retrieval import describe_scene
+from locretrieval.scene import Camera, ImageSet, Scene
+
+DATABASE = ["mapping/cam0/0001.jpg", "mapping/cam0/0002.jpg", "mapping/cam1/0001.jpg", "mapping/cam1/0002.jpg"]
+QUERIES = ["query/day/q1.jpg", "query/night/q2.jpg"]
+
+
+def write_global_features(
+    kapture_dir: Path, feature_name: str, vectors: dict[str, np.ndarray], dsize: int | None = None
+) -> Path:
+    """A kapture global-features folder written with kapture's own writers; returns the folder."""
+    dtype = next(iter(vectors.values())).dtype.type
+    dsize = dsize or len(next(iter(vectors.values())))
+    config = kapture.io.csv.get_feature_csv_fullpath(kapture.GlobalFeatures, feature_name, str(kapture_dir))
+    kapture.io.csv.global_features_to_file(config, kapture.GlobalFeatures(feature_name, dtype, dsize, "L2"))
+    for image_name, vector in vectors.items():
+        path = kapture.io.features.get_global_features_fullpath(feature_name, str(kapture_dir), image_name)
+        kapture.io.features.image_global_features_to_file(path, vector)
+    return kapture_dir / "reconstruction" / "global_features" / feature_name
+
+
+def image_set(names: list[str], root: Path) -> ImageSet:
+    camera = Camera("SIMPLE_PINHOLE", 64, 48, (50.0, 32.0, 24.0))
+    count = len(names)
+    return ImageSet(names, root, [camera] * count, np.tile([1.0, 0, 0, 0], (count, 1)), np.zeros((count, 3)))
+
+
+def random_vectors(names: list[str], dim: int, seed: int, dtype=np.float32) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {name: (3.0 * rng.normal(size=dim)).astype(dtype) for name in names}
+
+
+def normalised(vectors: dict[str, np.ndarray], names: list[str]) -> np.ndarray:
+    rows = np.stack([vectors[name].astype(np.float64) for name in names])
+    return rows / np.linalg.norm(rows, axis=1, keepdims=True)
+
+
+def test_single_folder_reads_back_what_kapture_wrote(tmp_path, caplog):
+    vectors = random_vectors(DATABASE + QUERIES, 16, seed=0)
+    folder = write_global_features(tmp_path / "dataset", "Resnet101-AP-GeM", vectors)
+    model = PrecomputedDescriptor(path=str(folder))
+    assert model.name == "Resnet101-AP-GeM"  # from global_features.txt
+    images = image_set(QUERIES + DATABASE[:2], tmp_path / "dataset" / "sensors" / "records_data")
+    with caplog.at_level(logging.INFO, logger="locretrieval.models.precomputed"):
+        descriptors = model.describe(images)
+    assert descriptors.dtype == np.float32 and descriptors.shape == (4, 16)
+    np.testing.assert_allclose(descriptors, normalised(vectors, images.names), atol=1e-6)
+    assert "4 of 4 global features were not L2-normalised" in caplog.text
+
+
+def test_float64_features_are_read_as_float32(tmp_path):
+    vectors = random_vectors(DATABASE, 8, seed=1, dtype=np.float64)
+    folder = write_global_features(tmp_path, "dense", vectors)
+    descriptors = PrecomputedDescriptor(path=folder, name="dense").describe(image_set(DATABASE, tmp_path))
+    assert descriptors.dtype == np.float32
+    np.testing.assert_allclose(descriptors, normalised(vectors, DATABASE), atol=1e-6)
+
+
+@pytest.fixture
+def mapping_and_query(tmp_path) -> tuple[Scene, dict[str, np.ndarray], list[Path]]:
+    """NAVER's layout: mapping and query kaptures, each with its own global-features folder."""
+    vectors = random_vectors(DATABASE + QUERIES, 12, seed=2)
+    folders = [
+        write_global_features(tmp_path / "mapping", "apgem", {n: vectors[n] for n in DATABASE}),
+        write_global_features(tmp_path / "query", "apgem", {n: vectors[n] for n in QUERIES}),
+    ]
+    scene = Scene(
+        "two-kaptures",
+        image_set(DATABASE, tmp_path / "mapping" / "sensors" / "records_data"),
+        image_set(QUERIES, tmp_path / "query" / "sensors" / "records_data"),
+        sources=[tmp_path / "mapping", tmp_path / "query"],
+    )
+    return scene, vectors, folders
+
+
+@pytest.mark.parametrize("how", ["path_list", "sources_by_name", "sources_single_type"])
+def test_mapping_and_query_folders(tmp_path, mapping_and_query, how):
+    scene, vectors, folders = mapping_and_query
+    model = {
+        "path_list": lambda: PrecomputedDescriptor(path=[str(f) for f in folders]),
+        "sources_by_name": lambda: PrecomputedDescriptor(feature_name="apgem"),
+        "sources_single_type": lambda: PrecomputedDescriptor(),
+    }[how]()
+    database, queries = describe_scene(model, scene, tmp_path / "cache")
+    assert model.name == "apgem"
+    assert [f.resolve() for f in model.folders] == [f.resolve() for f in folders]
+    np.testing.assert_allclose(database, normalised(vectors, DATABASE), atol=1e-6)
+    np.testing.assert_allclose(queries, normalised(vectors, QUERIES), atol=1e-6)
+
+
+def test_cache_invalidates_when_the_files_change(tmp_path, mapping_and_query):
+    scene, vectors, folders = mapping_and_query
+    before, _ = describe_scene(PrecomputedDescriptor(feature_name="apgem"), scene, tmp_path / "cache")
+    again, _ = describe_scene(PrecomputedDescriptor(feature_name="apgem"), scene, tmp_path / "cache")
+    np.testing.assert_array_equal(again, before)
+    changed = folders[0] / f"{DATABASE[1]}.gfeat"
+    kapture.io.features.image_global_features_to_file(str(changed), -vectors[DATABASE[1]])
+    stat = changed.stat()
+    os.utime(changed, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))  # coarse file-system clocks
+    after, _ = describe_scene(PrecomputedDescriptor(feature_name="apgem"), scene, tmp_path / "cache")
+    np.testing.assert_allclose(after[1], -before[1], atol=1e-6)
+    np.testing.assert_array_equal(np.delete(after, 1, axis=0), np.delete(before, 1, axis=0))
+    assert len(list((tmp_path / "cache" / "descriptors").glob("*.npz"))) == 2
+
+
+def test_missing_feature_file_names_image_and_folders(tmp_path):
+    folder = write_global_features(tmp_path, "apgem", random_vectors(DATABASE[:3], 8, seed=3))
+    with pytest.raises(FileNotFoundError, match=r"'mapping/cam1/0002\.jpg'.*searched \[.*apgem'\]"):
+        PrecomputedDescriptor(path=folder).describe(image_set(DATABASE, tmp_path))
+
+
+def test_wrong_file_size_names_file_and_byte_counts(tmp_path):
+    vectors = random_vectors(DATABASE, 8, seed=4)
+    vectors[DATABASE[2]] = vectors[DATABASE[2]][:6]
+    folder = write_global_features(tmp_path, "apgem", vectors, dsize=8)
+    with pytest.raises(ValueError, match=r"cam1/0001\.jpg\.gfeat: 24 bytes, expected 32 \(8 x float32\)"):
+        PrecomputedDescriptor(path=folder).describe(image_set(DATABASE, tmp_path))
+
+
+def test_inconsistent_dimensions_between_folders(tmp_path):
+    first = write_global_features(tmp_path / "mapping", "apgem", random_vectors(DATABASE, 8, seed=5))
+    second = write_global_features(tmp_path / "query", "apgem", random_vectors(QUERIES, 16, seed=6))
+    message = r"inconsistent global features: .*mapping.* 8 x float32, .*query.* 16 x float32"
+    with pytest.raises(ValueError, match=message):
+        PrecomputedDescriptor(path=[first, second])
+
+
+def test_non_finite_and_zero_features_are_errors(tmp_path):
+    vectors = random_vectors(DATABASE, 8, seed=7)
+    vectors[DATABASE[1]][3] = np.nan
+    folder = write_global_features(tmp_path / "nan", "apgem", vectors)
+    with pytest.raises(ValueError, match=r"cam0/0002\.jpg\.gfeat: global feature holds non-finite values"):
+        PrecomputedDescriptor(path=folder).describe(image_set(DATABASE, tmp_path))
+    vectors[DATABASE[1]][:] = 0.0
+    folder = write_global_features(tmp_path / "zero", "apgem", vectors)
+    with pytest.raises(ValueError, match=r"cam0/0002\.jpg\.gfeat: global feature is all zeros"):
+        PrecomputedDescriptor(path=folder).describe(image_set(DATABASE, tmp_path))
+
+
+def test_folder_errors(tmp_path, mapping_and_query):
+    with pytest.raises(FileNotFoundError, match=r"config not found: .*nowhere/global_features\.txt"):
+        PrecomputedDescriptor(path=tmp_path / "nowhere")
+    scene, _, _ = mapping_and_query
+    with pytest.raises(FileNotFoundError, match=r"no global features 'netvlad': searched .*mapping.*query"):
+        describe_scene(PrecomputedDescriptor(feature_name="netvlad"), scene, None)
+    write_global_features(tmp_path / "mapping", "netvlad", random_vectors(DATABASE, 4, seed=8))
+    with pytest.raises(ValueError, match=r"2 global-feature types \['apgem', 'netvlad'\]"):
+        describe_scene(PrecomputedDescriptor(), scene, None)
+    with pytest.raises(RuntimeError, match="no feature folders"):
+        PrecomputedDescriptor(feature_name="apgem").describe(scene.queries)
+
+
+@pytest.mark.parametrize(("overrides", "name"), [([], "precomputed"), (["model.feature_name=AP-GeM-LM18"], "AP-GeM-LM18")])
+def test_config_names_the_ranking_and_output_folder(overrides, name, tmp_path):
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(Path(__file__).parents[1] / "configs"), version_base="1.3"):
+        cfg = compose(config_name="evaluate", overrides=["model=precomputed", f"paths.root_dir={tmp_path}", *overrides],
+                      return_hydra_config=True)
+    assert cfg.model.name == name
+    assert cfg.hydra.run.dir.split("/")[-2] == name

@@ -1,0 +1,203 @@
+import json
+import subprocess
+import sys
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import sparse
+
+from locretrieval.metrics.localization import QUERY_ERROR_COLUMNS, RESULT_COLUMNS
+from locretrieval.metrics.retrieval import retrieval_tables
+from locretrieval.metrics.revisited import RevisitedGroundTruth, evaluate_revisited
+from locretrieval.report import build_report
+from locretrieval.report.markdown import pivot_localization
+from locretrieval.report.plots import curves_for_method
+from locretrieval.report.tables import load_runs
+from locretrieval.retrieval import Ranking
+from locretrieval.scene import Camera, ImageSet
+
+NUM_QUERIES, NUM_DATABASE = 6, 10
+KS = [1, 2, 5, 10]
+THRESHOLDS = [(0.25, 2.0), (5.0, 10.0)]
+GROUNDTRUTH = "gt_relative_pose"
+
+
+def seeded(name: str) -> np.random.Generator:
+    """The same numbers for a ranking in every run (ground truth repeats across a multirun)."""
+    return np.random.default_rng(zlib.crc32(name.encode()))
+
+
+def queries() -> ImageSet:
+    camera = Camera("SIMPLE_PINHOLE", 64, 48, (50.0, 32.0, 24.0))
+    names = [f"q{i}.png" for i in range(NUM_QUERIES)]
+    return ImageSet(names, "/x", [camera] * NUM_QUERIES, np.tile([1.0, 0, 0, 0], (NUM_QUERIES, 1)), np.zeros((NUM_QUERIES, 3)))
+
+
+def relevance() -> sparse.csr_matrix:
+    return sparse.csr_matrix(seeded("relevance").random((NUM_QUERIES, NUM_DATABASE)) < 0.3)
+
+
+def ranking(name: str, kind: str) -> Ranking:
+    keys = seeded(name).random((NUM_QUERIES, NUM_DATABASE)) - (relevance().toarray() if kind == "groundtruth" else 0)
+    return Ranking(name, np.argsort(keys, axis=1), np.zeros((NUM_QUERIES, NUM_DATABASE)), kind)
+
+
+def localization(name: str, kind: str) -> tuple[pd.DataFrame, pd.DataFrame]:
+    rng = seeded(name + "/poses")
+    results, errors = [], []
+    paradigms = [("approximation", "ewb"), ("global_sfm", "pnp")]
+    paradigms += [("approximation", "csi")] if kind == "descriptor" else []  # CSI needs descriptors
+    for paradigm, method in paradigms:
+        for k in KS:
+            position = rng.exponential(1.0, NUM_QUERIES)
+            position[rng.random(NUM_QUERIES) < 0.15] = np.nan
+            for n, query in enumerate(queries().names):
+                failure = "" if np.isfinite(position[n]) else "too few inliers"
+                errors.append(("toy", name, kind, paradigm, method, k, query, position[n], 2 * position[n], failure))
+            for subset, members in (("all", slice(None)), ("blurry", slice(0, 3))):
+                for x, y in THRESHOLDS:
+                    localized = 100 * np.mean(np.nan_to_num(position[members], nan=np.inf) < x)
+                    results.append(("toy", subset, name, kind, paradigm, method, k, x, y, localized, len(position[members])))
+    return pd.DataFrame(results, columns=RESULT_COLUMNS), pd.DataFrame(errors, columns=QUERY_ERROR_COLUMNS)
+
+
+def write_run(directory: Path, descriptors: list[str]) -> Path:
+    """A finished run's tables: the descriptors, the ground truth and a random baseline."""
+    directory.mkdir(parents=True)
+    rankings = [ranking(name, "descriptor") for name in descriptors]
+    rankings += [ranking(GROUNDTRUTH, "groundtruth"), ranking("random", "baseline")]
+    subsets = {"all": np.ones(NUM_QUERIES, bool), "blurry": np.arange(NUM_QUERIES) < 3}
+    retrieval, per_query = retrieval_tables("toy", rankings, {GROUNDTRUTH: relevance()}, queries(), subsets, range(1, 11), KS)
+    tables = [localization(r.name, r.kind) for r in rankings]
+    pd.concat([t[0] for t in tables]).to_csv(directory / "results.csv", index=False)
+    pd.concat([t[1] for t in tables]).to_csv(directory / "query_errors.csv.gz", index=False)
+    retrieval.to_csv(directory / "retrieval.csv", index=False)
+    per_query.to_csv(directory / "query_retrieval.csv.gz", index=False)
+    pd.DataFrame([{"dataset": "toy", "groundtruth": GROUNDTRUTH, "avg_relevant": 3.1, "missing_pct": 0.0}]).to_csv(
+        directory / "groundtruth_statistics.csv", index=False
+    )
+    pd.DataFrame(
+        {
+            "dataset": "toy",
+            "image": queries().names,
+            "blur_score": np.linspace(10, 30, NUM_QUERIES),
+            "dynamic_fraction": np.nan,
+            "mask_source": "none",
+            "blurry": subsets["blurry"],
+        }
+    ).to_csv(directory / "subsets.csv", index=False)
+    revisited = RevisitedGroundTruth([f"db{i}" for i in range(4)], ["q0"], [{"easy": [1], "hard": [2], "junk": [0]}])
+    revisited_rankings = [Ranking(name, [[0, 1, 2, 3]], np.zeros((1, 4)), "descriptor") for name in descriptors]
+    revisited_tables = [evaluate_revisited(r, revisited, "roxford5k") for r in revisited_rankings]
+    pd.concat(revisited_tables).to_csv(directory / "revisited.csv", index=False)
+    (directory / "summary.json").write_text(json.dumps({"model": ", ".join(descriptors), "run time": "1.0 s"}))
+    return directory
+
+
+def test_ground_truth_without_a_method_is_drawn_with_ewb():
+    results, _ = localization("netvlad", "descriptor")
+    gt_results, _ = localization(GROUNDTRUTH, "groundtruth")
+    curves = curves_for_method(pd.concat([results, gt_results]), "approximation", "csi")
+    assert set(zip(curves["ranking"], curves["method"])) == {("netvlad", "csi"), (GROUNDTRUTH, "ewb")}
+
+
+def test_pivot_localization_reads_the_table():
+    results, _ = localization("netvlad", "descriptor")
+    pivot = pivot_localization(results, "global_sfm", "pnp")
+    lookup = results.set_index(["subset", "paradigm", "k", "position_threshold_m"])["localized_pct"]
+    expected = lookup[("all", "global_sfm", 5, 5.0)]
+    assert pivot.loc["netvlad", ("5m,10°", 5)] == round(expected, 1)
+
+
+def test_report_of_a_multirun_produces_every_figure_and_table(tmp_path):
+    runs = tmp_path / "multirun"
+    write_run(runs / "0_netvlad", ["netvlad"])
+    write_run(runs / "1_apgem", ["apgem"])
+    report = build_report([runs], tmp_path / "report")
+    output = report.parent
+    figures = {
+        *(f"toy_{p}_{m}" for p, m in (("approximation", "ewb"), ("approximation", "csi"), ("global_sfm", "pnp"))),
+        *(f"toy_{metric}_at_k" for metric in ("precision", "recall", "map")),
+        *(f"toy_scatter_{metric}_{GROUNDTRUTH}" for metric in ("precision", "recall", "map")),
+        *(f"toy_violin_{metric}_{GROUNDTRUTH}" for metric in ("precision", "recall", "average_precision")),
+        "toy_subset_blurry",
+    }
+    written = {path.stem for path in (output / "figures").glob("*.png")}
+    assert written == figures
+    for stem in figures:
+        assert (output / "figures" / f"{stem}.png").stat().st_size > 1000
+        assert (output / "figures" / f"{stem}.pdf").stat().st_size > 1000
+    text = report.read_text()
+    for stem in figures:
+        assert f"(figures/{stem}.png)" in text
+    tables = ("table1_groundtruth_statistics", "table2_revisited", f"pearson_recall_{GROUNDTRUTH}", f"spearman_precision_{GROUNDTRUTH}")
+    for stem in tables:
+        assert (output / "tables" / f"{stem}.tex").read_text().startswith("\\begin{table}")
+        assert (output / "tables" / f"{stem}.md").is_file()
+    assert "gt\\_relative\\_pose" in (output / "tables" / "table1_groundtruth_statistics.tex").read_text()
+    pearson = pd.read_csv(output / "correlation_dataset_pearson.csv")
+    assert set(pearson["ranking"]) == {"apgem", "netvlad"}  # descriptors only, from both runs
+    assert len(pd.read_csv(output / "correlation_query_pearson.csv.gz")) > 0
+    assert "too few inliers" in text and "run time" in text
+
+
+def test_runs_are_combined_without_repeating_ground_truth(tmp_path):
+    first, second = write_run(tmp_path / "a", ["netvlad"]), write_run(tmp_path / "b", ["apgem"])
+    single = load_runs([first])
+    combined = load_runs([first, second])
+    gt_rows = combined.results[combined.results["ranking"] == GROUNDTRUTH]
+    assert len(gt_rows) == len(single.results[single.results["ranking"] == GROUNDTRUTH])
+    assert set(combined.results["ranking"]) == {"netvlad", "apgem", GROUNDTRUTH, "random"}
+    assert len(combined.query_errors) == len(single.query_errors) + len(load_runs([second]).query_errors) - len(
+        single.query_errors[single.query_errors["ranking_kind"] != "descriptor"]
+    )
+    assert set(combined.revisited["ranking"]) == {"netvlad", "apgem"}
+
+
+def _shift_descriptor_results(run: Path, name: str) -> None:
+    results = pd.read_csv(run / "results.csv")
+    results.loc[results["ranking"] == name, "localized_pct"] += 1.0
+    results.to_csv(run / "results.csv", index=False)
+
+
+def test_one_descriptor_under_several_settings_is_labelled_by_its_overrides(tmp_path):
+    runs = [write_run(tmp_path / "sweep" / str(i), ["netvlad"]) for i in range(2)]
+    _shift_descriptor_results(runs[1], "netvlad")
+    for run, alpha in zip(runs, (4, 8)):
+        (run / ".hydra").mkdir()
+        (run / ".hydra" / "overrides.yaml").write_text(f"- model=netvlad\n- paradigms.approximation.alpha={alpha}\n")
+    combined = load_runs([tmp_path / "sweep"])
+    variants = ["netvlad [paradigms.approximation.alpha=4]", "netvlad [paradigms.approximation.alpha=8]"]
+    assert set(combined.results["ranking"]) == {*variants, GROUNDTRUTH, "random"}
+    assert set(combined.retrieval.loc[combined.retrieval["ranking_kind"] == "descriptor", "ranking"]) == set(variants)
+    single = load_runs([runs[0]]).results
+    first = combined.results[combined.results["ranking"] == variants[0]]
+    assert len(first) == len(single[single["ranking"] == "netvlad"])
+    assert len(combined.results[combined.results["ranking"] == GROUNDTRUTH]) == len(single[single["ranking"] == GROUNDTRUTH])
+
+
+def test_runs_without_overrides_are_labelled_by_directory_and_indistinguishable_runs_are_an_error(tmp_path):
+    first, second = write_run(tmp_path / "a", ["netvlad"]), write_run(tmp_path / "b", ["netvlad"])
+    _shift_descriptor_results(second, "netvlad")
+    assert {"netvlad [a]", "netvlad [b]"} <= set(load_runs([first, second]).results["ranking"])
+    third = write_run(tmp_path / "c" / "a", ["netvlad"])
+    _shift_descriptor_results(third, "netvlad")
+    with pytest.raises(ValueError, match="netvlad"):
+        load_runs([first, third])
+
+
+def test_command_line_entry_point_with_only_a_localization_table(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    localization("netvlad", "descriptor")[0].to_csv(run / "results.csv", index=False)
+    completed = subprocess.run(
+        [sys.executable, "report.py", str(run)], cwd=Path(__file__).parents[1], capture_output=True, text=True, timeout=300
+    )
+    assert completed.returncode == 0, completed.stderr
+    stems = ("approximation_csi", "approximation_ewb", "global_sfm_pnp", "subset_blurry")
+    expected = [f"toy_{stem}.{suffix}" for stem in stems for suffix in ("pdf", "png")]
+    assert sorted(path.name for path in (run / "figures").iterdir()) == expected
+    assert "## Localization" in (run / "report.md").read_text()

@@ -1,0 +1,273 @@
+"""Paradigms 2a (local SfM) and 2b (global SfM) and their building blocks on a tiny rendered scene."""
+
+import shutil
+
+import kapture.io.records as kapture_records
+import numpy as np
+import pytest
+from PIL import Image
+
+import locretrieval  # noqa: F401  (imports zlib before pycolmap)
+import pycolmap
+from locretrieval import geometry
+from locretrieval.groundtruth import relative_pose_groundtruth
+from locretrieval.localization import PARADIGMS, matching
+from locretrieval.localization.colmap_model import read_colmap_map, to_pycolmap_camera, to_rigid3d
+from locretrieval.localization.features import extract_features
+from locretrieval.localization.global_sfm import global_map
+from locretrieval.localization.local_sfm import local_map_pairs
+from locretrieval.localization.pairs import database_pairs
+from locretrieval.localization.pnp import DEFAULT_PNP, NO_KEYPOINTS, TOO_FEW_IMAGES, TOO_FEW_MATCHES, estimate_absolute_pose
+from locretrieval.localization.sfm import SfmInputs, common_settings
+from locretrieval.localization.triangulation import triangulate_known_poses
+from locretrieval.retrieval import random_ranking
+from locretrieval.scene.kapture_io import load_kapture_scene
+from locretrieval.scene.synthetic import render_synthetic_dataset
+
+SCENE = {"width": 256, "height": 192, "num_database": 40, "num_queries": 8, "texture_size": 128, "length": 20.0,
+         "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
+         "hard_query_fraction": 0.0, "workers": 1, "seed": 1}
+BLANK = 7  # this query's image is replaced by a uniform one
+PAIRS = {"far": 25.0, "max_per_image": 10}
+
+
+def base_config(**overrides):
+    return {"features": {"type": "sift"}, "workers": 1, **overrides}
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("sfm_scene")
+    render_synthetic_dataset(SCENE, root)
+    blank = root / "query" / "sensors" / "records_data" / "query" / f"{BLANK:06d}.png"
+    Image.new("RGB", (SCENE["width"], SCENE["height"]), (128, 128, 128)).save(blank)
+    return load_kapture_scene("tiny", [root / "mapping"], [root / "query"])
+
+
+@pytest.fixture(scope="module")
+def features_cache(scene, tmp_path_factory):
+    """A cache folder holding the features of both image sets (copied into fresh caches)."""
+    cache = tmp_path_factory.mktemp("sfm_features")
+    extract_features(scene.database, {"type": "sift"}, cache, workers=1)
+    extract_features(scene.queries, {"type": "sift"}, cache, workers=1)
+    return cache
+
+
+@pytest.fixture
+def cache(features_cache, tmp_path):
+    shutil.copytree(features_cache / "features", tmp_path / "features")
+    return tmp_path
+
+
+@pytest.fixture(scope="module")
+def rankings(scene):
+    database, queries = scene.database, scene.queries
+    return [relative_pose_groundtruth(database, queries).ranking, random_ranking(len(queries), len(database), 50, 0)]
+
+
+def read_depth(images, index):
+    camera = images.cameras[index]
+    return kapture_records.depth_map_from_file(str(images.depth_paths[index]), (camera.width, camera.height))
+
+
+def backproject(images, index, pixels):
+    """World points seen at ``pixels`` (COLMAP convention) of image ``index``, by its rendered depth."""
+    depth = read_depth(images, index)
+    z = depth[pixels[:, 1].astype(int), pixels[:, 0].astype(int)]
+    rays = np.column_stack([pixels, np.ones(len(pixels))]) @ np.linalg.inv(images.cameras[index].calibration_matrix()).T
+    return (rays * z[:, None] - images.tvec[index]) @ geometry.quaternion_to_matrix(images.qvec[index])
+
+
+# --------------------------------------------------------------------------- building blocks
+
+
+def test_triangulation_with_known_poses_recovers_the_rendered_points(scene, cache):
+    database = scene.database
+    inputs = SfmInputs.prepare(scene, common_settings(base_config()), cache)
+    sparse_map = global_map(inputs, {"pairs": PAIRS}, cache)
+    assert sparse_map.num_points > 500
+    keypoints = inputs.database_features.keypoints(database.names)
+    track_lengths = np.bincount(np.concatenate([ids[ids >= 0] for ids in sparse_map.observations]), minlength=sparse_map.num_points)
+    errors, lengths = [], []
+    for index, name in enumerate(database.names):
+        observed = np.flatnonzero(sparse_map.observations[index] >= 0)
+        points = sparse_map.observations[index][observed]
+        truth = backproject(database, index, keypoints[name][observed])
+        errors.append(np.linalg.norm(truth - sparse_map.points[points], axis=1))
+        lengths.append(track_lengths[points])
+    errors, lengths = np.concatenate(errors), np.concatenate(lengths)
+    assert np.median(errors) < 0.03
+    # tracks over three or more images are right to centimetres; the tail: keypoints on depth
+    # edges (they read the background's depth) and two-view tracks of repeated textures
+    assert np.median(errors[lengths >= 3]) < 0.015 and np.mean(errors[lengths >= 3] < 0.1) > 0.8
+    # cached: the same map is read back
+    again = global_map(inputs, {"pairs": PAIRS}, cache)
+    np.testing.assert_array_equal(again.points, sparse_map.points)
+
+
+def test_pnp_recovers_a_rendered_query_pose_among_outliers(scene):
+    queries = scene.queries
+    rng = np.random.default_rng(0)
+    depth = read_depth(queries, 0)
+    rows, columns = np.nonzero(depth > 0)
+    chosen = rng.choice(len(rows), 300, replace=False)
+    pixels = np.column_stack([columns[chosen], rows[chosen]]) + 0.5  # pixel centres, COLMAP convention
+    points = backproject(queries, 0, pixels)
+    points[:90] = rng.uniform(points.min(0), points.max(0), (90, 3))  # 30 % outliers
+    qvec, tvec, inliers = estimate_absolute_pose(pixels, points, queries.cameras[0], DEFAULT_PNP)
+    assert 205 <= inliers <= 215
+    assert geometry.position_errors(geometry.camera_centers(qvec, tvec), queries.centers[0]) < 1e-3
+    assert geometry.rotation_errors_deg(qvec, queries.qvec[0]) < 0.01
+    assert estimate_absolute_pose(pixels[:5], points[:5], queries.cameras[0], DEFAULT_PNP) == TOO_FEW_MATCHES
+
+
+# --------------------------------------------------------------------------------- paradigms
+
+
+def test_paradigms_localise_with_the_ground_truth_ranking_and_count_failures(scene, cache, rankings):
+    queries = scene.queries
+    posed = np.arange(len(queries)) != BLANK
+    local = PARADIGMS["local_sfm"](scene, rankings, base_config(k=[1, 3, 5]), cache)
+    globl = PARADIGMS["global_sfm"](scene, rankings, base_config(k=[1, 3], map={"pairs": PAIRS}), cache)
+    by_name = {(e.paradigm, e.ranking): e for e in local + globl}
+    assert sorted(by_name) == sorted((p, r) for p in ("local_sfm", "global_sfm") for r in ("gt_relative_pose", "random"))
+    for estimates in by_name.values():
+        assert estimates.method == "pnp"
+        # the blank image has no keypoint, whatever k; k=1 cannot build a local map
+        assert (estimates.failures[:, BLANK] == NO_KEYPOINTS).all() or (
+            estimates.paradigm == "local_sfm" and estimates.failures[0, BLANK] == TOO_FEW_IMAGES
+        )
+        if estimates.paradigm == "local_sfm":
+            assert (estimates.failures[0] == TOO_FEW_IMAGES).all()
+    localized = {}
+    for key, estimates in by_name.items():
+        position, rotation = estimates.errors(queries.qvec, queries.tvec)
+        localized[key] = ((position < 0.25) & (rotation < 2.0))[:, posed].mean(axis=1)
+    assert localized[("local_sfm", "gt_relative_pose")][2] >= 0.7  # k = 5
+    assert localized[("global_sfm", "gt_relative_pose")][1] >= 0.7  # k = 3
+    for paradigm in ("local_sfm", "global_sfm"):
+        assert (localized[(paradigm, "random")] <= localized[(paradigm, "gt_relative_pose")]).all()
+    position, _ = by_name[("global_sfm", "gt_relative_pose")].errors(queries.qvec, queries.tvec)
+    assert np.nanmedian(position[1]) < 0.05
+
+
+def test_local_maps_from_query_derived_matches_match_no_database_pair(scene, cache, rankings, monkeypatch):
+    calls = count_matcher_calls(monkeypatch)
+    estimates = PARADIGMS["local_sfm"](scene, rankings[:1], base_config(k=[5], map_matches="query"), cache)[0]
+    assert sum(calls) == len(scene.queries) * 5  # query pairs only
+    position, rotation = estimates.errors(scene.queries.qvec, scene.queries.tvec)
+    assert ((position < 0.25) & (rotation < 2.0)).mean() >= 0.6
+
+
+def count_matcher_calls(monkeypatch) -> list[int]:
+    """Spy on the matcher (workers=1 runs it in this process): pairs matched per call."""
+    calls = []
+    real = matching.mutual_nearest_neighbours
+
+    def counting(first, others, ratio):
+        calls.append(len(others))
+        return real(first, others, ratio)
+
+    monkeypatch.setattr(matching, "mutual_nearest_neighbours", counting)
+    return calls
+
+
+def test_increasing_k_matches_only_the_new_pairs(scene, cache, rankings, monkeypatch):
+    calls = count_matcher_calls(monkeypatch)
+
+    def pairs(k):
+        """Query pairs and database pairs of local maps up to k, by explicit enumeration."""
+        query, database = set(), set()
+        for ranking in rankings:
+            for q, row in enumerate(ranking.indices[:, :k]):
+                query.update((q, int(i)) for i in row)
+                database.update((min(a, b), max(a, b)) for a in row for b in row if a != b)
+        return query, database
+
+    PARADIGMS["local_sfm"](scene, rankings, base_config(k=[3]), cache)
+    query3, database3 = pairs(3)
+    assert sum(calls) == len(query3) + len(database3)
+    assert {tuple(p) for p in local_map_pairs(rankings, [[3], [3]]).tolist()} == database3
+    calls.clear()
+    PARADIGMS["local_sfm"](scene, rankings, base_config(k=[3, 5]), cache)
+    query5, database5 = pairs(5)
+    assert sum(calls) == len(query5 - query3) + len(database5 - database3)
+    calls.clear()
+    PARADIGMS["local_sfm"](scene, rankings, base_config(k=[2, 5]), cache)
+    assert sum(calls) == 0
+
+
+def test_results_do_not_depend_on_worker_processes_and_reruns_reuse_the_caches(scene, cache, rankings, monkeypatch):
+    config = base_config(k=[1, 3], map={"pairs": PAIRS})
+    parallel = PARADIGMS["global_sfm"](scene, rankings, {**config, "workers": 2}, cache)
+    calls = count_matcher_calls(monkeypatch)
+    serial = PARADIGMS["global_sfm"](scene, rankings, config, cache)
+    assert sum(calls) == 0  # features, matches and the map all come from the cache
+    for a, b in zip(parallel, serial):
+        np.testing.assert_array_equal(a.qvec, b.qvec)
+        np.testing.assert_array_equal(a.tvec, b.tvec)
+        np.testing.assert_array_equal(a.failures, b.failures)
+
+
+def write_colmap_model(folder, database, keypoints, sparse_map):
+    """The map as a COLMAP model whose images have the feature keypoints as 2D points."""
+    model = pycolmap.Reconstruction()
+    for index, name in enumerate(database.names):
+        model.add_camera_with_trivial_rig(to_pycolmap_camera(database.cameras[index], index + 1))
+        image = pycolmap.Image(name=name, keypoints=keypoints[name].astype(np.float64), camera_id=index + 1, image_id=index + 1)
+        model.add_image_with_trivial_frame(image, to_rigid3d(database.qvec[index], database.tvec[index]))
+    for row, xyz in enumerate(sparse_map.points):
+        track = pycolmap.Track()
+        for index, ids in enumerate(sparse_map.observations):
+            for keypoint in np.flatnonzero(ids == row):
+                track.add_element(index + 1, int(keypoint))
+        model.add_point3D(xyz, track)
+    folder.mkdir()
+    model.write_text(folder)
+
+
+def test_an_existing_colmap_model_serves_as_the_global_map(scene, cache, rankings, tmp_path):
+    database = scene.database
+    inputs = SfmInputs.prepare(scene, common_settings(base_config()), cache)
+    sparse_map = global_map(inputs, {"pairs": PAIRS}, cache)
+    keypoints = inputs.database_features.keypoints(database.names)
+    write_colmap_model(tmp_path / "model", database, keypoints, sparse_map)
+    read = read_colmap_map(tmp_path / "model", database.names, [keypoints[n] for n in database.names])
+    assert read.num_points == sparse_map.num_points
+    for ours, theirs in zip(sparse_map.observations, read.observations):
+        observed = ours >= 0
+        np.testing.assert_array_equal(observed, theirs >= 0)
+        np.testing.assert_allclose(read.points[theirs[observed]], sparse_map.points[ours[observed]])
+    config = base_config(k=[3])
+    from_model = PARADIGMS["global_sfm"](scene, rankings[:1], {**config, "map": {"colmap_model": str(tmp_path / "model")}}, cache)
+    triangulated = PARADIGMS["global_sfm"](scene, rankings[:1], {**config, "map": {"pairs": PAIRS}}, cache)
+    np.testing.assert_array_equal(from_model[0].failures, triangulated[0].failures)
+    np.testing.assert_allclose(from_model[0].tvec, triangulated[0].tvec, atol=1e-6)
+    shifted = [keypoints[n] + 1.0 for n in database.names]
+    with pytest.raises(ValueError, match="2D points are not the .* feature keypoints"):
+        read_colmap_map(tmp_path / "model", database.names, shifted)
+
+
+def test_triangulating_pairs_without_matches_gives_an_empty_map(scene):
+    database = scene.database.subset(np.arange(3))
+    keypoints = [np.zeros((4, 2)), np.zeros((0, 2)), np.ones((2, 2))]
+    sparse_map = triangulate_known_poses(database.cameras, database.qvec, database.tvec, keypoints, {(0, 2): np.empty((0, 2), np.int32)})
+    assert sparse_map.num_points == 0 and [len(o) for o in sparse_map.observations] == [4, 0, 2]
+
+
+def test_global_map_pairs_are_the_most_overlapping_frusta(scene):
+    from locretrieval.groundtruth.frustum import TruncatedFrusta, pairwise_overlap_radii
+
+    database = scene.database
+    pairs = database_pairs(database, {"far": 25.0, "max_per_image": 3})
+    assert (pairs[:, 0] < pairs[:, 1]).all() and len(np.unique(pairs, axis=0)) == len(pairs)
+    frusta = TruncatedFrusta.of_images(database, np.arange(len(database)), 0.1, 25.0)
+    radii = pairwise_overlap_radii(frusta, frusta)
+    np.fill_diagonal(radii, 0.0)
+    chosen = {tuple(p) for p in pairs.tolist()}
+    for image, row in enumerate(radii):
+        best = [int(j) for j in np.argsort(-row, kind="stable")[:3] if row[j] > 0]
+        assert all((min(image, j), max(image, j)) in chosen for j in best)
+    # every chosen pair is among the best three of one of its images
+    assert all(b in np.argsort(-radii[a], kind="stable")[:3] or a in np.argsort(-radii[b], kind="stable")[:3] for a, b in pairs)
+    assert len(database_pairs(database, {"far": 25.0, "min_radius": 1e6})) == 0
