@@ -192,6 +192,12 @@ def test_cuda_without_a_gpu_is_an_error():
         gem(device="cuda")
 
 
+def test_extraction_options_are_keyword_arguments_and_misspelt_ones_are_errors():
+    assert gem(batch_size=3).settings.batch_size == 3
+    with pytest.raises(TypeError, match=r"model 'gem': unknown options \['batchsize'\]"):
+        gem(batchsize=3)
+
+
 @pytest.mark.parametrize(
     "model, expected",
     [

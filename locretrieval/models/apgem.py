@@ -210,12 +210,8 @@ class APGeMDescriptor(TorchGlobalDescriptor):
         pca_multiplier: float = 1.0,
         max_side: int | None = None,
         scales: Sequence[float] = (1.0,),
-        device: str = "auto",
-        batch_size: int = 4,
-        num_workers: int = 2,
-        mixed_precision: bool = True,
-        progress: bool = True,
         memmap_dir: str | os.PathLike | None = None,
+        **extraction: Any,
     ) -> None:
         path = require_weights(weights, WEIGHT_SOURCES["apgem"], name)
         loaded = read_apgem_weights(path)
@@ -247,6 +243,6 @@ class APGeMDescriptor(TorchGlobalDescriptor):
             Preprocessing(max_side=max_side, scales=tuple(scales), mean=loaded.mean, std=loaded.std),
             architecture,
             WeightsInfo(content_sha256(path)),
-            ExtractionSettings(device, batch_size, num_workers, mixed_precision, progress),
+            ExtractionSettings.from_options(name, extraction),
             memmap_dir,
         )

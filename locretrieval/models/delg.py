@@ -28,6 +28,7 @@ import re
 from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -248,12 +249,8 @@ class DELGDescriptor(TorchGlobalDescriptor):
         whitening_scope: str | None = None,
         max_side: int | None = DELG_MAX_SIDE,
         scales: Sequence[float] = DELG_SCALES,
-        device: str = "auto",
-        batch_size: int = 1,
-        num_workers: int = 2,
-        mixed_precision: bool = True,
-        progress: bool = True,
         memmap_dir: str | os.PathLike | None = None,
+        **extraction: Any,
     ) -> None:
         path = require_weights(weights, WEIGHT_SOURCES["delg"], name)
         architecture = {"units": tuple(int(u) for u in units), "whiten_dim": int(whiten_dim), "gem_power": float(gem_power)}
@@ -276,6 +273,6 @@ class DELGDescriptor(TorchGlobalDescriptor):
             Preprocessing(max_side=max_side, scales=tuple(scales), mean=DELG_MEAN, std=DELG_STD),
             {**architecture, "bn_eps": float(bn_eps)},
             WeightsInfo(content_sha256(path)),
-            ExtractionSettings(device, batch_size, num_workers, mixed_precision, progress),
+            ExtractionSettings.from_options(name, {"batch_size": 1, **extraction}),
             memmap_dir,
         )

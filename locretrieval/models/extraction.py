@@ -11,8 +11,8 @@ held in memory, so the footprint does not grow with the number of images.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -84,6 +84,14 @@ class ExtractionSettings:
     def __post_init__(self) -> None:
         if self.batch_size < 1 or self.num_workers < 0:
             raise ValueError(f"batch_size must be >= 1 and num_workers >= 0, got {self.batch_size}, {self.num_workers}")
+
+    @classmethod
+    def from_options(cls, model: str, options: Mapping[str, Any]) -> ExtractionSettings:
+        """The settings given as a zoo model's extra keyword arguments (``model.batch_size=8``)."""
+        unknown = sorted(set(options) - {f.name for f in fields(cls)})
+        if unknown:
+            raise TypeError(f"model {model!r}: unknown options {unknown}; extraction options are {[f.name for f in fields(cls)]}")
+        return cls(**options)
 
 
 @dataclass

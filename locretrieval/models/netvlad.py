@@ -164,12 +164,8 @@ class NetVLADDescriptor(TorchGlobalDescriptor):
         whiten_dim: int | None = 4096,
         max_side: int | None = 1024,
         scales: Sequence[float] = (1.0,),
-        device: str = "auto",
-        batch_size: int = 4,
-        num_workers: int = 2,
-        mixed_precision: bool = True,
-        progress: bool = True,
         memmap_dir: str | os.PathLike | None = None,
+        **extraction: Any,
     ) -> None:
         path = require_weights(weights, WEIGHT_SOURCES["netvlad"], name)
         architecture = {"clusters": int(clusters), "whiten_dim": None if whiten_dim is None else int(whiten_dim)}
@@ -191,6 +187,6 @@ class NetVLADDescriptor(TorchGlobalDescriptor):
             Preprocessing(max_side=max_side, scales=tuple(scales), mean=tuple(mean), std=tuple(std)),
             architecture,
             WeightsInfo(content_sha256(path)),
-            ExtractionSettings(device, batch_size, num_workers, mixed_precision, progress),
+            ExtractionSettings.from_options(name, extraction),
             memmap_dir,
         )

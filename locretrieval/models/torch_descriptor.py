@@ -105,7 +105,9 @@ class TorchGlobalDescriptor(GlobalDescriptor):
     SHA-256 (or which parameters were randomly initialised, with the seed), the
     preprocessing and the numeric precision. A model with random parameters carries
     `RANDOM_INIT_SUFFIX` in its name, so results say so. ``memmap_dir``: write descriptors
-    into ``.npy`` memory maps there instead of RAM.
+    into ``.npy`` memory maps there instead of RAM. The zoo models take the fields of
+    `ExtractionSettings` (``device``, ``batch_size``, ``num_workers``, ``mixed_precision``,
+    ``progress``) as extra keyword arguments.
     """
 
     model: ClassVar[str]

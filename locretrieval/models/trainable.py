@@ -107,12 +107,8 @@ class GeMHeadDescriptor(_TrainableDescriptor):
         whiten_dim: int | None = None,
         max_side: int | None = 1024,
         scales: Sequence[float] = (1.0,),
-        device: str = "auto",
-        batch_size: int = 4,
-        num_workers: int = 2,
-        mixed_precision: bool = True,
-        progress: bool = True,
         memmap_dir: str | os.PathLike | None = None,
+        **extraction: Any,
     ) -> None:
         architecture = {"backbone": str(backbone), "p": float(p), "trainable_p": bool(trainable_p), "whiten_dim": whiten_dim}
         super().__init__(
@@ -123,7 +119,7 @@ class GeMHeadDescriptor(_TrainableDescriptor):
             random_init,
             seed,
             Preprocessing(max_side=max_side, scales=tuple(scales), mean=IMAGENET_MEAN, std=IMAGENET_STD),
-            ExtractionSettings(device, batch_size, num_workers, mixed_precision, progress),
+            ExtractionSettings.from_options(name, extraction),
             memmap_dir,
             {"pooling.p": torch.tensor([float(p)])},
         )
@@ -145,12 +141,8 @@ class NetVLADHeadDescriptor(_TrainableDescriptor):
         whiten_dim: int | None = None,
         max_side: int | None = 1024,
         scales: Sequence[float] = (1.0,),
-        device: str = "auto",
-        batch_size: int = 4,
-        num_workers: int = 2,
-        mixed_precision: bool = True,
-        progress: bool = True,
         memmap_dir: str | os.PathLike | None = None,
+        **extraction: Any,
     ) -> None:
         architecture = {"backbone": str(backbone), "clusters": int(clusters), "whiten_dim": whiten_dim}
         super().__init__(
@@ -161,6 +153,6 @@ class NetVLADHeadDescriptor(_TrainableDescriptor):
             random_init,
             seed,
             Preprocessing(max_side=max_side, scales=tuple(scales), mean=IMAGENET_MEAN, std=IMAGENET_STD),
-            ExtractionSettings(device, batch_size, num_workers, mixed_precision, progress),
+            ExtractionSettings.from_options(name, extraction),
             memmap_dir,
         )
