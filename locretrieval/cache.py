@@ -70,3 +70,16 @@ def file_signature(path: str | os.PathLike | None) -> tuple[int, int]:
     except FileNotFoundError:
         status = None
     return (status.st_size, status.st_mtime_ns) if status is not None else (-1, -1)
+
+
+def tree_signature(path: str | os.PathLike) -> list[tuple[str, int, int]]:
+    """``(relative path, size, modification time in ns)`` of every file under a folder, sorted;
+    ``[("", size, time)]`` for a file and ``[]`` for a missing path: part of cache keys."""
+    if os.path.isfile(path):
+        return [("", *file_signature(path))]
+    entries = []
+    for root, _, names in os.walk(path):
+        for name in names:
+            file = os.path.join(root, name)
+            entries.append((os.path.relpath(file, path), *file_signature(file)))
+    return sorted(entries)

@@ -19,6 +19,7 @@ from locretrieval.metrics.localization import localization_table, query_error_ta
 from locretrieval.metrics.retrieval import retrieval_tables
 from locretrieval.metrics.subsets import image_subsets
 from locretrieval.report import build_report
+from locretrieval.report.markdown import best_over_k
 from locretrieval.retrieval import Ranking, random_ranking
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.retrieval.index import search
@@ -54,7 +55,10 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
         estimates += PARADIGMS[paradigm](scene, rankings, cfg.paradigms[paradigm], cache_dir)
 
     subset_masks, subset_table = image_subsets(scene.name, scene.queries, cfg.subsets, cache_dir, cfg.device)
-    subsets = query_subsets(scene.queries) | subset_masks
+    tag_subsets = query_subsets(scene.queries)
+    if set(tag_subsets) & set(subset_masks):
+        raise ValueError(f"query tags {sorted(set(tag_subsets) & set(subset_masks))} clash with the subsets of configs/subsets")
+    subsets = tag_subsets | subset_masks
     thresholds = [list(map(float, pair)) for pair in cfg.metrics.thresholds]
     results = localization_table(scene.name, estimates, scene.queries, thresholds, subsets)
     results.to_csv(output_dir / "results.csv", index=False)
@@ -83,7 +87,8 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     (output_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     build_report([output_dir], output_dir, cfg.report.groundtruth, list(cfg.report.figure_formats))
     if len(results):
-        log.info("best %% localized over k:\n%s", best_localized(results).to_string())
+        best = best_over_k(results[results["subset"] == "all"], "position_threshold_m")
+        log.info("best %% localized over k, all queries:\n%s", best.to_string())
     log.info("results and report.md in %s", output_dir)
     return results
 
@@ -147,9 +152,3 @@ def export_ltvl(cfg: DictConfig, scene: Scene, estimates: list[PoseEstimates], f
             written, skipped = written + 1, skipped + missing
     log.info("%d LTVL files in %s; queries without an estimate (%d in all, see query_errors.csv.gz) are left out", written, folder, skipped)
     return written
-
-
-def best_localized(results: pd.DataFrame) -> pd.Series:
-    """Best % localised over k per ranking x paradigm x method x threshold, on all queries."""
-    rows = results[results["subset"] == "all"]
-    return rows.groupby(["paradigm", "method", "ranking", "position_threshold_m"])["localized_pct"].max().unstack()

@@ -3,6 +3,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from locretrieval import geometry
+from locretrieval.localization import approximation
 from locretrieval.localization.approximation import DEGENERATE_BDI, EMPTY_RETRIEVAL, approximate_poses
 from locretrieval.localization.estimates import LOCALIZED
 from locretrieval.retrieval import EMPTY, Ranking
@@ -151,3 +152,35 @@ def test_bdi_with_non_finite_descriptors_is_a_reported_failure():
     ranking = Ranking("d", [[0, 1]], [[1, 0]], "descriptor", unit([[1, 0.1, 0]]), db_desc)
     (bdi,) = approximate_poses(database, ranking, [2], methods=["bdi"])
     assert bdi.failures[0, 0] == DEGENERATE_BDI and np.isnan(bdi.tvec[0, 0]).all()
+
+
+def _bdi_by_least_squares(db_desc, query, top):
+    """BDI weights of one query by eliminating the constraint (w_k = 1 - sum of the others)."""
+    d = db_desc[top].astype(float)
+    if len(top) == 1:
+        return np.ones(1)
+    free, *_ = np.linalg.lstsq((d[:-1] - d[-1]).T, query - d[-1], rcond=None)
+    return np.append(free, 1 - free.sum())
+
+
+def test_bdi_for_several_k_and_a_short_ranking_in_chunks(monkeypatch):
+    rng = np.random.default_rng(3)
+    n, dim, ks = 20, 32, [1, 2, 3, 5, 8]
+    rotations = Rotation.random(n, random_state=4).as_quat()[:, [3, 0, 1, 2]]
+    centers = rng.normal(size=(n, 3)) * 5
+    database = image_set(rotations, centers)
+    db_desc = unit(rng.normal(size=(n, dim)))
+    queries = unit(rng.normal(size=(2, dim)))
+    indices = np.array([rng.permutation(n)[:8], np.append(rng.permutation(n)[:4], [EMPTY] * 4)])
+    ranking = Ranking("d", indices, np.zeros(indices.shape), "descriptor", queries, db_desc)
+    whole = by_method(approximate_poses(database, ranking, ks, methods=["bdi"]))["bdi"]
+    monkeypatch.setattr(approximation, "GATHER_CHUNK_BYTES", 1)  # one query per chunk
+    (chunked,) = approximate_poses(database, ranking, ks, methods=["bdi"])
+    np.testing.assert_allclose(chunked.tvec, whole.tvec, atol=1e-12)
+    for q, row in enumerate(indices):
+        filled = row[row != EMPTY]
+        for n_k, k in enumerate(ks):
+            top = filled[:k]  # the short ranking uses all its 4 images for k = 5, 8
+            weights = _bdi_by_least_squares(db_desc, queries[q], top)
+            center = geometry.camera_centers(whole.qvec[n_k, q], whole.tvec[n_k, q])
+            np.testing.assert_allclose(center, weights @ centers[top], atol=1e-6, err_msg=f"query {q}, k={k}")

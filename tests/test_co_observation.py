@@ -7,10 +7,13 @@ from scipy.stats import spearmanr
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
-from locretrieval.groundtruth import compute_groundtruths
+from locretrieval.groundtruth import compute_groundtruths, frustum_groundtruth
 from locretrieval.groundtruth.co_observation import co_observation_groundtruth, shared_points
+from locretrieval.groundtruth.frustum import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.localization import matching
+from locretrieval.localization import pairs as pairs_module
 from locretrieval.localization.features import extract_features
+from locretrieval.localization.pairs import database_pairs, overlapping_pairs
 from locretrieval.retrieval import EMPTY
 from locretrieval.scene import ImageSet
 from locretrieval.scene.kapture_io import load_kapture_scene
@@ -99,23 +102,66 @@ def test_groundtruth_ranks_by_shared_points_through_the_registry(scene, cache, s
     np.testing.assert_array_equal(groundtruth.relevance.toarray(), shared >= 5)
     statistics = groundtruth.statistics()
     assert statistics["avg_relevant"] == pytest.approx((shared >= 5).sum(1).mean())
-    # cached: nothing is matched again
-    calls = []
-    monkeypatch.setattr(matching, "mutual_nearest_neighbours", lambda *args: calls.append(1))
-    again = compute_groundtruths(database, queries, config, cache_dir=cache)["coobs"]
+    again = compute_groundtruths(database, queries, config, cache_dir=cache)["coobs"]  # the cached ground truth
     np.testing.assert_array_equal(again.ranking.indices, indices)
+    # the joint map again: its matches are read from the cache, nothing is matched again
+    calls = []
+    real = matching.mutual_nearest_neighbours
+    monkeypatch.setattr(matching, "mutual_nearest_neighbours", lambda *args: calls.append(1) or real(*args))
+    recomputed = shared_points(database, queries, cache, None, None, None, PAIRS, 10, 1)
+    np.testing.assert_array_equal(recomputed.toarray(), shared)
     assert not calls
     with pytest.raises(ValueError, match=r"unknown parameters \['min_shard'\]"):
         compute_groundtruths(database, queries, {"definitions": {"co_observation": {"min_shard": 1}}})
 
 
-def test_queries_without_a_pose_get_no_ranking(scene, tmp_path):
+def test_queries_without_a_pose_get_no_ranking_and_share_the_caches(scene, tmp_path):
     database, queries = scene.database, scene.queries
     qvec = queries.qvec.copy()
     qvec[0] = np.nan
     unposed = ImageSet(queries.names, queries.image_root, queries.cameras, qvec, queries.tvec, queries.tags, queries.depth_paths)
-    groundtruth = co_observation_groundtruth(database, unposed, depth=5, **SETTINGS)  # no cache_dir: a temporary one
+    groundtruth = co_observation_groundtruth(database, unposed, depth=5, cache_dir=tmp_path, **SETTINGS)
     assert (groundtruth.ranking.indices[0] == EMPTY).all() and not groundtruth.query_has_pose[0]
     assert (groundtruth.ranking.indices[1:, 0] != EMPTY).all()
+    # the features (and raw matches) of all queries, as the SfM paradigms extract them: no second folder
+    query_features = extract_features(queries, None, tmp_path).folder
+    database_features = extract_features(database, None, tmp_path).folder
+    assert sorted((tmp_path / "features").iterdir()) == sorted([query_features, database_features])
+    raw_query_matches = [p for p in (tmp_path / "matches").iterdir() if p.name.startswith(query_features.name) and "--poses-" not in p.name]
+    assert len(raw_query_matches) == 1
+    # without cache_dir: a temporary one, the same ground truth
+    temporary = co_observation_groundtruth(database, unposed, depth=5, **SETTINGS)
+    np.testing.assert_array_equal(temporary.ranking.indices, groundtruth.ranking.indices)
     with pytest.raises(ValueError, match="min_shared must be >= 1"):
         co_observation_groundtruth(database, queries, min_shared=0, cache_dir=tmp_path)
+
+
+def test_frustum_pairs_are_the_same_chunk_by_chunk(scene, monkeypatch):
+    database, queries = scene.database, scene.queries
+    settings = {**PAIRS, "max_per_image": 4, "min_radius": 0.5}
+    whole = [overlapping_pairs(queries, database, settings, exclude_self=False), database_pairs(database, settings)]
+    assert len(whole[0]) and len(whole[1])
+    monkeypatch.setattr(pairs_module, "PAIRS_PER_CHUNK", 3 * len(database))  # three rows at a time
+    chunked = [overlapping_pairs(queries, database, settings, exclude_self=False), database_pairs(database, settings)]
+    for expected, found in zip(whole, chunked):
+        np.testing.assert_array_equal(found, expected)
+
+
+def test_frustum_pairs_keep_radii_above_min_radius_like_the_frustum_groundtruth(scene):
+    database, queries = scene.database, scene.queries
+    frusta = [TruncatedFrusta.of_images(images, np.arange(len(images)), 0.1, PAIRS["far"]) for images in (queries, database)]
+    radii = pairwise_overlap_radii(*frusta)
+    positive = np.sort(radii[radii > 0])
+    threshold = float(positive[len(positive) // 2])  # the radius of one pair: kept by >=, not by >
+    selected = overlapping_pairs(queries, database, {**PAIRS, "max_per_image": None, "min_radius": threshold}, exclude_self=False)
+    np.testing.assert_array_equal(selected, np.argwhere(radii > threshold))
+    groundtruth = frustum_groundtruth(database, queries, far=PAIRS["far"], min_radius=threshold)
+    np.testing.assert_array_equal(selected, np.argwhere(groundtruth.relevance.toarray()))
+    # at most max_per_image per query, the largest radii (ties: lower database index first)
+    best = overlapping_pairs(queries, database, {**PAIRS, "max_per_image": 2}, exclude_self=False)
+    expected = sorted((q, int(t)) for q, row in enumerate(radii) for t in np.argsort(-row, kind="stable")[:2] if row[t] > 0)
+    assert [tuple(p) for p in best.tolist()] == expected
+    with pytest.raises(ValueError, match="min_radius must be >= 0"):
+        overlapping_pairs(queries, database, {"min_radius": -1.0}, exclude_self=False)
+    with pytest.raises(ValueError, match="max_per_image must be >= 1"):
+        overlapping_pairs(queries, database, {"max_per_image": 0}, exclude_self=False)

@@ -7,6 +7,7 @@ from locretrieval.metrics.correlation import (
     TOO_FEW_POINTS,
     dataset_pearson,
     dataset_spearman,
+    paired_metrics,
     pearson_rows,
     query_pearson,
     spearman_rows,
@@ -71,7 +72,7 @@ def tables():
 
 def test_dataset_pearson_per_descriptor_over_k():
     retrieval, results = tables()
-    table = dataset_pearson(retrieval, results).set_index("ranking")
+    table = dataset_pearson(paired_metrics(retrieval, results)).set_index("ranking")
     assert set(table.index) == {"a", "b", "c", "flat"}  # ground truth is not correlated
     for ranking in "abc":
         expected = stats.pearsonr(RETRIEVAL[ranking], LOCALIZED[ranking])
@@ -83,7 +84,7 @@ def test_dataset_pearson_per_descriptor_over_k():
 def test_dataset_spearman_per_k_over_descriptors():
     retrieval, results = tables()
     retrieval, results = retrieval[retrieval["ranking"] != "flat"], results[results["ranking"] != "flat"]
-    table = dataset_spearman(retrieval, results).set_index("k")
+    table = dataset_spearman(paired_metrics(retrieval, results)).set_index("k")
     for n, k in enumerate(KS):
         expected = stats.spearmanr([RETRIEVAL[r][n] for r in "abc"], [LOCALIZED[r][n] for r in "abc"])
         assert table.loc[k, "coefficient"] == pytest.approx(expected.statistic)
@@ -120,4 +121,4 @@ def test_query_pearson_uses_negated_errors_and_drops_failed_k():
 def test_duplicate_rows_are_an_error_not_a_silent_choice():
     retrieval, results = tables()
     with pytest.raises(ValueError, match="duplicate"):
-        dataset_pearson(pd.concat([retrieval, retrieval.iloc[:1]]), results)
+        dataset_pearson(paired_metrics(pd.concat([retrieval, retrieval.iloc[:1]]), results))

@@ -136,3 +136,33 @@ def test_bad_dataset_settings_fail_before_loading(tmp_path):
         instantiate(compose_data("baidu", f"paths.data_dir={tmp_path}", "data.frustum_far=0").data)
     with pytest.raises(InstantiationException, match=r"1 query_tags \['x'\] for 2 query entries"):
         instantiate(compose_data("gangnam", f"paths.data_dir={tmp_path}", "data.query_tags=[x]").data)
+
+
+def test_synthetic_yaml_mirrors_the_renderer_defaults():
+    from omegaconf import OmegaConf
+
+    from locretrieval.scene.synthetic import DEFAULT_CONFIG
+
+    render = OmegaConf.load(Path(__file__).parents[1] / "configs" / "data" / "synthetic.yaml").render
+    assert set(render) == set(DEFAULT_CONFIG)
+    literal = {key: value for key, value in OmegaConf.to_container(render).items() if not str(value).startswith("${")}
+    assert literal == {key: DEFAULT_CONFIG[key] for key in literal}
+
+
+def test_synthetic_street_is_rendered_once_whatever_the_workers_and_auto_device(tmp_path, caplog):
+    import logging
+
+    import numpy as np
+
+    from locretrieval.scene.datasets import load_synthetic_dataset
+
+    render = {"environment": "street", "width": 64, "height": 48, "num_database": 8, "num_queries": 4,
+              "texture_size": 32, "length": 20.0, "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 1.0, "noise": 0.0},
+              "workers": 1, "device": "cpu", "seed": 2}  # fmt: skip
+    first = load_synthetic_dataset("street", tmp_path, render)
+    with caplog.at_level(logging.INFO):
+        again = load_synthetic_dataset("street", tmp_path, {**render, "workers": 2, "device": "auto"})
+    assert "synthetic scene cached" in caplog.text and again.database.paths == first.database.paths
+    assert len(list((tmp_path / "synthetic").iterdir())) == 1
+    masks = [np.load(p) if p.suffix == ".npy" else np.asarray(__import__("PIL.Image").Image.open(p)) for p in first.queries.mask_paths]
+    assert any(mask.any() for mask in masks)  # every query has people/vehicles (dynamic: 1.0)

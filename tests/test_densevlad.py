@@ -156,8 +156,17 @@ def test_vlad_intra_normalisation_and_global_norm():
 # -- the model -----------------------------------------------------------------------------
 
 
+def fitted_arrays(model: DenseVLAD) -> dict[str, np.ndarray]:
+    """What `fit` learned: vocabulary, PCA mean and whitening projection."""
+    return {
+        "centroids": model._centroids.cpu().numpy(),
+        "pca_mean": model._pca_mean.cpu().numpy(),
+        "pca_projection": model._pca_projection.cpu().numpy(),
+    }
+
+
 def test_fitted_model_shapes_norms_and_small_database_pca(textures_scene, fitted):
-    state = fitted.fitted_state()
+    state = fitted_arrays(fitted)
     assert state["centroids"].shape == (128, 128)
     np.testing.assert_allclose(np.linalg.norm(state["centroids"], axis=1), 1.0, atol=1e-5)
     # Six database images: at most 5 principal components instead of 4096.
@@ -172,16 +181,15 @@ def test_fit_and_describe_are_deterministic(textures_scene, fitted, caplog):
     with caplog.at_level(logging.INFO, logger="locretrieval.models.densevlad"):
         again.fit(textures_scene.database)
     assert "6 database images support 5 PCA dimensions (configured 4096)" in caplog.text
-    for name, value in fitted.fitted_state().items():
-        np.testing.assert_array_equal(again.fitted_state()[name], value, err_msg=name)
+    for name, value in fitted_arrays(fitted).items():
+        np.testing.assert_array_equal(fitted_arrays(again)[name], value, err_msg=name)
     np.testing.assert_array_equal(again.describe(textures_scene.queries), fitted.describe(textures_scene.queries))
 
 
 def test_database_descriptors_from_fit_equal_a_fresh_pass(textures_scene, fitted):
-    fresh = DenseVLAD(**SMALL)
-    fresh.load_fitted_state(fitted.fitted_state())
-    recomputed = fresh.describe(textures_scene.database)
-    np.testing.assert_allclose(fitted.describe(textures_scene.database), recomputed, atol=1e-6)
+    # A subset has another fingerprint, so it is described afresh rather than taken from fit.
+    recomputed = fitted.describe(textures_scene.database.subset(np.arange(5)))
+    np.testing.assert_allclose(fitted.describe(textures_scene.database)[:5], recomputed, atol=1e-6)
 
 
 def test_shifted_crops_retrieve_their_source_texture(textures_scene, fitted):
@@ -192,7 +200,7 @@ def test_shifted_crops_retrieve_their_source_texture(textures_scene, fitted):
     assert (ranking.scores[:, 0] > ranking.scores[:, 1] + 0.1).all()
 
 
-def test_describe_scene_cache_restores_the_fitted_model(tmp_path, textures_scene):
+def test_describe_scene_cache_hit_runs_nothing_and_leaves_the_model_unfitted(tmp_path, textures_scene):
     class Counting(DenseVLAD):
         describe_calls = 0
 
@@ -208,7 +216,51 @@ def test_describe_scene_cache_restores_the_fitted_model(tmp_path, textures_scene
     assert Counting.describe_calls == 2
     np.testing.assert_array_equal(cached_database, database)
     np.testing.assert_array_equal(cached_queries, queries)
-    np.testing.assert_allclose(fresh.describe(textures_scene.queries), queries, atol=1e-6)
+    with pytest.raises(RuntimeError, match="not fitted.*cache hit leaves the model unfitted"):
+        fresh.describe(textures_scene.queries)
+
+
+def test_contrast_threshold_drops_faint_regions_from_the_vlad(tmp_path, fitted):
+    pixels = texture(5, 128)
+    pixels[:, 64:] = 100 + np.arange(64)[None, :] // 16  # right half: a ramp of one grey level per 16 px
+    images = image_set(tmp_path, {"half_faint.png": pixels})
+    threshold = 0.1
+    model = DenseVLAD(**{**SMALL, "bin_sizes": (4,), "contrast_threshold": threshold})
+    model._centroids = fitted._centroids
+    vlad = model._vlads(images)[0]
+
+    descriptors, contrast = dense_rootsift(torch.from_numpy(pixels / np.float32(255))[None, None], 4, 3, 4)
+    descriptors, contrast = descriptors[0].double().numpy(), contrast[0].numpy()
+    faint = (contrast > 0) & (contrast < threshold)
+    assert faint.sum() > 400 and (contrast >= threshold).sum() > 400
+    centroids = fitted._centroids.double().numpy()
+    np.testing.assert_allclose(vlad, explicit_vlad(descriptors, contrast >= threshold, centroids), atol=1e-5)
+    with_faint = explicit_vlad(descriptors, contrast > 0, centroids)
+    assert float(vlad @ with_faint) < 0.98  # keeping the faint descriptors gives another VLAD
+
+
+def test_whitening_regularisation_bounds_the_gain_of_small_components(textures_scene, fitted):
+    """With ``U``, ``lambda``: eigenvectors and eigenvalues of the centred database VLADs' Gram matrix,
+    the whitened database descriptors have the cosine similarities of ``U diag(g) U^T`` with gains
+    ``g_i = lambda_i / (lambda_i + r lambda_1)``; without regularisation all gains are 1 and the
+    images become equidistant (cosine ``-1 / (N - 1)``)."""
+    vlads = fitted._vlads(textures_scene.database).astype(np.float64)
+    centred = vlads - vlads.mean(axis=0)
+    eigenvalues, vectors = np.linalg.eigh(centred @ centred.T)
+    eigenvalues, vectors = eigenvalues[::-1][:5], vectors[:, ::-1][:, :5]  # the N - 1 = 5 non-zero components
+    grams = {}
+    for regularization in (0.0, 1.0):
+        model = DenseVLAD(**{**SMALL, "whitening_regularization": regularization})
+        model.fit(textures_scene.database)
+        descriptors = model.describe(textures_scene.database).astype(np.float64)
+        gains = eigenvalues / (eigenvalues + regularization * eigenvalues[0])
+        expected = (vectors * gains) @ vectors.T
+        expected /= np.sqrt(np.outer(np.diag(expected), np.diag(expected)))
+        grams[regularization] = descriptors @ descriptors.T
+        np.testing.assert_allclose(grams[regularization], expected, atol=1e-4, err_msg=f"r={regularization}")
+    off_diagonal = ~np.eye(len(vlads), dtype=bool)
+    np.testing.assert_allclose(grams[0.0][off_diagonal], -1 / (len(vlads) - 1), atol=1e-4)
+    assert np.abs(grams[1.0] - grams[0.0]).max() > 5e-3  # well beyond the tolerance above
 
 
 def test_resizing_makes_the_descriptor_resolution_independent(tmp_path, fitted):
@@ -240,5 +292,7 @@ def test_runs_on_the_configured_device(textures_scene, fitted):
     if not torch.cuda.is_available():
         pytest.skip("no CUDA GPU on this machine")
     gpu = DenseVLAD(**{**SMALL, "device": "cuda"})
-    gpu.load_fitted_state(fitted.fitted_state())
+    gpu._centroids, gpu._pca_mean, gpu._pca_projection = (
+        torch.from_numpy(array).cuda() for array in fitted_arrays(fitted).values()
+    )
     np.testing.assert_allclose(gpu.describe(textures_scene.queries), fitted.describe(textures_scene.queries), atol=1e-3)

@@ -15,7 +15,7 @@ from locretrieval.localization import features as features_module
 from locretrieval.localization import matching
 from locretrieval.localization.features import extract_features
 from locretrieval.localization.matching import (
-    PairMatcher, epipolar_inliers, essential_matrix, mutual_nearest_neighbours, sampson_errors,
+    PairMatcher, epipolar_inliers, essential_matrix, mutual_nearest_neighbours, sampson_errors, two_view_inliers,
 )
 from locretrieval.localization.store import ShardedStore
 from locretrieval.scene import Camera, ImageSet
@@ -37,19 +37,32 @@ def scene(tmp_path_factory):
 # ----------------------------------------------------------------------------------- the store
 
 
-def test_sharded_store_round_trip_and_missing_keys(tmp_path):
+def test_sharded_store_round_trip_and_missing_keys(tmp_path, monkeypatch):
     store = ShardedStore(tmp_path / "store")
     assert store.missing(["a", "b/c", "a"]) == ["a", "b/c"]
-    store.write({"a": {"x": np.arange(6).reshape(3, 2)}, "b/c": {"x": np.empty((0, 2), dtype=np.int64)}})
-    store.write({"d\ne": {"x": np.ones((1, 2), dtype=np.int64)}})
+    first = store.write({"a": {"x": np.arange(6).reshape(3, 2), "y": np.zeros((3, 128), dtype=np.uint8)},
+                         "b/c": {"x": np.empty((0, 2), dtype=np.int64), "y": np.empty((0, 128), dtype=np.uint8)}})
+    second = store.write({"d\ne": {"x": np.ones((1, 2), dtype=np.int64), "y": np.ones((1, 128), dtype=np.uint8)}})
     reread = ShardedStore(tmp_path / "store")
     assert len(reread) == 3 and reread.missing(["a", "z", "d\ne"]) == ["z"]
     records = reread.read(["b/c", "a"])
     np.testing.assert_array_equal(records["a"]["x"], np.arange(6).reshape(3, 2))
-    assert records["b/c"]["x"].shape == (0, 2)
+    assert records["b/c"]["x"].shape == (0, 2) and records["a"]["y"].shape == (3, 128)
     assert sorted(p.name.startswith(".") for p in (tmp_path / "store").iterdir()) == [False, False]  # no temporaries
     with pytest.raises(KeyError, match="no record 'z'"):
         reread.read(["z"])
+    # only the arrays asked for are read from disk
+    partial = ShardedStore(tmp_path / "store")
+    records = partial.read(["a", "d\ne"], arrays=("x",))
+    assert [sorted(record) for record in records.values()] == [["x"], ["x"]]
+    assert sorted(partial._cache) == [(first, "x"), (second, "x")]  # no "y" in memory
+    np.testing.assert_array_equal(records["d\ne"]["x"], np.ones((1, 2)))
+    with pytest.raises(KeyError, match="has no array 'z'"):
+        partial.read(["a"], arrays=("z",))
+    # over the memory budget, the least recently read arrays are dropped
+    monkeypatch.setattr("locretrieval.localization.store.CACHED_BYTES", 300)
+    partial.read(["a"], arrays=("y",))
+    assert list(partial._cache) == [(first, "y")] and partial._cached_bytes == 3 * 128
     (tmp_path / "store" / ".0123.h5.tmp4af.h5").write_bytes(b"half-written by another process")
     assert len(ShardedStore(tmp_path / "store")) == 3
 
@@ -141,7 +154,11 @@ def reference_matches(first: np.ndarray, second: np.ndarray, ratio: float) -> se
     return result
 
 
-def test_mutual_nearest_neighbours_match_an_explicit_computation():
+# small blocks: 50 columns of the 60 rows, the partners in blocks [40], [75] (alone: larger), [0, 1]
+@pytest.mark.parametrize("block_bytes, num_blocks", [(matching.SIMILARITY_BLOCK_BYTES, 1), (4 * 60 * 50, 3)])
+def test_mutual_nearest_neighbours_match_an_explicit_computation(block_bytes, num_blocks, monkeypatch):
+    monkeypatch.setattr(matching, "SIMILARITY_BLOCK_BYTES", block_bytes)
+    assert len(matching._blocks([40, 75, 0, 1], block_bytes // (4 * 60))) == num_blocks
     rng = np.random.default_rng(1)
     first = rng.normal(size=(60, 16))
     # partners: noisy copies of a shuffled part of `first`, plus distractors; one empty
@@ -206,8 +223,15 @@ def test_matches_are_cached_per_pair_and_reused_for_larger_sets(scene, tmp_path,
     names = database.names
     # same heading at neighbouring stations (8 cameras per station)
     small = [(names[0], names[8]), (names[9], names[1]), (names[8], names[16])]
-    assert matcher.ensure(small, workers=1, verification="poses") == 3
+    assert matcher.ensure(small, workers=1, verification="none") == 3
     assert sum(calls) == 3
+    # verifying cached raw matches matches nothing again
+    assert matcher.ensure(small, workers=1, verification="poses") == 0
+    assert sum(calls) == 3
+    raw_small, verified_small = matcher.load(small), matcher.load(small, "poses")
+    for pair in small:
+        assert {tuple(m) for m in verified_small[pair].tolist()} <= {tuple(m) for m in raw_small[pair].tolist()}
+    assert sum(map(len, verified_small.values())) > 0
     # the same pairs, reversed or repeated, are not matched again; a larger set matches only its new pairs
     assert matcher.ensure([(names[8], names[0]), (names[1], names[9]), (names[0], names[0])], workers=1, verification="poses") == 0
     larger = small + [(names[0], names[16]), (names[17], names[1])]
@@ -252,3 +276,37 @@ def test_pose_verification_keeps_the_true_matches_by_the_rendered_depth(scene, t
     assert true.sum() >= 15
     assert kept[true].all()
     assert (~kept).any() and (error[~kept] > 4.0).all()
+
+
+def test_two_view_verification_keeps_raw_matches_consistent_with_the_poses(scene, tmp_path):
+    database = scene.database
+    features = extract_features(database, {"type": "sift"}, tmp_path, workers=1)
+    matcher = PairMatcher(database, features, database, features, {}, tmp_path)
+    first, second = 1, 9
+    pair = (database.names[first], database.names[second])
+    matcher.ensure([pair], workers=1, verification="two_view")
+    raw, verified = matcher.load([pair])[pair], matcher.load([pair], "two_view")[pair]
+    assert len(verified) >= 15 and {tuple(m) for m in verified.tolist()} <= {tuple(m) for m in raw.tolist()}
+    keypoints = features.keypoints(list(pair))
+    consistent = epipolar_inliers(
+        keypoints[pair[0]], keypoints[pair[1]], verified,
+        database.cameras[first], (database.qvec[first], database.tvec[first]),
+        database.cameras[second], (database.qvec[second], database.tvec[second]), max_error=4.0,
+    )
+    assert consistent.mean() > 0.9
+
+
+@pytest.mark.parametrize("configuration, kept", [("CALIBRATED", True), ("PLANAR_OR_PANORAMIC", True), ("WATERMARK", False), ("MULTIPLE", False), ("DEGENERATE", False)])
+def test_two_view_inliers_only_of_scene_geometries(configuration, kept, monkeypatch):
+    import pycolmap
+
+    class Result:
+        config = int(getattr(pycolmap.TwoViewGeometryConfiguration, configuration))  # as pycolmap returns it
+        inlier_matches = np.array([[3, 1], [0, 2]])
+
+    monkeypatch.setattr(pycolmap, "estimate_two_view_geometry", lambda *args: Result())
+    camera = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
+    keypoints = np.zeros((10, 2))
+    matches = np.array([[3, 1], [0, 2]] + [[i, i] for i in range(4, 10)])
+    inliers = two_view_inliers(keypoints, keypoints, matches, camera, camera, {"max_error": 4.0, "min_num_inliers": 2})
+    np.testing.assert_array_equal(inliers, [0, 1] if kept else [])

@@ -1,3 +1,4 @@
+import functools
 import logging
 
 import numpy as np
@@ -15,7 +16,7 @@ from locretrieval.groundtruth import (
     overlap_radii,
     relative_pose_groundtruth,
 )
-from locretrieval.groundtruth import chebyshev
+from locretrieval.groundtruth import base, chebyshev, compute
 from locretrieval.groundtruth.chebyshev import chebyshev_radius
 from locretrieval.groundtruth.frustum import INITIAL_BASIS, may_overlap
 from locretrieval.retrieval import EMPTY
@@ -298,12 +299,22 @@ def test_definition_types_and_errors(pose_scene):
         compute_groundtruths(database, queries, {"definitions": {"frustum": {"farr": 3}}})
 
 
-def test_cache_round_trip(pose_scene, tmp_path):
+def test_cache_round_trip(pose_scene, tmp_path, monkeypatch):
     database, queries = pose_scene
     config = {"definitions": {"relative_pose": {}, "frustum": {"far": 40.0}}}
     first = compute_groundtruths(database, queries, config, cache_dir=tmp_path)
     files = sorted((tmp_path / "groundtruth").glob("*.npz"))
     assert len(files) == 2
+
+    def forbidden(builder):
+        @functools.wraps(builder)  # keeps the signature the parameters are checked against
+        def not_again(*args, **kwargs):
+            raise AssertionError("a cached ground truth was computed again")
+
+        return not_again
+
+    for kind in ("relative_pose", "frustum"):
+        monkeypatch.setitem(compute.DEFINITIONS, kind, forbidden(compute.DEFINITIONS[kind]))
     second = compute_groundtruths(database, queries, config, cache_dir=tmp_path)
     for name, gt in first.items():
         assert second[name].name == gt.name
@@ -311,5 +322,16 @@ def test_cache_round_trip(pose_scene, tmp_path):
         np.testing.assert_array_equal(second[name].ranking.scores, gt.ranking.scores)
         assert (second[name].relevance != gt.relevance).nnz == 0
         assert second[name].statistics() == gt.statistics()
+    monkeypatch.undo()
     compute_groundtruths(database, queries, {"definitions": {"frustum": {"far": 20.0}}}, cache_dir=tmp_path)
     assert len(list((tmp_path / "groundtruth").glob("*.npz"))) == 3
+
+
+def test_chunked_scoring_equals_one_chunk(pose_scene, monkeypatch):
+    database, queries = pose_scene
+    whole = frustum_groundtruth(database, queries, far=30.0)
+    monkeypatch.setattr(base, "PAIRS_PER_CHUNK", 1)  # one query per chunk
+    chunked = frustum_groundtruth(database, queries, far=30.0)
+    np.testing.assert_array_equal(chunked.ranking.indices, whole.ranking.indices)
+    np.testing.assert_array_equal(chunked.ranking.scores, whole.ranking.scores)
+    assert (chunked.relevance != whole.relevance).nnz == 0

@@ -12,7 +12,7 @@ import torchvision
 from PIL import Image
 
 from locretrieval.models.apgem import APGeMDescriptor, convert_apgem
-from locretrieval.models.weights import HASH_CACHE_ENV, MissingWeightsError
+from locretrieval.models.weights import HASH_CACHE_ENV, MissingWeightsError, save_checkpoint
 from locretrieval.scene import Camera, ImageSet
 
 MEAN, STD = [0.40, 0.50, 0.60], [0.20, 0.25, 0.30]
@@ -153,6 +153,21 @@ def test_converted_checkpoint_needs_no_sklearn_and_gives_the_same_descriptors(ch
     original = APGeMDescriptor(weights=path, **options).describe(images[1])
     again = APGeMDescriptor(weights=converted, **options).describe(images[1])
     np.testing.assert_array_equal(again, original)
+
+
+def test_file_must_hold_the_configured_architecture(checkpoint, tmp_path):
+    path, _, _ = checkpoint
+    converted = tmp_path / "apgem.pt"
+    convert_apgem(path, converted)
+    for weights in (path, converted):
+        with pytest.raises(ValueError, match=r"differs from the configuration \(backbone: file 'resnet18' vs config 'resnet50'\)"):
+            APGeMDescriptor(weights=weights, backbone="resnet50", out_dim=OUT_DIM, device="cpu")
+        with pytest.raises(ValueError, match=rf"out_dim: file {OUT_DIM} vs config 64"):
+            APGeMDescriptor(weights=weights, backbone="resnet18", out_dim=64, device="cpu")
+    netvlad = tmp_path / "netvlad.pt"
+    save_checkpoint(netvlad, "netvlad", {"clusters": 4}, {}, {})
+    with pytest.raises(ValueError, match="netvlad.pt: a locretrieval checkpoint of model 'netvlad', not 'apgem'"):
+        APGeMDescriptor(weights=netvlad, backbone="resnet18", out_dim=OUT_DIM, device="cpu")
 
 
 class Payload:

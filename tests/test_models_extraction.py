@@ -16,6 +16,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from PIL import Image
 
+from locretrieval.cache import tree_signature
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
 from locretrieval.models.heads import l2_normalize
 from locretrieval.models.torch_descriptor import RANDOM_INIT_SUFFIX
@@ -241,3 +242,16 @@ def test_weight_hashes_are_cached_by_path_size_and_mtime(tmp_path):
     path.write_bytes(b"second version, longer")
     os.utime(path, ns=(1, 1))
     assert content_sha256(path) == hashlib.sha256(b"second version, longer").hexdigest()
+
+
+def test_weight_folder_hash_covers_relative_names_and_contents(tmp_path):
+    folder = tmp_path / "saved_model"
+    (folder / "variables").mkdir(parents=True)
+    (folder / "saved_model.pb").write_bytes(b"graph")
+    (folder / "variables" / "data").write_bytes(b"weights")
+    expected = hashlib.sha256(b"saved_model.pb\ngraph" + os.path.join("variables", "data").encode() + b"\nweights")
+    assert content_sha256(folder) == expected.hexdigest()
+    signature = json.loads((tmp_path / "hashes" / "weight_hashes.json").read_text())[str(folder.resolve())]["signature"]
+    assert [entry[:2] for entry in signature] == [["saved_model.pb", 5], [os.path.join("variables", "data"), 7]]
+    assert tree_signature(folder / "saved_model.pb") == [("", 5, (folder / "saved_model.pb").stat().st_mtime_ns)]
+    assert tree_signature(tmp_path / "absent") == []

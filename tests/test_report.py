@@ -109,7 +109,7 @@ def test_pivot_localization_reads_the_table():
     pivot = pivot_localization(results, "global_sfm", "pnp")
     lookup = results.set_index(["subset", "paradigm", "k", "position_threshold_m"])["localized_pct"]
     expected = lookup[("all", "global_sfm", 5, 5.0)]
-    assert pivot.loc["netvlad", ("5m,10°", 5)] == round(expected, 1)
+    assert pivot.loc["netvlad", ("5 m, 10°", 5)] == round(expected, 1)
 
 
 def test_report_of_a_multirun_produces_every_figure_and_table(tmp_path):
@@ -157,7 +157,7 @@ def test_runs_are_combined_without_repeating_ground_truth(tmp_path):
     assert set(combined.revisited["ranking"]) == {"netvlad", "apgem"}
 
 
-def _shift_descriptor_results(run: Path, name: str) -> None:
+def _shift_results(run: Path, name: str) -> None:
     results = pd.read_csv(run / "results.csv")
     results.loc[results["ranking"] == name, "localized_pct"] += 1.0
     results.to_csv(run / "results.csv", index=False)
@@ -165,7 +165,7 @@ def _shift_descriptor_results(run: Path, name: str) -> None:
 
 def test_one_descriptor_under_several_settings_is_labelled_by_its_overrides(tmp_path):
     runs = [write_run(tmp_path / "sweep" / str(i), ["netvlad"]) for i in range(2)]
-    _shift_descriptor_results(runs[1], "netvlad")
+    _shift_results(runs[1], "netvlad")
     for run, alpha in zip(runs, (4, 8)):
         (run / ".hydra").mkdir()
         (run / ".hydra" / "overrides.yaml").write_text(f"- model=netvlad\n- paradigms.approximation.alpha={alpha}\n")
@@ -181,10 +181,13 @@ def test_one_descriptor_under_several_settings_is_labelled_by_its_overrides(tmp_
 
 def test_runs_without_overrides_are_labelled_by_directory_and_indistinguishable_runs_are_an_error(tmp_path):
     first, second = write_run(tmp_path / "a", ["netvlad"]), write_run(tmp_path / "b", ["netvlad"])
-    _shift_descriptor_results(second, "netvlad")
+    _shift_results(second, "netvlad")
     assert {"netvlad [a]", "netvlad [b]"} <= set(load_runs([first, second]).results["ranking"])
+    _shift_results(second, GROUNDTRUTH)  # e.g. a sweep over a ground-truth setting: both upper bounds stay
+    rankings = set(load_runs([first, second]).results["ranking"])
+    assert {f"{GROUNDTRUTH} [a]", f"{GROUNDTRUTH} [b]"} <= rankings and GROUNDTRUTH not in rankings
     third = write_run(tmp_path / "c" / "a", ["netvlad"])
-    _shift_descriptor_results(third, "netvlad")
+    _shift_results(third, "netvlad")
     with pytest.raises(ValueError, match="netvlad"):
         load_runs([first, third])
 
@@ -201,3 +204,16 @@ def test_command_line_entry_point_with_only_a_localization_table(tmp_path):
     expected = [f"toy_{stem}.{suffix}" for stem in stems for suffix in ("pdf", "png")]
     assert sorted(path.name for path in (run / "figures").iterdir()) == expected
     assert "## Localization" in (run / "report.md").read_text()
+
+
+def test_headline_thresholds_and_retrieval_summary_values(tmp_path):
+    from locretrieval.report.markdown import retrieval_summary
+    from locretrieval.report.plots import headline_threshold
+
+    run = write_run(tmp_path / "run", ["netvlad"])
+    tables = load_runs([run])
+    assert headline_threshold(tables.results, "approximation") == (5.0, 10.0)  # loosest, as Fig. 4
+    assert headline_threshold(tables.results, "global_sfm") == (0.25, 2.0)  # tightest, as Figs. 5-6
+    summary = retrieval_summary(tables.retrieval)
+    row = tables.retrieval.query("subset == 'all' and ranking == 'netvlad' and metric == 'recall' and k == 5").iloc[0]
+    assert summary.loc[(row["dataset"], row["groundtruth"], "netvlad"), ("recall", 5)] == pytest.approx(100 * row["value"])

@@ -8,7 +8,7 @@ import pytest
 from PIL import Image
 
 from locretrieval.models import GlobalDescriptor
-from locretrieval.retrieval import describe_scene, search
+from locretrieval.retrieval import describe_scene, random_ranking, search
 from locretrieval.scene import Camera, ImageSet, Scene
 from locretrieval.scene.images import read_image
 
@@ -127,12 +127,6 @@ class CenteredThumbnail(GlobalDescriptor):
         self.fit_calls += 1
         self.mean = self._thumbnails(database).mean(axis=0)
 
-    def fitted_state(self) -> dict[str, np.ndarray]:
-        return {"mean": self.mean}
-
-    def load_fitted_state(self, state: dict[str, np.ndarray]) -> None:
-        self.mean = state["mean"]
-
     def describe(self, images: ImageSet) -> np.ndarray:
         self.describe_calls += 1
         centred = self._thumbnails(images) - self.mean
@@ -159,14 +153,17 @@ def scene(tmp_path) -> Scene:
     return Scene("tiny", database, queries)
 
 
-def test_describe_scene_caches_descriptors_and_fitted_state(tmp_path, scene, caplog):
+def test_describe_scene_caches_only_descriptors(tmp_path, scene, caplog):
     model = CenteredThumbnail()
     with caplog.at_level(logging.INFO):
         database, queries = describe_scene(model, scene, tmp_path / "cache")
     assert "cache miss" in caplog.text
     assert (model.fit_calls, model.describe_calls) == (1, 2)
     assert database.shape == (6, 64) and queries.shape == (3, 64)
-    assert len(list((tmp_path / "cache" / "descriptors").glob("*.npz"))) == 1
+    cached = list((tmp_path / "cache" / "descriptors").glob("*.npz"))
+    assert len(cached) == 1
+    with np.load(cached[0]) as stored:
+        assert sorted(stored.files) == ["database", "queries"]  # no fitted state: one copy per query set
 
     fresh = CenteredThumbnail()
     caplog.clear()
@@ -176,8 +173,7 @@ def test_describe_scene_caches_descriptors_and_fitted_state(tmp_path, scene, cap
     assert (fresh.fit_calls, fresh.describe_calls) == (0, 0)
     np.testing.assert_array_equal(cached_database, database)
     np.testing.assert_array_equal(cached_queries, queries)
-    np.testing.assert_array_equal(fresh.mean, model.mean)  # the fitted state came back with the cache
-    np.testing.assert_array_equal(fresh.describe(scene.queries), queries)
+    assert fresh.mean is None  # a cache hit leaves the model unfitted
 
 
 def test_changed_model_config_misses_the_cache(tmp_path, scene):
@@ -246,3 +242,12 @@ def test_invalid_descriptors_are_rejected_naming_model_and_image(scene, tmp_path
         describe_scene(model_class(name="broken"), scene, tmp_path)
     assert "'broken'" in str(error.value)
     assert not list(tmp_path.glob("descriptors/*.npz"))
+
+
+def test_random_ranking_is_seeded_without_repeats_and_clamped():
+    first, again, other = (random_ranking(20, 30, 10, seed) for seed in (0, 0, 1))
+    assert first.kind == "baseline" and first.indices.shape == (20, 10)
+    assert all(len(set(row)) == 10 for row in first.indices) and first.indices.max() < 30
+    np.testing.assert_array_equal(first.indices, again.indices)
+    assert (first.indices != other.indices).any()
+    assert random_ranking(3, 4, 10, 0).depth == 4

@@ -51,7 +51,7 @@ def test_protocols_match_hand_computed_values(groundtruth):
 
 
 def test_a_truncated_ranking_counts_missing_positives_as_not_retrieved(groundtruth):
-    truncated = np.array([[1, 0, 2, EMPTY], [0, 1, 3, EMPTY]])
+    truncated = Ranking("toy", [[1, 0, 2, EMPTY], [0, 1, 3, EMPTY]], np.zeros((2, 4)), "descriptor")
     value = evaluate_revisited(truncated, groundtruth, "toy").set_index(["protocol", "metric", "k"])["value"]
     # Medium q0: only positive 0 retrieved (rank 0 after junk) of 3 -> AP 1/3; q1: positive 2
     # not retrieved -> AP 0, P@k 0.

@@ -11,16 +11,16 @@ import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 import pycolmap
 from locretrieval import geometry
 from locretrieval.groundtruth import relative_pose_groundtruth
-from locretrieval.localization import PARADIGMS, matching
+from locretrieval.localization import PARADIGMS, local_sfm, matching
 from locretrieval.localization.colmap_model import read_colmap_map, to_pycolmap_camera, to_rigid3d
-from locretrieval.localization.features import extract_features
-from locretrieval.localization.global_sfm import global_map
+from locretrieval.localization.features import FeatureStore, extract_features
+from locretrieval.localization.global_sfm import global_map, map_cache_path
 from locretrieval.localization.local_sfm import local_map_pairs
 from locretrieval.localization.pairs import database_pairs
 from locretrieval.localization.pnp import DEFAULT_PNP, NO_KEYPOINTS, TOO_FEW_IMAGES, TOO_FEW_MATCHES, estimate_absolute_pose
-from locretrieval.localization.sfm import SfmInputs, common_settings
+from locretrieval.localization.sfm import QueryTask, SfmInputs, common_settings, outcomes_per_image_set
 from locretrieval.localization.triangulation import triangulate_known_poses
-from locretrieval.retrieval import random_ranking
+from locretrieval.retrieval import Ranking, random_ranking
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 
@@ -81,7 +81,7 @@ def backproject(images, index, pixels):
 # --------------------------------------------------------------------------- building blocks
 
 
-def test_triangulation_with_known_poses_recovers_the_rendered_points(scene, cache):
+def test_triangulation_with_known_poses_recovers_the_rendered_points(scene, cache, monkeypatch):
     database = scene.database
     inputs = SfmInputs.prepare(scene, common_settings(base_config()), cache)
     sparse_map = global_map(inputs, {"pairs": PAIRS}, cache)
@@ -100,9 +100,31 @@ def test_triangulation_with_known_poses_recovers_the_rendered_points(scene, cach
     # tracks over three or more images are right to centimetres; the tail: keypoints on depth
     # edges (they read the background's depth) and two-view tracks of repeated textures
     assert np.median(errors[lengths >= 3]) < 0.015 and np.mean(errors[lengths >= 3] < 0.1) > 0.8
-    # cached: the same map is read back
+    # cached: the same map is read back, without reading any feature
+    monkeypatch.setattr(FeatureStore, "keypoints", None)
+    monkeypatch.setattr(FeatureStore, "load", None)
     again = global_map(inputs, {"pairs": PAIRS}, cache)
     np.testing.assert_array_equal(again.points, sparse_map.points)
+
+
+def test_the_global_map_cache_key_follows_what_the_map_depends_on(scene, cache):
+    def path(**overrides):
+        inputs = SfmInputs.prepare(scene, common_settings(base_config(**overrides)), cache)
+        return map_cache_path(inputs, {"far": 25.0}, cache)
+
+    base = path()
+    assert path(matching={"two_view": {"max_error": 3.0}}) == base  # query verification only
+    assert path(triangulation={"min_angle": 3.0}) != base
+    assert path(matching={"ratio": 0.9}) != base
+    assert path(matching={"max_epipolar_error": 8.0}) != base
+    assert map_cache_path(SfmInputs.prepare(scene, common_settings(base_config()), cache), {"far": 30.0}, cache) != base
+
+
+def test_feature_keypoints_are_read_without_descriptors(scene, cache):
+    inputs = SfmInputs.prepare(scene, common_settings(base_config()), cache)
+    keypoints = inputs.database_features.keypoints(scene.database.names[:3])
+    assert all(points.shape[1] == 2 for points in keypoints.values())
+    assert {name for _, name in inputs.database_features.store._cache} == {"keypoints"}
 
 
 def test_pnp_recovers_a_rendered_query_pose_among_outliers(scene):
@@ -195,6 +217,39 @@ def test_increasing_k_matches_only_the_new_pairs(scene, cache, rankings, monkeyp
     calls.clear()
     PARADIGMS["local_sfm"](scene, rankings, base_config(k=[2, 5]), cache)
     assert sum(calls) == 0
+
+
+def test_a_query_is_localised_once_per_distinct_set_of_top_k_images():
+    calls = []
+
+    def localize(images):
+        calls.append(images)
+        return f"{images}"
+
+    task = QueryTask(0, top=((3, 1, 2), (2, 1, 3), (5,)), ks=((1, 3), (2, 3), (1, 3)))
+    outcomes = outcomes_per_image_set(task, localize)
+    assert outcomes == [["(3,)", "(1, 2, 3)"], ["(1, 2)", "(1, 2, 3)"], ["(5,)", "(5,)"]]
+    assert calls == [(3,), (1, 2, 3), (1, 2), (5,)]
+
+
+def test_local_maps_of_the_same_images_in_another_order_are_built_once(scene, cache, rankings, monkeypatch):
+    truth = rankings[0]
+    top = truth.indices[:, :3]
+    reversed_ranking = Ranking("reversed", top[:, ::-1], truth.scores[:, :3][:, ::-1], "groundtruth")
+    built = []
+    real = local_sfm.triangulate_known_poses
+
+    def counting(cameras, qvec, tvec, *rest):
+        built.append(len(cameras))
+        return real(cameras, qvec, tvec, *rest)
+
+    monkeypatch.setattr(local_sfm, "triangulate_known_poses", counting)
+    forward, backward = PARADIGMS["local_sfm"](scene, [truth.top(3), reversed_ranking], base_config(k=[2, 3]), cache)
+    # per query: the two top-2 sets {first, second} and {second, third}, and one top-3 set
+    assert sorted(built) == [2] * 2 * len(top) + [3] * len(top)
+    np.testing.assert_array_equal(forward.qvec[1], backward.qvec[1])
+    np.testing.assert_array_equal(forward.tvec[1], backward.tvec[1])
+    np.testing.assert_array_equal(forward.failures[1], backward.failures[1])
 
 
 def test_results_do_not_depend_on_worker_processes_and_reruns_reuse_the_caches(scene, cache, rankings, monkeypatch):

@@ -107,17 +107,21 @@ def test_mask_source_resolution(tmp_path):
     assert set(subset_masks(scores, CONFIG)) == {BLURRY}  # no dynamic subset without masks
 
 
-def test_dynamic_fraction_counts_dynamic_classes_above_the_score_threshold():
+def test_dynamic_fraction_counts_the_pixels_of_dynamic_classes():
+    import torch
+
     person, car, chair = 1, 3, 62
+    ids = torch.as_tensor(dynamic_category_ids())
     assert {person, car} <= set(dynamic_category_ids()) and chair not in dynamic_category_ids()
-    masks = np.zeros((3, 10, 10))
-    masks[0, :3] = 0.9  # person, 30 %
-    masks[1, 2:6] = 0.9  # chair: static
-    masks[2, 5:] = 0.9  # car below the score threshold
-    masks[0, 9] = 0.4  # below the mask threshold
-    fraction = dynamic_fraction(np.array([person, chair, car]), np.array([0.9, 0.9, 0.3]), masks, 0.5, 0.5)
-    assert fraction == pytest.approx(0.3)
-    assert dynamic_fraction(np.array([person, car]), np.array([0.9, 0.6]), masks[[0, 2]], 0.5, 0.5) == pytest.approx(0.8)
+    masks = torch.zeros((3, 1, 10, 10))
+    masks[0, 0, :3] = 0.9  # person, 30 %
+    masks[1, 0, 2:6] = 0.9  # chair: static
+    masks[2, 0, 5:] = 0.9  # car, 50 %, overlapping nothing
+    masks[0, 0, 9] = 0.4  # below the mask threshold
+    assert dynamic_fraction(torch.tensor([person, chair]), masks[:2], ids, 0.5) == pytest.approx(0.3)
+    assert dynamic_fraction(torch.tensor([person, chair, car]), masks, ids, 0.5) == pytest.approx(0.8)
+    assert dynamic_fraction(torch.tensor([chair]), masks[1:2], ids, 0.5) == 0.0
+    assert dynamic_fraction(torch.zeros(0, dtype=torch.int64), masks[:0], ids, 0.5) == 0.0
 
 
 def test_maskrcnn_weights_are_loaded_from_a_local_torchvision_state_dict(tmp_path):
@@ -134,12 +138,12 @@ def test_maskrcnn_weights_are_loaded_from_a_local_torchvision_state_dict(tmp_pat
     state = MaskRCNN(backbone, num_classes=91).state_dict()
     weights = tmp_path / MASKRCNN_WEIGHTS_FILE
     torch.save(state, weights)
-    model = load_maskrcnn(weights, min_size=64)
+    model = load_maskrcnn(weights, min_size=64, score_threshold=0.7)
     name = "roi_heads.box_predictor.cls_score.weight"
     assert torch.equal(model.state_dict()[name], state[name])
-    assert model.transform.min_size == (64,) and not model.training
+    assert model.transform.min_size == (64,) and model.roi_heads.score_thresh == 0.7 and not model.training
     queries = image_set(tmp_path, [textured(48, 64)])
-    fractions = maskrcnn_fractions(queries, model, 0.5, 0.5)
+    fractions = maskrcnn_fractions(queries, model, 0.5)
     assert fractions.shape == (1,) and 0.0 <= fractions[0] <= 1.0
     garbage = tmp_path / "garbage.pth"
     garbage.write_bytes(b"not a state dict")

@@ -9,6 +9,7 @@ import numpy as np
 from scipy import sparse
 from tqdm import tqdm
 
+from locretrieval.metrics.retrieval import relevant_hits
 from locretrieval.retrieval import EMPTY, Ranking, top_k
 from locretrieval.scene import ImageSet
 
@@ -73,12 +74,7 @@ class GroundTruth:
         posed = np.flatnonzero(self.query_has_pose)
         relevant_per_query = np.diff(self.relevance.indptr)
         relevant = relevant_per_query[posed]
-        # Pairs as keys row * N + column: the ranked pairs that are relevant, per query.
-        relevant_keys = np.repeat(np.arange(len(relevant_per_query)), relevant_per_query) * self.num_database
-        relevant_keys += self.relevance.indices
-        rows, slots = np.nonzero(self.ranking.indices != EMPTY)
-        ranked_keys = rows * self.num_database + self.ranking.indices[rows, slots]
-        in_ranking = np.bincount(rows[np.isin(ranked_keys, relevant_keys)], minlength=self.ranking.num_queries)[posed]
+        in_ranking = relevant_hits(self.ranking.indices, self.relevance).sum(axis=1)[posed]
         has_queries = len(posed) > 0
         return {
             "queries": self.ranking.num_queries,

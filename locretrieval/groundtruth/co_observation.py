@@ -78,34 +78,36 @@ def shared_points(
     """``[Q, N]`` number of joint-map points observed by query q and database image t
     (zero rows for queries without a pose)."""
     posed = np.flatnonzero(queries.has_pose)
-    posed_queries = queries.subset(posed)
     pair_config = pair_settings(pairs)
+    # features and matches of the whole image sets: the caches of the SfM paradigms
     database_features = extract_features(database, features, cache_dir, workers)
-    query_features = extract_features(posed_queries, features, cache_dir, workers)
+    query_features = extract_features(queries, features, cache_dir, workers)
     settings = matching_settings(matching)
     database_matcher = PairMatcher(database, database_features, database, database_features, settings, cache_dir)
-    query_matcher = PairMatcher(posed_queries, query_features, database, database_features, settings, cache_dir)
+    query_matcher = PairMatcher(queries, query_features, database, database_features, settings, cache_dir)
 
     database_pair_rows = database_pairs(database, pair_config)
-    query_pair_rows = overlapping_pairs(posed_queries, database, {**pair_config, "max_per_image": query_pairs}, exclude_self=False)
+    query_pair_rows = overlapping_pairs(queries, database, {**pair_config, "max_per_image": query_pairs}, exclude_self=False)
     named_database = [(database.names[a], database.names[b]) for a, b in database_pair_rows]
-    named_queries = [(posed_queries.names[q], database.names[t]) for q, t in query_pair_rows]
+    named_queries = [(queries.names[q], database.names[t]) for q, t in query_pair_rows]
     database_matcher.ensure(named_database, workers, "poses")
     query_matcher.ensure(named_queries, workers, "poses")
     database_matches = database_matcher.load(named_database, "poses")
     query_matches = query_matcher.load(named_queries, "poses")
 
-    # joint image order: database 0..N-1, then the posed queries
+    # joint image order: database 0..N-1, then the posed queries (`overlapping_pairs` pairs only those)
     offset = len(database)
+    joint_query = offset + np.searchsorted(posed, query_pair_rows[:, 0])
     matches = {(int(a), int(b)): database_matches[pair] for (a, b), pair in zip(database_pair_rows, named_database)}
-    matches.update({(int(t), offset + int(q)): query_matches[pair][:, ::-1] for (q, t), pair in zip(query_pair_rows, named_queries)})
+    matches.update({(int(t), int(j)): query_matches[pair][:, ::-1] for j, t, pair in zip(joint_query, query_pair_rows[:, 1], named_queries)})
+    posed_names = [queries.names[q] for q in posed]
     keypoints = database_features.keypoints(database.names)
-    query_keypoints = query_features.keypoints(posed_queries.names)
+    query_keypoints = query_features.keypoints(posed_names)
     joint: SparseMap = triangulate_known_poses(
-        database.cameras + posed_queries.cameras,
-        np.concatenate([database.qvec, posed_queries.qvec]),
-        np.concatenate([database.tvec, posed_queries.tvec]),
-        [keypoints[n] for n in database.names] + [query_keypoints[n] for n in posed_queries.names],
+        database.cameras + [queries.cameras[q] for q in posed],
+        np.concatenate([database.qvec, queries.qvec[posed]]),
+        np.concatenate([database.tvec, queries.tvec[posed]]),
+        [keypoints[n] for n in database.names] + [query_keypoints[n] for n in posed_names],
         matches,
         triangulation_settings(triangulation),
     )

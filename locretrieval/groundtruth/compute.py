@@ -23,6 +23,9 @@ from locretrieval.scene import ImageSet
 
 log = logging.getLogger(__name__)
 
+#: Parameters that change how a ground truth is computed, not what: left out of cache keys.
+RESULT_NEUTRAL_PARAMETERS = ("workers",)
+
 #: Ground-truth builders by definition type, each called as
 #: ``builder(database, queries, depth=..., name=..., **parameters)``, plus ``cache_dir=`` for
 #: builders that take it (their features and matches are cached there).
@@ -61,7 +64,8 @@ def compute_groundtruths(
         kind, parameters = _definition(name, parameters)
         path = None
         if cache_dir is not None:
-            key = config_key(CACHE_VERSION, kind, parameters, depth, *fingerprints)
+            produced_by = {k: v for k, v in parameters.items() if k not in RESULT_NEUTRAL_PARAMETERS}
+            key = config_key(CACHE_VERSION, kind, produced_by, depth, *fingerprints)
             path = Path(cache_dir) / "groundtruth" / f"{name}-{key}.npz"
         builder = DEFINITIONS[kind]
         extra = {"cache_dir": cache_dir} if "cache_dir" in inspect.signature(builder).parameters else {}

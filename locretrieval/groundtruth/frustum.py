@@ -93,7 +93,8 @@ def overlap_radii(first: TruncatedFrusta, second: TruncatedFrusta) -> np.ndarray
 
 
 def pairwise_overlap_radii(queries: TruncatedFrusta, database: TruncatedFrusta) -> np.ndarray:
-    """Dense ``[Q, N]`` `overlap_radii` of every query x database pair."""
+    """Dense ``[Q, N]`` `overlap_radii` of every query x database pair (memory O(Q N): callers
+    with large sets pass blocks of queries)."""
     meet = cdist(queries.centers, database.centers) <= queries.radii[:, None] + database.radii[None]
     rows, columns = np.nonzero(meet)
     radii = np.zeros(meet.shape)

@@ -4,8 +4,9 @@ The query pose is ``P_q = sum_i w_i P_i`` over the top ``k`` database images, wi
 summing to one:
 
 - ``ewb``: equal weights ``1/k``;
-- ``csi``: ``w_i ∝ (d_q . d_i)^alpha`` (cosine similarity of L2-normalised descriptors,
-  clamped at 0 so that an even ``alpha`` cannot reward dissimilar images), ``alpha = 8``;
+- ``csi``: ``w_i ∝ (d_q . d_i)^alpha`` (cosine similarity of L2-normalised descriptors, read
+  from the ranking's scores, which `search` sets to ``d_q . d_i``; clamped at 0 so that an
+  even ``alpha`` cannot reward dissimilar images), ``alpha = 8``;
 - ``bdi``: the weights minimising ``||d_q - sum_i w_i d_i||`` subject to ``sum_i w_i = 1``
   (no sign constraint), in closed form ``w = G^-1 1 / (1^T G^-1 1)`` with
   ``G_ij = (d_i - d_q) . (d_j - d_q)``.
@@ -38,7 +39,7 @@ EMPTY_RETRIEVAL = "empty retrieval"
 #: Relative ridge added to BDI's Gram matrix so duplicate descriptors split weights evenly.
 BDI_RIDGE = 1e-9
 DEGENERATE_BDI = "degenerate bdi weights"
-#: Bytes of gathered database descriptors held at once (BDI Gram matrices, CSI similarities).
+#: Bytes of gathered database descriptors held at once when forming BDI Gram matrices.
 GATHER_CHUNK_BYTES = 1 << 28
 
 
@@ -105,7 +106,7 @@ def _prefix_weights(method: str, top: Ranking, valid: np.ndarray, alpha: float) 
     """
     if method == "ewb":
         return valid.astype(np.float64)
-    similarity = np.where(valid, np.clip(_similarities(top), 0.0, None), 0.0)
+    similarity = np.where(valid, np.clip(top.scores, 0.0, None), 0.0)  # descriptor rankings: d_q . d_i
     largest = similarity.max(axis=1, keepdims=True)
     dead = valid[:, 0] & (largest[:, 0] == 0)
     if dead.any():
@@ -113,15 +114,6 @@ def _prefix_weights(method: str, top: Ranking, valid: np.ndarray, alpha: float) 
     with np.errstate(invalid="ignore", divide="ignore"):
         raw = (similarity / largest) ** alpha
     return np.where(dead[:, None], valid, np.where(valid, raw, 0.0))
-
-
-def _similarities(top: Ranking) -> np.ndarray:
-    """Cosine similarities ``[Q, K]`` between each query and its ranked images (float32 products:
-    the weights need no more, and it halves the memory traffic of the gather)."""
-    similarity = np.empty(top.indices.shape, dtype=np.float64)
-    for rows, gathered, query in _gathered_descriptors(top, np.float32):
-        similarity[rows] = np.einsum("qkd,qd->qk", gathered, query)
-    return similarity
 
 
 def _bdi_weights(top: Ranking, valid: np.ndarray, ks: list[int]) -> np.ndarray:
@@ -166,21 +158,21 @@ def _residual_grams(top: Ranking) -> np.ndarray:
     return np.where(pair, grams, np.eye(top.depth)[None])
 
 
-def _gathered_descriptors(top: Ranking, dtype: type = np.float64):
+def _gathered_descriptors(top: Ranking):
     """Yield ``(rows, database descriptors [q, K, D], query descriptors [q, D])`` per chunk.
 
-    Chunks keep the gathered block under ``GATHER_CHUNK_BYTES``; empty slots gather
+    Chunks keep the gathered float64 block under ``GATHER_CHUNK_BYTES``; empty slots gather
     database image 0 and must be masked by the caller.
     """
     indices = np.where(top.indices != EMPTY, top.indices, 0)
-    per_query = max(1, top.depth * top.database_descriptors.shape[1] * np.dtype(dtype).itemsize)
+    per_query = max(1, top.depth * top.database_descriptors.shape[1] * 8)
     size = max(1, GATHER_CHUNK_BYTES // per_query)
     for start in range(0, top.num_queries, size):
         rows = slice(start, start + size)
         yield (
             rows,
-            top.database_descriptors[indices[rows]].astype(dtype, copy=False),
-            top.query_descriptors[rows].astype(dtype, copy=False),
+            top.database_descriptors[indices[rows]].astype(np.float64),
+            top.query_descriptors[rows].astype(np.float64),
         )
 
 

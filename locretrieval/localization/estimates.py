@@ -40,11 +40,6 @@ class PoseEstimates:
         if (missing & (self.failures == LOCALIZED)).any():
             raise ValueError(f"{self.ranking}/{self.paradigm}/{self.method}: a missing estimate has no failure reason")
 
-    @property
-    def estimated(self) -> np.ndarray:
-        """Boolean ``[len(ks), Q]``: an estimate exists."""
-        return self.failures == LOCALIZED
-
     def errors(self, q_reference: np.ndarray, t_reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Position (scene units) and rotation (degrees) errors ``[len(ks), Q]`` (paper eq. 3-4).
 

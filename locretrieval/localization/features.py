@@ -87,7 +87,8 @@ class FeatureStore:
         return {name: (r["keypoints"], r["descriptors"]) for name, r in self.store.read(names).items()}
 
     def keypoints(self, names: Sequence[str]) -> dict[str, np.ndarray]:
-        return {name: keypoints for name, (keypoints, _) in self.load(names).items()}
+        """``name -> keypoints float32 [n, 2]``, without reading the descriptors."""
+        return {name: record["keypoints"] for name, record in self.store.read(names, arrays=("keypoints",)).items()}
 
 
 def extract_features(

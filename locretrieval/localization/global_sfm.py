@@ -30,7 +30,8 @@ from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.pairs import database_pairs, pair_settings
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS
 from locretrieval.localization.sfm import (
-    Outcome, QueryTask, SfmInputs, check_keys, common_settings, plain_config, register_query, run_queries,
+    Outcome, QueryTask, SfmInputs, check_keys, common_settings, outcomes_per_image_set, plain_config, register_query,
+    run_queries,
 )
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.localization.triangulation import triangulate_known_poses
@@ -63,49 +64,50 @@ def global_map(inputs: SfmInputs, config: Mapping[str, Any], cache_dir: Path) ->
     if unknown:
         raise ValueError(f"unknown global_sfm.map settings {unknown}; known: ['colmap_model', 'pairs']")
     database = inputs.scene.database
-    keypoints = inputs.database_features.keypoints(database.names)
     if config.get("colmap_model"):
         log.info("global map: COLMAP model %s", config["colmap_model"])
+        keypoints = inputs.database_features.keypoints(database.names)
         return read_colmap_map(config["colmap_model"], database.names, [keypoints[n] for n in database.names])
     pairs_config = pair_settings(config.get("pairs"))
-    settings = inputs.settings
-    key = config_key(
-        CACHE_VERSION, settings["features"], settings["matching"]["ratio"], settings["matching"]["max_epipolar_error"],
-        settings["triangulation"], pairs_config,
-    )
-    path = cache_dir / "maps" / f"{database.fingerprint()}-{key}.npz"
+    path = map_cache_path(inputs, pairs_config, cache_dir)
     if path.exists():
         log.info("global map loaded from %s", path)
         return SparseMap.load(path)
     pairs = database_pairs(database, pairs_config)
     named = [(database.names[a], database.names[b]) for a, b in pairs]
-    inputs.database_pairs.ensure(named, settings["workers"], "poses")
+    inputs.database_pairs.ensure(named, inputs.settings["workers"], "poses")
     matches = inputs.database_pairs.load(named, "poses")
+    keypoints = inputs.database_features.keypoints(database.names)
     sparse_map = triangulate_known_poses(
         database.cameras, database.qvec, database.tvec, [keypoints[n] for n in database.names],
-        {(int(a), int(b)): matches[pair] for (a, b), pair in zip(pairs, named)}, settings["triangulation"],
+        {(int(a), int(b)): matches[pair] for (a, b), pair in zip(pairs, named)}, inputs.settings["triangulation"],
     )
     sparse_map.save(path)
     log.info("global map: %d points from %d database images (%d pairs), saved to %s", sparse_map.num_points, len(database), len(pairs), path)
     return sparse_map
 
 
+def map_cache_path(inputs: SfmInputs, pairs_config: Mapping[str, Any], cache_dir: Path) -> Path:
+    """Where the triangulated map is cached: keyed by its pose-verified matches' store (whose
+    name encodes the features, the ratio, the epipolar bound and the database poses), the
+    triangulation settings and the pair selection."""
+    matches = inputs.database_pairs.stores["poses"].folder.name
+    return cache_dir / "maps" / f"{config_key(CACHE_VERSION, matches, inputs.settings['triangulation'], pairs_config)}.npz"
+
+
 def localize_query(shared: tuple[SfmInputs, SparseMap], task: QueryTask) -> list[list[Outcome]]:
-    """Outcomes ``[ranking][k]`` of one query registered in the global map."""
+    """Outcomes ``[ranking][k]`` of one query registered in the global map, once per distinct
+    set of top-k images (the correspondences depend on the set only)."""
     inputs, sparse_map = shared
     images = sorted({i for top in task.top for i in top})
     query_keypoints, query_matches = inputs.query_matches(task.query, images)
     slots = {i: i for i in images}
-    outcomes = []
-    for top, ks in zip(task.top, task.ks):
-        per_k = []
-        for k in ks:
-            selected = top[:k]
-            if not selected:
-                per_k.append(EMPTY_RETRIEVAL)
-            elif not any((sparse_map.observations[i] >= 0).any() for i in selected):
-                per_k.append(NO_3D_POINTS)
-            else:
-                per_k.append(register_query(inputs, task.query, query_keypoints, {i: query_matches[i] for i in selected}, sparse_map, slots))
-        outcomes.append(per_k)
-    return outcomes
+
+    def localize(selected: tuple[int, ...]) -> Outcome:
+        if not selected:
+            return EMPTY_RETRIEVAL
+        if not any((sparse_map.observations[i] >= 0).any() for i in selected):
+            return NO_3D_POINTS
+        return register_query(inputs, task.query, query_keypoints, {i: query_matches[i] for i in selected}, sparse_map, slots)
+
+    return outcomes_per_image_set(task, localize)

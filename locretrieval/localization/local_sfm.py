@@ -34,7 +34,8 @@ from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.matching import epipolar_inliers
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
 from locretrieval.localization.sfm import (
-    Outcome, QueryTask, SfmInputs, check_keys, common_settings, plain_config, register_query, run_queries,
+    Outcome, QueryTask, SfmInputs, check_keys, common_settings, outcomes_per_image_set, plain_config, register_query,
+    run_queries,
 )
 from locretrieval.localization.triangulation import triangulate_known_poses
 from locretrieval.retrieval import EMPTY, Ranking
@@ -76,52 +77,45 @@ def local_map_pairs(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) ->
 
 
 def localize_query(shared: tuple[SfmInputs, str], task: QueryTask) -> list[list[Outcome]]:
-    """Outcomes ``[ranking][k]`` of one query; maps shared by rankings are triangulated once."""
+    """Outcomes ``[ranking][k]`` of one query; a map (an image set) is triangulated and the
+    query registered in it once, whichever rankings, ks and orders select its images."""
     inputs, map_matches = shared
     database = inputs.scene.database
     images = sorted({i for top in task.top for i in top})
     query_keypoints, query_matches = inputs.query_matches(task.query, images)
-    map_pairs = _map_matches(inputs, task, map_matches, query_matches, len(query_keypoints))
     keypoints = inputs.database_features.keypoints([database.names[i] for i in images])
-    maps = {}
-    outcomes = []
-    for top, ks in zip(task.top, task.ks):
-        per_k = []
-        for k in ks:
-            selected = tuple(top[:k])
-            if not selected:
-                per_k.append(EMPTY_RETRIEVAL)
-                continue
-            if len(selected) < 2:
-                per_k.append(TOO_FEW_IMAGES)
-                continue
-            slots = {i: s for s, i in enumerate(selected)}
-            if selected not in maps:
-                maps[selected] = triangulate_known_poses(
-                    [database.cameras[i] for i in selected], database.qvec[list(selected)], database.tvec[list(selected)],
-                    [keypoints[database.names[i]] for i in selected],
-                    {(slots[a], slots[b]): map_pairs[(a, b)] for a in selected for b in selected if a < b},
-                    inputs.settings["triangulation"],
-                )
-            sparse_map = maps[selected]
-            if not sparse_map.num_points:
-                per_k.append(NO_3D_POINTS)
-                continue
-            per_k.append(register_query(inputs, task.query, query_keypoints, {i: query_matches[i] for i in selected}, sparse_map, slots))
-        outcomes.append(per_k)
-    return outcomes
+    map_pairs = _map_matches(inputs, task, map_matches, query_matches, len(query_keypoints), keypoints)
+
+    def localize(selected: tuple[int, ...]) -> Outcome:
+        if not selected:
+            return EMPTY_RETRIEVAL
+        if len(selected) < 2:
+            return TOO_FEW_IMAGES
+        slots = {i: s for s, i in enumerate(selected)}
+        sparse_map = triangulate_known_poses(
+            [database.cameras[i] for i in selected], database.qvec[list(selected)], database.tvec[list(selected)],
+            [keypoints[database.names[i]] for i in selected],
+            {(slots[a], slots[b]): map_pairs[(a, b)] for a in selected for b in selected if a < b},
+            inputs.settings["triangulation"],
+        )
+        if not sparse_map.num_points:
+            return NO_3D_POINTS
+        return register_query(inputs, task.query, query_keypoints, {i: query_matches[i] for i in selected}, sparse_map, slots)
+
+    return outcomes_per_image_set(task, localize)
 
 
 def _map_matches(
-    inputs: SfmInputs, task: QueryTask, map_matches: str, query_matches: Mapping[int, np.ndarray], num_query_keypoints: int
+    inputs: SfmInputs, task: QueryTask, map_matches: str, query_matches: Mapping[int, np.ndarray], num_query_keypoints: int,
+    keypoints: Mapping[str, np.ndarray],
 ) -> dict[tuple[int, int], np.ndarray]:
-    """Pose-verified matches of every database pair ``(a, b)``, a < b, within one ranking's top images."""
+    """Pose-verified matches of every database pair ``(a, b)``, a < b, within one ranking's top
+    images; ``keypoints``: those of the database images by name."""
     database = inputs.scene.database
     pairs = sorted({(min(a, b), max(a, b)) for top in task.top for a in top for b in top if a != b})
     if map_matches == "database":
         loaded = inputs.database_pairs.load([(database.names[a], database.names[b]) for a, b in pairs], "poses")
         return {(a, b): loaded[(database.names[a], database.names[b])] for a, b in pairs}
-    keypoints = inputs.database_features.keypoints(sorted({database.names[i] for pair in pairs for i in pair}))
     partner = {}
     for image, matches in query_matches.items():
         partner[image] = np.full(num_query_keypoints, -1, dtype=np.int64)

@@ -50,6 +50,9 @@ DEFAULT_MATCHING: dict[str, Any] = {
     "two_view": {"max_error": 4.0, "min_num_inliers": 15},  # pycolmap TwoViewGeometryOptions
 }
 VERIFICATIONS = ("none", "poses", "two_view")
+#: pycolmap two-view configurations whose inliers follow a scene geometry; the others are
+#: undefined, degenerate, a watermark (a fixed image overlay) or several motions.
+GEOMETRIC_CONFIGURATIONS = ("CALIBRATED", "UNCALIBRATED", "PLANAR", "PANORAMIC", "PLANAR_OR_PANORAMIC")
 #: Pairs per worker task (one shard of the cache).
 PAIRS_PER_SHARD = 512
 #: Bytes of similarity block computed at once.
@@ -193,8 +196,8 @@ def two_view_inliers(
     keypoints0: np.ndarray, keypoints1: np.ndarray, matches: np.ndarray, camera0: Camera, camera1: Camera,
     settings: Mapping[str, Any],
 ) -> np.ndarray:
-    """Indices ``int32 [i]`` into ``matches`` of pycolmap's two-view geometry inliers (none if
-    the geometry is degenerate or has fewer than ``min_num_inliers``)."""
+    """Indices ``int32 [i]`` into ``matches`` of pycolmap's two-view geometry inliers (none
+    unless the geometry is one of `GEOMETRIC_CONFIGURATIONS` with ``min_num_inliers``)."""
     import pycolmap
 
     from locretrieval.localization.colmap_model import to_pycolmap_camera
@@ -211,7 +214,8 @@ def two_view_inliers(
         np.asarray(matches, dtype=np.uint32), options,
     )
     inliers = np.asarray(result.inlier_matches, dtype=np.int64).reshape(-1, 2)
-    if result.config in (pycolmap.TwoViewGeometryConfiguration.UNDEFINED, pycolmap.TwoViewGeometryConfiguration.DEGENERATE) or not len(inliers):
+    configuration = pycolmap.TwoViewGeometryConfiguration(int(result.config)).name  # an int in the result
+    if configuration not in GEOMETRIC_CONFIGURATIONS or not len(inliers):
         return np.empty(0, dtype=np.int32)
     # map inlier keypoint pairs back to rows of `matches`
     row_of = {(int(a), int(b)): row for row, (a, b) in enumerate(matches)}
@@ -268,14 +272,16 @@ class PairMatcher:
         pairs = self.canonical(pairs)
         missing_raw = set(self.stores["none"].missing(map(pair_key, pairs)))
         missing_verified = set(self.stores[verification].missing(map(pair_key, pairs))) if verification != "none" else set()
-        todo = [pair for pair in pairs if pair_key(pair) in missing_raw | missing_verified]
+        missing = missing_raw | missing_verified
+        todo = [pair for pair in pairs if pair_key(pair) in missing]
         if not todo:
             return 0
         log.info("matching %d image pairs, verifying %d (%s), into %s", len(missing_raw), len(missing_verified), verification, self.stores["none"].folder)
         tasks = []
         for start in range(0, len(todo), PAIRS_PER_SHARD):
-            keys = {pair_key(pair) for pair in todo[start : start + PAIRS_PER_SHARD]}
-            tasks.append((todo[start : start + PAIRS_PER_SHARD], keys & missing_raw, keys & missing_verified, verification))
+            chunk = todo[start : start + PAIRS_PER_SHARD]
+            keys = {pair_key(pair) for pair in chunk}
+            tasks.append((chunk, keys & missing_raw, keys & missing_verified, verification))
         for _ in parallel_map(_match_shard, tasks, workers, "matching", shared=self):
             pass
         for store in self.stores.values():

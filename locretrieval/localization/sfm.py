@@ -8,6 +8,7 @@ matched once; the per-query work then reads only cached inputs.
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
@@ -150,6 +151,14 @@ class QueryTask:
     query: int
     top: tuple[tuple[int, ...], ...]
     ks: tuple[tuple[int, ...], ...]
+
+
+def outcomes_per_image_set(task: QueryTask, localize: Callable[[tuple[int, ...]], Outcome]) -> list[list[Outcome]]:
+    """Outcomes ``[ranking][k]`` of one query, where ``localize(images)`` gives the outcome of
+    the top-k database images as a sorted tuple; it runs once per distinct image set, however
+    many rankings and ks (or orders within a ranking) select it."""
+    localize = functools.cache(localize)
+    return [[localize(tuple(sorted(top[:k]))) for k in ks] for top, ks in zip(task.top, task.ks)]
 
 
 def query_tasks(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> list[QueryTask]:

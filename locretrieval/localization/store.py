@@ -8,13 +8,15 @@ are never modified after they are written, which makes concurrent readers safe.
 A record is a set of named arrays (the same names in every record of a shard) stored under
 a key (any string, e.g. an image name or a pair of them). A shard stores, per array name,
 the records' arrays concatenated along their first axis with their lengths, and the keys in
-order, so reading a shard is a few dataset reads; recently read shards stay in memory.
+order, so reading a shard is a few dataset reads. Readers may ask for some of the arrays only
+(e.g. keypoints without descriptors): each array of a shard is read on first use and recently
+read ones stay in memory, up to `CACHED_BYTES` per store.
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 import h5py
@@ -23,8 +25,11 @@ import numpy as np
 from locretrieval.cache import atomic_path, config_key
 
 SHARD_SUFFIX = ".h5"
-#: Shards kept in memory per store (least recently used dropped first).
-CACHED_SHARDS = 64
+#: Bytes of shard arrays kept in memory per store (least recently used dropped first).
+CACHED_BYTES = 512 * 2**20
+
+#: One array of every record of a shard: ``key -> array``.
+Column = dict[str, np.ndarray]
 
 
 class ShardedStore:
@@ -33,11 +38,13 @@ class ShardedStore:
     def __init__(self, folder: str | Path) -> None:
         self.folder = Path(folder)
         self._index: dict[str, Path] | None = None
-        self._cache: OrderedDict[Path, dict[str, dict[str, np.ndarray]]] = OrderedDict()
+        self._array_names: dict[Path, list[str]] = {}
+        self._cache: OrderedDict[tuple[Path, str], Column] = OrderedDict()
+        self._cached_bytes = 0
 
     def __getstate__(self) -> dict:
         """Pickled for worker processes without the in-memory shards."""
-        return {**self.__dict__, "_cache": OrderedDict()}
+        return {**self.__dict__, "_cache": OrderedDict(), "_cached_bytes": 0}
 
     @property
     def index(self) -> dict[str, Path]:
@@ -49,6 +56,7 @@ class ShardedStore:
             for shard in shards:
                 with _open(shard) as file:
                     index.update((key, shard) for key in file["keys"].asstr()[()])
+                    self._array_names[shard] = sorted(file["data"])
             self._index = index
         return self._index
 
@@ -67,31 +75,38 @@ class ShardedStore:
         index = self.index
         return list(dict.fromkeys(key for key in keys if key not in index))
 
-    def read(self, keys: Iterable[str]) -> dict[str, dict[str, np.ndarray]]:
-        """The records of ``keys``; a missing key is a `KeyError`."""
+    def read(self, keys: Iterable[str], arrays: Sequence[str] | None = None) -> dict[str, dict[str, np.ndarray]]:
+        """The records of ``keys`` holding the arrays named in ``arrays`` (all when None), and
+        only those are read from disk; a missing key or array is a `KeyError`."""
         records = {}
         for key in keys:
             shard = self.index.get(key)
             if shard is None:
                 raise KeyError(f"{self.folder}: no record {key!r}")
-            records[key] = self._shard(shard)[key]
+            names = self._array_names[shard] if arrays is None else arrays
+            records[key] = {name: column[key] for name, column in self._columns(shard, names).items()}
         return records
 
-    def _shard(self, shard: Path) -> dict[str, dict[str, np.ndarray]]:
-        if shard in self._cache:
-            self._cache.move_to_end(shard)
-            return self._cache[shard]
-        with _open(shard) as file:
-            keys = list(file["keys"].asstr()[()])
-            records: dict[str, dict[str, np.ndarray]] = {key: {} for key in keys}
-            for name in file["data"]:
-                bounds = np.cumsum(file["lengths"][name][()])[:-1]
-                for key, part in zip(keys, np.split(file["data"][name][()], bounds)):
-                    records[key][name] = part
-        self._cache[shard] = records
-        if len(self._cache) > CACHED_SHARDS:
-            self._cache.popitem(last=False)
-        return records
+    def _columns(self, shard: Path, names: Sequence[str]) -> dict[str, Column]:
+        """The arrays ``names`` of every record of ``shard``, read on first use and cached."""
+        unread = [name for name in names if (shard, name) not in self._cache]
+        if unread:
+            with _open(shard) as file:
+                keys = list(file["keys"].asstr()[()])
+                for name in unread:
+                    if name not in file["data"]:
+                        raise KeyError(f"cache shard {shard} has no array {name!r}; it holds {sorted(file['data'])}")
+                    bounds = np.cumsum(file["lengths"][name][()])[:-1]
+                    self._cache[(shard, name)] = dict(zip(keys, np.split(file["data"][name][()], bounds)))
+                    self._cached_bytes += sum(array.nbytes for array in self._cache[(shard, name)].values())
+        columns = {}
+        for name in names:
+            self._cache.move_to_end((shard, name))
+            columns[name] = self._cache[(shard, name)]
+        while self._cached_bytes > CACHED_BYTES and len(self._cache) > len(names):
+            _, dropped = self._cache.popitem(last=False)
+            self._cached_bytes -= sum(array.nbytes for array in dropped.values())
+        return columns
 
     def write(self, records: Mapping[str, Mapping[str, np.ndarray]]) -> Path | None:
         """Store ``records`` (same array names in each) as one new shard, atomically."""
@@ -111,6 +126,7 @@ class ShardedStore:
                     file.create_dataset(f"lengths/{name}", data=np.array([len(a) for a in arrays], dtype=np.int64))
         if self._index is not None:
             self._index.update((key, path) for key in keys)
+            self._array_names[path] = names
         return path
 
 

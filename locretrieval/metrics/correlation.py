@@ -27,7 +27,6 @@ are `scipy.stats.pearsonr`'s; Spearman's rho is Pearson's r of the average ranks
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 
 import numpy as np
 import pandas as pd
@@ -91,15 +90,16 @@ def _correlate_rows(x: np.ndarray, y: np.ndarray, x_name: str, y_name: str, rank
     )
 
 
-def _descriptors(table: pd.DataFrame, kinds: Sequence[str]) -> pd.DataFrame:
-    return table[table["ranking_kind"].isin(list(kinds))]
+def _descriptors(table: pd.DataFrame) -> pd.DataFrame:
+    return table[table["ranking_kind"] == "descriptor"]
 
 
-def paired_metrics(retrieval: pd.DataFrame, results: pd.DataFrame, kinds: Sequence[str] = ("descriptor",)) -> pd.DataFrame:
-    """Retrieval rows joined with localisation rows of the same dataset, subset, ranking and k
-    (``metric``/``value`` renamed ``retrieval_metric``/``retrieval_value``)."""
-    retrieval = _descriptors(retrieval, kinds).rename(columns={"metric": "retrieval_metric", "value": "retrieval_value"})
-    results = _descriptors(results, kinds)
+def paired_metrics(retrieval: pd.DataFrame, results: pd.DataFrame) -> pd.DataFrame:
+    """Descriptor rankings' retrieval rows (`RETRIEVAL_COLUMNS`) joined with their localisation rows
+    (`RESULT_COLUMNS`) of the same dataset, subset, ranking and k (``metric``/``value`` renamed
+    ``retrieval_metric``/``retrieval_value``): the input of `dataset_pearson` and `dataset_spearman`."""
+    retrieval = _descriptors(retrieval).rename(columns={"metric": "retrieval_metric", "value": "retrieval_value"})
+    results = _descriptors(results)
     return retrieval.drop(columns="num_queries").merge(
         results.drop(columns="num_queries"), on=["dataset", "subset", "ranking", "ranking_kind", "k"]
     )
@@ -130,49 +130,37 @@ def _correlate_paired(paired: pd.DataFrame, keys: list[str], across: str, rank: 
     return pd.concat([wide.index.to_frame(index=False), statistics], axis=1)
 
 
-def dataset_pearson(
-    retrieval: pd.DataFrame, results: pd.DataFrame, kinds: Sequence[str] = ("descriptor",)
-) -> pd.DataFrame:
-    """Pearson's r over k between each retrieval metric and % localised (Tables 3 and 6).
-
-    Inputs are the tidy retrieval table (`locretrieval.metrics.retrieval.RETRIEVAL_COLUMNS`)
-    and localisation table (`locretrieval.metrics.localization.RESULT_COLUMNS`). One row
-    per dataset x subset x ground truth x retrieval metric x paradigm x method x threshold
-    x ranking.
+def dataset_pearson(paired: pd.DataFrame) -> pd.DataFrame:
+    """Pearson's r over k between each retrieval metric and % localised (Tables 3 and 6), from
+    `paired_metrics`. One row per dataset x subset x ground truth x retrieval metric x paradigm
+    x method x threshold x ranking.
     """
     keys = ["dataset", "subset", "groundtruth", "retrieval_metric", *LOCALIZATION_KEYS, "ranking"]
-    return _correlate_paired(paired_metrics(retrieval, results, kinds), keys, "k", rank=False)
+    return _correlate_paired(paired, keys, "k", rank=False)
 
 
-def dataset_spearman(
-    retrieval: pd.DataFrame, results: pd.DataFrame, kinds: Sequence[str] = ("descriptor",)
-) -> pd.DataFrame:
+def dataset_spearman(paired: pd.DataFrame) -> pd.DataFrame:
     """Spearman's rho over the descriptors, per k, between a retrieval metric and % localised.
 
     One row per dataset x subset x ground truth x retrieval metric x paradigm x method x
     threshold x k (Tables 4 and 5); ``num_points`` is the number of descriptors.
     """
     keys = ["dataset", "subset", "groundtruth", "retrieval_metric", *LOCALIZATION_KEYS, "k"]
-    return _correlate_paired(paired_metrics(retrieval, results, kinds), keys, "ranking", rank=True)
+    return _correlate_paired(paired, keys, "ranking", rank=True)
 
 
-def query_pearson(
-    query_retrieval: pd.DataFrame,
-    query_errors: pd.DataFrame,
-    error: str = "position_error_m",
-    kinds: Sequence[str] = ("descriptor",),
-) -> pd.DataFrame:
-    """Per-query Pearson's r over k between a retrieval metric and ``-error`` (Figs. 8 and 11).
+def query_pearson(query_retrieval: pd.DataFrame, query_errors: pd.DataFrame) -> pd.DataFrame:
+    """Per-query Pearson's r over k between a retrieval metric and the negated position error
+    (Figs. 8 and 11), for descriptor rankings.
 
     Inputs are the per-query retrieval table (`QUERY_RETRIEVAL_COLUMNS`) and the per-query
-    error table (`QUERY_ERROR_COLUMNS`); ``error`` is ``position_error_m`` or
-    ``rotation_error_deg``. One row per dataset x ground truth x retrieval metric x
-    paradigm x method x ranking x query.
+    error table (`QUERY_ERROR_COLUMNS`). One row per dataset x ground truth x retrieval
+    metric x paradigm x method x ranking x query.
     """
     shared = ["dataset", "ranking", "query"]
     keys = ["dataset", "groundtruth", "retrieval_metric", "paradigm", "method", "ranking", "query"]
-    retrieval = _descriptors(query_retrieval, kinds).rename(columns={"metric": "retrieval_metric"})
-    errors = _descriptors(query_errors, kinds).assign(accuracy=lambda t: -t[error])
+    retrieval = _descriptors(query_retrieval).rename(columns={"metric": "retrieval_metric"})
+    errors = _descriptors(query_errors).assign(accuracy=lambda t: -t["position_error_m"])
     if retrieval.empty or errors.empty:
         return pd.DataFrame(columns=keys + STATISTIC_COLUMNS)
     x = _wide(retrieval, ["dataset", "ranking", "groundtruth", "retrieval_metric", "query"], "k", ["value"])["value"]
@@ -183,5 +171,5 @@ def query_pearson(
     )
     x_values = x.reindex(columns=ks).to_numpy()[rows["x_row"]]
     y_values = y.reindex(columns=ks).to_numpy()[rows["y_row"]]
-    statistics = pearson_rows(x_values, y_values, "retrieval metric", f"-{error}")
+    statistics = pearson_rows(x_values, y_values, "retrieval metric", "-position_error_m")
     return pd.concat([rows[keys], statistics], axis=1)

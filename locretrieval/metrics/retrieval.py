@@ -114,6 +114,9 @@ def retrieval_tables(
     (`QUERY_RETRIEVAL_COLUMNS`) holds every query with a reference pose for the k of
     ``query_ks`` (those of the paradigms, for the per-query correlation of Sec. 3.7).
     """
+    wrong = {name: len(mask) for name, mask in subsets.items() if len(mask) != len(queries)}
+    if wrong:
+        raise ValueError(f"{dataset}: subset masks {wrong} do not have one entry per query ({len(queries)})")
     evaluable = queries.has_pose
     names = np.asarray(queries.names, dtype=object)
     table_ks, query_ks = sorted({int(k) for k in ks}), sorted({int(k) for k in query_ks})
@@ -124,7 +127,7 @@ def retrieval_tables(
         for groundtruth, relevance in relevances.items():
             _check_shapes(ranking, groundtruth, relevance, len(queries))
             per_query = retrieval_metrics(ranking.indices, relevance, all_ks)
-            has_relevant = np.diff(relevance.indptr) > 0
+            has_relevant = ~np.isnan(per_query["average_precision"][:, 0])  # AP is NaN without a relevant image
             labels = {"dataset": dataset, "ranking": ranking.name, "ranking_kind": ranking.kind, "groundtruth": groundtruth}
             for subset, mask in subsets.items():
                 members = np.asarray(mask, dtype=bool) & evaluable

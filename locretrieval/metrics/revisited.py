@@ -134,7 +134,7 @@ def revisited_scores(
 
 
 def evaluate_revisited(
-    ranking: Ranking | np.ndarray,
+    ranking: Ranking,
     groundtruth: RevisitedGroundTruth,
     dataset: str,
     kappas: Sequence[int] = (1, 5, 10),
@@ -142,16 +142,14 @@ def evaluate_revisited(
     """mAP and mP@k of a ranking under the Easy, Medium and Hard protocols (tidy rows).
 
     ``ranking`` holds, per query of ``qimlist`` (in that order), indices into ``imlist``
-    best first (``[Q, K]``; a `Ranking` or an array). Values are fractions in [0, 1].
+    best first (`Ranking` checks the shape and that empty slots come last). Values are
+    fractions in [0, 1].
     """
-    name = ranking.name if isinstance(ranking, Ranking) else "ranking"
-    indices = np.asarray(ranking.indices if isinstance(ranking, Ranking) else ranking, dtype=np.int64)
-    if indices.ndim != 2 or len(indices) != len(groundtruth.qimlist):
-        expected = f"[{len(groundtruth.qimlist)}, K]"
-        raise ValueError(f"{dataset}: ranking must be {expected} (one row per query of qimlist), got {indices.shape}")
-    if indices.max(initial=EMPTY) >= len(groundtruth.imlist) or indices.min(initial=0) < EMPTY:
-        last = len(groundtruth.imlist) - 1
-        raise ValueError(f"{dataset}: ranking indices must lie in 0..{last} (or {EMPTY} for empty slots)")
+    name, indices = ranking.name, ranking.indices
+    if len(indices) != len(groundtruth.qimlist):
+        raise ValueError(f"{dataset}: ranking {name!r} has {len(indices)} rows, qimlist {len(groundtruth.qimlist)} queries")
+    if indices.max(initial=EMPTY) >= len(groundtruth.imlist):
+        raise ValueError(f"{dataset}: ranking {name!r} indices must lie in 0..{len(groundtruth.imlist) - 1}")
     rows = []
     for protocol in PROTOCOLS:
         ap, precision = revisited_scores(indices, *groundtruth.labels(protocol), kappas)

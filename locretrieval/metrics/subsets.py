@@ -124,8 +124,8 @@ def load_maskrcnn(weights: str | Path, device: Any = "cpu", min_size: int = 800,
     """torchvision ``maskrcnn_resnet50_fpn`` in eval mode with COCO weights from a local file.
 
     ``min_size`` is the shorter image side the model resizes to (torchvision's default
-    800; the longer side is capped at ``1333 / 800`` of it); detections below
-    ``score_threshold`` are dropped by the model itself.
+    800; the longer side is capped at ``1333 / 800`` of it); the model keeps only detections
+    scoring above ``score_threshold`` (the one place it is applied).
     """
     import torch
     from torchvision.models.detection import MaskRCNN_ResNet50_FPN_Weights, maskrcnn_resnet50_fpn
@@ -152,39 +152,31 @@ def load_maskrcnn(weights: str | Path, device: Any = "cpu", min_size: int = 800,
     return model.eval().to(device)
 
 
-def dynamic_fraction(
-    labels: np.ndarray, scores: np.ndarray, masks: np.ndarray, score_threshold: float, mask_threshold: float
-) -> float:
-    """Fraction of pixels covered by dynamic detections.
+def dynamic_fraction(labels: Any, masks: Any, dynamic_ids: Any, mask_threshold: float) -> float:
+    """Fraction of pixels covered by dynamic detections, computed where the tensors are.
 
-    ``labels [D]`` (COCO ids), ``scores [D]`` and soft ``masks [D, H, W]`` (probabilities)
-    are one image's detections; a detection counts when its label is dynamic and its score
-    is >= ``score_threshold``; its pixels are those with probability >= ``mask_threshold``.
+    ``labels [D]`` (COCO ids) and soft ``masks [D, 1, H, W]`` (probabilities) are one image's
+    detections (torch tensors, as Mask R-CNN returns them); a detection counts when its label
+    is in ``dynamic_ids``; its pixels are those with probability >= ``mask_threshold``.
     """
-    keep = np.isin(labels, dynamic_category_ids()) & (scores >= score_threshold)
-    union = (masks[keep] >= mask_threshold).any(axis=0) if keep.any() else np.zeros(masks.shape[1:], dtype=bool)
-    return float(union.mean())
+    import torch
+
+    dynamic = masks[torch.isin(labels, dynamic_ids), 0] >= mask_threshold
+    return float(dynamic.any(dim=0).float().mean()) if len(dynamic) else 0.0
 
 
-def maskrcnn_fractions(images: ImageSet, model, score_threshold: float, mask_threshold: float) -> np.ndarray:
+def maskrcnn_fractions(images: ImageSet, model, mask_threshold: float) -> np.ndarray:
     """Dynamic fraction ``[N]`` of every image from the detections of a `load_maskrcnn` model."""
     import torch
 
     device = next(model.parameters()).device
+    dynamic_ids = torch.as_tensor(dynamic_category_ids(), device=device)
     fractions = []
     with torch.inference_mode():
         for path in tqdm(images.paths, desc="Mask R-CNN", unit="image", disable=None):
             tensor = torch.from_numpy(read_image(path).copy()).permute(2, 0, 1).float().div(255.0)
             output = model([tensor.to(device)])[0]
-            fractions.append(
-                dynamic_fraction(
-                    output["labels"].cpu().numpy(),
-                    output["scores"].cpu().numpy(),
-                    output["masks"][:, 0].cpu().numpy(),
-                    score_threshold,
-                    mask_threshold,
-                )
-            )
+            fractions.append(dynamic_fraction(output["labels"], output["masks"], dynamic_ids, mask_threshold))
     return np.array(fractions)
 
 
@@ -239,7 +231,7 @@ def subset_scores(
             from locretrieval.device import resolve_device
 
             model = load_maskrcnn(weights, resolve_device(str(device)), min_size, thresholds[0])
-            return maskrcnn_fractions(images, model, *thresholds)
+            return maskrcnn_fractions(images, model, thresholds[1])
 
         dynamic = _cached(cache_dir, key, detect)
     else:

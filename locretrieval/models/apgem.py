@@ -23,13 +23,15 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
 
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD, ExtractionSettings, Preprocessing
-from locretrieval.models.heads import GeMPooling, RetrievalNet, torchvision_trunk
+from locretrieval.models.heads import RetrievalNet
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor, WeightsInfo, build_network
+from locretrieval.models.trainable import build_gem_network
 from locretrieval.models.weights import (
     WEIGHT_SOURCES,
+    check_architecture,
+    check_checkpoint,
     content_sha256,
     is_checkpoint,
     load_torch_file,
@@ -128,13 +130,13 @@ def _network_name(key: str) -> str:
     return "backbone." + key
 
 
-def read_apgem_weights(path: str | os.PathLike) -> APGeMWeights:
+def read_apgem_weights(path: str | os.PathLike, architecture: Mapping[str, Any] | None = None) -> APGeMWeights:
     """Read a dirtorch checkpoint (restricted unpickling; PCA objects become arrays) or a
-    checkpoint `convert_apgem` wrote."""
+    checkpoint `convert_apgem` wrote; raise unless it holds ``architecture`` (``backbone``,
+    ``out_dim``; ``None`` accepts any)."""
     content = load_torch_file(path, _PCA_GLOBALS)
     if is_checkpoint(content):
-        if content.get("model") != "apgem":
-            raise ValueError(f"{path}: a locretrieval checkpoint of model {content.get('model')!r}, not 'apgem'")
+        check_checkpoint(content, path, "apgem", architecture or {})
         return APGeMWeights(
             content["state_dict"],
             content["architecture"]["backbone"],
@@ -154,6 +156,9 @@ def read_apgem_weights(path: str | os.PathLike) -> APGeMWeights:
     state = {_network_name(key.removeprefix("module.")): value for key, value in content["state_dict"].items()}
     if "whitening.weight" not in state:
         raise ValueError(f"{path}: state_dict has no 'fc.weight' (the 2048-D FC layer)")
+    check_architecture(
+        {"backbone": DIRTORCH_BACKBONES[arch], "out_dim": state["whitening.weight"].shape[0]}, path, architecture or {}
+    )
     preprocess = content.get("preprocess") or {}
     pcas = {
         str(name): PCAWhitening.from_attributes(vars(pca) if isinstance(pca, PicklePCA) else pca, f"{path} pca[{name!r}]")
@@ -183,9 +188,8 @@ def convert_apgem(source: str | os.PathLike, destination: str | os.PathLike) -> 
 
 
 def build_apgem_network(backbone: str = "resnet101", out_dim: int = 2048, projection_dim: int | None = None) -> RetrievalNet:
-    trunk, channels = torchvision_trunk(backbone)
-    projection = nn.Linear(out_dim, projection_dim) if projection_dim else None
-    return RetrievalNet(trunk, GeMPooling(3.0, trainable=True), channels, nn.Linear(channels, out_dim), projection)
+    """GeM (learned ``p``) -> FC ``out_dim`` as the whitening -> optional PCA as the projection."""
+    return build_gem_network(backbone, 3.0, True, out_dim, projection_dim)
 
 
 class APGeMDescriptor(TorchGlobalDescriptor):
@@ -214,12 +218,8 @@ class APGeMDescriptor(TorchGlobalDescriptor):
         **extraction: Any,
     ) -> None:
         path = require_weights(weights, WEIGHT_SOURCES["apgem"], name)
-        loaded = read_apgem_weights(path)
         declared = {"backbone": str(backbone), "out_dim": int(out_dim)}
-        if (loaded.backbone, loaded.out_dim) != (declared["backbone"], declared["out_dim"]):
-            raise ValueError(
-                f"{path}: holds AP-GeM on {loaded.backbone} with a {loaded.out_dim}-D FC; the configuration asks for {declared}"
-            )
+        loaded = read_apgem_weights(path, declared)
         state = dict(loaded.state_dict)
         projection_dim = None
         if pca is not None:

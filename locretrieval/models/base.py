@@ -9,6 +9,9 @@ import numpy as np
 
 from locretrieval.scene import ImageSet, Scene
 
+#: Tolerance on the L2 norm of every descriptor row (`validate_descriptors` enforces it).
+NORM_TOLERANCE = 1e-3
+
 
 class GlobalDescriptor(abc.ABC):
     """Maps images to L2-normalised ``float32`` global descriptors ``[N, D]``.
@@ -17,7 +20,8 @@ class GlobalDescriptor(abc.ABC):
     determines the output (configuration, weight-file hash, preprocessing); the descriptor
     cache is keyed by it. Models with data-dependent parts (DenseVLAD's vocabulary and PCA)
     set ``learns_from_database`` and learn them in ``fit``, so their cache key also depends
-    on the database.
+    on the database. The cache stores descriptors only: a model that `describe_scene` served
+    from the cache is not fitted.
     """
 
     learns_from_database: bool = False
@@ -31,13 +35,6 @@ class GlobalDescriptor(abc.ABC):
 
     def fit(self, database: ImageSet) -> None:
         """Learn data-dependent parameters on the database images (default: nothing)."""
-
-    def fitted_state(self) -> dict[str, np.ndarray]:
-        """The arrays `fit` learned (default: none); the descriptor cache stores them."""
-        return {}
-
-    def load_fitted_state(self, state: dict[str, np.ndarray]) -> None:
-        """Restore what `fit` learned from `fitted_state` arrays (default: nothing to restore)."""
 
     @abc.abstractmethod
     def describe(self, images: ImageSet) -> np.ndarray:

@@ -366,26 +366,12 @@ class DenseVLAD(GlobalDescriptor):
         self._fitted_database = (database.fingerprint(include_poses=False), self._whiten(vlads))
         log.info("DenseVLAD fitted on %d database images: %d dimensions", len(database), self._pca_projection.shape[1])
 
-    def fitted_state(self) -> dict[str, np.ndarray]:
-        self._require_fitted()
-        return {
-            "centroids": self._centroids.cpu().numpy(),
-            "pca_mean": self._pca_mean.cpu().numpy(),
-            "pca_projection": self._pca_projection.cpu().numpy(),
-        }
-
-    def load_fitted_state(self, state: dict[str, np.ndarray]) -> None:
-        missing = {"centroids", "pca_mean", "pca_projection"} - set(state)
-        if missing:
-            raise ValueError(f"DenseVLAD fitted state lacks {sorted(missing)}")
-        self._centroids = torch.from_numpy(np.asarray(state["centroids"], np.float32)).to(self.device)
-        self._pca_mean = torch.from_numpy(np.asarray(state["pca_mean"], np.float32)).to(self.device)
-        self._pca_projection = torch.from_numpy(np.asarray(state["pca_projection"], np.float32)).to(self.device)
-        self._fitted_database = None
-
     def _require_fitted(self) -> None:
         if self._centroids is None or self._pca_projection is None:
-            raise RuntimeError("DenseVLAD is not fitted: call fit(database) first (describe_scene does)")
+            raise RuntimeError(
+                "DenseVLAD is not fitted: call fit(database) first (describe_scene does when its "
+                "descriptor cache misses; a cache hit leaves the model unfitted)"
+            )
 
     # -- description ----------------------------------------------------------------------
 

@@ -44,17 +44,17 @@ class GeMPooling(nn.Module):
 class NetVLADPooling(nn.Module):
     """NetVLAD (Arandjelovic et al., CVPR 2016) with input L2 ("preL2") and intra-normalisation.
 
-    Soft-assignment ``softmax_k(w_k . x_n (+ b_k))`` over ``clusters`` centres ``c_k`` (``[K, D]``),
-    residual sums ``V[k] = sum_n a_kn (x_n - c_k)``, each ``V[k]`` L2-normalised, then the whole
-    vector. The output is flattened cluster-fastest (index ``d * K + k``), which is MATLAB's
-    column-major flattening of the ``K x D`` VLAD matrix of the authors' code, so the released
-    whitening matrices apply unchanged.
+    Soft-assignment ``softmax_k(w_k . x_n)`` (no bias, as in the authors' model) over ``clusters``
+    centres ``c_k`` (``[K, D]``), residual sums ``V[k] = sum_n a_kn (x_n - c_k)``, each ``V[k]``
+    L2-normalised, then the whole vector. The output is flattened cluster-fastest (index
+    ``d * K + k``), which is MATLAB's column-major flattening of the ``K x D`` VLAD matrix of the
+    authors' code, so the released whitening matrices apply unchanged.
     """
 
-    def __init__(self, dim: int, clusters: int, assignment_bias: bool = False) -> None:
+    def __init__(self, dim: int, clusters: int) -> None:
         super().__init__()
         self.dim, self.clusters = dim, clusters
-        self.assignment = nn.Conv2d(dim, clusters, kernel_size=1, bias=assignment_bias)
+        self.assignment = nn.Conv2d(dim, clusters, kernel_size=1, bias=False)
         self.centers = nn.Parameter(torch.empty(clusters, dim))
         nn.init.normal_(self.centers, std=dim**-0.5)
 

@@ -32,10 +32,12 @@ import torch
 from torch import nn
 
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
-from locretrieval.models.heads import NetVLADPooling, RetrievalNet, torchvision_trunk
+from locretrieval.models.heads import RetrievalNet, torchvision_trunk
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor, WeightsInfo, build_network
+from locretrieval.models.trainable import build_netvlad_head_network
 from locretrieval.models.weights import (
     WEIGHT_SOURCES,
+    check_architecture,
     check_checkpoint,
     content_sha256,
     is_checkpoint,
@@ -49,16 +51,8 @@ VGG16_TRUNK_LAYERS = 29
 
 
 def build_netvlad_network(clusters: int = 64, whiten_dim: int | None = 4096) -> RetrievalNet:
-    trunk, dim = torchvision_trunk("vgg16")
-    pooling = NetVLADPooling(dim, clusters)
-    whitening = nn.Linear(pooling.output_dim, whiten_dim) if whiten_dim else None
-    return RetrievalNet(trunk, pooling, pooling.output_dim, whitening)
-
-
-def vgg16_trunk_shapes() -> tuple[nn.Module, int]:
-    """VGG16's trunk built without memory (shapes only)."""
-    with torch.device("meta"):
-        return torchvision_trunk("vgg16")
+    """The authors' architecture: NetVLAD on VGG16 (`build_netvlad_head_network`)."""
+    return build_netvlad_head_network("vgg16", clusters, whiten_dim)
 
 
 def _layer_weights(layer: Any) -> list[np.ndarray]:
@@ -90,7 +84,8 @@ def read_netvlad_struct(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor
             "a MatConvNet object file must first be converted with net_class2struct.m"
         )
     layers = list(np.atleast_1d(net.layers))
-    trunk, _ = vgg16_trunk_shapes()
+    with torch.device("meta"):  # shapes only
+        trunk, _ = torchvision_trunk("vgg16")
     state: dict[str, torch.Tensor] = {}
     for index, module in enumerate(trunk.features):
         if not isinstance(module, nn.Conv2d):
@@ -172,8 +167,7 @@ class NetVLADDescriptor(TorchGlobalDescriptor):
         if path.suffix.lower() == ".mat":
             state, average = read_netvlad_struct(path)
             mean, std = average / 255.0, [1 / 255.0] * 3
-            if architecture_of(state) != architecture:
-                raise ValueError(f"{path}: holds NetVLAD {architecture_of(state)}, the configuration asks for {architecture}")
+            check_architecture(architecture_of(state), path, architecture)
         else:
             content = load_torch_file(path)
             if not is_checkpoint(content):

@@ -7,7 +7,6 @@ per image at ``<folder>/<image name relative to records_data>.gfeat``.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
 from collections.abc import Sequence
@@ -19,7 +18,8 @@ import kapture.io.csv
 import kapture.io.features
 import numpy as np
 
-from locretrieval.models.base import GlobalDescriptor
+from locretrieval.cache import config_key, tree_signature
+from locretrieval.models.base import NORM_TOLERANCE, GlobalDescriptor
 from locretrieval.scene import ImageSet, Scene
 
 log = logging.getLogger(__name__)
@@ -28,8 +28,6 @@ CONFIG_FILENAME = "global_features.txt"
 FEATURE_EXTENSION = kapture.io.features.FEATURE_FILE_EXTENSION[kapture.GlobalFeatures]
 #: Where kapture keeps global features inside a kapture folder.
 FEATURES_SUBDIR = Path(kapture.io.features.FEATURES_DATA_DIRNAMES[kapture.GlobalFeatures])
-#: Rows whose norm differs more than this from 1 count as "not normalised" (logged).
-NORM_TOLERANCE = 1e-3
 
 
 def read_config(folder: Path) -> kapture.io.csv.GlobalFeaturesConfig:
@@ -43,21 +41,6 @@ def read_config(folder: Path) -> kapture.io.csv.GlobalFeaturesConfig:
         raise ValueError(
             f"{config_path}: expected one line 'name, dtype, dsize, metric_type' ({error!r})"
         ) from error
-
-
-def content_signature(folders: Sequence[Path]) -> str:
-    """Hash of every file's relative path, size and mtime under ``folders`` (changes with the files)."""
-    digest = hashlib.sha256()
-    for folder in folders:
-        entries = []
-        for root, _, files in os.walk(folder):
-            for filename in files:
-                path = os.path.join(root, filename)
-                stat = os.stat(path)
-                entries.append(f"{os.path.relpath(path, folder)}|{stat.st_size}|{stat.st_mtime_ns}")
-        digest.update(f"{folder}\n".encode())
-        digest.update("\n".join(sorted(entries)).encode())
-    return digest.hexdigest()[:16]
 
 
 def find_feature_folders(sources: Sequence[Path], feature_name: str | None) -> list[Path]:
@@ -148,7 +131,9 @@ class PrecomputedDescriptor(GlobalDescriptor):
 
     def identity(self) -> dict[str, Any]:
         folders = [str(folder.resolve()) for folder in self.folders]
-        return {"model": "precomputed", "folders": folders, "signature": content_signature(self.folders)}
+        # The files' names, sizes and times, hashed: the key changes when a feature file does.
+        signature = config_key([tree_signature(folder) for folder in self.folders])
+        return {"model": "precomputed", "folders": folders, "signature": signature}
 
     @staticmethod
     def _feature_path(image_name: str, folders: list[Path]) -> Path:

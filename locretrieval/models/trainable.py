@@ -33,10 +33,19 @@ from locretrieval.models.weights import (
 _CLASSIFIER_PREFIXES = ("fc.", "classifier.")
 
 
-def build_gem_network(backbone: str, p: float = 3.0, trainable_p: bool = True, whiten_dim: int | None = None) -> RetrievalNet:
+def build_gem_network(
+    backbone: str,
+    p: float = 3.0,
+    trainable_p: bool = True,
+    whiten_dim: int | None = None,
+    projection_dim: int | None = None,
+) -> RetrievalNet:
+    """GeM on a torchvision trunk, optional whitening (``whiten_dim``) and final projection
+    (``projection_dim``, applied after multi-scale aggregation)."""
     trunk, channels = torchvision_trunk(backbone)
     whitening = nn.Linear(channels, whiten_dim) if whiten_dim else None
-    return RetrievalNet(trunk, GeMPooling(p, trainable=trainable_p), channels, whitening)
+    projection = nn.Linear(whiten_dim or channels, projection_dim) if projection_dim else None
+    return RetrievalNet(trunk, GeMPooling(p, trainable=trainable_p), channels, whitening, projection)
 
 
 def build_netvlad_head_network(backbone: str, clusters: int = 64, whiten_dim: int | None = None) -> RetrievalNet:

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 import torchvision
 
-from locretrieval.cache import atomic_path
+from locretrieval.cache import atomic_path, tree_signature
 
 #: Environment variable naming the folder of the weight-hash cache (default ~/.cache/locretrieval).
 HASH_CACHE_ENV = "LOCRETRIEVAL_HASH_CACHE"
@@ -84,10 +84,6 @@ def _hash_cache_file() -> Path:
     return Path(folder) / "weight_hashes.json"
 
 
-def _files_of(path: Path) -> list[Path]:
-    return [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
-
-
 def content_sha256(path: str | os.PathLike) -> str:
     """SHA-256 of a file, or of a folder's files (relative names and contents, sorted).
 
@@ -95,8 +91,7 @@ def content_sha256(path: str | os.PathLike) -> str:
     unchanged multi-hundred-megabyte weight file is hashed once, not on every run.
     """
     path = Path(path).resolve()
-    files = _files_of(path)
-    signature = [[str(f.relative_to(path)) if f != path else "", f.stat().st_size, f.stat().st_mtime_ns] for f in files]
+    signature = [list(entry) for entry in tree_signature(path)]  # lists, as read back from JSON
     cache_file = _hash_cache_file()
     try:
         cache = json.loads(cache_file.read_text())
@@ -106,10 +101,10 @@ def content_sha256(path: str | os.PathLike) -> str:
     if isinstance(entry, dict) and entry.get("signature") == signature:
         return entry["sha256"]
     digest = hashlib.sha256()
-    for file in files:
-        if file != path:
-            digest.update(f"{file.relative_to(path)}\n".encode())
-        with open(file, "rb") as stream:
+    for relative, _, _ in signature:
+        if relative:
+            digest.update(f"{relative}\n".encode())
+        with open(path / relative, "rb") as stream:
             for block in iter(lambda: stream.read(1 << 20), b""):
                 digest.update(block)
     cache[str(path)] = {"signature": signature, "sha256": digest.hexdigest()}
@@ -192,10 +187,15 @@ def check_checkpoint(content: Mapping[str, Any], path: Path, model: str, archite
     """Raise unless ``content`` is our checkpoint of ``model`` with the configured ``architecture``."""
     if content.get("model") != model:
         raise ValueError(f"{path}: a locretrieval checkpoint of model {content.get('model')!r}, not {model!r}")
-    stored = content["architecture"]
+    check_architecture(content["architecture"], path, architecture)
+
+
+def check_architecture(stored: Mapping[str, Any], path: Path, architecture: Mapping[str, Any]) -> None:
+    """Raise unless the settings a weight file holds (``stored``) equal the configured ``architecture``."""
+    stored = plain(dict(stored))
     differing = {
         key: (stored.get(key), value) for key, value in plain(dict(architecture)).items() if stored.get(key) != value
     }
     if differing:
         details = ", ".join(f"{key}: file {a!r} vs config {b!r}" for key, (a, b) in differing.items())
-        raise ValueError(f"{path}: checkpoint architecture differs from the configuration ({details})")
+        raise ValueError(f"{path}: architecture in the file differs from the configuration ({details})")

@@ -33,8 +33,9 @@ CORRELATION_FILES = {
 
 @dataclass
 class Correlations:
-    """The tables of `dataset_pearson`, `dataset_spearman` and `query_pearson`."""
+    """The tables of `paired_metrics`, `dataset_pearson`, `dataset_spearman` and `query_pearson`."""
 
+    paired: pd.DataFrame
     pearson: pd.DataFrame
     spearman: pd.DataFrame
     query: pd.DataFrame
@@ -80,9 +81,11 @@ def build_report(
 
 def compute_correlations(tables: RunTables) -> Correlations:
     """The three analyses of Sec. 3.7 over the descriptor rankings of ``tables``."""
+    paired = paired_metrics(tables.retrieval, tables.results)
     return Correlations(
-        pearson=dataset_pearson(tables.retrieval, tables.results),
-        spearman=dataset_spearman(tables.retrieval, tables.results),
+        paired=paired,
+        pearson=dataset_pearson(paired),
+        spearman=dataset_spearman(paired),
         query=query_pearson(tables.query_retrieval, tables.query_errors),
     )
 
@@ -182,10 +185,9 @@ def correlation_section(
         "(constant series, fewer than 2 points) print as –; every coefficient is in "
         f"{', '.join(CORRELATION_FILES.values())}."
     )
-    paired = paired_metrics(tables.retrieval, tables.results)
     for metric in [m for m in METRIC_TITLES if m in set(correlations.pearson["retrieval_metric"])]:
         pearson, spearman, pairs = (
-            _selected(frame, groundtruth, metric) for frame in (correlations.pearson, correlations.spearman, paired)
+            _selected(frame, groundtruth, metric) for frame in (correlations.pearson, correlations.spearman, correlations.paired)
         )
         query = _selected(correlations.query, groundtruth, METRICS[metric])
         writer.heading(METRIC_TITLES[metric], 3)

@@ -31,10 +31,10 @@ class ReportWriter:
         for path in paths:
             self.lines += [f"![{path.stem}]({path.relative_to(self.directory).as_posix()})", ""]
 
-    def table(self, frame: pd.DataFrame, stem: str, caption: str, floatfmt: str = ".2f", index: bool = True) -> None:
+    def table(self, frame: pd.DataFrame, stem: str, caption: str, floatfmt: str = ".2f") -> None:
         """Embed ``frame`` and write it as ``tables/<stem>.md`` and ``tables/<stem>.tex``."""
         stem = safe_name(stem)
-        markdown = write_table(frame, self.directory / "tables", stem, caption, floatfmt, index)
+        markdown = write_table(frame, self.directory / "tables", stem, caption, floatfmt)
         self.lines += [f"{caption} ([LaTeX](tables/{stem}.tex))", "", markdown, ""]
 
     def write(self, path: Path) -> Path:
@@ -42,15 +42,13 @@ class ReportWriter:
         return path
 
 
-def write_table(
-    frame: pd.DataFrame, directory: Path, stem: str, caption: str, floatfmt: str = ".2f", index: bool = True
-) -> str:
+def write_table(frame: pd.DataFrame, directory: Path, stem: str, caption: str, floatfmt: str = ".2f") -> str:
     """Write ``frame`` as ``<stem>.md`` and ``<stem>.tex`` (booktabs); returns the markdown.
 
     Missing values (e.g. undefined correlations) print as ``–`` (``--`` in LaTeX).
     """
     directory.mkdir(parents=True, exist_ok=True)
-    flat = frame.reset_index() if index else frame
+    flat = frame.reset_index()
     names = flat.columns.names
     flat.columns = [
         " ".join(_label(n, v) for n, v in zip(names, c)) if isinstance(c, tuple) else str(c) for c in flat.columns
@@ -58,7 +56,7 @@ def write_table(
     markdown = flat.astype(object).where(flat.notna(), None).to_markdown(index=False, floatfmt=floatfmt, missingval="–")
     (directory / f"{stem}.md").write_text(markdown + "\n")
     latex = frame.to_latex(
-        index=index,
+        index=True,
         float_format=lambda value: format(value, floatfmt),
         na_rep="--",
         escape=True,
@@ -73,11 +71,11 @@ def _label(level: str | None, value: object) -> str:
     return f"k={value}" if level == "k" and value != "" else str(value)
 
 
-def pivot_localization(table: pd.DataFrame, paradigm: str, method: str, subset: str = "all") -> pd.DataFrame:
-    """``ranking x (threshold, k)`` table of % localised for one paradigm/method."""
-    rows = table[(table["paradigm"] == paradigm) & (table["method"] == method) & (table["subset"] == subset)]
+def pivot_localization(table: pd.DataFrame, paradigm: str, method: str) -> pd.DataFrame:
+    """``ranking x (threshold, k)`` table of % localised for one paradigm/method, all queries."""
+    rows = table[(table["paradigm"] == paradigm) & (table["method"] == method) & (table["subset"] == "all")]
     rows = rows.assign(
-        threshold=[f"{x:g}m,{y:g}°" for x, y in zip(rows["position_threshold_m"], rows["rotation_threshold_deg"])]
+        threshold=[threshold_label(x, y) for x, y in zip(rows["position_threshold_m"], rows["rotation_threshold_deg"])]
     )
     return rows.pivot_table(index="ranking", columns=["threshold", "k"], values="localized_pct").round(1)
 
@@ -125,7 +123,11 @@ def subset_sizes(results: pd.DataFrame, retrieval: pd.DataFrame) -> pd.DataFrame
     return sizes.groupby(["dataset", "subset"])["num_queries"].max().unstack("subset")
 
 
+def best_over_k(results: pd.DataFrame, across: str) -> pd.DataFrame:
+    """Best % localised over k per paradigm x method x ranking (rows) x ``across`` (columns)."""
+    return results.groupby(["paradigm", "method", "ranking", across])["localized_pct"].max().unstack(across)
+
+
 def best_by_subset(results: pd.DataFrame) -> pd.DataFrame:
-    """Best % localised over k at the loosest threshold, per paradigm x method x ranking x subset."""
-    loosest = results[results["position_threshold_m"] == results["position_threshold_m"].max()]
-    return loosest.groupby(["paradigm", "method", "ranking", "subset"])["localized_pct"].max().unstack("subset")
+    """`best_over_k` at the loosest threshold, one column per subset."""
+    return best_over_k(results[results["position_threshold_m"] == results["position_threshold_m"].max()], "subset")

@@ -22,7 +22,7 @@ import pandas as pd  # noqa: E402
 #: Line style per ranking kind: descriptors solid, ground truth dashed (paper Fig. 4).
 LINE_STYLES = {"descriptor": "-", "groundtruth": "--", "baseline": ":"}
 REFERENCE_METHOD = "ewb"
-METRIC_LABELS = {"precision": "P@k", "recall": "R@k", "map": "mAP@k"}
+METRIC_LABELS = {"precision": "P@k", "recall": "R@k", "map": "mAP@k", "average_precision": "AP@k"}  # AP: per query
 PANEL_WIDTH, PANEL_HEIGHT = 4.2, 3.6
 PERCENT_LIMITS = (-2, 102)  # a little room around 0 and 100 %
 THRESHOLD_COLUMNS = ["position_threshold_m", "rotation_threshold_deg"]
@@ -122,13 +122,10 @@ def _line(
     axis.plot(rows[x], rows[y], style or LINE_STYLES.get(kind, "-"), color=color, marker=marker, markersize=3, label=label)
 
 
-def plot_localization_vs_k(
-    table: pd.DataFrame, figures: FigureFolder, subset: str = "all", colors: Mapping[str, str] | None = None
-) -> list[Path]:
-    """One figure per dataset x paradigm x method: % localised vs k, a panel per threshold
-    (paper Figs. 4-6), ground truth dashed."""
-    colors = colors or ranking_colors(table["ranking"])
-    table = table[table["subset"] == subset]
+def plot_localization_vs_k(table: pd.DataFrame, figures: FigureFolder, colors: Mapping[str, str]) -> list[Path]:
+    """One figure per dataset x paradigm x method: % localised vs k over all queries, a panel
+    per threshold (paper Figs. 4-6), ground truth dashed."""
+    table = table[table["subset"] == "all"]
     written = []
     for (dataset, paradigm), rows in table.groupby(["dataset", "paradigm"], sort=True):
         for method in sorted(rows["method"].unique()):
@@ -143,19 +140,15 @@ def plot_localization_vs_k(
                 axis.set(ylabel="% localized", ylim=PERCENT_LIMITS, title=threshold_label(position, rotation))
                 axis.grid(True, alpha=0.3)
             axes[-1].legend(fontsize=7, loc="best")
-            figure.suptitle(f"{dataset} ({subset}): {paradigm}, {method}")
-            suffix = "" if subset == "all" else f"_{subset}"
-            written.append(figures.save(figure, f"{dataset}_{paradigm}_{method}{suffix}"))
+            figure.suptitle(f"{dataset}: {paradigm}, {method}")
+            written.append(figures.save(figure, f"{dataset}_{paradigm}_{method}"))
     return written
 
 
-def plot_retrieval_curves(
-    retrieval: pd.DataFrame, figures: FigureFolder, subset: str = "all", colors: Mapping[str, str] | None = None
-) -> list[Path]:
-    """One figure per dataset x metric: P@k (Fig. 7), R@k (Fig. 10) or mAP@k vs k in %,
-    a panel per ground truth, every ranking a line."""
-    colors = colors or ranking_colors(retrieval["ranking"])
-    retrieval = retrieval[retrieval["subset"] == subset]
+def plot_retrieval_curves(retrieval: pd.DataFrame, figures: FigureFolder, colors: Mapping[str, str]) -> list[Path]:
+    """One figure per dataset x metric: P@k (Fig. 7), R@k (Fig. 10) or mAP@k vs k in %, over
+    all queries, a panel per ground truth, every ranking a line."""
+    retrieval = retrieval[retrieval["subset"] == "all"]
     written = []
     for (dataset, metric), rows in retrieval.groupby(["dataset", "metric"], sort=True):
         groundtruths = sorted(rows["groundtruth"].unique())
@@ -172,7 +165,7 @@ def plot_retrieval_curves(
             )
             axis.grid(True, alpha=0.3)
         axes[-1].legend(fontsize=7, loc="best")
-        figure.suptitle(f"{dataset} ({subset}): {METRIC_LABELS.get(metric, metric)}")
+        figure.suptitle(f"{dataset}: {METRIC_LABELS.get(metric, metric)}")
         written.append(figures.save(figure, f"{dataset}_{metric}_at_k"))
     return written
 

@@ -118,33 +118,22 @@ def conflicting_rows(frames: Sequence[tuple[Path, pd.DataFrame]], spec: TableSpe
 def combine(frames: Sequence[tuple[Path, pd.DataFrame]], spec: TableSpec) -> pd.DataFrame:
     """Concatenate one table of several runs, dropping rows repeated across runs.
 
-    Rows with the same keys (e.g. a ground-truth ranking evaluated in every run of a
-    multirun over models) are kept once. Repeated keys with different values are an error
-    for descriptor rankings (`load_runs` renames those first); for ground-truth and baseline
-    rankings and per-image tables they are logged and the first run's row kept.
+    Rows with the same keys (e.g. a ground-truth ranking evaluated in every run of a multirun
+    over models) are kept once. Rankings whose rows differ are renamed per run beforehand
+    (`label_variants`); the per-image and per-definition tables left (``subsets.csv``,
+    ``groundtruth_statistics.csv``) keep the first run's row, with a warning.
     """
     frames = [(run, frame) for run, frame in frames if len(frame)]
     if not frames:
         return pd.DataFrame(columns=spec.columns)
     conflicting = conflicting_rows(frames, spec)
     if len(conflicting):
-        descriptor = _descriptor_rows(conflicting)
-        example = (descriptor if len(descriptor) else conflicting).iloc[0]
-        message = (
-            f"{len(conflicting)} rows of {spec.file} differ between runs for the same keys, e.g. "
-            f"{example[spec.keys].to_dict()} in {sorted(set(conflicting['_run']))}"
-        )
-        if len(descriptor):
-            raise ValueError(message + ": two different descriptors share a ranking name; report them separately")
-        log.warning("%s; keeping the first run's values", message)
+        log.warning(
+            "%d rows of %s differ between runs for the same keys, e.g. %s in %s; keeping the first run's values",
+            len(conflicting), spec.file, conflicting.iloc[0][spec.keys].to_dict(), sorted(set(conflicting["_run"])),
+        )  # fmt: skip
     table = pd.concat([frame for _, frame in frames], ignore_index=True)
     return table.drop_duplicates(subset=spec.keys).reset_index(drop=True)
-
-
-def _descriptor_rows(table: pd.DataFrame) -> pd.DataFrame:
-    if "ranking_kind" in table:
-        return table[table["ranking_kind"] == "descriptor"]
-    return table if "ranking" in table else table.iloc[:0]  # revisited.csv: descriptor rankings only
 
 
 def run_variants(run_dirs: Sequence[Path]) -> dict[Path, str]:
@@ -160,19 +149,20 @@ def run_variants(run_dirs: Sequence[Path]) -> dict[Path, str]:
 
 
 def label_variants(raw: dict[Path, dict[str, pd.DataFrame]]) -> None:
-    """Rename, in place, each descriptor ranking whose rows differ between runs (one model
-    evaluated under several settings, e.g. a sweep over the CSI exponent) to ``name [variant]``."""
+    """Rename, in place, each ranking whose rows differ between runs (a model, a ground truth or
+    a baseline evaluated under several settings, e.g. a sweep over the CSI exponent) to
+    ``name [variant]``, so that no run's rows replace another's."""
     clashing: set[str] = set()
     for name, spec in TABLES.items():
-        conflicting = _descriptor_rows(conflicting_rows([(run, tables[name]) for run, tables in raw.items()], spec))
-        clashing |= set(conflicting["ranking"]) if len(conflicting) else set()
+        if "ranking" in spec.keys:
+            clashing |= set(conflicting_rows([(run, tables[name]) for run, tables in raw.items()], spec)["ranking"])
     if not clashing:
         return
     variants = run_variants(list(raw))
     if len(set(variants.values())) < len(variants):
         raise ValueError(
-            f"descriptor rankings {sorted(clashing)} differ between runs {sorted(map(str, raw))} that no Hydra override "
-            "or directory name tells apart: two different descriptors share a ranking name; report them separately"
+            f"rankings {sorted(clashing)} differ between runs {sorted(map(str, raw))} that no Hydra override "
+            "or directory name tells apart (e.g. two different descriptors share a name); report them separately"
         )
     log.info("rankings %s differ between runs: labelled by run (%s)", sorted(clashing), "; ".join(variants.values()))
     for run, tables in raw.items():

@@ -8,14 +8,10 @@ from pathlib import Path
 import numpy as np
 
 from locretrieval.cache import cached_arrays, config_key
-from locretrieval.models.base import GlobalDescriptor
+from locretrieval.models.base import NORM_TOLERANCE, GlobalDescriptor
 from locretrieval.scene import ImageSet, Scene
 
 log = logging.getLogger(__name__)
-
-#: Tolerance on the L2 norm of every descriptor row.
-NORM_TOLERANCE = 1e-3
-_STATE_PREFIX = "fitted_state."
 
 
 def validate_descriptors(model: GlobalDescriptor, images: ImageSet, descriptors: np.ndarray) -> np.ndarray:
@@ -51,19 +47,16 @@ def describe_scene(model: GlobalDescriptor, scene: Scene, cache_dir: Path | None
     """``(database [N, D], queries [Q, D])`` descriptors of a scene, L2-normalised ``float32``.
 
     The model is bound to the scene (`GlobalDescriptor.bind_scene`) and, when it learns
-    from the database, fitted on the database first. With a ``cache_dir`` the result and
-    the fitted state are stored in ``cache_dir/descriptors/<key>.npz``, the key hashing
-    ``model.identity()`` and both image sets' fingerprints; a later call with the same key
-    restores the fitted state and runs no model at all.
+    from the database, fitted on the database first. With a ``cache_dir`` both arrays are
+    stored in ``cache_dir/descriptors/<key>.npz``, the key hashing ``model.identity()`` and
+    both image sets' fingerprints; a later call with the same key runs no model at all and
+    leaves the model unfitted (only the descriptors are cached, not what `fit` learned).
     """
     model.bind_scene(scene)
     key = config_key(model.identity(), scene.database.fingerprint(include_poses=False), scene.queries.fingerprint(include_poses=False))
     path = None if cache_dir is None else Path(cache_dir) / "descriptors" / f"{key}.npz"
     arrays, hit = cached_arrays(path, lambda: _describe_scene(model, scene))
-    state = {name[len(_STATE_PREFIX) :]: value for name, value in arrays.items() if name.startswith(_STATE_PREFIX)}
     if hit:
-        if state:
-            model.load_fitted_state(state)
         log.info("descriptor cache hit for %r: %s", model.name, path)
     elif path is not None:
         log.info("descriptor cache miss for %r (key %s): descriptors cached in %s", model.name, key, path)
@@ -71,7 +64,7 @@ def describe_scene(model: GlobalDescriptor, scene: Scene, cache_dir: Path | None
 
 
 def _describe_scene(model: GlobalDescriptor, scene: Scene) -> dict[str, np.ndarray]:
-    """Database and query descriptors and the fitted state (fitting on the database first)."""
+    """Database and query descriptors (fitting on the database first)."""
     log.info("describing %s with %r", scene.name, model.name)
     if model.learns_from_database:
         model.fit(scene.database)
@@ -84,5 +77,4 @@ def _describe_scene(model: GlobalDescriptor, scene: Scene) -> dict[str, np.ndarr
             f"model {model.name!r}: query descriptors have {queries.shape[1]} dimensions, "
             f"database ones {database.shape[1]}"
         )
-    state = {f"{_STATE_PREFIX}{name}": value for name, value in model.fitted_state().items()}
-    return {"database": database, "queries": queries, **state}
+    return {"database": database, "queries": queries}

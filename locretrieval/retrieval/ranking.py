@@ -28,7 +28,8 @@ class Ranking:
     whether a descriptor, a ground-truth definition (an upper bound) or a baseline (e.g.
     random, a lower bound) produced it. Descriptor rankings keep
     the L2-normalised descriptors ``query_descriptors [Q, D]`` and ``database_descriptors
-    [N, D]``, which BDI and CSI weighting need.
+    [N, D]``, which BDI weighting needs; their scores are the cosine similarities
+    ``d_q . d_i`` (as `search` returns them), which CSI weighting uses.
     """
 
     name: str

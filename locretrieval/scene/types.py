@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -106,8 +107,8 @@ class ImageSet:
     def __post_init__(self) -> None:
         n = len(self.names)
         self.image_root = Path(self.image_root)
-        self.qvec = np.asarray(self.qvec, dtype=np.float64).reshape(n, 4)
-        self.tvec = np.asarray(self.tvec, dtype=np.float64).reshape(n, 3)
+        self.qvec = np.array(self.qvec, dtype=np.float64).reshape(n, 4)  # copies: normalised below
+        self.tvec = np.array(self.tvec, dtype=np.float64).reshape(n, 3)
         if not self.tags:
             self.tags = [frozenset() for _ in range(n)]
         for label, values in (
@@ -133,8 +134,9 @@ class ImageSet:
     def __len__(self) -> int:
         return len(self.names)
 
-    @property
+    @functools.cached_property
     def paths(self) -> list[Path]:
+        """Each image's file (built once: callers index it per image)."""
         roots = self.image_roots or [self.image_root] * len(self.names)
         return [root / name for root, name in zip(roots, self.names)]
 

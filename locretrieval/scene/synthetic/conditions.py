@@ -11,13 +11,14 @@ from collections.abc import Mapping
 import numpy as np
 
 from locretrieval.scene.synthetic.camera import axis_angle_matrix
+from locretrieval.scene.synthetic.config import CONDITIONS
 
 SHOT_NOISE = 0.003  # variance per unit of signal, added to the read-noise variance
 
 
 def sample_conditions(probabilities: Mapping[str, float], rng: np.random.Generator) -> set[str]:
     """Tags drawn independently: ``night`` (else ``day``), ``blur``, ``dynamic``, ``noise``."""
-    draws = {name: bool(rng.random() < probabilities[name]) for name in ("night", "blur", "dynamic", "noise")}
+    draws = {name: bool(rng.random() < probabilities[name]) for name in CONDITIONS}
     tags = {name for name, drawn in draws.items() if drawn}
     tags.add("night" if draws["night"] else "day")
     return tags

@@ -20,7 +20,7 @@ from tqdm import tqdm
 from locretrieval.device import resolve_device
 from locretrieval.scene.synthetic.camera import PinholeCamera
 from locretrieval.scene.synthetic.conditions import add_sensor_noise, exposure_path, sample_conditions
-from locretrieval.scene.synthetic.config import resolve_config
+from locretrieval.scene.synthetic.config import CONDITIONS, resolve_config
 from locretrieval.scene.synthetic.dynamic import place_dynamic_objects, probe_camera
 from locretrieval.scene.synthetic.kapture_writer import WrittenImage, write_image_files, write_kapture_lists
 from locretrieval.scene.synthetic.mall import build_mall
@@ -257,4 +257,4 @@ def _written(plans: list[ImagePlan]) -> list[WrittenImage]:
 
 
 def _tag_order(tag: str) -> int:
-    return ("day", "night", "blur", "dynamic", "noise").index(tag)
+    return ("day", *CONDITIONS).index(tag)

@@ -25,13 +25,14 @@ import numpy as np
 from PIL import Image
 
 from locretrieval import geometry
+from locretrieval.scene.kapture_io import DEPTH_SENSOR_SUFFIX, MASKS_DIR, TAGS_FILE
 from locretrieval.scene.synthetic.camera import PinholeCamera
 
 TAGS_HEADER = "# image_name, tags"
 
 
 def depth_sensor_id(camera_id: str) -> str:
-    return f"{camera_id}_depth"
+    return f"{camera_id}{DEPTH_SENSOR_SUFFIX}"
 
 
 def depth_name(image_name: str) -> str:
@@ -58,7 +59,7 @@ def write_image_files(root: Path, name: str, rgb: np.ndarray, depth: np.ndarray,
     Image.fromarray(rgb).save(image_path, compress_level=1)
     kapture_records.depth_map_to_file(kapture_records.get_depth_map_fullpath(str(root), depth_name(name)),
                                       depth.astype(kapture.RecordsDepth.dtype))
-    mask_path = root / "masks" / name
+    mask_path = root / MASKS_DIR / name
     mask_path.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.where(mask, 255, 0).astype(np.uint8)).save(mask_path, compress_level=1)
 
@@ -88,4 +89,4 @@ def write_kapture_lists(root: Path, cameras: list[PinholeCamera], images: list[W
                            records_depth=records_depth)
     kapture_csv.kapture_to_dir(str(root), data)
     lines = [TAGS_HEADER] + [f"{image.name}, {' '.join(image.tags)}" for image in images]
-    (root / "tags.txt").write_text("\n".join(lines) + "\n")
+    (root / TAGS_FILE).write_text("\n".join(lines) + "\n")

@@ -60,7 +60,7 @@ def build_street(rng: np.random.Generator, length: float, size: int) -> Environm
         name="street",
         boxes=builder.build(),
         textures=bank.textures,
-        day=_day(lamps),
+        day=_day(),
         night=_night(lamps),
         walk_x=(2.0, length - 2.0),
         walk_y=(-FACADE_Y + 0.8, FACADE_Y - 0.8),
@@ -139,7 +139,7 @@ def _lamp_grid(lamps: tuple[float, int], colour, reach: float) -> LampGrid:
     return LampGrid(first, LAMP_SPACING, rows, np.broadcast_to(np.asarray(colour, float), (count, 2, 3)).copy(), reach)
 
 
-def _day(lamps: tuple[float, int]) -> Lighting:
+def _day() -> Lighting:
     sun = np.array([0.45, -0.55, 0.7])
     return Lighting(
         ambient=(0.5, 0.52, 0.58), ambient_tilt=0.25,
