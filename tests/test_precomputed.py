@@ -149,7 +149,7 @@ def test_non_finite_and_zero_features_are_errors(tmp_path):
 
 
 def test_folder_errors(tmp_path, mapping_and_query):
-    with pytest.raises(FileNotFoundError, match=r"config not found: .*nowhere/global_features\.txt"):
+    with pytest.raises(FileNotFoundError, match=r"global_features header not found: .*nowhere/global_features\.txt"):
         PrecomputedDescriptor(path=tmp_path / "nowhere")
     scene, _, _ = mapping_and_query
     with pytest.raises(FileNotFoundError, match=r"no global features 'netvlad': searched .*mapping.*query"):

@@ -37,6 +37,7 @@ from locretrieval.cache import config_key
 from locretrieval.localization.store import ShardedStore
 from locretrieval.localization.workers import parallel_map
 from locretrieval.scene import ImageSet
+from locretrieval.scene.feature_files import read_feature_array, read_feature_header
 from locretrieval.scene.images import read_image
 
 log = logging.getLogger(__name__)
@@ -164,23 +165,18 @@ def _read_kapture_features(image_name: str, image_path: Path, settings: Mapping[
     root = str(kapture_root_of(image_path, image_name))
     features = settings["name"]
     arrays = {}
-    for kind, header_type, read_header, read_array, full_path in (
-        ("keypoints", kapture.Keypoints, kapture_csv.keypoints_config_from_file,
-         kapture_features.image_keypoints_from_file, kapture_features.get_keypoints_fullpath),
-        ("descriptors", kapture.Descriptors, kapture_csv.descriptors_config_from_file,
-         kapture_features.image_descriptors_from_file, kapture_features.get_descriptors_fullpath),
+    for kind, header_type, full_path in (
+        ("keypoints", kapture.Keypoints, kapture_features.get_keypoints_fullpath),
+        ("descriptors", kapture.Descriptors, kapture_features.get_descriptors_fullpath),
     ):
-        header = kapture_csv.get_feature_csv_fullpath(header_type, features, root)
-        if not Path(header).is_file():
+        header = Path(kapture_csv.get_feature_csv_fullpath(header_type, features, root))
+        if not header.is_file():
             raise FileNotFoundError(f"kapture {kind} {features!r} not found: {header} is missing")
-        config = read_header(header)
-        path = full_path(features, root, image_name)
-        if not Path(path).is_file():
+        config = read_feature_header(header, kind)
+        path = Path(full_path(features, root, image_name))
+        if not path.is_file():
             raise FileNotFoundError(f"kapture {kind} {features!r} of image {image_name!r} not found: {path}")
-        try:
-            arrays[kind] = read_array(path, config.dtype, config.dsize)
-        except ValueError as error:
-            raise ValueError(f"{path}: not {config.dsize} values of {config.dtype} per {kind[:-1]} ({error})") from error
+        arrays[kind] = read_feature_array(path, config)
     keypoints, descriptors = arrays["keypoints"], arrays["descriptors"]
     if len(keypoints) != len(descriptors):
         raise ValueError(f"image {image_name!r} in {root}: {len(keypoints)} keypoints but {len(descriptors)} descriptors")

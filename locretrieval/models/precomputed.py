@@ -14,13 +14,13 @@ from pathlib import Path
 from typing import Any
 
 import kapture
-import kapture.io.csv
 import kapture.io.features
 import numpy as np
 
 from locretrieval.cache import config_key, tree_signature
 from locretrieval.models.base import NORM_TOLERANCE, GlobalDescriptor
 from locretrieval.scene import ImageSet, Scene
+from locretrieval.scene.feature_files import FeatureHeader, read_feature_array, read_feature_header
 
 log = logging.getLogger(__name__)
 
@@ -30,17 +30,19 @@ FEATURE_EXTENSION = kapture.io.features.FEATURE_FILE_EXTENSION[kapture.GlobalFea
 FEATURES_SUBDIR = Path(kapture.io.features.FEATURES_DATA_DIRNAMES[kapture.GlobalFeatures])
 
 
-def read_config(folder: Path) -> kapture.io.csv.GlobalFeaturesConfig:
-    """The ``(name, dtype, dsize, metric_type)`` header of a global-features folder."""
-    config_path = folder / CONFIG_FILENAME
-    if not config_path.is_file():
-        raise FileNotFoundError(f"global-features config not found: {config_path}")
-    try:
-        return kapture.io.csv.global_features_config_from_file(str(config_path))
-    except (AssertionError, IndexError, ValueError, NameError, SyntaxError) as error:
+def read_config(folder: Path, allow_integer: bool = False) -> FeatureHeader:
+    """The ``(name, dtype, dsize, metric_type)`` header of a global-features folder.
+
+    Global descriptors are floating point: an integer dtype (whose bytes would be read as
+    garbage if the files actually hold floats) is an error unless ``allow_integer``.
+    """
+    header = read_feature_header(folder / CONFIG_FILENAME, "global_features")
+    if header.dtype.kind != "f" and not allow_integer:
         raise ValueError(
-            f"{config_path}: expected one line 'name, dtype, dsize, metric_type' ({error!r})"
-        ) from error
+            f"{header.path}: dtype {header.dtype} is not floating point; global descriptors are float16/32/64. "
+            "If the files really hold integer descriptors, set model.allow_integer=true"
+        )
+    return header
 
 
 def find_feature_folders(sources: Sequence[Path], feature_name: str | None) -> list[Path]:
@@ -83,8 +85,10 @@ class PrecomputedDescriptor(GlobalDescriptor):
         name: str | None = None,
         path: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
         feature_name: str | None = None,
+        allow_integer: bool = False,
     ) -> None:
         super().__init__(name or feature_name or "precomputed")
+        self.allow_integer = bool(allow_integer)
         self._named = name is not None or feature_name is not None
         self.feature_name = feature_name
         self._folders: list[Path] | None = None
@@ -96,15 +100,15 @@ class PrecomputedDescriptor(GlobalDescriptor):
             self._set_folders([Path(p) for p in paths])
 
     def _set_folders(self, folders: list[Path]) -> None:
-        configs = [read_config(folder) for folder in folders]
+        configs = [read_config(folder, self.allow_integer) for folder in folders]
         for folder, config in zip(folders[1:], configs[1:]):
-            first, other = (configs[0].dsize, np.dtype(configs[0].dtype)), (config.dsize, np.dtype(config.dtype))
+            first, other = (configs[0].dsize, configs[0].dtype), (config.dsize, config.dtype)
             if other != first:
                 raise ValueError(
                     f"inconsistent global features: {folders[0]} holds {first[0]} x {first[1]}, "
                     f"{folder} holds {other[0]} x {other[1]}"
                 )
-        if configs[0].metric_type.upper() != "L2":
+        if str(configs[0].metric_type).upper() != "L2":
             log.warning(
                 "global features %s declare metric %r; ranking uses cosine similarity",
                 folders[0],
@@ -147,17 +151,14 @@ class PrecomputedDescriptor(GlobalDescriptor):
 
     def describe(self, images: ImageSet) -> np.ndarray:
         folders = self.folders
-        dtype, dsize = self._config.dtype, int(self._config.dsize)
-        expected_bytes = dsize * np.dtype(dtype).itemsize
-        descriptors = np.empty((len(images), dsize), dtype=np.float32)
+        header = self._config
+        descriptors = np.empty((len(images), header.dsize), dtype=np.float32)
         for row, image_name in enumerate(images.names):
             path = self._feature_path(image_name, folders)
-            actual_bytes = path.stat().st_size
+            actual_bytes, expected_bytes = path.stat().st_size, header.dsize * header.dtype.itemsize
             if actual_bytes != expected_bytes:
-                raise ValueError(
-                    f"{path}: {actual_bytes} bytes, expected {expected_bytes} ({dsize} x {np.dtype(dtype)})"
-                )
-            vector = kapture.io.features.image_global_features_from_file(str(path), dtype, dsize)
+                raise ValueError(f"{path}: {actual_bytes} bytes, expected {expected_bytes} ({header.dsize} x {header.dtype})")
+            vector = read_feature_array(path, header)
             if not np.isfinite(vector).all():
                 raise ValueError(f"{path}: global feature holds non-finite values")
             descriptors[row] = vector.reshape(-1)

@@ -58,7 +58,7 @@ class KaptureFormatError(ValueError):
 
 
 @dataclass(frozen=True)
-class _Row:
+class CsvRow:
     path: Path
     line: int
     text: str
@@ -80,7 +80,7 @@ class _Row:
             raise self.error(f"non-numeric {what} {self.fields[start:stop]}") from None
 
 
-def _read_rows(path: Path, min_fields: int, max_fields: int | None) -> list[_Row]:
+def read_csv_rows(path: Path, min_fields: int, max_fields: int | None) -> list[CsvRow]:
     """Non-comment lines of a kapture CSV file, split like kapture does, field counts checked."""
     rows = []
     with path.open() as stream:
@@ -91,11 +91,11 @@ def _read_rows(path: Path, min_fields: int, max_fields: int | None) -> list[_Row
             if len(fields) < min_fields or (max_fields is not None and len(fields) > max_fields):
                 expected = str(min_fields) if min_fields == max_fields else f"at least {min_fields}"
                 raise KaptureFormatError(path, number, text, f"expected {expected} comma-separated fields, got {len(fields)}")
-            rows.append(_Row(path, number, text, fields))
+            rows.append(CsvRow(path, number, text, fields))
     return rows
 
 
-def _check_unique(rows: list[_Row], key_fields: int, what: str) -> None:
+def _check_unique(rows: list[CsvRow], key_fields: int, what: str) -> None:
     seen: dict[tuple[str, ...], int] = {}
     for row in rows:
         key = tuple(row.fields[:key_fields])
@@ -104,7 +104,7 @@ def _check_unique(rows: list[_Row], key_fields: int, what: str) -> None:
         seen[key] = row.line
 
 
-def _check_poses(rows: list[_Row], start: int) -> None:
+def _check_poses(rows: list[CsvRow], start: int) -> None:
     """Fields ``qw, qx, qy, qz, tx, ty, tz`` from ``start``: numbers and unit quaternions.
 
     kapture allows an empty rotation or translation (a partial pose); those stay empty.
@@ -132,9 +132,9 @@ def _check_poses(rows: list[_Row], start: int) -> None:
         raise translation_rows[infinite[0]].error("translation is not finite")
 
 
-def _check_sensors(path: Path) -> dict[str, _Row]:
+def _check_sensors(path: Path) -> dict[str, CsvRow]:
     """Sensor id -> its line; camera and depth sensors must have a kapture model and its parameters."""
-    rows = _read_rows(path, 3, None)
+    rows = read_csv_rows(path, 3, None)
     _check_unique(rows, 1, "sensor id")
     for row in rows:
         if row.fields[2] not in kapture.ALL_CAMERA_SENSOR_TYPES:
@@ -152,8 +152,8 @@ def _check_sensors(path: Path) -> dict[str, _Row]:
     return {row.fields[0]: row for row in rows}
 
 
-def _check_rigs(path: Path, sensors: dict[str, _Row]) -> None:
-    rows = _read_rows(path, 9, 9)
+def _check_rigs(path: Path, sensors: dict[str, CsvRow]) -> None:
+    rows = read_csv_rows(path, 9, 9)
     _check_unique(rows, 2, "rig/sensor pair")
     rig_ids = {row.fields[0] for row in rows}
     for row in rows:
@@ -170,7 +170,7 @@ def _check_rigs(path: Path, sensors: dict[str, _Row]) -> None:
 
 
 def _check_trajectories(path: Path, devices: set[str]) -> None:
-    rows = _read_rows(path, 9, 9)
+    rows = read_csv_rows(path, 9, 9)
     _check_unique(rows, 2, "(timestamp, device)")
     for row in rows:
         row.timestamp()
@@ -179,8 +179,8 @@ def _check_trajectories(path: Path, devices: set[str]) -> None:
     _check_poses(rows, 2)
 
 
-def _check_records(path: Path, sensors: dict[str, _Row], sensor_types: tuple[str, ...]) -> list[_Row]:
-    rows = _read_rows(path, 3, 3)
+def _check_records(path: Path, sensors: dict[str, CsvRow], sensor_types: tuple[str, ...]) -> list[CsvRow]:
+    rows = read_csv_rows(path, 3, 3)
     _check_unique(rows, 2, "(timestamp, sensor)")
     for row in rows:
         row.timestamp()
@@ -194,7 +194,7 @@ def _check_records(path: Path, sensors: dict[str, _Row], sensor_types: tuple[str
     return rows
 
 
-def _check_camera_supported(sensor: _Row) -> None:
+def _check_camera_supported(sensor: CsvRow) -> None:
     model = sensor.fields[3]
     if model not in CAMERA_MODELS:
         raise sensor.error(

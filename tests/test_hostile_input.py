@@ -1,0 +1,113 @@
+"""Hostile and sloppy input: every bad value stops with an error naming the file (or key) and
+what was wrong, no code runs from a data file, nothing is silently wrong. Tiny folders only."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from locretrieval.localization.features import extract_features
+from locretrieval.models import PrecomputedDescriptor
+from locretrieval.scene import Camera, ImageSet
+from locretrieval.scene.feature_files import read_feature_array, read_feature_header
+from locretrieval.scene.kapture_io import KaptureFormatError
+
+NAMES = ["cam/a.jpg", "cam/b.jpg"]
+
+
+def image_set(root: Path, names: list[str] = NAMES) -> ImageSet:
+    camera = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
+    return ImageSet(names, root, [camera] * len(names), np.tile([1.0, 0, 0, 0], (len(names), 1)), np.zeros((len(names), 3)))
+
+
+def write_global_features(kapture_dir: Path, dtype_field: str, vectors: np.ndarray, dsize: int) -> Path:
+    """A global-features folder whose header says ``dtype_field`` (raw bytes of ``vectors``)."""
+    folder = kapture_dir / "reconstruction" / "global_features" / "feats"
+    folder.mkdir(parents=True)
+    (folder / "global_features.txt").write_text(f"# name, dtype, dsize, metric_type\nfeats, {dtype_field}, {dsize}, L2\n")
+    for name, vector in zip(NAMES, vectors):
+        path = folder / f"{name}.gfeat"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        vector.tofile(path)
+    return folder
+
+
+def write_local_features(kapture_dir: Path, keypoints_dtype: str, descriptors_dtype: str) -> None:
+    rng = np.random.default_rng(0)
+    for kind, header, rows in (
+        ("keypoints", f"r2d2, {keypoints_dtype}, 3", rng.uniform(0, 40, (5, 3)).astype(np.float32)),
+        ("descriptors", f"r2d2, {descriptors_dtype}, 8, r2d2, L2", rng.normal(size=(5, 8)).astype(np.float32)),
+    ):
+        folder = kapture_dir / "reconstruction" / kind / "r2d2"
+        folder.mkdir(parents=True)
+        (folder / f"{kind}.txt").write_text(f"# header\n{header}\n")
+        for name in NAMES:
+            path = folder / f"{name}.{'kpt' if kind == 'keypoints' else 'desc'}"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            rows.tofile(path)
+
+
+def command_dtype(marker: Path) -> str:
+    """A header dtype field that, if evaluated, creates ``marker``."""
+    return f"__import__('os').system('touch {marker}')"
+
+
+# --------------------------------------------------------------- 1. no code runs from a data file
+
+
+def test_global_features_header_is_parsed_not_evaluated(tmp_path):
+    marker = tmp_path / "pwned"
+    vectors = np.eye(2, 4, dtype=np.float32)
+    folder = write_global_features(tmp_path / "mapping", command_dtype(marker), vectors, 4)
+    with pytest.raises(KaptureFormatError, match=r"global_features\.txt:2: dtype .*__import__.* is not one of"):
+        PrecomputedDescriptor(path=folder)
+    assert not marker.exists()
+
+
+def test_local_feature_headers_are_parsed_not_evaluated(tmp_path):
+    marker = tmp_path / "pwned"
+    root = tmp_path / "mapping"
+    write_local_features(root, command_dtype(marker), "float32")
+    config = {"type": "kapture", "kapture": {"name": "r2d2", "pixel_offset": 0.5}}
+    images = image_set(root / "sensors" / "records_data")
+    with pytest.raises(KaptureFormatError, match=r"keypoints\.txt:2: dtype .*__import__"):
+        extract_features(images, config, tmp_path / "cache", workers=1)
+    assert not marker.exists()
+    (root / "reconstruction" / "keypoints" / "r2d2" / "keypoints.txt").write_text("r2d2, float32, 3\n")
+    (root / "reconstruction" / "descriptors" / "r2d2" / "descriptors.txt").write_text(
+        f"r2d2, {command_dtype(marker)}, 8, r2d2, L2\n"
+    )
+    with pytest.raises(KaptureFormatError, match=r"descriptors\.txt:1: dtype"):
+        extract_features(images, config, tmp_path / "cache", workers=1)
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize("field", ["float32", "np.float32", "numpy.float32"])
+def test_dtype_spellings_kapture_writes_are_accepted(tmp_path, field):
+    vectors = np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 2.0]], dtype=np.float32)
+    folder = write_global_features(tmp_path / "mapping", field, vectors, 3)
+    header = read_feature_header(folder / "global_features.txt", "global_features")
+    assert (header.name, header.dtype, header.dsize, header.metric_type) == ("feats", np.float32, 3, "L2")
+    np.testing.assert_array_equal(read_feature_array(folder / "cam/a.jpg.gfeat", header), vectors[:1])
+
+
+# --------------------------------------------- 5. a same-width dtype is not reinterpreted silently
+
+
+def test_integer_global_features_are_refused_unless_allowed(tmp_path):
+    vectors = np.array([[3.0, 4.0], [1.0, 0.0]], dtype=np.float32)
+    folder = write_global_features(tmp_path / "mapping", "int32", vectors, 2)  # same width as the float32 data
+    with pytest.raises(ValueError, match=r"global_features\.txt: dtype int32 is not floating point.*allow_integer=true"):
+        PrecomputedDescriptor(path=folder)
+    model = PrecomputedDescriptor(path=folder, allow_integer=True)
+    assert model.describe(image_set(tmp_path / "mapping" / "sensors" / "records_data")).dtype == np.float32
+
+
+def test_local_feature_file_of_the_wrong_size_names_file_and_row_size(tmp_path):
+    root = tmp_path / "mapping"
+    write_local_features(root, "float32", "float32")
+    descriptors = root / "reconstruction" / "descriptors" / "r2d2" / "cam" / "b.jpg.desc"
+    descriptors.write_bytes(descriptors.read_bytes()[:-4])
+    config = {"type": "kapture", "kapture": {"name": "r2d2", "pixel_offset": 0.5}}
+    with pytest.raises(ValueError, match=r"b\.jpg\.desc: 156 bytes is not a whole number of descriptors rows of 8 x float32"):
+        extract_features(image_set(root / "sensors" / "records_data"), config, tmp_path / "cache", workers=1)
