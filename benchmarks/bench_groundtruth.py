@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from locretrieval import geometry
 from locretrieval.groundtruth import compute_groundtruths
-from locretrieval.scene import Camera, ImageSet
+from locretrieval.scene import Camera, ImageSet, Scene
 
 CAMERA = Camera("PINHOLE", 1920, 1080, (1500.0, 1500.0, 960.0, 540.0))
 
@@ -53,6 +53,7 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     database = random_indoor_images(args.database, args.length, args.width, rng, "db")
     queries = random_indoor_images(args.queries, args.length, args.width, rng, "query")
+    scene = Scene("random_indoor", database, queries)
     definitions = {
         "relative_pose": {"position_threshold": 25.0, "rotation_threshold": 45.0},
         "frustum": {"near": 0.1, "far": args.far, "min_radius": 0.0},
@@ -60,7 +61,7 @@ def main() -> None:
     print(f"{args.queries} queries x {args.database} database images = {args.queries * args.database:,} pairs")
     for name, parameters in definitions.items():
         started = time.perf_counter()
-        groundtruth = compute_groundtruths(database, queries, {"depth": 50, "definitions": {name: parameters}})[name]
+        groundtruth = compute_groundtruths(scene, {"depth": 50, "definitions": {name: parameters}})[name]
         elapsed = time.perf_counter() - started
         statistics = groundtruth.statistics()
         print(

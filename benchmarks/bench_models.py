@@ -38,9 +38,9 @@ def build(name: str):
 
         return build_delg_network(), "delg.yaml"
     if name == "gem":
-        from locretrieval.models.trainable import build_gem_network
+        from locretrieval.models.networks import build_retrieval_net
 
-        return build_gem_network("resnet50"), "gem.yaml"
+        return build_retrieval_net("resnet50", {"type": "gem", "p": 3.0, "trainable": True}), "gem.yaml"
     raise ValueError(f"unknown model {name!r}")
 
 
@@ -53,8 +53,10 @@ def measure(name: str, paths: list[Path], sizes: list[tuple[int, int]], device: 
 
     network, config_file = build(name)
     config = OmegaConf.load(CONFIGS / config_file)
+    extraction = OmegaConf.merge(OmegaConf.load(CONFIGS / "extraction" / "default.yaml"), config.get("extraction", {}))
     preprocessing = Preprocessing(max_side=config.max_side, scales=tuple(config.scales))
-    settings = ExtractionSettings(device, int(config.batch_size), workers, True, False)
+    settings = ExtractionSettings(device, int(extraction.batch_size), workers, True, False, None)
+    network = network.to(resolve_device(device))
     extract_descriptors(network, paths[:1], preprocessing, settings, sizes[:1])
     _, stats = extract_descriptors(network, paths, preprocessing, settings, sizes)
     cuda = torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None

@@ -9,6 +9,7 @@ rendered into ``<cache-dir>/synthetic`` on first use; SfM caches go to a tempora
 """
 
 import argparse
+import dataclasses
 import logging
 import shutil
 import tempfile
@@ -17,20 +18,24 @@ from pathlib import Path
 
 import numpy as np
 
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
+from locretrieval.config import validated
 from locretrieval.groundtruth import relative_pose_groundtruth
 from locretrieval.localization import global_sfm, local_sfm
 from locretrieval.localization.features import extract_features
+from locretrieval.localization.global_sfm import GlobalSfmSettings
+from locretrieval.localization.local_sfm import LocalSfmSettings
 from locretrieval.localization.matching import PairMatcher
-from locretrieval.localization.sfm import SfmInputs, common_settings, query_tasks
+from locretrieval.localization.sfm import SfmInputs, SfmSettings, query_tasks
 from locretrieval.localization.workers import resolve_workers
 from locretrieval.retrieval import random_ranking
 from locretrieval.scene import Scene
-from locretrieval.scene.datasets import load_synthetic_dataset
-from locretrieval.scene.synthetic import DEFAULT_CONFIG
 
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 LOCAL_KS, GLOBAL_KS = [5, 10, 20], [1, 5, 10, 20, 50]
-GLOBAL_MAP = {"pairs": {"far": 25.0, "max_per_image": 20}}
 
 
 def timed(function, *args, **kwargs) -> tuple[float, object]:
@@ -55,43 +60,51 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING)
     workers = resolve_workers(args.workers)
 
-    # the render settings of configs/data/synthetic.yaml, so that `make evaluate`'s scene is reused
-    full = load_synthetic_dataset("synthetic_mall", args.cache_dir, {**DEFAULT_CONFIG, "device": "auto", "workers": workers})
-    scene = Scene(full.name, full.database, full.queries.subset(np.arange(min(args.queries, len(full.queries)))))
+    # configs/evaluate.yaml's scene and sfm settings, so that `make evaluate`'s scene is reused
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        cfg = compose("evaluate", [f"paths.cache_dir={args.cache_dir.resolve()}", "paths.root_dir=.", f"data.render.workers={workers}"])
+    full = instantiate(cfg.data)
+    scene = Scene(full.name, full.database, full.queries.subset(np.arange(min(args.queries, len(full.queries)))),
+                  frustum_far=full.frustum_far)
     camera = scene.database.cameras[0]
     print(f"scene: {len(scene.database)} database images, {len(scene.queries)} queries, {camera.width}x{camera.height}, {workers} worker(s)")
+    sfm = validated(SfmSettings, cfg.sfm, "sfm")
     with tempfile.TemporaryDirectory(prefix="bench_sfm-") as root:
-        benchmark(scene, Path(root) / "base", workers)
+        benchmark(scene, Path(root) / "base", sfm, workers)
 
 
-def benchmark(scene: Scene, base: Path, workers: int) -> None:
+def benchmark(scene: Scene, base: Path, sfm: SfmSettings, workers: int) -> None:
     database, queries = scene.database, scene.queries
-    serial, _ = timed(extract_features, database.subset(np.arange(16)), None, base / "serial", 1)
+    features = sfm.features
+    serial, _ = timed(extract_features, database.subset(np.arange(16)), features, base / "serial", 1)
     print(f"SIFT (pycolmap, CPU, 1 process): {16 / serial:.1f} images/s")
-    elapsed, _ = timed(extract_features, database, None, base, workers)
-    elapsed_queries, _ = timed(extract_features, queries, None, base, workers)
+    elapsed, _ = timed(extract_features, database, features, base, workers)
+    elapsed_queries, _ = timed(extract_features, queries, features, base, workers)
     total = len(database) + len(queries)
     print(f"SIFT, {workers} worker(s), {total} images (pool start included): {total / (elapsed + elapsed_queries):.1f} images/s")
 
-    groundtruth = relative_pose_groundtruth(database, queries).ranking
+    groundtruth = relative_pose_groundtruth(database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0).ranking
     rankings = [groundtruth, random_ranking(len(queries), len(database), 50, 0)]
-    config = {"workers": workers}
-
-    settings = common_settings({"workers": 1})
-    matcher = PairMatcher(queries, extract_features(queries, None, base), database, extract_features(database, None, base), {}, base)
+    parallel = dataclasses.replace(sfm, workers=workers)
+    query_features, database_features = (extract_features(images, features, base, 1) for images in (queries, database))
+    matcher = PairMatcher(queries, query_features, database, database_features, sfm.matching, base)
     pairs = [(queries.names[q], database.names[i]) for q in range(min(8, len(queries))) for i in range(0, len(database), 2)]
     elapsed, matched = timed(matcher.ensure, pairs, 1)
     print(f"matching (mutual NN + ratio, 1 process): {1000 * elapsed / matched:.1f} ms/pair")
 
-    for name, module, ks, extra in (("local_sfm", local_sfm, LOCAL_KS, {}), ("global_sfm", global_sfm, GLOBAL_KS, {"map": GLOBAL_MAP})):
+    paradigms = (
+        ("local_sfm", local_sfm, LOCAL_KS, lambda ks: LocalSfmSettings(True, ks, "database")),
+        ("global_sfm", global_sfm, GLOBAL_KS, lambda ks: GlobalSfmSettings(True, ks, None)),
+    )
+    for name, module, ks, settings in paradigms:
         cache = fresh_cache(base)
-        sweep, _ = timed(module.run, scene, rankings, {**config, **extra, "k": ks}, cache)
-        separate = sum(timed(module.run, scene, rankings, {**config, **extra, "k": [k]}, fresh_cache(base))[0] for k in ks)
+        sweep, _ = timed(module.run, scene, rankings, settings(ks), parallel, cache)
+        separate = sum(timed(module.run, scene, rankings, settings([k]), parallel, fresh_cache(base))[0] for k in ks)
         print(f"{name}: one sweep over k={ks}, 2 rankings: {sweep:.1f} s; separate runs per k: {separate:.1f} s in all")
 
-        inputs = SfmInputs.prepare(scene, settings, cache)
+        inputs = SfmInputs.prepare(scene, dataclasses.replace(sfm, workers=1), cache)
         k = 10 if name == "local_sfm" else 5
-        shared = (inputs, "database") if name == "local_sfm" else (inputs, global_sfm.global_map(inputs, GLOBAL_MAP, cache))
+        shared = (inputs, "database") if name == "local_sfm" else (inputs, global_sfm.global_map(inputs, None, cache))
         tasks = query_tasks([groundtruth], [[k]])
         elapsed, _ = timed(lambda: [module.localize_query(shared, task) for task in tasks])
         print(f"{name}: {1000 * elapsed / len(tasks):.0f} ms per query at k={k} (cached features and matches, 1 process)")

@@ -1,6 +1,24 @@
-"""OmegaConf resolvers used by ``configs/`` (registered when ``locretrieval`` is imported)."""
+"""Configuration: the OmegaConf resolvers of ``configs/`` and the one validation layer of its sections.
 
-from omegaconf import OmegaConf
+Defaults live in one place, the YAML files of ``configs/``. Each section the code reads has
+a dataclass schema without defaults, next to the code that reads it. `validated` checks a
+section against its schema the same way everywhere: an unknown key, a missing key or a value
+of the wrong type is a `ConfigError` naming the full key (``paradigms.approximation.k[0]``)
+and what was expected; each schema's ``__post_init__`` checks ranges with `require`, whose
+error `validated` prefixes with the section's key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import typing
+from typing import Any, TypeVar
+
+from omegaconf import Container, DictConfig, OmegaConf
+from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
+
+Schema = TypeVar("Schema")
 
 
 def first_set(*values):
@@ -10,3 +28,91 @@ def first_set(*values):
 
 if not OmegaConf.has_resolver("first_set"):
     OmegaConf.register_new_resolver("first_set", first_set)
+
+
+class ConfigError(ValueError):
+    """A configuration value of the wrong type or range; the message names the full key."""
+
+
+class SettingError(ValueError):
+    """A value a schema's ``__post_init__`` refuses; ``field`` is its key within the schema."""
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(f"{field}: {message}")
+
+
+def require(condition: bool, field: str, message: str) -> None:
+    """Raise `SettingError` for ``field`` unless ``condition`` (a range check of a schema)."""
+    if not condition:
+        raise SettingError(field, message)
+
+
+def validated(schema: type[Schema], config: Any, key: str) -> Schema:
+    """``config`` (a `DictConfig`, a mapping or already a ``schema`` instance) as a checked ``schema``.
+
+    Interpolations are resolved against the config's own root first. Nested dataclass fields
+    are built recursively, so every error names the full key below ``key``.
+    """
+    if isinstance(config, schema):
+        return config
+    try:
+        if isinstance(config, Container):
+            config = OmegaConf.to_container(config, resolve=True)
+        node = OmegaConf.merge(OmegaConf.structured(schema), config if config is not None else {})
+    except OmegaConfBaseException as error:
+        raise ConfigError(_message(schema, key, error)) from None
+    return _build(schema, node, key)
+
+
+def _build(schema: type[Schema], node: DictConfig, key: str) -> Schema:
+    hints = typing.get_type_hints(schema)
+    values = {}
+    for field in dataclasses.fields(schema):
+        where = f"{key}.{field.name}"
+        try:
+            value = node[field.name]
+        except MissingMandatoryValue:
+            raise ConfigError(f"{where}: missing; expected {_type_name(hints[field.name])}") from None
+        if dataclasses.is_dataclass(hints[field.name]):
+            values[field.name] = _build(hints[field.name], value, where)
+        else:
+            values[field.name] = OmegaConf.to_container(value) if isinstance(value, Container) else value
+    try:
+        return schema(**values)
+    except SettingError as error:
+        raise ConfigError(f"{key}.{error}") from None
+
+
+def _message(schema: type, key: str, error: OmegaConfBaseException) -> str:
+    path = str(getattr(error, "full_key", "") or "")
+    full_key = ".".join(part for part in (key, path) if part)
+    if isinstance(error, ConfigKeyError) and dataclasses.is_dataclass(getattr(error, "object_type", None)):
+        known = [field.name for field in dataclasses.fields(error.object_type)]
+        return f"{full_key}: unknown key; expected one of {known}"
+    expected = _hint_at(schema, path)
+    return f"{full_key}: {str(error).splitlines()[0]}" + (f"; expected {_type_name(expected)}" if expected else "")
+
+
+def _hint_at(schema: type, path: str) -> Any:
+    """The type hint of the field at ``path`` (``a.b[0]``) of ``schema``, or ``None``."""
+    hint: Any = schema
+    for part in re.findall(r"\[\d+\]|[^.\[\]]+", path):
+        if part.startswith("["):
+            arguments = typing.get_args(hint)
+            hint = arguments[0] if arguments else None
+        elif dataclasses.is_dataclass(hint):
+            hint = typing.get_type_hints(hint).get(part)
+        else:
+            return None
+        if hint is None:
+            return None
+    return hint
+
+
+def _type_name(hint: Any) -> str:
+    if dataclasses.is_dataclass(hint):
+        return f"a section with keys {[field.name for field in dataclasses.fields(hint)]}"
+    if isinstance(hint, type):
+        return hint.__name__
+    return str(hint).replace("typing.", "")
+

@@ -4,12 +4,17 @@ from scipy.spatial.transform import Rotation
 
 from locretrieval import geometry
 from locretrieval.localization import approximation
-from locretrieval.localization.approximation import DEGENERATE_BDI, EMPTY_RETRIEVAL, approximate_poses
+from locretrieval.localization.approximation import DEGENERATE_BDI, EMPTY_RETRIEVAL, METHODS, approximate_poses
 from locretrieval.localization.estimates import LOCALIZED
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import Camera, ImageSet
 
 CAMERA = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
+
+
+def approximate(database, ranking, ks, methods=METHODS, alpha=8.0):
+    """Paradigm 1 with every method and the default CSI exponent unless given."""
+    return approximate_poses(database, ranking, ks, methods, alpha)
 
 
 def image_set(qvec, centers) -> ImageSet:
@@ -38,7 +43,7 @@ def two_images():
 def test_k1_returns_the_top_pose_exactly_for_every_method(two_images):
     db_desc = unit(np.eye(2, 8))
     ranking = Ranking("d", [[1, 0], [0, 1]], [[0.9, 0.1], [0.8, 0.2]], "descriptor", unit([[0.2, 1, 0, 0, 0, 0, 0, 0], [1, 0.1, 0, 0, 0, 0, 0, 0]]), db_desc)
-    estimates = approximate_poses(two_images, ranking, [1])
+    estimates = approximate(two_images, ranking, [1])
     assert sorted(e.method for e in estimates) == ["bdi", "csi", "ewb"]
     for e in estimates:
         np.testing.assert_allclose(e.qvec[0], two_images.qvec[[1, 0]], atol=1e-12)
@@ -49,7 +54,7 @@ def test_symmetric_weights_give_the_midpoint(two_images):
     db_desc = unit(np.eye(2, 8))
     query = unit(db_desc[0] + db_desc[1])[None]
     ranking = Ranking("d", [[0, 1]], [[0.7, 0.7]], "descriptor", query, db_desc)
-    for e in approximate_poses(two_images, ranking, [2]):
+    for e in approximate(two_images, ranking, [2]):
         center = geometry.camera_centers(e.qvec[0, 0], e.tvec[0, 0])
         np.testing.assert_allclose(center, [2.0, 1.0, 0.0], atol=1e-9, err_msg=e.method)
         np.testing.assert_allclose(np.abs(e.qvec[0, 0]), [1, 0, 0, 0], atol=1e-9, err_msg=e.method)
@@ -59,8 +64,8 @@ def test_negated_quaternions_give_the_same_result(two_images):
     flipped = image_set(-two_images.qvec, two_images.centers)
     flipped.qvec[:] = -two_images.qvec  # ImageSet normalises w >= 0; force the flipped sign back
     ranking = Ranking("gt", [[0, 1]], [[1.0, 0.5]], "groundtruth")
-    a = approximate_poses(two_images, ranking, [2])[0]
-    b = approximate_poses(flipped, ranking, [2])[0]
+    a = approximate(two_images, ranking, [2])[0]
+    b = approximate(flipped, ranking, [2])[0]
     assert geometry.rotation_errors_deg(a.qvec, b.qvec)[0, 0] == pytest.approx(0.0, abs=1e-6)
     np.testing.assert_allclose(geometry.camera_centers(a.qvec, a.tvec), geometry.camera_centers(b.qvec, b.tvec), atol=1e-9)
 
@@ -75,7 +80,7 @@ def test_weights_against_independent_solutions():
     query = unit(rng.normal(size=(1, dim)))
     order = np.argsort(-(db_desc @ query[0]))
     ranking = Ranking("d", order[None], (db_desc @ query[0])[order][None], "descriptor", query, db_desc)
-    estimates = by_method(approximate_poses(database, ranking, [k]))
+    estimates = by_method(approximate(database, ranking, [k]))
     top = order[:k]
 
     # BDI: eliminate the constraint (w_k = 1 - sum of the others) and solve least squares.
@@ -98,7 +103,7 @@ def test_bdi_handles_duplicated_database_descriptors():
     db_desc = unit([[1, 0, 0], [1, 0, 0], [0, 1, 0]])
     query = unit([[1, 0.0, 0]])
     ranking = Ranking("d", [[0, 1, 2]], [[1, 1, 0]], "descriptor", query, db_desc)
-    bdi = by_method(approximate_poses(database, ranking, [2, 3]))["bdi"]
+    bdi = by_method(approximate(database, ranking, [2, 3]))["bdi"]
     centers = geometry.camera_centers(bdi.qvec, bdi.tvec)
     np.testing.assert_allclose(centers[:, 0], [[1.0, 0, 0], [1.0, 0, 0]], atol=1e-6)
 
@@ -106,7 +111,7 @@ def test_bdi_handles_duplicated_database_descriptors():
 def test_empty_and_short_rankings():
     database = image_set(np.tile([1.0, 0, 0, 0], (3, 1)), [[0, 0, 0], [2, 0, 0], [4, 0, 0]])
     ranking = Ranking("gt", [[EMPTY, EMPTY, EMPTY], [2, 0, EMPTY]], np.zeros((2, 3)), "groundtruth")
-    (ewb,) = approximate_poses(database, ranking, [1, 3, 5])
+    (ewb,) = approximate(database, ranking, [1, 3, 5])
     assert ewb.ks == [1, 3]  # 5 is clamped to the ranking depth (logged)
     assert list(ewb.failures[:, 0]) == [EMPTY_RETRIEVAL, EMPTY_RETRIEVAL]
     assert np.isnan(ewb.qvec[:, 0]).all()
@@ -116,13 +121,13 @@ def test_empty_and_short_rankings():
 
 def test_descriptor_free_rankings_get_ewb_only(two_images):
     ranking = Ranking("gt", [[0, 1]], [[1.0, 0.5]], "groundtruth")
-    assert [e.method for e in approximate_poses(two_images, ranking, [1, 2])] == ["ewb"]
+    assert [e.method for e in approximate(two_images, ranking, [1, 2])] == ["ewb"]
 
 
 def test_unknown_method_is_an_error(two_images):
     ranking = Ranking("gt", [[0, 1]], [[1.0, 0.5]], "groundtruth")
     with pytest.raises(ValueError, match="unknown pose approximation"):
-        approximate_poses(two_images, ranking, [1], methods=["median"])
+        approximate(two_images, ranking, [1], methods=["median"])
 
 
 def test_csi_with_a_huge_exponent_keeps_the_most_similar_image():
@@ -130,7 +135,7 @@ def test_csi_with_a_huge_exponent_keeps_the_most_similar_image():
     db_desc = unit([[1, 0.2, 0], [1, 0.5, 0], [0.3, 1, 0]])
     query = unit([[1, 0.1, 0]])
     ranking = Ranking("d", [[0, 1, 2]], (db_desc @ query[0])[None], "descriptor", query, db_desc)
-    csi = by_method(approximate_poses(database, ranking, [3], alpha=5000.0))["csi"]
+    csi = by_method(approximate(database, ranking, [3], alpha=5000.0))["csi"]
     assert csi.failures[0, 0] == LOCALIZED
     # (0.83 / 0.995)^5000 ~ 1e-400: the plain power underflows every weight to 0, the ratio keeps 1 for the first
     np.testing.assert_allclose(geometry.camera_centers(csi.qvec, csi.tvec)[0, 0], [0, 0, 0], atol=1e-9)
@@ -141,7 +146,7 @@ def test_bdi_with_a_query_equal_to_a_database_descriptor_takes_that_pose():
     db_desc = unit([[1, 0, 0], [0, 1, 0], [0, 0, 1]])
     query = db_desc[1:2].copy()
     ranking = Ranking("d", [[1, 0, 2]], [[1, 0, 0]], "descriptor", query, db_desc)
-    bdi = by_method(approximate_poses(database, ranking, [1, 3]))["bdi"]
+    bdi = by_method(approximate(database, ranking, [1, 3]))["bdi"]
     assert list(bdi.failures[:, 0]) == [LOCALIZED, LOCALIZED]
     np.testing.assert_allclose(geometry.camera_centers(bdi.qvec, bdi.tvec)[:, 0], [[2, 0, 0], [2, 0, 0]], atol=1e-6)
 
@@ -150,7 +155,7 @@ def test_bdi_with_non_finite_descriptors_is_a_reported_failure():
     database = image_set(np.tile([1.0, 0, 0, 0], (2, 1)), [[0, 0, 0], [2, 0, 0]])
     db_desc = np.array([[1, 0, 0], [np.inf, 0, 0]], dtype=np.float32)
     ranking = Ranking("d", [[0, 1]], [[1, 0]], "descriptor", unit([[1, 0.1, 0]]), db_desc)
-    (bdi,) = approximate_poses(database, ranking, [2], methods=["bdi"])
+    (bdi,) = approximate(database, ranking, [2], methods=["bdi"])
     assert bdi.failures[0, 0] == DEGENERATE_BDI and np.isnan(bdi.tvec[0, 0]).all()
 
 
@@ -173,9 +178,9 @@ def test_bdi_for_several_k_and_a_short_ranking_in_chunks(monkeypatch):
     queries = unit(rng.normal(size=(2, dim)))
     indices = np.array([rng.permutation(n)[:8], np.append(rng.permutation(n)[:4], [EMPTY] * 4)])
     ranking = Ranking("d", indices, np.zeros(indices.shape), "descriptor", queries, db_desc)
-    whole = by_method(approximate_poses(database, ranking, ks, methods=["bdi"]))["bdi"]
+    whole = by_method(approximate(database, ranking, ks, methods=["bdi"]))["bdi"]
     monkeypatch.setattr(approximation, "GATHER_CHUNK_BYTES", 1)  # one query per chunk
-    (chunked,) = approximate_poses(database, ranking, ks, methods=["bdi"])
+    (chunked,) = approximate(database, ranking, ks, methods=["bdi"])
     np.testing.assert_allclose(chunked.tvec, whole.tvec, atol=1e-12)
     for q, row in enumerate(indices):
         filled = row[row != EMPTY]

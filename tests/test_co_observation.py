@@ -5,25 +5,32 @@ import numpy as np
 import pytest
 from scipy.stats import spearmanr
 
+import helpers
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
+from locretrieval.config import ConfigError
 from locretrieval.groundtruth import compute_groundtruths, frustum_groundtruth
 from locretrieval.groundtruth.co_observation import co_observation_groundtruth, shared_points
-from locretrieval.groundtruth.frustum import TruncatedFrusta, pairwise_overlap_radii
+from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.localization import matching
 from locretrieval.localization import pairs as pairs_module
 from locretrieval.localization.features import extract_features
-from locretrieval.localization.pairs import database_pairs, overlapping_pairs
+from locretrieval.localization.pairs import PairSelection, database_pairs, overlapping_pairs
 from locretrieval.retrieval import EMPTY
-from locretrieval.scene import ImageSet
+from locretrieval.scene import ImageSet, Scene
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 
 SCENE = {"width": 256, "height": 192, "num_database": 40, "num_queries": 8, "texture_size": 128, "length": 20.0,
          "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
          "hard_query_fraction": 0.0, "workers": 1, "seed": 2}
-PAIRS = {"far": 25.0, "max_per_image": 10}
-SETTINGS = {"pairs": PAIRS, "query_pairs": 10, "workers": 1}
+PAIRS = {"near": 0.1, "far": 25.0, "min_radius": 0.0, "max_per_image": 10}  # the scene has no frustum_far
+SFM = helpers.sfm_settings({"map_pairs": PAIRS})
+COOBS = {"min_shared": 1, "query_pairs": 10, "sfm": SFM}
+
+
+def selection(**overrides) -> PairSelection:
+    return PairSelection(**{**PAIRS, **overrides})
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +47,7 @@ def cache(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def shared(scene, cache):
-    return shared_points(scene.database, scene.queries, cache, None, None, None, PAIRS, 10, 1).toarray()
+    return shared_points(scene.database, scene.queries, cache, SFM, 10).toarray()
 
 
 def depth_map(images: ImageSet, index: int) -> np.ndarray:
@@ -52,7 +59,7 @@ def covisible_keypoints(scene, cache) -> np.ndarray:
     """``[Q, N]``: query keypoints whose rendered surface point is also seen by database image t
     (projects inside it, in front, at the depth it renders there), from depth maps alone."""
     database, queries = scene.database, scene.queries
-    keypoints = extract_features(queries, None, cache).keypoints(queries.names)
+    keypoints = extract_features(queries, SFM.features, cache, 1).keypoints(queries.names)
     depths = [depth_map(database, t) for t in range(len(database))]
     counts = np.zeros((len(queries), len(database)), dtype=np.int64)
     for q, name in enumerate(queries.names):
@@ -90,8 +97,9 @@ def test_shared_points_agree_with_covisibility_by_depth(scene, cache, shared):
 
 def test_groundtruth_ranks_by_shared_points_through_the_registry(scene, cache, shared, monkeypatch):
     database, queries = scene.database, scene.queries
-    config = {"depth": 10, "definitions": {"coobs": {"type": "co_observation", "min_shared": 5, **SETTINGS}}}
-    groundtruth = compute_groundtruths(database, queries, config, cache_dir=cache)["coobs"]
+    scene = Scene("tiny", database, queries)
+    config = {"depth": 10, "definitions": {"coobs": {"type": "co_observation", "min_shared": 5, "query_pairs": 10}}}
+    groundtruth = compute_groundtruths(scene, config, SFM, cache_dir=cache)["coobs"]
     assert groundtruth.name == "gt_coobs" and groundtruth.ranking.kind == "groundtruth"
     indices, scores = groundtruth.ranking.indices, groundtruth.ranking.scores
     for q in range(len(queries)):
@@ -102,17 +110,19 @@ def test_groundtruth_ranks_by_shared_points_through_the_registry(scene, cache, s
     np.testing.assert_array_equal(groundtruth.relevance.toarray(), shared >= 5)
     statistics = groundtruth.statistics()
     assert statistics["avg_relevant"] == pytest.approx((shared >= 5).sum(1).mean())
-    again = compute_groundtruths(database, queries, config, cache_dir=cache)["coobs"]  # the cached ground truth
+    again = compute_groundtruths(scene, config, SFM, cache_dir=cache)["coobs"]  # the cached ground truth
     np.testing.assert_array_equal(again.ranking.indices, indices)
     # the joint map again: its matches are read from the cache, nothing is matched again
     calls = []
     real = matching.mutual_nearest_neighbours
     monkeypatch.setattr(matching, "mutual_nearest_neighbours", lambda *args: calls.append(1) or real(*args))
-    recomputed = shared_points(database, queries, cache, None, None, None, PAIRS, 10, 1)
+    recomputed = shared_points(database, queries, cache, SFM, 10)
     np.testing.assert_array_equal(recomputed.toarray(), shared)
     assert not calls
-    with pytest.raises(ValueError, match=r"unknown parameters \['min_shard'\]"):
-        compute_groundtruths(database, queries, {"definitions": {"co_observation": {"min_shard": 1}}})
+    with pytest.raises(ConfigError, match=r"groundtruth.definitions.co_observation.min_shard: unknown key"):
+        compute_groundtruths(scene, {"depth": 10, "definitions": {"co_observation": {"min_shard": 1, "query_pairs": 10}}}, SFM)
+    with pytest.raises(ConfigError, match=r"groundtruth.definitions.co_observation: the co_observation ground truth needs the sfm"):
+        compute_groundtruths(scene, config | {"definitions": {"co_observation": {"min_shared": 1, "query_pairs": 10}}})
 
 
 def test_queries_without_a_pose_get_no_ranking_and_share_the_caches(scene, tmp_path):
@@ -120,25 +130,25 @@ def test_queries_without_a_pose_get_no_ranking_and_share_the_caches(scene, tmp_p
     qvec = queries.qvec.copy()
     qvec[0] = np.nan
     unposed = ImageSet(queries.names, queries.image_root, queries.cameras, qvec, queries.tvec, queries.tags, queries.depth_paths)
-    groundtruth = co_observation_groundtruth(database, unposed, depth=5, cache_dir=tmp_path, **SETTINGS)
+    groundtruth = co_observation_groundtruth(database, unposed, depth=5, cache_dir=tmp_path, **COOBS)
     assert (groundtruth.ranking.indices[0] == EMPTY).all() and not groundtruth.query_has_pose[0]
     assert (groundtruth.ranking.indices[1:, 0] != EMPTY).all()
     # the features (and raw matches) of all queries, as the SfM paradigms extract them: no second folder
-    query_features = extract_features(queries, None, tmp_path).folder
-    database_features = extract_features(database, None, tmp_path).folder
+    query_features = extract_features(queries, SFM.features, tmp_path, 1).folder
+    database_features = extract_features(database, SFM.features, tmp_path, 1).folder
     assert sorted((tmp_path / "features").iterdir()) == sorted([query_features, database_features])
     raw_query_matches = [p for p in (tmp_path / "matches").iterdir() if p.name.startswith(query_features.name) and "--poses-" not in p.name]
     assert len(raw_query_matches) == 1
     # without cache_dir: a temporary one, the same ground truth
-    temporary = co_observation_groundtruth(database, unposed, depth=5, **SETTINGS)
+    temporary = co_observation_groundtruth(database, unposed, depth=5, **COOBS)
     np.testing.assert_array_equal(temporary.ranking.indices, groundtruth.ranking.indices)
-    with pytest.raises(ValueError, match="min_shared must be >= 1"):
-        co_observation_groundtruth(database, queries, min_shared=0, cache_dir=tmp_path)
+    with pytest.raises(ValueError, match="min_shared: must be >= 1"):
+        co_observation_groundtruth(database, queries, depth=5, cache_dir=tmp_path, **{**COOBS, "min_shared": 0})
 
 
 def test_frustum_pairs_are_the_same_chunk_by_chunk(scene, monkeypatch):
     database, queries = scene.database, scene.queries
-    settings = {**PAIRS, "max_per_image": 4, "min_radius": 0.5}
+    settings = selection(max_per_image=4, min_radius=0.5)
     whole = [overlapping_pairs(queries, database, settings, exclude_self=False), database_pairs(database, settings)]
     assert len(whole[0]) and len(whole[1])
     monkeypatch.setattr(pairs_module, "PAIRS_PER_CHUNK", 3 * len(database))  # three rows at a time
@@ -153,15 +163,15 @@ def test_frustum_pairs_keep_radii_above_min_radius_like_the_frustum_groundtruth(
     radii = pairwise_overlap_radii(*frusta)
     positive = np.sort(radii[radii > 0])
     threshold = float(positive[len(positive) // 2])  # the radius of one pair: kept by >=, not by >
-    selected = overlapping_pairs(queries, database, {**PAIRS, "max_per_image": None, "min_radius": threshold}, exclude_self=False)
+    selected = overlapping_pairs(queries, database, selection(max_per_image=None, min_radius=threshold), exclude_self=False)
     np.testing.assert_array_equal(selected, np.argwhere(radii > threshold))
-    groundtruth = frustum_groundtruth(database, queries, far=PAIRS["far"], min_radius=threshold)
+    groundtruth = frustum_groundtruth(database, queries, depth=50, near=0.1, far=PAIRS["far"], min_radius=threshold)
     np.testing.assert_array_equal(selected, np.argwhere(groundtruth.relevance.toarray()))
     # at most max_per_image per query, the largest radii (ties: lower database index first)
-    best = overlapping_pairs(queries, database, {**PAIRS, "max_per_image": 2}, exclude_self=False)
+    best = overlapping_pairs(queries, database, selection(max_per_image=2), exclude_self=False)
     expected = sorted((q, int(t)) for q, row in enumerate(radii) for t in np.argsort(-row, kind="stable")[:2] if row[t] > 0)
     assert [tuple(p) for p in best.tolist()] == expected
-    with pytest.raises(ValueError, match="min_radius must be >= 0"):
-        overlapping_pairs(queries, database, {"min_radius": -1.0}, exclude_self=False)
-    with pytest.raises(ValueError, match="max_per_image must be >= 1"):
-        overlapping_pairs(queries, database, {"max_per_image": 0}, exclude_self=False)
+    with pytest.raises(ValueError, match="min_radius: must be >= 0"):
+        selection(min_radius=-1.0)
+    with pytest.raises(ValueError, match="max_per_image: must be >= 1"):
+        selection(max_per_image=0)

@@ -159,9 +159,11 @@ def test_synthetic_street_is_rendered_once_whatever_the_workers_and_auto_device(
     render = {"environment": "street", "width": 64, "height": 48, "num_database": 8, "num_queries": 4,
               "texture_size": 32, "length": 20.0, "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 1.0, "noise": 0.0},
               "workers": 1, "device": "cpu", "seed": 2}  # fmt: skip
-    first = load_synthetic_dataset("street", tmp_path, render)
+    facts = {"ltvl_name_style": "full", "frustum_far": 25.0}
+    first = load_synthetic_dataset("street", tmp_path, render, **facts)
     with caplog.at_level(logging.INFO):
-        again = load_synthetic_dataset("street", tmp_path, {**render, "workers": 2, "device": "auto"})
+        again = load_synthetic_dataset("street", tmp_path, {**render, "workers": 2, "device": "auto"}, **facts)
+    assert (again.ltvl_name_style, again.frustum_far) == ("full", 25.0)  # dataset facts kept on the scene
     assert "synthetic scene cached" in caplog.text and again.database.paths == first.database.paths
     assert len(list((tmp_path / "synthetic").iterdir())) == 1
     masks = [np.load(p) if p.suffix == ".npy" else np.asarray(__import__("PIL.Image").Image.open(p)) for p in first.queries.mask_paths]

@@ -11,7 +11,8 @@ from scipy.ndimage import gaussian_filter
 
 from locretrieval.models import DenseVLAD
 from locretrieval.models.densevlad import dense_rootsift, grid_layout, normalize_vlad, vlad_residuals
-from locretrieval.retrieval import describe_scene, search
+from locretrieval.retrieval.descriptors import describe_scene
+from locretrieval.retrieval.index import search
 from locretrieval.scene import Camera, ImageSet, Scene
 
 # Small, fast settings: images are resized to 128 px; the algorithm is the default one.

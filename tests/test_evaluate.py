@@ -11,7 +11,9 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 import locretrieval  # noqa: F401
-from locretrieval.evaluation import check_unique_names, enabled_paradigms, evaluate
+from locretrieval.benchmark import ParadigmsSettings, check_unique_names
+from locretrieval.config import ConfigError, validated
+from locretrieval.evaluation import evaluate
 from locretrieval.retrieval import random_ranking
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,7 +36,7 @@ KS = [1, 2, 5, 10]
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     root = tmp_path_factory.mktemp("evaluate")
-    overrides = [f"paths.root_dir={root}", f"paradigms.k=[{','.join(map(str, KS))}]", *TINY_SCENE]
+    overrides = [f"paths.root_dir={root}", f"paradigms.approximation.k=[{','.join(map(str, KS))}]", *TINY_SCENE]
     with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
         cfg = compose(config_name="evaluate", overrides=overrides)
     output = root / "run"
@@ -110,12 +112,12 @@ def test_multirun_from_the_command_line(run):
 
 def test_paradigm_sections_are_checked():
     paradigms = OmegaConf.load(ROOT / "configs" / "paradigms" / "default.yaml")
-    assert enabled_paradigms(paradigms) == ["approximation", "local_sfm", "global_sfm"]
+    assert validated(ParadigmsSettings, paradigms, "paradigms").enabled() == ["approximation", "local_sfm", "global_sfm"]
     paradigms.local_sfm.enabled = False
-    assert enabled_paradigms(paradigms) == ["approximation", "global_sfm"]
+    assert validated(ParadigmsSettings, paradigms, "paradigms").enabled() == ["approximation", "global_sfm"]
     paradigms.globl_sfm = {"enabled": True}
-    with pytest.raises(ValueError, match=r"unknown sections \['globl_sfm'\]"):
-        enabled_paradigms(paradigms)
+    with pytest.raises(ConfigError, match=r"paradigms.globl_sfm: unknown key; expected one of \['approximation', 'local_sfm', 'global_sfm'\]"):
+        validated(ParadigmsSettings, paradigms, "paradigms")
 
 
 def test_rankings_sharing_a_name_are_an_error():

@@ -9,13 +9,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+import helpers
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
+from locretrieval.config import ConfigError
 from locretrieval.localization import features as features_module
 from locretrieval.localization import matching
 from locretrieval.localization.features import extract_features
 from locretrieval.localization.matching import (
-    PairMatcher, epipolar_inliers, essential_matrix, mutual_nearest_neighbours, sampson_errors, two_view_inliers,
+    PairMatcher, TwoViewSettings, epipolar_inliers, essential_matrix, mutual_nearest_neighbours, sampson_errors,
+    two_view_inliers,
 )
 from locretrieval.localization.store import ShardedStore
 from locretrieval.scene import Camera, ImageSet
@@ -25,6 +28,14 @@ from locretrieval.scene.synthetic import render_synthetic_dataset
 SCENE = {"width": 256, "height": 192, "num_database": 40, "num_queries": 6, "texture_size": 128, "length": 20.0,
          "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
          "hard_query_fraction": 0.0, "workers": 1, "seed": 1}
+
+
+SFM = helpers.sfm_settings()
+
+
+def features(overrides):
+    """The default local-feature settings with ``overrides``."""
+    return helpers.sfm_settings({"features": overrides}).features
 
 
 @pytest.fixture(scope="module")
@@ -72,11 +83,11 @@ def test_sharded_store_round_trip_and_missing_keys(tmp_path, monkeypatch):
 
 def test_sift_features_are_cached_and_in_full_resolution_pixels(scene, tmp_path):
     database = scene.database.subset(np.arange(4))
-    full = extract_features(database, {"type": "sift"}, tmp_path, workers=1)
+    full = extract_features(database, SFM.features, tmp_path, workers=1)
     shards = sorted(full.folder.iterdir())
-    again = extract_features(database, {"type": "sift"}, tmp_path, workers=1)
+    again = extract_features(database, SFM.features, tmp_path, workers=1)
     assert sorted(again.folder.iterdir()) == shards  # nothing recomputed
-    half = extract_features(database, {"type": "sift", "sift": {"max_side": 128}}, tmp_path, workers=1)
+    half = extract_features(database, features({"sift": {"max_side": 128}}), tmp_path, workers=1)
     assert half.folder != full.folder
     for name in database.names:
         keypoints, descriptors = full.load([name])[name]
@@ -92,8 +103,8 @@ def test_sift_features_are_cached_and_in_full_resolution_pixels(scene, tmp_path)
 def test_feature_extraction_in_worker_processes_matches_in_process(scene, tmp_path, monkeypatch):
     monkeypatch.setattr(features_module, "IMAGES_PER_SHARD", 4)  # three tasks for two workers
     database = scene.database.subset(np.arange(12))
-    parallel = extract_features(database, {"type": "sift"}, tmp_path / "parallel", workers=2)
-    serial = extract_features(database, {"type": "sift"}, tmp_path / "serial", workers=1)
+    parallel = extract_features(database, SFM.features, tmp_path / "parallel", workers=2)
+    serial = extract_features(database, SFM.features, tmp_path / "serial", workers=1)
     assert len(list(parallel.folder.glob("*.h5"))) == 3
     for name in database.names:
         for a, b in zip(parallel.load([name])[name], serial.load([name])[name]):
@@ -125,16 +136,16 @@ def test_kapture_features_are_read_with_the_pixel_offset(tmp_path):
     descriptors = [rng.normal(size=(n, 128)).astype(np.float32) for n in (7, 3)]
     write_kapture_features(root, names, keypoints, descriptors)
     config = {"type": "kapture", "kapture": {"name": "r2d2", "pixel_offset": 0.5}}
-    store = extract_features(images, config, tmp_path / "cache", workers=1)
+    store = extract_features(images, features(config), tmp_path / "cache", workers=1)
     for name, points, values in zip(names, keypoints, descriptors):
         read_points, read_values = store.load([name])[name]
         np.testing.assert_allclose(read_points, points[:, :2] + 0.5)
         np.testing.assert_array_equal(read_values, values)
     (root / "reconstruction" / "descriptors" / "r2d2" / "db" / "sub" / "b.jpg.desc").unlink()
     with pytest.raises(FileNotFoundError, match=r"descriptors 'r2d2' of image 'db/sub/b.jpg' not found: .*b\.jpg\.desc"):
-        extract_features(images, {**config, "kapture": {"name": "r2d2", "pixel_offset": 0.0}}, tmp_path / "cache", workers=1)
-    with pytest.raises(ValueError, match="unknown kapture feature settings"):
-        extract_features(images, {"type": "kapture", "kapture": {"nmae": "r2d2"}}, tmp_path / "cache")
+        extract_features(images, features({**config, "kapture": {"pixel_offset": 0.0}}), tmp_path / "cache", workers=1)
+    with pytest.raises(ConfigError, match=r"sfm.features.kapture.nmae: unknown key; expected one of \['name', 'pixel_offset'\]"):
+        features({"type": "kapture", "kapture": {"nmae": "r2d2"}})
 
 
 # ------------------------------------------------------------------------------------ matching
@@ -215,8 +226,8 @@ def test_sampson_error_approximates_the_geometric_error_and_bounds_matches_in_pi
 
 def test_matches_are_cached_per_pair_and_reused_for_larger_sets(scene, tmp_path, monkeypatch):
     database = scene.database
-    features = extract_features(database, {"type": "sift"}, tmp_path, workers=1)
-    matcher = PairMatcher(database, features, database, features, {}, tmp_path)
+    store = extract_features(database, SFM.features, tmp_path, workers=1)
+    matcher = PairMatcher(database, store, database, store, SFM.matching, tmp_path)
     calls = []
     real = matching.mutual_nearest_neighbours
     monkeypatch.setattr(matching, "mutual_nearest_neighbours", lambda first, others, ratio: calls.append(len(others)) or real(first, others, ratio))
@@ -241,7 +252,7 @@ def test_matches_are_cached_per_pair_and_reused_for_larger_sets(scene, tmp_path,
     backward = matcher.load([(names[9], names[1])], "poses")[(names[9], names[1])]
     np.testing.assert_array_equal(backward, forward[:, ::-1])
     # verification keeps a subset of the raw matches, and a new matcher reads the cache
-    raw = PairMatcher(database, features, database, features, {}, tmp_path).load([(names[1], names[9])])[(names[1], names[9])]
+    raw = PairMatcher(database, store, database, store, SFM.matching, tmp_path).load([(names[1], names[9])])[(names[1], names[9])]
     assert len(forward) and {tuple(m) for m in forward.tolist()} <= {tuple(m) for m in raw.tolist()}
     with pytest.raises(KeyError, match="no record"):
         matcher.load([(names[5], names[6])])
@@ -254,14 +265,14 @@ def test_pose_verification_keeps_the_true_matches_by_the_rendered_depth(scene, t
     import kapture.io.records as kapture_records
 
     database = scene.database
-    features = extract_features(database, {"type": "sift"}, tmp_path, workers=1)
-    matcher = PairMatcher(database, features, database, features, {}, tmp_path)
+    store = extract_features(database, SFM.features, tmp_path, workers=1)
+    matcher = PairMatcher(database, store, database, store, SFM.matching, tmp_path)
     first, second = 1, 9  # looking across the corridor from neighbouring stations
     pair = (database.names[first], database.names[second])
     matcher.ensure([pair], workers=1, verification="poses")
     raw = matcher.load([pair])[pair]
     verified = {tuple(m) for m in matcher.load([pair], "poses")[pair].tolist()}
-    keypoints = features.keypoints(list(pair))
+    keypoints = store.keypoints(list(pair))
     camera = database.cameras[first]
     depth = kapture_records.depth_map_from_file(str(database.depth_paths[first]), (camera.width, camera.height))
     pixels = keypoints[pair[0]][raw[:, 0]]
@@ -280,14 +291,14 @@ def test_pose_verification_keeps_the_true_matches_by_the_rendered_depth(scene, t
 
 def test_two_view_verification_keeps_raw_matches_consistent_with_the_poses(scene, tmp_path):
     database = scene.database
-    features = extract_features(database, {"type": "sift"}, tmp_path, workers=1)
-    matcher = PairMatcher(database, features, database, features, {}, tmp_path)
+    store = extract_features(database, SFM.features, tmp_path, workers=1)
+    matcher = PairMatcher(database, store, database, store, SFM.matching, tmp_path)
     first, second = 1, 9
     pair = (database.names[first], database.names[second])
     matcher.ensure([pair], workers=1, verification="two_view")
     raw, verified = matcher.load([pair])[pair], matcher.load([pair], "two_view")[pair]
     assert len(verified) >= 15 and {tuple(m) for m in verified.tolist()} <= {tuple(m) for m in raw.tolist()}
-    keypoints = features.keypoints(list(pair))
+    keypoints = store.keypoints(list(pair))
     consistent = epipolar_inliers(
         keypoints[pair[0]], keypoints[pair[1]], verified,
         database.cameras[first], (database.qvec[first], database.tvec[first]),
@@ -308,5 +319,5 @@ def test_two_view_inliers_only_of_scene_geometries(configuration, kept, monkeypa
     camera = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
     keypoints = np.zeros((10, 2))
     matches = np.array([[3, 1], [0, 2]] + [[i, i] for i in range(4, 10)])
-    inliers = two_view_inliers(keypoints, keypoints, matches, camera, camera, {"max_error": 4.0, "min_num_inliers": 2})
+    inliers = two_view_inliers(keypoints, keypoints, matches, camera, camera, TwoViewSettings(max_error=4.0, min_num_inliers=5))
     np.testing.assert_array_equal(inliers, [0, 1] if kept else [])

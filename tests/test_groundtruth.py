@@ -1,4 +1,4 @@
-import functools
+import dataclasses
 import logging
 
 import numpy as np
@@ -7,26 +7,34 @@ from omegaconf import OmegaConf
 from scipy.optimize import linprog
 from scipy.spatial.transform import Rotation
 
-from locretrieval import geometry
-from locretrieval.groundtruth import (
-    GroundTruth,
-    TruncatedFrusta,
-    compute_groundtruths,
-    frustum_groundtruth,
-    overlap_radii,
-    relative_pose_groundtruth,
-)
-from locretrieval.groundtruth import base, chebyshev, compute
-from locretrieval.groundtruth.chebyshev import chebyshev_radius
-from locretrieval.groundtruth.frustum import INITIAL_BASIS, may_overlap
+from locretrieval import chebyshev, geometry
+from locretrieval.chebyshev import chebyshev_radius
+from locretrieval.config import ConfigError
+from locretrieval.frusta import INITIAL_BASIS, TruncatedFrusta, may_overlap, overlap_radii
+from locretrieval.groundtruth import GroundTruth, compute_groundtruths
+from locretrieval.groundtruth import frustum_groundtruth as build_frustum
+from locretrieval.groundtruth import relative_pose_groundtruth as build_relative_pose
+from locretrieval.groundtruth import base, compute
 from locretrieval.retrieval import EMPTY
-from locretrieval.scene import Camera, ImageSet
+from locretrieval.scene import Camera, ImageSet, Scene
 
 # Square symmetric camera: half field of view 45 degrees (tan = 50 / 50).
 WIDE = Camera("PINHOLE", 100, 100, (50.0, 50.0, 50.0, 50.0))
 # Same image, twice the focal length: half field of view atan(0.5).
 NARROW = Camera("PINHOLE", 100, 100, (100.0, 100.0, 50.0, 50.0))
 NEAR = 0.1
+FRUSTUM = {"near": NEAR, "min_radius": 0.0}
+
+
+def relative_pose_groundtruth(database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0):
+    """The relative-pose ground truth with the paper's thresholds unless given."""
+    return build_relative_pose(
+        database, queries, depth=depth, position_threshold=position_threshold, rotation_threshold=rotation_threshold
+    )
+
+
+def frustum_groundtruth(database, queries, depth=50, near=NEAR, far=25.0, min_radius=0.0):
+    return build_frustum(database, queries, depth=depth, near=near, far=far, min_radius=min_radius)
 
 
 def about(axis: str, degrees: float) -> np.ndarray:
@@ -265,7 +273,7 @@ def test_frustum_groundtruth_ranks_by_radius_and_skips_empty_pairs():
 
 def test_bad_planes_and_unposed_database_images_are_rejected(pose_scene):
     database, queries = pose_scene
-    with pytest.raises(ValueError, match="near < far"):
+    with pytest.raises(ValueError, match=r"far: must exceed near \(5.0 m\), got 2.0"):
         frustum_groundtruth(database, queries, near=5.0, far=2.0)
     database.tvec[3] = np.nan
     with pytest.raises(ValueError, match=r"database images without a pose: \['db/3.jpg'\]"):
@@ -276,12 +284,13 @@ def test_bad_planes_and_unposed_database_images_are_rejected(pose_scene):
 
 
 def test_compute_groundtruths_reads_the_default_config(pose_scene, tmp_path):
-    database, queries = pose_scene
     defaults = OmegaConf.load("configs/groundtruth/default.yaml")
     assert "co_observation" in defaults.definitions  # needs SfM settings; tested in test_co_observation
     del defaults.definitions["co_observation"]
-    cfg = OmegaConf.merge({"data": {"frustum_far": 30.0}}, {"groundtruth": defaults})
-    groundtruths = compute_groundtruths(database, queries, cfg.groundtruth)
+    cfg = OmegaConf.merge({"retrieval": {"depth": 50}}, {"groundtruth": defaults})
+    database, queries = pose_scene
+    scene = Scene("poses", database, queries, frustum_far=30.0)  # the frustum's far: null is the scene's
+    groundtruths = compute_groundtruths(scene, cfg.groundtruth)
     assert list(groundtruths) == ["relative_pose", "frustum"]
     assert groundtruths["frustum"].name == "gt_frustum"
     direct = frustum_groundtruth(database, queries, far=30.0)
@@ -290,32 +299,35 @@ def test_compute_groundtruths_reads_the_default_config(pose_scene, tmp_path):
 
 def test_definition_types_and_errors(pose_scene):
     database, queries = pose_scene
-    config = {"depth": 3, "definitions": {"frustum_25m": {"type": "frustum", "far": 25.0}}}
-    gt = compute_groundtruths(database, queries, config)["frustum_25m"]
+    scene = Scene("poses", database, queries)
+    config = {"depth": 3, "definitions": {"frustum_25m": {"type": "frustum", "far": 25.0, **FRUSTUM}}}
+    gt = compute_groundtruths(scene, config)["frustum_25m"]
     assert gt.name == "gt_frustum_25m" and gt.ranking.depth == 3
-    with pytest.raises(ValueError, match="unknown type 'coobs'"):
-        compute_groundtruths(database, queries, {"definitions": {"coobs": {}}})
-    with pytest.raises(ValueError, match=r"unknown parameters \['farr'\]"):
-        compute_groundtruths(database, queries, {"definitions": {"frustum": {"farr": 3}}})
+    with pytest.raises(ConfigError, match=r"groundtruth.definitions.coobs.type: unknown definition type 'coobs'"):
+        compute_groundtruths(scene, {"depth": 3, "definitions": {"coobs": {}}})
+    with pytest.raises(ConfigError, match=r"groundtruth.definitions.frustum.farr: unknown key; expected one of \['near', 'far', 'min_radius'\]"):
+        compute_groundtruths(scene, {"depth": 3, "definitions": {"frustum": {"farr": 3, **FRUSTUM}}})
+    with pytest.raises(ConfigError, match=r"groundtruth.definitions.frustum.far is null .* scene 'poses' has no frustum_far"):
+        compute_groundtruths(scene, {"depth": 3, "definitions": {"frustum": {"far": None, **FRUSTUM}}})
+    with pytest.raises(ConfigError, match=r"groundtruth.depth: must be >= 1, got 0"):
+        compute_groundtruths(scene, {"depth": 0, "definitions": {}})
 
 
 def test_cache_round_trip(pose_scene, tmp_path, monkeypatch):
     database, queries = pose_scene
-    config = {"definitions": {"relative_pose": {}, "frustum": {"far": 40.0}}}
-    first = compute_groundtruths(database, queries, config, cache_dir=tmp_path)
+    scene = Scene("poses", database, queries)
+    relative_pose = {"position_threshold": 25.0, "rotation_threshold": 45.0}
+    config = {"depth": 50, "definitions": {"relative_pose": relative_pose, "frustum": {"far": 40.0, **FRUSTUM}}}
+    first = compute_groundtruths(scene, config, cache_dir=tmp_path)
     files = sorted((tmp_path / "groundtruth").glob("*.npz"))
     assert len(files) == 2
 
-    def forbidden(builder):
-        @functools.wraps(builder)  # keeps the signature the parameters are checked against
-        def not_again(*args, **kwargs):
-            raise AssertionError("a cached ground truth was computed again")
-
-        return not_again
+    def not_again(*args, **kwargs):
+        raise AssertionError("a cached ground truth was computed again")
 
     for kind in ("relative_pose", "frustum"):
-        monkeypatch.setitem(compute.DEFINITIONS, kind, forbidden(compute.DEFINITIONS[kind]))
-    second = compute_groundtruths(database, queries, config, cache_dir=tmp_path)
+        monkeypatch.setitem(compute.DEFINITIONS, kind, dataclasses.replace(compute.DEFINITIONS[kind], build=not_again))
+    second = compute_groundtruths(scene, config, cache_dir=tmp_path)
     for name, gt in first.items():
         assert second[name].name == gt.name
         np.testing.assert_array_equal(second[name].ranking.indices, gt.ranking.indices)
@@ -323,7 +335,7 @@ def test_cache_round_trip(pose_scene, tmp_path, monkeypatch):
         assert (second[name].relevance != gt.relevance).nnz == 0
         assert second[name].statistics() == gt.statistics()
     monkeypatch.undo()
-    compute_groundtruths(database, queries, {"definitions": {"frustum": {"far": 20.0}}}, cache_dir=tmp_path)
+    compute_groundtruths(scene, {"depth": 50, "definitions": {"frustum": {"far": 20.0, **FRUSTUM}}}, cache_dir=tmp_path)
     assert len(list((tmp_path / "groundtruth").glob("*.npz"))) == 3
 
 

@@ -11,7 +11,8 @@ import torch
 import torchvision
 from PIL import Image
 
-from locretrieval.models.apgem import APGeMDescriptor, convert_apgem
+from helpers import zoo_model
+from locretrieval.models.apgem import convert_apgem
 from locretrieval.models.weights import HASH_CACHE_ENV, MissingWeightsError, save_checkpoint
 from locretrieval.scene import Camera, ImageSet
 
@@ -124,15 +125,14 @@ def images(tmp_path):
 def test_dirtorch_checkpoint_matches_dirtorch_computation(checkpoint, images):
     path, state, pca = checkpoint
     rgbs, image_set_ = images
-    model = APGeMDescriptor(weights=path, backbone="resnet18", out_dim=OUT_DIM, device="cpu", num_workers=0, progress=False)
+    model = zoo_model("apgem", weights=path, backbone="resnet18", out_dim=OUT_DIM)
     plain = model.describe(image_set_)
     for row, rgb in zip(plain, rgbs):
         np.testing.assert_allclose(row, reference_apgem(rgb, state), atol=1e-5)
     assert model.preprocessing.mean == tuple(MEAN) and model.identity()["architecture"]["pca"] is None
 
-    whitened_model = APGeMDescriptor(
-        weights=path, backbone="resnet18", out_dim=OUT_DIM, pca="Landmarks_clean", pca_power=0.25, pca_dims=16,
-        device="cpu", num_workers=0, progress=False,
+    whitened_model = zoo_model(
+        "apgem", weights=path, backbone="resnet18", out_dim=OUT_DIM, pca="Landmarks_clean", pca_power=0.25, pca_dims=16,
     )
     whitened = whitened_model.describe(image_set_)
     assert whitened.shape == (2, 16)
@@ -149,9 +149,9 @@ def test_converted_checkpoint_needs_no_sklearn_and_gives_the_same_descriptors(ch
         sys.modules.pop(name)
     content = torch.load(converted, weights_only=True)  # plain tensors and containers only
     assert set(content["extra"]["pca"]) == {"Landmarks_clean"}
-    options = dict(backbone="resnet18", out_dim=OUT_DIM, pca="Landmarks_clean", device="cpu", num_workers=0, progress=False)
-    original = APGeMDescriptor(weights=path, **options).describe(images[1])
-    again = APGeMDescriptor(weights=converted, **options).describe(images[1])
+    options = dict(backbone="resnet18", out_dim=OUT_DIM, pca="Landmarks_clean")
+    original = zoo_model("apgem", weights=path, **options).describe(images[1])
+    again = zoo_model("apgem", weights=converted, **options).describe(images[1])
     np.testing.assert_array_equal(again, original)
 
 
@@ -161,13 +161,13 @@ def test_file_must_hold_the_configured_architecture(checkpoint, tmp_path):
     convert_apgem(path, converted)
     for weights in (path, converted):
         with pytest.raises(ValueError, match=r"differs from the configuration \(backbone: file 'resnet18' vs config 'resnet50'\)"):
-            APGeMDescriptor(weights=weights, backbone="resnet50", out_dim=OUT_DIM, device="cpu")
+            zoo_model("apgem", weights=weights, backbone="resnet50", out_dim=OUT_DIM)
         with pytest.raises(ValueError, match=rf"out_dim: file {OUT_DIM} vs config 64"):
-            APGeMDescriptor(weights=weights, backbone="resnet18", out_dim=64, device="cpu")
+            zoo_model("apgem", weights=weights, backbone="resnet18", out_dim=64)
     netvlad = tmp_path / "netvlad.pt"
     save_checkpoint(netvlad, "netvlad", {"clusters": 4}, {}, {})
     with pytest.raises(ValueError, match="netvlad.pt: a locretrieval checkpoint of model 'netvlad', not 'apgem'"):
-        APGeMDescriptor(weights=netvlad, backbone="resnet18", out_dim=OUT_DIM, device="cpu")
+        zoo_model("apgem", weights=netvlad, backbone="resnet18", out_dim=OUT_DIM)
 
 
 class Payload:
@@ -179,7 +179,7 @@ def test_unexpected_pickled_objects_are_refused(tmp_path):
     path = tmp_path / "evil.pt"
     torch.save({"state_dict": {}, "model_options": {"arch": "resnet18_rmac"}, "payload": Payload()}, path)
     with pytest.raises(ValueError, match="evil.pt: refused to unpickle"):
-        APGeMDescriptor(weights=path, backbone="resnet18", device="cpu")
+        zoo_model("apgem", weights=path, backbone="resnet18")
 
 
 def test_resnet101_checkpoint_layout_loads(tmp_path):
@@ -189,11 +189,11 @@ def test_resnet101_checkpoint_layout_loads(tmp_path):
     state.update({"module.adpool.p": torch.tensor([3.0]), "module.fc.weight": torch.zeros(2048, 2048), "module.fc.bias": torch.zeros(2048)})
     path = tmp_path / "Resnet101-AP-GeM-LM18.pt"
     torch.save({"state_dict": state, "model_options": {"arch": "resnet101_rmac", "out_dim": 2048, "pooling": "gem"}}, path)
-    model = APGeMDescriptor(weights=path, device="cpu")
+    model = zoo_model("apgem", weights=path)
     assert model.network.output_dim == 2048
     assert sum(p.numel() for p in model.network.parameters()) == sum(v.numel() for k, v in state.items() if "num_batches" not in k and "running" not in k)
 
 
 def test_missing_file_names_the_expected_file_and_its_publisher(tmp_path):
     with pytest.raises(MissingWeightsError, match=r"Resnet101-AP-GeM-LM18\.pt.*deep-image-retrieval"):
-        APGeMDescriptor(weights=tmp_path / "absent.pt", device="cpu")
+        zoo_model("apgem", weights=tmp_path / "absent.pt")

@@ -9,7 +9,8 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from locretrieval.models.delg import DELGDescriptor, convert_delg, delg_state_dict_from_tf, read_tf_variables
+from helpers import zoo_model
+from locretrieval.models.delg import convert_delg, delg_state_dict_from_tf, read_tf_variables
 from locretrieval.models.weights import HASH_CACHE_ENV, MissingWeightsError
 from locretrieval.scene import Camera, ImageSet
 
@@ -131,8 +132,8 @@ def test_tf_variables_give_the_tensorflow_forward_pass(tmp_path):
     variables_file = tmp_path / "r101delg_variables.npz"
     np.savez(variables_file, **variables)
     rgb = np.random.default_rng(1).integers(0, 256, size=(60, 80, 3), dtype=np.uint8)
-    options = dict(units=SHALLOW, whiten_dim=WHITEN_DIM, max_side=64, device="cpu", num_workers=0, progress=False)
-    model = DELGDescriptor(weights=variables_file, **options)
+    options = dict(units=SHALLOW, whiten_dim=WHITEN_DIM, max_side=64)
+    model = zoo_model("delg", weights=variables_file, **options)
     descriptors = model.describe(image_set(tmp_path, rgb))
     shrunk = np.asarray(Image.fromarray(rgb).resize((64, 48), Image.Resampling.BILINEAR))  # DELF's ResizeImage
     np.testing.assert_allclose(descriptors[0], reference_delg(shrunk, variables, SHALLOW), atol=1e-5)
@@ -140,14 +141,14 @@ def test_tf_variables_give_the_tensorflow_forward_pass(tmp_path):
 
     converted = tmp_path / "delg.pt"
     convert_delg(variables_file, converted)
-    again = DELGDescriptor(weights=converted, **options)
+    again = zoo_model("delg", weights=converted, **options)
     np.testing.assert_array_equal(again.describe(image_set(tmp_path, rgb)), descriptors)
 
 
 def test_resnet_v1_101_variables_fill_the_whole_network(variables, tmp_path):
     path = tmp_path / "r101delg_variables.npz"
     np.savez(path, **variables)
-    model = DELGDescriptor(weights=path, whiten_dim=WHITEN_DIM, device="cpu")
+    model = zoo_model("delg", weights=path, whiten_dim=WHITEN_DIM)
     parameters = sum(p.numel() for p in model.network.parameters())
     backbone = sum(v.size for k, v in variables.items() if "resnet_v1_101" in k and "moving" not in k)
     assert parameters == backbone + 2048 * WHITEN_DIM + WHITEN_DIM + 1  # + whitening and GeM's p
@@ -179,4 +180,4 @@ def test_savedmodel_without_tensorflow_says_how_to_get_it(tmp_path):
 
 def test_missing_file_names_the_expected_file_and_its_publisher(tmp_path):
     with pytest.raises(MissingWeightsError, match=r"r101delg_gldv2clean_20200914.*tensorflow/models"):
-        DELGDescriptor(weights=tmp_path / "absent.pt", device="cpu")
+        zoo_model("delg", weights=tmp_path / "absent.pt")

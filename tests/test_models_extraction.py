@@ -13,16 +13,18 @@ import torch.nn.functional as F
 import torchvision
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
-from omegaconf import OmegaConf
 from PIL import Image
+
+from helpers import evaluate_config
 
 from locretrieval.cache import tree_signature
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
-from locretrieval.models.heads import l2_normalize
+from locretrieval.config import ConfigError
+from locretrieval.models.networks import l2_normalize
 from locretrieval.models.torch_descriptor import RANDOM_INIT_SUFFIX
-from locretrieval.models.trainable import GeMHeadDescriptor, NetVLADHeadDescriptor
+from locretrieval.models import TrainableDescriptor
 from locretrieval.models.weights import HASH_CACHE_ENV, MissingWeightsError, content_sha256
-from locretrieval.retrieval import describe_scene
+from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.scene import Camera, ImageSet, Scene
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "model"
@@ -49,9 +51,22 @@ def write_images(folder: Path, sizes, seed: int = 0, prefix: str = "img") -> Ima
     return ImageSet(names, folder, [camera(*size) for size in sizes], [[1.0, 0, 0, 0]] * n, [[0.0, 0, float(i)] for i in range(n)])
 
 
-def gem(**options) -> GeMHeadDescriptor:
-    settings = dict(backbone="resnet18", random_init=True, max_side=None, device="cpu", num_workers=0, progress=False)
-    return GeMHeadDescriptor(**{**settings, **options})
+NETVLAD = {"type": "netvlad", "clusters": 8}
+GEM = {"type": "gem", "p": 3.0, "trainable": True}
+EXTRACTION = {"device": "cpu", "batch_size": 4, "num_workers": 0, "mixed_precision": False, "progress": False, "memmap_dir": None}
+
+
+def trainable(extraction=(), **options) -> TrainableDescriptor:
+    """A ResNet-18 model as configs/model/gem.yaml builds it, with ``options`` and ``extraction`` overrides."""
+    settings = dict(name="gem", backbone="resnet18", pooling=GEM, whiten_dim=None, weights=None, random_init=False,
+                    seed=0, max_side=None, scales=[1.0])
+    return TrainableDescriptor(**{**settings, **options}, extraction={**EXTRACTION, **dict(extraction)})
+
+
+def gem(batch_size=4, num_workers=0, memmap_dir=None, device="cpu", **options) -> TrainableDescriptor:
+    """A randomly initialised GeM model."""
+    extraction = {"batch_size": batch_size, "num_workers": num_workers, "memmap_dir": memmap_dir, "device": device}
+    return trainable(extraction, **{"random_init": True, **options})
 
 
 @pytest.fixture
@@ -103,7 +118,7 @@ def test_extraction_is_deterministic_and_seeded(images):
 
 def test_workers_and_memory_maps_give_the_same_descriptors(images, tmp_path):
     in_memory = gem(batch_size=2).describe(images)
-    mapped = gem(batch_size=2, num_workers=2, memmap_dir=tmp_path / "maps").describe(images)
+    mapped = gem(batch_size=2, num_workers=2, memmap_dir=str(tmp_path / "maps")).describe(images)
     assert isinstance(mapped, np.memmap) and len(list((tmp_path / "maps").glob("*.npy"))) == 1
     np.testing.assert_array_equal(np.asarray(mapped), in_memory)
 
@@ -145,7 +160,7 @@ def test_second_run_reads_the_cache_without_a_forward_pass(tmp_path):
 
 def test_random_initialisation_is_explicit_and_stated(tmp_path):
     with pytest.raises(MissingWeightsError, match=r"resnet18-f37072fd\.pth.*download\.pytorch\.org.*random_init=true"):
-        GeMHeadDescriptor(backbone="resnet18", device="cpu")
+        trainable()
     model = gem()
     assert model.name == f"gem{RANDOM_INIT_SUFFIX}"
     weights = model.identity()["weights"]
@@ -159,7 +174,7 @@ def test_torchvision_checkpoint_fills_the_backbone_only(images, tmp_path):
     path = tmp_path / "resnet18-f37072fd.pth"
     torch.save(resnet.state_dict(), path)
 
-    model = GeMHeadDescriptor(backbone="resnet18", weights=path, max_side=None, device="cpu", num_workers=0, progress=False)
+    model = trainable(weights=path)
     assert model.name == "gem" and model.identity()["weights"]["random_parameters"] == []
     trunk = torch.nn.Sequential(*list(resnet.children())[:-2]).eval()
     for name, tensor in trunk.state_dict().items():
@@ -168,9 +183,8 @@ def test_torchvision_checkpoint_fills_the_backbone_only(images, tmp_path):
         torch.testing.assert_close(model.network.state_dict()[f"backbone.{key}"], tensor, rtol=0, atol=0)
 
     with pytest.raises(ValueError, match="pooling.*random_init=true"):
-        NetVLADHeadDescriptor(backbone="resnet18", weights=path, clusters=8, device="cpu")
-    vlad = NetVLADHeadDescriptor(backbone="resnet18", weights=path, clusters=8, random_init=True, device="cpu",
-                                 num_workers=0, progress=False)
+        trainable(name="netvlad_head", pooling=NETVLAD, weights=path)
+    vlad = trainable(name="netvlad_head", pooling=NETVLAD, weights=path, random_init=True)
     assert sorted(vlad.identity()["weights"]["random_parameters"]) == ["pooling.assignment.weight", "pooling.centers"]
     assert vlad.describe(images).shape == (5, 512 * 8)
 
@@ -179,12 +193,11 @@ def test_saved_checkpoints_load_back_and_must_match_the_architecture(images, tmp
     model = gem(whiten_dim=32)
     path = tmp_path / "trained.pt"
     model.save_checkpoint(path)
-    loaded = GeMHeadDescriptor(backbone="resnet18", whiten_dim=32, weights=path, max_side=None, device="cpu",
-                               num_workers=0, progress=False)
+    loaded = trainable(whiten_dim=32, weights=path)
     assert loaded.name == "gem" and not loaded.weights.random_init
     np.testing.assert_array_equal(loaded.describe(images), model.describe(images))
     with pytest.raises(ValueError, match="whiten_dim: file 32 vs config 64"):
-        GeMHeadDescriptor(backbone="resnet18", whiten_dim=64, weights=path, device="cpu")
+        trainable(whiten_dim=64, weights=path)
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="a GPU is present")
@@ -193,10 +206,12 @@ def test_cuda_without_a_gpu_is_an_error():
         gem(device="cuda")
 
 
-def test_extraction_options_are_keyword_arguments_and_misspelt_ones_are_errors():
+def test_extraction_settings_are_checked_and_misspelt_ones_are_errors():
     assert gem(batch_size=3).settings.batch_size == 3
-    with pytest.raises(TypeError, match=r"model 'gem': unknown options \['batchsize'\]"):
-        gem(batchsize=3)
+    with pytest.raises(ConfigError, match=r"model.extraction.batchsize: unknown key; expected one of \['device', 'batch_size'"):
+        trainable({"batchsize": 3}, random_init=True)
+    with pytest.raises(ConfigError, match=r"model.extraction.batch_size: must be >= 1, got 0"):
+        gem(batch_size=0)
 
 
 @pytest.mark.parametrize(
@@ -210,9 +225,7 @@ def test_extraction_options_are_keyword_arguments_and_misspelt_ones_are_errors()
     ],
 )
 def test_model_configs_name_the_missing_weights(model, expected, tmp_path):
-    config = OmegaConf.merge(
-        {"device": "cpu", "seed": 0, "paths": {"data_dir": str(tmp_path)}}, {"model": OmegaConf.load(CONFIGS / f"{model}.yaml")}
-    )
+    config = evaluate_config(f"model={model}", "device=cpu", f"paths.data_dir={tmp_path}")
     with pytest.raises(InstantiationException) as error:
         instantiate(config.model)
     assert isinstance(error.value.__cause__, MissingWeightsError)
@@ -220,13 +233,10 @@ def test_model_configs_name_the_missing_weights(model, expected, tmp_path):
 
 
 def test_gem_config_instantiates_with_random_weights_when_asked(images):
-    config = OmegaConf.merge(
-        {"device": "cpu", "seed": 0}, {"model": OmegaConf.load(CONFIGS / "gem.yaml")},
-        OmegaConf.from_dotlist(["model.backbone=resnet18", "model.random_init=true", "model.scales=[0.5,1.0]",
-                                "model.num_workers=0", "model.progress=false"]),
-    )
+    config = evaluate_config("model=gem", "device=cpu", "model.backbone=resnet18", "model.random_init=true",
+                             "model.scales=[0.5,1.0]", "model.extraction.num_workers=0", "model.extraction.progress=false")
     model = instantiate(config.model)
-    assert isinstance(model, GeMHeadDescriptor) and model.name == f"gem{RANDOM_INIT_SUFFIX}"
+    assert isinstance(model, TrainableDescriptor) and model.name == f"gem{RANDOM_INIT_SUFFIX}"
     assert model.preprocessing.scales == (0.5, 1.0) and model.describe(images).shape == (5, 512)
 
 

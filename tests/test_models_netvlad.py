@@ -8,8 +8,9 @@ import scipy.io
 import torch
 from PIL import Image
 
-from locretrieval.models.heads import NetVLADPooling
-from locretrieval.models.netvlad import NetVLADDescriptor, convert_netvlad
+from helpers import zoo_model
+from locretrieval.models.networks import NetVLADPooling
+from locretrieval.models.netvlad import convert_netvlad
 from locretrieval.models.weights import HASH_CACHE_ENV, MissingWeightsError
 from locretrieval.scene import Camera, ImageSet
 
@@ -130,7 +131,7 @@ def test_struct_mat_matches_the_matlab_network_written_out(struct_file, tmp_path
     path, parameters = struct_file
     rgb = np.random.default_rng(1).integers(0, 256, size=(48, 64, 3), dtype=np.uint8)
     images = one_image_set(tmp_path, rgb)
-    model = NetVLADDescriptor(weights=path, clusters=4, whiten_dim=16, max_side=None, device="cpu", num_workers=0, progress=False)
+    model = zoo_model("netvlad", weights=path, clusters=4, whiten_dim=16, max_side=None)
     descriptors = model.describe(images)
     assert descriptors.dtype == np.float32 and descriptors.shape == (1, 16)
     np.testing.assert_allclose(descriptors[0], reference_netvlad(rgb, parameters), atol=1e-5)
@@ -139,7 +140,7 @@ def test_struct_mat_matches_the_matlab_network_written_out(struct_file, tmp_path
 
     converted = tmp_path / "netvlad.pt"
     convert_netvlad(path, converted)
-    again = NetVLADDescriptor(weights=converted, clusters=4, whiten_dim=16, max_side=None, device="cpu", num_workers=0, progress=False)
+    again = zoo_model("netvlad", weights=converted, clusters=4, whiten_dim=16, max_side=None)
     np.testing.assert_array_equal(again.describe(images), descriptors)
 
 
@@ -169,16 +170,16 @@ def test_vlad_flattening_is_matlab_column_major_of_the_cluster_by_dimension_matr
 def test_configuration_must_match_the_file(struct_file):
     path, _ = struct_file
     with pytest.raises(ValueError, match=r"struct\.mat: architecture in the file differs from the configuration \(clusters: file"):
-        NetVLADDescriptor(weights=path, clusters=64, whiten_dim=4096, device="cpu")
+        zoo_model("netvlad", weights=path, clusters=64, whiten_dim=4096)
 
 
 def test_missing_file_names_the_expected_file_and_its_publisher(tmp_path):
     with pytest.raises(MissingWeightsError, match=r"Pitts30K_struct\.mat.*netvlad"):
-        NetVLADDescriptor(weights=tmp_path / "absent.mat", device="cpu")
+        zoo_model("netvlad", weights=tmp_path / "absent.mat")
 
 
 def test_class_form_mat_is_refused_with_a_hint(tmp_path):
     path = tmp_path / "vd16_pitts30k_conv5_3_vlad_preL2_intra_white.mat"
     scipy.io.savemat(path, {"net": np.zeros(3)})
     with pytest.raises(ValueError, match="net_class2struct"):
-        NetVLADDescriptor(weights=path, device="cpu")
+        zoo_model("netvlad", weights=path)

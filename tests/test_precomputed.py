@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from locretrieval.models import PrecomputedDescriptor
-from locretrieval.retrieval import describe_scene
+from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.scene import Camera, ImageSet, Scene
 
 DATABASE = ["mapping/cam0/0001.jpg", "mapping/cam0/0002.jpg", "mapping/cam1/0001.jpg", "mapping/cam1/0002.jpg"]

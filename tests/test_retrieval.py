@@ -8,7 +8,9 @@ import pytest
 from PIL import Image
 
 from locretrieval.models import GlobalDescriptor
-from locretrieval.retrieval import describe_scene, random_ranking, search
+from locretrieval.retrieval import random_ranking
+from locretrieval.retrieval.descriptors import describe_scene
+from locretrieval.retrieval.index import search
 from locretrieval.scene import Camera, ImageSet, Scene
 from locretrieval.scene.images import read_image
 

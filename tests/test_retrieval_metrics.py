@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from scipy import sparse
 
-from locretrieval.metrics.retrieval import RETRIEVAL_COLUMNS, relevant_hits, retrieval_metrics, retrieval_tables
-from locretrieval.retrieval import EMPTY, Ranking, ranking_from_scores
+from locretrieval.metrics.retrieval import RETRIEVAL_COLUMNS, retrieval_metrics, retrieval_tables
+from locretrieval.retrieval import EMPTY, Ranking, ranking_from_scores, relevant_hits
 from locretrieval.scene import Camera, ImageSet
 
 CAMERA = Camera("SIMPLE_PINHOLE", 64, 48, (50.0, 32.0, 24.0))

@@ -7,18 +7,21 @@ import numpy as np
 import pytest
 from PIL import Image
 
+import helpers
+
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 import pycolmap
 from locretrieval import geometry
 from locretrieval.groundtruth import relative_pose_groundtruth
-from locretrieval.localization import PARADIGMS, local_sfm, matching
+from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
+from locretrieval.localization import global_sfm, local_sfm, matching
 from locretrieval.localization.colmap_model import read_colmap_map, to_pycolmap_camera, to_rigid3d
 from locretrieval.localization.features import FeatureStore, extract_features
-from locretrieval.localization.global_sfm import global_map, map_cache_path
-from locretrieval.localization.local_sfm import local_map_pairs
-from locretrieval.localization.pairs import database_pairs
-from locretrieval.localization.pnp import DEFAULT_PNP, NO_KEYPOINTS, TOO_FEW_IMAGES, TOO_FEW_MATCHES, estimate_absolute_pose
-from locretrieval.localization.sfm import QueryTask, SfmInputs, common_settings, outcomes_per_image_set
+from locretrieval.localization.global_sfm import GlobalSfmSettings, global_map, map_cache_path
+from locretrieval.localization.local_sfm import LocalSfmSettings, local_map_pairs
+from locretrieval.localization.pairs import PairSelection, database_pairs
+from locretrieval.localization.pnp import NO_KEYPOINTS, TOO_FEW_IMAGES, TOO_FEW_MATCHES, estimate_absolute_pose
+from locretrieval.localization.sfm import QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set
 from locretrieval.localization.triangulation import triangulate_known_poses
 from locretrieval.retrieval import Ranking, random_ranking
 from locretrieval.scene.kapture_io import load_kapture_scene
@@ -28,11 +31,22 @@ SCENE = {"width": 256, "height": 192, "num_database": 40, "num_queries": 8, "tex
          "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
          "hard_query_fraction": 0.0, "workers": 1, "seed": 1}
 BLANK = 7  # this query's image is replaced by a uniform one
-PAIRS = {"far": 25.0, "max_per_image": 10}
+PAIRS = {"far": 25.0, "max_per_image": 10}  # global-map pairs (the scene has no frustum_far)
 
 
-def base_config(**overrides):
-    return {"features": {"type": "sift"}, "workers": 1, **overrides}
+def sfm_settings(**overrides) -> SfmSettings:
+    """The default SfM settings in this process, global-map pairs by `PAIRS`, ``overrides`` merged in."""
+    return helpers.sfm_settings({"map_pairs": PAIRS}, overrides)
+
+
+def run_local(scene, rankings, k, cache, map_matches="database", sfm=None):
+    """Paradigm 2a with the given ks."""
+    return local_sfm.run(scene, rankings, LocalSfmSettings(True, list(k), map_matches), sfm or sfm_settings(), cache)
+
+
+def run_global(scene, rankings, k, cache, colmap_model=None, sfm=None):
+    """Paradigm 2b with the given ks."""
+    return global_sfm.run(scene, rankings, GlobalSfmSettings(True, list(k), colmap_model), sfm or sfm_settings(), cache)
 
 
 @pytest.fixture(scope="module")
@@ -48,8 +62,8 @@ def scene(tmp_path_factory):
 def features_cache(scene, tmp_path_factory):
     """A cache folder holding the features of both image sets (copied into fresh caches)."""
     cache = tmp_path_factory.mktemp("sfm_features")
-    extract_features(scene.database, {"type": "sift"}, cache, workers=1)
-    extract_features(scene.queries, {"type": "sift"}, cache, workers=1)
+    extract_features(scene.database, sfm_settings().features, cache, workers=1)
+    extract_features(scene.queries, sfm_settings().features, cache, workers=1)
     return cache
 
 
@@ -62,7 +76,8 @@ def cache(features_cache, tmp_path):
 @pytest.fixture(scope="module")
 def rankings(scene):
     database, queries = scene.database, scene.queries
-    return [relative_pose_groundtruth(database, queries).ranking, random_ranking(len(queries), len(database), 50, 0)]
+    truth = relative_pose_groundtruth(database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0)
+    return [truth.ranking, random_ranking(len(queries), len(database), 50, 0)]
 
 
 def read_depth(images, index):
@@ -83,8 +98,8 @@ def backproject(images, index, pixels):
 
 def test_triangulation_with_known_poses_recovers_the_rendered_points(scene, cache, monkeypatch):
     database = scene.database
-    inputs = SfmInputs.prepare(scene, common_settings(base_config()), cache)
-    sparse_map = global_map(inputs, {"pairs": PAIRS}, cache)
+    inputs = SfmInputs.prepare(scene, sfm_settings(), cache)
+    sparse_map = global_map(inputs, None, cache)
     assert sparse_map.num_points > 500
     keypoints = inputs.database_features.keypoints(database.names)
     track_lengths = np.bincount(np.concatenate([ids[ids >= 0] for ids in sparse_map.observations]), minlength=sparse_map.num_points)
@@ -103,25 +118,26 @@ def test_triangulation_with_known_poses_recovers_the_rendered_points(scene, cach
     # cached: the same map is read back, without reading any feature
     monkeypatch.setattr(FeatureStore, "keypoints", None)
     monkeypatch.setattr(FeatureStore, "load", None)
-    again = global_map(inputs, {"pairs": PAIRS}, cache)
+    again = global_map(inputs, None, cache)
     np.testing.assert_array_equal(again.points, sparse_map.points)
 
 
 def test_the_global_map_cache_key_follows_what_the_map_depends_on(scene, cache):
     def path(**overrides):
-        inputs = SfmInputs.prepare(scene, common_settings(base_config(**overrides)), cache)
-        return map_cache_path(inputs, {"far": 25.0}, cache)
+        inputs = SfmInputs.prepare(scene, sfm_settings(**overrides), cache)
+        return map_cache_path(inputs, cache)
 
     base = path()
     assert path(matching={"two_view": {"max_error": 3.0}}) == base  # query verification only
     assert path(triangulation={"min_angle": 3.0}) != base
     assert path(matching={"ratio": 0.9}) != base
     assert path(matching={"max_epipolar_error": 8.0}) != base
-    assert map_cache_path(SfmInputs.prepare(scene, common_settings(base_config()), cache), {"far": 30.0}, cache) != base
+    assert path(map_pairs={"far": 30.0}) != base
+    assert path(pnp={"max_error": 6.0}) == base  # registration only
 
 
 def test_feature_keypoints_are_read_without_descriptors(scene, cache):
-    inputs = SfmInputs.prepare(scene, common_settings(base_config()), cache)
+    inputs = SfmInputs.prepare(scene, sfm_settings(), cache)
     keypoints = inputs.database_features.keypoints(scene.database.names[:3])
     assert all(points.shape[1] == 2 for points in keypoints.values())
     assert {name for _, name in inputs.database_features.store._cache} == {"keypoints"}
@@ -136,11 +152,12 @@ def test_pnp_recovers_a_rendered_query_pose_among_outliers(scene):
     pixels = np.column_stack([columns[chosen], rows[chosen]]) + 0.5  # pixel centres, COLMAP convention
     points = backproject(queries, 0, pixels)
     points[:90] = rng.uniform(points.min(0), points.max(0), (90, 3))  # 30 % outliers
-    qvec, tvec, inliers = estimate_absolute_pose(pixels, points, queries.cameras[0], DEFAULT_PNP)
+    pnp = sfm_settings().pnp
+    qvec, tvec, inliers = estimate_absolute_pose(pixels, points, queries.cameras[0], pnp)
     assert 205 <= inliers <= 215
     assert geometry.position_errors(geometry.camera_centers(qvec, tvec), queries.centers[0]) < 1e-3
     assert geometry.rotation_errors_deg(qvec, queries.qvec[0]) < 0.01
-    assert estimate_absolute_pose(pixels[:5], points[:5], queries.cameras[0], DEFAULT_PNP) == TOO_FEW_MATCHES
+    assert estimate_absolute_pose(pixels[:5], points[:5], queries.cameras[0], pnp) == TOO_FEW_MATCHES
 
 
 # --------------------------------------------------------------------------------- paradigms
@@ -149,8 +166,8 @@ def test_pnp_recovers_a_rendered_query_pose_among_outliers(scene):
 def test_paradigms_localise_with_the_ground_truth_ranking_and_count_failures(scene, cache, rankings):
     queries = scene.queries
     posed = np.arange(len(queries)) != BLANK
-    local = PARADIGMS["local_sfm"](scene, rankings, base_config(k=[1, 3, 5]), cache)
-    globl = PARADIGMS["global_sfm"](scene, rankings, base_config(k=[1, 3], map={"pairs": PAIRS}), cache)
+    local = run_local(scene, rankings, [1, 3, 5], cache)
+    globl = run_global(scene, rankings, [1, 3], cache)
     by_name = {(e.paradigm, e.ranking): e for e in local + globl}
     assert sorted(by_name) == sorted((p, r) for p in ("local_sfm", "global_sfm") for r in ("gt_relative_pose", "random"))
     for estimates in by_name.values():
@@ -175,7 +192,7 @@ def test_paradigms_localise_with_the_ground_truth_ranking_and_count_failures(sce
 
 def test_local_maps_from_query_derived_matches_match_no_database_pair(scene, cache, rankings, monkeypatch):
     calls = count_matcher_calls(monkeypatch)
-    estimates = PARADIGMS["local_sfm"](scene, rankings[:1], base_config(k=[5], map_matches="query"), cache)[0]
+    estimates = run_local(scene, rankings[:1], [5], cache, map_matches="query")[0]
     assert sum(calls) == len(scene.queries) * 5  # query pairs only
     position, rotation = estimates.errors(scene.queries.qvec, scene.queries.tvec)
     assert ((position < 0.25) & (rotation < 2.0)).mean() >= 0.6
@@ -206,16 +223,16 @@ def test_increasing_k_matches_only_the_new_pairs(scene, cache, rankings, monkeyp
                 database.update((min(a, b), max(a, b)) for a in row for b in row if a != b)
         return query, database
 
-    PARADIGMS["local_sfm"](scene, rankings, base_config(k=[3]), cache)
+    run_local(scene, rankings, [3], cache)
     query3, database3 = pairs(3)
     assert sum(calls) == len(query3) + len(database3)
     assert {tuple(p) for p in local_map_pairs(rankings, [[3], [3]]).tolist()} == database3
     calls.clear()
-    PARADIGMS["local_sfm"](scene, rankings, base_config(k=[3, 5]), cache)
+    run_local(scene, rankings, [3, 5], cache)
     query5, database5 = pairs(5)
     assert sum(calls) == len(query5 - query3) + len(database5 - database3)
     calls.clear()
-    PARADIGMS["local_sfm"](scene, rankings, base_config(k=[2, 5]), cache)
+    run_local(scene, rankings, [2, 5], cache)
     assert sum(calls) == 0
 
 
@@ -244,7 +261,7 @@ def test_local_maps_of_the_same_images_in_another_order_are_built_once(scene, ca
         return real(cameras, qvec, tvec, *rest)
 
     monkeypatch.setattr(local_sfm, "triangulate_known_poses", counting)
-    forward, backward = PARADIGMS["local_sfm"](scene, [truth.top(3), reversed_ranking], base_config(k=[2, 3]), cache)
+    forward, backward = run_local(scene, [truth.top(3), reversed_ranking], [2, 3], cache)
     # per query: the two top-2 sets {first, second} and {second, third}, and one top-3 set
     assert sorted(built) == [2] * 2 * len(top) + [3] * len(top)
     np.testing.assert_array_equal(forward.qvec[1], backward.qvec[1])
@@ -253,10 +270,9 @@ def test_local_maps_of_the_same_images_in_another_order_are_built_once(scene, ca
 
 
 def test_results_do_not_depend_on_worker_processes_and_reruns_reuse_the_caches(scene, cache, rankings, monkeypatch):
-    config = base_config(k=[1, 3], map={"pairs": PAIRS})
-    parallel = PARADIGMS["global_sfm"](scene, rankings, {**config, "workers": 2}, cache)
+    parallel = run_global(scene, rankings, [1, 3], cache, sfm=sfm_settings(workers=2))
     calls = count_matcher_calls(monkeypatch)
-    serial = PARADIGMS["global_sfm"](scene, rankings, config, cache)
+    serial = run_global(scene, rankings, [1, 3], cache)
     assert sum(calls) == 0  # features, matches and the map all come from the cache
     for a, b in zip(parallel, serial):
         np.testing.assert_array_equal(a.qvec, b.qvec)
@@ -283,8 +299,8 @@ def write_colmap_model(folder, database, keypoints, sparse_map):
 
 def test_an_existing_colmap_model_serves_as_the_global_map(scene, cache, rankings, tmp_path):
     database = scene.database
-    inputs = SfmInputs.prepare(scene, common_settings(base_config()), cache)
-    sparse_map = global_map(inputs, {"pairs": PAIRS}, cache)
+    inputs = SfmInputs.prepare(scene, sfm_settings(), cache)
+    sparse_map = global_map(inputs, None, cache)
     keypoints = inputs.database_features.keypoints(database.names)
     write_colmap_model(tmp_path / "model", database, keypoints, sparse_map)
     read = read_colmap_map(tmp_path / "model", database.names, [keypoints[n] for n in database.names])
@@ -293,9 +309,8 @@ def test_an_existing_colmap_model_serves_as_the_global_map(scene, cache, ranking
         observed = ours >= 0
         np.testing.assert_array_equal(observed, theirs >= 0)
         np.testing.assert_allclose(read.points[theirs[observed]], sparse_map.points[ours[observed]])
-    config = base_config(k=[3])
-    from_model = PARADIGMS["global_sfm"](scene, rankings[:1], {**config, "map": {"colmap_model": str(tmp_path / "model")}}, cache)
-    triangulated = PARADIGMS["global_sfm"](scene, rankings[:1], {**config, "map": {"pairs": PAIRS}}, cache)
+    from_model = run_global(scene, rankings[:1], [3], cache, colmap_model=str(tmp_path / "model"))
+    triangulated = run_global(scene, rankings[:1], [3], cache)
     np.testing.assert_array_equal(from_model[0].failures, triangulated[0].failures)
     np.testing.assert_allclose(from_model[0].tvec, triangulated[0].tvec, atol=1e-6)
     shifted = [keypoints[n] + 1.0 for n in database.names]
@@ -306,15 +321,16 @@ def test_an_existing_colmap_model_serves_as_the_global_map(scene, cache, ranking
 def test_triangulating_pairs_without_matches_gives_an_empty_map(scene):
     database = scene.database.subset(np.arange(3))
     keypoints = [np.zeros((4, 2)), np.zeros((0, 2)), np.ones((2, 2))]
-    sparse_map = triangulate_known_poses(database.cameras, database.qvec, database.tvec, keypoints, {(0, 2): np.empty((0, 2), np.int32)})
+    no_matches = {(0, 2): np.empty((0, 2), np.int32)}
+    sparse_map = triangulate_known_poses(
+        database.cameras, database.qvec, database.tvec, keypoints, no_matches, sfm_settings().triangulation
+    )
     assert sparse_map.num_points == 0 and [len(o) for o in sparse_map.observations] == [4, 0, 2]
 
 
 def test_global_map_pairs_are_the_most_overlapping_frusta(scene):
-    from locretrieval.groundtruth.frustum import TruncatedFrusta, pairwise_overlap_radii
-
     database = scene.database
-    pairs = database_pairs(database, {"far": 25.0, "max_per_image": 3})
+    pairs = database_pairs(database, PairSelection(near=0.1, far=25.0, min_radius=0.0, max_per_image=3))
     assert (pairs[:, 0] < pairs[:, 1]).all() and len(np.unique(pairs, axis=0)) == len(pairs)
     frusta = TruncatedFrusta.of_images(database, np.arange(len(database)), 0.1, 25.0)
     radii = pairwise_overlap_radii(frusta, frusta)
@@ -325,4 +341,4 @@ def test_global_map_pairs_are_the_most_overlapping_frusta(scene):
         assert all((min(image, j), max(image, j)) in chosen for j in best)
     # every chosen pair is among the best three of one of its images
     assert all(b in np.argsort(-radii[a], kind="stable")[:3] or a in np.argsort(-radii[b], kind="stable")[:3] for a, b in pairs)
-    assert len(database_pairs(database, {"far": 25.0, "min_radius": 1e6})) == 0
+    assert len(database_pairs(database, PairSelection(near=0.1, far=25.0, min_radius=1e6, max_per_image=None))) == 0

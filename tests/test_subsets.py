@@ -6,6 +6,7 @@ from locretrieval.metrics.subsets import (
     BLURRY,
     DYNAMIC_SCENE,
     MASKRCNN_WEIGHTS_FILE,
+    SubsetSettings,
     blur_score,
     dynamic_category_ids,
     dynamic_fraction,
@@ -17,8 +18,9 @@ from locretrieval.metrics.subsets import (
     subset_scores,
 )
 from locretrieval.scene import Camera, ImageSet
+from locretrieval.config import ConfigError, validated
 
-CONFIG = {
+SETTINGS = {
     "enabled": True,
     "blur_threshold": 20.0,
     "blur_radius": 60,
@@ -30,6 +32,11 @@ CONFIG = {
     "maskrcnn_score_threshold": 0.5,
     "maskrcnn_mask_threshold": 0.5,
 }
+CONFIG = SubsetSettings(**SETTINGS)
+
+
+def settings(**overrides) -> SubsetSettings:
+    return validated(SubsetSettings, {**SETTINGS, **overrides}, "subsets")
 
 
 def textured(height: int = 300, width: int = 500) -> np.ndarray:
@@ -67,7 +74,7 @@ def test_blur_score_orders_a_sharp_image_above_its_blurred_copy():
     sharp = textured()
     blurred = np.asarray(Image.fromarray(sharp).filter(ImageFilter.GaussianBlur(4)))
     sharp_score, blurred_score = blur_score(sharp), blur_score(blurred)
-    assert sharp_score > CONFIG["blur_threshold"] >= blurred_score
+    assert sharp_score > CONFIG.blur_threshold >= blurred_score
     resized = np.asarray(Image.fromarray(sharp).resize((1000, 600), Image.Resampling.NEAREST))
     assert blur_score(resized) == pytest.approx(sharp_score, abs=1.0)  # scored at width 500
 
@@ -86,7 +93,7 @@ def test_mask_subsets_threshold_inclusive_and_cached(tmp_path):
     assert set(table["mask_source"]) == {"masks"} and table["image"].tolist() == queries.names
     cached = sorted((cache / "subsets").iterdir())
     assert len(cached) == 2  # blur scores and mask fractions
-    stricter = {**CONFIG, "dynamic_fraction": 0.05, "blur_threshold": -1e9}
+    stricter = settings(dynamic_fraction=0.05, blur_threshold=-1e9)
     again, _ = image_subsets("toy", queries, stricter, cache_dir=cache)  # thresholds are not cache keys
     assert sorted((cache / "subsets").iterdir()) == cached
     assert again[DYNAMIC_SCENE].tolist() == [True, True, False] and not again[BLURRY].any()
@@ -97,11 +104,11 @@ def test_mask_source_resolution(tmp_path):
     without = image_set(tmp_path, [textured()])
     assert resolve_mask_source(with_masks, CONFIG) == "masks"
     assert resolve_mask_source(without, CONFIG) == "none"
-    assert resolve_mask_source(without, {**CONFIG, "maskrcnn_weights": "w.pth"}) == "maskrcnn"
-    with pytest.raises(ValueError, match="mask_source"):
-        resolve_mask_source(without, {**CONFIG, "mask_source": "sam"})
-    with pytest.raises(ValueError, match=MASKRCNN_WEIGHTS_FILE):
-        subset_scores(without, {**CONFIG, "mask_source": "maskrcnn"})
+    assert resolve_mask_source(without, settings(maskrcnn_weights="w.pth")) == "maskrcnn"
+    with pytest.raises(ConfigError, match=r"subsets.mask_source: must be one of \['auto', 'masks', 'maskrcnn', 'none'\], got 'sam'"):
+        settings(mask_source="sam")
+    with pytest.raises(ConfigError, match=f"subsets.maskrcnn_weights: mask_source=maskrcnn needs .*{MASKRCNN_WEIGHTS_FILE}"):
+        settings(mask_source="maskrcnn")
     scores = subset_scores(without, CONFIG)
     assert scores["dynamic_fraction"].isna().all()
     assert set(subset_masks(scores, CONFIG)) == {BLURRY}  # no dynamic subset without masks

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
+import pandas as pd
 from scipy import sparse
 from tqdm import tqdm
 
-from locretrieval.metrics.retrieval import relevant_hits
-from locretrieval.retrieval import EMPTY, Ranking, top_k
+from locretrieval.retrieval import EMPTY, Ranking, relevant_hits, top_k
 from locretrieval.scene import ImageSet
 
 #: Query-database pairs scored at once; bounds the memory of every definition.
@@ -118,3 +118,8 @@ def groundtruth_from_scores(
         (np.ones(len(rows), dtype=bool), (rows, columns)), shape=(num_queries, num_database)
     )
     return GroundTruth(Ranking(name, indices, scores, "groundtruth"), relevance, query_has_pose)
+
+
+def statistics_table(dataset: str, groundtruths: Mapping[str, GroundTruth]) -> pd.DataFrame:
+    """Table 1 (``groundtruth_statistics.csv``): one row of `GroundTruth.statistics` per definition."""
+    return pd.DataFrame([{"dataset": dataset, "groundtruth": name, **gt.statistics()} for name, gt in groundtruths.items()])

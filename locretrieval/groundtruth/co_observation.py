@@ -14,54 +14,64 @@ paradigms (the same caches when the settings agree).
 
 from __future__ import annotations
 
+import dataclasses
 import tempfile
-from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from scipy import sparse
 
+from locretrieval.config import require
 from locretrieval.groundtruth.base import GroundTruth, groundtruth_from_scores
 from locretrieval.localization.features import extract_features
-from locretrieval.localization.pairs import database_pairs, overlapping_pairs, pair_settings
-from locretrieval.localization.matching import PairMatcher, matching_settings
+from locretrieval.localization.matching import PairMatcher
+from locretrieval.localization.pairs import database_pairs, overlapping_pairs
+from locretrieval.localization.sfm import SfmSettings
 from locretrieval.localization.sparse_map import SparseMap
-from locretrieval.localization.triangulation import triangulate_known_poses, triangulation_settings
+from locretrieval.localization.triangulation import triangulate_known_poses
 from locretrieval.scene import ImageSet
+
+
+@dataclass
+class CoObservationDefinition:
+    """Relevant when sharing at least ``min_shared`` 3D points (the paper: 1); each query is
+    matched to its ``query_pairs`` most overlapping database images (by frustum)."""
+
+    min_shared: int
+    query_pairs: int
+
+    def __post_init__(self) -> None:
+        require(self.min_shared >= 1, "min_shared", f"must be >= 1 shared 3D point, got {self.min_shared}")
+        require(self.query_pairs >= 1, "query_pairs", f"must be >= 1 database image per query, got {self.query_pairs}")
 
 
 def co_observation_groundtruth(
     database: ImageSet,
     queries: ImageSet,
     *,
-    depth: int = 50,
-    name: str = "gt_co_observation",
+    depth: int,
+    min_shared: int,
+    query_pairs: int,
+    sfm: SfmSettings,
     cache_dir: str | Path | None = None,
-    features: Mapping[str, Any] | None = None,
-    matching: Mapping[str, Any] | None = None,
-    triangulation: Mapping[str, Any] | None = None,
-    pairs: Mapping[str, Any] | None = None,
-    query_pairs: int = 20,
-    min_shared: int = 1,
-    workers: int | None = 1,
+    name: str = "gt_co_observation",
 ) -> GroundTruth:
     """Database images ranked by the number of 3D points they share with each query.
 
-    ``pairs``: frustum-overlap pair selection of the database (`localization.pairs`);
-    the queries use the same frusta, each paired with its ``query_pairs`` most overlapping
-    database images. ``features``/``matching``/``triangulation``: as for the SfM paradigms.
-    Features and matches are cached under ``cache_dir`` (a temporary folder when None).
+    ``sfm``: the SfM paradigms' settings; its ``map_pairs`` (whose ``far`` must be set) select
+    the database pairs, and each query is paired with its ``query_pairs`` most overlapping
+    database images with the same frusta. Features and matches are cached under
+    ``cache_dir`` (a temporary folder when None).
     """
-    if min_shared < 1:
-        raise ValueError(f"min_shared must be >= 1 shared 3D point, got {min_shared}")
+    CoObservationDefinition(min_shared, query_pairs)  # range checks
     if cache_dir is None:
         with tempfile.TemporaryDirectory(prefix="co_observation-") as folder:
             return co_observation_groundtruth(
-                database, queries, depth=depth, name=name, cache_dir=folder, features=features, matching=matching,
-                triangulation=triangulation, pairs=pairs, query_pairs=query_pairs, min_shared=min_shared, workers=workers,
+                database, queries, depth=depth, min_shared=min_shared, query_pairs=query_pairs, sfm=sfm,
+                cache_dir=folder, name=name,
             )
-    shared = shared_points(database, queries, Path(cache_dir), features, matching, triangulation, pairs, query_pairs, workers)
+    shared = shared_points(database, queries, Path(cache_dir), sfm, query_pairs)
 
     def score_block(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         counts = shared[rows].toarray().astype(np.float64)
@@ -70,24 +80,20 @@ def co_observation_groundtruth(
     return groundtruth_from_scores(name, database, queries, depth, score_block)
 
 
-def shared_points(
-    database: ImageSet, queries: ImageSet, cache_dir: Path, features: Mapping[str, Any] | None,
-    matching: Mapping[str, Any] | None, triangulation: Mapping[str, Any] | None, pairs: Mapping[str, Any] | None,
-    query_pairs: int, workers: int | None,
-) -> sparse.csr_matrix:
+def shared_points(database: ImageSet, queries: ImageSet, cache_dir: Path, sfm: SfmSettings, query_pairs: int) -> sparse.csr_matrix:
     """``[Q, N]`` number of joint-map points observed by query q and database image t
     (zero rows for queries without a pose)."""
     posed = np.flatnonzero(queries.has_pose)
-    pair_config = pair_settings(pairs)
+    workers = sfm.processes
     # features and matches of the whole image sets: the caches of the SfM paradigms
-    database_features = extract_features(database, features, cache_dir, workers)
-    query_features = extract_features(queries, features, cache_dir, workers)
-    settings = matching_settings(matching)
-    database_matcher = PairMatcher(database, database_features, database, database_features, settings, cache_dir)
-    query_matcher = PairMatcher(queries, query_features, database, database_features, settings, cache_dir)
+    database_features = extract_features(database, sfm.features, cache_dir, workers)
+    query_features = extract_features(queries, sfm.features, cache_dir, workers)
+    database_matcher = PairMatcher(database, database_features, database, database_features, sfm.matching, cache_dir)
+    query_matcher = PairMatcher(queries, query_features, database, database_features, sfm.matching, cache_dir)
 
-    database_pair_rows = database_pairs(database, pair_config)
-    query_pair_rows = overlapping_pairs(queries, database, {**pair_config, "max_per_image": query_pairs}, exclude_self=False)
+    database_pair_rows = database_pairs(database, sfm.map_pairs)
+    query_selection = dataclasses.replace(sfm.map_pairs, max_per_image=query_pairs)
+    query_pair_rows = overlapping_pairs(queries, database, query_selection, exclude_self=False)
     named_database = [(database.names[a], database.names[b]) for a, b in database_pair_rows]
     named_queries = [(queries.names[q], database.names[t]) for q, t in query_pair_rows]
     database_matcher.ensure(named_database, workers, "poses")
@@ -109,7 +115,7 @@ def shared_points(
         np.concatenate([database.tvec, queries.tvec[posed]]),
         [keypoints[n] for n in database.names] + [query_keypoints[n] for n in posed_names],
         matches,
-        triangulation_settings(triangulation),
+        sfm.triangulation,
     )
     observed = _incidence(joint.observed_points(), joint.num_points)
     counts = (observed[offset:] @ observed[:offset].T).tocoo()

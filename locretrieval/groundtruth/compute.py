@@ -2,92 +2,120 @@
 
 from __future__ import annotations
 
-import functools
-import inspect
+import dataclasses
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
 from scipy import sparse
 
 from locretrieval.cache import cached_arrays, config_key
+from locretrieval.config import ConfigError, require, validated
 from locretrieval.groundtruth.base import GroundTruth
-from locretrieval.groundtruth.co_observation import co_observation_groundtruth
-from locretrieval.groundtruth.frustum import frustum_groundtruth
-from locretrieval.groundtruth.relative_pose import relative_pose_groundtruth
+from locretrieval.groundtruth.co_observation import CoObservationDefinition, co_observation_groundtruth
+from locretrieval.groundtruth.frustum import FrustumDefinition, frustum_groundtruth
+from locretrieval.groundtruth.relative_pose import RelativePoseDefinition, relative_pose_groundtruth
+from locretrieval.localization.sfm import SfmSettings
 from locretrieval.retrieval import Ranking
-from locretrieval.scene import ImageSet
+from locretrieval.scene import Scene
 
 log = logging.getLogger(__name__)
 
-#: Parameters that change how a ground truth is computed, not what: left out of cache keys.
-RESULT_NEUTRAL_PARAMETERS = ("workers",)
 
-#: Ground-truth builders by definition type, each called as
-#: ``builder(database, queries, depth=..., name=..., **parameters)``, plus ``cache_dir=`` for
-#: builders that take it (their features and matches are cached there).
-DEFINITIONS: dict[str, Callable[..., GroundTruth]] = {
-    "relative_pose": relative_pose_groundtruth,
-    "frustum": frustum_groundtruth,
-    "co_observation": co_observation_groundtruth,
+@dataclass(frozen=True)
+class DefinitionType:
+    """A ground-truth definition: its parameter schema and its builder, called as
+    ``build(database, queries, depth=..., name=..., **parameters)`` (plus ``sfm=`` and
+    ``cache_dir=`` when ``uses_sfm``: its features and matches are the SfM paradigms')."""
+
+    schema: type
+    build: Callable[..., GroundTruth]
+    uses_sfm: bool = False
+
+
+#: Ground-truth definition types by name (the ``type`` of a ``definitions`` entry).
+DEFINITIONS: dict[str, DefinitionType] = {
+    "relative_pose": DefinitionType(RelativePoseDefinition, relative_pose_groundtruth),
+    "frustum": DefinitionType(FrustumDefinition, frustum_groundtruth),
+    "co_observation": DefinitionType(CoObservationDefinition, co_observation_groundtruth, uses_sfm=True),
 }
 
 #: Bump when the meaning of cached ground-truth files changes.
-CACHE_VERSION = 1
+CACHE_VERSION = 2
+
+
+@dataclass
+class GroundTruthSettings:
+    """The ``groundtruth`` config group: ``depth`` images kept per query in each ranking, and
+    ``definitions`` mapping a name to its parameters. The optional ``type`` parameter picks the
+    definition type in `DEFINITIONS` (default: the name itself), so one type can appear
+    twice, e.g. ``frustum_25m: {type: frustum, far: 25.0, ...}``. ``definitions: {}`` or
+    ``null`` computes none."""
+
+    depth: int
+    definitions: dict[str, Any] | None
+
+    def __post_init__(self) -> None:
+        require(self.depth >= 1, "depth", f"must be >= 1, got {self.depth}")
+        self.definitions = dict(self.definitions or {})
+        for name, parameters in self.definitions.items():
+            kind = (parameters or {}).get("type", name)
+            require(kind in DEFINITIONS, f"definitions.{name}.type", f"unknown definition type {kind!r}; known: {sorted(DEFINITIONS)}")
+
+    def parsed(self) -> dict[str, tuple[str, Any]]:
+        """``name -> (type, checked parameters)`` of every definition."""
+        parsed = {}
+        for name, parameters in self.definitions.items():
+            parameters = dict(parameters or {})
+            kind = parameters.pop("type", name)
+            parsed[name] = (kind, validated(DEFINITIONS[kind].schema, parameters, f"groundtruth.definitions.{name}"))
+        return parsed
 
 
 def compute_groundtruths(
-    database: ImageSet,
-    queries: ImageSet,
-    config: Mapping[str, Any] | DictConfig,
-    cache_dir: str | Path | None = None,
+    scene: Scene, settings: GroundTruthSettings, sfm: SfmSettings | None = None, cache_dir: str | Path | None = None
 ) -> dict[str, GroundTruth]:
-    """Every definition of ``config`` (``depth`` and ``definitions``), keyed by its name.
+    """Every definition of ``settings`` on ``scene``'s queries, keyed by its name; rankings are
+    named ``gt_<name>``.
 
-    Each entry of ``definitions`` maps a name to its parameters; the optional ``type``
-    parameter picks the builder in `DEFINITIONS` (default: the name itself), so one type can
-    appear twice, e.g. ``frustum_25m: {type: frustum, far: 25.0}``. Rankings are named
-    ``gt_<name>``. With ``cache_dir``, results are stored under ``<cache_dir>/groundtruth``,
-    keyed by both image sets' fingerprints and the definition's parameters.
+    A frustum ``far`` left ``null`` (in a definition or in ``sfm.map_pairs``) is the scene's
+    `Scene.frustum_far`. ``sfm``: needed by definitions that match local features
+    (co-observation). With ``cache_dir``, results are stored under
+    ``<cache_dir>/groundtruth``, keyed by both image sets' fingerprints and what produced them.
     """
-    if isinstance(config, DictConfig):
-        config = OmegaConf.to_container(config, resolve=True)
-    if "definitions" not in config:
-        raise ValueError(f"ground-truth config needs a 'definitions' mapping, got keys {sorted(config)}")
-    depth = int(config.get("depth", 50))
+    settings = validated(GroundTruthSettings, settings, "groundtruth")
+    database, queries = scene.database, scene.queries
     fingerprints = (database.fingerprint(), queries.fingerprint()) if cache_dir is not None else ()
     groundtruths = {}
-    for name, parameters in (config["definitions"] or {}).items():
-        kind, parameters = _definition(name, parameters)
+    for name, (kind, definition) in settings.parsed().items():
+        definition_type = DEFINITIONS[kind]
+        parameters = dataclasses.asdict(definition)
+        if "far" in parameters:  # a frustum far plane left null is the scene's
+            parameters["far"] = scene.far_plane(parameters["far"], f"groundtruth.definitions.{name}.far")
+        produced_by: dict[str, Any] = dict(parameters)
+        if definition_type.uses_sfm:
+            if sfm is None:
+                raise ConfigError(f"groundtruth.definitions.{name}: the {kind} ground truth needs the sfm settings")
+            sfm_for_scene = dataclasses.replace(sfm, map_pairs=sfm.map_pairs.for_scene(scene))
+            parameters.update(sfm=sfm_for_scene, cache_dir=cache_dir)
+            produced_by["sfm"] = {key: dataclasses.asdict(getattr(sfm_for_scene, key))
+                                  for key in ("features", "matching", "triangulation", "map_pairs")}
         path = None
         if cache_dir is not None:
-            produced_by = {k: v for k, v in parameters.items() if k not in RESULT_NEUTRAL_PARAMETERS}
-            key = config_key(CACHE_VERSION, kind, produced_by, depth, *fingerprints)
+            key = config_key(CACHE_VERSION, kind, produced_by, settings.depth, *fingerprints)
             path = Path(cache_dir) / "groundtruth" / f"{name}-{key}.npz"
-        builder = DEFINITIONS[kind]
-        extra = {"cache_dir": cache_dir} if "cache_dir" in inspect.signature(builder).parameters else {}
-        build = functools.partial(builder, database, queries, depth=depth, name=f"gt_{name}", **parameters, **extra)
-        arrays, hit = cached_arrays(path, lambda: _to_arrays(build()))
+
+        def build(parameters: dict[str, Any] = parameters, name: str = name) -> dict[str, np.ndarray]:
+            return _to_arrays(definition_type.build(database, queries, depth=settings.depth, name=f"gt_{name}", **parameters))
+
+        arrays, hit = cached_arrays(path, build)
         if hit:
             log.info("ground truth %s loaded from %s", name, path)
         groundtruths[name] = _from_arrays(arrays, f"gt_{name}")
     return groundtruths
-
-
-def _definition(name: str, parameters: Mapping[str, Any] | None) -> tuple[str, dict[str, Any]]:
-    """``(type, parameters)`` of one config entry, checked against its builder's signature."""
-    parameters = dict(parameters or {})
-    kind = parameters.pop("type", name)
-    if kind not in DEFINITIONS:
-        raise ValueError(f"ground-truth definition {name!r}: unknown type {kind!r}; known: {sorted(DEFINITIONS)}")
-    accepted = set(inspect.signature(DEFINITIONS[kind]).parameters) - {"database", "queries", "depth", "name", "cache_dir"}
-    unknown = sorted(set(parameters) - accepted)
-    if unknown:
-        raise ValueError(f"ground-truth definition {name!r}: unknown parameters {unknown}; {kind} takes {sorted(accepted)}")
-    return kind, parameters
 
 
 def _to_arrays(groundtruth: GroundTruth) -> dict[str, np.ndarray]:

@@ -1,10 +1,7 @@
 """Frustum-overlap ground truth (paper Sec. 3.6.3, "Overlap between the viewing frusta").
 
 The score of a pair is the radius of the largest sphere inscribed in the intersection of
-the two truncated viewing frusta, an exact linear program per pair (the Chebyshev centre of
-12 half-spaces) solved in batches by `locretrieval.groundtruth.chebyshev`. Two exact tests
-skip the pairs whose frusta cannot overlap: their bounding spheres are apart, or all 8
-corners of one frustum lie outside a face plane of the other.
+the two truncated viewing frusta (`locretrieval.frusta`, an exact linear program per pair).
 """
 
 from __future__ import annotations
@@ -12,105 +9,37 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.distance import cdist
 
-from locretrieval import geometry
+from locretrieval.config import require
+from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.groundtruth.base import GroundTruth, groundtruth_from_scores
-from locretrieval.groundtruth.chebyshev import chebyshev_radius
 from locretrieval.scene import ImageSet
 
-#: Half-space order of `geometry.frustum_halfspaces`: left, right, top, bottom, near, far.
-#: The near and far planes are opposite and parallel, so with left and top they form a
-#: dual-feasible starting basis (the half-distance between near and far planes).
-INITIAL_BASIS = np.array([4, 5, 0, 2])
 
-#: Radii below this fraction of the frusta's size are rounding noise of touching frusta: 0.
-ZERO_RADIUS = 1e-9
+@dataclass
+class FrustumDefinition:
+    """Frusta truncated at ``near`` and ``far`` metres (``far`` ``None``: the scene's
+    `Scene.frustum_far`); relevant when the overlap radius exceeds ``min_radius`` metres."""
 
+    near: float
+    far: float | None
+    min_radius: float
 
-@dataclass(frozen=True)
-class TruncatedFrusta:
-    """World-space truncated viewing frusta ``A [n, 6, 3] x <= b [n, 6]`` (unit normals).
-
-    ``corners [n, 8, 3]`` are their vertices; ``centers [n, 3]`` and ``radii [n]`` a
-    bounding sphere of each (the corners' mean and the largest distance to it).
-    """
-
-    A: np.ndarray
-    b: np.ndarray
-    corners: np.ndarray
-    centers: np.ndarray
-    radii: np.ndarray
-
-    @classmethod
-    def of_images(cls, images: ImageSet, rows: np.ndarray, near: float, far: float) -> "TruncatedFrusta":
-        """Frusta of the images at ``rows`` (world-to-camera poses, pinhole intrinsics)."""
-        qvec, tvec, intrinsics = images.qvec[rows], images.tvec[rows], images.intrinsics[rows]
-        A, b = geometry.frustum_halfspaces(qvec, tvec, intrinsics, near, far)
-        corners = geometry.frustum_corners(qvec, tvec, intrinsics, near, far)
-        centers = corners.mean(axis=1)
-        radii = np.linalg.norm(corners - centers[:, None], axis=-1).max(axis=1)
-        return cls(A, b, corners, centers, radii)
-
-    def __len__(self) -> int:
-        return len(self.A)
-
-    def __getitem__(self, index: np.ndarray) -> "TruncatedFrusta":
-        return TruncatedFrusta(self.A[index], self.b[index], self.corners[index], self.centers[index], self.radii[index])
-
-
-def may_overlap(first: TruncatedFrusta, second: TruncatedFrusta) -> np.ndarray:
-    """Boolean ``[P]``: pairs ``(first[i], second[i])`` whose interiors may intersect.
-
-    False only when overlap is impossible (up to rounding): the bounding spheres are
-    apart, or a face plane of one frustum has every corner of the other on its outer side.
-    """
-    distance = np.linalg.norm(first.centers - second.centers, axis=-1)
-    spheres_meet = distance <= first.radii + second.radii
-    return spheres_meet & ~_face_separates(first, second) & ~_face_separates(second, first)
-
-
-def _face_separates(faces: TruncatedFrusta, points: TruncatedFrusta) -> np.ndarray:
-    """``[P]``: some face plane of ``faces[i]`` has all corners of ``points[i]`` outside."""
-    signed = points.corners @ faces.A.transpose(0, 2, 1) - faces.b[:, None, :]  # [P, 8 corners, 6 faces]
-    return (signed.min(axis=1) >= 0).any(axis=1)
-
-
-def overlap_radii(first: TruncatedFrusta, second: TruncatedFrusta) -> np.ndarray:
-    """Radius ``[P]`` of the largest sphere inside ``first[i]`` and ``second[i]``.
-
-    Exact (a certified linear-program optimum) for the pairs `may_overlap` keeps; 0 for
-    the others, for empty intersections, and below ``ZERO_RADIUS`` times the larger
-    bounding-sphere radius (intersections without interior, up to rounding).
-    """
-    radii = np.zeros(len(first))
-    keep = np.flatnonzero(may_overlap(first, second))
-    A = np.concatenate([first.A[keep], second.A[keep]], axis=1)
-    b = np.concatenate([first.b[keep], second.b[keep]], axis=1)
-    radii[keep] = chebyshev_radius(A, b, INITIAL_BASIS)
-    noise = ZERO_RADIUS * np.maximum(first.radii, second.radii)
-    return np.where(radii > noise, radii, 0.0)
-
-
-def pairwise_overlap_radii(queries: TruncatedFrusta, database: TruncatedFrusta) -> np.ndarray:
-    """Dense ``[Q, N]`` `overlap_radii` of every query x database pair (memory O(Q N): callers
-    with large sets pass blocks of queries)."""
-    meet = cdist(queries.centers, database.centers) <= queries.radii[:, None] + database.radii[None]
-    rows, columns = np.nonzero(meet)
-    radii = np.zeros(meet.shape)
-    radii[rows, columns] = overlap_radii(queries[rows], database[columns])
-    return radii
+    def __post_init__(self) -> None:
+        require(self.near > 0, "near", f"must be a positive depth in metres, got {self.near}")
+        require(self.far is None or self.far > self.near, "far", f"must exceed near ({self.near} m), got {self.far}")
+        require(self.min_radius >= 0, "min_radius", f"must be >= 0 metres, got {self.min_radius}")
 
 
 def frustum_groundtruth(
     database: ImageSet,
     queries: ImageSet,
     *,
-    depth: int = 50,
+    depth: int,
+    near: float,
+    far: float,
+    min_radius: float,
     name: str = "gt_frustum",
-    near: float = 0.1,
-    far: float = 50.0,
-    min_radius: float = 0.0,
 ) -> GroundTruth:
     """Database images ranked by decreasing frustum-overlap radius (metres).
 
@@ -118,10 +47,7 @@ def frustum_groundtruth(
     ``near`` and ``far`` along the optical axis. Pairs whose frusta share no interior
     (radius 0) are never ranked; a pair is relevant when its radius exceeds ``min_radius``.
     """
-    if not 0 < near < far:
-        raise ValueError(f"frustum planes need 0 < near < far, got near={near} and far={far}")
-    if min_radius < 0:
-        raise ValueError(f"min_radius must be >= 0, got {min_radius}")
+    FrustumDefinition(near, far, min_radius)  # range checks
     database_frusta = TruncatedFrusta.of_images(database, np.arange(len(database)), near, far)
 
     def score_block(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -2,11 +2,26 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from locretrieval import geometry
+from locretrieval.config import require
 from locretrieval.groundtruth.base import GroundTruth, groundtruth_from_scores
 from locretrieval.scene import ImageSet
+
+
+@dataclass
+class RelativePoseDefinition:
+    """``position_threshold`` (tau_c, metres) and ``rotation_threshold`` (tau_R, degrees)."""
+
+    position_threshold: float
+    rotation_threshold: float
+
+    def __post_init__(self) -> None:
+        require(self.position_threshold > 0, "position_threshold", f"must be positive metres, got {self.position_threshold}")
+        require(self.rotation_threshold > 0, "rotation_threshold", f"must be positive degrees, got {self.rotation_threshold}")
 
 
 def relative_pose_scores(
@@ -33,10 +48,10 @@ def relative_pose_groundtruth(
     database: ImageSet,
     queries: ImageSet,
     *,
-    depth: int = 50,
+    depth: int,
+    position_threshold: float,
+    rotation_threshold: float,
     name: str = "gt_relative_pose",
-    position_threshold: float = 25.0,
-    rotation_threshold: float = 45.0,
 ) -> GroundTruth:
     """Database images ranked by increasing ``s_rcp``, relevant within both thresholds.
 
@@ -47,10 +62,7 @@ def relative_pose_groundtruth(
     not: the paper ranks by the non-binary score and keeps relevance separate (Table 1), so
     a query with fewer relevant images than ``k`` still gets its ``k`` closest ones.
     """
-    if position_threshold <= 0 or rotation_threshold <= 0:
-        raise ValueError(
-            f"relative pose thresholds must be positive, got {position_threshold} m and {rotation_threshold} deg"
-        )
+    RelativePoseDefinition(position_threshold, rotation_threshold)  # range checks
     database_centers, query_centers = database.centers, queries.centers
 
     def score_block(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -1,19 +1,7 @@
-"""Localization paradigms. Each maps ``(scene, rankings, config, cache_dir)`` to `PoseEstimates`.
+"""Localization paradigms (paper Sec. 3.1-3.3) and what they are built from.
 
-``PARADIGMS`` (paradigm name, a section of configs/paradigms/*.yaml -> entry point) is built on
-first use, so that code needing only `PoseEstimates` (metrics, report) does not import pycolmap.
+Each paradigm module (`approximation`, `local_sfm`, `global_sfm`) has a settings schema and
+a ``run(scene, rankings, settings, sfm, cache_dir) -> list[PoseEstimates]`` entry point;
+`locretrieval.benchmark` calls them. Import the modules you need: this package imports
+nothing on its own, so that reading `PoseEstimates` does not load pycolmap.
 """
-
-import importlib
-
-from locretrieval.localization.estimates import PoseEstimates
-
-PARADIGM_MODULES = ("approximation", "local_sfm", "global_sfm")
-
-__all__ = ["PARADIGMS", "PoseEstimates"]
-
-
-def __getattr__(name: str):
-    if name == "PARADIGMS":
-        return {p: importlib.import_module(f"locretrieval.localization.{p}").run for p in PARADIGM_MODULES}
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

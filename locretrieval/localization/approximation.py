@@ -20,14 +20,17 @@ k are processed at once. ``bdi`` and ``csi`` need descriptors, so rankings witho
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from locretrieval import geometry
+from locretrieval.config import require
 from locretrieval.localization.estimates import LOCALIZED, PoseEstimates
+from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import ImageSet, Scene
 
@@ -43,21 +46,34 @@ DEGENERATE_BDI = "degenerate bdi weights"
 GATHER_CHUNK_BYTES = 1 << 28
 
 
-def run(scene: Scene, rankings: Sequence[Ranking], config: Mapping[str, Any], cache_dir: Path | None = None) -> list[PoseEstimates]:
-    """Paradigm entry point: every method for every ranking and every ``config["k"]``."""
+@dataclass
+class ApproximationSettings(ParadigmSettings):
+    """``methods``: any of `METHODS`; ``alpha``: the CSI exponent (the paper: 8)."""
+
+    methods: list[str]
+    alpha: float
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        unknown = sorted(set(self.methods) - set(METHODS))
+        require(bool(self.methods) and not unknown, "methods", f"must be a non-empty list of {list(METHODS)}, got {self.methods}")
+        require(self.alpha > 0, "alpha", f"must be positive, got {self.alpha}")
+
+
+def run(
+    scene: Scene, rankings: Sequence[Ranking], settings: ApproximationSettings, sfm: Any = None, cache_dir: Path | None = None
+) -> list[PoseEstimates]:
+    """Paradigm entry point: every method for every ranking and every ``settings.k`` (``sfm`` and
+    ``cache_dir`` are unused: pose approximation needs no local features)."""
     return [
         estimate
         for ranking in rankings
-        for estimate in approximate_poses(scene.database, ranking, list(config["k"]), list(config["methods"]), float(config["alpha"]))
+        for estimate in approximate_poses(scene.database, ranking, settings.k, settings.methods, settings.alpha)
     ]
 
 
 def approximate_poses(
-    database: ImageSet,
-    ranking: Ranking,
-    ks: Sequence[int],
-    methods: Sequence[str] = METHODS,
-    alpha: float = 8.0,
+    database: ImageSet, ranking: Ranking, ks: Sequence[int], methods: Sequence[str], alpha: float
 ) -> list[PoseEstimates]:
     """Pose estimates of every query for every k and method applicable to ``ranking``.
 

@@ -22,8 +22,10 @@ shards (`ShardedStore`) keyed by image name, computed once and reused across run
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +36,7 @@ import numpy as np
 from PIL import Image
 
 from locretrieval.cache import config_key
+from locretrieval.config import require
 from locretrieval.localization.store import ShardedStore
 from locretrieval.localization.workers import parallel_map
 from locretrieval.scene import ImageSet
@@ -43,11 +46,6 @@ from locretrieval.scene.images import read_image
 log = logging.getLogger(__name__)
 
 FEATURE_TYPES = ("sift", "kapture")
-DEFAULT_FEATURES: dict[str, Any] = {
-    "type": "sift",
-    "sift": {"max_side": 640, "first_octave": 0, "max_num_features": 4096, "peak_threshold": 0.0066667},
-    "kapture": {"name": "r2d2", "pixel_offset": 0.5},
-}
 SIFT_DIMENSION = 128
 #: Images per shard (one task of a worker).
 IMAGES_PER_SHARD = 32
@@ -55,22 +53,50 @@ IMAGES_PER_SHARD = 32
 CACHE_VERSION = 1
 
 
-def feature_settings(config: Mapping[str, Any] | None) -> dict[str, Any]:
-    """``{"type": ..., <type>: {...}}``: the settings that determine the features (defaults filled in)."""
-    config = dict(config or {})
-    kind = config.get("type", DEFAULT_FEATURES["type"])
-    if kind not in FEATURE_TYPES:
-        raise ValueError(f"unknown local feature type {kind!r}; expected one of {FEATURE_TYPES}")
-    settings = {**DEFAULT_FEATURES[kind], **dict(config.get(kind) or {})}
-    unknown = sorted(set(settings) - set(DEFAULT_FEATURES[kind]))
-    if unknown:
-        raise ValueError(f"unknown {kind} feature settings {unknown}; known: {sorted(DEFAULT_FEATURES[kind])}")
-    return {"type": kind, kind: settings}
+@dataclass
+class SiftSettings:
+    """pycolmap SIFT: images whose longer side exceeds ``max_side`` px are downscaled for
+    extraction (keypoints scaled back); ``first_octave``, ``max_num_features`` and
+    ``peak_threshold`` are pycolmap's SIFT options."""
+
+    max_side: int
+    first_octave: int
+    max_num_features: int
+    peak_threshold: float
+
+    def __post_init__(self) -> None:
+        require(self.max_side > 0, "max_side", f"must be a positive number of pixels, got {self.max_side}")
+        require(self.max_num_features > 0, "max_num_features", f"must be positive, got {self.max_num_features}")
+        require(self.peak_threshold > 0, "peak_threshold", f"must be positive, got {self.peak_threshold}")
 
 
-def feature_key(config: Mapping[str, Any] | None) -> str:
-    """Cache key of a feature configuration (only the settings of the chosen type count)."""
-    return config_key(CACHE_VERSION, feature_settings(config))
+@dataclass
+class KaptureFeatureSettings:
+    """Published features ``reconstruction/{keypoints,descriptors}/<name>/`` of each kapture
+    folder; ``pixel_offset`` is added to their x and y (0.5: OpenCV/R2D2 pixel centres to COLMAP's)."""
+
+    name: str
+    pixel_offset: float
+
+
+@dataclass
+class FeatureSettings:
+    """Local features: ``type`` (`FEATURE_TYPES`) picks the section that applies."""
+
+    type: str
+    sift: SiftSettings
+    kapture: KaptureFeatureSettings
+
+    def __post_init__(self) -> None:
+        require(self.type in FEATURE_TYPES, "type", f"must be one of {list(FEATURE_TYPES)}, got {self.type!r}")
+
+    def identity(self) -> dict[str, Any]:
+        """What determines the features: the type and its own section only."""
+        return {"type": self.type, self.type: dataclasses.asdict(getattr(self, self.type))}
+
+    def key(self) -> str:
+        """Cache key of the features."""
+        return config_key(CACHE_VERSION, self.identity())
 
 
 class FeatureStore:
@@ -92,49 +118,45 @@ class FeatureStore:
         return {name: record["keypoints"] for name, record in self.store.read(names, arrays=("keypoints",)).items()}
 
 
-def extract_features(
-    images: ImageSet, config: Mapping[str, Any] | None, cache_dir: str | Path, workers: int | None = 1
-) -> FeatureStore:
+def extract_features(images: ImageSet, settings: FeatureSettings, cache_dir: str | Path, workers: int) -> FeatureStore:
     """The features of every image of ``images``, extracting (or reading) only missing ones."""
-    settings = feature_settings(config)
-    store = FeatureStore(Path(cache_dir) / "features" / f"{images.fingerprint(include_poses=False)}-{feature_key(config)}")
+    store = FeatureStore(Path(cache_dir) / "features" / f"{images.fingerprint(include_poses=False)}-{settings.key()}")
     paths = dict(zip(images.names, images.paths))
     missing = store.store.missing(images.names)
     if missing:
-        log.info("local features (%s) of %d images into %s", settings["type"], len(missing), store.folder)
+        log.info("local features (%s) of %d images into %s", settings.type, len(missing), store.folder)
         chunks = [missing[start : start + IMAGES_PER_SHARD] for start in range(0, len(missing), IMAGES_PER_SHARD)]
         tasks = [[(name, str(paths[name])) for name in chunk] for chunk in chunks]
         shared = (str(store.folder), settings)
-        for _ in parallel_map(_extract_shard, tasks, workers, f"features ({settings['type']})", shared):
+        for _ in parallel_map(_extract_shard, tasks, workers, f"features ({settings.type})", shared):
             pass
         store.store.refresh()
     return store
 
 
-def _extract_shard(shared: tuple[str, dict[str, Any]], images: list[tuple[str, str]]) -> int:
+def _extract_shard(shared: tuple[str, FeatureSettings], images: list[tuple[str, str]]) -> int:
     """Worker: features of one chunk of ``(name, image path)``, written as one shard."""
     folder, settings = shared
-    kind = settings["type"]
-    if kind == "sift":
-        extract = _sift_extractor(settings["sift"])
+    if settings.type == "sift":
+        extract = _sift_extractor(settings.sift)
         records = {name: extract(Path(path)) for name, path in images}
     else:
-        records = {name: _read_kapture_features(name, Path(path), settings["kapture"]) for name, path in images}
+        records = {name: _read_kapture_features(name, Path(path), settings.kapture) for name, path in images}
     ShardedStore(folder).write(records)
     return len(records)
 
 
-def _sift_extractor(settings: Mapping[str, Any]):
+def _sift_extractor(settings: SiftSettings):
     """``path -> {"keypoints", "descriptors"}`` with pycolmap's CPU SIFT."""
     import pycolmap
 
     options = pycolmap.FeatureExtractionOptions()
     options.num_threads = 1
-    options.sift.first_octave = int(settings["first_octave"])
-    options.sift.max_num_features = int(settings["max_num_features"])
-    options.sift.peak_threshold = float(settings["peak_threshold"])
+    options.sift.first_octave = settings.first_octave
+    options.sift.max_num_features = settings.max_num_features
+    options.sift.peak_threshold = settings.peak_threshold
     extractor = pycolmap.FeatureExtractor.create(options)
-    max_side = int(settings["max_side"])
+    max_side = settings.max_side
 
     def extract(path: Path) -> dict[str, np.ndarray]:
         image = read_image(path, grayscale=True)
@@ -160,10 +182,10 @@ def kapture_root_of(image_path: Path, name: str) -> Path:
     return records_data.parent.parent
 
 
-def _read_kapture_features(image_name: str, image_path: Path, settings: Mapping[str, Any]) -> dict[str, np.ndarray]:
+def _read_kapture_features(image_name: str, image_path: Path, settings: KaptureFeatureSettings) -> dict[str, np.ndarray]:
     """Keypoints (x, y shifted by ``pixel_offset``) and descriptors of one image from kapture files."""
     root = str(kapture_root_of(image_path, image_name))
-    features = settings["name"]
+    features = settings.name
     arrays = {}
     for kind, header_type, full_path in (
         ("keypoints", kapture.Keypoints, kapture_features.get_keypoints_fullpath),
@@ -180,5 +202,5 @@ def _read_kapture_features(image_name: str, image_path: Path, settings: Mapping[
     keypoints, descriptors = arrays["keypoints"], arrays["descriptors"]
     if len(keypoints) != len(descriptors):
         raise ValueError(f"image {image_name!r} in {root}: {len(keypoints)} keypoints but {len(descriptors)} descriptors")
-    xy = keypoints[:, :2].astype(np.float64) + float(settings["pixel_offset"])
+    xy = keypoints[:, :2].astype(np.float64) + settings.pixel_offset
     return {"keypoints": xy.astype(np.float32), "descriptors": descriptors}

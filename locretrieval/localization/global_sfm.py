@@ -4,12 +4,12 @@ The global map is either
 
 - triangulated from the database with its known poses: database pairs selected by frustum
   overlap (`database_pairs`: the pairs whose truncated frusta inscribe a sphere of radius
-  above ``map.pairs.min_radius`` metres, at most the ``max_per_image`` most overlapping per
+  above ``sfm.map_pairs.min_radius`` metres, at most the ``max_per_image`` most overlapping per
   image; the paper used radius >= 10 m, or the 50 most overlapping for dense sets), matched,
   verified against the known poses' epipolar geometry and triangulated with COLMAP's
   triangulator; built once per scene, features and options, and cached in
   ``<cache_dir>/maps/``; or
-- an existing COLMAP model (``map.colmap_model``, e.g. the published ``colmap-sfm`` maps),
+- an existing COLMAP model (``global_sfm.colmap_model``, e.g. the published ``colmap-sfm`` maps),
   whose 2D points must be the configured features (`read_colmap_map`).
 
 Each query is matched to its top-k images (cached pairs, verified per
@@ -20,18 +20,18 @@ give 2D-3D correspondences, and LO-RANSAC P3P with refinement gives its pose.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
 
 from locretrieval.cache import config_key
 from locretrieval.localization.colmap_model import read_colmap_map
 from locretrieval.localization.estimates import PoseEstimates
-from locretrieval.localization.pairs import database_pairs, pair_settings
+from locretrieval.localization.pairs import database_pairs
+from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS
 from locretrieval.localization.sfm import (
-    Outcome, QueryTask, SfmInputs, check_keys, common_settings, outcomes_per_image_set, plain_config, register_query,
-    run_queries,
+    Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, register_query, run_queries,
 )
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.localization.triangulation import triangulate_known_poses
@@ -44,55 +44,55 @@ log = logging.getLogger(__name__)
 CACHE_VERSION = 1
 
 
-def run(scene: Scene, rankings: Sequence[Ranking], config: Mapping[str, Any], cache_dir: Path | None = None) -> list[PoseEstimates]:
-    """Paradigm entry point: the pose of every query for every ranking and every ``config["k"]``."""
-    if cache_dir is None:
-        raise ValueError("global_sfm needs a cache directory for its features, matches and map")
-    config = plain_config(config)
-    check_keys("global_sfm", config, ["map"])
-    settings = common_settings(config)
-    ks = [ranking.clamp_ks(config["k"]) for ranking in rankings]
-    inputs = SfmInputs.prepare(scene, settings, Path(cache_dir))
-    sparse_map = global_map(inputs, config.get("map") or {}, Path(cache_dir))
-    inputs.match_queries(rankings, ks)
-    return run_queries("global_sfm", rankings, ks, localize_query, (inputs, sparse_map), settings["workers"])
+@dataclass
+class GlobalSfmSettings(ParadigmSettings):
+    """``colmap_model``: an existing COLMAP model folder built from the same features (e.g. a
+    published ``colmap-sfm`` map), or ``None``: triangulate the database pairs of ``sfm.map_pairs``."""
+
+    colmap_model: str | None
 
 
-def global_map(inputs: SfmInputs, config: Mapping[str, Any], cache_dir: Path) -> SparseMap:
+def run(
+    scene: Scene, rankings: Sequence[Ranking], settings: GlobalSfmSettings, sfm: SfmSettings, cache_dir: Path | None
+) -> list[PoseEstimates]:
+    """Paradigm entry point: the pose of every query for every ranking and every ``settings.k``."""
+    inputs, ks = SfmInputs.for_rankings("global_sfm", scene, rankings, settings.k, sfm, cache_dir)
+    sparse_map = global_map(inputs, settings.colmap_model, Path(cache_dir))
+    return run_queries("global_sfm", rankings, ks, localize_query, (inputs, sparse_map), sfm.processes)
+
+
+def global_map(inputs: SfmInputs, colmap_model: str | None, cache_dir: Path) -> SparseMap:
     """The database's map: an existing COLMAP model, or triangulated with known poses (cached)."""
-    unknown = sorted(set(config) - {"colmap_model", "pairs"})
-    if unknown:
-        raise ValueError(f"unknown global_sfm.map settings {unknown}; known: ['colmap_model', 'pairs']")
     database = inputs.scene.database
-    if config.get("colmap_model"):
-        log.info("global map: COLMAP model %s", config["colmap_model"])
+    if colmap_model:
+        log.info("global map: COLMAP model %s", colmap_model)
         keypoints = inputs.database_features.keypoints(database.names)
-        return read_colmap_map(config["colmap_model"], database.names, [keypoints[n] for n in database.names])
-    pairs_config = pair_settings(config.get("pairs"))
-    path = map_cache_path(inputs, pairs_config, cache_dir)
+        return read_colmap_map(colmap_model, database.names, [keypoints[n] for n in database.names])
+    path = map_cache_path(inputs, cache_dir)
     if path.exists():
         log.info("global map loaded from %s", path)
         return SparseMap.load(path)
-    pairs = database_pairs(database, pairs_config)
+    pairs = database_pairs(database, inputs.map_pairs)
     named = [(database.names[a], database.names[b]) for a, b in pairs]
-    inputs.database_pairs.ensure(named, inputs.settings["workers"], "poses")
+    inputs.database_pairs.ensure(named, inputs.settings.processes, "poses")
     matches = inputs.database_pairs.load(named, "poses")
     keypoints = inputs.database_features.keypoints(database.names)
     sparse_map = triangulate_known_poses(
         database.cameras, database.qvec, database.tvec, [keypoints[n] for n in database.names],
-        {(int(a), int(b)): matches[pair] for (a, b), pair in zip(pairs, named)}, inputs.settings["triangulation"],
+        {(int(a), int(b)): matches[pair] for (a, b), pair in zip(pairs, named)}, inputs.settings.triangulation,
     )
     sparse_map.save(path)
     log.info("global map: %d points from %d database images (%d pairs), saved to %s", sparse_map.num_points, len(database), len(pairs), path)
     return sparse_map
 
 
-def map_cache_path(inputs: SfmInputs, pairs_config: Mapping[str, Any], cache_dir: Path) -> Path:
+def map_cache_path(inputs: SfmInputs, cache_dir: Path) -> Path:
     """Where the triangulated map is cached: keyed by its pose-verified matches' store (whose
     name encodes the features, the ratio, the epipolar bound and the database poses), the
     triangulation settings and the pair selection."""
     matches = inputs.database_pairs.stores["poses"].folder.name
-    return cache_dir / "maps" / f"{config_key(CACHE_VERSION, matches, inputs.settings['triangulation'], pairs_config)}.npz"
+    key = config_key(CACHE_VERSION, matches, asdict(inputs.settings.triangulation), asdict(inputs.map_pairs))
+    return cache_dir / "maps" / f"{key}.npz"
 
 
 def localize_query(shared: tuple[SfmInputs, SparseMap], task: QueryTask) -> list[list[Outcome]]:

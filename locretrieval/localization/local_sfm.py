@@ -25,17 +25,18 @@ available ("too few images"), the map has no point, or PnP fails.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from locretrieval.config import require
 from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.matching import epipolar_inliers
+from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
 from locretrieval.localization.sfm import (
-    Outcome, QueryTask, SfmInputs, check_keys, common_settings, outcomes_per_image_set, plain_config, register_query,
-    run_queries,
+    Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, register_query, run_queries,
 )
 from locretrieval.localization.triangulation import triangulate_known_poses
 from locretrieval.retrieval import EMPTY, Ranking
@@ -44,24 +45,28 @@ from locretrieval.scene import Scene
 MAP_MATCHES = ("database", "query")
 
 
-def run(scene: Scene, rankings: Sequence[Ranking], config: Mapping[str, Any], cache_dir: Path | None = None) -> list[PoseEstimates]:
-    """Paradigm entry point: the pose of every query for every ranking and every ``config["k"]``."""
-    if cache_dir is None:
-        raise ValueError("local_sfm needs a cache directory for its features and matches")
-    config = plain_config(config)
-    check_keys("local_sfm", config, ["map_matches"])
-    settings = common_settings(config)
-    map_matches = config.get("map_matches", "database")
-    if map_matches not in MAP_MATCHES:
-        raise ValueError(f"local_sfm.map_matches must be one of {MAP_MATCHES}, got {map_matches!r}")
-    ks = [ranking.clamp_ks(config["k"]) for ranking in rankings]
-    inputs = SfmInputs.prepare(scene, settings, Path(cache_dir))
-    inputs.match_queries(rankings, ks)
-    if map_matches == "database":
+@dataclass
+class LocalSfmSettings(ParadigmSettings):
+    """``map_matches``: ``database`` (match every pair of the k images, cached) or ``query``
+    (derive map-map matches from the query's matches)."""
+
+    map_matches: str
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        require(self.map_matches in MAP_MATCHES, "map_matches", f"must be one of {list(MAP_MATCHES)}, got {self.map_matches!r}")
+
+
+def run(
+    scene: Scene, rankings: Sequence[Ranking], settings: LocalSfmSettings, sfm: SfmSettings, cache_dir: Path | None
+) -> list[PoseEstimates]:
+    """Paradigm entry point: the pose of every query for every ranking and every ``settings.k``."""
+    inputs, ks = SfmInputs.for_rankings("local_sfm", scene, rankings, settings.k, sfm, cache_dir)
+    if settings.map_matches == "database":
         names = scene.database.names
         pairs = [(names[a], names[b]) for a, b in local_map_pairs(rankings, ks)]
-        inputs.database_pairs.ensure(pairs, settings["workers"], "poses")
-    return run_queries("local_sfm", rankings, ks, localize_query, (inputs, map_matches), settings["workers"])
+        inputs.database_pairs.ensure(pairs, sfm.processes, "poses")
+    return run_queries("local_sfm", rankings, ks, localize_query, (inputs, settings.map_matches), sfm.processes)
 
 
 def local_map_pairs(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> np.ndarray:
@@ -96,7 +101,7 @@ def localize_query(shared: tuple[SfmInputs, str], task: QueryTask) -> list[list[
             [database.cameras[i] for i in selected], database.qvec[list(selected)], database.tvec[list(selected)],
             [keypoints[database.names[i]] for i in selected],
             {(slots[a], slots[b]): map_pairs[(a, b)] for a in selected for b in selected if a < b},
-            inputs.settings["triangulation"],
+            inputs.settings.triangulation,
         )
         if not sparse_map.num_points:
             return NO_3D_POINTS
@@ -128,7 +133,7 @@ def _map_matches(
             keypoints[database.names[a]], keypoints[database.names[b]], matches,
             database.cameras[a], (database.qvec[a], database.tvec[a]),
             database.cameras[b], (database.qvec[b], database.tvec[b]),
-            float(inputs.settings["matching"]["max_epipolar_error"]),
+            inputs.settings.matching.max_epipolar_error,
         )
         derived[(a, b)] = matches[keep]
     return derived

@@ -24,11 +24,12 @@ either order.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from itertools import groupby
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -36,6 +37,7 @@ import torch
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
 from locretrieval.cache import config_key
+from locretrieval.config import require
 from locretrieval.localization.features import FeatureStore
 from locretrieval.localization.store import ShardedStore
 from locretrieval.localization.workers import parallel_map
@@ -43,12 +45,6 @@ from locretrieval.scene import Camera, ImageSet
 
 log = logging.getLogger(__name__)
 
-DEFAULT_MATCHING: dict[str, Any] = {
-    "ratio": 0.8,  # Lowe's ratio test: best / second-best descriptor distance (1: off)
-    "max_epipolar_error": 4.0,  # px: Sampson error bound of matches between images with known poses
-    "query_verification": "none",  # query-database pairs: none (PnP RANSAC only) | two_view (pycolmap)
-    "two_view": {"max_error": 4.0, "min_num_inliers": 15},  # pycolmap TwoViewGeometryOptions
-}
 VERIFICATIONS = ("none", "poses", "two_view")
 #: pycolmap two-view configurations whose inliers follow a scene geometry; the others are
 #: undefined, degenerate, a watermark (a fixed image overlay) or several motions.
@@ -63,20 +59,34 @@ CACHE_VERSION = 1
 Pair = tuple[str, str]
 
 
-def matching_settings(config: Mapping[str, Any] | None) -> dict[str, Any]:
-    """Matching options with defaults filled in; unknown keys are an error."""
-    config = dict(config or {})
-    settings = {**DEFAULT_MATCHING, **config}
-    settings["two_view"] = {**DEFAULT_MATCHING["two_view"], **dict(config.get("two_view") or {})}
-    for where, given, known in (("matching", settings, DEFAULT_MATCHING), ("matching.two_view", settings["two_view"], DEFAULT_MATCHING["two_view"])):
-        unknown = sorted(set(given) - set(known))
-        if unknown:
-            raise ValueError(f"unknown {where} settings {unknown}; known: {sorted(known)}")
-    if settings["query_verification"] not in ("none", "two_view"):
-        raise ValueError(f"matching.query_verification must be 'none' or 'two_view', got {settings['query_verification']!r}")
-    if not 0 < float(settings["ratio"]) <= 1:
-        raise ValueError(f"matching.ratio must be in (0, 1], got {settings['ratio']}")
-    return settings
+@dataclass
+class TwoViewSettings:
+    """pycolmap two-view geometry of query pairs: RANSAC ``max_error`` px, ``min_num_inliers``."""
+
+    max_error: float
+    min_num_inliers: int
+
+    def __post_init__(self) -> None:
+        require(self.max_error > 0, "max_error", f"must be a positive number of pixels, got {self.max_error}")
+        require(self.min_num_inliers >= 5, "min_num_inliers", f"must be >= 5 (a minimal sample), got {self.min_num_inliers}")
+
+
+@dataclass
+class MatchingSettings:
+    """Mutual nearest neighbours with Lowe's ``ratio`` test (1: off); database pairs verified
+    against their known poses (Sampson error below ``max_epipolar_error`` px); query pairs
+    verified per ``query_verification`` (``none``: PnP RANSAC only, or ``two_view``)."""
+
+    ratio: float
+    max_epipolar_error: float
+    query_verification: str
+    two_view: TwoViewSettings
+
+    def __post_init__(self) -> None:
+        require(0 < self.ratio <= 1, "ratio", f"must be in (0, 1], got {self.ratio}")
+        require(self.max_epipolar_error > 0, "max_epipolar_error", f"must be a positive number of pixels, got {self.max_epipolar_error}")
+        require(self.query_verification in ("none", "two_view"), "query_verification",
+                f"must be 'none' or 'two_view', got {self.query_verification!r}")
 
 
 def pair_key(pair: Pair) -> str:
@@ -194,7 +204,7 @@ def epipolar_inliers(
 
 def two_view_inliers(
     keypoints0: np.ndarray, keypoints1: np.ndarray, matches: np.ndarray, camera0: Camera, camera1: Camera,
-    settings: Mapping[str, Any],
+    settings: TwoViewSettings,
 ) -> np.ndarray:
     """Indices ``int32 [i]`` into ``matches`` of pycolmap's two-view geometry inliers (none
     unless the geometry is one of `GEOMETRIC_CONFIGURATIONS` with ``min_num_inliers``)."""
@@ -202,11 +212,11 @@ def two_view_inliers(
 
     from locretrieval.localization.colmap_model import to_pycolmap_camera
 
-    if len(matches) < max(5, int(settings["min_num_inliers"])):
+    if len(matches) < settings.min_num_inliers:
         return np.empty(0, dtype=np.int32)
     options = pycolmap.TwoViewGeometryOptions()
-    options.min_num_inliers = int(settings["min_num_inliers"])
-    options.ransac.max_error = float(settings["max_error"])
+    options.min_num_inliers = settings.min_num_inliers
+    options.ransac.max_error = settings.max_error
     options.ransac.random_seed = 0
     result = pycolmap.estimate_two_view_geometry(
         to_pycolmap_camera(camera0), keypoints0.astype(np.float64),
@@ -235,20 +245,20 @@ class PairMatcher:
 
     def __init__(
         self, images0: ImageSet, features0: FeatureStore, images1: ImageSet, features1: FeatureStore,
-        config: Mapping[str, Any] | None, cache_dir: str | Path,
+        settings: MatchingSettings, cache_dir: str | Path,
     ) -> None:
-        self.settings = matching_settings(config)
+        self.settings = settings
         self.images = (images0, images1)
         self.features = (features0, features1)
         self.same_set = features0.folder == features1.folder
         self.index = tuple({name: i for i, name in enumerate(images.names)} for images in self.images)
         root = Path(cache_dir) / "matches" / f"{features0.folder.name}--{features1.folder.name}"
-        raw_key = config_key(CACHE_VERSION, float(self.settings["ratio"]))
+        raw_key = config_key(CACHE_VERSION, settings.ratio)
         poses = (images0.fingerprint(), images1.fingerprint())  # pose verification depends on them
         self.stores = {
             "none": ShardedStore(f"{root}--{raw_key}"),
-            "poses": ShardedStore(f"{root}--{raw_key}--poses-{config_key(float(self.settings['max_epipolar_error']), *poses)}"),
-            "two_view": ShardedStore(f"{root}--{raw_key}--two-view-{config_key(self.settings['two_view'])}"),
+            "poses": ShardedStore(f"{root}--{raw_key}--poses-{config_key(settings.max_epipolar_error, *poses)}"),
+            "two_view": ShardedStore(f"{root}--{raw_key}--two-view-{config_key(dataclasses.asdict(settings.two_view))}"),
         }
 
     def _stored(self, pair: Pair) -> tuple[Pair, bool]:
@@ -305,12 +315,12 @@ class PairMatcher:
         i, j = self.index[0][pair[0]], self.index[1][pair[1]]
         images0, images1 = self.images
         if verification == "two_view":
-            return matches[two_view_inliers(keypoints0, keypoints1, matches, images0.cameras[i], images1.cameras[j], self.settings["two_view"])]
+            return matches[two_view_inliers(keypoints0, keypoints1, matches, images0.cameras[i], images1.cameras[j], self.settings.two_view)]
         return matches[epipolar_inliers(
             keypoints0, keypoints1, matches,
             images0.cameras[i], (images0.qvec[i], images0.tvec[i]),
             images1.cameras[j], (images1.qvec[j], images1.tvec[j]),
-            float(self.settings["max_epipolar_error"]),
+            self.settings.max_epipolar_error,
         )]
 
 
@@ -319,7 +329,7 @@ def _match_shard(matcher: PairMatcher, task: tuple[list[Pair], set[str], set[str
     pairs, missing_raw, missing_verified, verification = task
     features0 = matcher.features[0].load(sorted({name0 for name0, _ in pairs}))
     features1 = matcher.features[1].load(sorted({name1 for _, name1 in pairs}))
-    ratio = float(matcher.settings["ratio"])
+    ratio = matcher.settings.ratio
     matches = {key: record["matches"] for key, record in matcher.stores["none"].read(
         pair_key(pair) for pair in pairs if pair_key(pair) not in missing_raw).items()}
     to_match = [pair for pair in pairs if pair_key(pair) in missing_raw]

@@ -3,24 +3,37 @@ and the failure reasons shared by the SfM paradigms."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 import pycolmap
+from locretrieval.config import require
 from locretrieval.localization.colmap_model import from_rigid3d, to_pycolmap_camera
 from locretrieval.scene import Camera
 
-DEFAULT_PNP: dict[str, Any] = {
-    "max_error": 12.0,  # px: RANSAC inlier threshold (hloc's and pycolmap's default)
-    "min_num_inliers": 12,  # fewer inliers: not localised
-    "min_inlier_ratio": 0.01,  # RANSAC's lower bound on the inlier ratio (sets the trial count)
-    "max_num_trials": 10000,
-    "confidence": 0.99999,
-    "random_seed": 0,  # deterministic RANSAC
-}
+
+@dataclass
+class PnPSettings:
+    """pycolmap LO-RANSAC P3P + refinement: inlier threshold ``max_error`` px; fewer than
+    ``min_num_inliers`` inliers is not localised; ``min_inlier_ratio`` (sets the trial count),
+    ``max_num_trials``, ``confidence`` and ``random_seed`` (deterministic RANSAC) as pycolmap's."""
+
+    max_error: float
+    min_num_inliers: int
+    min_inlier_ratio: float
+    max_num_trials: int
+    confidence: float
+    random_seed: int
+
+    def __post_init__(self) -> None:
+        require(self.max_error > 0, "max_error", f"must be a positive number of pixels, got {self.max_error}")
+        require(self.min_num_inliers >= 4, "min_num_inliers", f"must be >= 4 (P3P and a check), got {self.min_num_inliers}")
+        require(0 < self.min_inlier_ratio <= 1, "min_inlier_ratio", f"must be in (0, 1], got {self.min_inlier_ratio}")
+        require(self.max_num_trials >= 1, "max_num_trials", f"must be >= 1, got {self.max_num_trials}")
+        require(0 < self.confidence < 1, "confidence", f"must be in (0, 1), got {self.confidence}")
+
 
 #: Failure reasons (short fixed strings counted by the report).
 EMPTY_RETRIEVAL = "empty retrieval"
@@ -32,30 +45,21 @@ PNP_FAILED = "pnp failed"
 TOO_FEW_INLIERS = "too few inliers"
 
 
-def pnp_settings(config: Mapping[str, Any] | None) -> dict[str, Any]:
-    """PnP options with defaults filled in; unknown keys are an error."""
-    settings = {**DEFAULT_PNP, **dict(config or {})}
-    unknown = sorted(set(settings) - set(DEFAULT_PNP))
-    if unknown:
-        raise ValueError(f"unknown pnp settings {unknown}; known: {sorted(DEFAULT_PNP)}")
-    return settings
-
-
 def estimate_absolute_pose(
-    points2D: np.ndarray, points3D: np.ndarray, camera: Camera, settings: Mapping[str, Any]
+    points2D: np.ndarray, points3D: np.ndarray, camera: Camera, settings: PnPSettings
 ) -> tuple[np.ndarray, np.ndarray, int] | str:
     """World-to-camera ``(q wxyz, t, number of inliers)`` of a camera observing world points
     ``points3D [m, 3]`` at pixels ``points2D [m, 2]`` (COLMAP's pixel convention), or the
     failure reason."""
-    minimum = max(4, int(settings["min_num_inliers"]))
+    minimum = settings.min_num_inliers
     if len(points2D) < minimum:
         return TOO_FEW_MATCHES
     estimation = pycolmap.AbsolutePoseEstimationOptions()
-    estimation.ransac.max_error = float(settings["max_error"])
-    estimation.ransac.min_inlier_ratio = float(settings["min_inlier_ratio"])
-    estimation.ransac.max_num_trials = int(settings["max_num_trials"])
-    estimation.ransac.confidence = float(settings["confidence"])
-    estimation.ransac.random_seed = int(settings["random_seed"])
+    estimation.ransac.max_error = settings.max_error
+    estimation.ransac.min_inlier_ratio = settings.min_inlier_ratio
+    estimation.ransac.max_num_trials = settings.max_num_trials
+    estimation.ransac.confidence = settings.confidence
+    estimation.ransac.random_seed = settings.random_seed
     result = pycolmap.estimate_and_refine_absolute_pose(
         np.asarray(points2D, dtype=np.float64), np.asarray(points3D, dtype=np.float64),
         to_pycolmap_camera(camera), estimation, pycolmap.AbsolutePoseRefinementOptions(),

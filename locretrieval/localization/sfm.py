@@ -17,14 +17,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
 
+from locretrieval.config import require
 from locretrieval.localization.estimates import LOCALIZED, PoseEstimates
-from locretrieval.localization.features import FeatureStore, extract_features, feature_settings
-from locretrieval.localization.matching import PairMatcher, matching_settings
-from locretrieval.localization.pnp import NO_KEYPOINTS, TOO_FEW_MATCHES, estimate_absolute_pose, pnp_settings
+from locretrieval.localization.features import FeatureSettings, FeatureStore, extract_features
+from locretrieval.localization.matching import MatchingSettings, PairMatcher
+from locretrieval.localization.pairs import PairSelection
+from locretrieval.localization.pnp import NO_KEYPOINTS, TOO_FEW_MATCHES, PnPSettings, estimate_absolute_pose
 from locretrieval.localization.sparse_map import SparseMap
-from locretrieval.localization.triangulation import triangulation_settings
+from locretrieval.localization.triangulation import TriangulationSettings
 from locretrieval.localization.workers import parallel_map, resolve_workers
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import Scene
@@ -35,33 +36,28 @@ log = logging.getLogger(__name__)
 Outcome = tuple[np.ndarray, np.ndarray] | str
 
 
-def plain_config(config: Mapping[str, Any] | DictConfig) -> dict[str, Any]:
-    """A paradigm section as plain containers, interpolations resolved."""
-    if isinstance(config, DictConfig):
-        return OmegaConf.to_container(config, resolve=True)  # type: ignore[return-value]
-    return dict(config)
+@dataclass
+class SfmSettings:
+    """The ``sfm`` config group, shared by local SfM (2a), global SfM (2b) and the
+    co-observation ground truth so that they share their cached features and matches:
+    local ``features``, ``matching``, ``triangulation`` with known poses, ``pnp``
+    registration, the database pairs of global maps (``map_pairs``, by frustum overlap) and
+    the worker processes (``workers``: ``null`` or 0, one per core; 1, in this process)."""
 
+    features: FeatureSettings
+    matching: MatchingSettings
+    triangulation: TriangulationSettings
+    pnp: PnPSettings
+    map_pairs: PairSelection
+    workers: int | None
 
-#: Keys of every SfM paradigm section.
-COMMON_KEYS = ("enabled", "k", "features", "matching", "triangulation", "pnp", "workers")
+    def __post_init__(self) -> None:
+        require(self.workers is None or self.workers >= 0, "workers", f"must be >= 0 or null, got {self.workers}")
 
-
-def check_keys(paradigm: str, config: Mapping[str, Any], extra: Sequence[str] = ()) -> None:
-    """Unknown keys of a paradigm section (typos) are an error naming them."""
-    unknown = sorted(set(config) - set(COMMON_KEYS) - set(extra))
-    if unknown:
-        raise ValueError(f"unknown {paradigm} settings {unknown}; known: {sorted({*COMMON_KEYS, *extra})}")
-
-
-def common_settings(config: Mapping[str, Any]) -> dict[str, Any]:
-    """The checked ``features``, ``matching``, ``triangulation``, ``pnp`` and ``workers`` settings."""
-    return {
-        "features": feature_settings(config.get("features")),
-        "matching": matching_settings(config.get("matching")),
-        "triangulation": triangulation_settings(config.get("triangulation")),
-        "pnp": pnp_settings(config.get("pnp")),
-        "workers": resolve_workers(config.get("workers")),
-    }
+    @property
+    def processes(self) -> int:
+        """Worker processes to use (`resolve_workers`)."""
+        return resolve_workers(self.workers)
 
 
 @dataclass
@@ -69,30 +65,49 @@ class SfmInputs:
     """Cached features and matches of a scene, picklable for worker processes."""
 
     scene: Scene
-    settings: dict[str, Any]
+    settings: SfmSettings
     database_features: FeatureStore
     query_features: FeatureStore
     database_pairs: PairMatcher
     query_pairs: PairMatcher
 
     @classmethod
-    def prepare(cls, scene: Scene, settings: dict[str, Any], cache_dir: Path) -> "SfmInputs":
+    def prepare(cls, scene: Scene, settings: SfmSettings, cache_dir: Path) -> "SfmInputs":
         """Extract (or reuse) the local features of both image sets."""
-        workers = settings["workers"]
-        database_features = extract_features(scene.database, settings["features"], cache_dir, workers)
-        query_features = extract_features(scene.queries, settings["features"], cache_dir, workers)
+        workers = settings.processes
+        database_features = extract_features(scene.database, settings.features, cache_dir, workers)
+        query_features = extract_features(scene.queries, settings.features, cache_dir, workers)
         return cls(
             scene,
             settings,
             database_features,
             query_features,
-            PairMatcher(scene.database, database_features, scene.database, database_features, settings["matching"], cache_dir),
-            PairMatcher(scene.queries, query_features, scene.database, database_features, settings["matching"], cache_dir),
+            PairMatcher(scene.database, database_features, scene.database, database_features, settings.matching, cache_dir),
+            PairMatcher(scene.queries, query_features, scene.database, database_features, settings.matching, cache_dir),
         )
+
+    @classmethod
+    def for_rankings(
+        cls, paradigm: str, scene: Scene, rankings: Sequence[Ranking], ks: Sequence[int], settings: SfmSettings,
+        cache_dir: Path | None,
+    ) -> tuple["SfmInputs", list[list[int]]]:
+        """The inputs of an SfM paradigm: features of the scene, every query matched to its top
+        ``max(k)`` images of every ranking, and each ranking's ks (clamped to its depth)."""
+        if cache_dir is None:
+            raise ValueError(f"{paradigm} needs a cache directory for its features, matches and maps")
+        ranking_ks = [ranking.clamp_ks(ks) for ranking in rankings]
+        inputs = cls.prepare(scene, settings, Path(cache_dir))
+        inputs.match_queries(rankings, ranking_ks)
+        return inputs, ranking_ks
+
+    @property
+    def map_pairs(self) -> PairSelection:
+        """The database pairs of global maps, ``far`` defaulting to the scene's frustum far plane."""
+        return self.settings.map_pairs.for_scene(self.scene)
 
     @property
     def query_verification(self) -> str:
-        return self.settings["matching"]["query_verification"]
+        return self.settings.matching.query_verification
 
     def match_queries(self, rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> int:
         """Match every query to its top ``max(k)`` images of every ranking; returns new pairs matched."""
@@ -102,7 +117,7 @@ class SfmInputs:
             top = ranking.indices[:, : max(ranking_ks)]
             rows, slots = np.nonzero(top != EMPTY)
             pairs.update((queries[q], database[i]) for q, i in zip(rows, top[rows, slots]))
-        return self.query_pairs.ensure(pairs, self.settings["workers"], self.query_verification)
+        return self.query_pairs.ensure(pairs, self.settings.processes, self.query_verification)
 
     def query_matches(self, query: int, database: Sequence[int]) -> tuple[np.ndarray, dict[int, np.ndarray]]:
         """The query's keypoints and its (verified) matches to each database image."""
@@ -140,7 +155,7 @@ def register_query(
     points2D, points3D = correspondences(query_keypoints, query_matches, sparse_map, slots)
     if not len(points2D):
         return TOO_FEW_MATCHES
-    result = estimate_absolute_pose(points2D, points3D, inputs.scene.queries.cameras[query], inputs.settings["pnp"])
+    result = estimate_absolute_pose(points2D, points3D, inputs.scene.queries.cameras[query], inputs.settings.pnp)
     return result if isinstance(result, str) else result[:2]
 
 

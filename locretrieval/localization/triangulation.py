@@ -10,31 +10,33 @@ points by reprojection error and triangulation angle. Poses are never changed.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 import pycolmap
+from locretrieval.config import require
 from locretrieval.localization.colmap_model import to_pycolmap_camera, to_rigid3d
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.scene import Camera
 
-DEFAULT_TRIANGULATION: dict[str, Any] = {
-    "min_angle": 1.5,  # degrees: smallest triangulation angle of a point
-    "max_reprojection_error": 4.0,  # pixels: observations beyond are dropped (and points left with < 2)
-    "ignore_two_view_tracks": False,  # COLMAP's default (True) halves the points of small maps
-    "random_seed": 0,  # RANSAC seed of the triangulator (deterministic maps)
-}
+@dataclass
+class TriangulationSettings:
+    """COLMAP's point triangulator with fixed poses: ``min_angle`` (degrees) smallest triangulation
+    angle; observations beyond ``max_reprojection_error`` px are dropped (and points left with
+    fewer than 2); ``ignore_two_view_tracks`` (COLMAP's default True halves the points of small
+    maps); ``random_seed`` of its RANSAC (deterministic maps)."""
 
+    min_angle: float
+    max_reprojection_error: float
+    ignore_two_view_tracks: bool
+    random_seed: int
 
-def triangulation_settings(config: Mapping[str, Any] | None) -> dict[str, Any]:
-    """Triangulation options with defaults filled in; unknown keys are an error."""
-    settings = {**DEFAULT_TRIANGULATION, **dict(config or {})}
-    unknown = sorted(set(settings) - set(DEFAULT_TRIANGULATION))
-    if unknown:
-        raise ValueError(f"unknown triangulation settings {unknown}; known: {sorted(DEFAULT_TRIANGULATION)}")
-    return settings
+    def __post_init__(self) -> None:
+        require(self.min_angle >= 0, "min_angle", f"must be >= 0 degrees, got {self.min_angle}")
+        require(self.max_reprojection_error > 0, "max_reprojection_error",
+                f"must be a positive number of pixels, got {self.max_reprojection_error}")
 
 
 def triangulate_known_poses(
@@ -43,12 +45,11 @@ def triangulate_known_poses(
     tvec: np.ndarray,
     keypoints: Sequence[np.ndarray],
     matches: Mapping[tuple[int, int], np.ndarray],
-    config: Mapping[str, Any] | None = None,
+    settings: TriangulationSettings,
 ) -> SparseMap:
     """Triangulate the images ``i`` (camera, world-to-camera pose ``qvec[i]`` wxyz / ``tvec[i]``,
     keypoints ``[n_i, 2]`` in COLMAP's pixel convention) from verified ``matches[(i, j)]``
     (``[m, 2]`` keypoint indices of image i, image j)."""
-    settings = triangulation_settings(config)
     reconstruction = pycolmap.Reconstruction()
     graph = pycolmap.CorrespondenceGraph()
     for index, (camera, image_keypoints) in enumerate(zip(cameras, keypoints)):
@@ -68,9 +69,9 @@ def triangulate_known_poses(
     graph.finalize()
 
     options = pycolmap.IncrementalTriangulatorOptions()
-    options.min_angle = float(settings["min_angle"])
-    options.ignore_two_view_tracks = bool(settings["ignore_two_view_tracks"])
-    options.random_seed = int(settings["random_seed"])
+    options.min_angle = settings.min_angle
+    options.ignore_two_view_tracks = settings.ignore_two_view_tracks
+    options.random_seed = settings.random_seed
     observation_manager = pycolmap.ObservationManager(reconstruction, graph)
     triangulator = pycolmap.IncrementalTriangulator(graph, reconstruction, observation_manager)
     for image_id in range(1, len(cameras) + 1):
@@ -78,7 +79,7 @@ def triangulate_known_poses(
             triangulator.triangulate_image(options, image_id)
     triangulator.complete_all_tracks(options)
     triangulator.merge_all_tracks(options)
-    observation_manager.filter_all_points3D(float(settings["max_reprojection_error"]), float(settings["min_angle"]))
+    observation_manager.filter_all_points3D(settings.max_reprojection_error, settings.min_angle)
     return _sparse_map(reconstruction, [len(k) for k in keypoints])
 
 

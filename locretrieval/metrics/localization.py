@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
+from locretrieval.config import require
 from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.scene import ImageSet
 
@@ -39,6 +42,21 @@ QUERY_ERROR_COLUMNS = [
     "rotation_error_deg",
     "failure",
 ]
+
+
+@dataclass
+class MetricsSettings:
+    """The ``metrics`` config section: ``thresholds``, a list of ``[X metres, Y degrees]``
+    accuracy levels (the paper: high, medium, low)."""
+
+    thresholds: list[Any]
+
+    def __post_init__(self) -> None:
+        pairs = [t for t in self.thresholds if isinstance(t, (list, tuple)) and len(t) == 2]
+        numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for t in pairs for v in t)
+        require(bool(self.thresholds) and len(pairs) == len(self.thresholds) and numbers, "thresholds",
+                f"must be a non-empty list of [metres, degrees] pairs of positive numbers, got {self.thresholds}")
+        self.thresholds = [[float(x), float(y)] for x, y in self.thresholds]
 
 
 def localized(
@@ -115,3 +133,8 @@ def query_subsets(queries: ImageSet) -> dict[str, np.ndarray]:
         if not mask.all():
             subsets[tag] = mask
     return subsets
+
+
+def best_over_k(results: pd.DataFrame, across: str) -> pd.DataFrame:
+    """Best % localised over k per paradigm x method x ranking (rows) x ``across`` (columns)."""
+    return results.groupby(["paradigm", "method", "ranking", across])["localized_pct"].max().unstack(across)

@@ -34,7 +34,7 @@ import numpy as np
 import pandas as pd
 from scipy import sparse
 
-from locretrieval.retrieval import EMPTY, Ranking
+from locretrieval.retrieval import EMPTY, Ranking, relevant_hits
 from locretrieval.scene import ImageSet
 
 #: Columns of the tidy retrieval table (``retrieval.csv``), one row per
@@ -56,16 +56,6 @@ QUERY_RETRIEVAL_COLUMNS = ["dataset", "ranking", "ranking_kind", "groundtruth", 
 
 #: Dataset-level metric names and the per-query quantity each one averages.
 METRICS = {"precision": "precision", "recall": "recall", "map": "average_precision"}
-
-
-def relevant_hits(indices: np.ndarray, relevance: sparse.csr_matrix) -> np.ndarray:
-    """Boolean ``[Q, K]``: the database image in each slot is relevant (``EMPTY`` is not)."""
-    indices = np.asarray(indices)
-    filled = indices != EMPTY
-    rows = np.broadcast_to(np.arange(len(indices))[:, None], indices.shape)
-    hits = np.zeros(indices.shape, dtype=bool)
-    hits[filled] = np.asarray(relevance[rows[filled], indices[filled]]).ravel()
-    return hits
 
 
 def retrieval_metrics(

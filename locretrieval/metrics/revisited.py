@@ -30,8 +30,7 @@ import numpy as np
 import pandas as pd
 from scipy import sparse
 
-from locretrieval.metrics.retrieval import relevant_hits
-from locretrieval.retrieval import EMPTY, Ranking
+from locretrieval.retrieval import EMPTY, Ranking, relevant_hits
 
 #: Where the authors publish the ground-truth files.
 GROUNDTRUTH_URLS = {

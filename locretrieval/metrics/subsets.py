@@ -26,7 +26,8 @@ from __future__ import annotations
 
 import logging
 import pickle
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +37,7 @@ from PIL import Image
 from tqdm import tqdm
 
 from locretrieval.cache import cached_arrays, config_key, file_signature
+from locretrieval.config import require
 from locretrieval.scene import ImageSet
 from locretrieval.scene.images import read_image
 
@@ -72,6 +74,34 @@ SUBSET_COLUMNS = ["dataset", "image", "blur_score", "dynamic_fraction", "mask_so
 
 #: Mask sources of ``configs/subsets``.
 MASK_SOURCES = ("auto", "masks", "maskrcnn", "none")
+
+
+@dataclass
+class SubsetSettings:
+    """The ``subsets`` config group (``configs/subsets/default.yaml`` documents each key)."""
+
+    enabled: bool
+    blur_threshold: float
+    blur_radius: int
+    blur_width: int
+    dynamic_fraction: float
+    mask_source: str
+    maskrcnn_weights: str | None
+    maskrcnn_min_size: int
+    maskrcnn_score_threshold: float
+    maskrcnn_mask_threshold: float
+
+    def __post_init__(self) -> None:
+        require(self.blur_radius >= 1, "blur_radius", f"must be >= 1 frequency bin, got {self.blur_radius}")
+        require(self.blur_width > 2 * self.blur_radius, "blur_width",
+                f"must exceed twice blur_radius ({2 * self.blur_radius}), got {self.blur_width}")
+        require(0 <= self.dynamic_fraction <= 1, "dynamic_fraction", f"must be in [0, 1], got {self.dynamic_fraction}")
+        require(self.mask_source in MASK_SOURCES, "mask_source", f"must be one of {list(MASK_SOURCES)}, got {self.mask_source!r}")
+        require(self.mask_source != "maskrcnn" or bool(self.maskrcnn_weights), "maskrcnn_weights",
+                f"mask_source=maskrcnn needs the path of torchvision's {MASKRCNN_WEIGHTS_FILE}")
+        require(self.maskrcnn_min_size >= 32, "maskrcnn_min_size", f"must be >= 32 pixels, got {self.maskrcnn_min_size}")
+        for name in ("maskrcnn_score_threshold", "maskrcnn_mask_threshold"):
+            require(0 <= getattr(self, name) <= 1, name, f"must be in [0, 1], got {getattr(self, name)}")
 
 
 def blur_score(image: np.ndarray, radius: int = 60, width: int = 500) -> float:
@@ -180,23 +210,17 @@ def maskrcnn_fractions(images: ImageSet, model, mask_threshold: float) -> np.nda
     return np.array(fractions)
 
 
-def resolve_mask_source(images: ImageSet, config: Mapping[str, Any]) -> str:
+def resolve_mask_source(images: ImageSet, settings: SubsetSettings) -> str:
     """``masks``, ``maskrcnn`` or ``none`` for the configured ``mask_source`` (``auto`` logged)."""
-    source = config["mask_source"]
-    if source not in MASK_SOURCES:
-        raise ValueError(f"subsets.mask_source must be one of {MASK_SOURCES}, got {source!r}")
-    if source == "maskrcnn" and not config["maskrcnn_weights"]:
-        raise ValueError(
-            f"subsets.mask_source=maskrcnn needs subsets.maskrcnn_weights, the path of torchvision's {MASKRCNN_WEIGHTS_FILE}"
-        )
+    source = settings.mask_source
     if source != "auto":
         return source
     has_masks = images.mask_paths is not None and all(path is not None for path in images.mask_paths)
-    resolved = "masks" if has_masks else "maskrcnn" if config["maskrcnn_weights"] else "none"
+    resolved = "masks" if has_masks else "maskrcnn" if settings.maskrcnn_weights else "none"
     log.info(
         "dynamic-scene subset: mask_source=auto -> %s (%s)",
         resolved,
-        {"masks": "every image has a mask file", "maskrcnn": f"weights {config['maskrcnn_weights']}",
+        {"masks": "every image has a mask file", "maskrcnn": f"weights {settings.maskrcnn_weights}",
          "none": "no mask files and no subsets.maskrcnn_weights: no dynamic-scene subset"}[resolved],
     )  # fmt: skip
     return resolved
@@ -208,23 +232,23 @@ def _cached(cache_dir: str | Path | None, parts: list, compute: Callable[[], np.
 
 
 def subset_scores(
-    images: ImageSet, config: Mapping[str, Any], cache_dir: str | Path | None = None, device: str = "auto"
+    images: ImageSet, settings: SubsetSettings, cache_dir: str | Path | None = None, device: str = "auto"
 ) -> pd.DataFrame:
     """Per-image ``blur_score`` and ``dynamic_fraction`` (NaN without a mask source) and the
     ``mask_source`` used; cached under ``<cache_dir>/subsets`` by the image set's fingerprint
     and the parameters that produce each score (thresholds are applied later, uncached).
     """
-    source = resolve_mask_source(images, config)
+    source = resolve_mask_source(images, settings)
     fingerprint = images.fingerprint(include_poses=False)
-    radius, width = int(config["blur_radius"]), int(config["blur_width"])
+    radius, width = settings.blur_radius, settings.blur_width
     blur = _cached(cache_dir, ["blur", fingerprint, radius, width], lambda: blur_scores(images, radius, width))
     if source == "masks":
         key = ["masks", fingerprint, [str(p) for p in images.mask_paths], [file_signature(p) for p in images.mask_paths]]
         dynamic = _cached(cache_dir, key, lambda: mask_fractions(images))
     elif source == "maskrcnn":
-        weights = Path(config["maskrcnn_weights"])
-        min_size = int(config["maskrcnn_min_size"])
-        thresholds = float(config["maskrcnn_score_threshold"]), float(config["maskrcnn_mask_threshold"])
+        weights = Path(settings.maskrcnn_weights)
+        min_size = settings.maskrcnn_min_size
+        thresholds = settings.maskrcnn_score_threshold, settings.maskrcnn_mask_threshold
         key = ["maskrcnn", fingerprint, str(weights), file_signature(weights), min_size, *thresholds]
 
         def detect() -> np.ndarray:
@@ -239,28 +263,28 @@ def subset_scores(
     return pd.DataFrame({"image": images.names, "blur_score": blur, "dynamic_fraction": dynamic, "mask_source": source})
 
 
-def subset_masks(scores: pd.DataFrame, config: Mapping[str, Any]) -> dict[str, np.ndarray]:
+def subset_masks(scores: pd.DataFrame, settings: SubsetSettings) -> dict[str, np.ndarray]:
     """``{blurry: score <= blur_threshold, dynamic_scene: fraction >= dynamic_fraction}``.
 
     ``dynamic_scene`` is absent when no mask source was available.
     """
-    masks = {BLURRY: scores["blur_score"].to_numpy() <= float(config["blur_threshold"])}
+    masks = {BLURRY: scores["blur_score"].to_numpy() <= settings.blur_threshold}
     if (scores["mask_source"] != "none").all():
-        masks[DYNAMIC_SCENE] = scores["dynamic_fraction"].to_numpy() >= float(config["dynamic_fraction"])
+        masks[DYNAMIC_SCENE] = scores["dynamic_fraction"].to_numpy() >= settings.dynamic_fraction
     return masks
 
 
 def image_subsets(
-    dataset: str, images: ImageSet, config: Mapping[str, Any], cache_dir: str | Path | None = None, device: str = "auto"
+    dataset: str, images: ImageSet, settings: SubsetSettings, cache_dir: str | Path | None = None, device: str = "auto"
 ) -> tuple[dict[str, np.ndarray], pd.DataFrame]:
     """Subset masks of ``images`` and the per-image table written as ``subsets.csv``.
 
-    With ``config.enabled`` false: no subsets and an empty table.
+    With ``settings.enabled`` false: no subsets and an empty table.
     """
-    if not config["enabled"]:
+    if not settings.enabled:
         return {}, pd.DataFrame(columns=SUBSET_COLUMNS)
-    scores = subset_scores(images, config, cache_dir, device)
-    masks = subset_masks(scores, config)
+    scores = subset_scores(images, settings, cache_dir, device)
+    masks = subset_masks(scores, settings)
     table = scores.assign(**{name: mask for name, mask in masks.items()})
     table.insert(0, "dataset", dataset)
     for name, mask in masks.items():

@@ -25,9 +25,8 @@ import numpy as np
 import torch
 
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD, ExtractionSettings, Preprocessing
-from locretrieval.models.heads import RetrievalNet
-from locretrieval.models.torch_descriptor import TorchGlobalDescriptor, WeightsInfo, build_network
-from locretrieval.models.trainable import build_gem_network
+from locretrieval.models.networks import RetrievalNet, build_retrieval_net, load_weights
+from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 from locretrieval.models.weights import (
     WEIGHT_SOURCES,
     check_architecture,
@@ -189,7 +188,7 @@ def convert_apgem(source: str | os.PathLike, destination: str | os.PathLike) -> 
 
 def build_apgem_network(backbone: str = "resnet101", out_dim: int = 2048, projection_dim: int | None = None) -> RetrievalNet:
     """GeM (learned ``p``) -> FC ``out_dim`` as the whitening -> optional PCA as the projection."""
-    return build_gem_network(backbone, 3.0, True, out_dim, projection_dim)
+    return build_retrieval_net(backbone, {"type": "gem", "p": 3.0, "trainable": True}, out_dim, projection_dim)
 
 
 class APGeMDescriptor(TorchGlobalDescriptor):
@@ -204,18 +203,17 @@ class APGeMDescriptor(TorchGlobalDescriptor):
 
     def __init__(
         self,
-        name: str = "apgem",
-        weights: str | os.PathLike | None = None,
-        backbone: str = "resnet101",
-        out_dim: int = 2048,
-        pca: str | None = None,
-        pca_power: float = 0.5,
-        pca_dims: int | None = None,
-        pca_multiplier: float = 1.0,
-        max_side: int | None = None,
-        scales: Sequence[float] = (1.0,),
-        memmap_dir: str | os.PathLike | None = None,
-        **extraction: Any,
+        name: str,
+        weights: str | os.PathLike | None,
+        backbone: str,
+        out_dim: int,
+        pca: str | None,
+        pca_power: float,
+        pca_dims: int | None,
+        pca_multiplier: float,
+        max_side: int | None,
+        scales: Sequence[float],
+        extraction: ExtractionSettings | Mapping[str, Any],
     ) -> None:
         path = require_weights(weights, WEIGHT_SOURCES["apgem"], name)
         declared = {"backbone": str(backbone), "out_dim": int(out_dim)}
@@ -229,7 +227,7 @@ class APGeMDescriptor(TorchGlobalDescriptor):
             state["projection.weight"] = torch.from_numpy(weight.astype(np.float32))
             state["projection.bias"] = torch.from_numpy(bias.astype(np.float32))
             projection_dim = weight.shape[0]
-        network, _ = build_network(lambda: build_apgem_network(loaded.backbone, loaded.out_dim, projection_dim), state, str(path))
+        network, info = load_weights(lambda: build_apgem_network(loaded.backbone, loaded.out_dim, projection_dim), state, path)
         architecture = {
             **declared,
             "pca": pca,
@@ -237,12 +235,5 @@ class APGeMDescriptor(TorchGlobalDescriptor):
             "pca_dims": pca_dims if pca else None,
             "pca_multiplier": float(pca_multiplier) if pca else None,
         }
-        super().__init__(
-            name,
-            network,
-            Preprocessing(max_side=max_side, scales=tuple(scales), mean=loaded.mean, std=loaded.std),
-            architecture,
-            WeightsInfo(content_sha256(path)),
-            ExtractionSettings.from_options(name, extraction),
-            memmap_dir,
-        )
+        preprocessing = Preprocessing(max_side=max_side, scales=tuple(scales), mean=loaded.mean, std=loaded.std)
+        super().__init__(name, network, preprocessing, architecture, info, extraction)

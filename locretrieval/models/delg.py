@@ -37,8 +37,8 @@ from torch import nn
 from torchvision.models.resnet import Bottleneck
 
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
-from locretrieval.models.heads import GeMPooling, RetrievalNet
-from locretrieval.models.torch_descriptor import TorchGlobalDescriptor, WeightsInfo, build_network
+from locretrieval.models.networks import GeMPooling, RetrievalNet, load_weights
+from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 from locretrieval.models.weights import (
     WEIGHT_SOURCES,
     check_checkpoint,
@@ -240,17 +240,16 @@ class DELGDescriptor(TorchGlobalDescriptor):
 
     def __init__(
         self,
-        name: str = "delg",
-        weights: str | os.PathLike | None = None,
-        units: Sequence[int] = RESNET_V1_101_UNITS,
-        whiten_dim: int = 2048,
-        gem_power: float = 3.0,
-        bn_eps: float = 1e-5,
-        whitening_scope: str | None = None,
-        max_side: int | None = DELG_MAX_SIDE,
-        scales: Sequence[float] = DELG_SCALES,
-        memmap_dir: str | os.PathLike | None = None,
-        **extraction: Any,
+        name: str,
+        weights: str | os.PathLike | None,
+        units: Sequence[int],
+        whiten_dim: int,
+        gem_power: float,
+        bn_eps: float,
+        whitening_scope: str | None,
+        max_side: int | None,
+        scales: Sequence[float],
+        extraction: ExtractionSettings | Mapping[str, Any],
     ) -> None:
         path = require_weights(weights, WEIGHT_SOURCES["delg"], name)
         architecture = {"units": tuple(int(u) for u in units), "whiten_dim": int(whiten_dim), "gem_power": float(gem_power)}
@@ -262,17 +261,10 @@ class DELGDescriptor(TorchGlobalDescriptor):
                 raise ValueError(f"{path}: neither a TensorFlow model nor a locretrieval DELG checkpoint")
             check_checkpoint(content, path, self.model, architecture)
             state = content["state_dict"]
-        network, _ = build_network(
+        network, info = load_weights(
             lambda: build_delg_network(architecture["units"], architecture["whiten_dim"], architecture["gem_power"], float(bn_eps)),
             state,
-            str(path),
+            path,
         )
-        super().__init__(
-            name,
-            network,
-            Preprocessing(max_side=max_side, scales=tuple(scales), mean=DELG_MEAN, std=DELG_STD),
-            {**architecture, "bn_eps": float(bn_eps)},
-            WeightsInfo(content_sha256(path)),
-            ExtractionSettings.from_options(name, {"batch_size": 1, **extraction}),
-            memmap_dir,
-        )
+        preprocessing = Preprocessing(max_side=max_side, scales=tuple(scales), mean=DELG_MEAN, std=DELG_STD)
+        super().__init__(name, network, preprocessing, {**architecture, "bn_eps": float(bn_eps)}, info, extraction)

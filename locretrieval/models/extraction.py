@@ -2,17 +2,20 @@
 
 Images are decoded and resized in DataLoader workers (PIL, RGB), batched by size (each batch
 holds images of one size; batches are formed from the image sizes the caller knows, e.g.
-the cameras, and split again if a file's real size differs), sent to the device as
-``uint8``, normalised there, run at every scale the model declares, and written into a
-preallocated ``[N, D]`` array (or a caller's ``np.memmap``). Only the batches in flight are
-held in memory, so the footprint does not grow with the number of images.
+the cameras, and split again if a file's real size differs), sent to the network's device
+as ``uint8``, normalised there (`Preprocessing.normalize`, which training batches go
+through too), run at every scale the model declares, and written into a preallocated
+``[N, D]`` array (or a caller's ``np.memmap``). Only the batches in flight are held in
+memory, so the footprint does not grow with the number of images. The network is left as
+it was found: on its device, in its memory layout, in train mode if it was.
 """
 
 from __future__ import annotations
 
+import contextlib
 import time
-from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field, fields
+from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -23,8 +26,8 @@ from PIL import Image
 from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
-from locretrieval.device import resolve_device
-from locretrieval.models.heads import RetrievalNet, l2_normalize
+from locretrieval.config import require
+from locretrieval.models.networks import RetrievalNet, l2_normalize
 from locretrieval.scene.images import read_image
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -70,28 +73,34 @@ class Preprocessing:
     def identity(self) -> dict[str, Any]:
         return {**asdict(self), "resize": "PIL bilinear to max_side; scales: bilinear half-pixel"}
 
+    def normalize(self, images: torch.Tensor) -> torch.Tensor:
+        """``float32 [B, 3, H, W]`` network input ``(rgb / 255 - mean) / std`` of ``uint8`` RGB images
+        (on their device)."""
+        mean = torch.tensor(self.mean, device=images.device).view(1, 3, 1, 1) * 255.0
+        std = torch.tensor(self.std, device=images.device).view(1, 3, 1, 1) * 255.0
+        return (images.float() - mean) / std
 
-@dataclass(frozen=True)
+
+@dataclass
 class ExtractionSettings:
-    """``device``: ``auto|cpu|cuda``; float16 autocast only on CUDA and when ``mixed_precision``."""
+    """The ``model.extraction`` config node. ``device``: ``auto|cpu|cuda``, where a zoo model
+    puts its network; ``batch_size`` images per forward pass (equal sizes only);
+    ``num_workers`` DataLoader processes decoding and resizing; float16 autocast on CUDA when
+    ``mixed_precision``; ``progress`` bars; ``memmap_dir``: write descriptors into ``.npy``
+    memory maps there instead of RAM (``None``: RAM)."""
 
-    device: str = "auto"
-    batch_size: int = 4
-    num_workers: int = 2
-    mixed_precision: bool = True
-    progress: bool = True
+    device: str
+    batch_size: int
+    num_workers: int
+    mixed_precision: bool
+    progress: bool
+    memmap_dir: str | None
 
     def __post_init__(self) -> None:
-        if self.batch_size < 1 or self.num_workers < 0:
-            raise ValueError(f"batch_size must be >= 1 and num_workers >= 0, got {self.batch_size}, {self.num_workers}")
-
-    @classmethod
-    def from_options(cls, model: str, options: Mapping[str, Any]) -> ExtractionSettings:
-        """The settings given as a zoo model's extra keyword arguments (``model.batch_size=8``)."""
-        unknown = sorted(set(options) - {f.name for f in fields(cls)})
-        if unknown:
-            raise TypeError(f"model {model!r}: unknown options {unknown}; extraction options are {[f.name for f in fields(cls)]}")
-        return cls(**options)
+        require(self.device == "auto" or self.device.split(":")[0] in ("cpu", "cuda"), "device",
+                f"must be auto, cpu or cuda[:N], got {self.device!r}")
+        require(self.batch_size >= 1, "batch_size", f"must be >= 1, got {self.batch_size}")
+        require(self.num_workers >= 0, "num_workers", f"must be >= 0, got {self.num_workers}")
 
 
 @dataclass
@@ -166,11 +175,11 @@ def describe_batch(
     network: RetrievalNet, images: torch.Tensor, preprocessing: Preprocessing, mixed_precision: bool = False
 ) -> torch.Tensor:
     """Unit descriptors ``float32 [B, D]`` of ``uint8 [B, 3, H, W]`` RGB images (on the network's
-    device): normalise, run every scale, sum the per-scale descriptors, L2, ``finalize``."""
+    device): normalise, run every scale, sum the per-scale descriptors, L2, ``finalize``.
+    Gradients flow when the caller allows them (training); extraction runs it under
+    ``torch.inference_mode``."""
     device = images.device
-    mean = torch.tensor(preprocessing.mean, device=device).view(1, 3, 1, 1) * 255.0
-    std = torch.tensor(preprocessing.std, device=device).view(1, 3, 1, 1) * 255.0
-    x = (images.float() - mean) / std
+    x = preprocessing.normalize(images)
     if device.type == "cuda":
         x = x.contiguous(memory_format=torch.channels_last)
     total = None
@@ -185,6 +194,22 @@ def describe_batch(
     return network.finalize(l2_normalize(total)).float()
 
 
+@contextlib.contextmanager
+def evaluation_mode(network: torch.nn.Module) -> Iterator[None]:
+    """The network in eval mode (frozen batch-norm statistics, no dropout), restored after."""
+    was_training = network.training
+    network.eval()
+    try:
+        yield
+    finally:
+        network.train(was_training)
+
+
+def network_device(network: torch.nn.Module) -> torch.device:
+    """The device of a network's parameters."""
+    return next(network.parameters()).device
+
+
 def extract_descriptors(
     network: RetrievalNet,
     paths: Sequence[Path],
@@ -196,15 +221,14 @@ def extract_descriptors(
 ) -> tuple[np.ndarray, ExtractionStats]:
     """Descriptors ``float32 [len(paths), network.output_dim]`` and timing statistics.
 
-    ``sizes``: ``(width, height)`` of each file as stored (e.g. from the cameras), used to
-    batch equal sizes together; without them every batch holds one image. ``out``: a
-    preallocated ``float32 [N, D]`` array (e.g. ``np.lib.format.open_memmap``) to write into.
+    Runs on the network's own device, in eval mode (restored afterwards); ``settings.device``
+    is not read here (a zoo model placed its network at construction). ``sizes``:
+    ``(width, height)`` of each file as stored (e.g. from the cameras), used to batch equal
+    sizes together; without them every batch holds one image. ``out``: a preallocated
+    ``float32 [N, D]`` array (e.g. ``np.lib.format.open_memmap``) to write into.
     """
     started = time.perf_counter()
-    device = resolve_device(settings.device)
-    network = network.eval().to(device)
-    if device.type == "cuda":
-        network = network.to(memory_format=torch.channels_last)
+    device = network_device(network)
     shape = (len(paths), network.output_dim)
     if out is None:
         out = np.empty(shape, dtype=np.float32)
@@ -221,7 +245,7 @@ def extract_descriptors(
         pin_memory=device.type == "cuda",
     )
     stats = ExtractionStats()
-    with torch.inference_mode(), tqdm(total=len(paths), unit="img", desc=label, disable=not settings.progress) as bar:
+    with evaluation_mode(network), torch.inference_mode(), tqdm(total=len(paths), unit="img", desc=label, disable=not settings.progress) as bar:
         for items in loader:
             for group in _split_by_shape(items):
                 start = time.perf_counter()

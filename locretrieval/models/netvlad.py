@@ -22,7 +22,7 @@ objects scipy cannot read; its struct form (``net_class2struct.m``, e.g. hloc's
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -32,9 +32,8 @@ import torch
 from torch import nn
 
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
-from locretrieval.models.heads import RetrievalNet, torchvision_trunk
-from locretrieval.models.torch_descriptor import TorchGlobalDescriptor, WeightsInfo, build_network
-from locretrieval.models.trainable import build_netvlad_head_network
+from locretrieval.models.networks import RetrievalNet, build_retrieval_net, load_weights, torchvision_trunk
+from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 from locretrieval.models.weights import (
     WEIGHT_SOURCES,
     check_architecture,
@@ -51,8 +50,8 @@ VGG16_TRUNK_LAYERS = 29
 
 
 def build_netvlad_network(clusters: int = 64, whiten_dim: int | None = 4096) -> RetrievalNet:
-    """The authors' architecture: NetVLAD on VGG16 (`build_netvlad_head_network`)."""
-    return build_netvlad_head_network("vgg16", clusters, whiten_dim)
+    """The authors' architecture: NetVLAD (``clusters`` centres) on VGG16, optional whitening."""
+    return build_retrieval_net("vgg16", {"type": "netvlad", "clusters": clusters}, whiten_dim)
 
 
 def _layer_weights(layer: Any) -> list[np.ndarray]:
@@ -153,14 +152,13 @@ class NetVLADDescriptor(TorchGlobalDescriptor):
 
     def __init__(
         self,
-        name: str = "netvlad",
-        weights: str | os.PathLike | None = None,
-        clusters: int = 64,
-        whiten_dim: int | None = 4096,
-        max_side: int | None = 1024,
-        scales: Sequence[float] = (1.0,),
-        memmap_dir: str | os.PathLike | None = None,
-        **extraction: Any,
+        name: str,
+        weights: str | os.PathLike | None,
+        clusters: int,
+        whiten_dim: int | None,
+        max_side: int | None,
+        scales: Sequence[float],
+        extraction: ExtractionSettings | Mapping[str, Any],
     ) -> None:
         path = require_weights(weights, WEIGHT_SOURCES["netvlad"], name)
         architecture = {"clusters": int(clusters), "whiten_dim": None if whiten_dim is None else int(whiten_dim)}
@@ -174,13 +172,6 @@ class NetVLADDescriptor(TorchGlobalDescriptor):
                 raise ValueError(f"{path}: neither a struct .mat nor a locretrieval NetVLAD checkpoint")
             check_checkpoint(content, path, self.model, architecture)
             state, mean, std = content["state_dict"], content["preprocessing"]["mean"], content["preprocessing"]["std"]
-        network, _ = build_network(lambda: build_netvlad_network(**architecture), state, str(path))
-        super().__init__(
-            name,
-            network,
-            Preprocessing(max_side=max_side, scales=tuple(scales), mean=tuple(mean), std=tuple(std)),
-            architecture,
-            WeightsInfo(content_sha256(path)),
-            ExtractionSettings.from_options(name, extraction),
-            memmap_dir,
-        )
+        network, info = load_weights(lambda: build_netvlad_network(**architecture), state, path)
+        preprocessing = Preprocessing(max_side=max_side, scales=tuple(scales), mean=tuple(mean), std=tuple(std))
+        super().__init__(name, network, preprocessing, architecture, info, extraction)

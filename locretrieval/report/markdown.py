@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from locretrieval.metrics.localization import best_over_k
 from locretrieval.report.plots import safe_name, threshold_label
 
 
@@ -121,11 +122,6 @@ def subset_sizes(results: pd.DataFrame, retrieval: pd.DataFrame) -> pd.DataFrame
     columns = ["dataset", "subset", "num_queries"]
     sizes = pd.concat([results[columns], retrieval.loc[retrieval["metric"] != "map", columns]])
     return sizes.groupby(["dataset", "subset"])["num_queries"].max().unstack("subset")
-
-
-def best_over_k(results: pd.DataFrame, across: str) -> pd.DataFrame:
-    """Best % localised over k per paradigm x method x ranking (rows) x ``across`` (columns)."""
-    return results.groupby(["paradigm", "method", "ranking", across])["localized_pct"].max().unstack(across)
 
 
 def best_by_subset(results: pd.DataFrame) -> pd.DataFrame:

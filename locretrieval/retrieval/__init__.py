@@ -1,19 +1,10 @@
-"""Rankings, faiss search and the descriptor cache.
+"""Rankings (`Ranking`, relevance hits, random baselines), faiss search (`index.search`) and
+the descriptor cache (`descriptors.describe_scene`).
 
-`search` (faiss) and `describe_scene` / `validate_descriptors` (the models, torch) are loaded on
-first use, so that code needing only `Ranking` (metrics, report) does not import them.
+Only `Ranking` and its helpers are imported here; import `locretrieval.retrieval.index` and
+`locretrieval.retrieval.descriptors` where they are used (faiss and the models load there).
 """
 
-import importlib
+from locretrieval.retrieval.ranking import EMPTY, Ranking, random_ranking, ranking_from_scores, relevant_hits, top_k
 
-from locretrieval.retrieval.ranking import EMPTY, Ranking, random_ranking, ranking_from_scores, top_k
-
-_LAZY = {"describe_scene": "descriptors", "validate_descriptors": "descriptors", "search": "index"}
-
-__all__ = ["EMPTY", "Ranking", "random_ranking", "ranking_from_scores", "top_k", *_LAZY]
-
-
-def __getattr__(name: str):
-    if name in _LAZY:
-        return getattr(importlib.import_module(f"locretrieval.retrieval.{_LAZY[name]}"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__all__ = ["EMPTY", "Ranking", "random_ranking", "ranking_from_scores", "relevant_hits", "top_k"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -43,14 +44,23 @@ def _describe(model: GlobalDescriptor, images: ImageSet) -> np.ndarray | None:
     return validate_descriptors(model, images, model.describe(images)) if len(images) else None
 
 
-def describe_scene(model: GlobalDescriptor, scene: Scene, cache_dir: Path | None) -> tuple[np.ndarray, np.ndarray]:
-    """``(database [N, D], queries [Q, D])`` descriptors of a scene, L2-normalised ``float32``.
+class SceneDescriptors(NamedTuple):
+    """L2-normalised ``float32`` descriptors of a scene's ``database [N, D]`` and ``queries [Q, D]``."""
+
+    database: np.ndarray
+    queries: np.ndarray
+
+
+def describe_scene(model: GlobalDescriptor, scene: Scene, cache_dir: Path | None) -> SceneDescriptors:
+    """The descriptors of a scene's database and queries.
 
     The model is bound to the scene (`GlobalDescriptor.bind_scene`) and, when it learns
     from the database, fitted on the database first. With a ``cache_dir`` both arrays are
-    stored in ``cache_dir/descriptors/<key>.npz``, the key hashing ``model.identity()`` and
-    both image sets' fingerprints; a later call with the same key runs no model at all and
-    leaves the model unfitted (only the descriptors are cached, not what `fit` learned).
+    stored in ``cache_dir/descriptors/<key>.npz``, the key hashing ``model.identity()`` (for a
+    network, the content of its weights as they are in memory) and both image sets'
+    fingerprints; a later call with the same key runs no model at all and leaves the model
+    unfitted (only the descriptors are cached, not what `fit` learned). ``cache_dir=None``
+    always describes.
     """
     model.bind_scene(scene)
     key = config_key(model.identity(), scene.database.fingerprint(include_poses=False), scene.queries.fingerprint(include_poses=False))
@@ -60,7 +70,7 @@ def describe_scene(model: GlobalDescriptor, scene: Scene, cache_dir: Path | None
         log.info("descriptor cache hit for %r: %s", model.name, path)
     elif path is not None:
         log.info("descriptor cache miss for %r (key %s): descriptors cached in %s", model.name, key, path)
-    return arrays["database"], arrays["queries"]
+    return SceneDescriptors(arrays["database"], arrays["queries"])
 
 
 def _describe_scene(model: GlobalDescriptor, scene: Scene) -> dict[str, np.ndarray]:

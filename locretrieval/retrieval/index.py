@@ -3,13 +3,28 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import faiss
 import numpy as np
 
+from locretrieval.config import require
 from locretrieval.retrieval.ranking import Ranking
 
 log = logging.getLogger(__name__)
+
+
+@dataclass
+class RetrievalSettings:
+    """The ``retrieval`` config section: ``depth`` images kept per query in every ranking (K,
+    the paper: 50) and ``chunk_size`` queries searched at once."""
+
+    depth: int
+    chunk_size: int
+
+    def __post_init__(self) -> None:
+        require(self.depth >= 1, "depth", f"must be >= 1, got {self.depth}")
+        require(self.chunk_size >= 1, "chunk_size", f"must be >= 1, got {self.chunk_size}")
 
 
 def _as_descriptor_matrix(values: np.ndarray, label: str) -> np.ndarray:

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from scipy import sparse
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +101,16 @@ class Ranking:
         if any(int(k) < 1 for k in ks):
             raise ValueError(f"k must be >= 1, got {list(ks)}")
         return clamped
+
+
+def relevant_hits(indices: np.ndarray, relevance: sparse.csr_matrix) -> np.ndarray:
+    """Boolean ``[Q, K]``: the database image in each slot is relevant (``EMPTY`` is not)."""
+    indices = np.asarray(indices)
+    filled = indices != EMPTY
+    rows = np.broadcast_to(np.arange(len(indices))[:, None], indices.shape)
+    hits = np.zeros(indices.shape, dtype=bool)
+    hits[filled] = np.asarray(relevance[rows[filled], indices[filled]]).ravel()
+    return hits
 
 
 def top_k(

@@ -14,7 +14,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from locretrieval.cache import config_key
-from locretrieval.scene.kapture_io import LTVL_NAME_STYLES, load_kapture_scene
+from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.types import Scene
 
 log = logging.getLogger(__name__)
@@ -63,10 +63,11 @@ def load_dataset(
     root: str | Path,
     mapping: str | Sequence[str],
     queries: str | Sequence[str],
+    *,
+    ltvl_name_style: str,
+    frustum_far: float | None,
     query_tags: Sequence[str] | None = None,
     name_tags: Mapping[str, str] | None = None,
-    ltvl_name_style: str = "full",
-    frustum_far: float = 50.0,
     install: str = "",
 ) -> Scene:
     """A `Scene` from kapture folders under ``root``.
@@ -74,14 +75,11 @@ def load_dataset(
     ``mapping``/``queries``: folders (or glob patterns) relative to ``root``. ``query_tags``:
     one tag per query entry, given to every folder it matches (default: the folder name).
     ``name_tags``: ``{tag: regex}`` on image names (e.g. RobotCar's day/night conditions).
-    ``ltvl_name_style`` and ``frustum_far`` (metres) are read by the pipeline from the config;
-    they are checked here so a typo fails before any work. ``install``: the commands that
-    obtain the dataset, shown when a folder is missing.
+    ``ltvl_name_style`` and ``frustum_far`` (metres) are dataset facts kept on the `Scene`
+    (checked before any folder is read). ``install``: the commands that obtain the dataset,
+    shown when a folder is missing.
     """
-    if ltvl_name_style not in LTVL_NAME_STYLES:
-        raise ValueError(f"dataset {name!r}: unknown ltvl_name_style {ltvl_name_style!r}; expected one of {LTVL_NAME_STYLES}")
-    if not float(frustum_far) > 0:
-        raise ValueError(f"dataset {name!r}: frustum_far must be a positive distance in metres, got {frustum_far}")
+    Scene.check_facts(name, ltvl_name_style, frustum_far)
     root = Path(root).expanduser()
     mapping_entries, query_entries = _as_list(mapping), _as_list(queries)
     if query_tags is not None and len(query_tags) != len(query_entries):
@@ -98,15 +96,17 @@ def load_dataset(
     tags = None
     if query_tags is not None:
         tags = [str(tag) for tag, matches in zip(query_tags, query_matches) for _ in matches]
-    return load_kapture_scene(name, mapping_folders, query_folders, tags, dict(name_tags) if name_tags else None)
+    return load_kapture_scene(
+        name, mapping_folders, query_folders, tags, dict(name_tags) if name_tags else None, ltvl_name_style, frustum_far
+    )
 
 
 def load_synthetic_dataset(
     name: str,
     cache_dir: str | Path,
     render: Mapping,
-    ltvl_name_style: str = "full",
-    frustum_far: float = 25.0,
+    ltvl_name_style: str,
+    frustum_far: float,
 ) -> Scene:
     """The built-in synthetic scene: rendered once per ``render`` config into
     ``<cache_dir>/synthetic/<key>/{mapping,query}`` (kapture), then read like any dataset.
@@ -126,7 +126,9 @@ def load_synthetic_dataset(
         render_synthetic_dataset(config, folder)
     else:
         log.info("synthetic scene cached in %s", folder)
-    return load_dataset(name, folder, "mapping", ["query"], ["query"], None, ltvl_name_style, frustum_far)
+    return load_dataset(
+        name, folder, "mapping", ["query"], ltvl_name_style=ltvl_name_style, frustum_far=frustum_far, query_tags=["query"]
+    )
 
 
 #: Renderer keys that change how fast a scene renders, not what it contains.

@@ -27,7 +27,7 @@ import quaternion
 
 from locretrieval import geometry
 from locretrieval.cache import atomic_path
-from locretrieval.scene.types import CAMERA_MODELS, Camera, ImageSet, Scene
+from locretrieval.scene.types import CAMERA_MODELS, LTVL_NAME_STYLES, Camera, ImageSet, Scene
 
 log = logging.getLogger(__name__)
 
@@ -43,11 +43,6 @@ MASKS_DIR = Path("masks")
 #: Suffix of the depth sensor paired with a camera: ``<camera_id>_depth``.
 DEPTH_SENSOR_SUFFIX = "_depth"
 
-#: How `write_ltvl` writes image names (cf. kapture's ``kapture_export_LTVL2020``):
-#: ``full`` as kapture lists them (GangnamStation, Baidu), ``basename`` the file name only
-#: (Aachen, InLoc), ``strip_prefix`` without the first folder (RobotCar:
-#: ``night/rear/123.jpg`` -> ``rear/123.jpg``, the camera name then the file name).
-LTVL_NAME_STYLES = ("full", "basename", "strip_prefix")
 
 
 class KaptureFormatError(ValueError):
@@ -435,6 +430,8 @@ def load_kapture_scene(
     queries: Sequence[str | Path],
     query_tags: Sequence[str] | None = None,
     name_tags: Mapping[str, str] | None = None,
+    ltvl_name_style: str = "full",
+    frustum_far: float | None = None,
 ) -> Scene:
     """A scene from kapture folders: database from the mapping folder(s), queries from the
     query folders (concatenated, names unique).
@@ -442,7 +439,8 @@ def load_kapture_scene(
     Each query folder's images are tagged with ``query_tags`` (default: the folder name, e.g.
     ``query_day``); ``name_tags`` ``{tag: regex}`` tag database and query images by name.
     Mapping images without a pose are left out of the database (logged).
-    ``Scene.sources`` lists all folders.
+    ``Scene.sources`` lists all folders; ``ltvl_name_style`` and ``frustum_far`` are kept on
+    the `Scene`.
     """
     mapping_folders = [Path(mapping)] if isinstance(mapping, (str, Path)) else [Path(folder) for folder in mapping]
     query_folders = [Path(folder) for folder in queries]
@@ -455,7 +453,7 @@ def load_kapture_scene(
     query_set = concatenate_image_sets([load_image_set(folder, tag) for folder, tag in zip(query_folders, tags)])
     if name_tags:
         database, query_set = add_name_tags(database, name_tags), add_name_tags(query_set, name_tags)
-    return Scene(name=name, database=database, queries=query_set, sources=mapping_folders + query_folders)
+    return Scene(name, database, query_set, mapping_folders + query_folders, ltvl_name_style, frustum_far)
 
 
 def ltvl_name(name: str, style: str) -> str:

@@ -11,6 +11,7 @@ import numpy as np
 
 from locretrieval import geometry
 from locretrieval.cache import file_signature
+from locretrieval.config import ConfigError
 
 #: COLMAP camera models and the indices of (fx, fy, cx, cy) in their parameter vectors.
 #: Single-focal models repeat the focal length.
@@ -197,23 +198,53 @@ class ImageSet:
         return digest.hexdigest()[:16]
 
 
+#: How LTVL submission files name images (cf. kapture's ``kapture_export_LTVL2020``):
+#: ``full`` as kapture lists them (GangnamStation, Baidu), ``basename`` the file name only
+#: (Aachen, InLoc), ``strip_prefix`` without the first folder (RobotCar:
+#: ``night/rear/123.jpg`` -> ``rear/123.jpg``, the camera name then the file name).
+LTVL_NAME_STYLES = ("full", "basename", "strip_prefix")
+
+
 @dataclass
 class Scene:
     """A localisation benchmark: database images with known poses and query images.
 
     ``sources`` are the folders the scene was read from (e.g. kapture mapping and query
-    folders), used to find published side data such as precomputed features.
+    folders), used to find published side data such as precomputed features. Dataset facts
+    the pipeline reads: ``ltvl_name_style`` (`LTVL_NAME_STYLES`, how LTVL submissions name
+    images) and ``frustum_far`` (metres, the far plane of the frustum ground truth and of
+    global-map pair selection where their config leaves ``far`` null; ``None``: unset).
     """
 
     name: str
     database: ImageSet
     queries: ImageSet
     sources: list[Path] = field(default_factory=list)
+    ltvl_name_style: str = "full"
+    frustum_far: float | None = None
 
     def __post_init__(self) -> None:
+        self.check_facts(self.name, self.ltvl_name_style, self.frustum_far)
         if len(self.database) == 0:
             raise ValueError(f"scene {self.name!r} has an empty database")
         if not self.database.has_pose.all():
             missing = [n for n, ok in zip(self.database.names, self.database.has_pose) if not ok]
             raise ValueError(f"scene {self.name!r}: database images without pose: {missing[:5]}")
+
+    def far_plane(self, far: float | None, key: str) -> float:
+        """``far`` (metres), or the scene's ``frustum_far`` where ``far`` (the config ``key``) is ``None``."""
+        if far is not None:
+            return float(far)
+        if self.frustum_far is None:
+            raise ConfigError(f"{key} is null (the dataset's frustum far plane) but scene {self.name!r} has no frustum_far")
+        return float(self.frustum_far)
+
+    @staticmethod
+    def check_facts(name: str, ltvl_name_style: str, frustum_far: float | None) -> None:
+        """Raise unless ``ltvl_name_style`` is one of `LTVL_NAME_STYLES` and ``frustum_far`` is
+        ``None`` or a positive number of metres."""
+        if ltvl_name_style not in LTVL_NAME_STYLES:
+            raise ValueError(f"dataset {name!r}: unknown ltvl_name_style {ltvl_name_style!r}; expected one of {LTVL_NAME_STYLES}")
+        if frustum_far is not None and not float(frustum_far) > 0:
+            raise ValueError(f"dataset {name!r}: frustum_far must be a positive distance in metres, got {frustum_far}")
 

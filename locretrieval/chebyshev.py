@@ -10,7 +10,7 @@ whose optimum is negative when the polytope is empty. We solve its dual in stand
 
 with a tableau simplex vectorised over a batch of problems (4 rows, m columns each). The
 caller supplies a dual-feasible starting basis, which the frustum problem has for free (two
-opposite parallel planes plus two more; see `locretrieval.groundtruth.frustum`), so no phase 1
+opposite parallel planes plus two more; see `locretrieval.frusta`), so no phase 1
 is needed. Pivots use Dantzig's rule, then Bland's rule (which cannot cycle) after a few
 iterations. The final basis is certified by recomputing the vertex with a fresh 4x4 solve and
 checking primal feasibility (every slack >= 0) and dual feasibility (every multiplier >= 0)

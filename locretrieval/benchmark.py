@@ -1,0 +1,182 @@
+"""The benchmark core: rankings -> paradigms -> metrics, computed in memory, no file written.
+
+`evaluate.py` (through `locretrieval.evaluation`) and the training callback both call it:
+
+    settings = BenchmarkSettings.from_config(cfg)                     # every section checked
+    groundtruths = compute_groundtruths(scene, gt_settings, settings.sfm, cache_dir)
+    descriptors = describe_scene(model, scene, cache_dir=None)       # e.g. a network in memory
+    rankings = build_rankings(scene, {model.name: descriptors}, groundtruths, settings.retrieval, seed)
+    result = benchmark(scene, rankings, settings, subsets, cache_dir, relevances(groundtruths))
+
+``cache_dir`` only holds what the SfM paradigms reuse across runs (local features, matches,
+maps), keyed by what produced them; it is never a place results are written to.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from scipy import sparse
+
+from locretrieval.config import validated
+from locretrieval.groundtruth import GroundTruth
+from locretrieval.localization import approximation, global_sfm, local_sfm
+from locretrieval.localization.approximation import ApproximationSettings
+from locretrieval.localization.estimates import PoseEstimates
+from locretrieval.localization.global_sfm import GlobalSfmSettings
+from locretrieval.localization.local_sfm import LocalSfmSettings
+from locretrieval.localization.sfm import SfmSettings
+from locretrieval.metrics.localization import MetricsSettings, localization_table, query_error_table, query_subsets
+from locretrieval.metrics.retrieval import retrieval_tables
+from locretrieval.metrics.subsets import SubsetSettings, image_subsets
+from locretrieval.retrieval import Ranking, random_ranking
+from locretrieval.retrieval.descriptors import SceneDescriptors
+from locretrieval.retrieval.index import RetrievalSettings, search
+from locretrieval.scene import Scene
+
+log = logging.getLogger(__name__)
+
+#: Paradigm entry points ``run(scene, rankings, settings, sfm, cache_dir) -> [PoseEstimates]``,
+#: in the order they run, by their section name in ``configs/paradigms``.
+PARADIGMS: dict[str, Callable[..., list[PoseEstimates]]] = {
+    "approximation": approximation.run,
+    "local_sfm": local_sfm.run,
+    "global_sfm": global_sfm.run,
+}
+
+
+@dataclass
+class ParadigmsSettings:
+    """The ``paradigms`` config group: one section per paradigm of `PARADIGMS`."""
+
+    approximation: ApproximationSettings
+    local_sfm: LocalSfmSettings
+    global_sfm: GlobalSfmSettings
+
+    def enabled(self) -> list[str]:
+        """The enabled paradigms, in the order of `PARADIGMS`."""
+        return [name for name in PARADIGMS if getattr(self, name).enabled]
+
+    def ks(self) -> list[int]:
+        """Every k of an enabled paradigm, sorted."""
+        return sorted({k for name in self.enabled() for k in getattr(self, name).k})
+
+
+@dataclass
+class BenchmarkSettings:
+    """What the benchmark core reads, each part checked under its own config key."""
+
+    retrieval: RetrievalSettings
+    paradigms: ParadigmsSettings
+    sfm: SfmSettings
+    metrics: MetricsSettings
+
+    @classmethod
+    def from_config(cls, cfg: Any) -> "BenchmarkSettings":
+        """The settings in a composed ``evaluate``/``train`` config (sections of the same names)."""
+        return cls(
+            retrieval=validated(RetrievalSettings, cfg.retrieval, "retrieval"),
+            paradigms=validated(ParadigmsSettings, cfg.paradigms, "paradigms"),
+            sfm=validated(SfmSettings, cfg.sfm, "sfm"),
+            metrics=validated(MetricsSettings, cfg.metrics, "metrics"),
+        )
+
+
+@dataclass
+class BenchmarkResult:
+    """Everything the benchmark computed for one scene.
+
+    ``localization``: % localised per subset x ranking x paradigm x method x k x threshold
+    (`RESULT_COLUMNS`); ``query_errors``: per query; ``retrieval`` / ``query_retrieval``:
+    P@k, R@k, mAP@k of every ranking against every ground truth (empty without ground truth).
+    """
+
+    dataset: str
+    rankings: list[Ranking]
+    estimates: list[PoseEstimates]
+    localization: pd.DataFrame
+    query_errors: pd.DataFrame
+    retrieval: pd.DataFrame
+    query_retrieval: pd.DataFrame
+
+
+def build_rankings(
+    scene: Scene,
+    descriptors: Mapping[str, SceneDescriptors],
+    groundtruths: Mapping[str, GroundTruth],
+    retrieval: RetrievalSettings,
+    random_seed: int | None,
+) -> list[Ranking]:
+    """The descriptor rankings (faiss search, one per named set of descriptors), the
+    ground-truth rankings and, with a ``random_seed``, the random baseline; names are unique."""
+    rankings = [
+        search(described.queries, described.database, retrieval.depth, name, retrieval.chunk_size)
+        for name, described in descriptors.items()
+    ]
+    rankings += [groundtruth.ranking for groundtruth in groundtruths.values()]
+    if random_seed is not None:
+        rankings.append(random_ranking(len(scene.queries), len(scene.database), retrieval.depth, random_seed))
+    check_unique_names(rankings)
+    return rankings
+
+
+def check_unique_names(rankings: Sequence[Ranking]) -> None:
+    """Ranking names label every table row and output folder: two rankings must not share one."""
+    names = [r.name for r in rankings]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise ValueError(f"rankings {repeated} are named twice ({names}): rename the model (model.name=...)")
+
+
+def relevances(groundtruths: Mapping[str, GroundTruth]) -> dict[str, sparse.csr_matrix]:
+    """Each ground truth's ``[Q, N]`` relevance, by name."""
+    return {name: groundtruth.relevance for name, groundtruth in groundtruths.items()}
+
+
+def scene_subsets(
+    scene: Scene, settings: SubsetSettings, cache_dir: str | Path | None, device: str
+) -> tuple[dict[str, np.ndarray], pd.DataFrame]:
+    """The query subsets every metric is reported on (``all``, one per query tag, ``blurry``,
+    ``dynamic_scene``) and the per-query table behind the image subsets (``subsets.csv``)."""
+    image_masks, table = image_subsets(scene.name, scene.queries, settings, cache_dir, device)
+    tag_masks = query_subsets(scene.queries)
+    clash = sorted(set(tag_masks) & set(image_masks))
+    if clash:
+        raise ValueError(f"query tags {clash} clash with the subsets of configs/subsets")
+    return tag_masks | image_masks, table
+
+
+def benchmark(
+    scene: Scene,
+    rankings: Sequence[Ranking],
+    settings: BenchmarkSettings,
+    subsets: Mapping[str, np.ndarray],
+    cache_dir: str | Path | None,
+    relevance: Mapping[str, sparse.csr_matrix],
+) -> BenchmarkResult:
+    """Run every enabled paradigm on every ranking, then the localization and retrieval metrics.
+
+    ``subsets``: boolean query masks by name (``all`` at least); ``relevance``: ground-truth
+    relevance by name, for the retrieval tables (none: empty tables). Writes no file.
+    """
+    estimates: list[PoseEstimates] = []
+    for paradigm in settings.paradigms.enabled():
+        paradigm_settings = getattr(settings.paradigms, paradigm)
+        log.info("paradigm %s, k=%s", paradigm, paradigm_settings.k)
+        estimates += PARADIGMS[paradigm](scene, rankings, paradigm_settings, settings.sfm, cache_dir)
+    thresholds = settings.metrics.thresholds
+    localization = localization_table(scene.name, estimates, scene.queries, thresholds, subsets)
+    query_errors = query_error_table(scene.name, estimates, scene.queries)
+    retrieval, query_retrieval = pd.DataFrame(), pd.DataFrame()
+    if relevance:
+        retrieval, query_retrieval = retrieval_tables(
+            scene.name, rankings, relevance, scene.queries, subsets,
+            range(1, settings.retrieval.depth + 1), settings.paradigms.ks(),
+        )
+    return BenchmarkResult(scene.name, list(rankings), estimates, localization, query_errors, retrieval, query_retrieval)

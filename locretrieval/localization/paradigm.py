@@ -1,0 +1,21 @@
+"""What every localization paradigm shares: its settings' ``enabled`` switch and ``k`` list."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from locretrieval.config import require
+
+
+@dataclass
+class ParadigmSettings:
+    """A paradigm section of ``configs/paradigms``: whether it runs, and the numbers ``k`` of
+    top-ranked database images it uses (each a separate result; values beyond a ranking's
+    depth are clamped to it, with a warning)."""
+
+    enabled: bool
+    k: list[int]
+
+    def __post_init__(self) -> None:
+        require(len(self.k) > 0, "k", "must list at least one value, e.g. [1, 5, 10]")
+        require(min(self.k) >= 1, "k", f"values must be >= 1, got {self.k}")

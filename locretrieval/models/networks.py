@@ -1,0 +1,273 @@
+"""The networks of the global descriptors, built and filled in one place.
+
+Tensors are ``[B, C, H, W]`` feature maps and ``[B, D]`` descriptors. Every model of the zoo
+(NetVLAD, AP-GeM, DELG, the trainable ``gem`` / ``netvlad_head`` models) and every network
+trained by `locretrieval.training` is a `RetrievalNet`: ``backbone -> pooling -> optional
+whitening (affine) -> L2``, plus an optional projection applied after multi-scale
+aggregation (AP-GeM's PCA). `build_retrieval_net` builds one on a torchvision backbone and
+`load_weights` fills it from a state dict and records where the weights came from.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections import OrderedDict
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+import torchvision
+from torch import nn
+
+from locretrieval.models.weights import content_sha256
+
+#: Guards divisions by the norm of all-zero vectors.
+NORM_EPS = 1e-12
+
+
+def l2_normalize(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
+    return F.normalize(x, p=2, dim=dim, eps=NORM_EPS)
+
+
+class GeMPooling(nn.Module):
+    """Generalised mean pooling ``(mean(clamp(x, eps)^p))^(1/p)`` over the spatial axes.
+
+    ``p`` is a parameter (learned when ``trainable``; DELG keeps it fixed). Computed in
+    float32 even under autocast: ``x^p`` overflows float16 for activations above ~40.
+    """
+
+    def __init__(self, p: float = 3.0, trainable: bool = True, eps: float = 1e-6) -> None:
+        super().__init__()
+        self.p = nn.Parameter(torch.tensor([float(p)]), requires_grad=trainable)
+        self.eps = eps
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        with torch.autocast(features.device.type, enabled=False):
+            x = features.float().clamp(min=self.eps).pow(self.p)
+            return x.mean(dim=(2, 3)).pow(1.0 / self.p)
+
+
+class NetVLADPooling(nn.Module):
+    """NetVLAD (Arandjelovic et al., CVPR 2016) with input L2 ("preL2") and intra-normalisation.
+
+    Soft-assignment ``softmax_k(w_k . x_n)`` (no bias, as in the authors' model) over ``clusters``
+    centres ``c_k`` (``[K, D]``), residual sums ``V[k] = sum_n a_kn (x_n - c_k)``, each ``V[k]``
+    L2-normalised, then the whole vector. The output is flattened cluster-fastest (index
+    ``d * K + k``), which is MATLAB's column-major flattening of the ``K x D`` VLAD matrix of the
+    authors' code, so the released whitening matrices apply unchanged.
+    """
+
+    def __init__(self, dim: int, clusters: int) -> None:
+        super().__init__()
+        self.dim, self.clusters = dim, clusters
+        self.assignment = nn.Conv2d(dim, clusters, kernel_size=1, bias=False)
+        self.centers = nn.Parameter(torch.empty(clusters, dim))
+        nn.init.normal_(self.centers, std=dim**-0.5)
+
+    @property
+    def output_dim(self) -> int:
+        return self.dim * self.clusters
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        with torch.autocast(features.device.type, enabled=False):
+            x = l2_normalize(features.float(), dim=1)
+            soft = torch.softmax(self.assignment(x).flatten(2), dim=1)  # [B, K, N]
+            x = x.flatten(2)  # [B, D, N]
+            vlad = torch.einsum("bkn,bdn->bdk", soft, x) - self.centers.t()[None] * soft.sum(dim=2)[:, None, :]
+            vlad = l2_normalize(vlad, dim=1)  # intra-normalisation, per cluster
+            return l2_normalize(vlad.flatten(1), dim=1)
+
+
+class RetrievalNet(nn.Module):
+    """``backbone -> pooling -> whitening -> L2`` per scale; ``finalize`` applies ``projection``.
+
+    ``forward(images)`` takes normalised ``[B, 3, H, W]`` images and returns unit ``[B, D]``
+    descriptors of one scale. The extraction engine sums them over scales, L2-normalises, and
+    calls ``finalize`` (``projection`` then L2, or the identity without one).
+    """
+
+    def __init__(
+        self,
+        backbone: nn.Module,
+        pooling: nn.Module,
+        pooled_dim: int,
+        whitening: nn.Linear | None = None,
+        projection: nn.Linear | None = None,
+    ) -> None:
+        super().__init__()
+        self.backbone = backbone
+        self.pooling = pooling
+        self.whitening = whitening
+        self.projection = projection
+        dim = whitening.out_features if whitening is not None else pooled_dim
+        self.output_dim = projection.out_features if projection is not None else dim
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        pooled = self.pooling(self.backbone(images))
+        if self.whitening is not None:
+            pooled = self.whitening(pooled)
+        return l2_normalize(pooled.float())
+
+    def finalize(self, descriptors: torch.Tensor) -> torch.Tensor:
+        if self.projection is None:
+            return descriptors
+        return l2_normalize(self.projection(descriptors))
+
+
+def torchvision_trunk(name: str) -> tuple[nn.Module, int]:
+    """The convolutional trunk of a torchvision classifier and its output channels.
+
+    Parameter names equal torchvision's (``conv1.weight``, ``layer1.0.bn1.weight``,
+    ``features.0.weight``), so torchvision checkpoints load with a ``backbone.`` prefix.
+    ResNets stop after ``layer4``; VGGs at conv5_3 without its ReLU and the last max-pool
+    (NetVLAD's cut); other models at their ``features`` module. Built with torchvision's random
+    initialisation on the default device (``with torch.device("meta")`` builds it empty).
+    """
+    try:
+        model = torchvision.models.get_model(name, weights=None)
+    except ValueError as error:
+        raise ValueError(f"unknown torchvision backbone {name!r}: {error}") from error
+    if name.startswith(("resnet", "resnext", "wide_resnet")):
+        children = [(key, module) for key, module in model.named_children() if key not in ("avgpool", "fc")]
+        trunk = nn.Sequential(OrderedDict(children))
+    elif name.startswith("vgg"):
+        features = model.features
+        cut = len(features) - 2  # drop the final ReLU and max-pool
+        trunk = nn.Sequential(OrderedDict(features=nn.Sequential(*list(features)[:cut])))
+    elif hasattr(model, "features"):
+        trunk = nn.Sequential(OrderedDict(features=model.features))
+    else:
+        raise ValueError(f"torchvision model {name!r} has no convolutional trunk this code knows how to cut")
+    return trunk, trunk_channels(trunk)
+
+
+def trunk_channels(trunk: nn.Module) -> int:
+    """Output channels of a convolutional trunk (one tiny forward pass, shape-only on meta)."""
+    device = next(trunk.parameters()).device
+    with torch.no_grad():
+        return int(trunk.eval()(torch.zeros(1, 3, 64, 64, device=device)).shape[1])
+
+
+#: Pooling layers by ``type``, each built as ``builder(channels, **options) -> (module, output_dim)``.
+POOLINGS: dict[str, Callable[..., tuple[nn.Module, int]]] = {
+    "gem": lambda channels, p, trainable: (GeMPooling(float(p), trainable=bool(trainable)), channels),
+    "netvlad": lambda channels, clusters: (pooling := NetVLADPooling(channels, int(clusters)), pooling.output_dim),
+}
+
+
+def build_pooling(channels: int, pooling: Mapping[str, Any]) -> tuple[nn.Module, int]:
+    """``(module, output dimension)`` of a pooling spec: ``{type: gem, p: 3.0, trainable: true}``
+    or ``{type: netvlad, clusters: 64}``."""
+    options = dict(pooling)
+    kind = options.pop("type", None)
+    if kind not in POOLINGS:
+        raise ValueError(f"pooling type {kind!r} is not one of {sorted(POOLINGS)}")
+    try:
+        return POOLINGS[kind](channels, **options)
+    except TypeError as error:
+        raise ValueError(f"{kind} pooling: {error} (given {sorted(options)})") from error
+
+
+def build_retrieval_net(
+    backbone: str, pooling: Mapping[str, Any], whiten_dim: int | None = None, projection_dim: int | None = None
+) -> RetrievalNet:
+    """``pooling`` (`build_pooling`) on a torchvision trunk, optional FC whitening to
+    ``whiten_dim`` and final projection to ``projection_dim`` (applied after multi-scale
+    aggregation), with torchvision's random initialisation."""
+    trunk, channels = torchvision_trunk(backbone)
+    module, pooled_dim = build_pooling(channels, pooling)
+    whitening = nn.Linear(pooled_dim, whiten_dim) if whiten_dim else None
+    projection = nn.Linear(whiten_dim or pooled_dim, projection_dim) if projection_dim else None
+    return RetrievalNet(trunk, module, pooled_dim, whitening, projection)
+
+
+@dataclass(frozen=True)
+class WeightsInfo:
+    """Where the parameters came from: the weight file's SHA-256 (``None`` without a file) and
+    the parameters left randomly initialised, with the seed."""
+
+    sha256: str | None
+    random_parameters: tuple[str, ...] = ()
+    seed: int | None = None
+
+    @property
+    def random_init(self) -> bool:
+        return bool(self.random_parameters)
+
+    def identity(self) -> dict[str, Any]:
+        return {
+            "sha256": self.sha256,
+            "random_parameters": list(self.random_parameters),
+            "seed": self.seed if self.random_init else None,
+        }
+
+
+def load_weights(
+    factory: Callable[[], RetrievalNet],
+    state_dict: Mapping[str, torch.Tensor] | None,
+    path: str | Path | None,
+    random_init: bool = False,
+    seed: int = 0,
+) -> tuple[RetrievalNet, WeightsInfo]:
+    """The network ``factory`` builds, filled with ``state_dict`` (read from the file ``path``),
+    and what the weights came from.
+
+    Without ``random_init`` every parameter must come from ``state_dict`` (the network is
+    built empty, then filled: fast even for VGG16's 134M-parameter whitening). With it, the
+    network is built with the seeded default initialisation and ``state_dict`` (if any)
+    overrides what it holds; the parameters it lacks are listed in the `WeightsInfo`. Names
+    in ``state_dict`` the network has no place for are always an error naming ``path``.
+    """
+    source = str(path) if path is not None else "no weight file"
+    if not random_init:
+        if state_dict is None:
+            raise ValueError(f"{source}: no weights to load; set model.random_init=true for random weights")
+        with torch.device("meta"):
+            network = factory()
+        network.to_empty(device="cpu")
+        for name, buffer in network.named_buffers():
+            if name.endswith("num_batches_tracked"):
+                buffer.zero_()
+        missing = _load(network, state_dict, source)
+        if missing:
+            raise ValueError(
+                f"{source}: holds no values for {len(missing)} parameters, e.g. {missing[:6]}; "
+                "set model.random_init=true to initialise them randomly"
+            )
+        random_parameters: tuple[str, ...] = ()
+    else:
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            network = factory()
+        if state_dict is None:
+            random_parameters = tuple(name for name, _ in network.named_parameters())
+        else:
+            random_parameters = tuple(_load(network, state_dict, source))
+    sha256 = content_sha256(path) if path is not None else None
+    return network, WeightsInfo(sha256, random_parameters, int(seed))
+
+
+def _load(network: RetrievalNet, state_dict: Mapping[str, torch.Tensor], source: str) -> list[str]:
+    """Load ``state_dict`` (no unexpected names allowed); return the parameters it lacks."""
+    try:
+        result = network.load_state_dict(dict(state_dict), strict=False)
+    except RuntimeError as error:
+        raise ValueError(f"{source}: does not fit the network: {error}") from error
+    if result.unexpected_keys:
+        raise ValueError(f"{source}: holds {len(result.unexpected_keys)} values the network has no place for, "
+                         f"e.g. {result.unexpected_keys[:6]}")
+    return [name for name in result.missing_keys if not name.endswith("num_batches_tracked")]
+
+
+def state_sha256(network: nn.Module) -> str:
+    """SHA-256 of a network's state dict (names, dtypes, shapes and values, in order): changes
+    whenever a parameter or buffer does, in memory or on disk."""
+    digest = hashlib.sha256()
+    for name, tensor in network.state_dict().items():
+        values = tensor.detach().to("cpu").contiguous()
+        digest.update(f"{name}|{values.dtype}|{tuple(values.shape)}\n".encode())
+        digest.update(values.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()

@@ -1,0 +1,35 @@
+"""Shared test helpers: the project's configs composed by Hydra, and zoo models built from them."""
+
+from collections.abc import Mapping
+from pathlib import Path
+
+from hydra import compose, initialize_config_dir
+from hydra.utils import get_class
+from omegaconf import DictConfig, OmegaConf
+
+from locretrieval.config import validated
+from locretrieval.localization.sfm import SfmSettings
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+#: Extraction overrides for tests: CPU, in this process, no progress bars.
+QUIET_EXTRACTION = ("device=cpu", "model.extraction.num_workers=0", "model.extraction.progress=false")
+
+
+def evaluate_config(*overrides: str) -> DictConfig:
+    """``configs/evaluate.yaml`` composed by Hydra with ``overrides``."""
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return compose(config_name="evaluate", overrides=list(overrides))
+
+
+def zoo_model(model: str, **options):
+    """The model of ``configs/model/<model>.yaml`` (on CPU, quiet), its keys overridden by ``options``."""
+    config = evaluate_config(f"model={model}", "paths.root_dir=/nonexistent", *QUIET_EXTRACTION)
+    parameters = OmegaConf.to_container(config.model, resolve=True)
+    model_class = get_class(parameters.pop("_target_"))
+    return model_class(**{**parameters, **options})
+
+
+def sfm_settings(*overrides: Mapping) -> SfmSettings:
+    """``configs/sfm/default.yaml`` run in this process (``workers: 1``), ``overrides`` merged in order."""
+    defaults = OmegaConf.load(CONFIGS / "sfm" / "default.yaml")
+    return validated(SfmSettings, OmegaConf.merge(defaults, {"workers": 1}, *overrides), "sfm")

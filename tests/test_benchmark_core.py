@@ -1,0 +1,181 @@
+"""The benchmark as a library: a network in memory, caches keyed by its weights, extraction that
+leaves the network as it was, layers that import one way, and config sections checked by key."""
+
+import ast
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from torch import nn
+
+from helpers import evaluate_config
+from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
+from locretrieval.config import ConfigError
+from locretrieval.groundtruth import compute_groundtruths
+from locretrieval.models import NetworkDescriptor
+from locretrieval.models.extraction import ExtractionSettings, Preprocessing, extract_descriptors
+from locretrieval.models.networks import GeMPooling, RetrievalNet, l2_normalize
+from locretrieval.retrieval.descriptors import describe_scene
+from locretrieval.scene.kapture_io import load_kapture_scene
+from locretrieval.scene.synthetic import render_synthetic_dataset
+
+PACKAGE = Path(__file__).resolve().parents[1] / "locretrieval"
+SCENE = {"width": 96, "height": 72, "num_database": 24, "num_queries": 6, "texture_size": 64, "length": 20.0,
+         "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
+         "hard_query_fraction": 0.0, "workers": 1, "seed": 4}  # fmt: skip
+PREPROCESSING = Preprocessing(max_side=None, scales=(1.0,))
+EXTRACTION = ExtractionSettings(device="cpu", batch_size=8, num_workers=0, mixed_precision=False, progress=False, memmap_dir=None)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("core_scene")
+    render_synthetic_dataset(SCENE, root)
+    return load_kapture_scene("tiny", [root / "mapping"], [root / "query"], frustum_far=25.0)
+
+
+def tiny_network(seed: int) -> RetrievalNet:
+    """A conv + batch-norm trunk with GeM pooling, seeded."""
+    torch.manual_seed(seed)
+    trunk = nn.Sequential(nn.Conv2d(3, 16, 5, stride=2), nn.BatchNorm2d(16), nn.ReLU(), nn.Conv2d(16, 32, 3))
+    return RetrievalNet(trunk, GeMPooling(p=3.0), 32)
+
+
+def by_hand(network: RetrievalNet, paths) -> np.ndarray:
+    """Unit descriptors, one image at a time: ``(rgb / 255 - mean) / std``, eval-mode forward, L2."""
+    mean, std = torch.tensor(PREPROCESSING.mean).view(1, 3, 1, 1), torch.tensor(PREPROCESSING.std).view(1, 3, 1, 1)
+    was_training = network.training
+    network.eval()
+    with torch.no_grad():
+        rows = []
+        for path in paths:
+            rgb = torch.from_numpy(np.array(Image.open(path).convert("RGB"))).permute(2, 0, 1)[None].float()
+            rows.append(l2_normalize(network((rgb / 255 - mean) / std))[0].numpy())
+    network.train(was_training)
+    return np.stack(rows)
+
+
+def test_the_core_benchmarks_a_network_in_memory_twice_without_disk_caches(scene, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("LOCRETRIEVAL_CACHE", str(tmp_path / "cache"))
+    cfg = evaluate_config("paradigms.local_sfm.enabled=false", "paradigms.global_sfm.enabled=false",
+                          "paradigms.approximation.k=[1,3]", "paths.root_dir=/nonexistent")
+    settings = BenchmarkSettings.from_config(cfg)
+    groundtruths = compute_groundtruths(scene, {"depth": 50, "definitions": {"relative_pose": cfg.groundtruth.definitions.relative_pose}})
+    network = tiny_network(0)
+    everyone = {"all": np.ones(len(scene.queries), dtype=bool)}
+    top = []
+    for seed in (0, 1):
+        network.load_state_dict(tiny_network(seed).state_dict())  # the same module, new weights
+        described = describe_scene(NetworkDescriptor("tiny", network, PREPROCESSING, EXTRACTION), scene, cache_dir=None)
+        rankings = build_rankings(scene, {"tiny": described}, groundtruths, settings.retrieval, random_seed=None)
+        result = benchmark(scene, rankings, settings, everyone, None, relevances(groundtruths))
+
+        similarity = by_hand(network, scene.queries.paths) @ by_hand(network, scene.database.paths).T
+        ranking = rankings[0]
+        best_first = -np.sort(-similarity, axis=1)
+        np.testing.assert_allclose(np.take_along_axis(similarity, ranking.indices, 1), best_first, atol=1e-5)
+        ewb = next(e for e in result.estimates if e.ranking == "tiny" and e.method == "ewb")
+        np.testing.assert_allclose(ewb.tvec[0], scene.database.tvec[ranking.indices[:, 0]], atol=1e-9)  # k=1: the top image's pose
+        assert set(result.localization["ranking"]) == {"tiny", "gt_relative_pose"}
+        assert set(result.retrieval["ranking"]) == {"tiny", "gt_relative_pose"}
+        top.append(ranking.indices)
+    assert (top[0] != top[1]).any()
+    assert list(tmp_path.iterdir()) == []  # no file written, no cache touched
+
+
+def test_one_parameter_changed_in_memory_gives_new_descriptors_not_the_cached_ones(scene, tmp_path):
+    network = tiny_network(0)
+    model = NetworkDescriptor("tiny", network, PREPROCESSING, EXTRACTION)
+    forward_calls = []
+    network.register_forward_hook(lambda *args: forward_calls.append(1))
+    first = describe_scene(model, scene, tmp_path)
+    forward_calls.clear()
+    np.testing.assert_array_equal(describe_scene(model, scene, tmp_path).database, first.database)
+    assert forward_calls == []  # served from the cache
+    with torch.no_grad():
+        network.pooling.p.add_(1.0)
+    changed = describe_scene(model, scene, tmp_path)
+    assert forward_calls and not np.allclose(changed.database, first.database, atol=1e-3)
+    np.testing.assert_allclose(changed.database, by_hand(network, scene.database.paths), atol=1e-5)
+    assert len(list((tmp_path / "descriptors").iterdir())) == 2
+
+
+def test_extraction_runs_on_the_networks_device_and_restores_train_mode(scene):
+    network = tiny_network(0).train()
+    batch_norm = network.backbone[1]
+    before = {name: tensor.clone() for name, tensor in network.state_dict().items()}
+    settings = ExtractionSettings(device="cuda", batch_size=4, num_workers=0, mixed_precision=True, progress=False, memmap_dir=None)
+    paths, sizes = scene.queries.paths, [(c.width, c.height) for c in scene.queries.cameras]
+    descriptors, _ = extract_descriptors(network, paths, PREPROCESSING, settings, sizes)  # device is the network's (CPU)
+    assert network.training and batch_norm.training
+    assert all(torch.equal(before[name], tensor) for name, tensor in network.state_dict().items())  # statistics untouched
+    assert next(network.parameters()).device.type == "cpu" and network.backbone[0].weight.is_contiguous()
+    np.testing.assert_allclose(descriptors, by_hand(network, paths), atol=1e-5)  # eval-mode batch norm
+    images = torch.randint(0, 256, (2, 3, 5, 7), dtype=torch.uint8)
+    expected = (images.float() / 255 - torch.tensor(PREPROCESSING.mean).view(1, 3, 1, 1)) / torch.tensor(PREPROCESSING.std).view(1, 3, 1, 1)
+    torch.testing.assert_close(PREPROCESSING.normalize(images), expected)
+
+
+#: The data flow, lowest first: a module may import its own layer and those before it.
+LAYERS = [
+    {"scene", "geometry", "config", "cache", "device", "frusta", "chebyshev"},
+    {"models"},
+    {"retrieval"},
+    {"localization"},
+    {"groundtruth"},
+    {"metrics"},
+    {"benchmark"},
+    {"report"},
+    {"evaluation"},
+    {"training"},
+]
+
+
+def layer_of(part: str) -> int:
+    return next(rank for rank, parts in enumerate(LAYERS) if part in parts)
+
+
+def imported_parts(tree: ast.AST) -> set[str]:
+    """The ``locretrieval.<part>`` packages/modules a module imports, anywhere in it."""
+    parts = set()
+    for node in ast.walk(tree):
+        names = [alias.name for alias in node.names] if isinstance(node, ast.Import) else []
+        if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names = [node.module] + ([f"{node.module}.{a.name}" for a in node.names] if node.module == "locretrieval" else [])
+        parts.update(name.split(".")[1] for name in names if name.startswith("locretrieval.") )
+    return parts
+
+
+def test_no_module_imports_from_a_layer_above_it():
+    violations = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        relative = path.relative_to(PACKAGE)
+        if relative.name == "__init__.py" and len(relative.parts) == 1:
+            continue
+        part = relative.parts[0].removesuffix(".py")
+        for imported in imported_parts(ast.parse(path.read_text())):
+            if layer_of(imported) > layer_of(part):
+                violations.append(f"{relative} imports locretrieval.{imported}")
+    assert violations == []
+    assert imported_parts(ast.parse("from locretrieval.metrics import x\ndef f():\n    import locretrieval.report.plots")) == {"metrics", "report"}
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("paradigms.approximation.k=[1.5]", r"paradigms.approximation.k\[0\]: Value '1.5' of type 'float' could not be converted to Integer; expected int"),
+        ("paradigms.approximation.k=[]", r"paradigms.approximation.k: must list at least one value"),
+        ("paradigms.approximation.k=5", r"paradigms.approximation.k: .* not a ListConfig, list or tuple.; expected list\[int\]"),
+        ("paradigms.approximation.k=[abc]", r"paradigms.approximation.k\[0\]: Value 'abc' .* could not be converted to Integer"),
+        ("metrics.thresholds=[[0.25]]", r"metrics.thresholds: must be a non-empty list of \[metres, degrees\] pairs"),
+        ("+paradigms.local_sfm.kk=3", r"paradigms.local_sfm.kk: unknown key; expected one of \['enabled', 'k', 'map_matches'\]"),
+        ("sfm.pnp.max_error=-1", r"sfm.pnp.max_error: must be"),
+        ("retrieval.depth=0", r"retrieval.depth: must be >= 1"),
+    ],
+)
+def test_config_values_of_the_wrong_type_or_range_name_the_full_key(override, message):
+    with pytest.raises(ConfigError, match=message):
+        BenchmarkSettings.from_config(evaluate_config(override, "paths.root_dir=/nonexistent"))
