@@ -112,3 +112,50 @@ def test_local_feature_file_of_the_wrong_size_names_file_and_row_size(tmp_path):
     config = helpers.sfm_settings({"features": {"type": "kapture", "kapture": {"name": "r2d2"}}}).features
     with pytest.raises(ValueError, match=r"b\.jpg\.desc: 156 bytes is not a whole number of descriptors rows of 8 x float32"):
         extract_features(image_set(root / "sensors" / "records_data"), config, tmp_path / "cache", workers=1)
+
+
+# ------------------------------------ 2. an image of another size than its camera is an error
+
+
+def phone_folder(tmp_path: Path, names: dict[tuple[int, str], str]) -> Path:
+    from test_kapture_io import PINHOLE, pose, write_kapture
+
+    start, _ = pose("z", 1.0, [0.0, 0.0, 0.0])
+    return write_kapture(tmp_path / "query", {"phone": PINHOLE}, names, {key: start for key in names})
+
+
+def test_an_image_resized_behind_its_camera_names_both_sizes(tmp_path):
+    from PIL import Image
+
+    from locretrieval.scene.kapture_io import load_image_set
+
+    root = phone_folder(tmp_path, {(1, "phone"): "a.png", (2, "phone"): "b.png"})
+    image = root / "sensors" / "records_data" / "b.png"
+    width, height = Image.open(image).size
+    Image.new("RGB", (2 * width, 2 * height)).save(image)
+    with pytest.raises(ValueError, match=rf"b\.png: image is {2 * width}x{2 * height} pixels but its camera 'phone' .* is {width}x{height}"):
+        load_image_set(root)
+
+
+# ----------------------------- 3. timestamps are compared as the integers kapture reads
+
+
+def test_a_timestamp_written_twice_in_two_spellings_names_both_lines(tmp_path):
+    from locretrieval.scene.kapture_io import load_image_set
+
+    root = phone_folder(tmp_path, {(2, "phone"): "a.png"})
+    with (root / "sensors" / "trajectories.txt").open("a") as stream:
+        stream.write("02, phone, 1, 0, 0, 0, 5, 5, 5\n")
+    with pytest.raises(KaptureFormatError, match=r"trajectories\.txt:\d+: duplicate \(timestamp, device\) \(2, 'phone'\): also on line \d+"):
+        load_image_set(root)
+
+
+# --------------------------------------- 8. failures that used to come after all the work
+
+
+def test_image_names_with_whitespace_are_refused_when_the_scene_loads(tmp_path):
+    from locretrieval.scene.kapture_io import load_image_set
+
+    root = phone_folder(tmp_path, {(1, "phone"): "my photo.png"})
+    with pytest.raises(ValueError, match=r"records_camera\.txt: image names with whitespace .*'my photo\.png'"):
+        load_image_set(root)

@@ -24,6 +24,7 @@ import kapture
 import kapture.io.csv as kapture_csv
 import numpy as np
 import quaternion
+from PIL import Image, UnidentifiedImageError
 
 from locretrieval import geometry
 from locretrieval.cache import atomic_path
@@ -99,6 +100,18 @@ def _check_unique(rows: list[CsvRow], key_fields: int, what: str) -> None:
         seen[key] = row.line
 
 
+def _check_unique_timestamps(rows: list[CsvRow], what: str) -> None:
+    """Raise if two rows share ``(timestamp, id)``, timestamps compared as the integers kapture
+    parses (``02`` and ``2`` are the same), naming both lines."""
+    seen: dict[tuple[int, str], CsvRow] = {}
+    for row in rows:
+        key = (row.timestamp(), row.fields[1])
+        if key in seen:
+            first = seen[key]
+            raise row.error(f"duplicate {what} {key}: also on line {first.line} ({first.text.strip()!r}); kapture would keep only one")
+        seen[key] = row
+
+
 def _check_poses(rows: list[CsvRow], start: int) -> None:
     """Fields ``qw, qx, qy, qz, tx, ty, tz`` from ``start``: numbers and unit quaternions.
 
@@ -166,7 +179,7 @@ def _check_rigs(path: Path, sensors: dict[str, CsvRow]) -> None:
 
 def _check_trajectories(path: Path, devices: set[str]) -> None:
     rows = read_csv_rows(path, 9, 9)
-    _check_unique(rows, 2, "(timestamp, device)")
+    _check_unique_timestamps(rows, "(timestamp, device)")
     for row in rows:
         row.timestamp()
         if row.fields[1] not in devices:
@@ -176,7 +189,7 @@ def _check_trajectories(path: Path, devices: set[str]) -> None:
 
 def _check_records(path: Path, sensors: dict[str, CsvRow], sensor_types: tuple[str, ...]) -> list[CsvRow]:
     rows = read_csv_rows(path, 3, 3)
-    _check_unique(rows, 2, "(timestamp, sensor)")
+    _check_unique_timestamps(rows, "(timestamp, sensor)")
     for row in rows:
         row.timestamp()
         sensor = sensors.get(row.fields[1])
@@ -287,6 +300,30 @@ def _check_files_exist(folder: Path, names: Sequence[str], what: str) -> None:
         )
 
 
+def _check_image_sizes(folder: Path, names: Sequence[str], cameras: Sequence[Camera], camera_ids: Sequence[str]) -> None:
+    """Raise unless every image file (its header only) has its camera's width and height:
+    keypoints of a resized image would be read in the wrong pixel frame."""
+    for name, camera, camera_id in zip(names, cameras, camera_ids):
+        path = folder / name
+        try:
+            with Image.open(path) as image:
+                size = image.size
+        except (UnidentifiedImageError, OSError) as error:
+            raise ValueError(f"{path}: not a readable image ({error})") from None
+        if size != (camera.width, camera.height):
+            raise ValueError(
+                f"{path}: image is {size[0]}x{size[1]} pixels but its camera {camera_id!r} in {SENSORS_FILE} is "
+                f"{camera.width}x{camera.height}; resize the image or scale that camera's intrinsics to the image"
+            )
+
+
+def _check_names(path: Path, names: Sequence[str]) -> None:
+    """Image names are written space-separated in LTVL submissions: refuse whitespace at load time."""
+    spaced = [name for name in names if any(character.isspace() for character in name)]
+    if spaced:
+        raise ValueError(f"{path}: image names with whitespace cannot be exported for LTVL: {spaced[:3]}")
+
+
 def load_image_set(kapture_root: str | Path, tag: str | None = None) -> ImageSet:
     """The images of one kapture folder, in (timestamp, sensor id) order.
 
@@ -329,9 +366,11 @@ def load_image_set(kapture_root: str | Path, tag: str | None = None) -> ImageSet
     duplicates = sorted(name for name, count in Counter(names).items() if count > 1)
     if duplicates:
         raise ValueError(f"{root / RECORDS_CAMERA_FILE}: image file(s) listed more than once: {duplicates[:3]}")
+    _check_names(root / RECORDS_CAMERA_FILE, names)
     image_root = root / RECORDS_DATA_DIR
     _check_files_exist(image_root, names, "image")
     cameras = {camera: _to_camera(kapture_sensors[camera]) for camera in {c for _, c in keys}}
+    _check_image_sizes(image_root, names, [cameras[c] for _, c in keys], [c for _, c in keys])
     qvec, tvec = _image_poses(keys, trajectories, rigs)
 
     depth_names = [records_depth.get(ts, {}).get(camera + DEPTH_SENSOR_SUFFIX) for ts, camera in keys]
