@@ -24,8 +24,12 @@ def config_key(*parts: Any) -> str:
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; move it into place only on success."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
+    except OSError as error:
+        raise OSError(error.errno, f"cannot write {path} ({error.strerror}); is the cache folder writable? "
+                      "(paths.cache_dir or $LOCRETRIEVAL_CACHE)") from None
     os.close(handle)
     try:
         yield Path(temporary)

@@ -159,3 +159,23 @@ def test_image_names_with_whitespace_are_refused_when_the_scene_loads(tmp_path):
     root = phone_folder(tmp_path, {(1, "phone"): "my photo.png"})
     with pytest.raises(ValueError, match=r"records_camera\.txt: image names with whitespace .*'my photo\.png'"):
         load_image_set(root)
+
+
+# ---------------------------------------------------------------- 7. every error names the file
+
+
+@pytest.mark.parametrize("content", [np.random.default_rng(0).bytes(300), __import__("pickle").dumps({"net": [1, 2]})])
+def test_a_netvlad_file_that_is_not_a_mat_struct_names_the_file(tmp_path, content):
+    path = tmp_path / "Pitts30K_struct.mat"
+    path.write_bytes(content)
+    with pytest.raises(ValueError, match=r"Pitts30K_struct\.mat: not a MATLAB \.mat file holding NetVLAD's struct 'net'"):
+        helpers.zoo_model("netvlad", weights=path)
+
+
+def test_an_unwritable_cache_names_the_file_it_could_not_write(tmp_path):
+    from locretrieval.cache import save_arrays
+
+    blocked = tmp_path / "cache"
+    blocked.write_text("a file where the cache folder should be")
+    with pytest.raises(OSError, match=r"cannot write .*cache/descriptors/x\.npz .*is the cache folder writable"):
+        save_arrays(blocked / "descriptors" / "x.npz", {"a": np.zeros(2)})

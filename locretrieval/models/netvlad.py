@@ -76,6 +76,8 @@ def read_netvlad_struct(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor
         mat = scipy.io.loadmat(path, struct_as_record=False, squeeze_me=True)
     except NotImplementedError as error:  # MATLAB v7.3 (HDF5) files
         raise ValueError(f"{path}: a MATLAB v7.3 file; re-save it with save(..., '-v7'): {error}") from error
+    except (ValueError, TypeError, IndexError, OSError) as error:  # not a MATLAB file at all
+        raise ValueError(f"{path}: not a MATLAB .mat file holding NetVLAD's struct 'net' ({type(error).__name__}: {error})") from None
     net = mat.get("net")
     if net is None or not hasattr(net, "layers"):
         raise ValueError(
