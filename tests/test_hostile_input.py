@@ -179,3 +179,44 @@ def test_an_unwritable_cache_names_the_file_it_could_not_write(tmp_path):
     blocked.write_text("a file where the cache folder should be")
     with pytest.raises(OSError, match=r"cannot write .*cache/descriptors/x\.npz .*is the cache folder writable"):
         save_arrays(blocked / "descriptors" / "x.npz", {"a": np.zeros(2)})
+
+
+# ------------------------------------------------- 4. workers never outlive the run that started them
+
+
+def test_workers_exit_when_their_parent_dies_while_they_start(tmp_path):
+    import os
+    import subprocess
+    import sys
+    import time
+
+    script = (
+        "import os\n"
+        "from locretrieval.localization.workers import _pool\n"
+        "pool = _pool(2)\n"
+        "pool.submit(os.getpid)\n"
+        "pool.submit(os.getpid)\n"
+        "print(' '.join(str(pid) for pid in pool._processes), flush=True)\n"
+        "os._exit(0)\n"  # the parent dies while its workers import torch and pycolmap
+    )
+    pids = tmp_path / "workers.txt"
+    with pids.open("w") as stream:  # a file, not a pipe: the workers inherit it
+        subprocess.run([sys.executable, "-c", script], stdout=stream, timeout=120, check=True)
+    workers = [int(pid) for pid in pids.read_text().split()]
+    assert len(workers) == 2
+
+    def alive(pid: int) -> bool:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
+        except FileNotFoundError:
+            return False
+        return state not in ("Z", "X")
+
+    try:
+        deadline = time.monotonic() + 60
+        while any(alive(pid) for pid in workers) and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert not any(alive(pid) for pid in workers)
+    finally:  # never leave a stray process behind
+        for pid in filter(alive, workers):
+            os.kill(pid, 9)

@@ -43,8 +43,11 @@ def resolve_workers(workers: int | None) -> int:
     return int(workers)
 
 
-def _initialize_worker() -> None:
-    """One thread per worker (the processes already use every core); exit with the parent."""
+def _initialize_worker(parent: int) -> None:
+    """Exit with the ``parent`` process (watched before the slow imports, so a parent that dies
+    while its workers start is noticed); one thread per worker (the processes already use
+    every core)."""
+    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
     import torch
 
     import locretrieval  # noqa: F401  (imports zlib before pycolmap)
@@ -53,11 +56,11 @@ def _initialize_worker() -> None:
     import pycolmap
 
     pycolmap.logging.minloglevel = 2
-    threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
 
 
 def _exit_with_parent(parent: int) -> None:
-    """A killed run's workers would wait for tasks forever (they hold their queue's both ends)."""
+    """A killed run's workers would wait for tasks forever (they hold their queue's both ends)
+    and go on writing to the cache: stop them, queued work included, once ``parent`` is gone."""
     while os.getppid() == parent:
         time.sleep(PARENT_CHECK_SECONDS)
     os._exit(1)
@@ -76,7 +79,9 @@ def _call(function: Callable[..., Any], shared_file: str | None, task: Any) -> A
 def _pool(workers: int) -> ProcessPoolExecutor:
     if workers not in _pools:
         context = multiprocessing.get_context("spawn")
-        _pools[workers] = ProcessPoolExecutor(workers, mp_context=context, initializer=_initialize_worker)
+        _pools[workers] = ProcessPoolExecutor(
+            workers, mp_context=context, initializer=_initialize_worker, initargs=(os.getpid(),)
+        )
     return _pools[workers]
 
 
