@@ -156,3 +156,22 @@ def test_maskrcnn_weights_are_loaded_from_a_local_torchvision_state_dict(tmp_pat
     garbage.write_bytes(b"not a state dict")
     with pytest.raises(ValueError, match="garbage.pth"):
         load_maskrcnn(garbage)
+
+
+def test_a_moved_dataset_and_cache_reuse_the_cached_mask_fractions(tmp_path, monkeypatch):
+    import shutil
+
+    from locretrieval.metrics import subsets as subsets_module
+
+    first = tmp_path / "first"
+    first.mkdir()
+    queries = image_set(first, [textured(), textured()], [np.zeros((10, 10), np.uint8), np.full((10, 10), 255, np.uint8)])
+    _, table = image_subsets("toy", queries, CONFIG, cache_dir=first / "cache")
+    moved = tmp_path / "moved"
+    shutil.move(first, moved)  # images, masks and cache together, file times kept
+    again = ImageSet(queries.names, moved, queries.cameras, queries.qvec, queries.tvec,
+                     mask_paths=[moved / p.name for p in queries.mask_paths])
+    monkeypatch.setattr(subsets_module, "mask_fractions", lambda images: pytest.fail("recomputed after a move"))
+    monkeypatch.setattr(subsets_module, "blur_scores", lambda *args: pytest.fail("recomputed after a move"))
+    _, moved_table = image_subsets("toy", again, CONFIG, cache_dir=moved / "cache")
+    np.testing.assert_array_equal(moved_table["dynamic_fraction"], table["dynamic_fraction"])

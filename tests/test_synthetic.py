@@ -332,3 +332,16 @@ def test_textures_are_area_filtered_like_a_supersampled_reference(scene):
         np.testing.assert_array_equal(single.depth, reference.depth)
         assert high_frequency_energy(single.rgb) < 1.5 * high_frequency_energy(reference.rgb)
         assert np.abs(single.rgb - reference.rgb).mean() < 0.025
+
+
+def test_staging_folders_of_killed_renders_are_removed_and_live_ones_kept(tmp_path):
+    import os
+
+    from locretrieval.scene.synthetic.dataset import STAGING_PREFIX, remove_stale_staging
+
+    dead = tmp_path / f"{STAGING_PREFIX}999999999-abc"  # no such process
+    live = tmp_path / f"{STAGING_PREFIX}{os.getpid()}-def"
+    for folder in (dead, live):
+        (folder / "mapping").mkdir(parents=True)
+    assert remove_stale_staging(tmp_path) == [dead]
+    assert not dead.exists() and live.exists()

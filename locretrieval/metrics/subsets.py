@@ -25,6 +25,7 @@ scene when fraction >= 0.2**.
 from __future__ import annotations
 
 import logging
+import os
 import pickle
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -243,7 +244,9 @@ def subset_scores(
     radius, width = settings.blur_radius, settings.blur_width
     blur = _cached(cache_dir, ["blur", fingerprint, radius, width], lambda: blur_scores(images, radius, width))
     if source == "masks":
-        key = ["masks", fingerprint, [str(p) for p in images.mask_paths], [file_signature(p) for p in images.mask_paths]]
+        # mask paths relative to the images: a moved or copied dataset and cache keep the key
+        relative = [os.path.relpath(p, images.image_root) for p in images.mask_paths]
+        key = ["masks", fingerprint, relative, [file_signature(p) for p in images.mask_paths]]
         dynamic = _cached(cache_dir, key, lambda: mask_fractions(images))
     elif source == "maskrcnn":
         weights = Path(settings.maskrcnn_weights)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import multiprocessing
+import os
 import shutil
 import tempfile
 from collections.abc import Iterator, Mapping
@@ -40,6 +41,9 @@ SCENE, MAPPING, QUERIES, EXPOSURE = range(4)
 MAX_VIEWPOINT_ATTEMPTS = 500
 MAX_OBJECTS = 3
 DATABASE_CAMERA = "db_cam"
+
+#: Prefix of the temporary folder a render writes into (``.rendering-<pid>-<random>``).
+STAGING_PREFIX = ".rendering-"
 
 
 @dataclass
@@ -223,7 +227,8 @@ def _render(config: dict[str, Any], output_dir: Path) -> None:
     database = plan_database(config, environment, renderer, database_camera)
     queries = plan_queries(config, environment, renderer, query_cameras, [plan.viewpoint for plan in database])
     plans = database + queries
-    with tempfile.TemporaryDirectory(dir=output_dir, prefix=".rendering-") as staging:
+    remove_stale_staging(output_dir)
+    with tempfile.TemporaryDirectory(dir=output_dir, prefix=f"{STAGING_PREFIX}{os.getpid()}-") as staging:
         staging = Path(staging)
         workers = int(config["workers"])
         progress = {"desc": f"rendering synthetic {environment.name}", "unit": "image", "total": len(plans)}
@@ -246,6 +251,28 @@ def _render(config: dict[str, Any], output_dir: Path) -> None:
             elif target.exists():
                 target.unlink()
             (staging / entry).replace(target)
+
+
+def remove_stale_staging(output_dir: Path) -> list[Path]:
+    """Delete the staging folders (``.rendering-<pid>-*``) of renders whose process is gone
+    (killed runs); a live render's folder is left alone. Returns the folders removed."""
+    removed = []
+    for folder in output_dir.glob(f"{STAGING_PREFIX}*"):
+        pid = folder.name.removeprefix(STAGING_PREFIX).split("-", 1)[0]
+        if not pid.isdigit() or not _process_alive(int(pid)):
+            shutil.rmtree(folder, ignore_errors=True)
+            removed.append(folder)
+    return removed
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def _written(plans: list[ImagePlan]) -> list[WrittenImage]:
