@@ -220,3 +220,18 @@ def test_workers_exit_when_their_parent_dies_while_they_start(tmp_path):
     finally:  # never leave a stray process behind
         for pid in filter(alive, workers):
             os.kill(pid, 9)
+
+
+# --------------------------------------------------- 6. values of the wrong range name where they are
+
+
+def test_a_negative_focal_length_names_the_sensor_line(tmp_path):
+    import kapture
+
+    from locretrieval.scene.kapture_io import load_image_set
+    from test_kapture_io import write_kapture
+
+    camera = kapture.Camera(kapture.CameraType.PINHOLE, [64, 48, -50.0, 50.0, 32.0, 24.0])
+    root = write_kapture(tmp_path / "query", {"phone": camera}, {(1, "phone"): "a.png"})
+    with pytest.raises(KaptureFormatError, match=r"sensors\.txt:\d+: camera 'phone': focal length\(s\) \[-50\.0, 50\.0\] must be positive"):
+        load_image_set(root)

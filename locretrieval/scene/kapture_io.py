@@ -212,6 +212,10 @@ def _check_camera_supported(sensor: CsvRow) -> None:
     width, height = sensor.floats(4, 6, "image size")
     if not (width.is_integer() and height.is_integer() and width > 0 and height > 0):
         raise sensor.error(f"camera {sensor.fields[0]!r}: image size {width} x {height} is not a positive integer size")
+    params = sensor.floats(6, len(sensor.fields), "camera parameters")
+    focal = [params[i] for i in CAMERA_MODELS[model][:2]]
+    if not all(np.isfinite(f) and f > 0 for f in focal):
+        raise sensor.error(f"camera {sensor.fields[0]!r}: focal length(s) {focal} must be positive pixels")
 
 
 def _to_camera(sensor: kapture.Camera) -> Camera:
