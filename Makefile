@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: evaluate test benchmark venv clean
+.PHONY: evaluate train test benchmark venv clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -17,6 +17,10 @@ venv: $(STAMP)
 ## Benchmark the default descriptor and the ground-truth rankings on the built-in synthetic scene.
 evaluate: $(STAMP)
 	$(BIN)/python evaluate.py $(ARGS)
+
+## Train a descriptor for localization on the built-in synthetic scene (configs/train.yaml).
+train: $(STAMP)
+	$(BIN)/python train.py $(ARGS)
 
 ## Run the test suite.
 test: $(STAMP)

@@ -15,10 +15,15 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 QUIET_EXTRACTION = ("device=cpu", "model.extraction.num_workers=0", "model.extraction.progress=false")
 
 
+def compose_config(name: str, *overrides: str) -> DictConfig:
+    """``configs/<name>.yaml`` composed by Hydra with ``overrides``."""
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return compose(config_name=name, overrides=list(overrides))
+
+
 def evaluate_config(*overrides: str) -> DictConfig:
     """``configs/evaluate.yaml`` composed by Hydra with ``overrides``."""
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        return compose(config_name="evaluate", overrides=list(overrides))
+    return compose_config("evaluate", *overrides)
 
 
 def zoo_model(model: str, **options):

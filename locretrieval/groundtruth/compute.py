@@ -52,15 +52,16 @@ class GroundTruthSettings:
     """The ``groundtruth`` config group: ``depth`` images kept per query in each ranking, and
     ``definitions`` mapping a name to its parameters. The optional ``type`` parameter picks the
     definition type in `DEFINITIONS` (default: the name itself), so one type can appear
-    twice, e.g. ``frustum_25m: {type: frustum, far: 25.0, ...}``. ``definitions: {}`` or
-    ``null`` computes none."""
+    twice, e.g. ``frustum_25m: {type: frustum, far: 25.0, ...}``. A definition set to ``null``
+    is switched off; ``definitions: {}`` or ``null`` computes none."""
 
     depth: int
     definitions: dict[str, Any] | None
 
     def __post_init__(self) -> None:
         require(self.depth >= 1, "depth", f"must be >= 1, got {self.depth}")
-        self.definitions = dict(self.definitions or {})
+        # a definition set to null is switched off (e.g. groundtruth.definitions.co_observation=null)
+        self.definitions = {name: parameters for name, parameters in (self.definitions or {}).items() if parameters is not None}
         for name, parameters in self.definitions.items():
             kind = (parameters or {}).get("type", name)
             require(kind in DEFINITIONS, f"definitions.{name}.type", f"unknown definition type {kind!r}; known: {sorted(DEFINITIONS)}")

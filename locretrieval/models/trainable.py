@@ -22,6 +22,7 @@ from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 from locretrieval.models.weights import (
     MissingWeightsError,
     check_checkpoint,
+    embedded_checkpoint,
     is_checkpoint,
     load_torch_file,
     require_weights,
@@ -34,7 +35,7 @@ _CLASSIFIER_PREFIXES = ("fc.", "classifier.")
 
 def read_trainable_weights(path: Path, model: str, architecture: Mapping[str, Any]) -> dict[str, torch.Tensor]:
     """State dict from our checkpoint of ``model``, or a torchvision backbone state dict (prefixed)."""
-    content = load_torch_file(path)
+    content = embedded_checkpoint(load_torch_file(path))
     if is_checkpoint(content):
         check_checkpoint(content, path, model, architecture)
         return content["state_dict"]

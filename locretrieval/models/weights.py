@@ -25,6 +25,8 @@ from locretrieval.cache import atomic_path, tree_signature
 HASH_CACHE_ENV = "LOCRETRIEVAL_HASH_CACHE"
 #: ``format`` field of the checkpoints this package writes.
 CHECKPOINT_FORMAT = "locretrieval-checkpoint-v1"
+#: Where a Lightning checkpoint of ``train.py`` holds our checkpoint.
+EMBEDDED_CHECKPOINT_KEY = "locretrieval"
 
 
 @dataclass(frozen=True)
@@ -181,6 +183,14 @@ def plain(value: Any) -> Any:
 
 def is_checkpoint(content: Any) -> bool:
     return isinstance(content, dict) and content.get("format") == CHECKPOINT_FORMAT
+
+
+def embedded_checkpoint(content: Any) -> Any:
+    """Our checkpoint inside a Lightning checkpoint written by ``train.py`` (under
+    `EMBEDDED_CHECKPOINT_KEY`), or ``content`` itself."""
+    if isinstance(content, dict) and is_checkpoint(content.get(EMBEDDED_CHECKPOINT_KEY)):
+        return content[EMBEDDED_CHECKPOINT_KEY]
+    return content
 
 
 def check_checkpoint(content: Mapping[str, Any], path: Path, model: str, architecture: Mapping[str, Any]) -> None:

@@ -1,0 +1,1 @@
+"""Training descriptors for localization: ground-truth relevance, ranking losses, Lightning."""

@@ -1,0 +1,150 @@
+"""Validation by localization: the benchmark core run on the network being trained."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import pandas as pd
+from lightning.pytorch.utilities import rank_zero_only
+
+from locretrieval.benchmark import BenchmarkResult, BenchmarkSettings, benchmark, build_rankings, relevances
+from locretrieval.groundtruth import GroundTruth
+from locretrieval.models import NetworkDescriptor
+from locretrieval.models.extraction import ExtractionSettings, Preprocessing
+from locretrieval.retrieval import Ranking
+from locretrieval.retrieval.descriptors import describe_scene
+from locretrieval.retrieval.index import search
+from locretrieval.scene import Scene
+
+log = logging.getLogger(__name__)
+
+#: The ranking name of the network being trained in validation tables.
+TRAINED = "trained"
+
+
+def metric_rows(result: BenchmarkResult, ranking: str) -> dict[str, float]:
+    """``{key: value}`` of one ranking on all queries: ``val/<paradigm>/<method>/k<k>/<X>m_<Y>deg``
+    (% localized) and ``val/retrieval/<groundtruth>/<metric>@<k>``."""
+    metrics = {}
+    table = result.localization
+    rows = table[(table["subset"] == "all") & (table["ranking"] == ranking)]
+    for row in rows.itertuples():
+        threshold = f"{row.position_threshold_m:g}m_{row.rotation_threshold_deg:g}deg"
+        metrics[f"val/{row.paradigm}/{row.method}/k{row.k}/{threshold}"] = float(row.localized_pct)
+    if len(result.retrieval):
+        table = result.retrieval
+        rows = table[(table["subset"] == "all") & (table["ranking"] == ranking)]
+        for row in rows.itertuples():
+            metrics[f"val/retrieval/{row.groundtruth}/{row.metric}@{row.k}"] = float(row.value)
+    return metrics
+
+
+class LocalizationValidation(L.Callback):
+    """Every ``every_n_epochs`` (and once before training): describe the validation ``scene``
+    with the current network, rank with faiss, run paradigm 1 and the retrieval metrics on all
+    its queries; every ``sfm_every_n_epochs`` also the SfM paradigms (features and matches are
+    cached in ``cache_dir``, so only new pairs are matched). Metrics are logged as
+    `metric_rows` keys, so ``ModelCheckpoint`` and early stopping can monitor them; the
+    ground-truth and random rankings are benchmarked once, logged as ``reference/...``.
+    Runs on rank 0; ``history`` holds every validation (epoch -1: before training)."""
+
+    def __init__(
+        self,
+        scene: Scene,
+        groundtruths: Mapping[str, GroundTruth],
+        settings: BenchmarkSettings,
+        preprocessing: Preprocessing,
+        extraction: ExtractionSettings,
+        every_n_epochs: int,
+        sfm_every_n_epochs: int | None,
+        cache_dir: str | Path | None,
+        random_seed: int | None,
+    ) -> None:
+        self.scene, self.groundtruths, self.settings = scene, dict(groundtruths), settings
+        self.preprocessing, self.extraction = preprocessing, extraction
+        self.every_n_epochs, self.sfm_every_n_epochs = every_n_epochs, sfm_every_n_epochs
+        self.cache_dir, self.random_seed = cache_dir, random_seed
+        self.subsets = {"all": np.ones(len(scene.queries), dtype=bool)}
+        self.history: list[dict[str, float]] = []
+        self.reference: dict[str, dict[str, float]] = {}
+
+    def _settings(self, with_sfm: bool) -> BenchmarkSettings:
+        if with_sfm:
+            return self.settings
+        paradigms = self.settings.paradigms
+        approximation_only = dataclasses.replace(
+            paradigms,
+            local_sfm=dataclasses.replace(paradigms.local_sfm, enabled=False),
+            global_sfm=dataclasses.replace(paradigms.global_sfm, enabled=False),
+        )
+        return dataclasses.replace(self.settings, paradigms=approximation_only)
+
+    def validate(self, network, with_sfm: bool) -> BenchmarkResult:
+        """The benchmark of ``network`` (a `RetrievalNet`) on the validation scene."""
+        model = NetworkDescriptor(TRAINED, network, self.preprocessing, self.extraction)
+        described = describe_scene(model, self.scene, cache_dir=None)
+        retrieval = self.settings.retrieval
+        ranking = search(described.queries, described.database, retrieval.depth, TRAINED, retrieval.chunk_size)
+        return benchmark(self.scene, [ranking], self._settings(with_sfm), self.subsets, self.cache_dir, relevances(self.groundtruths))
+
+    def _references(self) -> list[Ranking]:
+        return build_rankings(self.scene, {}, self.groundtruths, self.settings.retrieval, self.random_seed)
+
+    def _wants_sfm(self, epoch: int) -> bool:
+        return self.sfm_every_n_epochs is not None and (epoch < 0 or (epoch + 1) % self.sfm_every_n_epochs == 0)
+
+    @rank_zero_only
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self.history:  # resumed: the curve goes on
+            return
+        rankings = self._references()
+        if rankings:
+            result = benchmark(self.scene, rankings, self._settings(self.sfm_every_n_epochs is not None),
+                               self.subsets, self.cache_dir, relevances(self.groundtruths))
+            self.reference = {r.name: metric_rows(result, r.name) for r in rankings}
+            for name, metrics in self.reference.items():
+                log.info("reference %s: %s", name, headline(metrics))
+                if trainer.logger is not None:
+                    trainer.logger.log_metrics({k.replace("val/", f"reference/{name}/"): v for k, v in metrics.items()}, step=0)
+        self._record(trainer, pl_module, epoch=-1, log_now=False)
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        epoch = trainer.current_epoch
+        if (epoch + 1) % self.every_n_epochs:
+            return
+        metrics = self._record(trainer, pl_module, epoch) if trainer.is_global_zero else None
+        metrics = trainer.strategy.broadcast(metrics, src=0)  # every rank logs them: checkpointing monitors them
+        for key, value in metrics.items():
+            pl_module.log(key, value)
+
+    def _record(self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int, log_now: bool = True) -> dict[str, float]:
+        metrics = metric_rows(self.validate(pl_module.network, self._wants_sfm(epoch)), TRAINED)
+        self.history.append({"epoch": epoch, **metrics})
+        if not log_now and trainer.logger is not None:
+            trainer.logger.log_metrics(metrics, step=trainer.global_step)
+        log.info("validation after epoch %d: %s", epoch, headline(metrics))
+        return metrics
+
+    def history_table(self) -> pd.DataFrame:
+        """Tidy ``epoch, metric, value`` of every validation."""
+        rows = [(entry["epoch"], key, value) for entry in self.history for key, value in entry.items() if key != "epoch"]
+        return pd.DataFrame(rows, columns=["epoch", "metric", "value"])
+
+    def state_dict(self) -> dict:
+        return {"history": self.history, "reference": self.reference}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self.history = list(state_dict["history"])
+        self.reference = dict(state_dict["reference"])
+
+
+def headline(metrics: Mapping[str, float]) -> str:
+    """The few metrics a console line shows: paradigm 1 EWB at its middle k, loosest threshold, and SfM if run."""
+    keys = sorted(k for k in metrics if k.startswith("val/") and "/retrieval/" not in k)
+    chosen = [k for k in keys if k.endswith(("5m_10deg", "0.25m_2deg"))]
+    return ", ".join(f"{k.removeprefix('val/')}={metrics[k]:.1f}" for k in chosen[:8])

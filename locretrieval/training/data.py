@@ -1,0 +1,160 @@
+"""Training batches from ground-truth relevance: images, a sampler of anchors with positives and
+negatives (hard negatives mined with the current network), photometric augmentations."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+from PIL import Image
+from torch.utils.data import DataLoader, Dataset, Sampler
+from torchvision.transforms import v2
+
+from locretrieval.config import require
+from locretrieval.scene.images import read_image
+from locretrieval.training.relevance import TrainingPairs
+
+
+@dataclass
+class AugmentSettings:
+    """Photometric augmentations of training images (never geometric: poses define relevance).
+    ``brightness``/``contrast``/``saturation``/``hue``: torchvision ``ColorJitter`` ranges;
+    ``blur_probability`` of a Gaussian blur with sigma in ``blur_sigma`` (pixels)."""
+
+    brightness: float
+    contrast: float
+    saturation: float
+    hue: float
+    blur_probability: float
+    blur_sigma: list[float]
+
+    def __post_init__(self) -> None:
+        require(0 <= self.blur_probability <= 1, "blur_probability", f"must be in [0, 1], got {self.blur_probability}")
+        require(len(self.blur_sigma) == 2 and 0 < self.blur_sigma[0] <= self.blur_sigma[1], "blur_sigma",
+                f"must be [min, max] pixels, 0 < min <= max, got {self.blur_sigma}")
+
+    def transform(self) -> v2.Transform:
+        """The augmentation of ``uint8 [3, H, W]`` images."""
+        jitter = v2.ColorJitter(self.brightness, self.contrast, self.saturation, self.hue)
+        blur = v2.RandomApply([v2.GaussianBlur(9, tuple(self.blur_sigma))], p=self.blur_probability)
+        return v2.Compose([jitter, blur])
+
+
+@dataclass
+class BatchSettings:
+    """A batch: ``anchors`` images that have a positive, one ``positive`` of each, and
+    ``negatives`` more images, hard ones (mined) when available; ``batches_per_epoch``."""
+
+    anchors: int
+    negatives: int
+    batches_per_epoch: int
+
+    def __post_init__(self) -> None:
+        require(self.anchors >= 1, "anchors", f"must be >= 1, got {self.anchors}")
+        require(self.negatives >= 0, "negatives", f"must be >= 0, got {self.negatives}")
+        require(self.batches_per_epoch >= 1, "batches_per_epoch", f"must be >= 1, got {self.batches_per_epoch}")
+
+
+class TrainingImages(Dataset):
+    """Training images decoded as RGB, resized to ``size`` ``(width, height)``, augmented."""
+
+    def __init__(self, paths: Sequence[Path], size: Sequence[int], augment: v2.Transform | None) -> None:
+        self.paths = list(paths)
+        self.size = (int(size[0]), int(size[1]))
+        self.augment = augment
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, int]:
+        rgb = Image.fromarray(read_image(self.paths[index])).resize(self.size, Image.Resampling.BILINEAR)
+        image = torch.from_numpy(np.array(rgb)).permute(2, 0, 1).contiguous()
+        return (self.augment(image) if self.augment is not None else image), index
+
+
+class RelevanceBatchSampler(Sampler[list[int]]):
+    """Batches of image indices: anchors (images with a positive), a random positive of each,
+    then negatives. An anchor's negatives are surely unrelated to it (`TrainingPairs`): its
+    mined hard negatives when `set_hard_negatives` gave some, random ones otherwise. Each
+    epoch draws new batches from ``seed`` and the epoch number (`set_epoch`)."""
+
+    def __init__(self, pairs: TrainingPairs, settings: BatchSettings, seed: int) -> None:
+        self.pairs = pairs
+        self.settings = settings
+        self.seed = seed
+        self.epoch = 0
+        self.anchors = np.flatnonzero(np.diff(pairs.graded.indptr) > 0)
+        if not len(self.anchors):
+            raise ValueError("no training image has a relevant partner: check the relevance thresholds and the poses")
+        self.hard: dict[int, np.ndarray] = {}
+        self.rank, self.world_size = 0, 1
+
+    def shard(self, rank: int, world_size: int) -> None:
+        """Under DDP: every rank draws the same batches and keeps every ``world_size``-th one."""
+        self.rank, self.world_size = rank, world_size
+
+    def __len__(self) -> int:
+        return max(1, self.settings.batches_per_epoch // self.world_size)
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def set_hard_negatives(self, hard: dict[int, np.ndarray]) -> None:
+        """``{anchor: images}`` ranked highest by the current network among its surely unrelated ones."""
+        self.hard = hard
+
+    def __iter__(self) -> Iterator[list[int]]:
+        rng = np.random.default_rng([self.seed, self.epoch])
+        batches = [self._batch(rng) for _ in range(len(self) * self.world_size)]
+        yield from batches[self.rank :: self.world_size]
+
+    def _batch(self, rng: np.random.Generator) -> list[int]:
+        anchors = rng.choice(self.anchors, size=min(self.settings.anchors, len(self.anchors)), replace=False)
+        chosen = list(anchors)
+        for anchor in anchors:
+            chosen.append(int(rng.choice(self.pairs.positives(anchor))))
+        for anchor in rng.choice(anchors, size=self.settings.negatives):
+            chosen.append(self._negative(int(anchor), rng))
+        return [int(i) for i in chosen]
+
+    def _negative(self, anchor: int, rng: np.random.Generator) -> int:
+        hard = self.hard.get(anchor)
+        if hard is not None and len(hard):
+            return int(rng.choice(hard))
+        related = set(self.pairs.related[anchor].indices) | {anchor}
+        while True:
+            candidate = int(rng.integers(self.pairs.num_images))
+            if candidate not in related:
+                return candidate
+
+
+def collate(pairs: TrainingPairs):
+    """The collate function of a batch: ``(images uint8 [B, 3, H, W], relevance [B, B], negatives [B, B])``."""
+
+    def stack(items: list[tuple[torch.Tensor, int]]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        indices = np.array([index for _, index in items])
+        relevance, negatives = pairs.batch(indices)
+        return torch.stack([image for image, _ in items]), torch.from_numpy(relevance), torch.from_numpy(negatives)
+
+    return stack
+
+
+class TrainingData(L.LightningDataModule):
+    """The training images and their sampler (validation is the `LocalizationValidation` callback's)."""
+
+    def __init__(self, paths: Sequence[Path], pairs: TrainingPairs, sampler: RelevanceBatchSampler,
+                 size: Sequence[int], augment: AugmentSettings | None, num_workers: int) -> None:
+        super().__init__()
+        self.paths, self.pairs, self.sampler = list(paths), pairs, sampler
+        self.dataset = TrainingImages(paths, size, augment.transform() if augment is not None else None)
+        self.num_workers = num_workers
+
+    def train_dataloader(self) -> DataLoader:
+        if self.trainer is not None:
+            self.sampler.shard(self.trainer.global_rank, self.trainer.world_size)
+        return DataLoader(self.dataset, batch_sampler=self.sampler, collate_fn=collate(self.pairs),
+                          num_workers=self.num_workers, persistent_workers=self.num_workers > 0)

@@ -1,0 +1,70 @@
+"""The LightningModule: a descriptor network (`models.networks.RetrievalNet`) trained with a
+ranking loss on batches of images and their ground-truth relevance."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import asdict
+from typing import Any
+
+import lightning as L
+import torch
+
+from locretrieval.models.extraction import Preprocessing
+from locretrieval.models.networks import RetrievalNet, l2_normalize
+from locretrieval.models.weights import CHECKPOINT_FORMAT, EMBEDDED_CHECKPOINT_KEY, plain
+
+class RetrievalTraining(L.LightningModule):
+    """Trains ``network`` with ``loss(descriptors, relevance, negatives)``.
+
+    Images arrive as ``uint8`` RGB and go through ``preprocessing.normalize``, the normalisation
+    evaluation uses. ``optimizer``/``scheduler``: partial constructors (Hydra ``_partial_``)
+    taking the parameters / the optimizer. Every Lightning checkpoint also holds, under
+    `EMBEDDED_CHECKPOINT_KEY`, a plain checkpoint of model ``model`` with ``architecture`` that the
+    zoo loader reads (``evaluate.py model=gem model.weights=<ckpt>``).
+    """
+
+    def __init__(
+        self,
+        network: RetrievalNet,
+        preprocessing: Preprocessing,
+        loss: torch.nn.Module,
+        optimizer: Callable[..., torch.optim.Optimizer],
+        scheduler: Callable[..., Any] | None,
+        model: str,
+        architecture: Mapping[str, Any],
+        compile_network: bool = False,
+    ) -> None:
+        super().__init__()
+        self.network = network
+        self.forward_network = torch.compile(network) if compile_network else network
+        self.preprocessing = preprocessing
+        self.loss = loss
+        self.optimizer_factory, self.scheduler_factory = optimizer, scheduler
+        self.model_name, self.architecture = model, plain(dict(architecture))
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        """Unit descriptors ``[B, D]`` of ``uint8 [B, 3, H, W]`` images (one scale, as trained)."""
+        return self.network.finalize(l2_normalize(self.forward_network(self.preprocessing.normalize(images)).float()))
+
+    def training_step(self, batch: tuple[torch.Tensor, torch.Tensor, torch.Tensor], batch_index: int) -> torch.Tensor:
+        images, relevance, negatives = batch
+        loss = self.loss(self(images), relevance, negatives)
+        self.log("train/loss", loss, prog_bar=True, batch_size=len(images))
+        return loss
+
+    def configure_optimizers(self):
+        optimizer = self.optimizer_factory(params=[p for p in self.network.parameters() if p.requires_grad])
+        if self.scheduler_factory is None:
+            return optimizer
+        return {"optimizer": optimizer, "lr_scheduler": self.scheduler_factory(optimizer=optimizer)}
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint[EMBEDDED_CHECKPOINT_KEY] = {
+            "format": CHECKPOINT_FORMAT,
+            "model": self.model_name,
+            "architecture": self.architecture,
+            "preprocessing": plain(asdict(self.preprocessing)),
+            "state_dict": {key: value.detach().cpu().clone() for key, value in self.network.state_dict().items()},
+            "extra": {},
+        }

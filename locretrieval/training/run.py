@@ -1,0 +1,165 @@
+"""`train(cfg, output_dir)`: what ``train.py`` runs. Instantiate from the config, train with
+Lightning, validate by localization every epoch, write the validation curves and report."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+from scipy import sparse
+
+from locretrieval.benchmark import BenchmarkSettings
+from locretrieval.config import require, validated
+from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths
+from locretrieval.models.extraction import ExtractionSettings
+from locretrieval.retrieval.index import search
+from locretrieval.scene import Scene
+from locretrieval.scene.datasets import load_synthetic_dataset
+from locretrieval.training.callbacks import LocalizationValidation
+from locretrieval.training.data import AugmentSettings, BatchSettings, RelevanceBatchSampler, TrainingData
+from locretrieval.training.module import RetrievalTraining
+from locretrieval.training.relevance import TrainingPairs, TrainingRelevanceSettings, training_pairs
+from locretrieval.training.report import write_training_report
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainingSettings:
+    """The ``training`` config section: which images are trained on (``validation_database``:
+    the validation scene's own database, map-specific training; ``extra_renders``: render
+    overrides of separately rendered synthetic scenes, all their images), the ``image_size``
+    ``[width, height]`` of training batches, ``batch``, ``augment``, hard-negative mining every
+    ``hard_negatives_every`` epochs (0: off, ``hard_negatives_per_anchor`` kept per image),
+    DataLoader ``num_workers`` and ``compile`` (``torch.compile``)."""
+
+    validation_database: bool
+    extra_renders: list[dict]
+    image_size: list[int]
+    batch: BatchSettings
+    augment: AugmentSettings
+    hard_negatives_every: int
+    hard_negatives_per_anchor: int
+    num_workers: int
+    compile: bool
+
+    def __post_init__(self) -> None:
+        require(self.validation_database or bool(self.extra_renders), "validation_database",
+                "no training images: set validation_database=true or give extra_renders")
+        require(len(self.image_size) == 2 and min(self.image_size) >= 32, "image_size", f"must be [width, height] >= 32 px, got {self.image_size}")
+        require(self.hard_negatives_every >= 0, "hard_negatives_every", f"must be >= 0, got {self.hard_negatives_every}")
+
+
+@dataclass
+class ValidationSettings:
+    """The ``validation`` config section: paradigm 1 every ``every_n_epochs``, the SfM paradigms
+    every ``sfm_every_n_epochs`` (``None``: never)."""
+
+    every_n_epochs: int
+    sfm_every_n_epochs: int | None
+
+    def __post_init__(self) -> None:
+        require(self.every_n_epochs >= 1, "every_n_epochs", f"must be >= 1, got {self.every_n_epochs}")
+        require(self.sfm_every_n_epochs is None or self.sfm_every_n_epochs >= 1, "sfm_every_n_epochs", "must be >= 1 or null")
+
+
+def training_scenes(cfg: DictConfig, scene: Scene, settings: TrainingSettings) -> list:
+    """Image sets trained on: the validation scene's database and/or separately rendered scenes."""
+    sets = [scene.database] if settings.validation_database else []
+    if settings.extra_renders:
+        if "render" not in cfg.data:
+            raise ValueError("training.extra_renders needs the synthetic data config (data=synthetic)")
+        for override in settings.extra_renders:
+            render = OmegaConf.merge(cfg.data.render, override)
+            extra = load_synthetic_dataset(f"train_{render.environment}_{render.seed}", cfg.paths.cache_dir, render,
+                                           ltvl_name_style="full", frustum_far=scene.frustum_far)
+            if extra.database.fingerprint() == scene.database.fingerprint():
+                raise ValueError(f"training.extra_renders {dict(override)} renders the validation scene itself")
+            sets += [extra.database, extra.queries]
+    return sets
+
+
+def combined_pairs(sets: list, relevance: TrainingRelevanceSettings, far: float) -> TrainingPairs:
+    """Training pairs of several image sets; images of different sets (other worlds) are unrelated."""
+    pairs = [training_pairs(images, relevance, far) for images in sets]
+    return TrainingPairs(sparse.block_diag([p.graded for p in pairs], format="csr"),
+                         sparse.block_diag([p.related for p in pairs], format="csr"))
+
+
+class HardNegativeMining(L.Callback):
+    """Every ``every`` epochs, describe the training images with the current network and give the
+    sampler each anchor's ``per_anchor`` highest-ranked surely unrelated images."""
+
+    def __init__(self, sets: list, pairs: TrainingPairs, sampler: RelevanceBatchSampler, every: int, per_anchor: int,
+                 preprocessing, extraction: ExtractionSettings) -> None:
+        self.sets, self.pairs, self.sampler = sets, pairs, sampler
+        self.every, self.per_anchor = every, per_anchor
+        self.preprocessing, self.extraction = preprocessing, extraction
+
+    def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if trainer.current_epoch == 0 or trainer.current_epoch % self.every:
+            return
+        from locretrieval.models import NetworkDescriptor
+
+        model = NetworkDescriptor("mining", pl_module.network, self.preprocessing, self.extraction)
+        descriptors = np.concatenate([model.describe(images) for images in self.sets])
+        depth = min(len(descriptors), self.per_anchor + 1 + int(np.diff(self.pairs.related.indptr).max()))
+        ranking = search(descriptors, descriptors, depth, "mining", 4096)
+        hard = {}
+        for anchor in self.sampler.anchors:
+            related = set(self.pairs.related[anchor].indices) | {int(anchor)}
+            hard[int(anchor)] = np.array([i for i in ranking.indices[anchor] if i >= 0 and int(i) not in related][: self.per_anchor])
+        self.sampler.set_hard_negatives(hard)
+        log.info("hard negatives mined for %d anchors", len(hard))
+
+
+def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
+    """Train the configured model; returns the validation callback (its ``history``)."""
+    L.seed_everything(int(cfg.seed), workers=True)
+    settings = BenchmarkSettings.from_config(cfg)
+    training = validated(TrainingSettings, cfg.training, "training")
+    validation = validated(ValidationSettings, cfg.validation, "validation")
+    relevance = validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance")
+    groundtruth_settings = validated(GroundTruthSettings, cfg.groundtruth, "groundtruth")
+    output_dir.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(cfg, output_dir / "config.yaml", resolve=True)
+    cache_dir = Path(cfg.paths.cache_dir)
+
+    scene: Scene = instantiate(cfg.data)
+    descriptor = instantiate(cfg.model)  # the zoo model: network, preprocessing, weights checked
+    network, preprocessing = descriptor.network.train(), descriptor.preprocessing
+    sets = training_scenes(cfg, scene, training)
+    far = scene.far_plane(relevance.far, "train_relevance.far")
+    pairs = combined_pairs(sets, relevance, far)
+    log.info("training on %d images (%d with a relevant partner), validating on %d queries of %s",
+             pairs.num_images, int((np.diff(pairs.graded.indptr) > 0).sum()), len(scene.queries), scene.name)
+    sampler = RelevanceBatchSampler(pairs, training.batch, int(cfg.seed))
+    paths = [path for images in sets for path in images.paths]
+    data = TrainingData(paths, pairs, sampler, training.image_size, training.augment, training.num_workers)
+
+    groundtruths = compute_groundtruths(scene, groundtruth_settings, settings.sfm, cache_dir)
+    extraction = descriptor.settings
+    validator = LocalizationValidation(
+        scene, groundtruths, settings, preprocessing, extraction, validation.every_n_epochs,
+        validation.sfm_every_n_epochs, cache_dir, int(cfg.seed) if cfg.baselines.random else None,
+    )
+    module = RetrievalTraining(
+        network, preprocessing, instantiate(cfg.loss), instantiate(cfg.optimizer),
+        instantiate(cfg.scheduler) if cfg.get("scheduler") else None,
+        "trainable", descriptor.architecture, training.compile,
+    )
+    callbacks = [validator, *(instantiate(c) for c in (cfg.callbacks or {}).values())]
+    if training.hard_negatives_every:
+        callbacks.append(HardNegativeMining(sets, pairs, sampler, training.hard_negatives_every,
+                                            training.hard_negatives_per_anchor, preprocessing, extraction))
+    loggers = [instantiate(c) for c in (cfg.logger or {}).values()]
+    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+    trainer.fit(module, datamodule=data, ckpt_path=cfg.get("ckpt_path"))
+    if trainer.is_global_zero:
+        write_training_report(validator, output_dir)
+    return validator

@@ -1,0 +1,167 @@
+"""Training: relevance from the ground truth, relevance-driven batches, the Lightning module and
+the localization-validation callback, and train.py end to end through Hydra."""
+
+import numpy as np
+import pandas as pd
+import pytest
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+import helpers
+from locretrieval import geometry
+from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
+from locretrieval.scene.kapture_io import load_kapture_scene
+from locretrieval.scene.synthetic import render_synthetic_dataset
+from locretrieval.training.data import BatchSettings, RelevanceBatchSampler
+from locretrieval.training.relevance import TrainingRelevanceSettings, training_pairs
+from locretrieval.training.run import train
+from locretrieval.training.callbacks import TRAINED, metric_rows
+from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
+from locretrieval.config import validated
+from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths
+from locretrieval.retrieval.descriptors import describe_scene
+
+SCENE = {"width": 96, "height": 72, "num_database": 24, "num_queries": 6, "texture_size": 64, "length": 20.0,
+         "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
+         "hard_query_fraction": 0.0, "workers": 1, "seed": 5}  # fmt: skip
+RELATIVE_POSE = TrainingRelevanceSettings("relative_pose", {"position_threshold": 10.0, "rotation_threshold": 30.0}, 0.1, None)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("training_scene")
+    render_synthetic_dataset(SCENE, root)
+    return load_kapture_scene("tiny", [root / "mapping"], [root / "query"], frustum_far=25.0)
+
+
+def test_relative_pose_training_pairs_against_a_direct_computation(scene):
+    database = scene.database
+    pairs = training_pairs(database, RELATIVE_POSE, far=25.0)
+    position = geometry.position_errors(database.centers[:, None], database.centers[None])
+    rotation = geometry.rotation_errors_deg(database.qvec[:, None], database.qvec[None])
+    relevant = (position < 10.0) & (rotation < 30.0)
+    np.fill_diagonal(relevant, False)
+    graded = pairs.graded.toarray()
+    np.testing.assert_array_equal(graded > 0, relevant)
+    expected = 1 - (position / 10.0 + rotation / 30.0) / 2
+    np.testing.assert_allclose(graded[relevant], expected[relevant], rtol=1e-6)
+    frusta = TruncatedFrusta.of_images(database, np.arange(len(database)), 0.1, 25.0)
+    overlap = pairwise_overlap_radii(frusta, frusta) > 0
+    np.testing.assert_array_equal(pairs.related.toarray(), overlap | relevant)
+    assert relevant.any() and (~overlap).any()  # both positives and surely unrelated pairs exist
+
+
+def test_batches_hold_anchors_with_positives_and_only_surely_unrelated_negatives(scene):
+    pairs = training_pairs(scene.database, RELATIVE_POSE, far=25.0)
+    sampler = RelevanceBatchSampler(pairs, BatchSettings(anchors=4, negatives=4, batches_per_epoch=5), seed=0)
+    batches = list(sampler)
+    assert len(batches) == 5 and all(len(b) == 12 for b in batches)
+    graded, related = pairs.graded.toarray(), pairs.related.toarray()
+    for batch in batches:
+        anchors, positives, negatives = batch[:4], batch[4:8], batch[8:]
+        assert all(graded[a, p] > 0 for a, p in zip(anchors, positives))
+        # each negative is unrelated to the anchor it was drawn for (some anchor of the batch)
+        assert all(any(not related[a, n] and a != n for a in anchors) for n in negatives)
+        relevance, negative_mask = pairs.batch(np.array(batch))
+        assert not (negative_mask & (relevance > 0)).any() and not np.diag(negative_mask).any()
+    assert list(sampler) == batches  # the same epoch draws the same batches
+    sampler.set_epoch(1)
+    assert list(sampler) != batches
+    hard = {int(a): np.array([n for n in range(pairs.num_images) if not related[a, n] and n != a][:2]) for a in sampler.anchors}
+    sampler.set_hard_negatives(hard)
+    for batch in sampler:
+        assert all(any(n in hard[a] for a in batch[:4]) for n in batch[8:])
+
+
+def test_images_of_different_training_scenes_are_unrelated(scene):
+    from locretrieval.training.run import combined_pairs
+
+    first, second = scene.database.subset(np.arange(12)), scene.database.subset(np.arange(12, 24))
+    combined = combined_pairs([first, second], RELATIVE_POSE, far=25.0)
+    alone = [training_pairs(images, RELATIVE_POSE, far=25.0) for images in (first, second)]
+    graded, related = combined.graded.toarray(), combined.related.toarray()
+    np.testing.assert_array_equal(graded[:12, :12], alone[0].graded.toarray())
+    np.testing.assert_array_equal(related[12:, 12:], alone[1].related.toarray())
+    assert not graded[:12, 12:].any() and not related[:12, 12:].any() and not related[12:, :12].any()
+
+
+def train_config(root, *overrides):
+    """configs/train.yaml on a tiny rendered scene, everything under ``root``."""
+    tiny = [f"data.render.{key}={value}" for key, value in SCENE.items() if key != "conditions"]
+    tiny += [f"data.render.conditions.{key}={value}" for key, value in SCENE["conditions"].items()]
+    return helpers.compose_config(
+        "train", f"paths.root_dir={root}", f"output_dir={root}/run", "device=cpu", *tiny,
+        "model.max_side=96", "training.image_size=[96,72]", "training.num_workers=0", "training.batch.batches_per_epoch=2",
+        "training.batch.anchors=3", "training.batch.negatives=2", "validation.sfm_every_n_epochs=null",
+        "trainer.max_epochs=1", "trainer.enable_progress_bar=false", "model.backbone=resnet18", "model.weights=null",
+        "model.random_init=true", *overrides,
+    )
+
+
+def test_fast_dev_run_of_train_py_through_hydra_compose(tmp_path):
+    cfg = train_config(tmp_path, "+trainer.fast_dev_run=true")
+    validator = train(cfg, tmp_path / "run")
+    epochs = sorted({entry["epoch"] for entry in validator.history})
+    assert epochs == [-1, 0]  # before training, and after the one batch
+    assert "val/approximation/ewb/k3/5m_10deg" in validator.history[0]
+    assert (tmp_path / "run" / "validation.csv").exists() and (tmp_path / "run" / "report.md").exists()
+    assert set(validator.reference) == {"gt_relative_pose", "gt_frustum", "random"}
+
+
+def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkpoint(tmp_path):
+    cfg = train_config(tmp_path, "validation.sfm_every_n_epochs=1", "paradigms.global_sfm.k=[1,3]")
+    validator = train(cfg, tmp_path / "run")
+    logged = validator.history[-1]
+    checkpoint = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    assert checkpoint.exists()
+    # evaluate.py's path: the zoo model reads the Lightning checkpoint unchanged
+    model_cfg = OmegaConf.merge(cfg.model, {"weights": str(checkpoint), "max_side": 96})
+    model = instantiate(model_cfg)
+    settings = BenchmarkSettings.from_config(cfg)
+    scene = instantiate(cfg.data)
+    groundtruths = compute_groundtruths(scene, validated(GroundTruthSettings, cfg.groundtruth, "groundtruth"), settings.sfm, cfg.paths.cache_dir)
+    descriptors = describe_scene(model, scene, cache_dir=None)
+    rankings = build_rankings(scene, {TRAINED: descriptors}, groundtruths, settings.retrieval, random_seed=None)
+    result = benchmark(scene, rankings, settings, {"all": np.ones(len(scene.queries), bool)}, cfg.paths.cache_dir, relevances(groundtruths))
+    direct = metric_rows(result, TRAINED)
+    assert direct.keys() == {k for k in logged if k != "epoch"}
+    for key, value in direct.items():
+        assert logged[key] == pytest.approx(value, abs=1e-6), key
+    assert any(key.startswith("val/global_sfm/") for key in direct)
+
+
+def test_resuming_from_the_last_checkpoint_continues_the_same_curve(tmp_path):
+    common = ("training.augment.blur_probability=0", "training.augment.brightness=0", "training.augment.contrast=0",
+              "training.augment.saturation=0", "training.augment.hue=0", "trainer.deterministic=true")
+    straight = train(train_config(tmp_path / "straight", *common, "trainer.max_epochs=2"), tmp_path / "straight" / "run")
+    first = train_config(tmp_path / "resumed", *common, "trainer.max_epochs=1")
+    train(first, tmp_path / "resumed" / "run")
+    last = tmp_path / "resumed" / "run" / "checkpoints" / "last.ckpt"
+    resumed = train(train_config(tmp_path / "resumed", *common, "trainer.max_epochs=2", f"ckpt_path={last}"),
+                    tmp_path / "resumed" / "run")
+    assert [entry["epoch"] for entry in resumed.history] == [-1, 0, 1]  # the callback's history came back
+    for expected, found in zip(straight.history, resumed.history):
+        assert found.keys() == expected.keys()
+        for key, value in expected.items():
+            assert found[key] == pytest.approx(value, abs=1e-6), (expected["epoch"], key)
+
+
+def test_two_process_cpu_ddp_smoke_run(tmp_path):
+    import subprocess
+    import sys
+
+    tiny = [f"data.render.{key}={value}" for key, value in SCENE.items() if key != "conditions"]
+    tiny += [f"data.render.conditions.{key}={value}" for key, value in SCENE["conditions"].items()]
+    command = [
+        sys.executable, str(helpers.CONFIGS.parent / "train.py"), "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2",
+        f"paths.root_dir={tmp_path}", f"hydra.run.dir={tmp_path}/run", "device=cpu", *tiny, "model.max_side=96",
+        "training.image_size=[96,72]", "training.num_workers=0", "training.batch.batches_per_epoch=2", "training.batch.anchors=3",
+        "training.batch.negatives=2", "validation.sfm_every_n_epochs=null", "trainer.max_epochs=1", "trainer.enable_progress_bar=false",
+        "model.backbone=resnet18", "model.weights=null", "model.random_init=true", "logger={}",
+    ]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "Initializing distributed: GLOBAL_RANK: 1, MEMBER: 2/2" in done.stderr + done.stdout
+    assert (tmp_path / "run" / "checkpoints" / "last.ckpt").exists()
+    history = pd.read_csv(tmp_path / "run" / "validation.csv")
+    assert sorted(set(history["epoch"])) == [-1, 0]
