@@ -93,8 +93,7 @@ def train_config(root, *overrides):
         "train", f"paths.root_dir={root}", f"output_dir={root}/run", "device=cpu", *tiny,
         "model.max_side=96", "training.image_size=[96,72]", "training.num_workers=0", "training.batch.batches_per_epoch=2",
         "training.batch.anchors=3", "training.batch.negatives=2", "validation.sfm_every_n_epochs=null",
-        "trainer.max_epochs=1", "trainer.enable_progress_bar=false", "model.backbone=resnet18", "model.weights=null",
-        "model.random_init=true", *overrides,
+        "trainer.max_epochs=1", "trainer.enable_progress_bar=false", *overrides,
     )
 
 

