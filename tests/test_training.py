@@ -122,7 +122,7 @@ def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkp
     descriptors = describe_scene(model, scene, cache_dir=None)
     rankings = build_rankings(scene, {TRAINED: descriptors}, groundtruths, settings.retrieval, random_seed=None)
     result = benchmark(scene, rankings, settings, {"all": np.ones(len(scene.queries), bool)}, cfg.paths.cache_dir, relevances(groundtruths))
-    direct = metric_rows(result, TRAINED)
+    direct = metric_rows(result, TRAINED, settings.paradigms.ks())
     assert direct.keys() == {k for k in logged if k != "epoch"}
     for key, value in direct.items():
         assert logged[key] == pytest.approx(value, abs=1e-6), key

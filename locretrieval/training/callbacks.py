@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from pathlib import Path
 
 import lightning as L
@@ -27,9 +27,9 @@ log = logging.getLogger(__name__)
 TRAINED = "trained"
 
 
-def metric_rows(result: BenchmarkResult, ranking: str) -> dict[str, float]:
+def metric_rows(result: BenchmarkResult, ranking: str, retrieval_ks: Collection[int]) -> dict[str, float]:
     """``{key: value}`` of one ranking on all queries: ``val/<paradigm>/<method>/k<k>/<X>m_<Y>deg``
-    (% localized) and ``val/retrieval/<groundtruth>/<metric>@<k>``."""
+    (% localized) and ``val/retrieval/<groundtruth>/<metric>@<k>`` for ``k`` in ``retrieval_ks``."""
     metrics = {}
     table = result.localization
     rows = table[(table["subset"] == "all") & (table["ranking"] == ranking)]
@@ -38,7 +38,7 @@ def metric_rows(result: BenchmarkResult, ranking: str) -> dict[str, float]:
         metrics[f"val/{row.paradigm}/{row.method}/k{row.k}/{threshold}"] = float(row.localized_pct)
     if len(result.retrieval):
         table = result.retrieval
-        rows = table[(table["subset"] == "all") & (table["ranking"] == ranking)]
+        rows = table[(table["subset"] == "all") & (table["ranking"] == ranking) & table["k"].isin(list(retrieval_ks))]
         for row in rows.itertuples():
             metrics[f"val/retrieval/{row.groundtruth}/{row.metric}@{row.k}"] = float(row.value)
     return metrics
@@ -106,7 +106,7 @@ class LocalizationValidation(L.Callback):
         if rankings:
             result = benchmark(self.scene, rankings, self._settings(self.sfm_every_n_epochs is not None),
                                self.subsets, self.cache_dir, relevances(self.groundtruths))
-            self.reference = {r.name: metric_rows(result, r.name) for r in rankings}
+            self.reference = {r.name: metric_rows(result, r.name, self.settings.paradigms.ks()) for r in rankings}
             for name, metrics in self.reference.items():
                 log.info("reference %s: %s", name, headline(metrics))
                 if trainer.logger is not None:
@@ -123,7 +123,7 @@ class LocalizationValidation(L.Callback):
             pl_module.log(key, value)
 
     def _record(self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int, log_now: bool = True) -> dict[str, float]:
-        metrics = metric_rows(self.validate(pl_module.network, self._wants_sfm(epoch)), TRAINED)
+        metrics = metric_rows(self.validate(pl_module.network, self._wants_sfm(epoch)), TRAINED, self.settings.paradigms.ks())
         self.history.append({"epoch": epoch, **metrics})
         if not log_now and trainer.logger is not None:
             trainer.logger.log_metrics(metrics, step=trainer.global_step)
@@ -143,8 +143,11 @@ class LocalizationValidation(L.Callback):
         self.reference = dict(state_dict["reference"])
 
 
+#: What a console line shows of a validation (those present).
+HEADLINE = ("val/approximation/ewb/k3/5m_10deg", "val/approximation/csi/k3/5m_10deg", "val/global_sfm/pnp/k5/0.25m_2deg",
+            "val/retrieval/relative_pose/precision@5", "val/retrieval/relative_pose/recall@5")
+
+
 def headline(metrics: Mapping[str, float]) -> str:
-    """The few metrics a console line shows: paradigm 1 EWB at its middle k, loosest threshold, and SfM if run."""
-    keys = sorted(k for k in metrics if k.startswith("val/") and "/retrieval/" not in k)
-    chosen = [k for k in keys if k.endswith(("5m_10deg", "0.25m_2deg"))]
-    return ", ".join(f"{k.removeprefix('val/')}={metrics[k]:.1f}" for k in chosen[:8])
+    """The `HEADLINE` metrics of a validation as one line."""
+    return ", ".join(f"{key.removeprefix('val/')}={metrics[key]:.3g}" for key in HEADLINE if key in metrics)

@@ -6,10 +6,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from locretrieval.training.callbacks import LocalizationValidation
-
-#: The curves the report plots and tabulates (paradigm 1 at k=3, global SfM at k=5).
-HEADLINE = ("val/approximation/ewb/k3/5m_10deg", "val/approximation/csi/k3/5m_10deg", "val/global_sfm/pnp/k5/0.25m_2deg")
+from locretrieval.training.callbacks import HEADLINE, LocalizationValidation
 
 
 def write_training_report(validation: LocalizationValidation, output_dir: Path) -> pd.DataFrame:
@@ -26,7 +23,7 @@ def write_training_report(validation: LocalizationValidation, output_dir: Path) 
     shown = [m for m in HEADLINE if m in wide.columns]
     lines = ["# Training report", "", "% of validation queries localized (epoch -1: before training).", ""]
     if shown:
-        lines += [wide[shown].rename(columns=lambda m: m.removeprefix("val/")).to_markdown(floatfmt=".1f"), ""]
+        lines += [wide[shown].rename(columns=lambda m: m.removeprefix("val/")).to_markdown(floatfmt=".3g"), ""]
         figure, axes = plt.subplots(1, len(shown), figsize=(4.5 * len(shown), 3.2), squeeze=False)
         for axis, metric in zip(axes[0], shown):
             series = wide[metric].dropna()
@@ -42,6 +39,6 @@ def write_training_report(validation: LocalizationValidation, output_dir: Path) 
         lines += ["![validation curves](validation.png)", ""]
     references = {name: {m: v for m, v in metrics.items() if m in shown} for name, metrics in validation.reference.items()}
     if references:
-        lines += ["Reference rankings:", "", pd.DataFrame(references).T.to_markdown(floatfmt=".1f"), ""]
+        lines += ["Reference rankings:", "", pd.DataFrame(references).T.to_markdown(floatfmt=".3g"), ""]
     (output_dir / "report.md").write_text("\n".join(lines))
     return table
