@@ -14,7 +14,7 @@ from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 from locretrieval.training.data import BatchSettings, RelevanceBatchSampler
 from locretrieval.training.relevance import TrainingRelevanceSettings, training_pairs
-from locretrieval.training.run import train
+from locretrieval.training.run import combined_pairs, train
 from locretrieval.training.callbacks import TRAINED, metric_rows
 from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
 from locretrieval.config import validated
@@ -74,8 +74,6 @@ def test_batches_hold_anchors_with_positives_and_only_surely_unrelated_negatives
 
 
 def test_images_of_different_training_scenes_are_unrelated(scene):
-    from locretrieval.training.run import combined_pairs
-
     first, second = scene.database.subset(np.arange(12)), scene.database.subset(np.arange(12, 24))
     combined = combined_pairs([first, second], RELATIVE_POSE, far=25.0)
     alone = [training_pairs(images, RELATIVE_POSE, far=25.0) for images in (first, second)]
@@ -164,3 +162,20 @@ def test_two_process_cpu_ddp_smoke_run(tmp_path):
     assert (tmp_path / "run" / "checkpoints" / "last.ckpt").exists()
     history = pd.read_csv(tmp_path / "run" / "validation.csv")
     assert sorted(set(history["epoch"])) == [-1, 0]
+
+
+def test_extra_rendered_scenes_are_trained_on_with_their_queries_and_never_the_validation_queries(tmp_path, scene):
+    from locretrieval.training.run import TrainingSettings, training_scenes
+
+    cfg = train_config(tmp_path, "training.extra_renders=[{seed: 7}]")
+    validation_scene = instantiate(cfg.data)
+    settings = validated(TrainingSettings, cfg.training, "training")
+    sets = training_scenes(cfg, validation_scene, settings)
+    assert [len(images) for images in sets] == [24, 30]  # the validation database; the other world's database + queries
+    assert not set(validation_scene.queries.paths) & {p for images in sets for p in images.paths}
+    pairs = combined_pairs(sets, RELATIVE_POSE, far=25.0)
+    graded = pairs.graded.toarray()
+    assert graded[24:48, 48:].any()  # the extra scene's database and queries are paired with each other
+    itself = train_config(tmp_path, f"training.extra_renders=[{{seed: {SCENE['seed']}}}]")
+    with pytest.raises(ValueError, match="renders the validation scene itself"):
+        training_scenes(itself, validation_scene, validated(TrainingSettings, itself.training, "training"))

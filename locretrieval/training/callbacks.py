@@ -127,7 +127,7 @@ class LocalizationValidation(L.Callback):
         self.history.append({"epoch": epoch, **metrics})
         if not log_now and trainer.logger is not None:
             trainer.logger.log_metrics(metrics, step=trainer.global_step)
-        log.info("validation after epoch %d: %s", epoch, headline(metrics))
+        log.info("validation after epoch %d:\n%s", epoch, headline_table({TRAINED: metrics, **self.reference}))
         return metrics
 
     def history_table(self) -> pd.DataFrame:
@@ -151,3 +151,9 @@ HEADLINE = ("val/approximation/ewb/k3/5m_10deg", "val/approximation/csi/k3/5m_10
 def headline(metrics: Mapping[str, float]) -> str:
     """The `HEADLINE` metrics of a validation as one line."""
     return ", ".join(f"{key.removeprefix('val/')}={metrics[key]:.3g}" for key in HEADLINE if key in metrics)
+
+
+def headline_table(rankings: Mapping[str, Mapping[str, float]]) -> str:
+    """The `HEADLINE` metrics of several rankings as a console table (rankings as rows)."""
+    table = pd.DataFrame({name: {key.removeprefix("val/"): metrics.get(key) for key in HEADLINE} for name, metrics in rankings.items()}).T
+    return table.dropna(axis=1, how="all").to_string(float_format=lambda value: f"{value:.3g}")

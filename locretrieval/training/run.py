@@ -20,6 +20,7 @@ from locretrieval.models.extraction import ExtractionSettings
 from locretrieval.retrieval.index import search
 from locretrieval.scene import Scene
 from locretrieval.scene.datasets import load_synthetic_dataset
+from locretrieval.scene.kapture_io import concatenate_image_sets
 from locretrieval.training.callbacks import LocalizationValidation
 from locretrieval.training.data import AugmentSettings, BatchSettings, RelevanceBatchSampler, TrainingData
 from locretrieval.training.module import RetrievalTraining
@@ -80,7 +81,7 @@ def training_scenes(cfg: DictConfig, scene: Scene, settings: TrainingSettings) -
                                            ltvl_name_style="full", frustum_far=scene.frustum_far)
             if extra.database.fingerprint() == scene.database.fingerprint():
                 raise ValueError(f"training.extra_renders {dict(override)} renders the validation scene itself")
-            sets += [extra.database, extra.queries]
+            sets.append(concatenate_image_sets([extra.database, extra.queries]))  # one world: paired together
     return sets
 
 
