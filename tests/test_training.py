@@ -1,6 +1,8 @@
 """Training: relevance from the ground truth, relevance-driven batches, the Lightning module and
 the localization-validation callback, and train.py end to end through Hydra."""
 
+import dataclasses
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -24,7 +26,7 @@ from locretrieval.retrieval.descriptors import describe_scene
 SCENE = {"width": 96, "height": 72, "num_database": 24, "num_queries": 6, "texture_size": 64, "length": 20.0,
          "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
          "hard_query_fraction": 0.0, "workers": 1, "seed": 5}  # fmt: skip
-RELATIVE_POSE = TrainingRelevanceSettings("relative_pose", {"position_threshold": 10.0, "rotation_threshold": 30.0}, 0.1, None)
+RELATIVE_POSE = TrainingRelevanceSettings("relative_pose", {"position_threshold": 10.0, "rotation_threshold": 30.0}, "unrelated", 0.1, None)
 
 
 @pytest.fixture(scope="module")
@@ -49,6 +51,8 @@ def test_relative_pose_training_pairs_against_a_direct_computation(scene):
     overlap = pairwise_overlap_radii(frusta, frusta) > 0
     np.testing.assert_array_equal(pairs.related.toarray(), overlap | relevant)
     assert relevant.any() and (~overlap).any()  # both positives and surely unrelated pairs exist
+    strict = training_pairs(database, dataclasses.replace(RELATIVE_POSE, negatives="not_relevant"), far=25.0)
+    np.testing.assert_array_equal(strict.related.toarray(), relevant)  # every pair not relevant may be a negative
 
 
 def test_batches_hold_anchors_with_positives_and_only_surely_unrelated_negatives(scene):

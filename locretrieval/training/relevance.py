@@ -29,11 +29,14 @@ PAIRS_PER_CHUNK = 1 << 18
 @dataclass
 class TrainingRelevanceSettings:
     """The ``train_relevance`` config group: ``type`` (``relative_pose`` or ``frustum``) and its
-    parameters (the ground-truth definition's), and the frusta (``near``, ``far`` metres; ``far``
-    ``None``: the scene's) that decide which pairs are surely unrelated."""
+    parameters (the ground-truth definition's); ``negatives``: ``unrelated`` (pairs whose frusta,
+    truncated at ``near``/``far`` metres, ``far`` ``None``: the scene's, do not overlap) or
+    ``not_relevant`` (every pair that is not relevant, ambiguous ones included: harder batches,
+    at the risk of pushing apart views of one place)."""
 
     type: str
     parameters: dict
+    negatives: str
     near: float
     far: float | None
 
@@ -43,16 +46,19 @@ class TrainingRelevanceSettings:
         self.parameters = dict(self.parameters)
         RELEVANCE_TYPES[self.type](**self.parameters)  # range checks of the definition
         require(self.near > 0, "near", f"must be a positive depth in metres, got {self.near}")
+        require(self.negatives in NEGATIVES, "negatives", f"must be one of {list(NEGATIVES)}, got {self.negatives!r}")
 
 
 RELEVANCE_TYPES = {"relative_pose": RelativePoseDefinition, "frustum": FrustumDefinition}
+NEGATIVES = ("unrelated", "not_relevant")
 
 
 @dataclass(frozen=True)
 class TrainingPairs:
     """``graded [N, N]`` (sparse float): the relevance score of each relevant pair (> 0), the
-    diagonal empty; ``related [N, N]`` (sparse bool): pairs that are relevant or whose frusta
-    overlap. Negatives are the pairs outside ``related`` (and off the diagonal)."""
+    diagonal empty; ``related [N, N]`` (sparse bool): pairs that may not serve as negatives
+    (relevant ones, and those whose frusta overlap unless negatives are ``not_relevant``).
+    Negatives are the pairs outside ``related`` (and off the diagonal)."""
 
     graded: sparse.csr_matrix
     related: sparse.csr_matrix
@@ -92,7 +98,8 @@ def training_pairs(images: ImageSet, settings: TrainingRelevanceSettings, far: f
         graded = _graded(images, rows, overlap, settings, far)
         graded[rows - start, rows] = 0.0
         graded_blocks.append(sparse.csr_matrix(graded))
-        related_blocks.append(sparse.csr_matrix((overlap > 0) | (graded > 0)))
+        related = graded > 0 if settings.negatives == "not_relevant" else (overlap > 0) | (graded > 0)
+        related_blocks.append(sparse.csr_matrix(related))
     return TrainingPairs(sparse.vstack(graded_blocks).tocsr(), sparse.vstack(related_blocks).tocsr())
 
 
