@@ -6,6 +6,7 @@ import dataclasses
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
@@ -135,6 +136,8 @@ def test_resuming_from_the_last_checkpoint_continues_the_same_curve(tmp_path):
     common = ("training.augment.blur_probability=0", "training.augment.brightness=0", "training.augment.contrast=0",
               "training.augment.saturation=0", "training.augment.hue=0", "trainer.deterministic=true")
     straight = train(train_config(tmp_path / "straight", *common, "trainer.max_epochs=2"), tmp_path / "straight" / "run")
+    checkpoints = tmp_path / "straight" / "run" / "checkpoints"
+    assert torch.load(checkpoints / "last.ckpt", weights_only=False)["epoch"] == 1  # the last epoch, whichever was best
     first = train_config(tmp_path / "resumed", *common, "trainer.max_epochs=1")
     train(first, tmp_path / "resumed" / "run")
     last = tmp_path / "resumed" / "run" / "checkpoints" / "last.ckpt"
