@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from locretrieval.training.losses import LOSSES, APLoss, ContrastiveLoss, ListwiseLoss, TripletLoss
+from locretrieval.training.losses import APLoss, ContrastiveLoss, ListwiseLoss, TripletLoss
+
+LOSSES = {"ap": APLoss, "triplet": TripletLoss, "contrastive": ContrastiveLoss, "listwise": ListwiseLoss}
 
 SETTINGS = [("ap", {"bins": 20}), ("triplet", {"margin": 0.1}), ("triplet", {"margin": 0.1, "max_triplets_per_anchor": 2}),
             ("contrastive", {"pos_margin": 0.8, "neg_margin": 0.3}),

@@ -186,3 +186,27 @@ def test_extra_rendered_scenes_are_trained_on_with_their_queries_and_never_the_v
     itself = train_config(tmp_path, f"training.extra_renders=[{{seed: {SCENE['seed']}}}]")
     with pytest.raises(ValueError, match="renders the validation scene itself"):
         training_scenes(itself, validation_scene, validated(TrainingSettings, itself.training, "training"))
+
+
+def test_hard_negatives_are_the_highest_ranked_unrelated_images_by_the_current_network(scene):
+    from types import SimpleNamespace
+
+    from locretrieval.models import NetworkDescriptor
+    from locretrieval.models.extraction import ExtractionSettings, Preprocessing
+    from locretrieval.models.networks import GeMPooling, RetrievalNet
+    from locretrieval.training.callbacks import HardNegativeMining
+
+    torch.manual_seed(0)
+    network = RetrievalNet(torch.nn.Sequential(torch.nn.Conv2d(3, 16, 5, stride=2), torch.nn.ReLU()), GeMPooling(3.0), 16)
+    pairs = training_pairs(scene.database, RELATIVE_POSE, far=25.0)
+    sampler = RelevanceBatchSampler(pairs, BatchSettings(anchors=4, negatives=4, batches_per_epoch=1), seed=0)
+    preprocessing = Preprocessing(max_side=None, scales=(1.0,))
+    extraction = ExtractionSettings("cpu", 8, 0, False, False, None)
+    mining = HardNegativeMining([scene.database], pairs, sampler, every=1, per_anchor=3, preprocessing=preprocessing, extraction=extraction)
+    mining.on_train_epoch_start(SimpleNamespace(current_epoch=1), SimpleNamespace(network=network))
+    descriptors = NetworkDescriptor("check", network, preprocessing, extraction).describe(scene.database)
+    related = pairs.related.toarray()
+    for anchor in sampler.anchors:
+        similarity = descriptors @ descriptors[anchor]
+        allowed = [i for i in np.argsort(-similarity, kind="stable") if i != anchor and not related[anchor, i]]
+        assert set(sampler.hard[int(anchor)].tolist()) == set(allowed[:3])

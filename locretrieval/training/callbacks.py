@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Collection, Mapping
+from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 
 import lightning as L
@@ -16,10 +16,12 @@ from locretrieval.benchmark import BenchmarkResult, BenchmarkSettings, benchmark
 from locretrieval.groundtruth import GroundTruth
 from locretrieval.models import NetworkDescriptor
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
-from locretrieval.retrieval import Ranking
+from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.retrieval.index import search
-from locretrieval.scene import Scene
+from locretrieval.training.data import RelevanceBatchSampler
+from locretrieval.training.relevance import TrainingPairs
+from locretrieval.scene import ImageSet, Scene
 
 log = logging.getLogger(__name__)
 
@@ -88,9 +90,8 @@ class LocalizationValidation(L.Callback):
         """The benchmark of ``network`` (a `RetrievalNet`) on the validation scene."""
         model = NetworkDescriptor(TRAINED, network, self.preprocessing, self.extraction)
         described = describe_scene(model, self.scene, cache_dir=None)
-        retrieval = self.settings.retrieval
-        ranking = search(described.queries, described.database, retrieval.depth, TRAINED, retrieval.chunk_size)
-        return benchmark(self.scene, [ranking], self._settings(with_sfm), self.subsets, self.cache_dir, relevances(self.groundtruths))
+        rankings = build_rankings(self.scene, {TRAINED: described}, {}, self.settings.retrieval, random_seed=None)
+        return benchmark(self.scene, rankings, self._settings(with_sfm), self.subsets, self.cache_dir, relevances(self.groundtruths))
 
     def _references(self) -> list[Ranking]:
         return build_rankings(self.scene, {}, self.groundtruths, self.settings.retrieval, self.random_seed)
@@ -111,22 +112,23 @@ class LocalizationValidation(L.Callback):
                 log.info("reference %s: %s", name, headline(metrics))
                 if trainer.logger is not None:
                     trainer.logger.log_metrics({k.replace("val/", f"reference/{name}/"): v for k, v in metrics.items()}, step=0)
-        self._record(trainer, pl_module, epoch=-1, log_now=False)
+        metrics = self._record(pl_module, epoch=-1)
+        if trainer.logger is not None:  # before training: no pl_module.log outside the loop
+            trainer.logger.log_metrics(metrics, step=trainer.global_step)
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         epoch = trainer.current_epoch
         if (epoch + 1) % self.every_n_epochs:
             return
-        metrics = self._record(trainer, pl_module, epoch) if trainer.is_global_zero else None
+        metrics = self._record(pl_module, epoch) if trainer.is_global_zero else None
         metrics = trainer.strategy.broadcast(metrics, src=0)  # every rank logs them: checkpointing monitors them
         for key, value in metrics.items():
             pl_module.log(key, value)
 
-    def _record(self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int, log_now: bool = True) -> dict[str, float]:
+    def _record(self, pl_module: L.LightningModule, epoch: int) -> dict[str, float]:
+        """Validate the module's network after ``epoch`` (-1: before training), keep and print the metrics."""
         metrics = metric_rows(self.validate(pl_module.network, self._wants_sfm(epoch)), TRAINED, self.settings.paradigms.ks())
         self.history.append({"epoch": epoch, **metrics})
-        if not log_now and trainer.logger is not None:
-            trainer.logger.log_metrics(metrics, step=trainer.global_step)
         log.info("validation after epoch %d:\n%s", epoch, headline_table({TRAINED: metrics, **self.reference}))
         return metrics
 
@@ -157,3 +159,31 @@ def headline_table(rankings: Mapping[str, Mapping[str, float]]) -> str:
     """The `HEADLINE` metrics of several rankings as a console table (rankings as rows)."""
     table = pd.DataFrame({name: {key.removeprefix("val/"): metrics.get(key) for key in HEADLINE} for name, metrics in rankings.items()}).T
     return table.dropna(axis=1, how="all").to_string(float_format=lambda value: f"{value:.3g}")
+
+
+class HardNegativeMining(L.Callback):
+    """Every ``every`` epochs, describe the training images with the current network and give the
+    sampler each anchor's ``per_anchor`` highest-ranked images among those it may be pushed from."""
+
+    def __init__(self, sets: Sequence[ImageSet], pairs: TrainingPairs, sampler: RelevanceBatchSampler, every: int,
+                 per_anchor: int, preprocessing: Preprocessing, extraction: ExtractionSettings) -> None:
+        self.sets, self.pairs, self.sampler = list(sets), pairs, sampler
+        self.every, self.per_anchor = every, per_anchor
+        self.preprocessing, self.extraction = preprocessing, extraction
+
+    def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if trainer.current_epoch == 0 or trainer.current_epoch % self.every:
+            return
+        model = NetworkDescriptor("mining", pl_module.network, self.preprocessing, self.extraction)
+        descriptors = np.concatenate([model.describe(images) for images in self.sets])
+        anchors = self.sampler.anchors
+        related = np.diff(self.pairs.related.indptr)
+        depth = min(len(descriptors), self.per_anchor + 1 + int(related[anchors].max()))
+        top = search(descriptors[anchors], descriptors, depth, "mining", 4096).indices
+        valid = top != EMPTY
+        safe = np.where(valid, top, anchors[:, None])
+        negative = valid & (safe != anchors[:, None]) & ~self.pairs.related[anchors[:, None], safe].toarray().astype(bool)
+        rank = np.cumsum(negative, axis=1)  # keep the first per_anchor negatives of each row
+        keep = negative & (rank <= self.per_anchor)
+        self.sampler.set_hard_negatives({int(a): top[row][keep[row]] for row, a in enumerate(anchors)})
+        log.info("hard negatives mined for %d anchors", len(anchors))

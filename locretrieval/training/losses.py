@@ -164,6 +164,3 @@ class ListwiseLoss(nn.Module):
         log_predicted = torch.log_softmax((similarity / self.temperature).masked_fill(excluded, float("-inf")), dim=1)
         return -(target * log_predicted.masked_fill(excluded, 0.0)).sum(1).mean()
 
-
-#: Losses by config name (``loss=<name>``).
-LOSSES = {"ap": APLoss, "triplet": TripletLoss, "contrastive": ContrastiveLoss, "listwise": ListwiseLoss}

@@ -10,8 +10,8 @@ from typing import Any
 import lightning as L
 import torch
 
-from locretrieval.models.extraction import Preprocessing
-from locretrieval.models.networks import RetrievalNet, l2_normalize
+from locretrieval.models.extraction import Preprocessing, describe_batch
+from locretrieval.models.networks import RetrievalNet
 from locretrieval.models.weights import CHECKPOINT_FORMAT, EMBEDDED_CHECKPOINT_KEY, plain
 
 class RetrievalTraining(L.LightningModule):
@@ -44,8 +44,9 @@ class RetrievalTraining(L.LightningModule):
         self.model_name, self.architecture = model, plain(dict(architecture))
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        """Unit descriptors ``[B, D]`` of ``uint8 [B, 3, H, W]`` images (one scale, as trained)."""
-        return self.network.finalize(l2_normalize(self.forward_network(self.preprocessing.normalize(images)).float()))
+        """Unit descriptors ``[B, D]`` of ``uint8 [B, 3, H, W]`` images, computed as extraction does
+        (normalisation, every scale of ``preprocessing``), with gradients."""
+        return describe_batch(self.forward_network, images, self.preprocessing)
 
     def on_fit_start(self) -> None:
         # Gradients of the margin losses drive activations into denormal floats, which CPUs

@@ -90,12 +90,14 @@ def training_pairs(images: ImageSet, settings: TrainingRelevanceSettings, far: f
         raise ValueError(f"training images need poses; without: {missing}")
     count = len(images)
     frusta = TruncatedFrusta.of_images(images, np.arange(count), settings.near, far)
+    scored = _definition_frusta(images, settings, far, frusta)
     graded_blocks, related_blocks = [], []
     rows_per_chunk = max(1, PAIRS_PER_CHUNK // count)
     for start in range(0, count, rows_per_chunk):
         rows = np.arange(start, min(count, start + rows_per_chunk))
         overlap = pairwise_overlap_radii(frusta[rows], frusta)
-        graded = _graded(images, rows, overlap, settings, far)
+        definition_overlap = overlap if scored is frusta or scored is None else pairwise_overlap_radii(scored[rows], scored)
+        graded = _graded(images, rows, definition_overlap, settings)
         graded[rows - start, rows] = 0.0
         graded_blocks.append(sparse.csr_matrix(graded))
         related = graded > 0 if settings.negatives == "not_relevant" else (overlap > 0) | (graded > 0)
@@ -103,15 +105,24 @@ def training_pairs(images: ImageSet, settings: TrainingRelevanceSettings, far: f
     return TrainingPairs(sparse.vstack(graded_blocks).tocsr(), sparse.vstack(related_blocks).tocsr())
 
 
-def _graded(images: ImageSet, rows: np.ndarray, overlap: np.ndarray, settings: TrainingRelevanceSettings, far: float) -> np.ndarray:
-    """Graded relevance ``[len(rows), N]`` of a block of images against all."""
+def _definition_frusta(images: ImageSet, settings: TrainingRelevanceSettings, far: float, frusta: TruncatedFrusta) -> TruncatedFrusta | None:
+    """The frusta a frustum definition scores with: ``frusta`` when its planes are the same
+    (``far`` ``None``: the scene's); ``None`` for other definitions."""
+    if settings.type != "frustum":
+        return None
+    definition = FrustumDefinition(**settings.parameters)
+    planes = (definition.near, definition.far if definition.far is not None else far)
+    if planes == (settings.near, far):
+        return frusta
+    return TruncatedFrusta.of_images(images, np.arange(len(images)), *planes)
+
+
+def _graded(images: ImageSet, rows: np.ndarray, overlap: np.ndarray, settings: TrainingRelevanceSettings) -> np.ndarray:
+    """Graded relevance ``[len(rows), N]`` of a block of images against all; ``overlap``: the
+    block's frustum-overlap radii with the definition's planes (frustum definitions)."""
     parameters = settings.parameters
     if settings.type == "frustum":
-        definition = FrustumDefinition(**parameters)
-        if definition.far is not None and definition.far != far:
-            block = TruncatedFrusta.of_images(images, rows, definition.near, definition.far)
-            overlap = pairwise_overlap_radii(block, TruncatedFrusta.of_images(images, np.arange(len(images)), definition.near, definition.far))
-        return np.where(overlap > definition.min_radius, overlap, 0.0)
+        return np.where(overlap > FrustumDefinition(**parameters).min_radius, overlap, 0.0)
     definition = RelativePoseDefinition(**parameters)
     score, position, rotation = relative_pose_scores(
         images.qvec[rows], images.centers[rows], images.qvec, images.centers,

@@ -16,12 +16,10 @@ from scipy import sparse
 from locretrieval.benchmark import BenchmarkSettings
 from locretrieval.config import require, validated
 from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths
-from locretrieval.models.extraction import ExtractionSettings
-from locretrieval.retrieval.index import search
 from locretrieval.scene import Scene
 from locretrieval.scene.datasets import load_synthetic_dataset
 from locretrieval.scene.kapture_io import concatenate_image_sets
-from locretrieval.training.callbacks import LocalizationValidation
+from locretrieval.training.callbacks import HardNegativeMining, LocalizationValidation
 from locretrieval.training.data import AugmentSettings, BatchSettings, RelevanceBatchSampler, TrainingData
 from locretrieval.training.module import RetrievalTraining
 from locretrieval.training.relevance import TrainingPairs, TrainingRelevanceSettings, training_pairs
@@ -92,33 +90,6 @@ def combined_pairs(sets: list, relevance: TrainingRelevanceSettings, far: float)
                          sparse.block_diag([p.related for p in pairs], format="csr"))
 
 
-class HardNegativeMining(L.Callback):
-    """Every ``every`` epochs, describe the training images with the current network and give the
-    sampler each anchor's ``per_anchor`` highest-ranked surely unrelated images."""
-
-    def __init__(self, sets: list, pairs: TrainingPairs, sampler: RelevanceBatchSampler, every: int, per_anchor: int,
-                 preprocessing, extraction: ExtractionSettings) -> None:
-        self.sets, self.pairs, self.sampler = sets, pairs, sampler
-        self.every, self.per_anchor = every, per_anchor
-        self.preprocessing, self.extraction = preprocessing, extraction
-
-    def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if trainer.current_epoch == 0 or trainer.current_epoch % self.every:
-            return
-        from locretrieval.models import NetworkDescriptor
-
-        model = NetworkDescriptor("mining", pl_module.network, self.preprocessing, self.extraction)
-        descriptors = np.concatenate([model.describe(images) for images in self.sets])
-        depth = min(len(descriptors), self.per_anchor + 1 + int(np.diff(self.pairs.related.indptr).max()))
-        ranking = search(descriptors, descriptors, depth, "mining", 4096)
-        hard = {}
-        for anchor in self.sampler.anchors:
-            related = set(self.pairs.related[anchor].indices) | {int(anchor)}
-            hard[int(anchor)] = np.array([i for i in ranking.indices[anchor] if i >= 0 and int(i) not in related][: self.per_anchor])
-        self.sampler.set_hard_negatives(hard)
-        log.info("hard negatives mined for %d anchors", len(hard))
-
-
 def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     """Train the configured model; returns the validation callback (its ``history``)."""
     L.seed_everything(int(cfg.seed), workers=True)
@@ -152,7 +123,7 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     module = RetrievalTraining(
         network, preprocessing, instantiate(cfg.loss), instantiate(cfg.optimizer),
         instantiate(cfg.scheduler) if cfg.get("scheduler") else None,
-        "trainable", descriptor.architecture, training.compile,
+        descriptor.model, descriptor.architecture, training.compile,
     )
     callbacks = [validator, *(instantiate(c) for c in (cfg.callbacks or {}).values())]
     if training.hard_negatives_every:
