@@ -16,8 +16,8 @@ from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 from locretrieval.training.data import BatchSettings, RelevanceBatchSampler
-from locretrieval.training.relevance import TrainingRelevanceSettings, training_pairs
-from locretrieval.training.run import combined_pairs, train
+from locretrieval.training.relevance import TrainingRelevanceSettings, combined_pairs, training_pairs
+from locretrieval.training.run import train
 from locretrieval.training.callbacks import TRAINED, metric_rows
 from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
 from locretrieval.config import validated

@@ -12,6 +12,7 @@ are neither are ambiguous and ignored by every loss.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -130,3 +131,11 @@ def _graded(images: ImageSet, rows: np.ndarray, overlap: np.ndarray, settings: T
     )
     relevant = (position < definition.position_threshold) & (rotation < definition.rotation_threshold)
     return np.where(relevant, 1.0 - score / 2.0, 0.0)  # s < 2 inside both thresholds: (0, 1]
+
+
+def combined_pairs(sets: Sequence[ImageSet], settings: TrainingRelevanceSettings, far: float) -> TrainingPairs:
+    """Training pairs of several image sets, in order; images of different sets (other worlds,
+    e.g. separately rendered scenes) are unrelated."""
+    pairs = [training_pairs(images, settings, far) for images in sets]
+    return TrainingPairs(sparse.block_diag([p.graded for p in pairs], format="csr"),
+                         sparse.block_diag([p.related for p in pairs], format="csr"))

@@ -11,7 +11,6 @@ import lightning as L
 import numpy as np
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
-from scipy import sparse
 
 from locretrieval.benchmark import BenchmarkSettings
 from locretrieval.config import require, validated
@@ -22,7 +21,7 @@ from locretrieval.scene.kapture_io import concatenate_image_sets
 from locretrieval.training.callbacks import HardNegativeMining, LocalizationValidation
 from locretrieval.training.data import AugmentSettings, BatchSettings, RelevanceBatchSampler, TrainingData
 from locretrieval.training.module import RetrievalTraining
-from locretrieval.training.relevance import TrainingPairs, TrainingRelevanceSettings, training_pairs
+from locretrieval.training.relevance import TrainingRelevanceSettings, combined_pairs
 from locretrieval.training.report import write_training_report
 
 log = logging.getLogger(__name__)
@@ -81,13 +80,6 @@ def training_scenes(cfg: DictConfig, scene: Scene, settings: TrainingSettings) -
                 raise ValueError(f"training.extra_renders {dict(override)} renders the validation scene itself")
             sets.append(concatenate_image_sets([extra.database, extra.queries]))  # one world: paired together
     return sets
-
-
-def combined_pairs(sets: list, relevance: TrainingRelevanceSettings, far: float) -> TrainingPairs:
-    """Training pairs of several image sets; images of different sets (other worlds) are unrelated."""
-    pairs = [training_pairs(images, relevance, far) for images in sets]
-    return TrainingPairs(sparse.block_diag([p.graded for p in pairs], format="csr"),
-                         sparse.block_diag([p.related for p in pairs], format="csr"))
 
 
 def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
