@@ -3,6 +3,7 @@
 import kapture.io.records as kapture_records
 import numpy as np
 import pytest
+from scipy import sparse
 from scipy.stats import spearmanr
 
 import helpers
@@ -10,16 +11,19 @@ import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
 from locretrieval.config import ConfigError
 from locretrieval.groundtruth import compute_groundtruths, frustum_groundtruth
-from locretrieval.groundtruth.co_observation import co_observation_groundtruth, shared_points
+from locretrieval.groundtruth.co_observation import co_observation_groundtruth, database_co_observations, shared_points
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.localization import matching
 from locretrieval.localization import pairs as pairs_module
 from locretrieval.localization.features import extract_features
+from locretrieval.localization.global_sfm import global_map
 from locretrieval.localization.pairs import PairSelection, database_pairs, overlapping_pairs
+from locretrieval.localization.sfm import SfmInputs
 from locretrieval.retrieval import EMPTY
 from locretrieval.scene import ImageSet, Scene
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
+from locretrieval.training.relevance import TrainingRelevanceSettings, training_pairs
 
 SCENE = {"width": 256, "height": 192, "num_database": 40, "num_queries": 8, "texture_size": 128, "length": 20.0,
          "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
@@ -175,3 +179,20 @@ def test_frustum_pairs_keep_radii_above_min_radius_like_the_frustum_groundtruth(
         selection(min_radius=-1.0)
     with pytest.raises(ValueError, match="max_per_image: must be >= 1"):
         selection(max_per_image=0)
+
+
+def test_database_co_observations_train_by_the_share_of_points_of_the_global_map(scene, cache):
+    world = Scene("tiny", scene.database, scene.database.subset(np.arange(0)))
+    counts = database_co_observations(world, SFM, cache).toarray()
+    observations = global_map(SfmInputs.prepare(world, SFM, cache), None, cache).observations  # the cached map
+    points = [set(ids[ids >= 0].tolist()) for ids in observations]
+    expected = np.array([[len(a & b) for b in points] for a in points])
+    np.testing.assert_array_equal(counts, expected)
+    assert (expected[~np.eye(len(points), dtype=bool)] >= 5).sum() > len(points)  # many pairs share points
+    settings = TrainingRelevanceSettings("co_observation", {"min_shared": 5}, "unrelated", 0.1, None)
+    graded = training_pairs(scene.database, settings, 25.0, sparse.csr_matrix(counts)).graded.toarray()
+    share = np.where(expected >= 5, expected / np.diag(expected)[:, None], 0.0)
+    np.fill_diagonal(share, 0.0)
+    np.testing.assert_allclose(graded, share)
+    with pytest.raises(ValueError, match="needs the shared 3D points of the 40 images"):
+        training_pairs(scene.database, settings, 25.0)

@@ -172,12 +172,14 @@ def test_two_process_cpu_ddp_smoke_run(tmp_path):
 
 
 def test_extra_rendered_scenes_are_trained_on_with_their_queries_and_never_the_validation_queries(tmp_path, scene):
-    from locretrieval.training.run import TrainingSettings, training_scenes
+    from locretrieval.training.run import TrainingSettings, training_worlds
 
     cfg = train_config(tmp_path, "training.extra_renders=[{seed: 7}]")
     validation_scene = instantiate(cfg.data)
     settings = validated(TrainingSettings, cfg.training, "training")
-    sets = training_scenes(cfg, validation_scene, settings)
+    worlds = training_worlds(cfg, validation_scene, settings)
+    assert all(len(world.queries) == 0 for world in worlds)
+    sets = [world.database for world in worlds]
     assert [len(images) for images in sets] == [24, 30]  # the validation database; the other world's database + queries
     assert not set(validation_scene.queries.paths) & {p for images in sets for p in images.paths}
     pairs = combined_pairs(sets, RELATIVE_POSE, far=25.0)
@@ -185,7 +187,7 @@ def test_extra_rendered_scenes_are_trained_on_with_their_queries_and_never_the_v
     assert graded[24:48, 48:].any()  # the extra scene's database and queries are paired with each other
     itself = train_config(tmp_path, f"training.extra_renders=[{{seed: {SCENE['seed']}}}]")
     with pytest.raises(ValueError, match="renders the validation scene itself"):
-        training_scenes(itself, validation_scene, validated(TrainingSettings, itself.training, "training"))
+        training_worlds(itself, validation_scene, validated(TrainingSettings, itself.training, "training"))
 
 
 def test_hard_negatives_are_the_highest_ranked_unrelated_images_by_the_current_network(scene):

@@ -25,12 +25,13 @@ from scipy import sparse
 from locretrieval.config import require
 from locretrieval.groundtruth.base import GroundTruth, groundtruth_from_scores
 from locretrieval.localization.features import extract_features
+from locretrieval.localization.global_sfm import global_map
 from locretrieval.localization.matching import PairMatcher
 from locretrieval.localization.pairs import database_pairs, overlapping_pairs
-from locretrieval.localization.sfm import SfmSettings
+from locretrieval.localization.sfm import SfmInputs, SfmSettings
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.localization.triangulation import triangulate_known_poses
-from locretrieval.scene import ImageSet
+from locretrieval.scene import ImageSet, Scene
 
 
 @dataclass
@@ -120,6 +121,14 @@ def shared_points(database: ImageSet, queries: ImageSet, cache_dir: Path, sfm: S
     observed = _incidence(joint.observed_points(), joint.num_points)
     counts = (observed[offset:] @ observed[:offset].T).tocoo()
     return sparse.csr_matrix((counts.data, (posed[counts.row], counts.col)), shape=(len(queries), len(database)))
+
+
+def database_co_observations(scene: Scene, sfm: SfmSettings, cache_dir: Path) -> sparse.csr_matrix:
+    """``[N, N]`` number of 3D points of the database's known-pose map (paradigm 2b's global map,
+    the same cache) observed by both database images; the diagonal: the points each observes."""
+    sparse_map = global_map(SfmInputs.prepare(scene, sfm, Path(cache_dir)), None, Path(cache_dir))
+    observed = _incidence(sparse_map.observed_points(), sparse_map.num_points)
+    return (observed @ observed.T).tocsr()
 
 
 def _incidence(points_per_image: list[np.ndarray], num_points: int) -> sparse.csr_matrix:

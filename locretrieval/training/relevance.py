@@ -2,7 +2,8 @@
 much, and which are surely unrelated.
 
 Every training image is ranked against every other (itself excluded) with a ground-truth
-definition of `locretrieval.groundtruth`. Pairs the definition calls relevant are positives,
+definition of `locretrieval.groundtruth`: relative pose, frustum overlap, or co-observation
+(3D points shared in the known-pose map of the training images, paradigm 2b's global map). Pairs the definition calls relevant are positives,
 with a graded score (higher: more relevant). Negatives come only from *surely unrelated*
 pairs: those whose viewing frusta (truncated at ``near``/``far`` metres) share no interior,
 whatever the definition, so that two views of the same place that a strict definition does
@@ -29,8 +30,9 @@ PAIRS_PER_CHUNK = 1 << 18
 
 @dataclass
 class TrainingRelevanceSettings:
-    """The ``train_relevance`` config group: ``type`` (``relative_pose`` or ``frustum``) and its
-    parameters (the ground-truth definition's); ``negatives``: ``unrelated`` (pairs whose frusta,
+    """The ``train_relevance`` config group: ``type`` (``relative_pose``, ``frustum`` or
+    ``co_observation``) and its parameters (the ground-truth definition's; co-observation:
+    `SharedPoints`); ``negatives``: ``unrelated`` (pairs whose frusta,
     truncated at ``near``/``far`` metres, ``far`` ``None``: the scene's, do not overlap) or
     ``not_relevant`` (every pair that is not relevant, ambiguous ones included: harder batches,
     at the risk of pushing apart views of one place)."""
@@ -42,15 +44,26 @@ class TrainingRelevanceSettings:
     far: float | None
 
     def __post_init__(self) -> None:
-        require(self.type in RELEVANCE_TYPES, "type", f"must be one of {sorted(RELEVANCE_TYPES)}, got {self.type!r}"
-                " (co-observation training relevance needs a joint SfM map of the training images: not built yet)")
+        require(self.type in RELEVANCE_TYPES, "type", f"must be one of {sorted(RELEVANCE_TYPES)}, got {self.type!r}")
         self.parameters = dict(self.parameters)
         RELEVANCE_TYPES[self.type](**self.parameters)  # range checks of the definition
         require(self.near > 0, "near", f"must be a positive depth in metres, got {self.near}")
         require(self.negatives in NEGATIVES, "negatives", f"must be one of {list(NEGATIVES)}, got {self.negatives!r}")
 
 
-RELEVANCE_TYPES = {"relative_pose": RelativePoseDefinition, "frustum": FrustumDefinition}
+@dataclass
+class SharedPoints:
+    """Co-observation training relevance: a pair is relevant when both images observe at least
+    ``min_shared`` 3D points of the map, graded by the share of the anchor's points the partner
+    also observes (in (0, 1])."""
+
+    min_shared: int
+
+    def __post_init__(self) -> None:
+        require(self.min_shared >= 1, "min_shared", f"must be >= 1 shared 3D point, got {self.min_shared}")
+
+
+RELEVANCE_TYPES = {"relative_pose": RelativePoseDefinition, "frustum": FrustumDefinition, "co_observation": SharedPoints}
 NEGATIVES = ("unrelated", "not_relevant")
 
 
@@ -82,14 +95,19 @@ class TrainingPairs:
         return relevance, negatives
 
 
-def training_pairs(images: ImageSet, settings: TrainingRelevanceSettings, far: float) -> TrainingPairs:
+def training_pairs(
+    images: ImageSet, settings: TrainingRelevanceSettings, far: float, shared_points: sparse.csr_matrix | None = None
+) -> TrainingPairs:
     """Relevance among ``images`` (all posed) by ``settings``; ``far`` (metres) is the resolved
     far plane of the frusta deciding surely unrelated pairs (and of a frustum definition whose
-    ``far`` is ``None``)."""
+    ``far`` is ``None``). Co-observation needs ``shared_points [N, N]``: the 3D points each pair
+    observes, the diagonal each image's own (`database_co_observations`)."""
     if not images.has_pose.all():
         missing = [n for n, posed in zip(images.names, images.has_pose) if not posed][:5]
         raise ValueError(f"training images need poses; without: {missing}")
     count = len(images)
+    if settings.type == "co_observation" and (shared_points is None or shared_points.shape != (count, count)):
+        raise ValueError(f"co-observation training relevance needs the shared 3D points of the {count} images")
     frusta = TruncatedFrusta.of_images(images, np.arange(count), settings.near, far)
     scored = _definition_frusta(images, settings, far, frusta)
     graded_blocks, related_blocks = [], []
@@ -98,7 +116,8 @@ def training_pairs(images: ImageSet, settings: TrainingRelevanceSettings, far: f
         rows = np.arange(start, min(count, start + rows_per_chunk))
         overlap = pairwise_overlap_radii(frusta[rows], frusta)
         definition_overlap = overlap if scored is frusta or scored is None else pairwise_overlap_radii(scored[rows], scored)
-        graded = _graded(images, rows, definition_overlap, settings)
+        graded = (_shared_share(shared_points, rows, SharedPoints(**settings.parameters).min_shared)
+                  if settings.type == "co_observation" else _graded(images, rows, definition_overlap, settings))
         graded[rows - start, rows] = 0.0
         graded_blocks.append(sparse.csr_matrix(graded))
         related = graded > 0 if settings.negatives == "not_relevant" else (overlap > 0) | (graded > 0)
@@ -133,9 +152,22 @@ def _graded(images: ImageSet, rows: np.ndarray, overlap: np.ndarray, settings: T
     return np.where(relevant, 1.0 - score / 2.0, 0.0)  # s < 2 inside both thresholds: (0, 1]
 
 
-def combined_pairs(sets: Sequence[ImageSet], settings: TrainingRelevanceSettings, far: float) -> TrainingPairs:
-    """Training pairs of several image sets, in order; images of different sets (other worlds,
-    e.g. separately rendered scenes) are unrelated."""
-    pairs = [training_pairs(images, settings, far) for images in sets]
+def _shared_share(shared_points: sparse.csr_matrix, rows: np.ndarray, min_shared: int) -> np.ndarray:
+    """``[len(rows), N]`` share of each row image's 3D points that the other image observes too,
+    where they share at least ``min_shared``."""
+    shared = shared_points[rows].toarray().astype(np.float64)
+    own = np.maximum(shared[np.arange(len(rows)), rows], 1.0)[:, None]
+    return np.where(shared >= min_shared, shared / own, 0.0)
+
+
+def combined_pairs(
+    sets: Sequence[ImageSet], settings: TrainingRelevanceSettings, far: float,
+    shared_points: Sequence[sparse.csr_matrix] | None = None,
+) -> TrainingPairs:
+    """Training pairs of several image sets, in order (``shared_points``: each set's, for
+    co-observation); images of different sets (other worlds, e.g. separately rendered scenes)
+    are unrelated."""
+    shared_points = shared_points or [None] * len(sets)
+    pairs = [training_pairs(images, settings, far, shared) for images, shared in zip(sets, shared_points, strict=True)]
     return TrainingPairs(sparse.block_diag([p.graded for p in pairs], format="csr"),
                          sparse.block_diag([p.related for p in pairs], format="csr"))

@@ -15,7 +15,8 @@ from omegaconf import DictConfig, OmegaConf
 from locretrieval.benchmark import BenchmarkSettings
 from locretrieval.config import require, validated
 from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths
-from locretrieval.scene import Scene
+from locretrieval.groundtruth.co_observation import database_co_observations
+from locretrieval.scene import ImageSet, Scene
 from locretrieval.scene.datasets import load_synthetic_dataset
 from locretrieval.scene.kapture_io import concatenate_image_sets
 from locretrieval.training.callbacks import HardNegativeMining, LocalizationValidation
@@ -66,9 +67,10 @@ class ValidationSettings:
         require(self.sfm_every_n_epochs is None or self.sfm_every_n_epochs >= 1, "sfm_every_n_epochs", "must be >= 1 or null")
 
 
-def training_scenes(cfg: DictConfig, scene: Scene, settings: TrainingSettings) -> list:
-    """Image sets trained on: the validation scene's database and/or separately rendered scenes."""
-    sets = [scene.database] if settings.validation_database else []
+def training_worlds(cfg: DictConfig, scene: Scene, settings: TrainingSettings) -> list[Scene]:
+    """Scenes whose databases are trained on, without queries: the validation scene's database
+    and/or separately rendered scenes (all their images)."""
+    worlds = [_without_queries(scene.name, scene.database, scene)] if settings.validation_database else []
     if settings.extra_renders:
         if "render" not in cfg.data:
             raise ValueError("training.extra_renders needs the synthetic data config (data=synthetic)")
@@ -78,8 +80,14 @@ def training_scenes(cfg: DictConfig, scene: Scene, settings: TrainingSettings) -
                                            ltvl_name_style="full", frustum_far=scene.frustum_far)
             if extra.database.fingerprint() == scene.database.fingerprint():
                 raise ValueError(f"training.extra_renders {dict(override)} renders the validation scene itself")
-            sets.append(concatenate_image_sets([extra.database, extra.queries]))  # one world: paired together
-    return sets
+            images = concatenate_image_sets([extra.database, extra.queries])  # one world: paired together
+            worlds.append(_without_queries(extra.name, images, scene))
+    return worlds
+
+
+def _without_queries(name: str, images: ImageSet, scene: Scene) -> Scene:
+    """A scene of ``images`` as its database, no queries, ``scene``'s dataset facts."""
+    return Scene(name, images, images.subset(np.arange(0)), ltvl_name_style=scene.ltvl_name_style, frustum_far=scene.frustum_far)
 
 
 def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
@@ -97,9 +105,12 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     scene: Scene = instantiate(cfg.data)
     descriptor = instantiate(cfg.model)  # the zoo model: network, preprocessing, weights checked
     network, preprocessing = descriptor.network.train(), descriptor.preprocessing
-    sets = training_scenes(cfg, scene, training)
+    worlds = training_worlds(cfg, scene, training)
+    sets = [world.database for world in worlds]
     far = scene.far_plane(relevance.far, "train_relevance.far")
-    pairs = combined_pairs(sets, relevance, far)
+    shared_points = ([database_co_observations(world, settings.sfm, cache_dir) for world in worlds]
+                     if relevance.type == "co_observation" else None)
+    pairs = combined_pairs(sets, relevance, far, shared_points)
     log.info("training on %d images (%d with a relevant partner), validating on %d queries of %s",
              pairs.num_images, int((np.diff(pairs.graded.indptr) > 0).sum()), len(scene.queries), scene.name)
     sampler = RelevanceBatchSampler(pairs, training.batch, int(cfg.seed))
