@@ -313,3 +313,57 @@ def test_ltvl_export_rejects_ambiguous_or_unwritable_names(tmp_path):
     with pytest.raises(ValueError, match="unknown LTVL name style 'short'"):
         write_ltvl(tmp_path / "a.txt", ["x.jpg", "z.jpg"], q, t, name_style="short")
     assert not (tmp_path / "a.txt").exists()
+
+
+def write_text_folder(root: Path, files: dict[str, str], images: dict[str, tuple[int, int]]) -> Path:
+    """A kapture folder written as text, line by line as NAVER's published datasets are (not by
+    the kapture library), with gray PNG images of the given (width, height)."""
+    for relative, text in files.items():
+        (root / relative).parent.mkdir(parents=True, exist_ok=True)
+        (root / relative).write_text(text)
+    for name, (width, height) in images.items():
+        path = root / "sensors" / "records_data" / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(np.full((height, width, 3), 128, np.uint8)).save(path)
+    return root
+
+
+HEADER = "# kapture format: 1.1\n"
+
+
+def test_published_layout_with_sensorless_rig_members_and_unused_records_loads_with_warnings(tmp_path, caplog):
+    # a rig describing more cameras than the recording uses (no sensors.txt line for cam_right),
+    # a lidar member, gnss/lidar sensors and records, a depth record whose file was not downloaded
+    cam_from_rig, T_cam_rig = pose("y", 90.0, [0.5, 0.0, 0.0])
+    rig_from_world, T_rig_world = pose("z", 30.0, [1.0, 2.0, 3.0])
+    q, t = cam_from_rig.r_raw, cam_from_rig.t_raw
+    rq, rt = rig_from_world.r_raw, rig_from_world.t_raw
+    mapping = write_text_folder(tmp_path / "mapping", {
+        "sensors/sensors.txt": HEADER + "# sensor_device_id, name, sensor_type, [sensor_params]+\n"
+        "cam_left, left, camera, SIMPLE_RADIAL, 32, 24, 30.0, 16.0, 12.0, 0.01\n"
+        "gps0, , gnss, EPSG:4326\nvelodyne, , lidar\nthermo, , thermometer\n",
+        "sensors/rigs.txt": HEADER + "# rig_device_id, sensor_device_id, qw, qx, qy, qz, tx, ty, tz\n"
+        f"car, cam_left, {', '.join(map(str, q))}, {', '.join(map(str, t))}\n"
+        "car, cam_right, 1, 0, 0, 0, -0.5, 0, 0\ncar, velodyne, 1, 0, 0, 0, 0, 0, 1.2\n",
+        "sensors/trajectories.txt": HEADER + "# timestamp, device_id, qw, qx, qy, qz, tx, ty, tz\n"
+        f"100, car, {', '.join(map(str, rq))}, {', '.join(map(str, rt))}\n",
+        "sensors/records_camera.txt": HEADER + "# timestamp, device_id, image_path\n100, cam_left, left/100.jpg\n",
+        "sensors/records_gnss.txt": HEADER + "# timestamp, device_id, x, y, z, utc, dop\n100, gps0, 2.3, 48.8, 35.0, 0, 1.0\n",
+        "sensors/records_lidar.txt": HEADER + "# timestamp, device_id, point_cloud_path\n100, velodyne, velodyne/100.pcd\n",
+        "sensors/records_depth.txt": HEADER + "# timestamp, device_id, depth_map_path\n100, cam_left_depth, left/100.depth\n",
+    }, {"left/100.jpg": (32, 24)})
+    query = write_text_folder(tmp_path / "query", {
+        "sensors/sensors.txt": HEADER + "q_left, , camera, SIMPLE_RADIAL, 32, 24, 30.0, 16.0, 12.0, 0.01\n",
+        "sensors/rigs.txt": HEADER + "q_car, q_left, 1, 0, 0, 0, 0, 0, 0\nq_car, q_right, 1, 0, 0, 0, -0.5, 0, 0\n",
+        "sensors/records_camera.txt": HEADER + "7, q_left, query/7.jpg\n",
+    }, {"query/7.jpg": (32, 24)})
+    scene = load_kapture_scene("published", [mapping], [query])
+    assert scene.database.names == ["left/100.jpg"] and scene.queries.names == ["query/7.jpg"]
+    assert_poses(scene.database, {"left/100.jpg": T_cam_rig @ T_rig_world})
+    assert scene.database.depth_paths is None and not scene.queries.has_pose.any()
+    warnings = caplog.text
+    assert "rigs.txt: 1 rig member(s) without a line in sensors/sensors.txt, unused: ['car/cam_right']" in warnings
+    assert "unused: ['q_car/q_right']" in warnings
+    assert "sensor types unknown to kapture, not used by the benchmark: ['thermometer']" in warnings
+    assert "records not used by the benchmark: ['records_gnss.txt', 'records_lidar.txt']" in warnings
+    assert f"{mapping / 'sensors/records_depth.txt'}: 1 depth record(s) left out" in warnings

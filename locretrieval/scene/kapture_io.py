@@ -38,8 +38,13 @@ TRAJECTORIES_FILE = Path(kapture_csv.CSV_FILENAMES[kapture.Trajectories])
 RECORDS_CAMERA_FILE = Path(kapture_csv.CSV_FILENAMES[kapture.RecordsCamera])
 RECORDS_DEPTH_FILE = Path(kapture_csv.CSV_FILENAMES[kapture.RecordsDepth])
 RECORDS_DATA_DIR = Path("sensors", "records_data")
+SENSORS_DIR = Path("sensors")
+#: Records files the benchmark reads; others (lidar, wifi, gnss, ...) are warned about.
+READ_RECORDS = {RECORDS_CAMERA_FILE.name, RECORDS_DEPTH_FILE.name}
 #: locretrieval extensions to the kapture layout (written by the synthetic renderer).
 TAGS_FILE = Path("tags.txt")
+#: Sensor types kapture defines (``kapture.SensorType``); others are warned about.
+KNOWN_SENSOR_TYPES = {sensor_type.name for sensor_type in kapture.SensorType}
 MASKS_DIR = Path("masks")
 #: Suffix of the depth sensor paired with a camera: ``<camera_id>_depth``.
 DEPTH_SENSOR_SUFFIX = "_depth"
@@ -144,6 +149,9 @@ def _check_sensors(path: Path) -> dict[str, CsvRow]:
     """Sensor id -> its line; camera and depth sensors must have a kapture model and its parameters."""
     rows = read_csv_rows(path, 3, None)
     _check_unique(rows, 1, "sensor id")
+    unknown = sorted({row.fields[2] for row in rows} - KNOWN_SENSOR_TYPES)
+    if unknown:
+        log.warning("%s: sensor types unknown to kapture, not used by the benchmark: %s", path, unknown)
     for row in rows:
         if row.fields[2] not in kapture.ALL_CAMERA_SENSOR_TYPES:
             continue
@@ -161,6 +169,8 @@ def _check_sensors(path: Path) -> dict[str, CsvRow]:
 
 
 def _check_rigs(path: Path, sensors: dict[str, CsvRow]) -> None:
+    """Rig lines must be well formed; members without a line in ``sensors.txt`` are allowed (a
+    rig may describe more cameras than a recording holds, as kapture allows) and warned about."""
     rows = read_csv_rows(path, 9, 9)
     _check_unique(rows, 2, "rig/sensor pair")
     rig_ids = {row.fields[0] for row in rows}
@@ -170,11 +180,12 @@ def _check_rigs(path: Path, sensors: dict[str, CsvRow]) -> None:
             raise row.error(f"rig id {rig_id!r} is also a sensor id in {sensors[rig_id].path}")
         if sensor_id in rig_ids:
             raise row.error(f"nested rig {sensor_id!r} in rig {rig_id!r} is not supported")
-        if sensor_id not in sensors:
-            raise row.error(f"rig {rig_id!r} holds sensor {sensor_id!r}, which is not in {SENSORS_FILE}")
         if not all(row.fields[2:]):
             raise row.error(f"rig {rig_id!r}: the pose of sensor {sensor_id!r} has empty fields")
     _check_poses(rows, 2)
+    absent = sorted({f"{row.fields[0]}/{row.fields[1]}" for row in rows if row.fields[1] not in sensors})
+    if absent:
+        log.warning("%s: %d rig member(s) without a line in %s, unused: %s", path, len(absent), SENSORS_FILE, absent[:10])
 
 
 def _check_trajectories(path: Path, devices: set[str]) -> None:
@@ -328,6 +339,28 @@ def _check_names(path: Path, names: Sequence[str]) -> None:
         raise ValueError(f"{path}: image names with whitespace cannot be exported for LTVL: {spaced[:3]}")
 
 
+def _depth_paths(root: Path, keys: Sequence[tuple[int, str]], sensors: dict[str, CsvRow]) -> list[Path | None] | None:
+    """Depth map of each image (``records_depth.txt``, sensor ``<camera>_depth`` at its
+    timestamp), or ``None`` without any. Depth is side data the benchmark does not use: entries
+    of unknown sensors or with missing files are warned about and left out (malformed lines are
+    still errors)."""
+    path = root / RECORDS_DEPTH_FILE
+    if not path.is_file():
+        return None
+    usable, skipped = {}, []
+    for row in read_csv_rows(path, 3, 3):
+        sensor = sensors.get(row.fields[1])
+        if sensor is None or sensor.fields[2] not in kapture.ALL_CAMERA_SENSOR_TYPES or not (root / RECORDS_DATA_DIR / row.fields[2]).is_file():
+            skipped.append(row)
+            continue
+        usable[(row.timestamp(), row.fields[1])] = root / RECORDS_DATA_DIR / row.fields[2]
+    if skipped:
+        log.warning("%s: %d depth record(s) left out (unknown sensor or missing file), e.g. line %d: %r",
+                    path, len(skipped), skipped[0].line, skipped[0].text)
+    paths = [usable.get((ts, camera + DEPTH_SENSOR_SUFFIX)) for ts, camera in keys]
+    return paths if any(paths) else None
+
+
 def load_image_set(kapture_root: str | Path, tag: str | None = None) -> ImageSet:
     """The images of one kapture folder, in (timestamp, sensor id) order.
 
@@ -355,14 +388,13 @@ def load_image_set(kapture_root: str | Path, tag: str | None = None) -> ImageSet
     has_trajectories = (root / TRAJECTORIES_FILE).is_file()
     if has_trajectories:
         _check_trajectories(root / TRAJECTORIES_FILE, set(sensors) | set(rigs))
-    has_depth = (root / RECORDS_DEPTH_FILE).is_file()
-    if has_depth:
-        _check_records(root / RECORDS_DEPTH_FILE, sensors, tuple(kapture.ALL_CAMERA_SENSOR_TYPES))
+    unused = sorted(path.name for path in (root / SENSORS_DIR).glob("records_*.txt") if path.name not in READ_RECORDS)
+    if unused:
+        log.warning("%s: records not used by the benchmark: %s", root / SENSORS_DIR, unused)
 
     kapture_sensors = kapture_csv.sensors_from_file(str(root / SENSORS_FILE))
     records_camera = kapture_csv.records_camera_from_file(str(root / RECORDS_CAMERA_FILE))
     trajectories = kapture_csv.trajectories_from_file(str(root / TRAJECTORIES_FILE)) if has_trajectories else kapture.Trajectories()
-    records_depth = kapture_csv.records_depth_from_file(str(root / RECORDS_DEPTH_FILE)) if has_depth else kapture.RecordsDepth()
 
     entries = list(kapture.flatten(records_camera, is_sorted=True))
     keys = [(ts, camera) for ts, camera, _ in entries]
@@ -377,11 +409,7 @@ def load_image_set(kapture_root: str | Path, tag: str | None = None) -> ImageSet
     _check_image_sizes(image_root, names, [cameras[c] for _, c in keys], [c for _, c in keys])
     qvec, tvec = _image_poses(keys, trajectories, rigs)
 
-    depth_names = [records_depth.get(ts, {}).get(camera + DEPTH_SENSOR_SUFFIX) for ts, camera in keys]
-    depth_paths = None
-    if any(depth_names):
-        _check_files_exist(image_root, [d for d in depth_names if d], "depth map")
-        depth_paths = [image_root / d if d else None for d in depth_names]
+    depth_paths = _depth_paths(root, keys, sensors)
     mask_paths = None
     if (root / MASKS_DIR).is_dir():
         masks = root / MASKS_DIR
