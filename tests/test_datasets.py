@@ -20,7 +20,7 @@ DATASETS = ["aachen", "baidu", "robotcar", "gangnam", "inloc"]
 
 def compose_data(dataset: str, *overrides: str):
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        return compose(overrides=[f"+data={dataset}", "+paths=default", *overrides])
+        return compose("evaluate", overrides=[f"data={dataset}", *overrides])
 
 
 @pytest.fixture(autouse=True)
@@ -45,6 +45,23 @@ def test_every_data_config_has_the_same_keys():
         assert cfg.ltvl_name_style in LTVL_NAME_STYLES
         assert cfg.frustum_far in (25.0, 50.0)
         assert cfg.root == "/d"
+
+
+@pytest.mark.parametrize(("dataset", "min_radius", "max_per_image"),
+                         [("aachen", 10.0, None), ("baidu", 10.0, None), ("robotcar", 0.0, 50), ("gangnam", 0.0, 50)])
+def test_data_configs_set_the_papers_settings(dataset, min_radius, max_per_image):
+    cfg = compose_data(dataset)
+    assert (cfg.sfm.map_pairs.min_radius, cfg.sfm.map_pairs.max_per_image) == (min_radius, max_per_image)
+    assert cfg.sfm.features.type == "kapture" and cfg.sfm.features.kapture.name == "r2d2_WASF-N8_20k"
+    # the reference registrator: COLMAP's image_registrator on two-view verified matches
+    assert (cfg.sfm.pnp.max_error, cfg.sfm.pnp.min_num_inliers, cfg.sfm.pnp.min_inlier_ratio) == (12.0, 30, 0.25)
+    assert cfg.sfm.matching.query_verification == "two_view"
+    assert cfg.sfm.triangulation == compose_data("synthetic").sfm.triangulation  # the rest: the defaults
+    assert compose_data(dataset, "sfm.map_pairs.max_per_image=7").sfm.map_pairs.max_per_image == 7  # the command line wins
+    own = compose_data(dataset, "sfm=default").sfm
+    assert own.pnp.min_num_inliers == 12 and own.map_pairs.min_radius == min_radius  # the paper's pairs stay
+    synthetic = compose_data("synthetic").sfm
+    assert synthetic.features.type == "sift" and synthetic.pnp.min_num_inliers == 12 and synthetic.map_pairs.max_per_image == 20
 
 
 @pytest.mark.parametrize("dataset", DATASETS)
