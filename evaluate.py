@@ -11,12 +11,13 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-import locretrieval  # noqa: F401  (imports zlib before pycolmap; see locretrieval/__init__.py)
-from locretrieval.evaluation import evaluate
+import locretrieval  # noqa: F401  (registers the config resolvers; imports zlib before pycolmap)
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="evaluate")
 def main(cfg: DictConfig) -> None:
+    from locretrieval.evaluation import evaluate  # here, so that `--help` imports none of the heavy modules
+
     evaluate(cfg, Path(HydraConfig.get().runtime.output_dir))
 
 

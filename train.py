@@ -11,12 +11,13 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-import locretrieval  # noqa: F401  (imports zlib before pycolmap; see locretrieval/__init__.py)
-from locretrieval.training.run import train
+import locretrieval  # noqa: F401  (registers the config resolvers; imports zlib before pycolmap)
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="train")
 def main(cfg: DictConfig) -> None:
+    from locretrieval.training.run import train  # here, so that `--help` imports none of the heavy modules
+
     train(cfg, Path(cfg.output_dir))
 
 

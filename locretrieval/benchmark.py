@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 from scipy import sparse
 
-from locretrieval.config import validated
+from locretrieval.config import ConfigError, validated
 from locretrieval.groundtruth import GroundTruth
 from locretrieval.localization import approximation, global_sfm, local_sfm
 from locretrieval.localization.approximation import ApproximationSettings
@@ -134,9 +134,37 @@ def check_unique_names(rankings: Sequence[Ranking]) -> None:
         raise ValueError(f"rankings {repeated} are named twice ({names}): rename the model (model.name=...)")
 
 
-def relevances(groundtruths: Mapping[str, GroundTruth]) -> dict[str, sparse.csr_matrix]:
-    """Each ground truth's ``[Q, N]`` relevance, by name."""
-    return {name: groundtruth.relevance for name, groundtruth in groundtruths.items()}
+#: Which relevant images the retrieval metrics count (`relevances`).
+RELEVANCE_SCOPES = ("top_k", "all")
+
+
+def check_supported(scene: Scene, names: Sequence[str]) -> None:
+    """Raise `ConfigError` when a paradigm or ground truth in ``names`` is one the scene's dataset
+    cannot run (`Scene.unsupported`), saying why and how to switch it off."""
+    refused = [f"{name}: {scene.unsupported[name]}" for name in names if name in scene.unsupported]
+    if refused:
+        raise ConfigError(f"dataset {scene.name!r} does not support " + "; ".join(refused)
+                          + " (switch it off, e.g. paradigms.<name>.enabled=false)")
+
+
+def warn_shallow_rankings(rankings: Sequence[Ranking], ks: Sequence[int]) -> None:
+    """Warn once about the ks beyond a ranking's depth: the paradigms use all its images, and
+    results keep the requested k as label (``k_effective`` says how many were used)."""
+    shallow = {r.name: r.depth for r in rankings if ks and r.depth < max(ks)}
+    if shallow:
+        beyond = sorted(k for k in ks if k > min(shallow.values()))
+        log.warning(
+            "k values %s exceed the images ranked per query %s: those k use them all; results, LTVL files and "
+            "figures keep the requested k, results.csv's k_effective holds the k used", beyond, shallow,
+        )
+
+
+def relevances(groundtruths: Mapping[str, GroundTruth], scope: str = "top_k") -> dict[str, sparse.csr_matrix]:
+    """Each ground truth's ``[Q, N]`` relevance, by name: of the images in its top-``depth``
+    ranking (``scope="top_k"``, the paper's) or of every database image (``"all"``)."""
+    if scope not in RELEVANCE_SCOPES:
+        raise ConfigError(f"groundtruth.relevance must be one of {list(RELEVANCE_SCOPES)}, got {scope!r}")
+    return {name: gt.relevance_in_ranking() if scope == "top_k" else gt.relevance for name, gt in groundtruths.items()}
 
 
 def scene_subsets(
@@ -162,16 +190,22 @@ def benchmark(
 ) -> BenchmarkResult:
     """Run every enabled paradigm on every ranking, then the localization and retrieval metrics.
 
+    Estimates and tables are labelled by the requested k, even beyond a ranking's depth (the
+    paradigms then use every ranked image; `PoseEstimates.k_effective`, logged once).
     ``subsets``: boolean query masks by name (``all`` at least); ``relevance``: ground-truth
     relevance by name, for the retrieval tables (none: empty tables). Writes no file.
     """
+    check_supported(scene, settings.paradigms.enabled())
+    warn_shallow_rankings(rankings, settings.paradigms.ks())
+    depths = {ranking.name: ranking.depth for ranking in rankings}
     estimates: list[PoseEstimates] = []
     for paradigm in settings.paradigms.enabled():
         paradigm_settings = getattr(settings.paradigms, paradigm)
         log.info("paradigm %s, k=%s", paradigm, paradigm_settings.k)
-        estimates += PARADIGMS[paradigm](scene, rankings, paradigm_settings, settings.sfm, cache_dir)
+        computed = PARADIGMS[paradigm](scene, rankings, paradigm_settings, settings.sfm, cache_dir)
+        estimates += [e.labelled(paradigm_settings.k, depths[e.ranking]) for e in computed]
     thresholds = settings.metrics.thresholds
-    localization = localization_table(scene.name, estimates, scene.queries, thresholds, subsets)
+    localization = localization_table(scene.name, estimates, scene.queries, thresholds, subsets, settings.metrics.inclusive)
     query_errors = query_error_table(scene.name, estimates, scene.queries)
     retrieval, query_retrieval = pd.DataFrame(), pd.DataFrame()
     if relevance:

@@ -11,8 +11,11 @@ error `validated` prefixes with the section's key.
 from __future__ import annotations
 
 import dataclasses
+import os
 import re
 import typing
+from collections.abc import Sequence
+from pathlib import Path
 from typing import Any, TypeVar
 
 from omegaconf import Container, DictConfig, OmegaConf
@@ -21,13 +24,28 @@ from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBas
 Schema = TypeVar("Schema")
 
 
-def first_set(*values):
-    """The first argument that is not null (``${first_set:${model.feature_name},precomputed}``)."""
-    return next((value for value in values if value is not None), None)
+def folder_label(folders: Sequence[str | os.PathLike]) -> str:
+    """The feature names of ``folders``, distinct ones joined by ``+``: their last component
+    (``.../reconstruction/global_features/AP-GeM-LM18`` -> ``AP-GeM-LM18``), the one before in
+    the downloader's layout (``.../global_features/AP-GeM-LM18/global_features`` -> ``AP-GeM-LM18``)."""
+
+    def label(folder: Path) -> str:
+        return folder.parent.name if folder.name == "global_features" and folder.parent.parent.name == "global_features" else folder.name
+
+    return "+".join(dict.fromkeys(label(Path(folder)) for folder in folders))
 
 
-if not OmegaConf.has_resolver("first_set"):
-    OmegaConf.register_new_resolver("first_set", first_set)
+def precomputed_name(path: Any, feature_name: str | None) -> str:
+    """``${precomputed_name:${model.path},${model.feature_name}}``, the ranking name of precomputed
+    features: the `folder_label` of ``path`` (a folder or a list), else ``feature_name``, else
+    ``precomputed`` (the one feature type of the scene's sources is found only once it loads)."""
+    if path is not None:
+        return folder_label([path] if isinstance(path, (str, os.PathLike)) else list(path))
+    return feature_name or "precomputed"
+
+
+if not OmegaConf.has_resolver("precomputed_name"):
+    OmegaConf.register_new_resolver("precomputed_name", precomputed_name)
 
 
 class ConfigError(ValueError):

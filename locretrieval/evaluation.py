@@ -8,15 +8,20 @@ import time
 from pathlib import Path
 
 import pandas as pd
-from hydra.utils import instantiate
+from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from locretrieval.benchmark import BenchmarkResult, BenchmarkSettings, benchmark, build_rankings, relevances, scene_subsets
+from locretrieval.benchmark import (
+    BenchmarkResult, BenchmarkSettings, benchmark, build_rankings, check_supported, relevances, scene_subsets,
+)
 from locretrieval.cache import save_arrays
 from locretrieval.config import validated
-from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths, statistics_table
+from locretrieval.groundtruth import DEFINITIONS, GroundTruthSettings, compute_groundtruths, statistics_table
+from locretrieval.localization.colmap_model import missing_model_files
+from locretrieval.localization.features import missing_kapture_features
 from locretrieval.metrics.localization import best_over_k
-from locretrieval.metrics.subsets import SubsetSettings
+from locretrieval.metrics.subsets import SubsetSettings, missing_mask_inputs
+from locretrieval.models.precomputed import PrecomputedDescriptor, missing_feature_folders
 from locretrieval.report import build_report
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.scene import Scene
@@ -28,7 +33,8 @@ log = logging.getLogger(__name__)
 def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     """Run the benchmark configured by ``cfg`` and write every output into ``output_dir``.
 
-    Every config section is checked before any work. Writes the tidy tables
+    Every config section, then every input file the run needs (`check_inputs`), is checked
+    before any work. Writes the tidy tables
     (``results.csv``, ``query_errors.csv.gz``, ``retrieval.csv``, ``query_retrieval.csv.gz``,
     ``groundtruth_statistics.csv``, ``subsets.csv``), the rankings, LTVL exports,
     ``summary.json`` and the report built from those tables. Returns the localization table.
@@ -42,6 +48,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     cache_dir = Path(cfg.paths.cache_dir)
     scene: Scene = instantiate(cfg.data)
     log.info("scene %s: %d database images, %d queries", scene.name, len(scene.database), len(scene.queries))
+    check_inputs(cfg, scene, settings, groundtruth_settings, subset_settings)
 
     model = instantiate(cfg.model)
     descriptors = describe_scene(model, scene, cache_dir)
@@ -53,7 +60,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     random_seed = int(cfg.seed) if cfg.baselines.random else None
     rankings = build_rankings(scene, {model.name: descriptors}, groundtruths, settings.retrieval, random_seed)
     subsets, subset_table = scene_subsets(scene, subset_settings, cache_dir, str(cfg.device))
-    result = benchmark(scene, rankings, settings, subsets, cache_dir, relevances(groundtruths))
+    result = benchmark(scene, rankings, settings, subsets, cache_dir, relevances(groundtruths, groundtruth_settings.relevance))
 
     write_tables(result, statistics_table(scene.name, groundtruths), subset_table, output_dir)
     exported = export_ltvl(scene, result, output_dir / "ltvl") if cfg.output.ltvl else 0
@@ -75,6 +82,52 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
         log.info("best %% localized over k, all queries:\n%s", best.to_string())
     log.info("results and report.md in %s", output_dir)
     return results
+
+
+def check_inputs(
+    cfg: DictConfig, scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings, subsets: SubsetSettings
+) -> None:
+    """Stop before the first expensive stage when inputs the run needs are missing: one
+    `FileNotFoundError` names them all (model weights or feature folders, kapture local
+    features, the COLMAP model, dynamic-object masks or their Mask R-CNN weights); before that,
+    a paradigm or ground truth the dataset does not support is a `ConfigError`."""
+    check_supported(scene, [*settings.paradigms.enabled(), *(kind for kind, _ in groundtruths.parsed().values())])
+    missing = [
+        *model_inputs(cfg.model, scene),
+        *local_feature_inputs(scene, settings, groundtruths),
+        *colmap_model_inputs(settings),
+        *missing_mask_inputs(scene.queries, subsets),
+    ]
+    if missing:
+        raise FileNotFoundError(f"{len(missing)} missing input(s); nothing was computed:\n" + "\n".join(f"- {m}" for m in missing))
+
+
+def model_inputs(model: DictConfig, scene: Scene) -> list[str]:
+    """The model's weight file (``model.weights``) or precomputed feature folders, if absent."""
+    if issubclass(get_class(model._target_), PrecomputedDescriptor):
+        key = "model.path" if model.path is not None else "model.feature_name"
+        return [f"{key}: {problem}" for problem in missing_feature_folders(model.path, model.feature_name, scene.sources)]
+    weights = model.get("weights")
+    return [f"model.weights: weight file {weights} not found"] if weights is not None and not Path(weights).exists() else []
+
+
+def local_feature_inputs(scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings) -> list[str]:
+    """The kapture local features (``sfm.features.type=kapture``) of both image sets, if an SfM
+    paradigm or a ground truth matching features needs them and some are absent."""
+    sfm_paradigms = settings.paradigms.local_sfm.enabled or settings.paradigms.global_sfm.enabled
+    sfm_groundtruth = any(DEFINITIONS[kind].uses_sfm for kind, _ in groundtruths.parsed().values())
+    if settings.sfm.features.type != "kapture" or not (sfm_paradigms or sfm_groundtruth):
+        return []
+    features = settings.sfm.features.kapture
+    return [f"sfm.features: {problem}" for images in (scene.database, scene.queries) for problem in missing_kapture_features(images, features)]
+
+
+def colmap_model_inputs(settings: BenchmarkSettings) -> list[str]:
+    """The files of ``paradigms.global_sfm.colmap_model``, if it is used and they are absent."""
+    global_sfm = settings.paradigms.global_sfm
+    if not (global_sfm.enabled and global_sfm.colmap_model):
+        return []
+    return [f"paradigms.global_sfm.colmap_model: {problem}" for problem in missing_model_files(global_sfm.colmap_model)]
 
 
 def write_tables(result: BenchmarkResult, groundtruth_statistics: pd.DataFrame, subset_table: pd.DataFrame, output_dir: Path) -> None:

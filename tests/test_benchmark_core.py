@@ -13,6 +13,7 @@ from torch import nn
 from helpers import evaluate_config
 from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
 from locretrieval.config import ConfigError
+from locretrieval.evaluation import export_ltvl
 from locretrieval.groundtruth import compute_groundtruths
 from locretrieval.models import NetworkDescriptor
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing, extract_descriptors
@@ -84,6 +85,33 @@ def test_the_core_benchmarks_a_network_in_memory_twice_without_disk_caches(scene
         top.append(ranking.indices)
     assert (top[0] != top[1]).any()
     assert list(tmp_path.iterdir()) == []  # no file written, no cache touched
+
+
+def test_a_k_beyond_the_ranking_depth_keeps_its_label_in_every_paradigm(scene, tmp_path, caplog):
+    cfg = evaluate_config("retrieval.depth=3", "paradigms.approximation.k=[1,5,8]", "paradigms.local_sfm.k=[2,5]",
+                          "paradigms.global_sfm.k=[1,5,8]", "sfm.workers=1", "paths.root_dir=/nonexistent")
+    settings = BenchmarkSettings.from_config(cfg)
+    groundtruths = compute_groundtruths(scene, {"depth": 3, "definitions": {"relative_pose": cfg.groundtruth.definitions.relative_pose}})
+    described = describe_scene(NetworkDescriptor("tiny", tiny_network(0), PREPROCESSING, EXTRACTION), scene, cache_dir=None)
+    rankings = build_rankings(scene, {"tiny": described}, groundtruths, settings.retrieval, random_seed=0)
+    assert {r.depth for r in rankings} == {3}
+    everyone = {"all": np.ones(len(scene.queries), dtype=bool)}
+    with caplog.at_level("WARNING"):
+        result = benchmark(scene, rankings, settings, everyone, tmp_path, relevances(groundtruths))
+    assert sum("exceed the images ranked per query" in r.getMessage() for r in caplog.records) == 1
+    labels = result.localization.drop_duplicates(["paradigm", "k"]).set_index(["paradigm", "k"])["k_effective"]
+    assert labels.to_dict() == {("approximation", 1): 1, ("approximation", 5): 3, ("approximation", 8): 3,
+                                ("local_sfm", 2): 2, ("local_sfm", 5): 3,
+                                ("global_sfm", 1): 1, ("global_sfm", 5): 3, ("global_sfm", 8): 3}  # fmt: skip
+    for e in result.estimates:
+        at = {k: n for n, k in enumerate(e.ks)}
+        if 8 in at:  # k=5 and k=8 both use the 3 ranked images, under their own labels
+            np.testing.assert_array_equal(e.tvec[at[5]], e.tvec[at[8]])
+    assert set(result.query_retrieval["k"]) == {1, 2, 5, 8}
+    export_ltvl(scene, result, tmp_path / "ltvl")
+    written = {path.name for path in (tmp_path / "ltvl" / "tiny").iterdir()}
+    assert {"approximation_ewb_k8.txt", "approximation_csi_k5.txt", "local_sfm_pnp_k5.txt", "global_sfm_pnp_k8.txt"} <= written
+    assert not any("_k3." in name for name in written)
 
 
 def test_one_parameter_changed_in_memory_gives_new_descriptors_not_the_cached_ones(scene, tmp_path):

@@ -11,6 +11,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 import locretrieval  # noqa: F401
+from helpers import evaluate_config
 from locretrieval.benchmark import ParadigmsSettings, check_unique_names
 from locretrieval.config import ConfigError, validated
 from locretrieval.evaluation import evaluate
@@ -45,7 +46,7 @@ def run(tmp_path_factory):
 
 
 RANKINGS = ("densevlad", "gt_relative_pose", "gt_frustum", "gt_co_observation", "random")
-K_PER_PARADIGM = {"approximation": set(KS), "local_sfm": {5, 10, 20}, "global_sfm": {1, 5, 10, 20, 32}}  # 50 > 32 images: clamped
+K_PER_PARADIGM = {"approximation": set(KS), "local_sfm": {5, 10, 20}, "global_sfm": {1, 5, 10, 20, 50}}  # 50 > 32 images: labelled 50
 
 
 def expected_methods():
@@ -60,6 +61,7 @@ def test_result_table_has_one_row_per_paradigm_method_k_threshold_and_subset(run
     assert set(zip(results["paradigm"], results["ranking"], results["method"])) == expected_methods()
     for paradigm, ks in K_PER_PARADIGM.items():
         assert set(results.loc[results["paradigm"] == paradigm, "k"]) == ks, paradigm
+    assert (results["k_effective"] == results["k"].clip(upper=32)).all()
     subsets = results["subset"].nunique()
     expected_rows = sum(len(K_PER_PARADIGM[p]) for p, _, _ in expected_methods()) * 3 * subsets
     assert len(results) == expected_rows
@@ -108,6 +110,31 @@ def test_multirun_from_the_command_line(run):
     text = (root / "report" / "report.md").read_text()
     # CSI's interpolated poses change with alpha: densevlad is reported once per setting
     assert "densevlad [paradigms.approximation.alpha=4]" in text and "densevlad [paradigms.approximation.alpha=8]" in text
+
+
+SMALL_SCENE = ["data.render.width=96", "data.render.height=72", "data.render.num_database=8", "data.render.num_queries=2",
+               "data.render.texture_size=64", "data.render.length=20.0", "data.render.workers=1"]
+
+
+def test_every_missing_input_is_named_in_one_error_before_any_work(tmp_path):
+    missing, cache = tmp_path / "missing", tmp_path / "cache"
+    paths = [f"paths.root_dir={tmp_path}", f"paths.cache_dir={cache}", *SMALL_SCENE]
+    overrides = ["model=precomputed", f"model.path={missing}/AP-GeM-LM18", "sfm.features.type=kapture",
+                 f"paradigms.global_sfm.colmap_model={missing}/sfm", "subsets.mask_source=maskrcnn",
+                 f"subsets.maskrcnn_weights={missing}/maskrcnn.pth"]  # fmt: skip
+    with pytest.raises(FileNotFoundError) as error:
+        evaluate(evaluate_config(*paths, *overrides), tmp_path / "run")
+    message = str(error.value)
+    scene = next((cache / "synthetic").iterdir())  # the rendered kapture folders: no local features
+    expected = [f"{missing}/AP-GeM-LM18/global_features.txt", f"{missing}/sfm not found", f"{missing}/maskrcnn.pth",
+                *(f"{scene / part}/reconstruction/{kind}/r2d2/{kind}.txt" for part in ("mapping", "query")
+                  for kind in ("keypoints", "descriptors"))]  # fmt: skip
+    assert message.startswith("7 missing input(s)") and all(path in message for path in expected), message
+    assert sorted(path.name for path in cache.iterdir()) == ["synthetic"]  # no descriptor, feature or ground truth
+    assert not (tmp_path / "run" / "results.csv").exists()
+    weights = f"{missing}/Pitts30K_struct.mat"
+    with pytest.raises(FileNotFoundError, match=f"1 missing input.*\n- model.weights: weight file {weights} not found"):
+        evaluate(evaluate_config(*paths, "model=netvlad", f"model.weights={weights}"), tmp_path / "run")
 
 
 def test_paradigm_sections_are_checked():

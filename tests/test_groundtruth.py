@@ -9,7 +9,8 @@ from scipy.spatial.transform import Rotation
 
 from locretrieval import chebyshev, geometry
 from locretrieval.chebyshev import chebyshev_radius
-from locretrieval.config import ConfigError
+from helpers import evaluate_config
+from locretrieval.config import ConfigError, validated
 from locretrieval.frusta import INITIAL_BASIS, TruncatedFrusta, may_overlap, overlap_radii
 from locretrieval.groundtruth import GroundTruth, compute_groundtruths
 from locretrieval.groundtruth import frustum_groundtruth as build_frustum
@@ -26,10 +27,11 @@ NEAR = 0.1
 FRUSTUM = {"near": NEAR, "min_radius": 0.0}
 
 
-def relative_pose_groundtruth(database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0):
-    """The relative-pose ground truth with the paper's thresholds unless given."""
+def relative_pose_groundtruth(database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0, ranked="all"):
+    """The relative-pose ground truth with the paper's thresholds unless given, every image ranked."""
     return build_relative_pose(
-        database, queries, depth=depth, position_threshold=position_threshold, rotation_threshold=rotation_threshold
+        database, queries, depth=depth, position_threshold=position_threshold, rotation_threshold=rotation_threshold,
+        ranked=ranked,
     )
 
 
@@ -127,12 +129,36 @@ def test_relative_pose_scores_order_and_relevance(pose_scene):
     assert gt.relevance.dtype == bool and gt.relevance.shape == (3, 5)
 
 
+def test_relative_pose_ranks_only_images_within_the_thresholds_by_default(pose_scene):
+    database, queries = pose_scene
+    gt = build_relative_pose(database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0)
+    # the reference pairing: query 0 ranks its 3 relevant images by s (d0 0.4, d4 0.644, d1 0.667)
+    assert gt.ranking.indices[0].tolist() == [0, 4, 1] + [EMPTY] * 2
+    assert gt.ranking.lengths.tolist() == [3, 0, 0]  # the far query: nothing within 25 m and 45 deg
+    assert (gt.relevance != relative_pose_groundtruth(database, queries).relevance).nnz == 0  # relevance unchanged
+    with pytest.raises(ValueError, match="ranked: must be one of"):
+        build_relative_pose(database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0, ranked="some")
+
+
 def test_relative_pose_thresholds_and_depth(pose_scene):
     database, queries = pose_scene
     gt = relative_pose_groundtruth(database, queries, depth=2, position_threshold=12.0, rotation_threshold=25.0)
     # s = c/12 + R/25: d0 0.833, d4 1.217, d1 1.2, d3 2.5, d2 4.07; relevant: c < 12 and R < 25.
     assert gt.ranking.indices[0].tolist() == [0, 1]
     assert gt.relevance[0].indices.tolist() == [0, 4]
+
+
+def test_retrieval_relevance_is_that_of_the_top_depth_ranking_unless_all(pose_scene):
+    from locretrieval.benchmark import relevances
+
+    database, queries = pose_scene
+    gt = relative_pose_groundtruth(database, queries, depth=2)  # query 0: relevant d0, d1, d4; top 2: d0, d4
+    top = relevances({"rp": gt})["rp"]
+    assert top.dtype == bool and top.shape == gt.relevance.shape
+    assert top[0].indices.tolist() == [0, 4] and top[1].nnz == 0 and top[2].nnz == 0  # the paper: reduced to the top k
+    assert relevances({"rp": gt}, "all")["rp"][0].indices.tolist() == [0, 1, 4]
+    with pytest.raises(ConfigError, match="groundtruth.relevance must be one of"):
+        relevances({"rp": gt}, "some")
 
 
 def test_relative_pose_ignores_quaternion_signs(pose_scene):
@@ -285,8 +311,8 @@ def test_bad_planes_and_unposed_database_images_are_rejected(pose_scene):
 
 def test_compute_groundtruths_reads_the_default_config(pose_scene, tmp_path):
     defaults = OmegaConf.load("configs/groundtruth/default.yaml")
-    assert "co_observation" in defaults.definitions  # needs SfM settings; tested in test_co_observation
-    del defaults.definitions["co_observation"]
+    assert "co_observation" in defaults.enabled  # needs SfM settings; tested in test_co_observation
+    defaults.enabled.remove("co_observation")
     cfg = OmegaConf.merge({"retrieval": {"depth": 50}}, {"groundtruth": defaults})
     database, queries = pose_scene
     scene = Scene("poses", database, queries, frustum_far=30.0)  # the frustum's far: null is the scene's
@@ -295,6 +321,25 @@ def test_compute_groundtruths_reads_the_default_config(pose_scene, tmp_path):
     assert groundtruths["frustum"].name == "gt_frustum"
     direct = frustum_groundtruth(database, queries, far=30.0)
     np.testing.assert_array_equal(groundtruths["frustum"].ranking.indices, direct.ranking.indices)
+
+
+def test_ground_truths_are_switched_off_and_picked_through_hydra(pose_scene):
+    scene = Scene("poses", *pose_scene, frustum_far=30.0)
+
+    def settings(*overrides: str) -> compute.GroundTruthSettings:
+        cfg = evaluate_config("paths.root_dir=/nonexistent", *overrides)
+        return validated(compute.GroundTruthSettings, cfg.groundtruth, "groundtruth")
+
+    assert list(settings().definitions) == ["relative_pose", "frustum", "co_observation"]
+    assert list(settings("groundtruth.definitions={}").definitions) == list(settings().definitions)  # merged by Hydra
+    for off in ("groundtruth=none", "groundtruth.enabled=[]", "groundtruth.definitions=null"):
+        assert compute_groundtruths(scene, settings(off)) == {}, off
+    picked = settings("groundtruth.enabled=[frustum,relative_pose]")
+    assert list(compute_groundtruths(scene, picked)) == ["frustum", "relative_pose"]
+    variant = "+groundtruth.definitions.frustum_25m={type: frustum, near: 0.1, far: 25.0, min_radius: 0.0}"
+    assert list(compute_groundtruths(scene, settings(variant, "groundtruth.enabled=[frustum_25m]"))) == ["frustum_25m"]
+    with pytest.raises(ConfigError, match=r"groundtruth.enabled: \['frustun'\] have no entry in groundtruth.definitions"):
+        settings("groundtruth.enabled=[frustum,frustun]")
 
 
 def test_definition_types_and_errors(pose_scene):

@@ -31,9 +31,14 @@ def estimate(position_offsets, rotation_degrees):
     return PoseEstimates("r", "descriptor", "approximation", "ewb", [1], qvec, tvec, failures)
 
 
-def test_thresholds_are_strict_and_nan_is_not_localized():
-    hits = localized(np.array([0.25, 0.2, np.nan]), np.array([1.0, 1.0, 1.0]), [[0.25, 2.0]])
-    assert hits.tolist() == [[False, True, False]]
+def test_thresholds_include_equality_by_default_and_nan_is_not_localized():
+    position, rotation = np.array([0.25, 0.2, 0.2, np.nan]), np.array([1.0, 2.0, 2.5, 1.0])
+    assert localized(position, rotation, [[0.25, 2.0]]).tolist() == [[True, True, False, False]]  # <=, the reference's
+    assert localized(position, rotation, [[0.25, 2.0]], inclusive=False).tolist() == [[False, False, False, False]]
+    queries = queries_with_poses()
+    at_threshold = estimate([0.25, 0.1, 0.3, 0.0], [1.0, 2.0, 1.0, 0.0])
+    table = localization_table("toy", [at_threshold], queries, [[0.25, 2.0]], query_subsets(queries), inclusive=False)
+    assert table.set_index("subset")["localized_pct"]["all"] == pytest.approx(0.0)
 
 
 def test_localization_table_percentages():

@@ -7,6 +7,7 @@ import kapture.io.csv
 import kapture.io.features
 import numpy as np
 import pytest
+from hydra.utils import instantiate
 
 from locretrieval.models import PrecomputedDescriptor
 from locretrieval.retrieval.descriptors import describe_scene
@@ -161,14 +162,37 @@ def test_folder_errors(tmp_path, mapping_and_query):
         PrecomputedDescriptor(feature_name="apgem").describe(scene.queries)
 
 
-@pytest.mark.parametrize(("overrides", "name"), [([], "precomputed"), (["model.feature_name=AP-GeM-LM18"], "AP-GeM-LM18")])
-def test_config_names_the_ranking_and_output_folder(overrides, name, tmp_path):
+def precomputed_config(tmp_path, *overrides):
+    """``evaluate.yaml`` with ``model=precomputed`` and its Hydra node, composed by Hydra."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(Path(__file__).parents[1] / "configs"), version_base="1.3"):
-        cfg = compose(config_name="evaluate", overrides=["model=precomputed", f"paths.root_dir={tmp_path}", *overrides],
-                      return_hydra_config=True)
+        return compose(config_name="evaluate", overrides=["model=precomputed", f"paths.root_dir={tmp_path}", *overrides],
+                       return_hydra_config=True)
+
+
+@pytest.mark.parametrize(("overrides", "name"), [([], "precomputed"), (["model.feature_name=AP-GeM-LM18"], "AP-GeM-LM18")])
+def test_config_names_the_ranking_and_output_folder(overrides, name, tmp_path):
+    cfg = precomputed_config(tmp_path, *overrides)
     assert cfg.model.name == name
     assert cfg.hydra.run.dir.split("/")[-2] == name
+
+
+def test_a_feature_folder_names_the_ranking_unless_a_name_is_given(tmp_path):
+    vectors = random_vectors(DATABASE + QUERIES, 8, seed=9)
+    folders = {name: write_global_features(tmp_path / name, name, vectors) for name in ("AP-GeM-LM18", "NetVLAD")}
+    names = []
+    for folder in folders.values():  # the two runs of `-m model.path=<AP-GeM-LM18>,<NetVLAD>`
+        cfg = precomputed_config(tmp_path, f"model.path={folder}")
+        model = instantiate(cfg.model)
+        assert model.name == cfg.model.name == folder.name and cfg.hydra.run.dir.split("/")[-2] == folder.name
+        names.append(model.name)
+    assert names == ["AP-GeM-LM18", "NetVLAD"]
+    mapping = write_global_features(tmp_path / "mapping", "apgem", {n: vectors[n] for n in DATABASE})
+    query = write_global_features(tmp_path / "query", "apgem", {n: vectors[n] for n in QUERIES})
+    assert instantiate(precomputed_config(tmp_path, f"model.path=[{mapping},{query}]").model).name == "apgem"
+    named = precomputed_config(tmp_path, f"model.path={folders['NetVLAD']}", "model.name=mine")
+    assert instantiate(named.model).name == "mine"
+    assert PrecomputedDescriptor(path=folders["NetVLAD"]).name == "NetVLAD"  # the Python API names it alike

@@ -60,7 +60,8 @@ def localization(name: str, kind: str) -> tuple[pd.DataFrame, pd.DataFrame]:
             for subset, members in (("all", slice(None)), ("blurry", slice(0, 3))):
                 for x, y in THRESHOLDS:
                     localized = 100 * np.mean(np.nan_to_num(position[members], nan=np.inf) < x)
-                    results.append(("toy", subset, name, kind, paradigm, method, k, x, y, localized, len(position[members])))
+                    row = (paradigm, method, k, min(k, NUM_DATABASE), x, y, localized, len(position[members]))
+                    results.append(("toy", subset, name, kind, *row))
     return pd.DataFrame(results, columns=RESULT_COLUMNS), pd.DataFrame(errors, columns=QUERY_ERROR_COLUMNS)
 
 
@@ -104,12 +105,36 @@ def test_ground_truth_without_a_method_is_drawn_with_ewb():
     assert set(zip(curves["ranking"], curves["method"])) == {("netvlad", "csi"), (GROUNDTRUTH, "ewb")}
 
 
-def test_pivot_localization_reads_the_table():
+def test_pivot_localization_reads_the_table_with_k_as_rows_and_thresholds_as_columns():
     results, _ = localization("netvlad", "descriptor")
     pivot = pivot_localization(results, "global_sfm", "pnp")
+    assert list(pivot.columns) == ["0.25 m, 2°", "5 m, 10°"] and list(pivot.index) == [("netvlad", k) for k in KS]
     lookup = results.set_index(["subset", "paradigm", "k", "position_threshold_m"])["localized_pct"]
     expected = lookup[("all", "global_sfm", 5, 5.0)]
-    assert pivot.loc["netvlad", ("5 m, 10°", 5)] == round(expected, 1)
+    assert pivot.loc[("netvlad", 5), "5 m, 10°"] == round(expected, 1)
+
+
+def markdown_rows(path: Path) -> list[list[str]]:
+    """The cells of a markdown table file, stripped."""
+    return [[cell.strip() for cell in line.split("|")[1:-1]] for line in path.read_text().splitlines()]
+
+
+def test_report_shows_the_best_over_k_first_and_narrow_tables_from_the_unchanged_tidy_csv(tmp_path):
+    run = write_run(tmp_path / "run", ["netvlad"])
+    tidy = (run / "results.csv").read_bytes()
+    text = build_report([run], tmp_path / "report", figure_formats=["png"]).read_text()
+    localization = text[text.index("## Localization") :]
+    assert localization.index("Best % of queries localized over k") < localization.index("### toy: approximation, csi")
+    best = markdown_rows(tmp_path / "report" / "tables" / "localization_best_over_k.md")
+    assert best[0] == ["dataset", "paradigm", "method", "ranking", "0.25 m, 2°", "5 m, 10°"]
+    results = pd.read_csv(run / "results.csv")
+    ewb = results.query("subset == 'all' and paradigm == 'approximation' and method == 'ewb' and ranking == 'netvlad'")
+    best_ewb = ewb.groupby("position_threshold_m")["localized_pct"].max()
+    assert ["toy", "approximation", "ewb", "netvlad", f"{best_ewb[0.25]:.1f}", f"{best_ewb[5.0]:.1f}"] in best
+    table = markdown_rows(tmp_path / "report" / "tables" / "localization_toy_global_sfm_pnp.md")
+    assert table[0] == ["ranking", "k", "0.25 m, 2°", "5 m, 10°"]
+    assert len(table) == 2 + 3 * len(KS)  # header, rule, a row per ranking and k
+    assert (run / "results.csv").read_bytes() == tidy
 
 
 def test_report_of_a_multirun_produces_every_figure_and_table(tmp_path):
@@ -217,3 +242,10 @@ def test_headline_thresholds_and_retrieval_summary_values(tmp_path):
     summary = retrieval_summary(tables.retrieval)
     row = tables.retrieval.query("subset == 'all' and ranking == 'netvlad' and metric == 'recall' and k == 5").iloc[0]
     assert summary.loc[(row["dataset"], row["groundtruth"], "netvlad"), ("recall", 5)] == pytest.approx(100 * row["value"])
+
+
+def test_runs_written_before_k_effective_existed_read_it_as_k(tmp_path):
+    run = write_run(tmp_path / "run", ["netvlad"])
+    pd.read_csv(run / "results.csv").drop(columns="k_effective").to_csv(run / "results.csv", index=False)
+    loaded = load_runs([run]).results
+    assert len(loaded) and (loaded["k_effective"] == loaded["k"]).all()

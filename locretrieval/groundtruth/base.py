@@ -56,6 +56,14 @@ class GroundTruth:
     def name(self) -> str:
         return self.ranking.name
 
+    def relevance_in_ranking(self) -> sparse.csr_matrix:
+        """``relevance`` restricted to the images of the top-``depth`` ranking: the paper reduces
+        the ground-truth rankings to the top 50 (Sec. 3.6.3), and so its relevance."""
+        indices = self.ranking.indices
+        rows, slots = np.nonzero(relevant_hits(indices, self.relevance))
+        data = np.ones(len(rows), dtype=bool)
+        return sparse.csr_matrix((data, (rows, indices[rows, slots])), shape=self.relevance.shape)
+
     @property
     def num_database(self) -> int:
         return self.relevance.shape[1]

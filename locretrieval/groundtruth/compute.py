@@ -49,25 +49,34 @@ CACHE_VERSION = 2
 
 @dataclass
 class GroundTruthSettings:
-    """The ``groundtruth`` config group: ``depth`` images kept per query in each ranking, and
-    ``definitions`` mapping a name to its parameters. The optional ``type`` parameter picks the
-    definition type in `DEFINITIONS` (default: the name itself), so one type can appear
-    twice, e.g. ``frustum_25m: {type: frustum, far: 25.0, ...}``. A definition set to ``null``
-    is switched off; ``definitions: {}`` or ``null`` computes none."""
+    """The ``groundtruth`` config group: ``depth`` images kept per query in each ranking,
+    ``definitions`` mapping a name to its parameters, and ``enabled`` the names of those
+    computed, in order (``[]``: none; ``None``, or left out of a mapping given in Python: every
+    definition). The optional ``type`` parameter picks the definition type in `DEFINITIONS`
+    (default: the name itself), so one type can appear twice, e.g. ``frustum_25m: {type:
+    frustum, far: 25.0, ...}``. A definition set to ``null`` is switched off, even when enabled;
+    ``definitions: null`` switches every one off."""
 
     depth: int
     definitions: dict[str, Any] | None
+    enabled: list[str] | None = None  # the one default: a mapping written in Python may leave it out
+    relevance: str = "top_k"  # the retrieval metrics' relevance: in the top-depth ranking (the paper's) | all
 
     def __post_init__(self) -> None:
         require(self.depth >= 1, "depth", f"must be >= 1, got {self.depth}")
+        require(self.relevance in ("top_k", "all"), "relevance", f"must be top_k or all, got {self.relevance!r}")
+        definitions = self.definitions if self.definitions is not None else {}  # null: none
+        enabled = list(definitions) if self.enabled is None or self.definitions is None else self.enabled
+        unknown = [name for name in enabled if name not in definitions]
+        require(not unknown, "enabled", f"{unknown} have no entry in groundtruth.definitions (defined: {sorted(definitions)})")
         # a definition set to null is switched off (e.g. groundtruth.definitions.co_observation=null)
-        self.definitions = {name: parameters for name, parameters in (self.definitions or {}).items() if parameters is not None}
+        self.definitions = {name: definitions[name] for name in enabled if definitions[name] is not None}
         for name, parameters in self.definitions.items():
             kind = (parameters or {}).get("type", name)
             require(kind in DEFINITIONS, f"definitions.{name}.type", f"unknown definition type {kind!r}; known: {sorted(DEFINITIONS)}")
 
     def parsed(self) -> dict[str, tuple[str, Any]]:
-        """``name -> (type, checked parameters)`` of every definition."""
+        """``name -> (type, checked parameters)`` of every enabled definition, in ``enabled`` order."""
         parsed = {}
         for name, parameters in self.definitions.items():
             parameters = dict(parameters or {})

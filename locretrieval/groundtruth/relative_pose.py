@@ -12,16 +12,24 @@ from locretrieval.groundtruth.base import GroundTruth, groundtruth_from_scores
 from locretrieval.scene import ImageSet
 
 
+#: Which database images a relative-pose ranking holds: only those within both thresholds (as
+#: the reference pairing tool, kapture-localization's pose-based pairs) or every one.
+RANKED = ("within_thresholds", "all")
+
+
 @dataclass
 class RelativePoseDefinition:
-    """``position_threshold`` (tau_c, metres) and ``rotation_threshold`` (tau_R, degrees)."""
+    """``position_threshold`` (tau_c, metres), ``rotation_threshold`` (tau_R, degrees) and which
+    images are ``ranked`` (`RANKED`)."""
 
     position_threshold: float
     rotation_threshold: float
+    ranked: str = "within_thresholds"
 
     def __post_init__(self) -> None:
         require(self.position_threshold > 0, "position_threshold", f"must be positive metres, got {self.position_threshold}")
         require(self.rotation_threshold > 0, "rotation_threshold", f"must be positive degrees, got {self.rotation_threshold}")
+        require(self.ranked in RANKED, "ranked", f"must be one of {list(RANKED)}, got {self.ranked!r}")
 
 
 def relative_pose_scores(
@@ -51,6 +59,7 @@ def relative_pose_groundtruth(
     depth: int,
     position_threshold: float,
     rotation_threshold: float,
+    ranked: str = "within_thresholds",
     name: str = "gt_relative_pose",
 ) -> GroundTruth:
     """Database images ranked by increasing ``s_rcp``, relevant within both thresholds.
@@ -58,11 +67,12 @@ def relative_pose_groundtruth(
     The thresholds play both roles the paper gives 25 m and 45 degrees: the normalisers
     ``tau_c`` and ``tau_R`` of the score, and the relevance criterion ``c_diff <
     position_threshold and R_diff < rotation_threshold``. The ranking stores the
-    similarity ``-s_rcp`` (higher is better). Every database image is ranked, relevant or
-    not: the paper ranks by the non-binary score and keeps relevance separate (Table 1), so
-    a query with fewer relevant images than ``k`` still gets its ``k`` closest ones.
+    similarity ``-s_rcp`` (higher is better). ``ranked="within_thresholds"`` ranks only the
+    relevant images, as the reference pairing tool does (a query with 3 relevant images has
+    3, and paradigm 1 at larger k averages those 3); ``"all"`` ranks every database image, so
+    a query with fewer relevant images than ``k`` gets its ``k`` closest ones.
     """
-    RelativePoseDefinition(position_threshold, rotation_threshold)  # range checks
+    RelativePoseDefinition(position_threshold, rotation_threshold, ranked)  # range checks
     database_centers, query_centers = database.centers, queries.centers
 
     def score_block(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -75,6 +85,7 @@ def relative_pose_groundtruth(
             rotation_threshold,
         )
         relevant = (position < position_threshold) & (rotation < rotation_threshold)
-        return -score, np.ones(score.shape, dtype=bool), relevant
+        rankable = relevant if ranked == "within_thresholds" else np.ones(score.shape, dtype=bool)
+        return -score, rankable, relevant
 
     return groundtruth_from_scores(name, database, queries, depth, score_block)

@@ -42,6 +42,22 @@ def from_rigid3d(cam_from_world: pycolmap.Rigid3d) -> tuple[np.ndarray, np.ndarr
     return geometry.normalize_quaternions(np.array([w, x, y, z])), np.asarray(cam_from_world.translation, dtype=np.float64)
 
 
+#: The files of a COLMAP model folder, each ``<name>.bin`` or ``<name>.txt``.
+MODEL_FILES = ("cameras", "images", "points3D")
+
+
+def missing_model_files(folder: str | Path) -> list[str]:
+    """What a COLMAP model ``folder`` lacks: the folder itself, or each of `MODEL_FILES`."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return [f"COLMAP model folder {folder} not found"]
+    return [
+        f"{folder / name}.bin (or .txt) not found"
+        for name in MODEL_FILES
+        if not any((folder / f"{name}{suffix}").is_file() for suffix in (".bin", ".txt"))
+    ]
+
+
 def read_colmap_map(path: str | Path, names: Sequence[str], keypoints: Sequence[np.ndarray]) -> SparseMap:
     """The 3D points of a COLMAP model (text or binary folder) as a `SparseMap` over ``names``.
 

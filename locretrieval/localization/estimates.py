@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,6 +20,7 @@ class PoseEstimates:
 
     ``qvec [len(ks), Q, 4]`` (wxyz) and ``tvec [len(ks), Q, 3]`` are NaN where no estimate
     exists; ``failures [len(ks), Q]`` then holds the reason (``""`` where estimated).
+    ``k_effective``: the number of top images each k used (``ks`` when ``None``; see `labelled`).
     """
 
     ranking: str
@@ -28,8 +31,12 @@ class PoseEstimates:
     qvec: np.ndarray
     tvec: np.ndarray
     failures: np.ndarray
+    k_effective: list[int] | None = None
 
     def __post_init__(self) -> None:
+        self.k_effective = list(self.ks) if self.k_effective is None else self.k_effective
+        if len(self.k_effective) != len(self.ks):
+            raise ValueError(f"{self.ranking}/{self.paradigm}/{self.method}: k_effective {self.k_effective} for ks {self.ks}")
         shape = (len(self.ks), self.qvec.shape[1])
         if self.qvec.shape != (*shape, 4) or self.tvec.shape != (*shape, 3) or self.failures.shape != shape:
             raise ValueError(
@@ -39,6 +46,16 @@ class PoseEstimates:
         missing = ~np.isfinite(self.qvec).all(-1) | ~np.isfinite(self.tvec).all(-1)
         if (missing & (self.failures == LOCALIZED)).any():
             raise ValueError(f"{self.ranking}/{self.paradigm}/{self.method}: a missing estimate has no failure reason")
+
+    def labelled(self, requested: Sequence[int], depth: int) -> "PoseEstimates":
+        """These estimates (of ks clamped to the ranking's ``depth``) under the ``requested`` ks:
+        a k beyond ``depth`` holds the estimates of k = ``depth``, its ``k_effective``."""
+        ks = sorted({int(k) for k in requested})
+        effective = [min(k, depth) for k in ks]
+        rows = [self.ks.index(k) for k in effective]
+        return dataclasses.replace(
+            self, ks=ks, k_effective=effective, qvec=self.qvec[rows], tvec=self.tvec[rows], failures=self.failures[rows]
+        )
 
     def errors(self, q_reference: np.ndarray, t_reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Position (scene units) and rotation (degrees) errors ``[len(ks), Q]`` (paper eq. 3-4).

@@ -12,8 +12,9 @@ The ``features`` config picks a ``type`` and reads that type's section:
   ``peak_threshold`` (pycolmap's SIFT options);
 - ``kapture``: precomputed features of the kapture folder each image comes from
   (``reconstruction/keypoints/<name>/<image>.kpt`` and ``descriptors/<name>/<image>.desc``
-  with their ``keypoints.txt``/``descriptors.txt`` headers, e.g. the published R2D2
-  features); ``pixel_offset`` is added to their x and y (0.5 converts keypoints whose first
+  with their ``keypoints.txt``/``descriptors.txt`` headers, or the downloader's
+  ``<dataset>/local_features/<name>/{keypoints,descriptors}/``, e.g. the published R2D2
+  features ``r2d2_WASF-N8_20k``); ``pixel_offset`` is added to their x and y (0.5 converts keypoints whose first
   pixel centre is (0, 0), as R2D2 and OpenCV write them, to COLMAP's convention).
 
 Features live in ``<cache_dir>/features/<image set fingerprint>-<config key>/`` as HDF5
@@ -29,9 +30,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import kapture
-import kapture.io.csv as kapture_csv
-import kapture.io.features as kapture_features
 import numpy as np
 from PIL import Image
 
@@ -40,7 +38,9 @@ from locretrieval.config import require
 from locretrieval.localization.store import ShardedStore
 from locretrieval.localization.workers import parallel_map
 from locretrieval.scene import ImageSet
-from locretrieval.scene.feature_files import read_feature_array, read_feature_header
+from locretrieval.scene.feature_files import (
+    feature_file, feature_folder_candidates, find_feature_folder, read_feature_array, read_feature_header,
+)
 from locretrieval.scene.images import read_image
 
 log = logging.getLogger(__name__)
@@ -72,8 +72,8 @@ class SiftSettings:
 
 @dataclass
 class KaptureFeatureSettings:
-    """Published features ``reconstruction/{keypoints,descriptors}/<name>/`` of each kapture
-    folder; ``pixel_offset`` is added to their x and y (0.5: OpenCV/R2D2 pixel centres to COLMAP's)."""
+    """Published features ``<name>`` of each kapture folder (``reconstruction/{keypoints,descriptors}/<name>/``
+    or the downloader's ``local_features/<name>/{keypoints,descriptors}/`` beside it); ``pixel_offset`` is added to their x and y (0.5: OpenCV/R2D2 pixel centres to COLMAP's)."""
 
     name: str
     pixel_offset: float
@@ -182,20 +182,49 @@ def kapture_root_of(image_path: Path, name: str) -> Path:
     return records_data.parent.parent
 
 
+#: The kapture local-feature kinds.
+KAPTURE_FEATURE_KINDS = ("keypoints", "descriptors")
+
+
+def kapture_feature_folder(root: Path, kind: str, features: str) -> Path:
+    """The folder of the ``kind`` features ``features`` of kapture folder ``root``, in kapture's
+    layout or the downloader's (`find_feature_folder`); FileNotFoundError naming both otherwise."""
+    folder = find_feature_folder(root, kind, features)
+    if folder is None:
+        searched = [str(f / f"{kind}.txt") for f in feature_folder_candidates(root, kind, features)]
+        raise FileNotFoundError(f"kapture {kind} {features!r} of {root} not found: none of {searched}")
+    return folder
+
+
+def missing_kapture_features(images: ImageSet, settings: KaptureFeatureSettings) -> list[str]:
+    """What reading the kapture features of ``images`` would miss: each absent feature folder, and
+    per kapture folder the images without a keypoints or descriptors file (counted, one named)."""
+    names_by_root: dict[Path, list[str]] = {}
+    for name, path in zip(images.names, images.paths):
+        names_by_root.setdefault(kapture_root_of(path, name), []).append(name)
+    problems = []
+    for root, names in names_by_root.items():
+        for kind in KAPTURE_FEATURE_KINDS:
+            try:
+                folder = kapture_feature_folder(root, kind, settings.name)
+            except FileNotFoundError as error:
+                problems.append(str(error))
+                continue
+            absent = [path for path in (feature_file(folder, kind, n) for n in names) if not path.is_file()]
+            if absent:
+                problems.append(f"kapture {kind} {settings.name!r}: {len(absent)} of {len(names)} images lack their file, e.g. {absent[0]}")
+    return problems
+
+
 def _read_kapture_features(image_name: str, image_path: Path, settings: KaptureFeatureSettings) -> dict[str, np.ndarray]:
     """Keypoints (x, y shifted by ``pixel_offset``) and descriptors of one image from kapture files."""
-    root = str(kapture_root_of(image_path, image_name))
+    root = kapture_root_of(image_path, image_name)
     features = settings.name
     arrays = {}
-    for kind, header_type, full_path in (
-        ("keypoints", kapture.Keypoints, kapture_features.get_keypoints_fullpath),
-        ("descriptors", kapture.Descriptors, kapture_features.get_descriptors_fullpath),
-    ):
-        header = Path(kapture_csv.get_feature_csv_fullpath(header_type, features, root))
-        if not header.is_file():
-            raise FileNotFoundError(f"kapture {kind} {features!r} not found: {header} is missing")
-        config = read_feature_header(header, kind)
-        path = Path(full_path(features, root, image_name))
+    for kind in KAPTURE_FEATURE_KINDS:
+        folder = kapture_feature_folder(root, kind, features)
+        config = read_feature_header(folder / f"{kind}.txt", kind)
+        path = feature_file(folder, kind, image_name)
         if not path.is_file():
             raise FileNotFoundError(f"kapture {kind} {features!r} of image {image_name!r} not found: {path}")
         arrays[kind] = read_feature_array(path, config)

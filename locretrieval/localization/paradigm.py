@@ -10,8 +10,8 @@ from locretrieval.config import require
 @dataclass
 class ParadigmSettings:
     """A paradigm section of ``configs/paradigms``: whether it runs, and the numbers ``k`` of
-    top-ranked database images it uses (each a separate result; values beyond a ranking's
-    depth are clamped to it, with a warning)."""
+    top-ranked database images it uses (each a separate result; a value beyond a ranking's
+    depth uses every ranked image and keeps its label, see `locretrieval.benchmark`)."""
 
     enabled: bool
     k: list[int]

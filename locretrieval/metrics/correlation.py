@@ -10,15 +10,17 @@ Three analyses, each returning a tidy table with ``coefficient``, ``p_value``,
   the descriptors, i.e. whether they order the descriptors alike (eq. 6);
 - `query_pearson` (violins of Figs. 8 and 11): per query and descriptor, Pearson's r over k
   between the query's retrieval metric and its localisation accuracy, taken as the
-  *negated* pose error so that, as for the dataset-level coefficients, a positive r means
-  "better retrieval goes with better localisation". k values where the query received no
-  estimate (NaN error) are left out of its series.
+  *negated* capped pose error ``min(1, max(c / tau_c, R / tau_R))`` (position and rotation
+  errors over the loosest accuracy threshold, 1 where the query is not localised at it or got
+  no estimate), so that, as for the dataset-level coefficients, a positive r means "better
+  retrieval goes with better localisation" and failures count as the worst accuracy. A
+  query's coefficient needs at least 3 k values.
 
 Only descriptor rankings are correlated (the paper's ``j`` runs over global
 representations); ground-truth and baseline rankings are not.
 
 Undefined cases are never an error: the coefficient and p-value are NaN and
-``undefined_reason`` says why, ``"fewer than 2 points"`` (after dropping missing values)
+``undefined_reason`` says why, ``"fewer than <n> points"`` (after dropping missing values)
 or ``"constant <metric>"`` (a series with a single value, where r has no meaning);
 ``undefined_reason`` is empty where the coefficient is defined. Coefficients and p-values
 are `scipy.stats.pearsonr`'s; Spearman's rho is Pearson's r of the average ranks
@@ -36,31 +38,34 @@ from scipy import stats
 LOCALIZATION_KEYS = ["paradigm", "method", "position_threshold_m", "rotation_threshold_deg"]
 STATISTIC_COLUMNS = ["coefficient", "p_value", "num_points", "undefined_reason"]
 
-#: Reasons for an undefined coefficient.
-TOO_FEW_POINTS = "fewer than 2 points"
+#: Fewest points of a per-query coefficient (with 2, r is always +-1).
+MIN_QUERY_POINTS = 3
 
 
 def pearson_rows(
-    x: np.ndarray, y: np.ndarray, x_name: str = "x", y_name: str = "y"
+    x: np.ndarray, y: np.ndarray, x_name: str = "x", y_name: str = "y", min_points: int = 2
 ) -> pd.DataFrame:
-    """Pearson's r between the rows of ``x`` and ``y`` (``[G, n]``), NaN entries dropped pairwise.
+    """Pearson's r between the rows of ``x`` and ``y`` (``[G, n]``), NaN entries dropped pairwise;
+    undefined for rows with fewer than ``min_points`` pairs left.
 
     Returns one row per input row with `STATISTIC_COLUMNS`. Rows sharing a pattern of
     missing values go to `scipy.stats.pearsonr` together, so the work is vectorised.
     """
-    return _correlate_rows(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), x_name, y_name, rank=False)
+    return _correlate_rows(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), x_name, y_name, False, min_points)
 
 
 def spearman_rows(
-    x: np.ndarray, y: np.ndarray, x_name: str = "x", y_name: str = "y"
+    x: np.ndarray, y: np.ndarray, x_name: str = "x", y_name: str = "y", min_points: int = 2
 ) -> pd.DataFrame:
     """Spearman's rho between the rows of ``x`` and ``y``; see `pearson_rows`."""
-    return _correlate_rows(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), x_name, y_name, rank=True)
+    return _correlate_rows(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), x_name, y_name, True, min_points)
 
 
-def _correlate_rows(x: np.ndarray, y: np.ndarray, x_name: str, y_name: str, rank: bool) -> pd.DataFrame:
+def _correlate_rows(x: np.ndarray, y: np.ndarray, x_name: str, y_name: str, rank: bool, min_points: int) -> pd.DataFrame:
     if x.shape != y.shape or x.ndim != 2:
         raise ValueError(f"x and y must both be [G, n], got {x.shape} and {y.shape}")
+    if min_points < 2:
+        raise ValueError(f"a correlation needs at least 2 points, got min_points={min_points}")
     valid = np.isfinite(x) & np.isfinite(y)
     coefficient = np.full(len(x), np.nan)
     p_value = np.full(len(x), np.nan)
@@ -70,8 +75,8 @@ def _correlate_rows(x: np.ndarray, y: np.ndarray, x_name: str, y_name: str, rank
     _, first, group = np.unique(keys, return_index=True, return_inverse=True)
     order = np.argsort(group, kind="stable")
     for pattern, rows in zip(valid[first], np.split(order, np.cumsum(np.bincount(group))[:-1])):
-        if pattern.sum() < 2:
-            reason[rows] = TOO_FEW_POINTS
+        if pattern.sum() < min_points:
+            reason[rows] = f"fewer than {min_points} points"
             continue
         a, b = x[np.ix_(rows, pattern)], y[np.ix_(rows, pattern)]
         constant_a, constant_b = np.ptp(a, axis=1) == 0, np.ptp(b, axis=1) == 0
@@ -149,9 +154,10 @@ def dataset_spearman(paired: pd.DataFrame) -> pd.DataFrame:
     return _correlate_paired(paired, keys, "ranking", rank=True)
 
 
-def query_pearson(query_retrieval: pd.DataFrame, query_errors: pd.DataFrame) -> pd.DataFrame:
-    """Per-query Pearson's r over k between a retrieval metric and the negated position error
-    (Figs. 8 and 11), for descriptor rankings.
+def query_pearson(query_retrieval: pd.DataFrame, query_errors: pd.DataFrame, scale: tuple[float, float]) -> pd.DataFrame:
+    """Per-query Pearson's r over k between a retrieval metric and the negated capped pose error
+    (Figs. 8 and 11), for descriptor rankings; ``scale``: the loosest accuracy threshold
+    ``(metres, degrees)`` (see the module docstring).
 
     Inputs are the per-query retrieval table (`QUERY_RETRIEVAL_COLUMNS`) and the per-query
     error table (`QUERY_ERROR_COLUMNS`). One row per dataset x ground truth x retrieval
@@ -160,7 +166,7 @@ def query_pearson(query_retrieval: pd.DataFrame, query_errors: pd.DataFrame) -> 
     shared = ["dataset", "ranking", "query"]
     keys = ["dataset", "groundtruth", "retrieval_metric", "paradigm", "method", "ranking", "query"]
     retrieval = _descriptors(query_retrieval).rename(columns={"metric": "retrieval_metric"})
-    errors = _descriptors(query_errors).assign(accuracy=lambda t: -t["position_error_m"])
+    errors = _descriptors(query_errors).assign(accuracy=lambda t: -capped_pose_error(t, scale))
     if retrieval.empty or errors.empty:
         return pd.DataFrame(columns=keys + STATISTIC_COLUMNS)
     x = _wide(retrieval, ["dataset", "ranking", "groundtruth", "retrieval_metric", "query"], "k", ["value"])["value"]
@@ -171,5 +177,13 @@ def query_pearson(query_retrieval: pd.DataFrame, query_errors: pd.DataFrame) -> 
     )
     x_values = x.reindex(columns=ks).to_numpy()[rows["x_row"]]
     y_values = y.reindex(columns=ks).to_numpy()[rows["y_row"]]
-    statistics = pearson_rows(x_values, y_values, "retrieval metric", "-position_error_m")
+    statistics = pearson_rows(x_values, y_values, "retrieval metric", "-capped pose error", MIN_QUERY_POINTS)
     return pd.concat([rows[keys], statistics], axis=1)
+
+
+def capped_pose_error(errors: pd.DataFrame, scale: tuple[float, float]) -> pd.Series:
+    """``min(1, max(c / tau_c, R / tau_R))`` of each row of a per-query error table, 1 where the
+    query got no estimate; ``scale = (tau_c metres, tau_R degrees)``."""
+    position, rotation = scale
+    normalised = np.maximum(errors["position_error_m"] / position, errors["rotation_error_deg"] / rotation)
+    return normalised.fillna(1.0).clip(upper=1.0)

@@ -14,7 +14,8 @@ from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.scene import ImageSet
 
 #: Columns of the tidy localization table, one row per
-#: dataset x subset x ranking x paradigm x method x k x threshold.
+#: dataset x subset x ranking x paradigm x method x k x threshold; ``k`` is the requested k,
+#: ``k_effective`` the top images it used (fewer when the ranking is shorter).
 RESULT_COLUMNS = [
     "dataset",
     "subset",
@@ -23,6 +24,7 @@ RESULT_COLUMNS = [
     "paradigm",
     "method",
     "k",
+    "k_effective",
     "position_threshold_m",
     "rotation_threshold_deg",
     "localized_pct",
@@ -47,9 +49,11 @@ QUERY_ERROR_COLUMNS = [
 @dataclass
 class MetricsSettings:
     """The ``metrics`` config section: ``thresholds``, a list of ``[X metres, Y degrees]``
-    accuracy levels (the paper: high, medium, low)."""
+    accuracy levels (the paper: high, medium, low); ``inclusive``: an error equal to a threshold
+    counts as localised (the reference evaluation's ``<=``), else only a smaller one."""
 
     thresholds: list[Any]
+    inclusive: bool = True
 
     def __post_init__(self) -> None:
         pairs = [t for t in self.thresholds if isinstance(t, (list, tuple)) and len(t) == 2]
@@ -60,16 +64,18 @@ class MetricsSettings:
 
 
 def localized(
-    position_errors: np.ndarray, rotation_errors: np.ndarray, thresholds: Sequence[Sequence[float]]
+    position_errors: np.ndarray, rotation_errors: np.ndarray, thresholds: Sequence[Sequence[float]], inclusive: bool = True
 ) -> np.ndarray:
-    """Boolean ``[T, ...]``: error below ``(X m, Y deg)`` strictly, for each threshold.
+    """Boolean ``[T, ...]``: both errors within ``(X m, Y deg)``, for each threshold: ``<=``
+    when ``inclusive`` (the reference evaluation's convention), else ``<``.
 
     A NaN error (no estimate) is never localised.
     """
     X, Y = np.asarray(thresholds, dtype=np.float64).reshape(-1, 2).T
     expand = (slice(None),) + (None,) * np.ndim(position_errors)
+    within = np.less_equal if inclusive else np.less
     with np.errstate(invalid="ignore"):
-        return (position_errors[None] < X[expand]) & (rotation_errors[None] < Y[expand])
+        return within(position_errors[None], X[expand]) & within(rotation_errors[None], Y[expand])
 
 
 def localization_table(
@@ -78,24 +84,26 @@ def localization_table(
     queries: ImageSet,
     thresholds: Sequence[Sequence[float]],
     subsets: Mapping[str, np.ndarray],
+    inclusive: bool = True,
 ) -> pd.DataFrame:
-    """Tidy % localised over the queries with a reference pose, for each subset mask.
+    """Tidy % localised over the queries with a reference pose, for each subset mask (``inclusive``:
+    see `localized`).
 
     A subset with no evaluable query yields no rows.
     """
     evaluable = queries.has_pose
     rows = []
     for e in estimates:
-        hits = localized(*e.errors(queries.qvec, queries.tvec), thresholds)  # [T, len(ks), Q]
+        hits = localized(*e.errors(queries.qvec, queries.tvec), thresholds, inclusive)  # [T, len(ks), Q]
         for subset, mask in subsets.items():
             members = np.asarray(mask, dtype=bool) & evaluable
             if not members.any():
                 continue
             percentages = 100.0 * hits[:, :, members].mean(axis=-1)  # [T, len(ks)]
             for (X, Y), per_k in zip(thresholds, percentages):
-                for k, value in zip(e.ks, per_k):
+                for k, used, value in zip(e.ks, e.k_effective, per_k):
                     rows.append(
-                        (dataset, subset, e.ranking, e.ranking_kind, e.paradigm, e.method, k, X, Y, value, int(members.sum()))
+                        (dataset, subset, e.ranking, e.ranking_kind, e.paradigm, e.method, k, used, X, Y, value, int(members.sum()))
                     )
     return pd.DataFrame(rows, columns=RESULT_COLUMNS)
 

@@ -227,6 +227,19 @@ def resolve_mask_source(images: ImageSet, settings: SubsetSettings) -> str:
     return resolved
 
 
+def missing_mask_inputs(images: ImageSet, settings: SubsetSettings) -> list[str]:
+    """What the dynamic-scene subset of ``images`` lacks: mask files (``mask_source=masks``) or
+    the Mask R-CNN weight file."""
+    source = resolve_mask_source(images, settings) if settings.enabled else "none"
+    if source == "masks":
+        absent = [name for name, path in zip(images.names, images.mask_paths or [None] * len(images)) if path is None]
+        return [f"subsets.mask_source=masks: {len(absent)} of {len(images)} queries have no mask file "
+                f"(<kapture>/masks/<name>), e.g. {absent[0]!r}"] if absent else []  # fmt: skip
+    if source == "maskrcnn" and not Path(settings.maskrcnn_weights).is_file():
+        return [f"subsets.maskrcnn_weights: {settings.maskrcnn_weights} not found (torchvision's {MASKRCNN_WEIGHTS_FILE})"]
+    return []
+
+
 def _cached(cache_dir: str | Path | None, parts: list, compute: Callable[[], np.ndarray]) -> np.ndarray:
     path = None if cache_dir is None else Path(cache_dir) / "subsets" / f"{config_key(CACHE_VERSION, *parts)}.npz"
     return cached_arrays(path, lambda: {"values": compute()})[0]["values"]

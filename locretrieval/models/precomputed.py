@@ -1,6 +1,7 @@
 """Global descriptors read from kapture global-features folders (e.g. those NAVER publishes).
 
-A folder (kapture >= 1.1 layout, ``<kapture>/reconstruction/global_features/<name>``) holds
+A folder (kapture >= 1.1 layout, ``<kapture>/reconstruction/global_features/<name>``, or the
+downloader's ``<dataset>/global_features/<name>/global_features``) holds
 ``global_features.txt`` (``name, dtype, dsize, metric_type``) and one raw ``.gfeat`` file
 per image at ``<folder>/<image name relative to records_data>.gfeat``.
 """
@@ -13,21 +14,21 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import kapture
-import kapture.io.features
 import numpy as np
 
 from locretrieval.cache import config_key, tree_signature
+from locretrieval.config import folder_label
 from locretrieval.models.base import NORM_TOLERANCE, GlobalDescriptor
 from locretrieval.scene import ImageSet, Scene
-from locretrieval.scene.feature_files import FeatureHeader, read_feature_array, read_feature_header
+from locretrieval.scene.feature_files import (
+    FeatureHeader, feature_file, feature_folder_candidates, feature_names, find_feature_folder, read_feature_array,
+    read_feature_header,
+)
 
 log = logging.getLogger(__name__)
 
-CONFIG_FILENAME = "global_features.txt"
-FEATURE_EXTENSION = kapture.io.features.FEATURE_FILE_EXTENSION[kapture.GlobalFeatures]
-#: Where kapture keeps global features inside a kapture folder.
-FEATURES_SUBDIR = Path(kapture.io.features.FEATURES_DATA_DIRNAMES[kapture.GlobalFeatures])
+KIND = "global_features"
+CONFIG_FILENAME = f"{KIND}.txt"
 
 
 def read_config(folder: Path, allow_integer: bool = False) -> FeatureHeader:
@@ -46,26 +47,47 @@ def read_config(folder: Path, allow_integer: bool = False) -> FeatureHeader:
 
 
 def find_feature_folders(sources: Sequence[Path], feature_name: str | None) -> list[Path]:
-    """``<source>/reconstruction/global_features/<feature_name>`` folders that exist.
+    """The global-feature folders of ``feature_name`` for the scene's kapture ``sources``, in
+    kapture's layout (``<source>/reconstruction/global_features/<name>``) or the downloader's
+    (``<dataset>/global_features/<name>/global_features``), each folder once.
 
-    Without a ``feature_name``, the single feature type found under the sources is used.
+    Without a ``feature_name``, the single feature type found for the sources is used.
     """
-    roots = [Path(source) / FEATURES_SUBDIR for source in sources]
     if feature_name is None:
-        present = [child for root in roots if root.is_dir() for child in root.iterdir()]
-        names = sorted({child.name for child in present if (child / CONFIG_FILENAME).is_file()})
+        names = sorted(set().union(*(feature_names(source, KIND) for source in sources)))
         if len(names) != 1:
+            searched = sorted({str(c.parent) for s in sources for c in feature_folder_candidates(s, KIND, "*")})
             raise ValueError(
                 f"model.feature_name is not set and the scene sources hold {len(names)} global-feature types "
-                f"{names} under {[str(root) for root in roots]}; set model.feature_name or model.path"
+                f"{names} (searched {searched}); set model.feature_name or model.path"
             )
         feature_name = names[0]
-    folders = [root / feature_name for root in roots if (root / feature_name / CONFIG_FILENAME).is_file()]
+    found = [find_feature_folder(source, KIND, feature_name) for source in sources]
+    folders = list(dict.fromkeys(folder for folder in found if folder is not None))
     if not folders:
-        raise FileNotFoundError(
-            f"no global features {feature_name!r}: searched {[str(root / feature_name) for root in roots]}"
-        )
+        searched = [str(c) for s in sources for c in feature_folder_candidates(s, KIND, feature_name)]
+        raise FileNotFoundError(f"no global features {feature_name!r}: searched {searched}")
     return folders
+
+
+def as_folders(path: str | os.PathLike | Sequence[str | os.PathLike]) -> list[Path]:
+    """``model.path``, one folder or a list, as a list of folders."""
+    return [Path(path)] if isinstance(path, (str, os.PathLike)) else [Path(p) for p in path]
+
+
+def missing_feature_folders(
+    path: str | os.PathLike | Sequence[str | os.PathLike] | None, feature_name: str | None, sources: Sequence[Path]
+) -> list[str]:
+    """What the features of `PrecomputedDescriptor` lack: the header of each ``path`` folder, or
+    (``path`` None) any folder of ``feature_name`` among the ``sources``."""
+    if path is not None:
+        headers = [folder / CONFIG_FILENAME for folder in as_folders(path)]
+        return [f"global features {header} not found" for header in headers if not header.is_file()]
+    try:
+        find_feature_folders(sources, feature_name)
+    except (FileNotFoundError, ValueError) as error:
+        return [str(error)]
+    return []
 
 
 class PrecomputedDescriptor(GlobalDescriptor):
@@ -73,11 +95,12 @@ class PrecomputedDescriptor(GlobalDescriptor):
 
     ``path``: one folder or a list (e.g. the mapping's and the query's
     ``reconstruction/global_features/<name>``); each image is read from the first folder
-    holding its file. When ``path`` is ``None``, `bind_scene` searches
-    ``<source>/reconstruction/global_features/<feature_name>`` under every
-    ``Scene.sources`` entry. Descriptors are converted to ``float32`` and L2-normalised
-    (logged once per call when the files were not); rankings use the inner product,
-    which orders unit vectors as the L2 metric does.
+    holding its file. When ``path`` is ``None``, `bind_scene` finds the folders of
+    ``feature_name`` for every ``Scene.sources`` entry (`find_feature_folders`: kapture's
+    layout or the downloader's). Without ``name`` or ``feature_name``, the ranking is named after
+    the folders (`folder_label`, e.g. ``AP-GeM-LM18``). Descriptors are converted to
+    ``float32`` and L2-normalised (logged once per call when the files were not); rankings
+    use the inner product, which orders unit vectors as the L2 metric does.
     """
 
     def __init__(
@@ -94,10 +117,10 @@ class PrecomputedDescriptor(GlobalDescriptor):
         self._folders: list[Path] | None = None
         self._from_sources = path is None
         if path is not None:
-            paths = [path] if isinstance(path, (str, os.PathLike)) else list(path)
-            if not paths:
+            folders = as_folders(path)
+            if not folders:
                 raise ValueError("model.path is an empty list; give at least one global-features folder")
-            self._set_folders([Path(p) for p in paths])
+            self._set_folders(folders)
 
     def _set_folders(self, folders: list[Path]) -> None:
         configs = [read_config(folder, self.allow_integer) for folder in folders]
@@ -117,7 +140,7 @@ class PrecomputedDescriptor(GlobalDescriptor):
         self._folders = folders
         self._config = configs[0]
         if not self._named:
-            self.name = configs[0].name
+            self.name = folder_label(folders)
 
     @property
     def folders(self) -> list[Path]:
@@ -142,7 +165,7 @@ class PrecomputedDescriptor(GlobalDescriptor):
     @staticmethod
     def _feature_path(image_name: str, folders: list[Path]) -> Path:
         for folder in folders:
-            candidate = folder / f"{image_name}{FEATURE_EXTENSION}"
+            candidate = feature_file(folder, KIND, image_name)
             if candidate.is_file():
                 return candidate
         raise FileNotFoundError(

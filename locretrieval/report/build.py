@@ -86,8 +86,17 @@ def compute_correlations(tables: RunTables) -> Correlations:
         paired=paired,
         pearson=dataset_pearson(paired),
         spearman=dataset_spearman(paired),
-        query=query_pearson(tables.query_retrieval, tables.query_errors),
+        query=query_pearson(tables.query_retrieval, tables.query_errors, loosest_threshold(tables.results)),
     )
+
+
+def loosest_threshold(results: pd.DataFrame) -> tuple[float, float]:
+    """The ``(metres, degrees)`` accuracy threshold of ``results`` with the largest position
+    threshold (the paper's low accuracy, 5 m and 10 degrees; also the value without results)."""
+    if results.empty:
+        return (5.0, 10.0)
+    row = results.sort_values(["position_threshold_m", "rotation_threshold_deg"]).iloc[-1]
+    return float(row["position_threshold_m"]), float(row["rotation_threshold_deg"])
 
 
 def choose_groundtruth(retrieval: pd.DataFrame, requested: str | None) -> str | None:
@@ -132,18 +141,27 @@ def groundtruth_section(writer: markdown.ReportWriter, tables: RunTables) -> Non
     writer.table(statistics.set_index(["dataset", "groundtruth"]), "table1_groundtruth_statistics", caption)
 
 
+def draw(figures: plots.FigureFolder, plot, *args, **kwargs) -> list[Path]:
+    """The files ``plot(*args, **kwargs)`` writes, or none when ``figures`` has no format (nothing
+    is drawn: ``report.figure_formats=[]`` for quick runs)."""
+    return plot(*args, **kwargs) if figures.formats else []
+
+
 def localization_section(writer: markdown.ReportWriter, tables: RunTables, figures: plots.FigureFolder, colors: dict) -> None:
     results = tables.results
     writer.heading("Localization (paper Figs. 4-6)")
     if results.empty:
         writer.text("No localization results: no query has a reference pose.")
         return
-    written = plots.plot_localization_vs_k(results, figures, colors=colors)
+    best = markdown.best_localization(results)
+    writer.table(best, "localization_best_over_k", "Best % of queries localized over k (all queries).", ".1f")
+    written = draw(figures, plots.plot_localization_vs_k, results, figures, colors=colors)
     for (dataset, paradigm, method), _ in results.groupby(["dataset", "paradigm", "method"], sort=True):
         writer.heading(f"{dataset}: {paradigm}, {method}", 3)
         writer.figures([f for f in written if f.stem == plots.safe_name(f"{dataset}_{paradigm}_{method}")])
         pivot = markdown.pivot_localization(results[results["dataset"] == dataset], paradigm, method)
-        writer.table(pivot, f"localization_{dataset}_{paradigm}_{method}", "% of queries localized (all queries).", ".1f")
+        caption = "% of queries localized (all queries), per ranking and k."
+        writer.table(pivot, f"localization_{dataset}_{paradigm}_{method}", caption, ".1f")
 
 
 def retrieval_section(writer: markdown.ReportWriter, tables: RunTables, figures: plots.FigureFolder, colors: dict) -> None:
@@ -155,7 +173,7 @@ def retrieval_section(writer: markdown.ReportWriter, tables: RunTables, figures:
         "P@k: relevant images among the top k / k. R@k: queries with a relevant image in the top k. "
         "mAP@k: AP over the top k normalised by min(#relevant, k), over queries with a relevant image."
     )
-    writer.figures(plots.plot_retrieval_curves(retrieval, figures, colors=colors))
+    writer.figures(draw(figures, plots.plot_retrieval_curves, retrieval, figures, colors=colors))
     summary = markdown.retrieval_summary(retrieval)
     writer.table(summary, "retrieval_summary", "Retrieval metrics in % (all queries).", ".1f")
 
@@ -181,8 +199,9 @@ def correlation_section(
     writer.text(
         "Pearson: per descriptor, over k, between the retrieval metric and % localized (Tables 3 and 6). "
         "Spearman: per k, over the descriptors (Tables 4 and 5). Violins: per query, over k, between the "
-        "retrieval metric and the negated position error (Figs. 8 and 11). Undefined coefficients "
-        "(constant series, fewer than 2 points) print as –; every coefficient is in "
+        "retrieval metric and the negated capped pose error min(1, max(c/tau_c, R/tau_R)) at the loosest "
+        "threshold, failures scoring 1 (Figs. 8 and 11). Undefined coefficients (constant series, fewer "
+        "than 2 points, 3 per query) print as –; every coefficient is in "
         f"{', '.join(CORRELATION_FILES.values())}."
     )
     for metric in [m for m in METRIC_TITLES if m in set(correlations.pearson["retrieval_metric"])]:
@@ -191,13 +210,13 @@ def correlation_section(
         )
         query = _selected(correlations.query, groundtruth, METRICS[metric])
         writer.heading(METRIC_TITLES[metric], 3)
-        writer.figures(plots.plot_correlation_scatter(pairs, pearson, figures, colors))
+        writer.figures(draw(figures, plots.plot_correlation_scatter, pairs, pearson, figures, colors))
         stem = f"{metric}_{groundtruth}"
         writer.table(markdown.correlation_matrix(pearson, "ranking"), f"pearson_{stem}", "Pearson r over k, per descriptor.")
         caption = "Spearman rho over the descriptors, per k."
         writer.table(markdown.correlation_matrix(spearman, "k"), f"spearman_{stem}", caption)
         if len(query):
-            writer.figures(plots.plot_query_violins(query, figures, colors))
+            writer.figures(draw(figures, plots.plot_query_violins, query, figures, colors))
         analyses = {"pearson": pearson, "spearman": spearman, "per query": query}
         undefined = pd.concat([markdown.undefined_summary(frame).assign(analysis=name) for name, frame in analyses.items()])
         if len(undefined):
@@ -229,7 +248,7 @@ def subset_section(
         )
         caption = "Blur scores (FFT, blurry when <= threshold) and dynamic fractions of the queries."
         writer.table(per_image, "subset_scores", caption)
-    writer.figures(plots.plot_subset_comparison(tables.results, tables.retrieval, groundtruth, figures, colors))
+    writer.figures(draw(figures, plots.plot_subset_comparison, tables.results, tables.retrieval, groundtruth, figures, colors))
     if len(tables.results):
         best = markdown.best_by_subset(tables.results)
         writer.table(best, "best_by_subset", "Best % localized over k at the loosest threshold.", ".1f")

@@ -73,12 +73,25 @@ def _label(level: str | None, value: object) -> str:
 
 
 def pivot_localization(table: pd.DataFrame, paradigm: str, method: str) -> pd.DataFrame:
-    """``ranking x (threshold, k)`` table of % localised for one paradigm/method, all queries."""
+    """``(ranking, k) x threshold`` table of % localised for one paradigm/method, all queries:
+    a row per ranking and k, a column per threshold, tightest first."""
     rows = table[(table["paradigm"] == paradigm) & (table["method"] == method) & (table["subset"] == "all")]
-    rows = rows.assign(
-        threshold=[threshold_label(x, y) for x, y in zip(rows["position_threshold_m"], rows["rotation_threshold_deg"])]
-    )
-    return rows.pivot_table(index="ranking", columns=["threshold", "k"], values="localized_pct").round(1)
+    rows, thresholds = _with_thresholds(rows)
+    return rows.pivot_table(index=["ranking", "k"], columns="threshold", values="localized_pct")[thresholds].round(1)
+
+
+def best_localization(table: pd.DataFrame) -> pd.DataFrame:
+    """Best % localised over k, all queries: ``(dataset, paradigm, method, ranking) x threshold``."""
+    rows, thresholds = _with_thresholds(table[table["subset"] == "all"])
+    best = rows.groupby(["dataset", "paradigm", "method", "ranking", "threshold"])["localized_pct"].max()
+    return best.unstack("threshold")[thresholds].round(1)
+
+
+def _with_thresholds(rows: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
+    """``rows`` with a ``threshold`` label column, and the labels in order, tightest first."""
+    pairs = list(zip(rows["position_threshold_m"], rows["rotation_threshold_deg"]))
+    labels = [threshold_label(x, y) for x, y in sorted(set(pairs))]
+    return rows.assign(threshold=[threshold_label(x, y) for x, y in pairs]), labels
 
 
 def failure_summary(query_errors: pd.DataFrame) -> pd.DataFrame:

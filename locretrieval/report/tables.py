@@ -21,20 +21,22 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class TableSpec:
-    """A run's table file, the columns it must hold and those that identify a row."""
+    """A run's table file, the columns it must hold and those that identify a row; ``derived``:
+    columns that runs of earlier versions lack, copied from another (``{column: source}``)."""
 
     file: str
     columns: list[str]
     keys: list[str]
+    derived: dict[str, str] = field(default_factory=dict)
 
 
-def _spec(file: str, columns: list[str], values: Sequence[str]) -> TableSpec:
-    return TableSpec(file, columns, [c for c in columns if c not in values])
+def _spec(file: str, columns: list[str], values: Sequence[str], derived: dict[str, str] | None = None) -> TableSpec:
+    return TableSpec(file, columns, [c for c in columns if c not in values], derived or {})
 
 
 #: Tables of a run directory; only ``results`` is required.
 TABLES: dict[str, TableSpec] = {
-    "results": _spec("results.csv", RESULT_COLUMNS, ["localized_pct", "num_queries"]),
+    "results": _spec("results.csv", RESULT_COLUMNS, ["localized_pct", "num_queries"], {"k_effective": "k"}),
     "query_errors": _spec("query_errors.csv.gz", QUERY_ERROR_COLUMNS, ["position_error_m", "rotation_error_deg", "failure"]),
     "retrieval": _spec("retrieval.csv", RETRIEVAL_COLUMNS, ["value", "num_queries"]),
     "query_retrieval": _spec("query_retrieval.csv.gz", QUERY_RETRIEVAL_COLUMNS, ["value"]),
@@ -92,16 +94,17 @@ def read_table(path: Path, spec: TableSpec) -> pd.DataFrame:
         header = list(pd.read_csv(path, nrows=0).columns)
     except pd.errors.EmptyDataError:
         return pd.DataFrame(columns=spec.columns)
-    missing = [c for c in spec.columns if c not in header]
+    missing = [c for c in spec.columns if c not in header and c not in spec.derived]
     if missing:
         raise ValueError(f"{path}: missing columns {missing} (found {header})")
     text = [c for c in header if c in TEXT_COLUMNS]
-    return pd.read_csv(
+    table = pd.read_csv(
         path,
         dtype={c: str for c in text},
         keep_default_na=False,
         na_values={c: [""] for c in header if c not in text},
     )
+    return table.assign(**{column: table[source] for column, source in spec.derived.items() if column not in header})
 
 
 def conflicting_rows(frames: Sequence[tuple[Path, pd.DataFrame]], spec: TableSpec) -> pd.DataFrame:

@@ -6,14 +6,11 @@ paradigm consumes one; that symmetry is what makes ground truth an upper bound.
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 from scipy import sparse
-
-log = logging.getLogger(__name__)
 
 #: Index value of an empty slot (fewer than K candidates for that query).
 EMPTY = -1
@@ -88,19 +85,11 @@ class Ranking:
         )
 
     def clamp_ks(self, ks: list[int]) -> list[int]:
-        """``ks`` limited to the ranking depth; a clamp is logged, never silent."""
-        clamped = sorted({min(int(k), self.depth) for k in ks})
-        if any(int(k) > self.depth for k in ks):
-            log.warning(
-                "ranking %r holds %d images per query: k values %s clamped to %s",
-                self.name,
-                self.depth,
-                sorted(int(k) for k in ks if int(k) > self.depth),
-                self.depth,
-            )
+        """The distinct ``ks`` limited to the ranking depth, sorted: the ks a paradigm computes
+        (`locretrieval.benchmark` warns once and labels results by the requested k)."""
         if any(int(k) < 1 for k in ks):
             raise ValueError(f"k must be >= 1, got {list(ks)}")
-        return clamped
+        return sorted({min(int(k), self.depth) for k in ks})
 
 
 def relevant_hits(indices: np.ndarray, relevance: sparse.csr_matrix) -> np.ndarray:

@@ -69,6 +69,7 @@ def load_dataset(
     query_tags: Sequence[str] | None = None,
     name_tags: Mapping[str, str] | None = None,
     install: str = "",
+    unsupported: Mapping[str, str] | None = None,
 ) -> Scene:
     """A `Scene` from kapture folders under ``root``.
 
@@ -77,7 +78,8 @@ def load_dataset(
     ``name_tags``: ``{tag: regex}`` on image names (e.g. RobotCar's day/night conditions).
     ``ltvl_name_style`` and ``frustum_far`` (metres) are dataset facts kept on the `Scene`
     (checked before any folder is read). ``install``: the commands that obtain the dataset,
-    shown when a folder is missing.
+    shown when a folder is missing. ``unsupported``: paradigm or ground-truth name -> why the
+    dataset cannot run it (kept on the `Scene`; enabling one is an error at start-up).
     """
     Scene.check_facts(name, ltvl_name_style, frustum_far)
     root = Path(root).expanduser()
@@ -96,9 +98,11 @@ def load_dataset(
     tags = None
     if query_tags is not None:
         tags = [str(tag) for tag, matches in zip(query_tags, query_matches) for _ in matches]
-    return load_kapture_scene(
+    scene = load_kapture_scene(
         name, mapping_folders, query_folders, tags, dict(name_tags) if name_tags else None, ltvl_name_style, frustum_far
     )
+    scene.unsupported = dict(unsupported or {})
+    return scene
 
 
 def load_synthetic_dataset(

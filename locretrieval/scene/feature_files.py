@@ -7,6 +7,11 @@ of ``dsize`` values of ``dtype`` per row. kapture's own header readers ``eval`` 
 field, which runs whatever a data file holds; headers are parsed here instead, and the
 dtype must be one of `FEATURE_DTYPES` (optionally written ``np.float32`` /
 ``numpy.float32``, as kapture writes it either way).
+
+Published features live in one of two layouts (`feature_folder_candidates`): kapture's own,
+``<kapture>/reconstruction/<kind>/<name>/``, or the one ``kapture_download_dataset.py`` installs
+beside the kapture folders, ``<dataset>/global_features/<name>/global_features/`` and
+``<dataset>/local_features/<name>/{keypoints,descriptors}/`` (e.g. ``r2d2_WASF-N8_20k``).
 """
 
 from __future__ import annotations
@@ -23,6 +28,15 @@ FEATURE_DTYPES: dict[str, np.dtype] = {
     name: np.dtype(name)
     for name in ("uint8", "int8", "uint16", "int16", "uint32", "int32", "uint64", "int64", "float16", "float32", "float64")
 }
+#: Feature kind -> (its file suffix, the downloader's family folder).
+FEATURE_KINDS: dict[str, tuple[str, str]] = {
+    "keypoints": (".kpt", "local_features"),
+    "descriptors": (".desc", "local_features"),
+    "global_features": (".gfeat", "global_features"),
+}
+#: Ancestors of a kapture folder searched for the downloader's family folders (``<dataset>/mapping``,
+#: ``<dataset>/<location>/mapping``, ``<dataset>/<building>/<release>/mapping``).
+DOWNLOADER_DEPTH = 3
 #: Header fields of each feature kind, in kapture's order.
 HEADER_FIELDS: dict[str, tuple[str, ...]] = {
     "keypoints": ("name", "dtype", "dsize"),
@@ -100,3 +114,31 @@ def read_feature_array(path: str | Path, header: FeatureHeader) -> np.ndarray:
             f"({row_bytes} bytes each; header {header.path})"
         )
     return np.fromfile(path, dtype=header.dtype).reshape(-1, header.dsize)
+
+
+def feature_folder_candidates(kapture_root: str | Path, kind: str, name: str) -> list[Path]:
+    """Where the published ``kind`` features ``name`` of a kapture folder may be, in search order:
+    ``<kapture>/reconstruction/<kind>/<name>``, then ``<ancestor>/<family>/<name>/<kind>`` for
+    the folder's `DOWNLOADER_DEPTH` nearest ancestors (the downloader's layout)."""
+    root = Path(kapture_root)
+    family = FEATURE_KINDS[kind][1]
+    return [root / "reconstruction" / kind / name, *(a / family / name / kind for a in root.parents[:DOWNLOADER_DEPTH])]
+
+
+def find_feature_folder(kapture_root: str | Path, kind: str, name: str) -> Path | None:
+    """The first `feature_folder_candidates` folder holding the ``<kind>.txt`` header, or None."""
+    return next((f for f in feature_folder_candidates(kapture_root, kind, name) if (f / f"{kind}.txt").is_file()), None)
+
+
+def feature_names(kapture_root: str | Path, kind: str) -> set[str]:
+    """The names of the ``kind`` features found for a kapture folder, in either layout."""
+    root = Path(kapture_root)
+    family = FEATURE_KINDS[kind][1]
+    parents = [root / "reconstruction" / kind, *(a / family for a in root.parents[:DOWNLOADER_DEPTH])]
+    return {child.name for parent in parents if parent.is_dir() for child in parent.iterdir()
+            if find_feature_folder(root, kind, child.name) is not None}
+
+
+def feature_file(folder: Path, kind: str, image_name: str) -> Path:
+    """The file of ``image_name`` in a ``kind`` feature folder (``<folder>/<image name><suffix>``)."""
+    return folder / f"{image_name}{FEATURE_KINDS[kind][0]}"

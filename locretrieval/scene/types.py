@@ -213,7 +213,9 @@ class Scene:
     folders), used to find published side data such as precomputed features. Dataset facts
     the pipeline reads: ``ltvl_name_style`` (`LTVL_NAME_STYLES`, how LTVL submissions name
     images) and ``frustum_far`` (metres, the far plane of the frustum ground truth and of
-    global-map pair selection where their config leaves ``far`` null; ``None``: unset).
+    global-map pair selection where their config leaves ``far`` null; ``None``: unset) and
+    ``unsupported`` (paradigm or ground-truth name -> why this dataset cannot run it, e.g.
+    InLoc's global SfM, which the paper builds from depth scans).
     """
 
     name: str
@@ -222,6 +224,7 @@ class Scene:
     sources: list[Path] = field(default_factory=list)
     ltvl_name_style: str = "full"
     frustum_far: float | None = None
+    unsupported: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.check_facts(self.name, self.ltvl_name_style, self.frustum_far)

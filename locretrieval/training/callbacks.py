@@ -53,6 +53,7 @@ class LocalizationValidation(L.Callback):
     cached in ``cache_dir``, so only new pairs are matched). Metrics are logged as
     `metric_rows` keys, so ``ModelCheckpoint`` and early stopping can monitor them; the
     ground-truth and random rankings are benchmarked once, logged as ``reference/...``.
+    ``relevance_scope``: the retrieval metrics' relevance (`relevances`).
     Runs on rank 0; ``history`` holds every validation (epoch -1: before training)."""
 
     def __init__(
@@ -66,8 +67,10 @@ class LocalizationValidation(L.Callback):
         sfm_every_n_epochs: int | None,
         cache_dir: str | Path | None,
         random_seed: int | None,
+        relevance_scope: str,
     ) -> None:
         self.scene, self.groundtruths, self.settings = scene, dict(groundtruths), settings
+        self.relevance = relevances(self.groundtruths, relevance_scope)
         self.preprocessing, self.extraction = preprocessing, extraction
         self.every_n_epochs, self.sfm_every_n_epochs = every_n_epochs, sfm_every_n_epochs
         self.cache_dir, self.random_seed = cache_dir, random_seed
@@ -91,7 +94,7 @@ class LocalizationValidation(L.Callback):
         model = NetworkDescriptor(TRAINED, network, self.preprocessing, self.extraction)
         described = describe_scene(model, self.scene, cache_dir=None)
         rankings = build_rankings(self.scene, {TRAINED: described}, {}, self.settings.retrieval, random_seed=None)
-        return benchmark(self.scene, rankings, self._settings(with_sfm), self.subsets, self.cache_dir, relevances(self.groundtruths))
+        return benchmark(self.scene, rankings, self._settings(with_sfm), self.subsets, self.cache_dir, self.relevance)
 
     def _references(self) -> list[Ranking]:
         return build_rankings(self.scene, {}, self.groundtruths, self.settings.retrieval, self.random_seed)
@@ -106,7 +109,7 @@ class LocalizationValidation(L.Callback):
         rankings = self._references()
         if rankings:
             result = benchmark(self.scene, rankings, self._settings(self.sfm_every_n_epochs is not None),
-                               self.subsets, self.cache_dir, relevances(self.groundtruths))
+                               self.subsets, self.cache_dir, self.relevance)
             self.reference = {r.name: metric_rows(result, r.name, self.settings.paradigms.ks()) for r in rankings}
             for name, metrics in self.reference.items():
                 log.info("reference %s: %s", name, headline(metrics))

@@ -122,6 +122,7 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     validator = LocalizationValidation(
         scene, groundtruths, settings, preprocessing, extraction, validation.every_n_epochs,
         validation.sfm_every_n_epochs, cache_dir, int(cfg.seed) if cfg.baselines.random else None,
+        groundtruth_settings.relevance,
     )
     module = RetrievalTraining(
         network, preprocessing, instantiate(cfg.loss), instantiate(cfg.optimizer),
