@@ -28,6 +28,9 @@ Result = TypeVar("Result")
 
 #: How often a worker checks that the process that started it is still alive.
 PARENT_CHECK_SECONDS = 1.0
+#: Fewer tasks than this per worker run in this process unless the pool is already started: starting
+#: workers (seconds each) costs more than they save (a 4-query scene: 20 s in-process, 28 s with two).
+MIN_TASKS_PER_WORKER = 4
 #: Pools of this process by worker count.
 _pools: dict[int, ProcessPoolExecutor] = {}
 #: In a worker: (file, object) of the shared data of the call in progress.
@@ -91,14 +94,15 @@ def parallel_map(
     """``function(task)``, or ``function(shared, task)`` when ``shared`` is given, for every
     task, in order, with a progress bar.
 
-    ``workers == 1`` (or a single task) runs in this process (tests, debugging); otherwise
-    this process's pool of spawned workers runs them. ``function`` must be a module-level
+    ``workers == 1``, a single task, or a small workload (fewer than `MIN_TASKS_PER_WORKER`
+    tasks per worker while no pool is started) runs in this process; otherwise this process's
+    pool of spawned workers runs them. ``function`` must be a module-level
     function and ``shared``, the tasks and the results picklable.
     """
     workers = resolve_workers(workers)
     progress: Any = tqdm(total=len(tasks), desc=description, unit="task", disable=None, leave=False)
     with progress:
-        if workers == 1 or len(tasks) <= 1:
+        if workers == 1 or len(tasks) <= 1 or (workers not in _pools and len(tasks) < MIN_TASKS_PER_WORKER * workers):
             for task in tasks:
                 yield function(task) if shared is None else function(shared, task)
                 progress.update()
