@@ -262,11 +262,33 @@ def test_local_maps_of_the_same_images_in_another_order_are_built_once(scene, ca
 
     monkeypatch.setattr(local_sfm, "triangulate_known_poses", counting)
     forward, backward = run_local(scene, [truth.top(3), reversed_ranking], [2, 3], cache)
-    # per query: the two top-2 sets {first, second} and {second, third}, and one top-3 set
-    assert sorted(built) == [2] * 2 * len(top) + [3] * len(top)
+    # per query: the two top-2 sets {first, second} and {second, third}, and one top-3 set; a
+    # set that several queries share is triangulated once (then read from the cache)
+    sets = {frozenset(row[:2]) for row in top} | {frozenset(row[1:]) for row in top} | {frozenset(row) for row in top}
+    assert sorted(built) == sorted(len(images) for images in sets)
     np.testing.assert_array_equal(forward.qvec[1], backward.qvec[1])
     np.testing.assert_array_equal(forward.tvec[1], backward.tvec[1])
     np.testing.assert_array_equal(forward.failures[1], backward.failures[1])
+
+
+@pytest.mark.parametrize("map_matches", ["database", "query"])
+def test_a_rerun_reads_its_local_maps_from_the_cache(scene, cache, rankings, monkeypatch, map_matches):
+    first = run_local(scene, rankings, [2, 3], cache, map_matches)
+    assert len(list((cache / "local_maps").glob("*.npz"))) > 0
+
+    def refuse(*_):
+        raise AssertionError("a cached local map was triangulated again")
+
+    monkeypatch.setattr(local_sfm, "triangulate_known_poses", refuse)
+    again = run_local(scene, rankings, [2, 3], cache, map_matches)
+    for a, b in zip(first, again):
+        np.testing.assert_array_equal(a.qvec, b.qvec)
+        np.testing.assert_array_equal(a.failures, b.failures)
+    other = sfm_settings(triangulation={"min_angle": 3.0})  # another map: built, not read
+    monkeypatch.undo()
+    before = len(list((cache / "local_maps").glob("*.npz")))
+    run_local(scene, rankings, [2], cache, map_matches, sfm=other)
+    assert len(list((cache / "local_maps").glob("*.npz"))) > before
 
 
 def test_results_do_not_depend_on_worker_processes_and_reruns_reuse_the_caches(scene, cache, rankings, monkeypatch):

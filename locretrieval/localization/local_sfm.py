@@ -13,7 +13,10 @@ For each query, ranking and k:
    either way, map-map matches are then kept only within ``matching.max_epipolar_error``
    pixels of the epipolar geometry of the two known poses;
 3. COLMAP's triangulator builds tracks across the k images and triangulates them
-   (`triangulate_known_poses`; two-view tracks kept, ``triangulation`` options);
+   (`triangulate_known_poses`; two-view tracks kept, ``triangulation`` options); the map is
+   cached in ``<cache_dir>/local_maps/`` keyed by its images, the matches' store and the
+   triangulation settings (and, with ``query`` map matches, the query), so a map shared by
+   several queries or a rerun is triangulated once;
 4. the query's matches to the k images (verified per ``matching.query_verification``) give
    2D-3D correspondences through the triangulated keypoints, and LO-RANSAC P3P with
    non-linear refinement (``pnp`` options) estimates its pose.
@@ -25,11 +28,12 @@ available ("too few images"), the map has no point, or PnP fails.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
+from locretrieval.cache import config_key
 from locretrieval.config import require
 from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.matching import epipolar_inliers
@@ -38,11 +42,14 @@ from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW
 from locretrieval.localization.sfm import (
     Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, register_query, run_queries,
 )
+from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.localization.triangulation import triangulate_known_poses
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import Scene
 
 MAP_MATCHES = ("database", "query")
+#: Bump when the meaning of cached local maps changes.
+CACHE_VERSION = 1
 
 
 @dataclass
@@ -66,7 +73,8 @@ def run(
         names = scene.database.names
         pairs = [(names[a], names[b]) for a, b in local_map_pairs(rankings, ks)]
         inputs.database_pairs.ensure(pairs, sfm.processes, "poses")
-    return run_queries("local_sfm", rankings, ks, localize_query, (inputs, settings.map_matches), sfm.processes)
+    shared = (inputs, settings.map_matches, Path(cache_dir) / "local_maps")
+    return run_queries("local_sfm", rankings, ks, localize_query, shared, sfm.processes)
 
 
 def local_map_pairs(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> np.ndarray:
@@ -81,10 +89,11 @@ def local_map_pairs(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) ->
     return np.unique(np.concatenate(pairs), axis=0)
 
 
-def localize_query(shared: tuple[SfmInputs, str], task: QueryTask) -> list[list[Outcome]]:
-    """Outcomes ``[ranking][k]`` of one query; a map (an image set) is triangulated and the
-    query registered in it once, whichever rankings, ks and orders select its images."""
-    inputs, map_matches = shared
+def localize_query(shared: tuple[SfmInputs, str, Path], task: QueryTask) -> list[list[Outcome]]:
+    """Outcomes ``[ranking][k]`` of one query; a map (an image set) is triangulated (or read
+    from ``maps``, the cache folder) and the query registered in it once, whichever rankings,
+    ks and orders select its images."""
+    inputs, map_matches, maps = shared
     database = inputs.scene.database
     images = sorted({i for top in task.top for i in top})
     query_keypoints, query_matches = inputs.query_matches(task.query, images)
@@ -97,17 +106,33 @@ def localize_query(shared: tuple[SfmInputs, str], task: QueryTask) -> list[list[
         if len(selected) < 2:
             return TOO_FEW_IMAGES
         slots = {i: s for s, i in enumerate(selected)}
-        sparse_map = triangulate_known_poses(
-            [database.cameras[i] for i in selected], database.qvec[list(selected)], database.tvec[list(selected)],
-            [keypoints[database.names[i]] for i in selected],
-            {(slots[a], slots[b]): map_pairs[(a, b)] for a in selected for b in selected if a < b},
-            inputs.settings.triangulation,
-        )
+        path = maps / f"{_map_key(inputs, map_matches, task.query, selected)}.npz"
+        if path.is_file():
+            sparse_map = SparseMap.load(path)
+        else:
+            sparse_map = triangulate_known_poses(
+                [database.cameras[i] for i in selected], database.qvec[list(selected)], database.tvec[list(selected)],
+                [keypoints[database.names[i]] for i in selected],
+                {(slots[a], slots[b]): map_pairs[(a, b)] for a in selected for b in selected if a < b},
+                inputs.settings.triangulation,
+            )
+            sparse_map.save(path)
         if not sparse_map.num_points:
             return NO_3D_POINTS
         return register_query(inputs, task.query, query_keypoints, {i: query_matches[i] for i in selected}, sparse_map, slots)
 
     return outcomes_per_image_set(task, localize)
+
+
+def _map_key(inputs: SfmInputs, map_matches: str, query: int, selected: tuple[int, ...]) -> str:
+    """Cache key of a local map: its images, the database matches' store (features, ratio,
+    epipolar bound, poses), the triangulation settings and, for ``query`` map matches (derived
+    from the query's), the query and its matches' store."""
+    names = [inputs.scene.database.names[i] for i in selected]
+    source = [inputs.database_pairs.stores["poses"].folder.name]
+    if map_matches == "query":
+        source = [inputs.query_pairs.stores[inputs.query_verification].folder.name, inputs.scene.queries.names[query]]
+    return config_key(CACHE_VERSION, map_matches, source, names, asdict(inputs.settings.triangulation))
 
 
 def _map_matches(
