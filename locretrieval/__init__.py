@@ -6,4 +6,4 @@ import zlib  # noqa: F401
 
 from locretrieval import config  # noqa: F401,E402  (registers the config resolvers)
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"

@@ -10,7 +10,14 @@ from PIL import Image
 from scipy.ndimage import gaussian_filter
 
 from locretrieval.models import DenseVLAD
-from locretrieval.models.densevlad import dense_rootsift, grid_layout, normalize_vlad, vlad_residuals
+from locretrieval.models import densevlad
+from locretrieval.models.densevlad import (
+    dense_rootsift,
+    gradient_histograms,
+    grid_layout,
+    normalize_vlad,
+    vlad_residuals,
+)
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.retrieval.index import search
 from locretrieval.scene import Camera, ImageSet, Scene
@@ -86,6 +93,16 @@ def explicit_rootsift(image: torch.Tensor, bin_size: int, step: int, max_bin_siz
             vector /= np.linalg.norm(vector)
             out.append(np.sqrt(vector / vector.sum()))
     return np.array(out)
+
+
+def test_gradient_histograms_equal_kornias():
+    image = torch.from_numpy(texture(5, 80).astype(np.float32) / 255.0)[None, None].repeat(2, 1, 1, 1)
+    image[1, :, 20:50, 10:60] = 0.25  # flat: zero gradients vote nowhere
+    expected = kornia.feature.DenseSIFTDescriptor().get_gradient_histograms(image)
+    histograms = gradient_histograms(image)
+    assert histograms.shape == (2, 8, 80, 80) and histograms.is_contiguous(memory_format=torch.channels_last)
+    np.testing.assert_allclose(histograms.numpy(), expected.numpy(), atol=2e-6)
+    assert (histograms[1, :, 21:49, 11:59] == 0).all()
 
 
 @pytest.mark.parametrize("bin_size", [4, 6])
@@ -191,6 +208,29 @@ def test_database_descriptors_from_fit_equal_a_fresh_pass(textures_scene, fitted
     # A subset has another fingerprint, so it is described afresh rather than taken from fit.
     recomputed = fitted.describe(textures_scene.database.subset(np.arange(5)))
     np.testing.assert_allclose(fitted.describe(textures_scene.database)[:5], recomputed, atol=1e-6)
+
+
+def test_vlads_built_a_few_rows_at_a_time_equal_the_whole_image_computation(monkeypatch, textures_scene, fitted):
+    monkeypatch.setattr(densevlad, "CHUNK_POINTS", 50)  # many chunks per scale
+    expected = []
+    for index in range(len(textures_scene.queries)):
+        image = fitted._load(textures_scene.queries, index)[None]
+        residuals = 0
+        for bin_size in fitted.bin_sizes:
+            descriptors, contrast = dense_rootsift(image, bin_size, fitted.step, max(fitted.bin_sizes))
+            kept = (contrast >= fitted.contrast_threshold) & (contrast > 0)
+            residuals = residuals + vlad_residuals(descriptors, kept, fitted._centroids)
+        expected.append(normalize_vlad(residuals)[0].numpy())
+    np.testing.assert_allclose(fitted._vlads(textures_scene.queries), np.array(expected), atol=1e-6)
+
+
+def test_small_images_keep_their_size_unless_upsampled(tmp_path):
+    images = image_set(tmp_path, {"small.png": texture(1, 96)[:72], "large.png": texture(2, 256)[:192]})
+    assert DenseVLAD(**SMALL)._load(images, 0).shape == (1, 72, 96)
+    assert DenseVLAD(**SMALL, upsample=True)._load(images, 0).shape == (1, 96, 128)
+    for upsample in (False, True):
+        assert DenseVLAD(**SMALL, upsample=upsample)._load(images, 1).shape == (1, 96, 128)
+    assert DenseVLAD(**SMALL).identity() != DenseVLAD(**SMALL, upsample=True).identity()
 
 
 def test_shifted_crops_retrieve_their_source_texture(textures_scene, fitted):

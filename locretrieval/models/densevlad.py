@@ -9,19 +9,23 @@ Following the authors' ``at_image2densevlad.m`` (``vl_phow`` defaults): SIFT bin
 Gaussian of ``sqrt((bin / magnification)^2 - 0.25)`` px, cells weighted by a Gaussian
 window of ``window_size`` bins, descriptors whose unnormalised norm is below
 ``contrast_threshold`` (grey levels in [0, 1]) rejected. Differences, all deliberate:
-images are resized so their longer side is ``max_side`` px (the original halves every
-image with ``vl_imdown``, "downsize to vga", which assumes 1280x960 input; a fixed size
-keeps the SIFT scales comparable across datasets); rejected low-contrast descriptors are
+images larger than ``max_side`` px are shrunk to it (the original halves every image with
+``vl_imdown``, "downsize to vga", which assumes 1280x960 input) and smaller ones are used as
+they are (``upsample=True`` enlarges them to ``max_side``, which keeps the SIFT scales
+comparable across image sizes at the cost of 1.8x the descriptors for 480 px images, and adds
+no detail); rejected low-contrast descriptors are
 left out of the VLAD (``vl_phow`` zeroes them, and a zero vector still adds ``-c_k`` to its
 word's residual); vocabulary and PCA are learned on each database (the authors ship ones
 learned on their own data), and the PCA is centred (their projection is applied to
 uncentred VLADs).
 
-Dense SIFT: kornia computes the gradient-orientation histograms; the spatial pooling is our
-own (a depthwise triangle filter evaluated only on the sampled lattice), because kornia's
+Dense SIFT: the gradient-orientation histograms are kornia's (computed here without its
+3 x 3 convolution, which dominated the run time); the spatial pooling is our own (a
+depthwise triangle filter evaluated only on the sampled lattice), because kornia's
 ``DenseSIFTDescriptor`` pools each cell over ``bin_size`` px instead of VLFeat's bilinear
 ``2 * bin_size - 1``, has no cell window, and normalises without exposing the contrast
-that ``vl_phow`` thresholds.
+that ``vl_phow`` thresholds. Descriptors are built and assigned to their words a few grid
+rows at a time, so the working set stays in the CPU caches.
 """
 
 from __future__ import annotations
@@ -46,13 +50,17 @@ from locretrieval.scene.images import read_image
 log = logging.getLogger(__name__)
 
 #: Bumped whenever a code change alters the descriptors (part of the cache key).
-IMPLEMENTATION_VERSION = 1
+IMPLEMENTATION_VERSION = 2
 SPATIAL_BINS = 4
 ANGLE_BINS = 8
 SIFT_DIM = SPATIAL_BINS * SPATIAL_BINS * ANGLE_BINS
 #: SIFT's clipping of single dominant bins, applied between two L2 normalisations.
 SIFT_CLIP = 0.2
 _EPS = 1e-12
+#: kornia's guard of the gradient magnitude and orientation.
+_GRADIENT_EPS = 1e-10
+#: Descriptors built and assigned at a time: a few MB that stay in the CPU caches.
+CHUNK_POINTS = 4096
 
 
 def grid_layout(size: int, max_bin_size: int, step: int) -> tuple[int, int]:
@@ -79,26 +87,95 @@ def _window_weights(window_size: float, device: torch.device) -> torch.Tensor:
     return torch.outer(weights, weights).flatten()
 
 
-def dense_rootsift(
+def gradient_histograms(images: torch.Tensor) -> torch.Tensor:
+    """Per-pixel orientation histograms ``[B, 8, H, W]`` (channels-last memory) of ``[B, 1, H, W]``.
+
+    kornia's ``DenseSIFTDescriptor.get_gradient_histograms``, computed without its 3 x 3
+    convolution: central differences ``(I[x + 1] - I[x - 1]) / 2`` with replicated borders,
+    magnitude ``sqrt(gx^2 + gy^2 + 1e-10)`` (zero where the gradient is), orientation
+    ``atan2(gy, gx)`` voting linearly into its two nearest of 8 bins (bin 0 centred on angle 0).
+    """
+    padded = F.pad(images, (1, 1, 1, 1), mode="replicate")[:, 0]
+    gx = 0.5 * (padded[:, 1:-1, 2:] - padded[:, 1:-1, :-2])
+    gy = 0.5 * (padded[:, 2:, 1:-1] - padded[:, :-2, 1:-1])
+    squared = gx * gx + gy * gy
+    nonzero = squared > 0
+    magnitude = torch.where(nonzero, torch.sqrt(squared + _GRADIENT_EPS), 0.0)
+    angle = torch.where(nonzero, torch.atan2(gy, gx + _GRADIENT_EPS) + 2.0 * math.pi, 2.0 * math.pi)
+    position = angle * (ANGLE_BINS / (2.0 * math.pi))
+    lower = torch.floor(position)
+    upper_weight = position - lower
+    lower_bin = lower.long().remainder_(ANGLE_BINS)
+    histograms = images.new_zeros(*gx.shape, ANGLE_BINS)  # [B, H, W, 8]
+    histograms.scatter_add_(-1, lower_bin[..., None], ((1.0 - upper_weight) * magnitude)[..., None])
+    histograms.scatter_add_(-1, ((lower_bin + 1) % ANGLE_BINS)[..., None], (upper_weight * magnitude)[..., None])
+    return histograms.permute(0, 3, 1, 2)
+
+
+class SiftLattice:
+    """One SIFT scale of a batch: pooled gradient histograms where descriptor cells fall.
+
+    ``pooled [B, Y, X, 8]`` holds the bilinearly pooled histograms on the lattice
+    ``origin + stride * j`` that contains every cell centre, from the first grid point's
+    first cell on; ``cells`` views them as ``[B, rows, cols, 4, 4, 8]`` (grid point, cell
+    row, cell column, angle) without copying, so descriptors are built a few grid rows at
+    a time.
+    """
+
+    def __init__(self, pooled: torch.Tensor, rows: int, cols: int, cell_step: int, grid_step: int,
+                 window: torch.Tensor) -> None:
+        self.pooled = pooled
+        self.rows, self.cols = rows, cols
+        self.cell_step, self.grid_step = cell_step, grid_step
+        self.window = window.view(SPATIAL_BINS, SPATIAL_BINS, 1)
+        self.cells = self._cell_view(pooled)
+
+    def _cell_view(self, lattice: torch.Tensor) -> torch.Tensor:
+        """``[B, Y, X, ...] -> [B, rows, cols, 4, 4, ...]``: each grid point's 4 x 4 cells (a view)."""
+        span = (SPATIAL_BINS - 1) * self.cell_step + 1
+        windows = lattice.unfold(1, span, self.grid_step)[:, : self.rows]
+        windows = windows.unfold(2, span, self.grid_step)[:, :, : self.cols]  # [B, rows, cols, ..., span, span]
+        windows = windows[..., :: self.cell_step, :: self.cell_step]
+        return windows.movedim((-2, -1), (3, 4))
+
+    def contrast(self) -> torch.Tensor:
+        """``[B, rows, cols]``: L2 norm of each window-weighted histogram before normalisation."""
+        cell_energy = self._cell_view(self.pooled.square().sum(-1))  # [B, rows, cols, 4, 4]
+        return (cell_energy * self.window[..., 0].square()).sum((-2, -1)).sqrt_()
+
+    def rootsift(self, cells: torch.Tensor) -> torch.Tensor:
+        """RootSIFT ``[..., 128]`` of a selection ``[..., 4, 4, 8]`` of `cells`.
+
+        SIFT's L2 / clip 0.2 / L2 followed by RootSIFT's L1 and square root (the second L2
+        cancels in the L1 step); zero contrast gives a zero descriptor.
+        """
+        descriptors = torch.mul(cells, self.window, out=cells.new_empty(cells.shape)).flatten(-3)
+        descriptors = descriptors.div_(descriptors.norm(dim=-1, keepdim=True).clamp_min_(_EPS)).clamp_max_(SIFT_CLIP)
+        return descriptors.div_(descriptors.sum(-1, keepdim=True).clamp_min_(_EPS)).sqrt_()
+
+    def row_chunks(self, max_points: int) -> Iterator[slice]:
+        """Slices of grid rows holding at most ``max_points`` descriptors of the batch (one row at least)."""
+        step = max(1, max_points // (self.cells.shape[0] * self.cols))
+        for start in range(0, self.rows, step):
+            yield slice(start, min(start + step, self.rows))
+
+
+def sift_lattice(
     images: torch.Tensor,
     bin_size: int,
     step: int,
     max_bin_size: int,
     magnification: float = 6.0,
     window_size: float = 1.5,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Upright RootSIFT on the grid of `grid_layout` at one scale.
+) -> SiftLattice:
+    """Upright SIFT cells on the grid of `grid_layout` at one scale.
 
     ``images``: grey levels in [0, 1], ``float32 [B, 1, H, W]``. Gradient orientation
     histograms come from kornia (central differences, 8 bins, linear angular
     interpolation); cells are ``bin_size`` px apart and pool bilinearly (VLFeat
-    ``vl_dsift`` geometry). Returns ``(descriptors [B, G, 128], contrast [B, G])`` with
-    ``G`` grid points in row-major order, entries ordered (cell row, cell column, angle).
-    Descriptors are SIFT-normalised (L2, clip 0.2, L2) then RootSIFT (L1, sqrt), hence
-    non-negative with unit L2 norm; ``contrast`` is the L2 norm of the window-weighted
-    histogram before normalisation (zero contrast gives a zero descriptor).
+    ``vl_dsift`` geometry), weighted by a Gaussian window of ``window_size`` bins.
     """
-    batch, _, height, width = images.shape
+    _, _, height, width = images.shape
     first_y, rows = grid_layout(height, max_bin_size, step)
     first_x, cols = grid_layout(width, max_bin_size, step)
     if rows == 0 or cols == 0:
@@ -108,13 +185,15 @@ def dense_rootsift(
         sigma = math.sqrt(sigma_squared)
         kernel_size = 2 * math.ceil(3 * sigma) + 1
         images = kornia.filters.gaussian_blur2d(images, (kernel_size, kernel_size), (sigma, sigma))
-    histograms = kornia.feature.DenseSIFTDescriptor(num_ang_bins=ANGLE_BINS).get_gradient_histograms(images)
+    histograms = gradient_histograms(images)
 
     # Every sampled cell centre lies on the lattice origin + stride * j, so the bilinear pooling
-    # (a depthwise separable triangle filter) is only evaluated there.
+    # (a depthwise separable triangle filter) is only evaluated there. Channels-last memory:
+    # these depthwise convolutions run several times faster in that layout on CPU.
     stride = math.gcd(step, bin_size)
     origin_y = first_y - (3 * bin_size) // 2
     origin_x = first_x - (3 * bin_size) // 2
+    # Channels-last: the depthwise convolutions run several times faster in that layout on CPU.
     histograms = histograms[:, :, origin_y % stride :, origin_x % stride :]
     triangle = _triangle_kernel(bin_size, images.device)
     pooled = F.conv2d(
@@ -130,42 +209,67 @@ def dense_rootsift(
         padding=(0, bin_size - 1),
         stride=(1, stride),
         groups=ANGLE_BINS,
-    ).permute(0, 2, 3, 1)  # [B, y, x, angle] on the lattice
-
-    cell_step, grid_step = bin_size // stride, step // stride
+    )
     top, left = origin_y // stride, origin_x // stride
-    cells = [
-        pooled[
-            :,
-            top + cell_y * cell_step : top + cell_y * cell_step + grid_step * (rows - 1) + 1 : grid_step,
-            left + cell_x * cell_step : left + cell_x * cell_step + grid_step * (cols - 1) + 1 : grid_step,
-        ]
-        for cell_y in range(SPATIAL_BINS)
-        for cell_x in range(SPATIAL_BINS)
-    ]
-    histogram = torch.stack(cells, -2).mul_(_window_weights(window_size, images.device)[:, None])
-    histogram = histogram.reshape(batch, rows * cols, SIFT_DIM)
-    contrast = histogram.norm(dim=-1)
-    # SIFT's L2 / clip / L2 followed by RootSIFT's L1: the second L2 cancels in the L1 step.
-    descriptors = histogram.div_(contrast.clamp_min(_EPS)[..., None]).clamp_max_(SIFT_CLIP)
-    descriptors = descriptors.div_(descriptors.sum(-1, keepdim=True).clamp_min_(_EPS)).sqrt_()
-    return descriptors, contrast
+    pooled = pooled[:, :, top:, left:].permute(0, 2, 3, 1)  # [B, y, x, angle] (a view of channels-last memory)
+    return SiftLattice(pooled, rows, cols, bin_size // stride, step // stride, _window_weights(window_size, images.device))
+
+
+def dense_rootsift(
+    images: torch.Tensor,
+    bin_size: int,
+    step: int,
+    max_bin_size: int,
+    magnification: float = 6.0,
+    window_size: float = 1.5,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every RootSIFT of `sift_lattice` at once: ``(descriptors [B, G, 128], contrast [B, G])``.
+
+    ``G`` grid points in row-major order, entries ordered (cell row, cell column, angle);
+    descriptors are non-negative with unit L2 norm; ``contrast`` is the L2 norm of the
+    window-weighted histogram before normalisation. DenseVLAD itself builds descriptors a
+    few rows at a time (`SiftLattice.rootsift`).
+    """
+    lattice = sift_lattice(images, bin_size, step, max_bin_size, magnification, window_size)
+    return lattice.rootsift(lattice.cells).flatten(1, 2), lattice.contrast().flatten(1)
+
+
+class VladAccumulator:
+    """Sums of residuals ``x - c_k`` per visual word over descriptors added in chunks.
+
+    Hard assignment to the nearest centroid (largest ``x . c - |c|^2 / 2``); ``centroids [K, D]``.
+    """
+
+    def __init__(self, centroids: torch.Tensor, batch: int) -> None:
+        self.centroids = centroids
+        self.batch = batch
+        self._centroids_t = centroids.T.contiguous()
+        self._neg_half_norms = -0.5 * (centroids * centroids).sum(1)
+        # One extra slot collects the invalid rows.
+        self._sums = centroids.new_zeros(batch * len(centroids) + 1, centroids.shape[1])
+        self._counts = torch.zeros(batch * len(centroids) + 1, dtype=torch.long, device=centroids.device)
+
+    def add(self, descriptors: torch.Tensor, valid: torch.Tensor) -> None:
+        """``descriptors [B, M, D]`` of the batch's images; rows where ``valid [B, M]`` is false are ignored."""
+        num_words = len(self.centroids)
+        scores = torch.addmm(self._neg_half_norms, descriptors.flatten(0, 1), self._centroids_t)
+        slots = scores.argmax(-1).view(valid.shape) + num_words * torch.arange(self.batch, device=descriptors.device)[:, None]
+        slots = torch.where(valid, slots, self.batch * num_words).flatten()
+        self._sums.index_add_(0, slots, descriptors.flatten(0, 1))
+        self._counts += torch.bincount(slots, minlength=len(self._counts))
+
+    def residuals(self) -> torch.Tensor:
+        """``[B, K, D]`` (zeros for words without descriptors)."""
+        counts = self._counts[:-1, None].to(self._sums.dtype)
+        residuals = self._sums[:-1] - counts * self.centroids.repeat(self.batch, 1)
+        return residuals.view(self.batch, len(self.centroids), -1)
 
 
 def vlad_residuals(descriptors: torch.Tensor, valid: torch.Tensor, centroids: torch.Tensor) -> torch.Tensor:
-    """Sum of residuals ``x - c_k`` per visual word, hard assignment to the nearest centroid.
-
-    ``descriptors [B, M, D]``, ``valid`` boolean ``[B, M]`` (invalid rows are ignored),
-    ``centroids [K, D]``; returns ``[B, K, D]`` (zeros for words without descriptors).
-    """
-    batch, _, dim = descriptors.shape
-    num_words = centroids.shape[0]
-    scores = torch.matmul(descriptors, centroids.T).sub_(0.5 * (centroids * centroids).sum(1))
-    slots = scores.argmax(-1) + num_words * torch.arange(batch, device=descriptors.device)[:, None]
-    slots = torch.where(valid, slots, batch * num_words).flatten()  # one extra slot collects the invalid rows
-    sums = descriptors.new_zeros(batch * num_words + 1, dim).index_add_(0, slots, descriptors.flatten(0, 1))
-    counts = torch.bincount(slots, minlength=batch * num_words + 1).to(descriptors.dtype)
-    return (sums[:-1] - counts[:-1, None] * centroids.repeat(batch, 1)).view(batch, num_words, dim)
+    """`VladAccumulator` over one set of ``descriptors [B, M, D]``: residual sums ``[B, K, D]``."""
+    accumulator = VladAccumulator(centroids, descriptors.shape[0])
+    accumulator.add(descriptors, valid)
+    return accumulator.residuals()
 
 
 def normalize_vlad(residuals: torch.Tensor) -> torch.Tensor:
@@ -188,6 +292,7 @@ class DenseVLAD(GlobalDescriptor):
         self,
         name: str = "densevlad",
         max_side: int = 640,
+        upsample: bool = False,
         step: int = 2,
         bin_sizes: Sequence[int] = (4, 6, 8, 10),
         magnification: float = 6.0,
@@ -205,6 +310,7 @@ class DenseVLAD(GlobalDescriptor):
     ) -> None:
         super().__init__(name)
         self.max_side = int(max_side)
+        self.upsample = bool(upsample)
         self.step = int(step)
         self.bin_sizes = tuple(int(size) for size in bin_sizes)
         self.magnification = float(magnification)
@@ -248,6 +354,7 @@ class DenseVLAD(GlobalDescriptor):
             "model": "densevlad",
             "implementation": IMPLEMENTATION_VERSION,
             "max_side": self.max_side,
+            "upsample": self.upsample,
             "step": self.step,
             "bin_sizes": list(self.bin_sizes),
             "magnification": self.magnification,
@@ -265,17 +372,21 @@ class DenseVLAD(GlobalDescriptor):
     # -- images -------------------------------------------------------------------------
 
     def _load(self, images: ImageSet, index: int) -> torch.Tensor:
-        """Grey image ``[1, h, w]`` in [0, 1] with its longer side resized to ``max_side``."""
+        """Grey image ``[1, h, w]`` in [0, 1], its longer side shrunk to ``max_side`` (or enlarged: `upsample`)."""
         path = images.paths[index]
         grey = torch.tensor(read_image(path, grayscale=True), dtype=torch.float32, device=self.device) / 255.0
         height, width = grey.shape
         scale = self.max_side / max(height, width)
+        if scale > 1 and not self.upsample:
+            scale = 1.0
         size = (max(1, round(height * scale)), max(1, round(width * scale)))
         if min(size) < 3 * max(self.bin_sizes) + 1:
             raise ValueError(
                 f"image {path} ({width}x{height} px) resized to {size[1]}x{size[0]} px is too small for "
-                f"SIFT bins of {max(self.bin_sizes)} px; raise max_side"
+                f"SIFT bins of {max(self.bin_sizes)} px; raise max_side, or set upsample=true for small images"
             )
+        if size == (height, width):
+            return grey[None]
         return F.interpolate(grey[None, None], size=size, mode="bilinear", antialias=True, align_corners=False)[0]
 
     def _batches(
@@ -294,13 +405,12 @@ class DenseVLAD(GlobalDescriptor):
         if tensors:
             yield pending, torch.stack(tensors)
 
-    def _rootsift_scales(self, batch: torch.Tensor) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
-        """``(descriptors [B, G, 128], kept [B, G])`` per bin size; ``kept`` passes the contrast threshold."""
+    def _scales(self, batch: torch.Tensor) -> Iterator[tuple[SiftLattice, torch.Tensor]]:
+        """``(lattice, kept [B, rows, cols])`` per bin size; ``kept`` passes the contrast threshold."""
         for bin_size in self.bin_sizes:
-            descriptors, contrast = dense_rootsift(
-                batch, bin_size, self.step, max(self.bin_sizes), self.magnification, self.window_size
-            )
-            yield descriptors, (contrast >= self.contrast_threshold) & (contrast > 0)
+            lattice = sift_lattice(batch, bin_size, self.step, max(self.bin_sizes), self.magnification, self.window_size)
+            contrast = lattice.contrast()
+            yield lattice, (contrast >= self.contrast_threshold) & (contrast > 0)
 
     # -- fitting --------------------------------------------------------------------------
 
@@ -312,12 +422,15 @@ class DenseVLAD(GlobalDescriptor):
         per_image_scale = math.ceil(self.vocabulary_samples / (len(chosen) * len(self.bin_sizes)))
         samples = []
         for indices, batch in self._batches(database, chosen.tolist(), "vocabulary"):
-            for scale, (descriptors, kept) in enumerate(self._rootsift_scales(batch)):
+            for scale, (lattice, kept) in enumerate(self._scales(batch)):
                 for row, image_index in enumerate(indices):
-                    candidates = torch.nonzero(kept[row]).squeeze(1)
+                    candidates = torch.nonzero(kept[row].flatten()).squeeze(1)
                     rng = np.random.default_rng([self.seed, image_index, scale])
                     take = np.sort(rng.choice(len(candidates), min(per_image_scale, len(candidates)), replace=False))
-                    samples.append(descriptors[row, candidates[torch.from_numpy(take).to(self.device)]].cpu().numpy())
+                    points = candidates[torch.from_numpy(take).to(self.device)]
+                    grid_y, grid_x = points.div(lattice.cols, rounding_mode="floor"), points.remainder(lattice.cols)
+                    chosen_cells = lattice.cells[row, grid_y, grid_x]
+                    samples.append(lattice.rootsift(chosen_cells).cpu().numpy())
         points = np.ascontiguousarray(np.concatenate(samples), dtype=np.float32)
         if len(points) < self.num_words:
             raise ValueError(
@@ -382,11 +495,12 @@ class DenseVLAD(GlobalDescriptor):
             raise RuntimeError("DenseVLAD has no vocabulary: call fit(database) first (describe_scene does)")
         vlads = np.empty((len(images), self._centroids.numel()), dtype=np.float32)
         for indices, batch in self._batches(images, range(len(images)), "describe"):
-            residuals = sum(
-                vlad_residuals(descriptors, kept, self._centroids)
-                for descriptors, kept in self._rootsift_scales(batch)
-            )
-            vlads[indices] = normalize_vlad(residuals).cpu().numpy()
+            accumulator = VladAccumulator(self._centroids, len(indices))
+            for lattice, kept in self._scales(batch):
+                for rows in lattice.row_chunks(CHUNK_POINTS):
+                    descriptors = lattice.rootsift(lattice.cells[:, rows])
+                    accumulator.add(descriptors.flatten(1, 2), kept[:, rows].flatten(1))
+            vlads[indices] = normalize_vlad(accumulator.residuals()).cpu().numpy()
         return vlads
 
     @torch.no_grad()
