@@ -190,6 +190,20 @@ def test_extra_rendered_scenes_are_trained_on_with_their_queries_and_never_the_v
         training_worlds(itself, validation_scene, validated(TrainingSettings, itself.training, "training"))
 
 
+def test_hard_negatives_set_during_an_epoch_apply_to_its_later_batches(scene):
+    pairs = training_pairs(scene.database, RELATIVE_POSE, far=25.0)
+    sampler = RelevanceBatchSampler(pairs, BatchSettings(anchors=4, negatives=4, batches_per_epoch=6), seed=0)
+    hard_image = {int(a): np.array([i for i in range(pairs.num_images) if i != a and not pairs.related[a, i]][:1])
+                  for a in sampler.anchors}
+    batches = iter(sampler)
+    first = next(batches)
+    sampler.set_hard_negatives(hard_image)
+    for batch in batches:
+        anchors, negatives = batch[:4], batch[8:]
+        assert set(negatives) <= {int(hard_image[a][0]) for a in anchors}
+    assert len(first) == 12
+
+
 def test_hard_negatives_are_the_highest_ranked_unrelated_images_by_the_current_network(scene):
     from types import SimpleNamespace
 
@@ -204,8 +218,12 @@ def test_hard_negatives_are_the_highest_ranked_unrelated_images_by_the_current_n
     sampler = RelevanceBatchSampler(pairs, BatchSettings(anchors=4, negatives=4, batches_per_epoch=1), seed=0)
     preprocessing = Preprocessing(max_side=None, scales=(1.0,))
     extraction = ExtractionSettings("cpu", 8, 0, False, False, None)
-    mining = HardNegativeMining([scene.database], pairs, sampler, every=1, per_anchor=3, preprocessing=preprocessing, extraction=extraction)
-    mining.on_train_epoch_start(SimpleNamespace(current_epoch=1), SimpleNamespace(network=network))
+    mining = HardNegativeMining([scene.database], pairs, sampler, every=5, per_anchor=3, preprocessing=preprocessing, extraction=extraction)
+    module = SimpleNamespace(network=network)
+    for step in (0, 3, 4):  # not a multiple of 5 (or the first step): nothing mined
+        mining.on_train_batch_start(SimpleNamespace(global_step=step), module, None, step)
+    assert sampler.hard == {}
+    mining.on_train_batch_start(SimpleNamespace(global_step=5), module, None, 5)
     descriptors = NetworkDescriptor("check", network, preprocessing, extraction).describe(scene.database)
     related = pairs.related.toarray()
     for anchor in sampler.anchors:

@@ -165,19 +165,27 @@ def headline_table(rankings: Mapping[str, Mapping[str, float]]) -> str:
 
 
 class HardNegativeMining(L.Callback):
-    """Every ``every`` epochs, describe the training images with the current network and give the
-    sampler each anchor's ``per_anchor`` highest-ranked images among those it may be pushed from."""
+    """Every ``every`` training steps, describe the training images with the current network and
+    give the sampler each anchor's ``per_anchor`` highest-ranked images among those it may be
+    pushed from. The sampler builds batches lazily, so they apply from the next batches it builds
+    (a DataLoader prefetches a few)."""
 
     def __init__(self, sets: Sequence[ImageSet], pairs: TrainingPairs, sampler: RelevanceBatchSampler, every: int,
                  per_anchor: int, preprocessing: Preprocessing, extraction: ExtractionSettings) -> None:
         self.sets, self.pairs, self.sampler = list(sets), pairs, sampler
         self.every, self.per_anchor = every, per_anchor
         self.preprocessing, self.extraction = preprocessing, extraction
+        self.mined_at_step = 0
 
-    def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if trainer.current_epoch == 0 or trainer.current_epoch % self.every:
-            return
-        model = NetworkDescriptor("mining", pl_module.network, self.preprocessing, self.extraction)
+    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch, batch_idx: int) -> None:
+        step = trainer.global_step
+        if step and step % self.every == 0 and step != self.mined_at_step:  # once per step under gradient accumulation
+            self.mine(pl_module.network)
+            self.mined_at_step = step
+
+    def mine(self, network) -> None:
+        """Hard negatives of every anchor by ``network`` (a `RetrievalNet`), given to the sampler."""
+        model = NetworkDescriptor("mining", network, self.preprocessing, self.extraction)
         descriptors = np.concatenate([model.describe(images) for images in self.sets])
         anchors = self.sampler.anchors
         related = np.diff(self.pairs.related.indptr)

@@ -108,9 +108,13 @@ class RelevanceBatchSampler(Sampler[list[int]]):
         self.hard = hard
 
     def __iter__(self) -> Iterator[list[int]]:
+        """The epoch's batches, built as they are asked for (hard negatives set meanwhile apply);
+        every rank draws the same sequence and keeps every ``world_size``-th batch."""
         rng = np.random.default_rng([self.seed, self.epoch])
-        batches = [self._batch(rng) for _ in range(len(self) * self.world_size)]
-        yield from batches[self.rank :: self.world_size]
+        for index in range(len(self) * self.world_size):
+            batch = self._batch(rng)
+            if index % self.world_size == self.rank:
+                yield batch
 
     def _batch(self, rng: np.random.Generator) -> list[int]:
         anchors = rng.choice(self.anchors, size=min(self.settings.anchors, len(self.anchors)), replace=False)

@@ -34,7 +34,7 @@ class TrainingSettings:
     the validation scene's own database, map-specific training; ``extra_renders``: render
     overrides of separately rendered synthetic scenes, all their images), the ``image_size``
     ``[width, height]`` of training batches, ``batch``, ``augment``, hard-negative mining every
-    ``hard_negatives_every`` epochs (0: off, ``hard_negatives_per_anchor`` kept per image),
+    ``hard_negatives_every_n_steps`` training steps (0: off, ``hard_negatives_per_anchor`` kept per image),
     DataLoader ``num_workers`` and ``compile`` (``torch.compile``)."""
 
     validation_database: bool
@@ -42,7 +42,7 @@ class TrainingSettings:
     image_size: list[int]
     batch: BatchSettings
     augment: AugmentSettings
-    hard_negatives_every: int
+    hard_negatives_every_n_steps: int
     hard_negatives_per_anchor: int
     num_workers: int
     compile: bool
@@ -51,7 +51,8 @@ class TrainingSettings:
         require(self.validation_database or bool(self.extra_renders), "validation_database",
                 "no training images: set validation_database=true or give extra_renders")
         require(len(self.image_size) == 2 and min(self.image_size) >= 32, "image_size", f"must be [width, height] >= 32 px, got {self.image_size}")
-        require(self.hard_negatives_every >= 0, "hard_negatives_every", f"must be >= 0, got {self.hard_negatives_every}")
+        require(self.hard_negatives_every_n_steps >= 0, "hard_negatives_every_n_steps",
+                f"must be >= 0, got {self.hard_negatives_every_n_steps}")
 
 
 @dataclass
@@ -130,8 +131,8 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
         descriptor.model, descriptor.architecture, training.compile,
     )
     callbacks = [validator, *(instantiate(c) for c in (cfg.callbacks or {}).values())]
-    if training.hard_negatives_every:
-        callbacks.append(HardNegativeMining(sets, pairs, sampler, training.hard_negatives_every,
+    if training.hard_negatives_every_n_steps:
+        callbacks.append(HardNegativeMining(sets, pairs, sampler, training.hard_negatives_every_n_steps,
                                             training.hard_negatives_per_anchor, preprocessing, extraction))
     loggers = [instantiate(c) for c in (cfg.logger or {}).values()]
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
