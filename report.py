@@ -11,7 +11,7 @@ import argparse
 import logging
 from pathlib import Path
 
-import locretrieval  # noqa: F401  (imports zlib before pycolmap; see locretrieval/__init__.py)
+import locretrieval  # imports zlib before pycolmap; see locretrieval/__init__.py
 from locretrieval.report import build_report
 
 
@@ -31,4 +31,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    locretrieval.exit_without_final_collection()
     main()

@@ -11,7 +11,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-import locretrieval  # noqa: F401  (registers the config resolvers; imports zlib before pycolmap)
+import locretrieval  # registers the config resolvers; imports zlib before pycolmap
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="train")
@@ -22,4 +22,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    locretrieval.exit_without_final_collection()
     main()

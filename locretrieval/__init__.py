@@ -1,5 +1,8 @@
 """locretrieval: image retrieval for visual localization (Humenberger et al., IJCV 2022)."""
 
+import atexit
+import gc
+
 # pycolmap exports its own deflate/inflate symbols: importing zlib first keeps later
 # compression calls (numpy savez_compressed, PNG writers) from crashing the process.
 import zlib  # noqa: F401
@@ -7,3 +10,10 @@ import zlib  # noqa: F401
 from locretrieval import config  # noqa: F401,E402  (registers the config resolvers)
 
 __version__ = "0.3.0"
+
+
+def exit_without_final_collection() -> None:
+    """Skip the garbage collection the interpreter runs over every object when it exits (about
+    1.5 s once torch, pycolmap and pandas are loaded): the process ends anyway. For entry points
+    and worker processes, not for a library user's process."""
+    atexit.register(gc.freeze)

@@ -22,7 +22,6 @@ from locretrieval.localization.features import missing_kapture_features
 from locretrieval.metrics.localization import best_over_k
 from locretrieval.metrics.subsets import SubsetSettings, missing_mask_inputs
 from locretrieval.models.precomputed import PrecomputedDescriptor, missing_feature_folders
-from locretrieval.report import build_report
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.scene import Scene
 from locretrieval.scene.kapture_io import write_ltvl
@@ -75,6 +74,8 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
         "run time": f"{time.perf_counter() - started:.1f} s",
     }
     (output_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    from locretrieval.report import build_report  # here: matplotlib is imported when figures are drawn
+
     build_report([output_dir], output_dir, cfg.report.groundtruth, list(cfg.report.figure_formats))
     results = result.localization
     if len(results):

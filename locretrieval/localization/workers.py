@@ -53,8 +53,9 @@ def _initialize_worker(parent: int) -> None:
     threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
     import torch
 
-    import locretrieval  # noqa: F401  (imports zlib before pycolmap)
+    import locretrieval  # (imports zlib before pycolmap)
 
+    locretrieval.exit_without_final_collection()
     torch.set_num_threads(1)
     import pycolmap
 

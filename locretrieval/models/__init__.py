@@ -1,15 +1,29 @@
-"""Global image descriptors."""
+"""Global image descriptors.
 
-from locretrieval.models.apgem import APGeMDescriptor
-from locretrieval.models.base import GlobalDescriptor
-from locretrieval.models.delg import DELGDescriptor
-from locretrieval.models.densevlad import DenseVLAD
-from locretrieval.models.feature_io import export_global_features, read_hloc_global_descriptors
-from locretrieval.models.netvlad import NetVLADDescriptor
-from locretrieval.models.precomputed import PrecomputedDescriptor
-from locretrieval.models.torch_descriptor import NetworkDescriptor, TorchGlobalDescriptor
-from locretrieval.models.trainable import TrainableDescriptor
-from locretrieval.models.weights import MissingWeightsError
+Each name is imported from its module on first use (PEP 562), so that importing one model does
+not import every backbone library (torchvision alone takes more than a second).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+#: Public name -> module of `locretrieval.models` defining it.
+_MODULES = {
+    "APGeMDescriptor": "apgem",
+    "DELGDescriptor": "delg",
+    "DenseVLAD": "densevlad",
+    "GlobalDescriptor": "base",
+    "MissingWeightsError": "weights",
+    "NetVLADDescriptor": "netvlad",
+    "NetworkDescriptor": "torch_descriptor",
+    "PrecomputedDescriptor": "precomputed",
+    "TorchGlobalDescriptor": "torch_descriptor",
+    "TrainableDescriptor": "trainable",
+    "export_global_features": "feature_io",
+    "read_hloc_global_descriptors": "feature_io",
+}
 
 __all__ = [
     "APGeMDescriptor",
@@ -25,3 +39,27 @@ __all__ = [
     "export_global_features",
     "read_hloc_global_descriptors",
 ]
+
+if TYPE_CHECKING:
+    from locretrieval.models.apgem import APGeMDescriptor
+    from locretrieval.models.base import GlobalDescriptor
+    from locretrieval.models.delg import DELGDescriptor
+    from locretrieval.models.densevlad import DenseVLAD
+    from locretrieval.models.feature_io import export_global_features, read_hloc_global_descriptors
+    from locretrieval.models.netvlad import NetVLADDescriptor
+    from locretrieval.models.precomputed import PrecomputedDescriptor
+    from locretrieval.models.torch_descriptor import NetworkDescriptor, TorchGlobalDescriptor
+    from locretrieval.models.trainable import TrainableDescriptor
+    from locretrieval.models.weights import MissingWeightsError
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _MODULES:
+        raise AttributeError(f"module 'locretrieval.models' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"locretrieval.models.{_MODULES[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_MODULES])

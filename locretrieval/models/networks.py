@@ -19,7 +19,6 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
-import torchvision
 from torch import nn
 
 from locretrieval.models.efficientnet import EfficientNetLite0
@@ -131,6 +130,8 @@ def torchvision_trunk(name: str) -> tuple[nn.Module, int]:
     if name == "efficientnet_lite0":
         trunk = EfficientNetLite0()
         return trunk, trunk.channels
+    import torchvision  # here: importing it costs more than a second, and only these backbones need it
+
     try:
         model = torchvision.models.get_model(name, weights=None)
     except ValueError as error:

@@ -17,7 +17,6 @@ from typing import Any
 
 import numpy as np
 import torch
-import torchvision
 
 from locretrieval.cache import atomic_path, tree_signature
 
@@ -62,6 +61,8 @@ WEIGHT_SOURCES: dict[str, WeightSource] = {
 
 def torchvision_source(backbone: str) -> WeightSource:
     """Where torchvision publishes ImageNet weights for ``backbone`` (its default weights)."""
+    import torchvision  # here: importing it costs more than a second
+
     url = torchvision.models.get_model_weights(backbone).DEFAULT.url
     return WeightSource(f"{url.rsplit('/', 1)[-1]} (torchvision's ImageNet weights for {backbone})", f"torchvision: {url}")
 
