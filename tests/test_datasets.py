@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.errors import InstantiationException
@@ -15,7 +18,7 @@ from locretrieval.scene.datasets import DatasetNotFoundError
 from locretrieval.scene.kapture_io import LTVL_NAME_STYLES, ltvl_name
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-DATASETS = ["aachen", "baidu", "robotcar", "gangnam", "inloc"]
+DATASETS = ["aachen", "baidu", "robotcar", "robotcar_v2", "gangnam", "inloc"]
 
 
 def compose_data(dataset: str, *overrides: str):
@@ -48,7 +51,7 @@ def test_every_data_config_has_the_same_keys():
 
 
 @pytest.mark.parametrize(("dataset", "min_radius", "max_per_image"),
-                         [("aachen", 10.0, None), ("baidu", 10.0, None), ("robotcar", 0.0, 50), ("gangnam", 0.0, 50)])
+                         [("aachen", 10.0, None), ("baidu", 10.0, None), ("robotcar", 0.0, 50), ("robotcar_v2", 0.0, 50), ("gangnam", 0.0, 50)])
 def test_data_configs_set_the_papers_settings(dataset, min_radius, max_per_image):
     cfg = compose_data(dataset)
     assert (cfg.sfm.map_pairs.min_radius, cfg.sfm.map_pairs.max_per_image) == (min_radius, max_per_image)
@@ -101,7 +104,7 @@ def test_robotcar_v2_locations_and_conditions(tmp_path):
     kapture_folder(base / "02" / "mapping", ["overcast-reference/rear/3.jpg", "snow/rear/4.jpg"], posed=True)
     kapture_folder(base / "01" / "query", ["night-rain/rear/5.jpg", "dawn/rear/6.jpg"], posed=False)
     kapture_folder(base / "02" / "query", ["night/rear/7.jpg"], posed=False)
-    cfg = compose_data("robotcar", f"paths.data_dir={tmp_path}")
+    cfg = compose_data("robotcar_v2", f"paths.data_dir={tmp_path}")
     scene = instantiate(cfg.data)
     assert len(scene.database) == 4
     assert scene.queries.names == ["night-rain/rear/5.jpg", "dawn/rear/6.jpg", "night/rear/7.jpg"]
@@ -110,6 +113,26 @@ def test_robotcar_v2_locations_and_conditions(tmp_path):
     assert all("query" in tags for tags in scene.queries.tags)
     assert scene.queries.paths[2] == base / "02/query/sensors/records_data/night/rear/7.jpg"
     assert [ltvl_name(n, cfg.data.ltvl_name_style) for n in scene.queries.names] == ["rear/5.jpg", "rear/6.jpg", "rear/7.jpg"]
+
+
+def test_robotcar_v1_is_the_default_with_posed_queries_and_v2s_images(tmp_path):
+    v1 = tmp_path / "RobotCar_Seasons-v1"
+    kapture_folder(v1 / "mapping", ["overcast-reference/rear/1.jpg", "snow/rear/2.jpg"], posed=True)
+    kapture_folder(v1 / "query", ["night/rear/3.jpg", "dawn/rear/4.jpg"], posed=True)
+    # The downloader's v1 has no images: records_data link to v2's merged images (NAVER's instructions).
+    images = tmp_path / "RobotCar_Seasons-v2" / "all" / "sensors" / "records_data"
+    for folder in (v1 / "mapping", v1 / "query"):
+        records = folder / "sensors" / "records_data"
+        shutil.copytree(records, images, dirs_exist_ok=True)
+        shutil.rmtree(records)
+        records.symlink_to(os.path.relpath(images, records.parent))
+    cfg = compose_data("robotcar", f"paths.data_dir={tmp_path}")
+    assert "mv mapping_wo_images mapping" in cfg.data.install
+    scene = instantiate(cfg.data)
+    assert scene.name == "robotcar" and len(scene.database) == 2
+    assert np.isfinite(scene.queries.tvec).all()  # v1 queries have reference poses
+    assert scene.queries.tag_mask("night").tolist() == [True, False]
+    assert scene.queries.paths[0].resolve() == (images / "night/rear/3.jpg").resolve()
 
 
 @pytest.mark.parametrize(

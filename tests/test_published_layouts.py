@@ -6,6 +6,8 @@ scene, and ``evaluate.py data=<name> model=precomputed model.feature_name=<name>
 
 from __future__ import annotations
 
+import os
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,13 +37,15 @@ GLOBAL_DIMENSION = 48
 class Layout:
     """Where a dataset's kapture folders and features are, relative to the data root:
     ``mapping``/``queries`` folders with the image names they get (``{i}``: a counter),
-    which query folders have poses, and the folder holding ``global_features``/``local_features``
-    for each kapture folder."""
+    which query folders have poses, the folder holding ``global_features``/``local_features``
+    for each kapture folder, and where the images are when the kapture folders link their
+    ``records_data`` there (RobotCar v1, published without images)."""
 
     mapping: dict[str, str]
     queries: dict[str, str]
     posed_queries: tuple[str, ...]
     feature_name: str
+    shared_images: str | None = None
 
     def feature_root(self, folder: str) -> str:
         return str(Path(folder).parent)
@@ -54,10 +58,13 @@ LAYOUTS = {
     "baidu": Layout({"baidu-mall/mapping": "training_images_undistort/00/nikon5300a_{i:04d}.jpg"},
                     {"baidu-mall/query": "query_images_undistort/cdm/cdm_20150523_10{i:04d}.jpg"}, ("baidu-mall/query",),
                     "densevlad_multi"),
-    "robotcar": Layout({"RobotCar_Seasons-v2/01/mapping": "overcast-reference/rear/14171765{i:08d}.jpg",
-                        "RobotCar_Seasons-v2/02/mapping": "overcast-reference/rear/14171766{i:08d}.jpg"},
-                       {"RobotCar_Seasons-v2/01/query": "night/rear/14184{i:08d}.jpg",
-                        "RobotCar_Seasons-v2/02/query": "dawn/rear/14168{i:08d}.jpg"}, (), "netvlad_vd16pitts"),
+    "robotcar": Layout({"RobotCar_Seasons-v1/mapping": "overcast-reference/rear/14171765{i:08d}.jpg"},
+                       {"RobotCar_Seasons-v1/query": "night/rear/14184{i:08d}.jpg"}, ("RobotCar_Seasons-v1/query",),
+                       "netvlad_vd16pitts", shared_images="RobotCar_Seasons-v2/all/sensors/records_data"),
+    "robotcar_v2": Layout({"RobotCar_Seasons-v2/01/mapping": "overcast-reference/rear/14171765{i:08d}.jpg",
+                           "RobotCar_Seasons-v2/02/mapping": "overcast-reference/rear/14171766{i:08d}.jpg"},
+                          {"RobotCar_Seasons-v2/01/query": "night/rear/14184{i:08d}.jpg",
+                           "RobotCar_Seasons-v2/02/query": "dawn/rear/14168{i:08d}.jpg"}, (), "netvlad_vd16pitts"),
     "gangnam": Layout({"GangnamStation/B2/release/mapping": "10004/images/{i:06d}.jpg"},
                       {"GangnamStation/B2/release/validation": "10005/images/{i:06d}.jpg",
                        "GangnamStation/B2/release/test": "10006/images/{i:06d}.jpg"},
@@ -138,6 +145,11 @@ def install(layout: Layout, rendered, data_dir: Path) -> None:
     for folder, pattern, images, rows, posed in groups:
         names = write_kapture_folder(data_dir / folder, images, rows, pattern, posed)
         write_features(data_dir / layout.feature_root(folder), layout.feature_name, names, local, sources)
+        if layout.shared_images:
+            records = data_dir / folder / "sensors" / "records_data"
+            shutil.copytree(records, data_dir / layout.shared_images, dirs_exist_ok=True)
+            shutil.rmtree(records)
+            records.symlink_to(os.path.relpath(data_dir / layout.shared_images, records.parent))
 
 
 @pytest.mark.parametrize("dataset", sorted(LAYOUTS))
