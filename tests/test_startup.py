@@ -2,9 +2,10 @@
 
 import subprocess
 import sys
+from pathlib import Path
 
-#: Libraries a run that does not use them must not import (each costs from 0.3 s to 1.5 s).
-HEAVY = ("torchvision", "matplotlib", "lightning", "torch._dynamo", "kornia")
+#: Libraries a run that does not use them must not import (each costs from 0.1 s to 1.5 s).
+HEAVY = ("torchvision", "matplotlib", "lightning", "torch._dynamo", "kornia", "pycolmap", "h5py")
 
 
 def loaded_after(code: str) -> set[str]:
@@ -17,6 +18,36 @@ def test_the_benchmark_and_a_precomputed_model_import_no_heavy_library():
     loaded = loaded_after("import locretrieval.evaluation\nfrom locretrieval.models import PrecomputedDescriptor")
     assert {"locretrieval.evaluation", "locretrieval.models.precomputed", "torch"} <= loaded
     assert not loaded & set(HEAVY)
+
+
+def test_the_report_sfm_modules_and_synthetic_config_import_their_libraries_when_used():
+    code = """
+import locretrieval.report
+from locretrieval.localization import colmap_model, pnp, store, triangulation
+from locretrieval.scene.synthetic import DEFAULT_CONFIG, resolve_config
+"""
+    loaded = loaded_after(code)
+    assert {"locretrieval.report.plots", "locretrieval.localization.triangulation", "locretrieval.scene.synthetic.config"} <= loaded
+    assert not loaded & {*HEAVY, "locretrieval.scene.synthetic.dataset"}  # the renderer: only to render a scene
+    assert "pycolmap" in loaded_after("from locretrieval.localization.colmap_model import to_rigid3d\nto_rigid3d([1, 0, 0, 0], [0, 0, 0])")
+    assert "locretrieval.scene.synthetic.dataset" in loaded_after("from locretrieval.scene.synthetic import render_synthetic_dataset")
+
+
+def test_a_report_without_figures_does_not_import_matplotlib(tmp_path):
+    def report(formats: list[str]) -> set[str]:
+        return loaded_after(f"""
+sys.path.insert(0, {str(Path(__file__).parent)!r})
+from pathlib import Path
+from test_report import write_run
+from locretrieval.report import build_report
+run = write_run(Path({str(tmp_path)!r}) / "run_{len(formats)}", ["netvlad"])
+assert "## Localization" in build_report([run], run, figure_formats={formats!r}).read_text()
+assert bool(list(run.glob("figures/*.png"))) == {bool(formats)!r}
+""")
+
+    loaded = report([])
+    assert "locretrieval.report.plots" in loaded and "matplotlib" not in loaded
+    assert "matplotlib" in report(["png"])
 
 
 def test_models_are_imported_when_first_named():

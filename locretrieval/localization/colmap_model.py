@@ -9,14 +9,17 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
-import pycolmap
 from locretrieval import geometry
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.scene import Camera
+
+if TYPE_CHECKING:
+    import pycolmap  # imported where it is used: a run without SfM does not load it
 
 #: Largest distance (px) between a model's 2D point and the feature keypoint of the same index.
 KEYPOINT_TOLERANCE = 0.01
@@ -24,6 +27,8 @@ KEYPOINT_TOLERANCE = 0.01
 
 def to_pycolmap_camera(camera: Camera, camera_id: int | None = None) -> pycolmap.Camera:
     """The same camera as a ``pycolmap.Camera`` (model, size and parameters copied)."""
+    import pycolmap
+
     converted = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=list(camera.params))
     if camera_id is not None:
         converted.camera_id = camera_id
@@ -32,6 +37,8 @@ def to_pycolmap_camera(camera: Camera, camera_id: int | None = None) -> pycolmap
 
 def to_rigid3d(qvec: np.ndarray, tvec: np.ndarray) -> pycolmap.Rigid3d:
     """``cam_from_world`` of a world-to-camera pose (q wxyz, t)."""
+    import pycolmap
+
     w, x, y, z = np.asarray(qvec, dtype=np.float64)
     return pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([x, y, z, w])), np.asarray(tvec, dtype=np.float64))
 
@@ -69,6 +76,8 @@ def read_colmap_map(path: str | Path, names: Sequence[str], keypoints: Sequence[
     path = Path(path)
     if not path.is_dir():
         raise FileNotFoundError(f"COLMAP model folder not found: {path}")
+    import pycolmap
+
     model = pycolmap.Reconstruction(path)
     by_name = {image.name: image for image in model.images.values()}
     missing = [name for name in names if name not in by_name]

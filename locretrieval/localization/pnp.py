@@ -8,7 +8,6 @@ from dataclasses import dataclass
 import numpy as np
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
-import pycolmap
 from locretrieval.config import require
 from locretrieval.localization.colmap_model import from_rigid3d, to_pycolmap_camera
 from locretrieval.scene import Camera
@@ -51,6 +50,8 @@ def estimate_absolute_pose(
     """World-to-camera ``(q wxyz, t, number of inliers)`` of a camera observing world points
     ``points3D [m, 3]`` at pixels ``points2D [m, 2]`` (COLMAP's pixel convention), or the
     failure reason."""
+    import pycolmap  # here: a run without SfM does not load it
+
     minimum = settings.min_num_inliers
     if len(points2D) < minimum:
         return TOO_FEW_MATCHES

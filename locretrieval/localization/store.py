@@ -18,11 +18,14 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import h5py
 import numpy as np
 
 from locretrieval.cache import atomic_path, config_key
+
+if TYPE_CHECKING:
+    import h5py  # imported where it is used: a run without local features does not load it
 
 SHARD_SUFFIX = ".h5"
 #: Bytes of shard arrays kept in memory per store (least recently used dropped first).
@@ -117,6 +120,8 @@ class ShardedStore:
         if any(sorted(arrays) != names for arrays in records.values()):
             raise ValueError(f"{self.folder}: records of one shard must hold the same arrays {names}")
         path = self.folder / f"{config_key(sorted(keys))}{SHARD_SUFFIX}"
+        import h5py
+
         with atomic_path(path) as temporary:
             with h5py.File(temporary, "w") as file:
                 file.create_dataset("keys", data=np.array(keys, dtype=object), dtype=h5py.string_dtype())
@@ -131,6 +136,8 @@ class ShardedStore:
 
 
 def _open(shard: Path) -> h5py.File:
+    import h5py
+
     try:
         return h5py.File(shard, "r")
     except OSError as error:

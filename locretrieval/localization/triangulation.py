@@ -11,15 +11,19 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
-import pycolmap
 from locretrieval.config import require
 from locretrieval.localization.colmap_model import to_pycolmap_camera, to_rigid3d
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.scene import Camera
+
+if TYPE_CHECKING:
+    import pycolmap  # imported where it is used: a run without SfM does not load it
+
 
 @dataclass
 class TriangulationSettings:
@@ -50,6 +54,8 @@ def triangulate_known_poses(
     """Triangulate the images ``i`` (camera, world-to-camera pose ``qvec[i]`` wxyz / ``tvec[i]``,
     keypoints ``[n_i, 2]`` in COLMAP's pixel convention) from verified ``matches[(i, j)]``
     (``[m, 2]`` keypoint indices of image i, image j)."""
+    import pycolmap
+
     reconstruction = pycolmap.Reconstruction()
     graph = pycolmap.CorrespondenceGraph()
     for index, (camera, image_keypoints) in enumerate(zip(cameras, keypoints)):

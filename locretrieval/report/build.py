@@ -62,10 +62,11 @@ def build_report(
     for name, file in CORRELATION_FILES.items():
         getattr(correlations, name).to_csv(output_dir / file, index=False)
     groundtruth = choose_groundtruth(tables.retrieval, primary_groundtruth)
-    colors = plots.ranking_colors(pd.concat([tables.results["ranking"], tables.retrieval["ranking"]]))
     datasets = sorted(set(tables.results["dataset"]) | set(tables.retrieval["dataset"]))
     writer = markdown.ReportWriter(output_dir, f"locretrieval report: {', '.join(datasets) or 'no results'}")
     figures = plots.FigureFolder(output_dir / "figures", tuple(figure_formats))
+    # the colours are matplotlib's: without figures (no format) it is not imported
+    colors = plots.ranking_colors(pd.concat([tables.results["ranking"], tables.retrieval["ranking"]])) if figures.formats else {}
     overview(writer, tables, groundtruth)
     groundtruth_section(writer, tables)
     localization_section(writer, tables, figures, colors)

@@ -2,22 +2,25 @@
 
 Descriptor rankings are solid lines, ground-truth rankings dashed (the upper bounds of
 paper Figs. 4-6) and baselines dotted; a ranking keeps its colour in every figure.
+
+matplotlib is imported by the first figure drawn (`pyplot`), not with this module: a run
+without figures (``report.figure_formats=[]``) does not load it.
 """
 
 from __future__ import annotations
 
+import functools
 import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import matplotlib
+import numpy as np
+import pandas as pd
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib import ticker  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
+if TYPE_CHECKING:
+    import matplotlib.pyplot as plt
 
 #: Line style per ranking kind: descriptors solid, ground truth dashed (paper Fig. 4).
 LINE_STYLES = {"descriptor": "-", "groundtruth": "--", "baseline": ":"}
@@ -30,9 +33,22 @@ THRESHOLD_COLUMNS = ["position_threshold_m", "rotation_threshold_deg"]
 FIGURE_KEYS = ["dataset", "groundtruth", "retrieval_metric"]
 
 
+@functools.cache
+def pyplot():
+    """``matplotlib.pyplot`` on the non-interactive Agg backend (chosen once, on first use)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot
+
+    return matplotlib.pyplot
+
+
 def ranking_colors(names: Iterable[str]) -> dict[str, str]:
     """A stable colour per ranking name (sorted names over matplotlib's colour cycle)."""
-    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    import matplotlib
+
+    cycle = matplotlib.rcParams["axes.prop_cycle"].by_key()["color"]
     return {name: cycle[n % len(cycle)] for n, name in enumerate(sorted(set(names)))}
 
 
@@ -55,12 +71,12 @@ class FigureFolder:
         written = [self.path / f"{safe_name(stem)}.{suffix}" for suffix in self.formats]
         for file in written:
             figure.savefig(file, dpi=110)
-        plt.close(figure)
+        pyplot().close(figure)
         return written[0]
 
 
 def _panels(count: int) -> tuple[plt.Figure, np.ndarray]:
-    figure, axes = plt.subplots(1, count, figsize=(PANEL_WIDTH * count, PANEL_HEIGHT), squeeze=False)
+    figure, axes = pyplot().subplots(1, count, figsize=(PANEL_WIDTH * count, PANEL_HEIGHT), squeeze=False)
     return figure, axes[0]
 
 
@@ -104,6 +120,8 @@ def curves_for_method(table: pd.DataFrame, paradigm: str, method: str) -> pd.Dat
 
 def _log_k_axis(axis: plt.Axes, ks: Iterable[int]) -> None:
     """Logarithmic k axis labelled with the k values drawn (1, 2, 5, 10, ... when there are many)."""
+    from matplotlib import ticker
+
     ks = sorted({int(k) for k in ks})
     nice = [m * 10**e for e in range(4) for m in (1, 2, 5) if ks[0] <= m * 10**e <= ks[-1]]
     axis.set_xscale("log")

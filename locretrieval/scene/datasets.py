@@ -119,13 +119,15 @@ def load_synthetic_dataset(
     the folder key hashes the fully resolved config, so any change renders a new scene.
     """
     from locretrieval.device import resolve_device
-    from locretrieval.scene.synthetic import resolve_config, render_synthetic_dataset
+    from locretrieval.scene.synthetic import resolve_config  # the renderer only when the scene is not cached
 
     config = resolve_config(render)
     keyed = {k: v for k, v in config.items() if k not in RENDER_ONLY_KEYS}
     keyed["device"] = resolve_device(str(config["device"])).type  # "auto" keys what it resolves to: float results may differ
     folder = Path(cache_dir) / "synthetic" / config_key(keyed)
     if not (folder / "synthetic_config.json").is_file():
+        from locretrieval.scene.synthetic import render_synthetic_dataset
+
         log.info("rendering the synthetic scene into %s", folder)
         render_synthetic_dataset(config, folder)
     else:
