@@ -7,6 +7,7 @@ from locretrieval.localization import approximation
 from locretrieval.localization.approximation import DEGENERATE_BDI, EMPTY_RETRIEVAL, METHODS, approximate_poses
 from locretrieval.localization.estimates import LOCALIZED
 from locretrieval.retrieval import EMPTY, Ranking
+from locretrieval.retrieval.index import search
 from locretrieval.scene import Camera, ImageSet
 
 CAMERA = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
@@ -29,6 +30,13 @@ def unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
+def descriptor_ranking(indices, queries, db_desc, name="d") -> Ranking:
+    """A descriptor ranking whose scores are ``d_q . d_i``, as `search` returns them."""
+    indices = np.asarray(indices)
+    scores = np.einsum("qd,qkd->qk", queries, db_desc[np.where(indices == EMPTY, 0, indices)])
+    return Ranking(name, indices, np.where(indices == EMPTY, 0.0, scores), "descriptor", queries, db_desc)
+
+
 def by_method(estimates):
     return {e.method: e for e in estimates}
 
@@ -42,7 +50,7 @@ def two_images():
 
 def test_k1_returns_the_top_pose_exactly_for_every_method(two_images):
     db_desc = unit(np.eye(2, 8))
-    ranking = Ranking("d", [[1, 0], [0, 1]], [[0.9, 0.1], [0.8, 0.2]], "descriptor", unit([[0.2, 1, 0, 0, 0, 0, 0, 0], [1, 0.1, 0, 0, 0, 0, 0, 0]]), db_desc)
+    ranking = descriptor_ranking([[1, 0], [0, 1]], unit([[0.2, 1, 0, 0, 0, 0, 0, 0], [1, 0.1, 0, 0, 0, 0, 0, 0]]), db_desc)
     estimates = approximate(two_images, ranking, [1])
     assert sorted(e.method for e in estimates) == ["bdi", "csi", "ewb"]
     for e in estimates:
@@ -53,7 +61,7 @@ def test_k1_returns_the_top_pose_exactly_for_every_method(two_images):
 def test_symmetric_weights_give_the_midpoint(two_images):
     db_desc = unit(np.eye(2, 8))
     query = unit(db_desc[0] + db_desc[1])[None]
-    ranking = Ranking("d", [[0, 1]], [[0.7, 0.7]], "descriptor", query, db_desc)
+    ranking = descriptor_ranking([[0, 1]], query, db_desc)
     for e in approximate(two_images, ranking, [2]):
         center = geometry.camera_centers(e.qvec[0, 0], e.tvec[0, 0])
         np.testing.assert_allclose(center, [2.0, 1.0, 0.0], atol=1e-9, err_msg=e.method)
@@ -154,7 +162,7 @@ def test_bdi_with_a_query_equal_to_a_database_descriptor_takes_that_pose():
 def test_bdi_with_non_finite_descriptors_is_a_reported_failure():
     database = image_set(np.tile([1.0, 0, 0, 0], (2, 1)), [[0, 0, 0], [2, 0, 0]])
     db_desc = np.array([[1, 0, 0], [np.inf, 0, 0]], dtype=np.float32)
-    ranking = Ranking("d", [[0, 1]], [[1, 0]], "descriptor", unit([[1, 0.1, 0]]), db_desc)
+    ranking = descriptor_ranking([[0, 1]], unit([[1, 0.1, 0]]), db_desc)
     (bdi,) = approximate(database, ranking, [2], methods=["bdi"])
     assert bdi.failures[0, 0] == DEGENERATE_BDI and np.isnan(bdi.tvec[0, 0]).all()
 
@@ -175,13 +183,14 @@ def test_bdi_for_several_k_and_a_short_ranking_in_chunks(monkeypatch):
     centers = rng.normal(size=(n, 3)) * 5
     database = image_set(rotations, centers)
     db_desc = unit(rng.normal(size=(n, dim)))
-    queries = unit(rng.normal(size=(2, dim)))
-    indices = np.array([rng.permutation(n)[:8], np.append(rng.permutation(n)[:4], [EMPTY] * 4)])
-    ranking = Ranking("d", indices, np.zeros(indices.shape), "descriptor", queries, db_desc)
+    queries = unit(rng.normal(size=(3, dim)))
+    indices = np.array([rng.permutation(n)[:8], np.append(rng.permutation(n)[:4], [EMPTY] * 4), rng.permutation(n)[:8]])
+    ranking = descriptor_ranking(indices, queries, db_desc)
     whole = by_method(approximate(database, ranking, ks, methods=["bdi"]))["bdi"]
-    monkeypatch.setattr(approximation, "GATHER_CHUNK_BYTES", 1)  # one query per chunk
+    monkeypatch.setattr(approximation, "CHUNK_QUERIES", 2)  # two chunks, the second of one query
+    monkeypatch.setattr(approximation, "PRODUCT_TABLE_BYTES", 0)  # products from gathered descriptors
     (chunked,) = approximate(database, ranking, ks, methods=["bdi"])
-    np.testing.assert_allclose(chunked.tvec, whole.tvec, atol=1e-12)
+    np.testing.assert_allclose(chunked.tvec, whole.tvec, atol=1e-9)
     for q, row in enumerate(indices):
         filled = row[row != EMPTY]
         for n_k, k in enumerate(ks):
@@ -189,3 +198,38 @@ def test_bdi_for_several_k_and_a_short_ranking_in_chunks(monkeypatch):
             weights = _bdi_by_least_squares(db_desc, queries[q], top)
             center = geometry.camera_centers(whole.qvec[n_k, q], whole.tvec[n_k, q])
             np.testing.assert_allclose(center, weights @ centers[top], atol=1e-6, err_msg=f"query {q}, k={k}")
+
+
+def _float64_bdi_weights(db_desc, query, top):
+    """BDI weights of one query from its float64 residual Gram matrix, ``G^-1 1 / 1^T G^-1 1``."""
+    residuals = db_desc[top].astype(np.float64) - query.astype(np.float64)
+    solved = np.linalg.solve(residuals @ residuals.T, np.ones(len(top)))
+    return solved / solved.sum()
+
+
+@pytest.mark.parametrize("table_bytes", [0, 1 << 28], ids=["gathered", "table"])
+def test_bdi_from_float32_products_equals_the_float64_solution(monkeypatch, table_bytes):
+    """Unrelated descriptors (well conditioned, float32 products kept) and near-duplicates of a
+    few places (ill conditioned: those queries' Gram matrices are recomputed in float64)."""
+    monkeypatch.setattr(approximation, "PRODUCT_TABLE_BYTES", table_bytes)
+    rng = np.random.default_rng(5)
+    n, dim, k = 60, 256, 10
+    places = unit(rng.normal(size=(6, dim)))
+    for db_desc in (unit(rng.normal(size=(n, dim))), unit(places[rng.integers(6, size=n)] + 0.05 * rng.normal(size=(n, dim)))):
+        queries = unit(db_desc[:20] + 0.3 * rng.normal(size=(20, dim)))
+        ranking = search(queries, db_desc, depth=k)
+        for axis in range(3):  # interpolated centres are the weights applied to random centres
+            centers = np.zeros((n, 3))
+            centers[:, axis] = rng.normal(size=n)
+            database = image_set(np.tile([1.0, 0, 0, 0], (n, 1)), centers)
+            (bdi,) = approximate(database, ranking, [k], methods=["bdi"])
+            estimated = geometry.camera_centers(bdi.qvec[0], bdi.tvec[0])[:, axis]
+            expected = [_float64_bdi_weights(db_desc, queries[q], ranking.indices[q]) @ centers[ranking.indices[q], axis] for q in range(20)]
+            np.testing.assert_allclose(estimated, expected, atol=1e-6 * np.abs(centers).max())
+
+
+def test_bdi_refuses_scores_that_are_not_the_descriptors_products(two_images):
+    db_desc = unit(np.eye(2, 8))
+    ranking = Ranking("netvlad", [[0, 1]], [[0.2, 0.1]], "descriptor", db_desc[:1], db_desc)
+    with pytest.raises(ValueError, match="ranking 'netvlad'.*score 0.200000, d_q . d_i = 1.000000"):
+        approximate(two_images, ranking, [2], methods=["bdi"])

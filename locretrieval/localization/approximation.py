@@ -12,8 +12,8 @@ summing to one:
   ``G_ij = (d_i - d_q) . (d_j - d_q)``.
 
 Camera centres are interpolated linearly; rotations are averaged as the dominant eigenvector
-of ``sum_i w_i q_i q_i^T`` (sign-invariant), not as a renormalised sum. All queries and all
-k are processed at once. ``bdi`` and ``csi`` need descriptors, so rankings without them
+of ``sum_i w_i q_i q_i^T`` (sign-invariant), not as a renormalised sum. All k are processed
+at once, queries a chunk at a time. ``bdi`` and ``csi`` need descriptors, so rankings without them
 (ground truth) get ``ewb`` only, as in the paper's Fig. 4.
 """
 
@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 
 from locretrieval import geometry
 from locretrieval.config import require
@@ -42,8 +43,16 @@ EMPTY_RETRIEVAL = "empty retrieval"
 #: Relative ridge added to BDI's Gram matrix so duplicate descriptors split weights evenly.
 BDI_RIDGE = 1e-9
 DEGENERATE_BDI = "degenerate bdi weights"
-#: Bytes of gathered database descriptors held at once when forming BDI Gram matrices.
-GATHER_CHUNK_BYTES = 1 << 28
+#: Queries approximated together: every array of a chunk ([len(ks), q, K] at most) stays small.
+CHUNK_QUERIES = 256
+#: Largest table of database descriptor products `DescriptorProducts` forms at once.
+PRODUCT_TABLE_BYTES = 1 << 28
+#: A squared Cholesky pivot of a BDI Gram matrix built from float32 products below this share
+#: of ``d_q . d_q`` (ill conditioned: rounding could move the weights by more than ~1e-7): that
+#: query's Gram matrix is recomputed in float64. Calibrated on clustered descriptors (test).
+EXACT_GRAM_PIVOT = 0.5
+#: Largest difference between a descriptor ranking's score and ``d_q . d_i`` (`check_scores`).
+SCORE_TOLERANCE = 1e-3
 
 
 @dataclass
@@ -79,41 +88,58 @@ def approximate_poses(
 
     Each estimate is a world-to-camera pose (q wxyz, t). A query whose ranking is empty
     has no estimate (failure ``"empty retrieval"``); a query with fewer than ``k`` ranked
-    images uses those it has.
+    images uses those it has. Queries are processed `CHUNK_QUERIES` at a time.
     """
     unknown = set(methods) - set(METHODS)
     if unknown:
         raise ValueError(f"unknown pose approximation methods {sorted(unknown)}; expected {METHODS}")
     ks = ranking.clamp_ks(ks)
     top = ranking.top(max(ks))
-    valid = top.indices != EMPTY
-    safe = np.where(valid, top.indices, 0)
-    centers = database.centers[safe]
-    rotations = database.qvec[safe]
-
     applicable = [m for m in methods if m not in DESCRIPTOR_METHODS or ranking.has_descriptors]
     skipped = [m for m in methods if m not in applicable]
     if skipped:
         log.info("ranking %r has no descriptors: %s skipped, %s only", ranking.name, skipped, applicable)
-
+    poses = (database.centers, database.qvec)
+    products = DescriptorProducts(top) if "bdi" in applicable else None
+    chunks = [slice(start, start + CHUNK_QUERIES) for start in range(0, top.num_queries, CHUNK_QUERIES)]
     results = []
     for method in applicable:
-        failures = np.where(valid[:, 0][None, :].repeat(len(ks), 0), LOCALIZED, EMPTY_RETRIEVAL).astype(object)
-        if method == "bdi":
-            weights = _bdi_weights(top, valid, ks)
-            degenerate = ~np.isfinite(weights).all(-1)
-            failures[degenerate & (failures == LOCALIZED)] = DEGENERATE_BDI
-            qvec, tvec = _interpolate(np.where(degenerate[..., None], 0.0, weights), centers, rotations)
-        else:
-            qvec, tvec = _interpolate_prefixes(_prefix_weights(method, top, valid, alpha), ks, centers, rotations)
-        qvec[failures != LOCALIZED] = np.nan
-        tvec[failures != LOCALIZED] = np.nan
+        parts = [_approximate_chunk(method, top, rows, ks, poses, alpha, products) for rows in chunks]
+        qvec, tvec, failures = (np.concatenate(arrays, axis=1) for arrays in zip(*parts))
         results.append(PoseEstimates(ranking.name, ranking.kind, "approximation", method, ks, qvec, tvec, failures))
     return results
 
 
-def _prefix_weights(method: str, top: Ranking, valid: np.ndarray, alpha: float) -> np.ndarray:
-    """Unnormalised weights ``[Q, K]`` whose first k entries, normalised, are the top-k weights.
+def _approximate_chunk(
+    method: str,
+    top: Ranking,
+    rows: slice,
+    ks: list[int],
+    poses: tuple[np.ndarray, np.ndarray],
+    alpha: float,
+    products: DescriptorProducts | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(qvec [len(ks), q, 4], tvec [len(ks), q, 3], failures [len(ks), q])`` of the queries ``rows``."""
+    indices = top.indices[rows]
+    valid = indices != EMPTY
+    safe = np.where(valid, indices, 0)
+    centers, rotations = poses[0][safe], poses[1][safe]
+    failures = np.where(valid[:, 0][None, :].repeat(len(ks), 0), LOCALIZED, EMPTY_RETRIEVAL).astype(object)
+    if method == "bdi":
+        weights = _bdi_weights(_residual_gram_factors(top, rows, products), valid, ks)
+        degenerate = ~np.isfinite(weights).all(-1)
+        failures[degenerate & (failures == LOCALIZED)] = DEGENERATE_BDI
+        qvec, tvec = _interpolate(np.where(degenerate[..., None], 0.0, weights), centers, rotations)
+    else:
+        scores = top.scores[rows]
+        qvec, tvec = _interpolate_prefixes(_prefix_weights(method, scores, valid, alpha), ks, centers, rotations)
+    qvec[failures != LOCALIZED] = np.nan
+    tvec[failures != LOCALIZED] = np.nan
+    return qvec, tvec, failures
+
+
+def _prefix_weights(method: str, scores: np.ndarray, valid: np.ndarray, alpha: float) -> np.ndarray:
+    """Unnormalised weights ``[q, K]`` whose first k entries, normalised, are the top-k weights.
 
     EWB and CSI weigh each image independently of k, so one row serves every k. CSI
     similarities are clamped at 0 and divided by the query's largest one before the power
@@ -122,7 +148,7 @@ def _prefix_weights(method: str, top: Ranking, valid: np.ndarray, alpha: float) 
     """
     if method == "ewb":
         return valid.astype(np.float64)
-    similarity = np.where(valid, np.clip(top.scores, 0.0, None), 0.0)  # descriptor rankings: d_q . d_i
+    similarity = np.where(valid, np.clip(scores, 0.0, None), 0.0)  # descriptor rankings: d_q . d_i
     largest = similarity.max(axis=1, keepdims=True)
     dead = valid[:, 0] & (largest[:, 0] == 0)
     if dead.any():
@@ -132,63 +158,130 @@ def _prefix_weights(method: str, top: Ranking, valid: np.ndarray, alpha: float) 
     return np.where(dead[:, None], valid, np.where(valid, raw, 0.0))
 
 
-def _bdi_weights(top: Ranking, valid: np.ndarray, ks: list[int]) -> np.ndarray:
-    """Barycentric descriptor interpolation weights ``[len(ks), Q, K]`` in closed form.
+def _bdi_weights(factors: np.ndarray, valid: np.ndarray, ks: list[int]) -> np.ndarray:
+    """Barycentric descriptor interpolation weights ``[len(ks), q, K]`` in closed form from the
+    Cholesky factors ``L [q, K, K]`` of the residual Gram matrices (`_residual_gram_factors`).
 
-    ``w_k ∝ G_k^-1 1`` where ``G_k`` is the leading ``k x k`` block of the residual Gram
-    matrix ``G``. With ``G = L L^T`` (Cholesky) and ``M = L^-1``, the leading blocks of ``L``
-    and ``M`` are the factors of ``G_k``, so ``G_k^-1 1 = M_k^T (M_k 1)`` and its j-th entry
-    is ``sum_{i<k} M_ij y_i`` with ``y = M 1``: a cumulative sum over i gives every k at once.
-    A ridge of ``BDI_RIDGE * max(trace(G) / K, 1)`` keeps duplicated descriptors solvable
-    (they share the weight equally). A query with fewer ranked images uses all it has; one
-    without ranked images, or whose weights are still not finite, gets non-finite weights.
+    ``w_k ∝ G_k^-1 1`` where ``G_k`` is the leading ``k x k`` block of ``G``. With ``G = L L^T``
+    (Cholesky) and ``M = L^-1``, the leading blocks of ``L`` and ``M`` are the factors of
+    ``G_k``, so ``G_k^-1 1 = M_k^T (M_k 1)`` and its j-th entry is ``sum_{i<k} M_ij y_i`` with
+    ``y = M 1``: a cumulative sum over i gives every k at once. A query with fewer ranked
+    images uses all it has; one without ranked images, or whose weights are not finite, gets
+    non-finite weights.
     """
-    mask = (np.arange(top.depth)[None, :] < np.asarray(ks)[:, None])[:, None, :] & valid[None]
-    gram = _residual_grams(top)  # [Q, K, K], identity on empty slots
-    depth = top.depth
-    scale = np.trace(gram, axis1=1, axis2=2) / depth
-    gram[:, np.arange(depth), np.arange(depth)] += BDI_RIDGE * np.maximum(scale, 1.0)[:, None]
-    inverse_factor = np.linalg.inv(np.linalg.cholesky(gram))  # M, lower triangular
+    count, depth = valid.shape
+    mask = (np.arange(depth)[None, :] < np.asarray(ks)[:, None])[:, None, :] & valid[None]
+    failed = ~np.isfinite(factors).all((1, 2))
+    factors = np.where(failed[:, None, None], np.eye(depth), factors)
+    inverse_factor = scipy.linalg.inv(factors, assume_a="lower triangular", check_finite=False)  # M
+    inverse_factor[failed] = np.nan
     y = inverse_factor.sum(-1)  # M 1
-    partial = np.cumsum(inverse_factor * y[:, :, None], axis=1)  # [Q, i, j]: sum_{i'<=i} M_i'j y_i'
-    lengths = mask.sum(-1)  # [len(ks), Q]: min(k, ranked images)
+    partial = np.cumsum(inverse_factor * y[:, :, None], axis=1)  # [q, i, j]: sum_{i'<=i} M_i'j y_i'
+    lengths = mask.sum(-1)  # [len(ks), q]: min(k, ranked images)
     rows = np.clip(lengths - 1, 0, None)
-    solution = np.where(mask, partial[np.arange(top.num_queries)[None], rows], 0.0)
+    solution = np.where(mask, partial[np.arange(count)[None], rows], 0.0)
     total = solution.sum(-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         return solution / total
 
 
-def _residual_grams(top: Ranking) -> np.ndarray:
-    """``G_ij = (d_i - d_q) . (d_j - d_q)`` over each query's ranked images, ``[Q, K, K]``.
+class DescriptorProducts:
+    """``d_i . d_j`` of the database images a ranking holds, looked up per query.
 
-    Rows and columns of empty slots are those of the identity, so they never mix with
-    filled slots (which always come first).
+    When few distinct images are ranked (``m^2 <= Q K^2`` and the ``m x m`` table fits
+    `PRODUCT_TABLE_BYTES`), one matrix product of their descriptors serves every query;
+    otherwise each chunk gathers its queries' ``[q, K, D]`` descriptors and multiplies them.
+    Products are in the descriptors' precision (float32 for `search` rankings).
     """
-    grams = np.empty((top.num_queries, top.depth, top.depth), dtype=np.float64)
-    for rows, gathered, query in _gathered_descriptors(top):
-        residuals = gathered - query[:, None, :]
-        grams[rows] = residuals @ residuals.transpose(0, 2, 1)
-    valid = top.indices != EMPTY
+
+    def __init__(self, top: Ranking) -> None:
+        self.descriptors = top.database_descriptors
+        used = np.unique(top.indices[top.indices != EMPTY])
+        small = len(used) ** 2 <= top.num_queries * top.depth**2
+        if small and len(used) ** 2 * self.descriptors.itemsize <= PRODUCT_TABLE_BYTES:
+            self.position = np.zeros(len(self.descriptors), dtype=np.int64)
+            self.position[used] = np.arange(len(used))
+            chosen = self.descriptors[used]
+            with np.errstate(invalid="ignore", over="ignore"):  # non-finite descriptors: their queries fail
+                self.table = chosen @ chosen.T
+        else:
+            self.table = None
+
+    def __call__(self, indices: np.ndarray) -> np.ndarray:
+        """``[q, K, K]`` products of the database images ``indices [q, K]`` (no ``EMPTY``)."""
+        if self.table is not None:
+            position = self.position[indices]
+            return np.take(self.table.ravel(), position[:, :, None] * len(self.table) + position[:, None, :])
+        gathered = self.descriptors[indices]
+        return gathered @ gathered.transpose(0, 2, 1)
+
+
+def _residual_gram_factors(top: Ranking, rows: slice, products: DescriptorProducts) -> np.ndarray:
+    """Cholesky factors ``L [q, K, K]`` of the residual Gram matrices of the queries ``rows``,
+    ``G_ij = (d_i - d_q) . (d_j - d_q) = d_i . d_j - s_i - s_j + d_q . d_q`` over their ranked
+    images, with the ranking's scores ``s_i = d_q . d_i`` (`check_scores`); NaN where ``G`` is
+    not positive definite or not finite.
+
+    Rows and columns of empty slots are those of the identity, so they never mix with filled
+    slots (which always come first). A ridge of ``BDI_RIDGE * max(trace(G) / K, 1)`` keeps
+    duplicated descriptors solvable (they share the weight equally). Where the products'
+    rounding (float32 descriptors: ~1e-7) could move the weights, i.e. where a squared Cholesky
+    pivot is below `EXACT_GRAM_PIVOT` times ``d_q . d_q`` or the factorisation fails, the
+    query's ``G`` is recomputed in float64 from its residuals ``d_i - d_q``.
+    """
+    indices = top.indices[rows]
+    valid = indices != EMPTY
+    safe = np.where(valid, indices, 0)
+    queries = top.query_descriptors[rows].astype(np.float64)
+    scores = top.scores[rows].astype(np.float64)
+    check_scores(top.name, products.descriptors[safe[:, 0]], queries, scores[:, 0], valid[:, 0])
     pair = valid[:, :, None] & valid[:, None, :]
-    return np.where(pair, grams, np.eye(top.depth)[None])
+    grams = products(safe).astype(np.float64)
+    squared_norms = np.einsum("qd,qd->q", queries, queries)
+    with np.errstate(invalid="ignore"):  # non-finite descriptors: NaN, their factorisation fails
+        grams -= scores[:, :, None] + scores[:, None, :] - squared_norms[:, None, None]
+    factors = _cholesky(_with_ridge(np.where(pair, grams, np.eye(top.depth))))
+    pivots = np.diagonal(factors, axis1=1, axis2=2) ** 2
+    exact = ~(pivots.min(-1) >= EXACT_GRAM_PIVOT * squared_norms)
+    if exact.any():
+        residuals = products.descriptors[safe[exact]].astype(np.float64) - queries[exact][:, None, :]
+        exact_grams = np.where(pair[exact], residuals @ residuals.transpose(0, 2, 1), np.eye(top.depth))
+        factors[exact] = _cholesky(_with_ridge(exact_grams))
+    return factors
 
 
-def _gathered_descriptors(top: Ranking):
-    """Yield ``(rows, database descriptors [q, K, D], query descriptors [q, D])`` per chunk.
+def _with_ridge(grams: np.ndarray) -> np.ndarray:
+    depth = grams.shape[-1]
+    scale = np.trace(grams, axis1=1, axis2=2) / depth
+    grams[:, np.arange(depth), np.arange(depth)] += BDI_RIDGE * np.maximum(scale, 1.0)[:, None]
+    return grams
 
-    Chunks keep the gathered float64 block under ``GATHER_CHUNK_BYTES``; empty slots gather
-    database image 0 and must be masked by the caller.
-    """
-    indices = np.where(top.indices != EMPTY, top.indices, 0)
-    per_query = max(1, top.depth * top.database_descriptors.shape[1] * 8)
-    size = max(1, GATHER_CHUNK_BYTES // per_query)
-    for start in range(0, top.num_queries, size):
-        rows = slice(start, start + size)
-        yield (
-            rows,
-            top.database_descriptors[indices[rows]].astype(np.float64),
-            top.query_descriptors[rows].astype(np.float64),
+
+def _cholesky(matrices: np.ndarray) -> np.ndarray:
+    """Lower Cholesky factors ``[n, K, K]``; NaN for a matrix that is not positive definite."""
+    try:
+        return np.linalg.cholesky(matrices)
+    except np.linalg.LinAlgError:  # at least one of them: factor each
+        factors = np.full_like(matrices, np.nan)
+        for n, matrix in enumerate(matrices):
+            try:
+                factors[n] = np.linalg.cholesky(matrix)
+            except np.linalg.LinAlgError:
+                pass
+        return factors
+
+
+def check_scores(name: str, first: np.ndarray, queries: np.ndarray, scores: np.ndarray, valid: np.ndarray) -> None:
+    """Raise unless each query's score of its first ranked image is ``d_q . d_1`` (`Ranking`'s
+    contract for descriptor rankings, which BDI's Gram matrices rely on)."""
+    products = np.einsum("qd,qd->q", queries, first.astype(np.float64))
+    off = valid & np.isfinite(products) & (np.abs(products - scores) > SCORE_TOLERANCE)
+    if off.any():
+        query = int(np.flatnonzero(off)[0])
+        raise ValueError(
+            f"ranking {name!r}: {off.sum()} queries' scores are not the descriptors' inner products "
+            f"(e.g. query {query}: score {scores[query]:.6f}, d_q . d_i = {products[query]:.6f}); "
+            "BDI needs scores equal to d_q . d_i, as `search` returns them"
         )
 
 
