@@ -1,0 +1,33 @@
+"""The benchmarks keep running: each at a tiny size, its printed figures checked for shape.
+
+Their timings are not tested (2 shared cores); `benchmarks/` prints them on demand.
+"""
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+TINY_RUNS = {
+    "bench_approximation.py": (
+        ["--queries", "300", "--database", "40", "--dimension", "16", "--depth", "5", "--check", "50"],
+        [r"5 x\s+bdi, D=16:\s+[\d.]+ s", r"max difference \d\.\de-(0[7-9]|1\d)"],  # weights within 1e-6 of float64
+    ),
+    "bench_groundtruth.py": (
+        ["--queries", "40", "--database", "30", "--length", "30", "--width", "10"],
+        [r"relative_pose:\s+[\d.]+ s", r"frustum:\s+[\d.]+ s"],
+    ),
+}
+
+
+@pytest.mark.parametrize("script", sorted(TINY_RUNS))
+def test_benchmark_runs_at_a_tiny_size(script):
+    arguments, patterns = TINY_RUNS[script]
+    result = subprocess.run([sys.executable, str(BENCHMARKS / script), *arguments], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    for pattern in patterns:
+        assert re.search(pattern, result.stdout), f"{script}: no {pattern!r} in\n{result.stdout}"
