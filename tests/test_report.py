@@ -169,6 +169,15 @@ def test_report_of_a_multirun_produces_every_figure_and_table(tmp_path):
     assert "too few inliers" in text and "run time" in text
 
 
+def test_figures_drawn_by_worker_processes_are_those_drawn_in_process(tmp_path):
+    run = write_run(tmp_path / "run", ["netvlad", "apgem"])
+    in_process = build_report([run], tmp_path / "here", figure_formats=["png"], figure_workers=1)
+    by_workers = build_report([run], tmp_path / "workers", figure_formats=["png"], figure_workers=2)
+    assert by_workers.read_text().replace("workers", "here") == in_process.read_text()
+    sizes = {folder: {f.name: f.stat().st_size for f in (tmp_path / folder / "figures").glob("*.png")} for folder in ("here", "workers")}
+    assert len(sizes["here"]) == 13 and sizes["workers"] == sizes["here"]  # the same figures, pixel for pixel in size
+
+
 def test_runs_are_combined_without_repeating_ground_truth(tmp_path):
     first, second = write_run(tmp_path / "a", ["netvlad"]), write_run(tmp_path / "b", ["apgem"])
     single = load_runs([first])

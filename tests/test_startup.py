@@ -22,15 +22,17 @@ def test_the_benchmark_and_a_precomputed_model_import_no_heavy_library():
 
 def test_the_report_sfm_modules_and_synthetic_config_import_their_libraries_when_used():
     code = """
-import locretrieval.report
+from locretrieval.report import build_report
 from locretrieval.localization import colmap_model, pnp, store, triangulation
 from locretrieval.scene.synthetic import DEFAULT_CONFIG, resolve_config
 """
     loaded = loaded_after(code)
-    assert {"locretrieval.report.plots", "locretrieval.localization.triangulation", "locretrieval.scene.synthetic.config"} <= loaded
+    assert {"locretrieval.report.plots", "locretrieval.report.painters", "locretrieval.localization.triangulation", "locretrieval.scene.synthetic.config"} <= loaded
     assert not loaded & {*HEAVY, "locretrieval.scene.synthetic.dataset"}  # the renderer: only to render a scene
     assert "pycolmap" in loaded_after("from locretrieval.localization.colmap_model import to_rigid3d\nto_rigid3d([1, 0, 0, 0], [0, 0, 0])")
     assert "locretrieval.scene.synthetic.dataset" in loaded_after("from locretrieval.scene.synthetic import render_synthetic_dataset")
+    figure_worker = loaded_after("import locretrieval.report.plots")  # what a figure worker imports
+    assert "locretrieval.report.build" not in figure_worker and "scipy.stats" not in figure_worker
 
 
 def test_a_report_without_figures_does_not_import_matplotlib(tmp_path):

@@ -50,7 +50,7 @@ def _initialize_worker(parent: int) -> None:
     """Exit with the ``parent`` process (watched before the slow imports, so a parent that dies
     while its workers start is noticed); one thread per worker (the processes already use
     every core)."""
-    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
+    threading.Thread(target=exit_with_parent, args=(parent,), daemon=True).start()
     import torch
 
     import locretrieval  # (imports zlib before pycolmap)
@@ -62,7 +62,7 @@ def _initialize_worker(parent: int) -> None:
     pycolmap.logging.minloglevel = 2
 
 
-def _exit_with_parent(parent: int) -> None:
+def exit_with_parent(parent: int) -> None:
     """A killed run's workers would wait for tasks forever (they hold their queue's both ends)
     and go on writing to the cache: stop them, queued work included, once ``parent`` is gone."""
     while os.getppid() == parent:

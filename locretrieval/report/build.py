@@ -12,6 +12,7 @@ import pandas as pd
 from locretrieval.metrics.correlation import dataset_pearson, dataset_spearman, paired_metrics, query_pearson
 from locretrieval.metrics.retrieval import METRICS
 from locretrieval.report import markdown, plots
+from locretrieval.report.painters import Painters
 from locretrieval.report.tables import RunTables, load_runs
 
 log = logging.getLogger(__name__)
@@ -46,17 +47,20 @@ def build_report(
     output_dir: str | Path,
     primary_groundtruth: str | None = None,
     figure_formats: Sequence[str] = ("png", "pdf"),
+    figure_workers: int | None = None,
 ) -> Path:
     """Regenerate ``report.md``, ``figures/`` (in ``figure_formats``), ``tables/`` (Markdown + LaTeX) and
     the correlation tables in ``output_dir`` from the tables of the runs at or below
     ``run_dirs`` (a multirun's runs are concatenated, repeated ground-truth rows dropped).
 
     Correlations and the subset figure use ``primary_groundtruth`` (default: the relative
-    pose definition, the paper's choice, else the first ground truth by name).
+    pose definition, the paper's choice, else the first ground truth by name). Figures are
+    drawn by ``figure_workers`` processes (`Painters`: ``None`` or 0, one per core; 1, here).
     Returns the path of ``report.md``.
     """
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
+    painters = Painters(plots.FigureFolder(output_dir / "figures", tuple(figure_formats)), figure_workers)
     tables = load_runs(run_dirs)
     correlations = compute_correlations(tables)
     for name, file in CORRELATION_FILES.items():
@@ -64,16 +68,16 @@ def build_report(
     groundtruth = choose_groundtruth(tables.retrieval, primary_groundtruth)
     datasets = sorted(set(tables.results["dataset"]) | set(tables.retrieval["dataset"]))
     writer = markdown.ReportWriter(output_dir, f"locretrieval report: {', '.join(datasets) or 'no results'}")
-    figures = plots.FigureFolder(output_dir / "figures", tuple(figure_formats))
     # the colours are matplotlib's: without figures (no format) it is not imported
-    colors = plots.ranking_colors(pd.concat([tables.results["ranking"], tables.retrieval["ranking"]])) if figures.formats else {}
+    rankings = pd.concat([tables.results["ranking"], tables.retrieval["ranking"]])
+    colors = plots.ranking_colors(rankings) if painters.figures.formats else {}
     overview(writer, tables, groundtruth)
     groundtruth_section(writer, tables)
-    localization_section(writer, tables, figures, colors)
-    retrieval_section(writer, tables, figures, colors)
+    localization_section(writer, tables, painters, colors)
+    retrieval_section(writer, tables, painters, colors)
     revisited_section(writer, tables)
-    correlation_section(writer, tables, correlations, groundtruth, figures, colors)
-    subset_section(writer, tables, groundtruth, figures, colors)
+    correlation_section(writer, tables, correlations, groundtruth, painters, colors)
+    subset_section(writer, tables, groundtruth, painters, colors)
     failure_section(writer, tables)
     path = writer.write(output_dir / "report.md")
     log.info("report written to %s", path)
@@ -142,13 +146,7 @@ def groundtruth_section(writer: markdown.ReportWriter, tables: RunTables) -> Non
     writer.table(statistics.set_index(["dataset", "groundtruth"]), "table1_groundtruth_statistics", caption)
 
 
-def draw(figures: plots.FigureFolder, plot, *args, **kwargs) -> list[Path]:
-    """The files ``plot(*args, **kwargs)`` writes, or none when ``figures`` has no format (nothing
-    is drawn: ``report.figure_formats=[]`` for quick runs)."""
-    return plot(*args, **kwargs) if figures.formats else []
-
-
-def localization_section(writer: markdown.ReportWriter, tables: RunTables, figures: plots.FigureFolder, colors: dict) -> None:
+def localization_section(writer: markdown.ReportWriter, tables: RunTables, painters: Painters, colors: dict) -> None:
     results = tables.results
     writer.heading("Localization (paper Figs. 4-6)")
     if results.empty:
@@ -156,16 +154,16 @@ def localization_section(writer: markdown.ReportWriter, tables: RunTables, figur
         return
     best = markdown.best_localization(results)
     writer.table(best, "localization_best_over_k", "Best % of queries localized over k (all queries).", ".1f")
-    written = draw(figures, plots.plot_localization_vs_k, results, figures, colors=colors)
+    written = painters.draw(plots.plot_localization_vs_k, results, painters.figures, colors=colors)
     for (dataset, paradigm, method), _ in results.groupby(["dataset", "paradigm", "method"], sort=True):
         writer.heading(f"{dataset}: {paradigm}, {method}", 3)
-        writer.figures([f for f in written if f.stem == plots.safe_name(f"{dataset}_{paradigm}_{method}")])
+        writer.figures(written, f"{dataset}_{paradigm}_{method}")
         pivot = markdown.pivot_localization(results[results["dataset"] == dataset], paradigm, method)
         caption = "% of queries localized (all queries), per ranking and k."
         writer.table(pivot, f"localization_{dataset}_{paradigm}_{method}", caption, ".1f")
 
 
-def retrieval_section(writer: markdown.ReportWriter, tables: RunTables, figures: plots.FigureFolder, colors: dict) -> None:
+def retrieval_section(writer: markdown.ReportWriter, tables: RunTables, painters: Painters, colors: dict) -> None:
     retrieval = tables.retrieval
     if retrieval.empty:
         return
@@ -174,7 +172,7 @@ def retrieval_section(writer: markdown.ReportWriter, tables: RunTables, figures:
         "P@k: relevant images among the top k / k. R@k: queries with a relevant image in the top k. "
         "mAP@k: AP over the top k normalised by min(#relevant, k), over queries with a relevant image."
     )
-    writer.figures(draw(figures, plots.plot_retrieval_curves, retrieval, figures, colors=colors))
+    writer.figures(painters.draw(plots.plot_retrieval_curves, retrieval, painters.figures, colors=colors))
     summary = markdown.retrieval_summary(retrieval)
     writer.table(summary, "retrieval_summary", "Retrieval metrics in % (all queries).", ".1f")
 
@@ -191,7 +189,7 @@ def correlation_section(
     tables: RunTables,
     correlations: Correlations,
     groundtruth: str | None,
-    figures: plots.FigureFolder,
+    painters: Painters,
     colors: dict,
 ) -> None:
     if groundtruth is None or correlations.pearson.empty:
@@ -211,13 +209,13 @@ def correlation_section(
         )
         query = _selected(correlations.query, groundtruth, METRICS[metric])
         writer.heading(METRIC_TITLES[metric], 3)
-        writer.figures(draw(figures, plots.plot_correlation_scatter, pairs, pearson, figures, colors))
+        writer.figures(painters.draw(plots.plot_correlation_scatter, pairs, pearson, painters.figures, colors))
         stem = f"{metric}_{groundtruth}"
         writer.table(markdown.correlation_matrix(pearson, "ranking"), f"pearson_{stem}", "Pearson r over k, per descriptor.")
         caption = "Spearman rho over the descriptors, per k."
         writer.table(markdown.correlation_matrix(spearman, "k"), f"spearman_{stem}", caption)
         if len(query):
-            writer.figures(draw(figures, plots.plot_query_violins, query, figures, colors))
+            writer.figures(painters.draw(plots.plot_query_violins, query, painters.figures, colors))
         analyses = {"pearson": pearson, "spearman": spearman, "per query": query}
         undefined = pd.concat([markdown.undefined_summary(frame).assign(analysis=name) for name, frame in analyses.items()])
         if len(undefined):
@@ -232,7 +230,7 @@ def _selected(frame: pd.DataFrame, groundtruth: str, metric: str) -> pd.DataFram
 
 
 def subset_section(
-    writer: markdown.ReportWriter, tables: RunTables, groundtruth: str | None, figures: plots.FigureFolder, colors: dict
+    writer: markdown.ReportWriter, tables: RunTables, groundtruth: str | None, painters: Painters, colors: dict
 ) -> None:
     subsets = set(tables.results["subset"]) | set(tables.retrieval["subset"])
     if subsets <= {"all"}:
@@ -249,7 +247,9 @@ def subset_section(
         )
         caption = "Blur scores (FFT, blurry when <= threshold) and dynamic fractions of the queries."
         writer.table(per_image, "subset_scores", caption)
-    writer.figures(draw(figures, plots.plot_subset_comparison, tables.results, tables.retrieval, groundtruth, figures, colors))
+    for subset in sorted(subsets - {"all"}):  # a job each: they are the report's largest figures
+        arguments = (tables.results, tables.retrieval, groundtruth, painters.figures, colors)
+        writer.figures(painters.draw(plots.plot_subset_comparison, *arguments, subsets=[subset]))
     if len(tables.results):
         best = markdown.best_by_subset(tables.results)
         writer.table(best, "best_by_subset", "Best % localized over k at the loosest threshold.", ".1f")

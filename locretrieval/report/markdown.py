@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future
+from functools import partial
 from pathlib import Path
 
 import pandas as pd
@@ -16,7 +18,7 @@ class ReportWriter:
 
     def __init__(self, directory: Path, title: str) -> None:
         self.directory = directory
-        self.lines = [f"# {title}", ""]
+        self.lines: list[str | Callable[[], list[str]]] = [f"# {title}", ""]
 
     def heading(self, text: str, level: int = 2) -> None:
         self.lines += [f"{'#' * level} {text}", ""]
@@ -28,9 +30,15 @@ class ReportWriter:
     def bullets(self, items: dict[str, object]) -> None:
         self.lines += [f"- **{key}**: {value}" for key, value in items.items()] + [""]
 
-    def figures(self, paths: Sequence[Path]) -> None:
-        for path in paths:
-            self.lines += [f"![{path.stem}]({path.relative_to(self.directory).as_posix()})", ""]
+    def figures(self, paths: Sequence[Path] | Future, stem: str | None = None) -> None:
+        """Links to the figures ``paths`` (or the future of a figure worker's, awaited by `write`),
+        only the one named ``stem`` when given."""
+        self.lines.append(partial(self._figure_links, paths, stem))
+
+    def _figure_links(self, paths: Sequence[Path] | Future, stem: str | None) -> list[str]:
+        paths = paths.result() if isinstance(paths, Future) else paths
+        chosen = [path for path in paths if stem is None or path.stem == safe_name(stem)]
+        return [line for path in chosen for line in (f"![{path.stem}]({path.relative_to(self.directory).as_posix()})", "")]
 
     def table(self, frame: pd.DataFrame, stem: str, caption: str, floatfmt: str = ".2f") -> None:
         """Embed ``frame`` and write it as ``tables/<stem>.md`` and ``tables/<stem>.tex``."""
@@ -39,7 +47,9 @@ class ReportWriter:
         self.lines += [f"{caption} ([LaTeX](tables/{stem}.tex))", "", markdown, ""]
 
     def write(self, path: Path) -> Path:
-        path.write_text("\n".join(self.lines).rstrip() + "\n")
+        """Write ``report.md`` once every figure it links is drawn."""
+        lines = [part for line in self.lines for part in (line() if callable(line) else [line])]
+        path.write_text("\n".join(lines).rstrip() + "\n")
         return path
 
 

@@ -259,11 +259,17 @@ def plot_query_violins(query_pearson: pd.DataFrame, figures: FigureFolder, color
 
 
 def plot_subset_comparison(
-    results: pd.DataFrame, retrieval: pd.DataFrame, groundtruth: str | None, figures: FigureFolder, colors: Mapping[str, str]
+    results: pd.DataFrame,
+    retrieval: pd.DataFrame,
+    groundtruth: str | None,
+    figures: FigureFolder,
+    colors: Mapping[str, str],
+    subsets: Iterable[str] | None = None,
 ) -> list[Path]:
     """All queries (solid) vs a subset (dashed) for every descriptor (paper Fig. 12): one
-    figure per dataset x subset, panels for % localised per paradigm/method at its headline
-    threshold, then P@k and R@k against ``groundtruth``."""
+    figure per dataset x subset (those named in ``subsets``, default all), panels for %
+    localised per paradigm/method at its headline threshold, then P@k and R@k against
+    ``groundtruth``."""
     results = at_headline_thresholds(results[results["ranking_kind"] == "descriptor"])
     retrieval = retrieval[(retrieval["ranking_kind"] == "descriptor") & (retrieval["groundtruth"] == groundtruth)]
     retrieval = retrieval[retrieval["metric"].isin(["precision", "recall"])].assign(percent=lambda t: 100 * t["value"])
@@ -271,10 +277,11 @@ def plot_subset_comparison(
     for dataset in sorted(set(results["dataset"]) | set(retrieval["dataset"])):
         localization = results[results["dataset"] == dataset]
         ranked = retrieval[retrieval["dataset"] == dataset]
-        subsets = sorted((set(localization["subset"]) | set(ranked["subset"])) - {"all"})
+        present = sorted((set(localization["subset"]) | set(ranked["subset"])) - {"all"})
+        chosen = [subset for subset in present if subsets is None or subset in set(subsets)]
         panels = [("localization", key) for key in sorted(localization.groupby(["paradigm", "method"]).groups)]
         panels += [("retrieval", metric) for metric in sorted(ranked["metric"].unique())]
-        for subset in subsets if panels else []:
+        for subset in chosen if panels else []:
             figure, axes = _panels(len(panels))
             for axis, (source, key) in zip(axes, panels):
                 if source == "localization":

@@ -1,0 +1,61 @@
+"""A report's figures drawn in worker processes.
+
+matplotlib draws on one core and a report's figures are independent, so `Painters.draw` hands
+each plotting call to a pool of spawned workers (one per core, started on first use and kept
+for the process) and returns a future of the files it writes; `ReportWriter.write` waits for
+them. Workers import matplotlib, pandas and the plotting module only (about a second).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
+from typing import Any
+
+from locretrieval.localization.workers import exit_with_parent, resolve_workers
+from locretrieval.report.plots import FigureFolder, pyplot
+
+#: Pools of this process by worker count.
+_pools: dict[int, ProcessPoolExecutor] = {}
+
+
+class Painters:
+    """Runs ``plot(*args, **kwargs)`` calls that write figures into ``figures``: in ``workers``
+    processes (``None`` or 0: one per core; 1: in this process). Without a figure format nothing
+    is drawn (``report.figure_formats=[]``) and matplotlib is not imported."""
+
+    def __init__(self, figures: FigureFolder, workers: int | None = None) -> None:
+        self.figures = figures
+        self.workers = resolve_workers(workers)
+        if self.figures.formats and self.workers > 1:  # start them now: they import while the tables load
+            for _ in range(self.workers):
+                _pool(self.workers).submit(os.getpid)
+
+    def draw(self, plot: Callable[..., list[Path]], *args: Any, **kwargs: Any) -> Future:
+        """A future of the files ``plot`` writes (a module-level function; arguments picklable)."""
+        if not self.figures.formats or self.workers == 1:
+            done: Future = Future()
+            done.set_result(plot(*args, **kwargs) if self.figures.formats else [])
+            return done
+        try:
+            return _pool(self.workers).submit(plot, *args, **kwargs)
+        except BrokenProcessPool:  # a worker died in an earlier report: start a new pool
+            _pools.pop(self.workers).shutdown(cancel_futures=True)
+            return _pool(self.workers).submit(plot, *args, **kwargs)
+
+
+def _pool(workers: int) -> ProcessPoolExecutor:
+    if workers not in _pools:
+        context = multiprocessing.get_context("spawn")  # torch and faiss keep threads: no fork
+        _pools[workers] = ProcessPoolExecutor(workers, mp_context=context, initializer=_start_painter, initargs=(os.getpid(),))
+    return _pools[workers]
+
+
+def _start_painter(parent: int) -> None:
+    threading.Thread(target=exit_with_parent, args=(parent,), daemon=True).start()
+    pyplot()
