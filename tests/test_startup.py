@@ -16,8 +16,8 @@ def loaded_after(code: str) -> set[str]:
 
 def test_the_benchmark_and_a_precomputed_model_import_no_heavy_library():
     loaded = loaded_after("import locretrieval.evaluation\nfrom locretrieval.models import PrecomputedDescriptor")
-    assert {"locretrieval.evaluation", "locretrieval.models.precomputed", "torch"} <= loaded
-    assert not loaded & set(HEAVY)
+    assert {"locretrieval.evaluation", "locretrieval.models.precomputed", "locretrieval.localization.matching"} <= loaded
+    assert not loaded & {*HEAVY, "torch"}  # precomputed descriptors and features are matched without torch
 
 
 def test_the_report_sfm_modules_and_synthetic_config_import_their_libraries_when_used():
@@ -35,21 +35,23 @@ from locretrieval.scene.synthetic import DEFAULT_CONFIG, resolve_config
     assert "locretrieval.report.build" not in figure_worker and "scipy.stats" not in figure_worker
 
 
-def test_a_report_without_figures_does_not_import_matplotlib(tmp_path):
-    def report(formats: list[str]) -> set[str]:
+def test_matplotlib_is_imported_only_by_the_process_that_draws(tmp_path):
+    def report(formats: list[str], workers: int) -> set[str]:
         return loaded_after(f"""
 sys.path.insert(0, {str(Path(__file__).parent)!r})
 from pathlib import Path
 from test_report import write_run
 from locretrieval.report import build_report
-run = write_run(Path({str(tmp_path)!r}) / "run_{len(formats)}", ["netvlad"])
-assert "## Localization" in build_report([run], run, figure_formats={formats!r}).read_text()
-assert bool(list(run.glob("figures/*.png"))) == {bool(formats)!r}
+if __name__ == "__main__":
+    run = write_run(Path({str(tmp_path)!r}) / "run_{len(formats)}_{workers}", ["netvlad"])
+    assert "## Localization" in build_report([run], run, figure_formats={formats!r}, figure_workers={workers}).read_text()
+    assert bool(list(run.glob("figures/*.png"))) == {bool(formats)!r}
 """)
 
-    loaded = report([])
-    assert "locretrieval.report.plots" in loaded and "matplotlib" not in loaded
-    assert "matplotlib" in report(["png"])
+    without_figures = report([], 1)
+    assert "locretrieval.report.plots" in without_figures and "matplotlib" not in without_figures
+    assert "matplotlib" in report(["png"], 1)
+    assert "matplotlib" not in report(["png"], 2)  # figure workers draw them
 
 
 def test_models_are_imported_when_first_named():

@@ -1,8 +1,8 @@
 """Local feature matching between image pairs, geometric verification, and per-pair caches.
 
 Matching is mutual nearest neighbours with Lowe's ratio test on L2-normalised descriptors,
-batched in torch: one image against many partners at once (padded ``[B, n, m]`` similarity
-blocks). Matches ``int32 [m, 2]`` hold keypoint indices (first image, second image).
+one image against many partners at once (their descriptors stacked into one similarity block,
+a float32 matrix product). Matches ``int32 [m, 2]`` hold keypoint indices (first image, second image).
 
 Verification (``ensure(..., verification=...)``, then ``load(..., verification=...)``):
 
@@ -32,7 +32,6 @@ from itertools import groupby
 from pathlib import Path
 
 import numpy as np
-import torch
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
@@ -53,6 +52,8 @@ GEOMETRIC_CONFIGURATIONS = ("CALIBRATED", "UNCALIBRATED", "PLANAR", "PANORAMIC",
 PAIRS_PER_SHARD = 512
 #: Bytes of similarity block computed at once.
 SIMILARITY_BLOCK_BYTES = 1 << 27
+#: Smallest norm a descriptor is divided by (zero rows stay zero).
+NORM_EPSILON = 1e-12
 #: Bump when the meaning of cached matches changes.
 CACHE_VERSION = 1
 
@@ -96,10 +97,10 @@ def pair_key(pair: Pair) -> str:
 # ------------------------------------------------------------------------------------ matching
 
 
-def normalized_descriptors(descriptors: np.ndarray) -> torch.Tensor:
+def normalized_descriptors(descriptors: np.ndarray) -> np.ndarray:
     """Float32 rows of unit L2 norm (zero rows stay zero)."""
-    values = torch.from_numpy(np.asarray(descriptors, dtype=np.float32))
-    return torch.nn.functional.normalize(values, dim=1)
+    values = np.asarray(descriptors, dtype=np.float32)
+    return values / np.maximum(np.linalg.norm(values, axis=1, keepdims=True), NORM_EPSILON)
 
 
 def mutual_nearest_neighbours(first: np.ndarray, others: Sequence[np.ndarray], ratio: float) -> list[np.ndarray]:
@@ -120,7 +121,7 @@ def mutual_nearest_neighbours(first: np.ndarray, others: Sequence[np.ndarray], r
         if not stacked:
             continue
         similarity = query @ normalized_descriptors(np.concatenate(stacked)).T
-        back = similarity.max(dim=0).indices  # each partner keypoint's nearest query keypoint
+        back = similarity.argmax(axis=0)  # each partner keypoint's nearest query keypoint
         offset = 0
         for index in block:
             size = len(others[index])
@@ -143,20 +144,19 @@ def _blocks(sizes: Sequence[int], limit: int) -> list[range]:
     return blocks
 
 
-def _mutual_ratio(similarity: torch.Tensor, back: torch.Tensor, ratio: float) -> np.ndarray:
+def _mutual_ratio(similarity: np.ndarray, back: np.ndarray, ratio: float) -> np.ndarray:
     """Mutual nearest neighbours passing the ratio test in one ``[n, m]`` similarity block
     (``back [m]``: each column's best row)."""
+    rows = np.arange(len(similarity))
+    nearest = similarity.argmax(axis=1)
     if similarity.shape[1] >= 2:
-        values, indices = similarity.topk(2, dim=1)
-        nearest = indices[:, 0]
+        best, second = np.partition(similarity, -2, axis=1)[:, [-1, -2]].T
         # squared distances of unit vectors: 2 - 2 s
-        passes = (2 - 2 * values[:, 0]).clamp(min=0) <= ratio**2 * (2 - 2 * values[:, 1]).clamp(min=0)
+        passes = np.maximum(2 - 2 * best, 0) <= ratio**2 * np.maximum(2 - 2 * second, 0)
     else:
-        nearest = similarity.argmax(dim=1)
-        passes = torch.ones(len(similarity), dtype=torch.bool)
-    rows = torch.arange(len(similarity))
+        passes = np.ones(len(similarity), dtype=bool)
     keep = passes & (back[nearest] == rows)
-    return torch.stack([rows[keep], nearest[keep]], 1).numpy().astype(np.int32)
+    return np.stack([rows[keep], nearest[keep]], 1).astype(np.int32)
 
 
 # --------------------------------------------------------------------------------- verification

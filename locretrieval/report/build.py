@@ -68,9 +68,7 @@ def build_report(
     groundtruth = choose_groundtruth(tables.retrieval, primary_groundtruth)
     datasets = sorted(set(tables.results["dataset"]) | set(tables.retrieval["dataset"]))
     writer = markdown.ReportWriter(output_dir, f"locretrieval report: {', '.join(datasets) or 'no results'}")
-    # the colours are matplotlib's: without figures (no format) it is not imported
-    rankings = pd.concat([tables.results["ranking"], tables.retrieval["ranking"]])
-    colors = plots.ranking_colors(rankings) if painters.figures.formats else {}
+    colors = plots.ranking_colors(pd.concat([tables.results["ranking"], tables.retrieval["ranking"]]))
     overview(writer, tables, groundtruth)
     groundtruth_section(writer, tables)
     localization_section(writer, tables, painters, colors)

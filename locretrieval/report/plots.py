@@ -22,6 +22,9 @@ import pandas as pd
 if TYPE_CHECKING:
     import matplotlib.pyplot as plt
 
+#: Colours of the rankings: matplotlib's default cycle ("tab10"), named here so that the process
+#: writing the report assigns them without importing matplotlib (its workers draw).
+RANKING_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf")
 #: Line style per ranking kind: descriptors solid, ground truth dashed (paper Fig. 4).
 LINE_STYLES = {"descriptor": "-", "groundtruth": "--", "baseline": ":"}
 REFERENCE_METHOD = "ewb"
@@ -45,11 +48,8 @@ def pyplot():
 
 
 def ranking_colors(names: Iterable[str]) -> dict[str, str]:
-    """A stable colour per ranking name (sorted names over matplotlib's colour cycle)."""
-    import matplotlib
-
-    cycle = matplotlib.rcParams["axes.prop_cycle"].by_key()["color"]
-    return {name: cycle[n % len(cycle)] for n, name in enumerate(sorted(set(names)))}
+    """A stable colour per ranking name (sorted names over `RANKING_COLORS`)."""
+    return {name: RANKING_COLORS[n % len(RANKING_COLORS)] for n, name in enumerate(sorted(set(names)))}
 
 
 def safe_name(text: str) -> str:
