@@ -59,6 +59,10 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     random_seed = int(cfg.seed) if cfg.baselines.random else None
     rankings = build_rankings(scene, {model.name: descriptors}, groundtruths, settings.retrieval, random_seed)
     subsets, subset_table = scene_subsets(scene, subset_settings, cache_dir, str(cfg.device))
+    if cfg.report.figure_formats:
+        from locretrieval.report.painters import start_painters
+
+        start_painters()  # the report's figure workers import matplotlib while the benchmark runs
     result = benchmark(scene, rankings, settings, subsets, cache_dir, relevances(groundtruths, groundtruth_settings.relevance))
 
     write_tables(result, statistics_table(scene.name, groundtruths), subset_table, output_dir)

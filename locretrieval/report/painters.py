@@ -32,9 +32,8 @@ class Painters:
     def __init__(self, figures: FigureFolder, workers: int | None = None) -> None:
         self.figures = figures
         self.workers = resolve_workers(workers)
-        if self.figures.formats and self.workers > 1:  # start them now: they import while the tables load
-            for _ in range(self.workers):
-                _pool(self.workers).submit(os.getpid)
+        if self.figures.formats:
+            start_painters(self.workers)  # they import while the tables load
 
     def draw(self, plot: Callable[..., list[Path]], *args: Any, **kwargs: Any) -> Future:
         """A future of the files ``plot`` writes (a module-level function; arguments picklable)."""
@@ -47,6 +46,15 @@ class Painters:
         except BrokenProcessPool:  # a worker died in an earlier report: start a new pool
             _pools.pop(self.workers).shutdown(cancel_futures=True)
             return _pool(self.workers).submit(plot, *args, **kwargs)
+
+
+def start_painters(workers: int | None = None) -> None:
+    """Start the figure workers now (``workers`` as in `Painters`), e.g. while a run computes
+    what its report will draw: each spends about a second importing matplotlib."""
+    workers = resolve_workers(workers)
+    if workers > 1 and workers not in _pools:
+        for _ in range(workers):
+            _pool(workers).submit(os.getpid)
 
 
 def _pool(workers: int) -> ProcessPoolExecutor:
