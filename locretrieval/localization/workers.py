@@ -1,7 +1,7 @@
-"""Run independent tasks in worker processes (spawned: pycolmap and torch keep threads).
+"""Run independent tasks in worker processes (spawned: pycolmap, faiss and torch keep threads).
 
-Starting a worker costs seconds (it imports torch and pycolmap), so one pool per worker
-count is started on first use and reused by every later call of this process. The data
+Starting a worker costs seconds (it imports the entry point's modules and pycolmap), so one
+pool per worker count is started on first use and reused by every later call of this process. The data
 that all tasks of a call share is pickled once to a temporary file, and each worker loads
 it once per call.
 """
@@ -48,15 +48,15 @@ def resolve_workers(workers: int | None) -> int:
 
 def _initialize_worker(parent: int) -> None:
     """Exit with the ``parent`` process (watched before the slow imports, so a parent that dies
-    while its workers start is noticed); one thread per worker (the processes already use
-    every core)."""
+    while its workers start is noticed); one BLAS/OpenMP thread per worker (the processes
+    already use every core)."""
     threading.Thread(target=exit_with_parent, args=(parent,), daemon=True).start()
-    import torch
+    import threadpoolctl
 
     import locretrieval  # (imports zlib before pycolmap)
 
     locretrieval.exit_without_final_collection()
-    torch.set_num_threads(1)
+    threadpoolctl.threadpool_limits(1)
     import pycolmap
 
     pycolmap.logging.minloglevel = 2
