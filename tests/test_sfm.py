@@ -247,6 +247,11 @@ def test_a_query_is_localised_once_per_distinct_set_of_top_k_images():
     outcomes = outcomes_per_image_set(task, localize)
     assert outcomes == [["(3,)", "(1, 2, 3)"], ["(1, 2)", "(1, 2, 3)"], ["(5,)", "(5,)"]]
     assert calls == [(3,), (1, 2, 3), (1, 2), (5,)]
+    calls.clear()
+    task.known[(1, 2, 3)] = "cached"
+    assert task.pending() == {(3,), (1, 2), (5,)} and not task.complete
+    assert outcomes_per_image_set(task, localize)[0] == ["(3,)", "cached"]
+    assert calls == [(3,), (1, 2), (5,)]
 
 
 def test_local_maps_of_the_same_images_in_another_order_are_built_once(scene, cache, rankings, monkeypatch):
@@ -280,6 +285,7 @@ def test_a_rerun_reads_its_local_maps_from_the_cache(scene, cache, rankings, mon
         raise AssertionError("a cached local map was triangulated again")
 
     monkeypatch.setattr(local_sfm, "triangulate_known_poses", refuse)
+    shutil.rmtree(cache / "poses")  # registered again, in maps read from the cache
     again = run_local(scene, rankings, [2, 3], cache, map_matches)
     for a, b in zip(first, again):
         np.testing.assert_array_equal(a.qvec, b.qvec)
@@ -291,9 +297,40 @@ def test_a_rerun_reads_its_local_maps_from_the_cache(scene, cache, rankings, mon
     assert len(list((cache / "local_maps").glob("*.npz"))) > before
 
 
+@pytest.mark.parametrize("paradigm", ["local_sfm", "global_sfm"])
+def test_registrations_are_cached_by_query_and_image_set(scene, cache, rankings, monkeypatch, paradigm):
+    run, module = (run_local, local_sfm) if paradigm == "local_sfm" else (run_global, global_sfm)
+    truth, other = rankings
+    first = run(scene, [truth], [2, 3], cache)[0]
+    registered = []
+    real = module.register_query
+
+    def recording(inputs, query, keypoints, matches, *rest):
+        registered.append((query, tuple(sorted(matches))))
+        return real(inputs, query, keypoints, matches, *rest)
+
+    monkeypatch.setattr(module, "register_query", recording)
+    again, added = run(scene, [truth, other], [2, 3], cache)
+    for name in ("qvec", "tvec", "failures"):
+        np.testing.assert_array_equal(getattr(first, name), getattr(again, name))
+    # only the new ranking's image sets are registered, each once
+    truth_sets = {(q, tuple(sorted(row[:k]))) for q, row in enumerate(truth.indices) for k in (2, 3)}
+    assert registered and not set(registered) & truth_sets
+    assert len(registered) == len(set(registered))
+    fresh = cache.parent / f"{cache.name}-fresh"
+    shutil.copytree(cache / "features", fresh / "features")
+    alone = run(scene, [other], [2, 3], fresh)[0]
+    np.testing.assert_array_equal(added.failures, alone.failures)
+    np.testing.assert_allclose(added.tvec, alone.tvec, atol=1e-9)
+    registered.clear()
+    run(scene, [truth], [2, 3], cache, sfm=sfm_settings(pnp={"max_error": 6.0}))  # other PnP settings: not read
+    assert registered
+
+
 def test_results_do_not_depend_on_worker_processes_and_reruns_reuse_the_caches(scene, cache, rankings, monkeypatch):
     parallel = run_global(scene, rankings, [1, 3], cache, sfm=sfm_settings(workers=2))
     calls = count_matcher_calls(monkeypatch)
+    shutil.rmtree(cache / "poses")  # registered again, in this process
     serial = run_global(scene, rankings, [1, 3], cache)
     assert sum(calls) == 0  # features, matches and the map all come from the cache
     for a, b in zip(parallel, serial):

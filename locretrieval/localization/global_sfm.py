@@ -14,7 +14,9 @@ The global map is either
 
 Each query is matched to its top-k images (cached pairs, verified per
 ``matching.query_verification``); the map points observed by the matched database keypoints
-give 2D-3D correspondences, and LO-RANSAC P3P with refinement gives its pose.
+give 2D-3D correspondences, and LO-RANSAC P3P with refinement gives its pose. Outcomes are
+cached in ``<cache_dir>/poses/`` by query and image set (`PoseCache`), keyed by the map, the
+query matches' store and the PnP settings.
 """
 
 from __future__ import annotations
@@ -24,12 +26,13 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from locretrieval.cache import config_key
+from locretrieval.cache import config_key, tree_signature
 from locretrieval.localization.colmap_model import read_colmap_map
 from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.pairs import database_pairs
 from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS
+from locretrieval.localization.pose_cache import PoseCache
 from locretrieval.localization.sfm import (
     Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, register_query, run_queries,
 )
@@ -58,7 +61,8 @@ def run(
     """Paradigm entry point: the pose of every query for every ranking and every ``settings.k``."""
     inputs, ks = SfmInputs.for_rankings("global_sfm", scene, rankings, settings.k, sfm, cache_dir)
     sparse_map = global_map(inputs, settings.colmap_model, Path(cache_dir))
-    return run_queries("global_sfm", rankings, ks, localize_query, (inputs, sparse_map), sfm.processes)
+    cache = PoseCache(pose_cache_path(inputs, settings.colmap_model, Path(cache_dir)), scene.queries.names, scene.database.names)
+    return run_queries("global_sfm", rankings, ks, localize_query, (inputs, sparse_map), sfm.processes, cache)
 
 
 def global_map(inputs: SfmInputs, colmap_model: str | None, cache_dir: Path) -> SparseMap:
@@ -95,11 +99,21 @@ def map_cache_path(inputs: SfmInputs, cache_dir: Path) -> Path:
     return cache_dir / "maps" / f"{key}.npz"
 
 
+def pose_cache_path(inputs: SfmInputs, colmap_model: str | None, cache_dir: Path) -> Path:
+    """Where the registration outcomes are cached: keyed by the map (the COLMAP model's path and
+    files, or the triangulated map's key), the query matches' store (features of both sets, ratio,
+    verification) and the PnP settings."""
+    source = [colmap_model, tree_signature(colmap_model)] if colmap_model else map_cache_path(inputs, cache_dir).stem
+    queries = inputs.query_pairs.stores[inputs.query_verification].folder.name
+    key = config_key(CACHE_VERSION, source, queries, asdict(inputs.settings.pnp))
+    return cache_dir / "poses" / f"global_sfm-{key}.npz"
+
+
 def localize_query(shared: tuple[SfmInputs, SparseMap], task: QueryTask) -> list[list[Outcome]]:
     """Outcomes ``[ranking][k]`` of one query registered in the global map, once per distinct
-    set of top-k images (the correspondences depend on the set only)."""
+    set of top-k images whose outcome is not known (the correspondences depend on the set only)."""
     inputs, sparse_map = shared
-    images = sorted({i for top in task.top for i in top})
+    images = sorted({i for selected in task.pending() for i in selected})
     query_keypoints, query_matches = inputs.query_matches(task.query, images)
     slots = {i: i for i in images}
 

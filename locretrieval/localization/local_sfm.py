@@ -19,7 +19,9 @@ For each query, ranking and k:
    several queries or a rerun is triangulated once;
 4. the query's matches to the k images (verified per ``matching.query_verification``) give
    2D-3D correspondences through the triangulated keypoints, and LO-RANSAC P3P with
-   non-linear refinement (``pnp`` options) estimates its pose.
+   non-linear refinement (``pnp`` options) estimates its pose; outcomes are cached in
+   ``<cache_dir>/poses/`` by query and image set (`PoseCache`), keyed by what the maps are
+   keyed by, the query matches' store and the PnP settings.
 
 A query is not localised (with its reason) when its ranking is empty, k < 2 images are
 available ("too few images"), the map has no point, or PnP fails.
@@ -27,7 +29,7 @@ available ("too few images"), the map has no point, or PnP fails.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -39,6 +41,7 @@ from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.matching import epipolar_inliers
 from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
+from locretrieval.localization.pose_cache import PoseCache
 from locretrieval.localization.sfm import (
     Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, register_query, run_queries,
 )
@@ -74,7 +77,18 @@ def run(
         pairs = [(names[a], names[b]) for a, b in local_map_pairs(rankings, ks)]
         inputs.database_pairs.ensure(pairs, sfm.processes, "poses")
     shared = (inputs, settings.map_matches, Path(cache_dir) / "local_maps")
-    return run_queries("local_sfm", rankings, ks, localize_query, shared, sfm.processes)
+    cache = PoseCache(pose_cache_path(inputs, settings.map_matches, Path(cache_dir)), scene.queries.names, scene.database.names)
+    return run_queries("local_sfm", rankings, ks, localize_query, shared, sfm.processes, cache)
+
+
+def pose_cache_path(inputs: SfmInputs, map_matches: str, cache_dir: Path) -> Path:
+    """Where the registration outcomes are cached: keyed by what keys the local maps (the map
+    matches and their store, the triangulation settings), the query matches' store and the PnP
+    settings."""
+    queries = inputs.query_pairs.stores[inputs.query_verification].folder.name
+    maps = inputs.database_pairs.stores["poses"].folder.name
+    key = config_key(CACHE_VERSION, map_matches, maps, queries, asdict(inputs.settings.triangulation), asdict(inputs.settings.pnp))
+    return cache_dir / "poses" / f"local_sfm-{key}.npz"
 
 
 def local_map_pairs(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> np.ndarray:
@@ -90,15 +104,16 @@ def local_map_pairs(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) ->
 
 
 def localize_query(shared: tuple[SfmInputs, str, Path], task: QueryTask) -> list[list[Outcome]]:
-    """Outcomes ``[ranking][k]`` of one query; a map (an image set) is triangulated (or read
-    from ``maps``, the cache folder) and the query registered in it once, whichever rankings,
-    ks and orders select its images."""
+    """Outcomes ``[ranking][k]`` of one query; a map (an image set whose outcome is not known)
+    is triangulated (or read from ``maps``, the cache folder) and the query registered in it
+    once, whichever rankings, ks and orders select its images."""
     inputs, map_matches, maps = shared
     database = inputs.scene.database
-    images = sorted({i for top in task.top for i in top})
+    pending = task.pending()
+    images = sorted({i for selected in pending for i in selected})
     query_keypoints, query_matches = inputs.query_matches(task.query, images)
     keypoints = inputs.database_features.keypoints([database.names[i] for i in images])
-    map_pairs = _map_matches(inputs, task, map_matches, query_matches, len(query_keypoints), keypoints)
+    map_pairs = _map_matches(inputs, pending, map_matches, query_matches, len(query_keypoints), keypoints)
 
     def localize(selected: tuple[int, ...]) -> Outcome:
         if not selected:
@@ -136,13 +151,13 @@ def _map_key(inputs: SfmInputs, map_matches: str, query: int, selected: tuple[in
 
 
 def _map_matches(
-    inputs: SfmInputs, task: QueryTask, map_matches: str, query_matches: Mapping[int, np.ndarray], num_query_keypoints: int,
-    keypoints: Mapping[str, np.ndarray],
+    inputs: SfmInputs, image_sets: Iterable[tuple[int, ...]], map_matches: str, query_matches: Mapping[int, np.ndarray],
+    num_query_keypoints: int, keypoints: Mapping[str, np.ndarray],
 ) -> dict[tuple[int, int], np.ndarray]:
-    """Pose-verified matches of every database pair ``(a, b)``, a < b, within one ranking's top
-    images; ``keypoints``: those of the database images by name."""
+    """Pose-verified matches of every database pair ``(a, b)``, a < b, within one of the image
+    sets (sorted tuples); ``keypoints``: those of the database images by name."""
     database = inputs.scene.database
-    pairs = sorted({(min(a, b), max(a, b)) for top in task.top for a in top for b in top if a != b})
+    pairs = sorted({(a, b) for images in image_sets for a in images for b in images if a < b})
     if map_matches == "database":
         loaded = inputs.database_pairs.load([(database.names[a], database.names[b]) for a, b in pairs], "poses")
         return {(a, b): loaded[(database.names[a], database.names[b])] for a, b in pairs}

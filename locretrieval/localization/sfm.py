@@ -12,7 +12,7 @@ import functools
 import logging
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +24,7 @@ from locretrieval.localization.features import FeatureSettings, FeatureStore, ex
 from locretrieval.localization.matching import MatchingSettings, PairMatcher
 from locretrieval.localization.pairs import PairSelection
 from locretrieval.localization.pnp import NO_KEYPOINTS, TOO_FEW_MATCHES, PnPSettings, estimate_absolute_pose
+from locretrieval.localization.pose_cache import Outcome, PoseCache
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.localization.triangulation import TriangulationSettings
 from locretrieval.localization.workers import parallel_map, resolve_workers
@@ -31,9 +32,6 @@ from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import Scene
 
 log = logging.getLogger(__name__)
-
-#: A query's result for one ranking and one k: world-to-camera (q wxyz, t), or a failure reason.
-Outcome = tuple[np.ndarray, np.ndarray] | str
 
 
 @dataclass
@@ -161,51 +159,91 @@ def register_query(
 
 @dataclass(frozen=True)
 class QueryTask:
-    """One query's top database images per ranking (``EMPTY`` removed) and the ks of each."""
+    """One query's top database images per ranking (``EMPTY`` removed), the ks of each, and
+    the outcomes already known (cached) of some of its image sets (sorted index tuples)."""
 
     query: int
     top: tuple[tuple[int, ...], ...]
     ks: tuple[tuple[int, ...], ...]
+    known: dict[tuple[int, ...], Outcome] = field(default_factory=dict, compare=False)
+
+    def image_sets(self) -> set[tuple[int, ...]]:
+        """Every distinct top-k image set (sorted) of every ranking and k."""
+        return {tuple(sorted(top[:k])) for top, ks in zip(self.top, self.ks) for k in ks}
+
+    def pending(self) -> set[tuple[int, ...]]:
+        """The image sets whose outcome is not known."""
+        return self.image_sets() - self.known.keys()
+
+    @property
+    def complete(self) -> bool:
+        return not self.pending()
 
 
 def outcomes_per_image_set(task: QueryTask, localize: Callable[[tuple[int, ...]], Outcome]) -> list[list[Outcome]]:
     """Outcomes ``[ranking][k]`` of one query, where ``localize(images)`` gives the outcome of
-    the top-k database images as a sorted tuple; it runs once per distinct image set, however
-    many rankings and ks (or orders within a ranking) select it."""
+    the top-k database images as a sorted tuple; it runs once per distinct image set that is not
+    known already, however many rankings and ks (or orders within a ranking) select it."""
     localize = functools.cache(localize)
-    return [[localize(tuple(sorted(top[:k]))) for k in ks] for top, ks in zip(task.top, task.ks)]
+
+    def outcome(images: tuple[int, ...]) -> Outcome:
+        return task.known[images] if images in task.known else localize(images)
+
+    return [[outcome(tuple(sorted(top[:k]))) for k in ks] for top, ks in zip(task.top, task.ks)]
 
 
-def query_tasks(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> list[QueryTask]:
-    """Per query, its top ``max(k)`` database images of each ranking."""
+def query_tasks(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]], cache: PoseCache) -> list[QueryTask]:
+    """Per query, its top ``max(k)`` database images of each ranking and its cached outcomes."""
     rows = [ranking.indices[:, : max(ranking_ks)] for ranking, ranking_ks in zip(rankings, ks)]
-    return [
-        QueryTask(q, tuple(tuple(int(i) for i in row[q] if i != EMPTY) for row in rows), tuple(map(tuple, ks)))
-        for q in range(rankings[0].num_queries)
-    ]
+    tasks = []
+    for q in range(rankings[0].num_queries):
+        task = QueryTask(q, tuple(tuple(int(i) for i in row[q] if i != EMPTY) for row in rows), tuple(map(tuple, ks)))
+        for images in task.image_sets():
+            outcome = cache.get(q, images)
+            if outcome is not None:
+                task.known[images] = outcome
+        tasks.append(task)
+    return tasks
+
+
+def _never(images: tuple[int, ...]) -> Outcome:
+    raise AssertionError(f"image set {images} of a complete task has no known outcome")
 
 
 def run_queries(
     paradigm: str, rankings: Sequence[Ranking], ks: Sequence[list[int]],
-    localize: Callable[[Any, QueryTask], list[list[Outcome]]], shared: Any, workers: int,
+    localize: Callable[[Any, QueryTask], list[list[Outcome]]], shared: Any, workers: int, cache: PoseCache,
 ) -> list[PoseEstimates]:
-    """Run ``localize(shared, task)`` (outcomes ``[ranking][k]`` of one query) on every query
-    in worker processes and gather one `PoseEstimates` per ranking; failures are logged."""
-    tasks = query_tasks(rankings, ks)
-    outcomes = list(parallel_map(localize, tasks, workers, paradigm, shared))
-    estimates = []
-    for r, (ranking, ranking_ks) in enumerate(zip(rankings, ks)):
-        shape = (len(ranking_ks), ranking.num_queries)
-        qvec, tvec = np.full((*shape, 4), np.nan), np.full((*shape, 3), np.nan)
-        failures = np.full(shape, LOCALIZED, dtype=object)
-        for q, per_query in enumerate(outcomes):
-            for n, outcome in enumerate(per_query[r]):
-                if isinstance(outcome, str):
-                    failures[n, q] = outcome
-                else:
-                    qvec[n, q], tvec[n, q] = outcome
-        reasons = Counter(reason for reason in failures.ravel() if reason != LOCALIZED)
-        if reasons:
-            log.info("%s / %s: not localised %s (over %d queries x k=%s)", paradigm, ranking.name, dict(reasons), ranking.num_queries, ranking_ks)
-        estimates.append(PoseEstimates(ranking.name, ranking.kind, paradigm, "pnp", ranking_ks, qvec, tvec, failures.astype(str)))
-    return estimates
+    """Run ``localize(shared, task)`` (outcomes ``[ranking][k]`` of one query) in worker processes
+    on every query with an image set whose outcome ``cache`` does not hold, add the new outcomes
+    to the cache and save it, and gather one `PoseEstimates` per ranking; failures are logged."""
+    tasks = query_tasks(rankings, ks, cache)
+    pending = [task for task in tasks if not task.complete]
+    if len(pending) < len(tasks):
+        log.info("%s: %d of %d queries fully read from the registration cache", paradigm, len(tasks) - len(pending), len(tasks))
+    computed = iter(parallel_map(localize, pending, workers, paradigm, shared))
+    outcomes = [outcomes_per_image_set(task, _never) if task.complete else next(computed) for task in tasks]
+    for task, per_query in zip(tasks, outcomes):
+        for top, ranking_ks, per_k in zip(task.top, task.ks, per_query):
+            for k, outcome in zip(ranking_ks, per_k):
+                cache.put(task.query, top[:k], outcome)
+    cache.save()
+    return [_estimates(paradigm, ranking, ranking_ks, [per_query[r] for per_query in outcomes])
+            for r, (ranking, ranking_ks) in enumerate(zip(rankings, ks))]
+
+
+def _estimates(paradigm: str, ranking: Ranking, ks: list[int], outcomes: Sequence[Sequence[Outcome]]) -> PoseEstimates:
+    """One ranking's `PoseEstimates` from its outcomes ``[query][k]``; failures are logged."""
+    shape = (len(ks), ranking.num_queries)
+    qvec, tvec = np.full((*shape, 4), np.nan), np.full((*shape, 3), np.nan)
+    failures = np.full(shape, LOCALIZED, dtype=object)
+    for q, per_query in enumerate(outcomes):
+        for n, outcome in enumerate(per_query):
+            if isinstance(outcome, str):
+                failures[n, q] = outcome
+            else:
+                qvec[n, q], tvec[n, q] = outcome
+    reasons = Counter(reason for reason in failures.ravel() if reason != LOCALIZED)
+    if reasons:
+        log.info("%s / %s: not localised %s (over %d queries x k=%s)", paradigm, ranking.name, dict(reasons), ranking.num_queries, ks)
+    return PoseEstimates(ranking.name, ranking.kind, paradigm, "pnp", ks, qvec, tvec, failures.astype(str))
