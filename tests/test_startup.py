@@ -76,3 +76,14 @@ print("end")
     outputs = [subprocess.run([sys.executable, "-c", code.format(call)], capture_output=True, text=True, check=True).stdout.split()
                for call in ("", "locretrieval.exit_without_final_collection()")]
     assert outputs == [["end", "collected"], ["end"]]
+
+
+def test_the_entry_points_resolve_every_config_resolver_before_importing_the_models():
+    """``${package_weights:...}`` resolves in evaluate.py's config although models load on first use."""
+    repository = Path(__file__).resolve().parents[1]
+    overrides = ["model=gem", "model.backbone=efficientnet_lite0", "model.weights=${package_weights:efficientnet_lite0}"]
+    for entry_point in ("evaluate.py", "train.py"):
+        result = subprocess.run([sys.executable, entry_point, *overrides, "--cfg", "job", "--resolve"], cwd=repository,
+                                capture_output=True, text=True, check=True)
+        weights = next(line for line in result.stdout.splitlines() if line.strip().startswith("weights:"))
+        assert weights.strip().endswith(".pth") and Path(weights.split(":", 1)[1].strip()).is_file()

