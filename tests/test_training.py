@@ -15,7 +15,7 @@ from locretrieval import geometry
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
-from locretrieval.training.data import BatchSettings, RelevanceBatchSampler
+from locretrieval.training.data import AugmentSettings, BatchSettings, RelevanceBatchSampler
 from locretrieval.training.relevance import TrainingRelevanceSettings, combined_pairs, training_pairs
 from locretrieval.training.run import train
 from locretrieval.training.callbacks import TRAINED, metric_rows
@@ -76,6 +76,21 @@ def test_batches_hold_anchors_with_positives_and_only_surely_unrelated_negatives
     sampler.set_hard_negatives(hard)
     for batch in sampler:
         assert all(any(n in hard[a] for a in batch[:4]) for n in batch[8:])
+
+
+def test_low_light_and_noise_augmentations_scale_the_brightness_and_add_noise_of_the_given_sigma():
+    torch.manual_seed(0)
+    image = torch.full((3, 64, 64), 160, dtype=torch.uint8)
+    image[:, :, 32:] = 80
+    plain = dict(brightness=0.0, contrast=0.0, saturation=0.0, hue=0.0, low_light_probability=0.0, low_light_brightness=[0.25, 0.25],
+                 blur_probability=0.0, blur_sigma=[1.0, 1.0], noise_probability=0.0, noise_sigma=0.1)
+    assert torch.equal(AugmentSettings(**plain).transform()(image), image)
+    dark = AugmentSettings(**{**plain, "low_light_probability": 1.0}).transform()(image).float()
+    np.testing.assert_allclose(dark.numpy(), 0.25 * image.float().numpy(), atol=1.0)
+    noisy = AugmentSettings(**{**plain, "noise_probability": 1.0}).transform()(image).float() - image.float()
+    assert abs(noisy.std().item() / 255 - 0.1) < 0.005 and abs(noisy.mean().item()) < 1.0
+    with pytest.raises(ValueError, match="low_light_brightness: must be"):
+        AugmentSettings(**{**plain, "low_light_brightness": [0.5, 1.5]})
 
 
 def test_images_of_different_training_scenes_are_unrelated(scene):

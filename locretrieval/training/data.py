@@ -21,27 +21,42 @@ from locretrieval.training.relevance import TrainingPairs
 
 @dataclass
 class AugmentSettings:
-    """Photometric augmentations of training images (never geometric: poses define relevance).
-    ``brightness``/``contrast``/``saturation``/``hue``: torchvision ``ColorJitter`` ranges;
-    ``blur_probability`` of a Gaussian blur with sigma in ``blur_sigma`` (pixels)."""
+    """Photometric augmentations of training images (never geometric: poses define relevance),
+    applied in this order: ``brightness``/``contrast``/``saturation``/``hue``, torchvision
+    ``ColorJitter`` ranges; with ``low_light_probability``, the brightness scaled by a factor
+    in ``low_light_brightness`` (night queries of a day-only map); with ``blur_probability``, a
+    Gaussian blur of sigma in ``blur_sigma`` (pixels); with ``noise_probability``, Gaussian
+    noise of standard deviation ``noise_sigma`` (intensities in [0, 1])."""
 
     brightness: float
     contrast: float
     saturation: float
     hue: float
+    low_light_probability: float
+    low_light_brightness: list[float]
     blur_probability: float
     blur_sigma: list[float]
+    noise_probability: float
+    noise_sigma: float
 
     def __post_init__(self) -> None:
-        require(0 <= self.blur_probability <= 1, "blur_probability", f"must be in [0, 1], got {self.blur_probability}")
+        for name in ("low_light_probability", "blur_probability", "noise_probability"):
+            require(0 <= getattr(self, name) <= 1, name, f"must be in [0, 1], got {getattr(self, name)}")
+        require(len(self.low_light_brightness) == 2 and 0 < self.low_light_brightness[0] <= self.low_light_brightness[1] <= 1,
+                "low_light_brightness", f"must be [min, max] factors, 0 < min <= max <= 1, got {self.low_light_brightness}")
         require(len(self.blur_sigma) == 2 and 0 < self.blur_sigma[0] <= self.blur_sigma[1], "blur_sigma",
                 f"must be [min, max] pixels, 0 < min <= max, got {self.blur_sigma}")
+        require(self.noise_sigma >= 0, "noise_sigma", f"must be >= 0, got {self.noise_sigma}")
 
     def transform(self) -> v2.Transform:
         """The augmentation of ``uint8 [3, H, W]`` images."""
         jitter = v2.ColorJitter(self.brightness, self.contrast, self.saturation, self.hue)
+        low_light = v2.RandomApply([v2.ColorJitter(brightness=tuple(self.low_light_brightness))], p=self.low_light_probability)
         blur = v2.RandomApply([v2.GaussianBlur(9, tuple(self.blur_sigma))], p=self.blur_probability)
-        return v2.Compose([jitter, blur])
+        noise = v2.RandomApply([
+            v2.ToDtype(torch.float32, scale=True), v2.GaussianNoise(sigma=self.noise_sigma), v2.ToDtype(torch.uint8, scale=True),
+        ], p=self.noise_probability)
+        return v2.Compose([jitter, low_light, blur, noise])
 
 
 @dataclass
