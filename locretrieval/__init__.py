@@ -7,7 +7,7 @@ import gc
 # compression calls (numpy savez_compressed, PNG writers) from crashing the process.
 import zlib  # noqa: F401
 
-from locretrieval import config  # noqa: F401,E402  (registers the config resolvers)
+from locretrieval import config, models  # noqa: F401,E402  (register the config resolvers)
 
 __version__ = "0.3.0"
 

