@@ -233,3 +233,32 @@ def test_bdi_refuses_scores_that_are_not_the_descriptors_products(two_images):
     ranking = Ranking("netvlad", [[0, 1]], [[0.2, 0.1]], "descriptor", db_desc[:1], db_desc)
     with pytest.raises(ValueError, match="ranking 'netvlad'.*score 0.200000, d_q . d_i = 1.000000"):
         approximate(two_images, ranking, [2], methods=["bdi"])
+
+
+def test_only_ill_conditioned_queries_take_the_float64_path(monkeypatch):
+    """Descriptors of places along a route (neighbours alike, scores ~0.6: squared pivots ~0.4)
+    stay on float32 products and match the float64 solution; near-duplicates go to float64."""
+    exact = []
+    real = approximation._exact_grams
+    monkeypatch.setattr(approximation, "_exact_grams", lambda ranked, queries: exact.append(len(queries)) or real(ranked, queries))
+    rng = np.random.default_rng(2)
+    n, dim, k = 200, 1024, 20
+    frequencies, phases = rng.normal(size=(dim, 1)) / 3.0, rng.uniform(0, 2 * np.pi, dim)
+
+    def along_route(positions, noise):
+        return unit(np.cos(positions[:, None] @ frequencies.T + phases) + noise * rng.normal(size=(len(positions), dim)))
+
+    route = along_route(np.arange(n, dtype=float), 0.5)
+    duplicates = unit(np.repeat(route[::20], 20, axis=0) + 0.01 * rng.normal(size=(n, dim)))
+    centers = np.column_stack([rng.normal(size=n), np.zeros((n, 2))])
+    database = image_set(np.tile([1.0, 0, 0, 0], (n, 1)), centers)
+    for db_desc, takes_float64 in ((route, False), (duplicates, True)):
+        exact.clear()
+        queries = along_route(rng.uniform(0, n, 30), 0.5) if not takes_float64 else unit(db_desc[::7] + 0.01 * rng.normal(size=(29, dim)))
+        ranking = search(queries, db_desc, depth=k)
+        (bdi,) = approximate(database, ranking, [k], methods=["bdi"])
+        assert (sum(exact) > 0) == takes_float64
+        expected = [_float64_bdi_weights(db_desc, q, ranking.indices[i]) @ centers[ranking.indices[i], 0] for i, q in enumerate(queries)]
+        np.testing.assert_allclose(geometry.camera_centers(bdi.qvec[0], bdi.tvec[0])[:, 0], expected, atol=1e-6 * np.abs(centers).max())
+    residuals = route[:5].astype(np.float64) - route[7].astype(np.float64)
+    np.testing.assert_allclose(real(route[None, :5], route[7][None]), (residuals @ residuals.T)[None], atol=1e-12)

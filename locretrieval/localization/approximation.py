@@ -48,9 +48,13 @@ CHUNK_QUERIES = 256
 #: Largest table of database descriptor products `DescriptorProducts` forms at once.
 PRODUCT_TABLE_BYTES = 1 << 28
 #: A squared Cholesky pivot of a BDI Gram matrix built from float32 products below this share
-#: of ``d_q . d_q`` (ill conditioned: rounding could move the weights by more than ~1e-7): that
-#: query's Gram matrix is recomputed in float64. Calibrated on clustered descriptors (test).
-EXACT_GRAM_PIVOT = 0.5
+#: of ``d_q . d_q`` (ill conditioned: rounding could move the weights by more than ~1e-6): that
+#: query's Gram matrix is recomputed in float64. Measured: descriptors of neighbouring places
+#: (scores ~0.6, pivots 0.35-0.45, benchmarks/bench_scale.py's RobotCar-size route) keep float32
+#: products within 7.3e-7 of float64 at any threshold from 0.01 to 0.2; 0.5 sent them all to float64.
+EXACT_GRAM_PIVOT = 0.1
+#: Queries whose float64 Gram matrices are formed together (their ``[q, K + 1, D]`` float64 vectors stay small).
+EXACT_CHUNK_QUERIES = 16
 #: Largest difference between a descriptor ranking's score and ``d_q . d_i`` (`check_scores`).
 SCORE_TOLERANCE = 1e-3
 
@@ -196,6 +200,8 @@ class DescriptorProducts:
 
     def __init__(self, top: Ranking) -> None:
         self.descriptors = top.database_descriptors
+        with np.errstate(invalid="ignore", over="ignore"):  # (in their precision: they only pick the float64 path)
+            self.squared_norms = np.einsum("nd,nd->n", self.descriptors, self.descriptors).astype(np.float64)
         used = np.unique(top.indices[top.indices != EMPTY])
         small = len(used) ** 2 <= top.num_queries * top.depth**2
         if small and len(used) ** 2 * self.descriptors.itemsize <= PRODUCT_TABLE_BYTES:
@@ -227,7 +233,9 @@ def _residual_gram_factors(top: Ranking, rows: slice, products: DescriptorProduc
     duplicated descriptors solvable (they share the weight equally). Where the products'
     rounding (float32 descriptors: ~1e-7) could move the weights, i.e. where a squared Cholesky
     pivot is below `EXACT_GRAM_PIVOT` times ``d_q . d_q`` or the factorisation fails, the
-    query's ``G`` is recomputed in float64 from its residuals ``d_i - d_q``.
+    query's ``G`` is computed in float64 (`_exact_grams`); a pivot is at most
+    its diagonal entry ``G_ii``, so queries with a small one (a near-duplicate image ranked)
+    go there without the float32 products.
     """
     indices = top.indices[rows]
     valid = indices != EMPTY
@@ -236,18 +244,36 @@ def _residual_gram_factors(top: Ranking, rows: slice, products: DescriptorProduc
     scores = top.scores[rows].astype(np.float64)
     check_scores(top.name, products.descriptors[safe[:, 0]], queries, scores[:, 0], valid[:, 0])
     pair = valid[:, :, None] & valid[:, None, :]
-    grams = products(safe).astype(np.float64)
     squared_norms = np.einsum("qd,qd->q", queries, queries)
     with np.errstate(invalid="ignore"):  # non-finite descriptors: NaN, their factorisation fails
-        grams -= scores[:, :, None] + scores[:, None, :] - squared_norms[:, None, None]
-    factors = _cholesky(_with_ridge(np.where(pair, grams, np.eye(top.depth))))
-    pivots = np.diagonal(factors, axis1=1, axis2=2) ** 2
-    exact = ~(pivots.min(-1) >= EXACT_GRAM_PIVOT * squared_norms)
-    if exact.any():
-        residuals = products.descriptors[safe[exact]].astype(np.float64) - queries[exact][:, None, :]
-        exact_grams = np.where(pair[exact], residuals @ residuals.transpose(0, 2, 1), np.eye(top.depth))
-        factors[exact] = _cholesky(_with_ridge(exact_grams))
+        diagonal = np.where(valid, products.squared_norms[safe] - 2 * scores + squared_norms[:, None], np.inf)
+        exact = ~(diagonal.min(-1) >= EXACT_GRAM_PIVOT * squared_norms)
+    factors = np.empty((len(queries), top.depth, top.depth))
+    fast = np.flatnonzero(~exact)
+    if len(fast):
+        grams = products(safe[fast]).astype(np.float64)
+        with np.errstate(invalid="ignore"):
+            grams -= scores[fast, :, None] + scores[fast, None, :] - squared_norms[fast, None, None]
+        factors[fast] = _cholesky(_with_ridge(np.where(pair[fast], grams, np.eye(top.depth))))
+        pivots = np.diagonal(factors[fast], axis1=1, axis2=2) ** 2
+        exact[fast] = ~(pivots.min(-1) >= EXACT_GRAM_PIVOT * squared_norms[fast])
+    slow = np.flatnonzero(exact)
+    for part in np.array_split(slow, -(-len(slow) // EXACT_CHUNK_QUERIES)) if len(slow) else []:
+        factors[part] = _cholesky(_with_ridge(np.where(pair[part], _exact_grams(products.descriptors[safe[part]], queries[part]), np.eye(top.depth))))
     return factors
+
+
+def _exact_grams(ranked: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """Residual Gram matrices ``[q, K, K]`` of ranked descriptors ``[q, K, D]`` and their queries
+    ``[q, D]`` in float64: one product of the ``K + 1`` vectors gives ``d_i . d_j``, ``d_i . d_q``
+    and ``d_q . d_q``, whose float64 rounding (~1e-16) the cancellation cannot amplify."""
+    depth = ranked.shape[1]
+    vectors = np.empty((len(queries), depth + 1, queries.shape[1]))
+    vectors[:, :depth], vectors[:, depth] = ranked, queries
+    with np.errstate(invalid="ignore", over="ignore"):
+        products = vectors @ vectors.transpose(0, 2, 1)
+        scores = products[:, :depth, depth]
+        return products[:, :depth, :depth] - scores[:, :, None] - scores[:, None, :] + products[:, depth, depth][:, None, None]
 
 
 def _with_ridge(grams: np.ndarray) -> np.ndarray:
