@@ -192,8 +192,8 @@ def test_workers_exit_when_their_parent_dies_while_they_start(tmp_path):
 
     script = (
         "import os\n"
-        "from locretrieval.localization.workers import _pool\n"
-        "pool = _pool(2)\n"
+        "from locretrieval.localization.workers import _pools\n"
+        "pool = _pools.get(2)\n"
         "pool.submit(os.getpid)\n"
         "pool.submit(os.getpid)\n"
         "print(' '.join(str(pid) for pid in pool._processes), flush=True)\n"

@@ -200,8 +200,6 @@ class DescriptorProducts:
 
     def __init__(self, top: Ranking) -> None:
         self.descriptors = top.database_descriptors
-        with np.errstate(invalid="ignore", over="ignore"):  # (in their precision: they only pick the float64 path)
-            self.squared_norms = np.einsum("nd,nd->n", self.descriptors, self.descriptors).astype(np.float64)
         used = np.unique(top.indices[top.indices != EMPTY])
         small = len(used) ** 2 <= top.num_queries * top.depth**2
         if small and len(used) ** 2 * self.descriptors.itemsize <= PRODUCT_TABLE_BYTES:
@@ -233,9 +231,7 @@ def _residual_gram_factors(top: Ranking, rows: slice, products: DescriptorProduc
     duplicated descriptors solvable (they share the weight equally). Where the products'
     rounding (float32 descriptors: ~1e-7) could move the weights, i.e. where a squared Cholesky
     pivot is below `EXACT_GRAM_PIVOT` times ``d_q . d_q`` or the factorisation fails, the
-    query's ``G`` is computed in float64 (`_exact_grams`); a pivot is at most
-    its diagonal entry ``G_ii``, so queries with a small one (a near-duplicate image ranked)
-    go there without the float32 products.
+    query's ``G`` is computed in float64 (`_exact_grams`).
     """
     indices = top.indices[rows]
     valid = indices != EMPTY
@@ -244,22 +240,17 @@ def _residual_gram_factors(top: Ranking, rows: slice, products: DescriptorProduc
     scores = top.scores[rows].astype(np.float64)
     check_scores(top.name, products.descriptors[safe[:, 0]], queries, scores[:, 0], valid[:, 0])
     pair = valid[:, :, None] & valid[:, None, :]
+    grams = products(safe).astype(np.float64)
     squared_norms = np.einsum("qd,qd->q", queries, queries)
     with np.errstate(invalid="ignore"):  # non-finite descriptors: NaN, their factorisation fails
-        diagonal = np.where(valid, products.squared_norms[safe] - 2 * scores + squared_norms[:, None], np.inf)
-        exact = ~(diagonal.min(-1) >= EXACT_GRAM_PIVOT * squared_norms)
-    factors = np.empty((len(queries), top.depth, top.depth))
-    fast = np.flatnonzero(~exact)
-    if len(fast):
-        grams = products(safe[fast]).astype(np.float64)
-        with np.errstate(invalid="ignore"):
-            grams -= scores[fast, :, None] + scores[fast, None, :] - squared_norms[fast, None, None]
-        factors[fast] = _cholesky(_with_ridge(np.where(pair[fast], grams, np.eye(top.depth))))
-        pivots = np.diagonal(factors[fast], axis1=1, axis2=2) ** 2
-        exact[fast] = ~(pivots.min(-1) >= EXACT_GRAM_PIVOT * squared_norms[fast])
-    slow = np.flatnonzero(exact)
-    for part in np.array_split(slow, -(-len(slow) // EXACT_CHUNK_QUERIES)) if len(slow) else []:
-        factors[part] = _cholesky(_with_ridge(np.where(pair[part], _exact_grams(products.descriptors[safe[part]], queries[part]), np.eye(top.depth))))
+        grams -= scores[:, :, None] + scores[:, None, :] - squared_norms[:, None, None]
+    factors = _cholesky(_with_ridge(np.where(pair, grams, np.eye(top.depth))))
+    pivots = np.diagonal(factors, axis1=1, axis2=2) ** 2
+    exact = np.flatnonzero(~(pivots.min(-1) >= EXACT_GRAM_PIVOT * squared_norms))
+    for start in range(0, len(exact), EXACT_CHUNK_QUERIES):
+        part = exact[start : start + EXACT_CHUNK_QUERIES]
+        exact_grams = _exact_grams(products.descriptors[safe[part]], queries[part])
+        factors[part] = _cholesky(_with_ridge(np.where(pair[part], exact_grams, np.eye(top.depth))))
     return factors
 
 

@@ -32,7 +32,6 @@ from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.pairs import database_pairs
 from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS
-from locretrieval.localization.pose_cache import PoseCache
 from locretrieval.localization.sfm import (
     Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, register_query, run_queries,
 )
@@ -61,7 +60,8 @@ def run(
     """Paradigm entry point: the pose of every query for every ranking and every ``settings.k``."""
     inputs, ks = SfmInputs.for_rankings("global_sfm", scene, rankings, settings.k, sfm, cache_dir)
     sparse_map = global_map(inputs, settings.colmap_model, Path(cache_dir))
-    cache = PoseCache(pose_cache_path(inputs, settings.colmap_model, Path(cache_dir)), scene.queries.names, scene.database.names)
+    source = [settings.colmap_model, tree_signature(settings.colmap_model)] if settings.colmap_model else map_cache_path(inputs, Path(cache_dir)).stem
+    cache = inputs.pose_cache("global_sfm", [CACHE_VERSION, source], Path(cache_dir))
     return run_queries("global_sfm", rankings, ks, localize_query, (inputs, sparse_map), sfm.processes, cache)
 
 
@@ -97,16 +97,6 @@ def map_cache_path(inputs: SfmInputs, cache_dir: Path) -> Path:
     matches = inputs.database_pairs.stores["poses"].folder.name
     key = config_key(CACHE_VERSION, matches, asdict(inputs.settings.triangulation), asdict(inputs.map_pairs))
     return cache_dir / "maps" / f"{key}.npz"
-
-
-def pose_cache_path(inputs: SfmInputs, colmap_model: str | None, cache_dir: Path) -> Path:
-    """Where the registration outcomes are cached: keyed by the map (the COLMAP model's path and
-    files, or the triangulated map's key), the query matches' store (features of both sets, ratio,
-    verification) and the PnP settings."""
-    source = [colmap_model, tree_signature(colmap_model)] if colmap_model else map_cache_path(inputs, cache_dir).stem
-    queries = inputs.query_pairs.stores[inputs.query_verification].folder.name
-    key = config_key(CACHE_VERSION, source, queries, asdict(inputs.settings.pnp))
-    return cache_dir / "poses" / f"global_sfm-{key}.npz"
 
 
 def localize_query(shared: tuple[SfmInputs, SparseMap], task: QueryTask) -> list[list[Outcome]]:

@@ -41,7 +41,6 @@ from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.matching import epipolar_inliers
 from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
-from locretrieval.localization.pose_cache import PoseCache
 from locretrieval.localization.sfm import (
     Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, register_query, run_queries,
 )
@@ -77,18 +76,9 @@ def run(
         pairs = [(names[a], names[b]) for a, b in local_map_pairs(rankings, ks)]
         inputs.database_pairs.ensure(pairs, sfm.processes, "poses")
     shared = (inputs, settings.map_matches, Path(cache_dir) / "local_maps")
-    cache = PoseCache(pose_cache_path(inputs, settings.map_matches, Path(cache_dir)), scene.queries.names, scene.database.names)
+    maps = [CACHE_VERSION, settings.map_matches, inputs.database_pairs.stores["poses"].folder.name, asdict(sfm.triangulation)]
+    cache = inputs.pose_cache("local_sfm", maps, Path(cache_dir))
     return run_queries("local_sfm", rankings, ks, localize_query, shared, sfm.processes, cache)
-
-
-def pose_cache_path(inputs: SfmInputs, map_matches: str, cache_dir: Path) -> Path:
-    """Where the registration outcomes are cached: keyed by what keys the local maps (the map
-    matches and their store, the triangulation settings), the query matches' store and the PnP
-    settings."""
-    queries = inputs.query_pairs.stores[inputs.query_verification].folder.name
-    maps = inputs.database_pairs.stores["poses"].folder.name
-    key = config_key(CACHE_VERSION, map_matches, maps, queries, asdict(inputs.settings.triangulation), asdict(inputs.settings.pnp))
-    return cache_dir / "poses" / f"local_sfm-{key}.npz"
 
 
 def local_map_pairs(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> np.ndarray:

@@ -8,6 +8,7 @@ matched once; the per-query work then reads only cached inputs.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 from collections import Counter
@@ -18,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from locretrieval.cache import config_key
 from locretrieval.config import require
 from locretrieval.localization.estimates import LOCALIZED, PoseEstimates
 from locretrieval.localization.features import FeatureSettings, FeatureStore, extract_features
@@ -116,6 +118,14 @@ class SfmInputs:
             rows, slots = np.nonzero(top != EMPTY)
             pairs.update((queries[q], database[i]) for q, i in zip(rows, top[rows, slots]))
         return self.query_pairs.ensure(pairs, self.settings.processes, self.query_verification)
+
+    def pose_cache(self, paradigm: str, maps: Any, cache_dir: Path) -> PoseCache:
+        """The cached registration outcomes of ``paradigm`` (`PoseCache`) in ``<cache_dir>/poses/``,
+        keyed by ``maps`` (what the paradigm's maps are keyed by), the query matches' store
+        (features of both sets, ratio, verification) and the PnP settings."""
+        queries = self.query_pairs.stores[self.query_verification].folder.name
+        key = config_key(maps, queries, dataclasses.asdict(self.settings.pnp))
+        return PoseCache(cache_dir / "poses" / f"{paradigm}-{key}.npz", self.scene.queries.names, self.scene.database.names)
 
     def query_matches(self, query: int, database: Sequence[int]) -> tuple[np.ndarray, dict[int, np.ndarray]]:
         """The query's keypoints and its (verified) matches to each database image."""

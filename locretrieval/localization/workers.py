@@ -31,8 +31,6 @@ PARENT_CHECK_SECONDS = 1.0
 #: Fewer tasks than this per worker run in this process unless the pool is already started: starting
 #: workers (seconds each) costs more than they save (a 4-query scene: 20 s in-process, 28 s with two).
 MIN_TASKS_PER_WORKER = 4
-#: Pools of this process by worker count.
-_pools: dict[int, ProcessPoolExecutor] = {}
 #: In a worker: (file, object) of the shared data of the call in progress.
 _shared: tuple[str, Any] | None = None
 
@@ -80,13 +78,30 @@ def _call(function: Callable[..., Any], shared_file: str | None, task: Any) -> A
     return function(_shared[1], task)
 
 
-def _pool(workers: int) -> ProcessPoolExecutor:
-    if workers not in _pools:
-        context = multiprocessing.get_context("spawn")
-        _pools[workers] = ProcessPoolExecutor(
-            workers, mp_context=context, initializer=_initialize_worker, initargs=(os.getpid(),)
-        )
-    return _pools[workers]
+class SpawnedPools:
+    """This process's pools of spawned workers (torch and faiss keep threads: no fork), one per
+    worker count, started on first use and kept; ``initializer(parent pid)`` runs in each worker."""
+
+    def __init__(self, initializer: Callable[[int], None]) -> None:
+        self.initializer = initializer
+        self.pools: dict[int, ProcessPoolExecutor] = {}
+
+    def started(self, workers: int) -> bool:
+        return workers in self.pools
+
+    def get(self, workers: int) -> ProcessPoolExecutor:
+        if workers not in self.pools:
+            context = multiprocessing.get_context("spawn")
+            self.pools[workers] = ProcessPoolExecutor(workers, mp_context=context, initializer=self.initializer, initargs=(os.getpid(),))
+        return self.pools[workers]
+
+    def discard(self, workers: int) -> None:
+        """Shut a broken pool down; the next `get` starts a new one."""
+        self.pools.pop(workers).shutdown(cancel_futures=True)
+
+
+#: The SfM workers of this process.
+_pools = SpawnedPools(_initialize_worker)
 
 
 def parallel_map(
@@ -103,7 +118,7 @@ def parallel_map(
     workers = resolve_workers(workers)
     progress: Any = tqdm(total=len(tasks), desc=description, unit="task", disable=None, leave=False)
     with progress:
-        if workers == 1 or len(tasks) <= 1 or (workers not in _pools and len(tasks) < MIN_TASKS_PER_WORKER * workers):
+        if workers == 1 or len(tasks) <= 1 or (not _pools.started(workers) and len(tasks) < MIN_TASKS_PER_WORKER * workers):
             for task in tasks:
                 yield function(task) if shared is None else function(shared, task)
                 progress.update()
@@ -115,9 +130,9 @@ def parallel_map(
                 with open(shared_file, "wb") as stream:
                     pickle.dump(shared, stream, protocol=pickle.HIGHEST_PROTOCOL)
             try:
-                for result in _pool(workers).map(partial(_call, function, shared_file), tasks, chunksize=1):
+                for result in _pools.get(workers).map(partial(_call, function, shared_file), tasks, chunksize=1):
                     yield result
                     progress.update()
             except BrokenProcessPool:
-                _pools.pop(workers).shutdown(cancel_futures=True)
+                _pools.discard(workers)
                 raise

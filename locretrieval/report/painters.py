@@ -8,20 +8,17 @@ them. Workers import matplotlib, pandas and the plotting module only (about a se
 
 from __future__ import annotations
 
-import multiprocessing
 import os
 import threading
 from collections.abc import Callable
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Future
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
-from locretrieval.localization.workers import exit_with_parent, resolve_workers
+from locretrieval.localization.workers import SpawnedPools, exit_with_parent, resolve_workers
 from locretrieval.report.plots import FigureFolder, pyplot
 
-#: Pools of this process by worker count.
-_pools: dict[int, ProcessPoolExecutor] = {}
 
 
 class Painters:
@@ -42,28 +39,25 @@ class Painters:
             done.set_result(plot(*args, **kwargs) if self.figures.formats else [])
             return done
         try:
-            return _pool(self.workers).submit(plot, *args, **kwargs)
+            return _painters.get(self.workers).submit(plot, *args, **kwargs)
         except BrokenProcessPool:  # a worker died in an earlier report: start a new pool
-            _pools.pop(self.workers).shutdown(cancel_futures=True)
-            return _pool(self.workers).submit(plot, *args, **kwargs)
+            _painters.discard(self.workers)
+            return _painters.get(self.workers).submit(plot, *args, **kwargs)
 
 
 def start_painters(workers: int | None = None) -> None:
     """Start the figure workers now (``workers`` as in `Painters`), e.g. while a run computes
     what its report will draw: each spends about a second importing matplotlib."""
     workers = resolve_workers(workers)
-    if workers > 1 and workers not in _pools:
+    if workers > 1 and not _painters.started(workers):
         for _ in range(workers):
-            _pool(workers).submit(os.getpid)
-
-
-def _pool(workers: int) -> ProcessPoolExecutor:
-    if workers not in _pools:
-        context = multiprocessing.get_context("spawn")  # torch and faiss keep threads: no fork
-        _pools[workers] = ProcessPoolExecutor(workers, mp_context=context, initializer=_start_painter, initargs=(os.getpid(),))
-    return _pools[workers]
+            _painters.get(workers).submit(os.getpid)
 
 
 def _start_painter(parent: int) -> None:
     threading.Thread(target=exit_with_parent, args=(parent,), daemon=True).start()
     pyplot()
+
+
+#: The figure workers of this process.
+_painters = SpawnedPools(_start_painter)
