@@ -16,6 +16,7 @@ from locretrieval.models.densevlad import (
     gradient_histograms,
     grid_layout,
     normalize_vlad,
+    row_argmax,
     vlad_residuals,
 )
 from locretrieval.retrieval.descriptors import describe_scene
@@ -158,6 +159,13 @@ def test_vlad_matches_explicit_loops():
     vlads = normalize_vlad(vlad_residuals(*torch_inputs)).numpy()
     for image in range(2):
         np.testing.assert_allclose(vlads[image], explicit_vlad(descriptors[image], valid[image], centroids), atol=1e-12)
+
+
+def test_row_argmax_takes_the_first_of_tied_maxima():
+    scores = torch.tensor([[0.1, 0.7, 0.7, -1.0], [2.0, 1.0, 2.0, 2.0], [-3.0, -2.0, -5.0, -2.5]])
+    assert row_argmax(scores).tolist() == [1, 0, 1]
+    random_scores = torch.from_numpy(np.random.default_rng(3).normal(size=(500, 128)).astype(np.float32))
+    assert torch.equal(row_argmax(random_scores), random_scores.argmax(1))
 
 
 def test_vlad_intra_normalisation_and_global_norm():
