@@ -14,7 +14,7 @@ from locretrieval.metrics.retrieval import retrieval_tables
 from locretrieval.metrics.revisited import RevisitedGroundTruth, evaluate_revisited
 from locretrieval.report import build_report
 from locretrieval.report.markdown import pivot_localization
-from locretrieval.report.plots import curves_for_method
+from locretrieval.report.plots import FigureFolder, curves_for_method, pyplot
 from locretrieval.report.tables import load_runs
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Camera, ImageSet
@@ -176,6 +176,20 @@ def test_figures_drawn_by_worker_processes_are_those_drawn_in_process(tmp_path):
     assert by_workers.read_text().replace("workers", "here") == in_process.read_text()
     sizes = {folder: {f.name: f.stat().st_size for f in (tmp_path / folder / "figures").glob("*.png")} for folder in ("here", "workers")}
     assert len(sizes["here"]) == 13 and sizes["workers"] == sizes["here"]  # the same figures, pixel for pixel in size
+
+
+def test_a_figure_is_laid_out_tightly_and_drawn_once_per_format(tmp_path, monkeypatch):
+    from matplotlib.figure import Figure
+
+    draws = []
+    original_draw = Figure.draw
+    monkeypatch.setattr(Figure, "draw", lambda figure, renderer: draws.append(1) or original_draw(figure, renderer))
+    figure, axis = pyplot().subplots(figsize=(2, 2))
+    axis.set_ylabel("a long label that needs a margin")
+    first = FigureFolder(tmp_path, ("png", "pdf")).save(figure, "a b")
+    assert first == tmp_path / "a_b.png" and (tmp_path / "a_b.pdf").is_file()
+    assert len(draws) == 2  # Figure.tight_layout leaves a layout engine that makes it 4
+    assert figure.subplotpars.left > 0.2  # the tight layout made room for the label (default 0.125)
 
 
 def test_runs_are_combined_without_repeating_ground_truth(tmp_path):

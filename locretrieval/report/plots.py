@@ -66,8 +66,12 @@ class FigureFolder:
 
     def save(self, figure: plt.Figure, stem: str) -> Path:
         """Write the figure once per format (name made `safe_name`); returns the first file."""
+        from matplotlib.layout_engine import TightLayoutEngine
+
         self.path.mkdir(parents=True, exist_ok=True)
-        figure.tight_layout()
+        # The tight layout applied once, without leaving a layout engine on the figure: with one
+        # (`Figure.tight_layout` leaves a placeholder) every savefig draws the figure twice.
+        TightLayoutEngine().execute(figure)
         written = [self.path / f"{safe_name(stem)}.{suffix}" for suffix in self.formats]
         for file in written:
             figure.savefig(file, dpi=110)
