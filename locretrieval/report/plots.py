@@ -69,8 +69,8 @@ class FigureFolder:
         from matplotlib.layout_engine import TightLayoutEngine
 
         self.path.mkdir(parents=True, exist_ok=True)
-        # The tight layout applied once, without leaving a layout engine on the figure: with one
-        # (`Figure.tight_layout` leaves a placeholder) every savefig draws the figure twice.
+        # The tight layout applied once, leaving no layout engine on the figure: `Figure.tight_layout`
+        # leaves matplotlib's PlaceHolderLayoutEngine, and with any engine set savefig draws twice.
         TightLayoutEngine().execute(figure)
         written = [self.path / f"{safe_name(stem)}.{suffix}" for suffix in self.formats]
         for file in written:
