@@ -12,11 +12,12 @@ from scipy.ndimage import gaussian_filter
 from locretrieval.models import DenseVLAD
 from locretrieval.models import densevlad
 from locretrieval.models.densevlad import (
+    cpu_lattice,
+    cpu_rootsift,
     dense_rootsift,
     gradient_histograms,
     grid_layout,
     normalize_vlad,
-    row_argmax,
     vlad_residuals,
 )
 from locretrieval.retrieval.descriptors import describe_scene
@@ -106,14 +107,35 @@ def test_gradient_histograms_equal_kornias():
     assert (histograms[1, :, 21:49, 11:59] == 0).all()
 
 
-@pytest.mark.parametrize("bin_size", [4, 6])
-def test_dense_rootsift_matches_explicit_loops(bin_size):
+# (bin size, step, largest bin): the last puts the lattice origin on an odd pixel (3) with a
+# stride of 2, where the first cells' triangles reach the image border at pixel 0.
+LATTICES = [(4, 3, 6), (6, 3, 6), (8, 2, 10), (10, 2, 10)]
+
+
+@pytest.mark.parametrize("bin_size, step, max_bin_size", LATTICES)
+def test_dense_rootsift_matches_explicit_loops(bin_size, step, max_bin_size):
     image = torch.from_numpy(texture(7, 64)[:44, :52].astype(np.float32) / 255.0)[None, None]
-    descriptors, contrast = dense_rootsift(image, bin_size, step=3, max_bin_size=6)
-    expected = explicit_rootsift(image, bin_size, step=3, max_bin_size=6)
+    descriptors, contrast = dense_rootsift(image, bin_size, step=step, max_bin_size=max_bin_size)
+    expected = explicit_rootsift(image, bin_size, step=step, max_bin_size=max_bin_size)
     assert descriptors.shape == (1, len(expected), 128)
     np.testing.assert_allclose(descriptors[0].numpy(), expected, atol=2e-5)
     assert (contrast > 0).all()
+
+
+@pytest.mark.parametrize("bin_size, step, max_bin_size", LATTICES)
+def test_cpu_kernels_build_the_same_rootsift(bin_size, step, max_bin_size):
+    image = torch.from_numpy(texture(7, 64)[:44, :52].astype(np.float32) / 255.0)[None]
+    pooled, geometry = cpu_lattice(image, bin_size, step, max_bin_size)
+    window = densevlad._window_weights(1.5, torch.device("cpu")).numpy()
+    descriptors, contrast = cpu_rootsift(pooled, geometry, slice(0, geometry.rows), window)
+    np.testing.assert_allclose(descriptors, explicit_rootsift(image[None], bin_size, step, max_bin_size), atol=2e-5)
+    expected_descriptors, expected_contrast = dense_rootsift(image[None], bin_size, step, max_bin_size)
+    np.testing.assert_allclose(descriptors, expected_descriptors[0].numpy(), atol=1e-6)
+    np.testing.assert_allclose(contrast, expected_contrast[0].numpy(), rtol=1e-5)
+    # A few rows into a larger buffer: the same rows.
+    buffer = np.full((5 * geometry.cols, 128), np.nan, np.float32)
+    part, _ = cpu_rootsift(pooled, geometry, slice(2, 4), window, buffer)
+    np.testing.assert_array_equal(part, descriptors[2 * geometry.cols : 4 * geometry.cols])
 
 
 def test_dense_rootsift_is_nonnegative_unit_norm_and_zero_on_flat_images():
@@ -149,23 +171,25 @@ def explicit_vlad(descriptors: np.ndarray, valid: np.ndarray, centroids: np.ndar
     return vector / np.linalg.norm(vector)
 
 
-def test_vlad_matches_explicit_loops():
+@pytest.mark.parametrize("cpu_kernels", [True, False])
+def test_vlad_matches_explicit_loops(cpu_kernels):
     rng = np.random.default_rng(0)
     descriptors = rng.random((2, 40, 6))
     centroids = rng.random((5, 6))
     valid = rng.random((2, 40)) > 0.3
     valid[1, :] &= ~(np.arange(40) < 20)
     torch_inputs = [torch.from_numpy(a) for a in (descriptors, valid, centroids)]
-    vlads = normalize_vlad(vlad_residuals(*torch_inputs)).numpy()
+    vlads = normalize_vlad(vlad_residuals(*torch_inputs, cpu_kernels=cpu_kernels)).numpy()
     for image in range(2):
         np.testing.assert_allclose(vlads[image], explicit_vlad(descriptors[image], valid[image], centroids), atol=1e-12)
 
 
-def test_row_argmax_takes_the_first_of_tied_maxima():
-    scores = torch.tensor([[0.1, 0.7, 0.7, -1.0], [2.0, 1.0, 2.0, 2.0], [-3.0, -2.0, -5.0, -2.5]])
-    assert row_argmax(scores).tolist() == [1, 0, 1]
-    random_scores = torch.from_numpy(np.random.default_rng(3).normal(size=(500, 128)).astype(np.float32))
-    assert torch.equal(row_argmax(random_scores), random_scores.argmax(1))
+@pytest.mark.parametrize("cpu_kernels", [True, False])
+def test_assignment_takes_the_first_of_tied_words(cpu_kernels):
+    centroids = torch.tensor([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0]])  # words 0 and 1 are the same
+    descriptors = torch.tensor([[[0.9, 0.1], [0.2, 0.8], [1.0, 0.0]]])
+    residuals = vlad_residuals(descriptors, torch.ones(1, 3, dtype=torch.bool), centroids, cpu_kernels)[0]
+    np.testing.assert_allclose(residuals.numpy(), [[-0.1, 0.1], [0.0, 0.0], [0.2, -0.2]], atol=1e-7)
 
 
 def test_vlad_intra_normalisation_and_global_norm():
@@ -218,8 +242,8 @@ def test_database_descriptors_from_fit_equal_a_fresh_pass(textures_scene, fitted
     np.testing.assert_allclose(fitted.describe(textures_scene.database)[:5], recomputed, atol=1e-6)
 
 
-def test_vlads_built_a_few_rows_at_a_time_equal_the_whole_image_computation(monkeypatch, textures_scene, fitted):
-    monkeypatch.setattr(densevlad, "CHUNK_POINTS", 50)  # many chunks per scale
+def test_cpu_vlads_a_few_rows_at_a_time_equal_the_torch_whole_image_computation(monkeypatch, textures_scene, fitted):
+    monkeypatch.setattr(densevlad, "CPU_CHUNK_POINTS", 50)  # many chunks per scale
     expected = []
     for index in range(len(textures_scene.queries)):
         image = fitted._load(textures_scene.queries, index)[None]
@@ -227,7 +251,7 @@ def test_vlads_built_a_few_rows_at_a_time_equal_the_whole_image_computation(monk
         for bin_size in fitted.bin_sizes:
             descriptors, contrast = dense_rootsift(image, bin_size, fitted.step, max(fitted.bin_sizes))
             kept = (contrast >= fitted.contrast_threshold) & (contrast > 0)
-            residuals = residuals + vlad_residuals(descriptors, kept, fitted._centroids)
+            residuals = residuals + vlad_residuals(descriptors, kept, fitted._centroids, cpu_kernels=False)
         expected.append(normalize_vlad(residuals)[0].numpy())
     np.testing.assert_allclose(fitted._vlads(textures_scene.queries), np.array(expected), atol=1e-6)
 
