@@ -1,8 +1,10 @@
-"""Shared test helpers: the project's configs composed by Hydra, and zoo models built from them."""
+"""Shared test helpers: the project's configs composed by Hydra, zoo models built from them, a
+callback that interrupts training."""
 
 from collections.abc import Mapping
 from pathlib import Path
 
+import lightning as L
 from hydra import compose, initialize_config_dir
 from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
@@ -38,3 +40,14 @@ def sfm_settings(*overrides: Mapping) -> SfmSettings:
     """``configs/sfm/default.yaml`` run in this process (``workers: 1``), ``overrides`` merged in order."""
     defaults = OmegaConf.load(CONFIGS / "sfm" / "default.yaml")
     return validated(SfmSettings, OmegaConf.merge(defaults, {"workers": 1}, *overrides), "sfm")
+
+
+class StopAfterEpoch(L.Callback):
+    """Stops training at the end of epoch ``epoch``, as an interrupted run would (its last checkpoint saved)."""
+
+    def __init__(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if trainer.current_epoch == self.epoch:
+            trainer.should_stop = True

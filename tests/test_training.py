@@ -2,6 +2,7 @@
 the localization-validation callback, and train.py end to end through Hydra."""
 
 import dataclasses
+import re
 
 import numpy as np
 import pandas as pd
@@ -17,7 +18,7 @@ from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 from locretrieval.training.data import AugmentSettings, BatchSettings, RelevanceBatchSampler
 from locretrieval.training.relevance import TrainingRelevanceSettings, combined_pairs, training_pairs
-from locretrieval.training.run import train
+from locretrieval.training.run import freeze_parameters, train
 from locretrieval.training.callbacks import TRAINED, metric_rows
 from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
 from locretrieval.config import validated
@@ -54,6 +55,9 @@ def test_relative_pose_training_pairs_against_a_direct_computation(scene):
     assert relevant.any() and (~overlap).any()  # both positives and surely unrelated pairs exist
     strict = training_pairs(database, dataclasses.replace(RELATIVE_POSE, negatives="not_relevant"), far=25.0)
     np.testing.assert_array_equal(strict.related.toarray(), relevant)  # every pair not relevant may be a negative
+    facing = training_pairs(database, dataclasses.replace(RELATIVE_POSE, unrelated_rotation=90.0), far=25.0)
+    np.testing.assert_array_equal(facing.related.toarray(), (overlap & (rotation <= 90.0)) | relevant)
+    assert (overlap & (rotation > 90.0)).any()  # views facing each other share frustum volume: now negatives
 
 
 def test_batches_hold_anchors_with_positives_and_only_surely_unrelated_negatives(scene):
@@ -153,8 +157,10 @@ def test_resuming_from_the_last_checkpoint_continues_the_same_curve(tmp_path):
     straight = train(train_config(tmp_path / "straight", *common, "trainer.max_epochs=2"), tmp_path / "straight" / "run")
     checkpoints = tmp_path / "straight" / "run" / "checkpoints"
     assert torch.load(checkpoints / "last.ckpt", weights_only=False)["epoch"] == 1  # the last epoch, whichever was best
-    first = train_config(tmp_path / "resumed", *common, "trainer.max_epochs=1")
-    train(first, tmp_path / "resumed" / "run")
+    # Interrupted after its first epoch: the same run (max_epochs, hence the cosine schedule) as the straight one.
+    first = train_config(tmp_path / "resumed", *common, "trainer.max_epochs=2",
+                         "+callbacks.interrupt={_target_: helpers.StopAfterEpoch, epoch: 0}")
+    assert [entry["epoch"] for entry in train(first, tmp_path / "resumed" / "run").history] == [-1, 0]
     last = tmp_path / "resumed" / "run" / "checkpoints" / "last.ckpt"
     resumed = train(train_config(tmp_path / "resumed", *common, "trainer.max_epochs=2", f"ckpt_path={last}"),
                     tmp_path / "resumed" / "run")
@@ -245,3 +251,45 @@ def test_hard_negatives_are_the_highest_ranked_unrelated_images_by_the_current_n
         similarity = descriptors @ descriptors[anchor]
         allowed = [i for i in np.argsort(-similarity, kind="stable") if i != anchor and not related[anchor, i]]
         assert set(sampler.hard[int(anchor)].tolist()) == set(allowed[:3])
+
+
+@pytest.mark.parametrize("frozen", [True, False])
+def test_frozen_batch_norm_keeps_the_pretrained_statistics_while_the_weights_learn(tmp_path, frozen):
+    from locretrieval.models.weights import EMBEDDED_CHECKPOINT_KEY
+
+    cfg = train_config(tmp_path, f"training.freeze_batch_norm={frozen}")
+    train(cfg, tmp_path / "run")
+    trained = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", weights_only=False)[EMBEDDED_CHECKPOINT_KEY]["state_dict"]
+    initial = instantiate(cfg.model).network.state_dict()
+    statistics = [key for key in initial if key.endswith(("running_mean", "running_var"))]
+    affine = [key.replace("running_mean", "weight") for key in statistics if key.endswith("running_mean")]
+    assert len(statistics) > 50
+    assert all(torch.equal(trained[key], initial[key]) for key in statistics) == frozen
+    assert not all(torch.equal(trained[key], initial[key]) for key in affine)  # batch-norm scales learn either way
+
+
+def test_frozen_parameters_keep_their_pretrained_values(tmp_path):
+    from locretrieval.models.weights import EMBEDDED_CHECKPOINT_KEY
+
+    patterns = "training.frozen=['backbone.stem.*','backbone.blocks.[0-9].*']"
+    cfg = train_config(tmp_path, patterns)
+    train(cfg, tmp_path / "run")
+    trained = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", weights_only=False)[EMBEDDED_CHECKPOINT_KEY]["state_dict"]
+    network = instantiate(cfg.model).network
+    initial = dict(network.named_parameters())
+    frozen = [name for name in initial if re.fullmatch(r"backbone\.(stem|blocks\.\d)\..*", name)]  # blocks 0-9
+    assert len(frozen) > 20
+    assert all(torch.equal(trained[name], initial[name]) for name in frozen)
+    assert not any(torch.equal(trained[name], initial[name]) for name in ("backbone.head.0.weight", "backbone.blocks.15.project.0.weight"))
+    with pytest.raises(ValueError, match="training.frozen: 'backbone.trunk.*' matches no parameter"):
+        freeze_parameters(network, ["backbone.trunk.*"])
+
+
+def test_evaluation_mode_restores_each_layers_own_mode():
+    from locretrieval.models.extraction import evaluation_mode
+
+    network = torch.nn.Sequential(torch.nn.Conv2d(3, 4, 3), torch.nn.BatchNorm2d(4), torch.nn.Dropout()).train()
+    network[1].eval()  # frozen batch norm in a training network
+    with evaluation_mode(network):
+        assert not any(layer.training for layer in network.modules())
+    assert [layer.training for layer in network.modules()] == [True, True, False, True]

@@ -196,13 +196,15 @@ def describe_batch(
 
 @contextlib.contextmanager
 def evaluation_mode(network: torch.nn.Module) -> Iterator[None]:
-    """The network in eval mode (frozen batch-norm statistics, no dropout), restored after."""
-    was_training = network.training
+    """The network in eval mode (frozen batch-norm statistics, no dropout); afterwards every
+    module's own mode is restored (a network trained with frozen batch norm keeps it frozen)."""
+    modes = [(module, module.training) for module in network.modules()]
     network.eval()
     try:
         yield
     finally:
-        network.train(was_training)
+        for module, training in modes:
+            module.training = training
 
 
 def network_device(network: torch.nn.Module) -> torch.device:

@@ -22,6 +22,9 @@ class RetrievalTraining(L.LightningModule):
     taking the parameters / the optimizer. Every Lightning checkpoint also holds, under
     `EMBEDDED_CHECKPOINT_KEY`, a plain checkpoint of model ``model`` with ``architecture`` that the
     zoo loader reads (``evaluate.py model=gem model.weights=<ckpt>``).
+    ``freeze_batch_norm``: batch-norm layers stay in eval mode while training (the pretrained
+    running statistics normalise every batch and are never updated; their affine parameters
+    still learn), as retrieval fine-tuning does with small batches (Radenovic et al., TPAMI 2019).
     """
 
     def __init__(
@@ -34,6 +37,7 @@ class RetrievalTraining(L.LightningModule):
         model: str,
         architecture: Mapping[str, Any],
         compile_network: bool = False,
+        freeze_batch_norm: bool = False,
     ) -> None:
         super().__init__()
         self.network = network
@@ -42,6 +46,15 @@ class RetrievalTraining(L.LightningModule):
         self.loss = loss
         self.optimizer_factory, self.scheduler_factory = optimizer, scheduler
         self.model_name, self.architecture = model, plain(dict(architecture))
+        self.freeze_batch_norm = freeze_batch_norm
+
+    def train(self, mode: bool = True) -> RetrievalTraining:
+        super().train(mode)
+        if mode and self.freeze_batch_norm:
+            for layer in self.network.modules():
+                if isinstance(layer, torch.nn.modules.batchnorm._BatchNorm):
+                    layer.eval()
+        return self
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """Unit descriptors ``[B, D]`` of ``uint8 [B, 3, H, W]`` images, computed as extraction does
@@ -52,6 +65,7 @@ class RetrievalTraining(L.LightningModule):
         # Gradients of the margin losses drive activations into denormal floats, which CPUs
         # compute up to ~3x slower (measured: 10.5 s vs 3.9 s per batch); flush them to zero.
         torch.set_flush_denormal(True)
+        self.train()  # Lightning keeps the modes it finds: freeze batch norm here
 
     def training_step(self, batch: tuple[torch.Tensor, torch.Tensor, torch.Tensor], batch_index: int) -> torch.Tensor:
         images, relevance, negatives = batch

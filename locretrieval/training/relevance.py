@@ -5,10 +5,12 @@ Every training image is ranked against every other (itself excluded) with a grou
 definition of `locretrieval.groundtruth`: relative pose, frustum overlap, or co-observation
 (3D points shared in the known-pose map of the training images, paradigm 2b's global map). Pairs the definition calls relevant are positives,
 with a graded score (higher: more relevant). Negatives come only from *surely unrelated*
-pairs: those whose viewing frusta (truncated at ``near``/``far`` metres) share no interior,
-whatever the definition, so that two views of the same place that a strict definition does
-not call relevant (e.g. 30 m apart looking the same way) are never pushed apart. Pairs that
-are neither are ambiguous and ignored by every loss.
+pairs: those whose viewing frusta (truncated at ``near``/``far`` metres) share no interior, or
+whose orientations differ by more than ``unrelated_rotation`` degrees (two cameras facing each
+other share the volume between them but see its surfaces from opposite sides), whatever the
+definition, so that two views of the same place that a strict definition does not call
+relevant (e.g. 30 m apart looking the same way) are never pushed apart. Pairs that are
+neither are ambiguous and ignored by every loss.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import sparse
 
+from locretrieval import geometry
 from locretrieval.config import require
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.groundtruth import FrustumDefinition, RelativePoseDefinition, relative_pose_scores
@@ -33,7 +36,8 @@ class TrainingRelevanceSettings:
     """The ``train_relevance`` config group: ``type`` (``relative_pose``, ``frustum`` or
     ``co_observation``) and its parameters (the ground-truth definition's; co-observation:
     `SharedPoints`); ``negatives``: ``unrelated`` (pairs whose frusta,
-    truncated at ``near``/``far`` metres, ``far`` ``None``: the scene's, do not overlap) or
+    truncated at ``near``/``far`` metres, ``far`` ``None``: the scene's, do not overlap, or whose
+    orientations differ by more than ``unrelated_rotation`` degrees, ``None``: frusta only) or
     ``not_relevant`` (every pair that is not relevant, ambiguous ones included: harder batches,
     at the risk of pushing apart views of one place)."""
 
@@ -42,6 +46,7 @@ class TrainingRelevanceSettings:
     negatives: str
     near: float
     far: float | None
+    unrelated_rotation: float | None = None
 
     def __post_init__(self) -> None:
         require(self.type in RELEVANCE_TYPES, "type", f"must be one of {sorted(RELEVANCE_TYPES)}, got {self.type!r}")
@@ -49,6 +54,8 @@ class TrainingRelevanceSettings:
         RELEVANCE_TYPES[self.type](**self.parameters)  # range checks of the definition
         require(self.near > 0, "near", f"must be a positive depth in metres, got {self.near}")
         require(self.negatives in NEGATIVES, "negatives", f"must be one of {list(NEGATIVES)}, got {self.negatives!r}")
+        require(self.unrelated_rotation is None or 0 <= self.unrelated_rotation <= 180, "unrelated_rotation",
+                f"must be degrees in [0, 180] or null, got {self.unrelated_rotation}")
 
 
 @dataclass
@@ -71,7 +78,8 @@ NEGATIVES = ("unrelated", "not_relevant")
 class TrainingPairs:
     """``graded [N, N]`` (sparse float): the relevance score of each relevant pair (> 0), the
     diagonal empty; ``related [N, N]`` (sparse bool): pairs that may not serve as negatives
-    (relevant ones, and those whose frusta overlap unless negatives are ``not_relevant``).
+    (relevant ones, and unless negatives are ``not_relevant`` those whose frusta overlap, at a
+    rotation within ``unrelated_rotation``).
     Negatives are the pairs outside ``related`` (and off the diagonal)."""
 
     graded: sparse.csr_matrix
@@ -120,9 +128,18 @@ def training_pairs(
                   if settings.type == "co_observation" else _graded(images, rows, definition_overlap, settings))
         graded[rows - start, rows] = 0.0
         graded_blocks.append(sparse.csr_matrix(graded))
-        related = graded > 0 if settings.negatives == "not_relevant" else (overlap > 0) | (graded > 0)
+        related = graded > 0 if settings.negatives == "not_relevant" else (_covisible(images, rows, overlap, settings) | (graded > 0))
         related_blocks.append(sparse.csr_matrix(related))
     return TrainingPairs(sparse.vstack(graded_blocks).tocsr(), sparse.vstack(related_blocks).tocsr())
+
+
+def _covisible(images: ImageSet, rows: np.ndarray, overlap: np.ndarray, settings: TrainingRelevanceSettings) -> np.ndarray:
+    """``[len(rows), N]``: pairs that may see one place: overlapping frusta, at an orientation
+    difference of at most ``unrelated_rotation`` degrees when it is set."""
+    if settings.unrelated_rotation is None:
+        return overlap > 0
+    rotation = geometry.rotation_errors_deg(images.qvec[rows][:, None], images.qvec[None])
+    return (overlap > 0) & (rotation <= settings.unrelated_rotation)
 
 
 def _definition_frusta(images: ImageSet, settings: TrainingRelevanceSettings, far: float, frusta: TruncatedFrusta) -> TruncatedFrusta | None:

@@ -3,12 +3,16 @@ Lightning, validate by localization every epoch, write the validation curves and
 
 from __future__ import annotations
 
+import fnmatch
 import logging
+import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import lightning as L
 import numpy as np
+import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
@@ -35,7 +39,8 @@ class TrainingSettings:
     overrides of separately rendered synthetic scenes, all their images), the ``image_size``
     ``[width, height]`` of training batches, ``batch``, ``augment``, hard-negative mining every
     ``hard_negatives_every_n_steps`` training steps (0: off, ``hard_negatives_per_anchor`` kept per image),
-    DataLoader ``num_workers`` and ``compile`` (``torch.compile``)."""
+    DataLoader ``num_workers``, ``compile`` (``torch.compile``), ``freeze_batch_norm`` (batch-norm
+    layers in eval mode while training, `RetrievalTraining`) and ``frozen`` (`freeze_parameters`)."""
 
     validation_database: bool
     extra_renders: list[dict]
@@ -46,6 +51,8 @@ class TrainingSettings:
     hard_negatives_per_anchor: int
     num_workers: int
     compile: bool
+    freeze_batch_norm: bool
+    frozen: list[str]
 
     def __post_init__(self) -> None:
         require(self.validation_database or bool(self.extra_renders), "validation_database",
@@ -66,6 +73,21 @@ class ValidationSettings:
     def __post_init__(self) -> None:
         require(self.every_n_epochs >= 1, "every_n_epochs", f"must be >= 1, got {self.every_n_epochs}")
         require(self.sfm_every_n_epochs is None or self.sfm_every_n_epochs >= 1, "sfm_every_n_epochs", "must be >= 1 or null")
+
+
+def freeze_parameters(network: torch.nn.Module, patterns: Sequence[str]) -> list[str]:
+    """Keep the parameters whose names match a shell-style ``pattern`` (``backbone.blocks.[0-9].*``)
+    fixed; returns their names. A pattern that matches no parameter is an error naming some."""
+    names = [name for name, _ in network.named_parameters()]
+    for pattern in patterns:
+        if not fnmatch.filter(names, pattern):
+            raise ValueError(f"training.frozen: {pattern!r} matches no parameter of the network "
+                             f"(names are like {names[0]!r}, {names[len(names) // 2]!r}, {names[-1]!r})")
+    frozen = [name for name in names if any(fnmatch.fnmatchcase(name, pattern) for pattern in patterns)]
+    for name, parameter in network.named_parameters():
+        if name in frozen:
+            parameter.requires_grad_(False)
+    return frozen
 
 
 def training_worlds(cfg: DictConfig, scene: Scene, settings: TrainingSettings) -> list[Scene]:
@@ -106,6 +128,9 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     scene: Scene = instantiate(cfg.data)
     descriptor = instantiate(cfg.model)  # the zoo model: network, preprocessing, weights checked
     network, preprocessing = descriptor.network.train(), descriptor.preprocessing
+    frozen = freeze_parameters(network, training.frozen)
+    if frozen:
+        log.info("%d of %d parameter tensors frozen (training.frozen)", len(frozen), len(list(network.parameters())))
     worlds = training_worlds(cfg, scene, training)
     sets = [world.database for world in worlds]
     far = scene.far_plane(relevance.far, "train_relevance.far")
@@ -128,7 +153,7 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     module = RetrievalTraining(
         network, preprocessing, instantiate(cfg.loss), instantiate(cfg.optimizer),
         instantiate(cfg.scheduler) if cfg.get("scheduler") else None,
-        descriptor.model, descriptor.architecture, training.compile,
+        descriptor.model, descriptor.architecture, training.compile, training.freeze_batch_norm,
     )
     callbacks = [validator, *(instantiate(c) for c in (cfg.callbacks or {}).values())]
     if training.hard_negatives_every_n_steps:
@@ -136,6 +161,8 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
                                             training.hard_negatives_per_anchor, preprocessing, extraction))
     loggers = [instantiate(c) for c in (cfg.logger or {}).values()]
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+    if training.freeze_batch_norm:  # Lightning warns of the (intended) eval-mode batch norm
+        warnings.filterwarnings("ignore", message=r"Found \d+ module\(s\) in eval mode at the start of training")
     trainer.fit(module, datamodule=data, ckpt_path=cfg.get("ckpt_path"))
     if trainer.is_global_zero:
         write_training_report(validator, output_dir)
