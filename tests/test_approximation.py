@@ -262,3 +262,23 @@ def test_only_ill_conditioned_queries_take_the_float64_path(monkeypatch):
         np.testing.assert_allclose(geometry.camera_centers(bdi.qvec[0], bdi.tvec[0])[:, 0], expected, atol=1e-6 * np.abs(centers).max())
     residuals = route[:5].astype(np.float64) - route[7].astype(np.float64)
     np.testing.assert_allclose(real(route[None, :5], route[7][None]), (residuals @ residuals.T)[None], atol=1e-12)
+
+
+def test_chunks_run_in_parallel_threads_keep_each_querys_result_in_its_place(monkeypatch):
+    rng = np.random.default_rng(5)
+    n, dim, ks = 15, 16, [1, 3, 6]
+    database = image_set(Rotation.random(n, random_state=6).as_quat()[:, [3, 0, 1, 2]], rng.normal(size=(n, 3)) * 5)
+    db_desc = unit(rng.normal(size=(n, dim)))
+    queries = unit(rng.normal(size=(9, dim)))
+    indices = np.argsort(-(queries @ db_desc.T), axis=1)[:, :6]  # ranked by similarity, as `search` ranks
+    indices[[2, 7]] = EMPTY  # failures must stay on their own queries
+    ranking = descriptor_ranking(indices, queries, db_desc)
+    whole = by_method(approximate(database, ranking, ks))
+    monkeypatch.setattr(approximation, "CHUNK_QUERIES", 1)
+    monkeypatch.setattr(approximation, "resolve_workers", lambda workers: 4)  # more threads than cores here
+    chunked = by_method(approximate(database, ranking, ks))
+    for method in METHODS:
+        np.testing.assert_array_equal(chunked[method].failures, whole[method].failures)
+        np.testing.assert_allclose(chunked[method].qvec, whole[method].qvec, atol=1e-12, err_msg=method)
+        np.testing.assert_allclose(chunked[method].tvec, whole[method].tvec, atol=1e-12, err_msg=method)
+    assert (whole["bdi"].failures[:, [2, 7]] == EMPTY_RETRIEVAL).all()

@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +34,7 @@ from locretrieval import geometry
 from locretrieval.config import require
 from locretrieval.localization.estimates import LOCALIZED, PoseEstimates
 from locretrieval.localization.paradigm import ParadigmSettings
+from locretrieval.localization.workers import resolve_workers
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import ImageSet, Scene
 
@@ -92,7 +95,8 @@ def approximate_poses(
 
     Each estimate is a world-to-camera pose (q wxyz, t). A query whose ranking is empty
     has no estimate (failure ``"empty retrieval"``); a query with fewer than ``k`` ranked
-    images uses those it has. Queries are processed `CHUNK_QUERIES` at a time.
+    images uses those it has. Queries are processed `CHUNK_QUERIES` at a time, chunks on one
+    thread per core (numpy and LAPACK release the GIL).
     """
     unknown = set(methods) - set(METHODS)
     if unknown:
@@ -107,10 +111,12 @@ def approximate_poses(
     products = DescriptorProducts(top) if "bdi" in applicable else None
     chunks = [slice(start, start + CHUNK_QUERIES) for start in range(0, top.num_queries, CHUNK_QUERIES)]
     results = []
-    for method in applicable:
-        parts = [_approximate_chunk(method, top, rows, ks, poses, alpha, products) for rows in chunks]
-        qvec, tvec, failures = (np.concatenate(arrays, axis=1) for arrays in zip(*parts))
-        results.append(PoseEstimates(ranking.name, ranking.kind, "approximation", method, ks, qvec, tvec, failures))
+    with ThreadPoolExecutor(max(1, min(resolve_workers(None), len(chunks)))) as pool:
+        for method in applicable:
+            chunk_estimates = partial(_approximate_chunk, method, top, ks=ks, poses=poses, alpha=alpha, products=products)
+            parts = list(pool.map(chunk_estimates, chunks))
+            qvec, tvec, failures = (np.concatenate(arrays, axis=1) for arrays in zip(*parts))
+            results.append(PoseEstimates(ranking.name, ranking.kind, "approximation", method, ks, qvec, tvec, failures))
     return results
 
 
