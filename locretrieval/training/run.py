@@ -80,13 +80,14 @@ def freeze_parameters(network: torch.nn.Module, patterns: Sequence[str]) -> list
     fixed; returns their names. A pattern that matches no parameter is an error naming some."""
     names = [name for name, _ in network.named_parameters()]
     for pattern in patterns:
-        if not fnmatch.filter(names, pattern):
+        if not any(fnmatch.fnmatchcase(name, pattern) for name in names):
             raise ValueError(f"training.frozen: {pattern!r} matches no parameter of the network "
                              f"(names are like {names[0]!r}, {names[len(names) // 2]!r}, {names[-1]!r})")
-    frozen = [name for name in names if any(fnmatch.fnmatchcase(name, pattern) for pattern in patterns)]
+    frozen = []
     for name, parameter in network.named_parameters():
-        if name in frozen:
+        if any(fnmatch.fnmatchcase(name, pattern) for pattern in patterns):
             parameter.requires_grad_(False)
+            frozen.append(name)
     return frozen
 
 
