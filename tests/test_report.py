@@ -14,7 +14,7 @@ from locretrieval.metrics.retrieval import retrieval_tables
 from locretrieval.metrics.revisited import RevisitedGroundTruth, evaluate_revisited
 from locretrieval.report import build_report
 from locretrieval.report.markdown import pivot_localization
-from locretrieval.report.plots import FigureFolder, curves_for_method, pyplot
+from locretrieval.report.plots import MARGINS_INCHES, FigureFolder, _panels, curves_for_method, plot_query_violins
 from locretrieval.report.tables import load_runs
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Camera, ImageSet
@@ -178,18 +178,61 @@ def test_figures_drawn_by_worker_processes_are_those_drawn_in_process(tmp_path):
     assert len(sizes["here"]) == 13 and sizes["workers"] == sizes["here"]  # the same figures, pixel for pixel in size
 
 
-def test_a_figure_is_laid_out_tightly_and_drawn_once_per_format(tmp_path, monkeypatch):
+def test_a_figure_is_drawn_once_per_format_without_changing_its_layout(tmp_path, monkeypatch):
     from matplotlib.figure import Figure
 
     draws = []
     original_draw = Figure.draw
     monkeypatch.setattr(Figure, "draw", lambda figure, renderer: draws.append(1) or original_draw(figure, renderer))
-    figure, axis = pyplot().subplots(figsize=(2, 2))
-    axis.set_ylabel("a long label that needs a margin")
+    figure, axes = _panels(3)
+    layout = [axis.get_position().bounds for axis in axes]
     first = FigureFolder(tmp_path, ("png", "pdf")).save(figure, "a b")
     assert first == tmp_path / "a_b.png" and (tmp_path / "a_b.pdf").is_file()
-    assert len(draws) == 2  # Figure.tight_layout leaves a layout engine that makes it 4
-    assert figure.subplotpars.left > 0.2  # the tight layout made room for the label (default 0.125)
+    assert len(draws) == 2 and figure.get_layout_engine() is None
+    assert [axis.get_position().bounds for axis in axes] == layout
+    width, height = figure.get_size_inches()
+    assert axes[0].get_position().x0 * width == pytest.approx(MARGINS_INCHES["left"])
+    assert (1 - axes[2].get_position().x1) * width == pytest.approx(MARGINS_INCHES["right"])
+    assert (axes[1].get_position().x0 - axes[0].get_position().x1) * width == pytest.approx(MARGINS_INCHES["between"])
+    assert (1 - axes[0].get_position().y1) * height == pytest.approx(MARGINS_INCHES["top"])
+
+
+def test_every_report_figure_keeps_its_text_inside_the_figure_and_its_own_panel(tmp_path, monkeypatch):
+    checked = []
+    original_save = FigureFolder.save
+
+    def check_then_save(folder, figure, stem):
+        figure.canvas.draw()
+        renderer = figure.canvas.get_renderer()
+        width, height = figure.bbox.width, figure.bbox.height
+        boxes = [axis.get_tightbbox(renderer) for axis in figure.axes]  # ticks, labels, title, legend
+        for box in boxes:
+            assert 0 <= box.x0 and box.x1 <= width and 0 <= box.y0 and box.y1 <= height, stem
+        for left, right in zip(boxes, boxes[1:]):
+            assert left.x1 < right.x0, stem  # no panel's text reaches into the next
+        assert [text.get_window_extent(renderer).y0 > max(box.y1 for box in boxes) for text in figure.texts] == [True], stem
+        checked.append(stem)
+        return original_save(folder, figure, stem)
+
+    monkeypatch.setattr(FigureFolder, "save", check_then_save)
+    build_report([write_run(tmp_path / "run", ["netvlad", "apgem"])], tmp_path / "report", figure_formats=["png"], figure_workers=1)
+    assert len(checked) == 13 and any("violin" in stem for stem in checked)
+
+
+def test_a_violin_panel_without_a_defined_coefficient_labels_its_rankings_inside_the_frame(tmp_path, monkeypatch):
+    panels = []
+    original_save = FigureFolder.save
+    monkeypatch.setattr(FigureFolder, "save", lambda folder, figure, stem: panels.extend(figure.axes) or original_save(folder, figure, stem))
+    rows = pd.DataFrame(
+        [("toy", GROUNDTRUTH, "precision", paradigm, "pnp", ranking, value)
+         for paradigm, values in (("global_sfm", [0.5, -0.2, 0.9]), ("local_sfm", [np.nan] * 3))
+         for ranking in ("apgem", "netvlad") for value in values],
+        columns=["dataset", "groundtruth", "retrieval_metric", "paradigm", "method", "ranking", "coefficient"],
+    )
+    plot_query_violins(rows, FigureFolder(tmp_path, ("png",)), {"apgem": "#1f77b4", "netvlad": "#ff7f0e"})
+    for axis in panels:  # the empty panel's default limits (0, 1) put the second label on the frame
+        assert axis.get_xlim() == (0.5, 2.5) and list(axis.get_xticks()) == [1, 2]
+    assert [label.get_text() for label in panels[1].get_xticklabels()] == ["apgem\n0/3 def.", "netvlad\n0/3 def."]
 
 
 def test_runs_are_combined_without_repeating_ground_truth(tmp_path):

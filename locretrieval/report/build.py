@@ -152,10 +152,10 @@ def localization_section(writer: markdown.ReportWriter, tables: RunTables, paint
         return
     best = markdown.best_localization(results)
     writer.table(best, "localization_best_over_k", "Best % of queries localized over k (all queries).", ".1f")
-    written = painters.draw(plots.plot_localization_vs_k, results, painters.figures, colors=colors)
     for (dataset, paradigm, method), _ in results.groupby(["dataset", "paradigm", "method"], sort=True):
         writer.heading(f"{dataset}: {paradigm}, {method}", 3)
-        writer.figures(written, f"{dataset}_{paradigm}_{method}")
+        rows = results[(results["dataset"] == dataset) & (results["paradigm"] == paradigm)]  # a job per figure
+        writer.figures(painters.draw(plots.plot_localization_vs_k, rows, painters.figures, colors, methods=[method]))
         pivot = markdown.pivot_localization(results[results["dataset"] == dataset], paradigm, method)
         caption = "% of queries localized (all queries), per ranking and k."
         writer.table(pivot, f"localization_{dataset}_{paradigm}_{method}", caption, ".1f")

@@ -30,15 +30,13 @@ class ReportWriter:
     def bullets(self, items: dict[str, object]) -> None:
         self.lines += [f"- **{key}**: {value}" for key, value in items.items()] + [""]
 
-    def figures(self, paths: Sequence[Path] | Future, stem: str | None = None) -> None:
-        """Links to the figures ``paths`` (or the future of a figure worker's, awaited by `write`),
-        only the one named ``stem`` when given."""
-        self.lines.append(partial(self._figure_links, paths, stem))
+    def figures(self, paths: Sequence[Path] | Future) -> None:
+        """Links to the figures ``paths`` (or the future of a figure worker's, awaited by `write`)."""
+        self.lines.append(partial(self._figure_links, paths))
 
-    def _figure_links(self, paths: Sequence[Path] | Future, stem: str | None) -> list[str]:
+    def _figure_links(self, paths: Sequence[Path] | Future) -> list[str]:
         paths = paths.result() if isinstance(paths, Future) else paths
-        chosen = [path for path in paths if stem is None or path.stem == safe_name(stem)]
-        return [line for path in chosen for line in (f"![{path.stem}]({path.relative_to(self.directory).as_posix()})", "")]
+        return [line for path in paths for line in (f"![{path.stem}]({path.relative_to(self.directory).as_posix()})", "")]
 
     def table(self, frame: pd.DataFrame, stem: str, caption: str, floatfmt: str = ".2f") -> None:
         """Embed ``frame`` and write it as ``tables/<stem>.md`` and ``tables/<stem>.tex``."""
