@@ -71,8 +71,8 @@ def may_overlap(first: TruncatedFrusta, second: TruncatedFrusta) -> np.ndarray:
 
 def _face_separates(faces: TruncatedFrusta, points: TruncatedFrusta) -> np.ndarray:
     """``[P]``: some face plane of ``faces[i]`` has all corners of ``points[i]`` outside."""
-    signed = points.corners @ faces.A.transpose(0, 2, 1) - faces.b[:, None, :]  # [P, 8 corners, 6 faces]
-    return (signed.min(axis=1) >= 0).any(axis=1)
+    signed = faces.A @ points.corners.transpose(0, 2, 1) - faces.b[:, :, None]  # [P, 6 faces, 8 corners]
+    return (signed >= 0).all(axis=2).any(axis=1)
 
 
 def overlap_radii(first: TruncatedFrusta, second: TruncatedFrusta) -> np.ndarray:

@@ -40,6 +40,23 @@ def test_rotation_error_equals_hand_computed_angle():
     assert geometry.rotation_errors_deg(about_z, q_ref) == pytest.approx(expected, abs=1e-9)
 
 
+def test_pairwise_errors_equal_the_hand_computed_angles_and_distances_of_every_pair():
+    angles = np.array([0.0, 1e-7, 0.5, 30.0, 90.0, 179.9, 180.0])  # degrees about z, and -q of each
+    about_z = wxyz(Rotation.from_euler("z", angles[:, None], degrees=True))
+    others = np.concatenate([about_z, -about_z, wxyz(Rotation.random(20, random_state=4))])
+    rotation = geometry.pairwise_rotation_errors_deg(about_z, others)
+    assert rotation.shape == (7, 34)
+    expected = np.abs(angles[:, None] - angles[None])
+    np.testing.assert_allclose(rotation[:, :7], expected, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(rotation[:, 7:14], expected, rtol=1e-6, atol=1e-9)  # -q is the same rotation
+    relative = [[(Rotation.from_quat(a[[1, 2, 3, 0]]).inv() * Rotation.from_quat(b[[1, 2, 3, 0]])).magnitude() for b in others] for a in about_z]
+    np.testing.assert_allclose(rotation, np.degrees(relative), atol=1e-9)
+    np.testing.assert_allclose(rotation, geometry.rotation_errors_deg(about_z[:, None], others[None]), atol=1e-9)
+    centers = np.random.default_rng(0).normal(size=(9, 3))
+    distances = geometry.pairwise_position_errors(centers[:4], centers)
+    assert distances[1, 1] == 0.0 and distances[2, 5] == pytest.approx(np.sqrt(((centers[2] - centers[5]) ** 2).sum()))
+
+
 def test_camera_center_and_position_error():
     q = wxyz(Rotation.from_euler("y", 90, degrees=True))
     R = Rotation.from_euler("y", 90, degrees=True).as_matrix()

@@ -8,7 +8,7 @@ import pytest
 from PIL import Image
 
 from locretrieval.models import GlobalDescriptor
-from locretrieval.retrieval import random_ranking
+from locretrieval.retrieval import EMPTY, random_ranking, top_k
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.retrieval.index import search
 from locretrieval.scene import Camera, ImageSet, Scene
@@ -253,3 +253,22 @@ def test_random_ranking_is_seeded_without_repeats_and_clamped():
     np.testing.assert_array_equal(first.indices, again.indices)
     assert (first.indices != other.indices).any()
     assert random_ranking(3, 4, 10, 0).depth == 4
+
+
+@pytest.mark.parametrize("kind", ["continuous", "integer", "rounded_with_nan"])
+def test_top_k_takes_the_best_entries_ties_by_lower_index_also_when_a_tie_straddles_the_depth(kind):
+    rng = np.random.default_rng(7)
+    scores = {
+        "continuous": rng.random((40, 300)),
+        "integer": rng.integers(0, 4, (40, 300)).astype(float),  # ties at every depth
+        "rounded_with_nan": np.where(rng.random((40, 300)) < 0.3, np.nan, np.round(rng.normal(size=(40, 300)), 1)),
+    }[kind]
+    valid = rng.random(scores.shape) < 0.8
+    for depth in (1, 7, 50, 300):  # the partial selection below N / 4, the full sort above
+        indices, top = top_k(scores, depth, valid)
+        for row in range(len(scores)):
+            ranked = sorted((-scores[row, n], n) for n in range(scores.shape[1]) if valid[row, n] and np.isfinite(scores[row, n]))
+            expected = [n for _, n in ranked[:depth]]
+            assert indices[row].tolist() == expected + [EMPTY] * (depth - len(expected))
+            np.testing.assert_array_equal(top[row, : len(expected)], scores[row, expected].astype(np.float32))
+            assert (top[row, len(expected) :] == 0).all()

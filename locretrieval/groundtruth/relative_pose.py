@@ -47,8 +47,8 @@ def relative_pose_scores(
     (degrees). ``c_diff`` and ``R_diff`` are the paper's eq. 3-4.
     Returns ``(s, c_diff, R_diff)``, each ``[Q, N]``.
     """
-    position = geometry.position_errors(query_centers[:, None], database_centers[None])
-    rotation = geometry.rotation_errors_deg(query_qvec[:, None], database_qvec[None])
+    position = geometry.pairwise_position_errors(query_centers, database_centers)
+    rotation = geometry.pairwise_rotation_errors_deg(query_qvec, database_qvec)
     return position / position_threshold + rotation / rotation_threshold, position, rotation
 
 

@@ -117,10 +117,25 @@ def top_k(
         scores = np.where(valid, scores, -np.inf)
     scores = np.where(np.isfinite(scores), scores, -np.inf)
     depth = min(depth, scores.shape[1])
-    order = np.argsort(-scores, axis=1, kind="stable")[:, :depth]
+    order = _best_columns(scores, depth)
     top_scores = np.take_along_axis(scores, order, axis=1)
     filled = np.isfinite(top_scores)
     return np.where(filled, order, EMPTY), np.where(filled, top_scores, 0.0).astype(np.float32)
+
+
+def _best_columns(scores: np.ndarray, depth: int) -> np.ndarray:
+    """Columns of the ``depth`` highest scores of each row, best first, ties by lower column:
+    a partial selection, then the stable full sort for the rows where the selection split a
+    tie at its boundary (the order of ``-inf`` slots, never ranked, does not matter)."""
+    if not 0 < 4 * depth < scores.shape[1]:
+        return np.argsort(-scores, axis=1, kind="stable")[:, :depth]
+    chosen = np.argpartition(-scores, depth - 1, axis=1)[:, :depth]
+    values = np.take_along_axis(scores, chosen, axis=1)
+    chosen = np.take_along_axis(chosen, np.lexsort((chosen, -values), axis=1), axis=1)
+    last = np.take_along_axis(scores, chosen[:, -1:], axis=1)
+    split = np.isfinite(last[:, 0]) & ((scores == last).sum(axis=1) > (values == last).sum(axis=1))
+    chosen[split] = np.argsort(-scores[split], axis=1, kind="stable")[:, :depth]
+    return chosen
 
 
 def ranking_from_scores(

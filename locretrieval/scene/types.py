@@ -151,9 +151,10 @@ class ImageSet:
         """Camera centres ``[N, 3]`` in world coordinates (NaN where the pose is unknown)."""
         return geometry.camera_centers(self.qvec, self.tvec)
 
-    @property
+    @functools.cached_property
     def intrinsics(self) -> np.ndarray:
-        """``[N, 6]`` rows of ``(fx, fy, cx, cy, width, height)``, distortion ignored."""
+        """``[N, 6]`` rows of ``(fx, fy, cx, cy, width, height)``, distortion ignored (built once:
+        the frustum ground truth indexes it per block of queries)."""
         return np.array([(*c.pinhole, c.width, c.height) for c in self.cameras], dtype=np.float64)
 
     def tag_mask(self, tag: str) -> np.ndarray:

@@ -138,7 +138,7 @@ def _covisible(images: ImageSet, rows: np.ndarray, overlap: np.ndarray, settings
     difference of at most ``unrelated_rotation`` degrees when it is set."""
     if settings.unrelated_rotation is None:
         return overlap > 0
-    rotation = geometry.rotation_errors_deg(images.qvec[rows][:, None], images.qvec[None])
+    rotation = geometry.pairwise_rotation_errors_deg(images.qvec[rows], images.qvec)
     return (overlap > 0) & (rotation <= settings.unrelated_rotation)
 
 
