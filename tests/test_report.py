@@ -210,12 +210,16 @@ def test_every_report_figure_keeps_its_text_inside_the_figure_and_its_own_panel(
             assert 0 <= box.x0 and box.x1 <= width and 0 <= box.y0 and box.y1 <= height, stem
         for left, right in zip(boxes, boxes[1:]):
             assert left.x1 < right.x0, stem  # no panel's text reaches into the next
+        for axis in figure.axes:  # nor one tick label into the next
+            labels = sorted((label.get_window_extent(renderer) for label in axis.get_xticklabels() if label.get_text()), key=lambda box: box.x0)
+            assert all(left.x1 < right.x0 for left, right in zip(labels, labels[1:])), stem
         assert [text.get_window_extent(renderer).y0 > max(box.y1 for box in boxes) for text in figure.texts] == [True], stem
         checked.append(stem)
         return original_save(folder, figure, stem)
 
     monkeypatch.setattr(FigureFolder, "save", check_then_save)
-    build_report([write_run(tmp_path / "run", ["netvlad", "apgem"])], tmp_path / "report", figure_formats=["png"], figure_workers=1)
+    long_names = ["netvlad_pitts30k_vgg16_whitened", "apgem_resnet101_gldv1", "densevlad_multiscale"]  # violin labels
+    build_report([write_run(tmp_path / "run", long_names)], tmp_path / "report", figure_formats=["png"], figure_workers=1)
     assert len(checked) == 13 and any("violin" in stem for stem in checked)
 
 
@@ -229,9 +233,14 @@ def test_a_violin_panel_without_a_defined_coefficient_labels_its_rankings_inside
          for ranking in ("apgem", "netvlad") for value in values],
         columns=["dataset", "groundtruth", "retrieval_metric", "paradigm", "method", "ranking", "coefficient"],
     )
-    plot_query_violins(rows, FigureFolder(tmp_path, ("png",)), {"apgem": "#1f77b4", "netvlad": "#ff7f0e"})
+    plot_query_violins(rows, FigureFolder(tmp_path, ("png",)), {"apgem": "#123456", "netvlad": "#abcdef"})
     for axis in panels:  # the empty panel's default limits (0, 1) put the second label on the frame
         assert axis.get_xlim() == (0.5, 2.5) and list(axis.get_xticks()) == [1, 2]
+    from matplotlib.collections import LineCollection
+    from matplotlib.colors import to_hex
+
+    lines = [to_hex(collection.get_color()[0]) for collection in panels[0].collections if isinstance(collection, LineCollection)]
+    assert len(lines) == 8 and set(lines) == {"#123456", "#abcdef"}  # bars, ends and median in the ranking's colour
     assert [label.get_text() for label in panels[1].get_xticklabels()] == ["apgem\n0/3 def.", "netvlad\n0/3 def."]
 
 

@@ -255,15 +255,16 @@ def test_random_ranking_is_seeded_without_repeats_and_clamped():
     assert random_ranking(3, 4, 10, 0).depth == 4
 
 
-@pytest.mark.parametrize("kind", ["continuous", "integer", "rounded_with_nan"])
+@pytest.mark.parametrize("kind", ["continuous", "integer", "rounded_with_nan", "few_rankable"])
 def test_top_k_takes_the_best_entries_ties_by_lower_index_also_when_a_tie_straddles_the_depth(kind):
     rng = np.random.default_rng(7)
     scores = {
         "continuous": rng.random((40, 300)),
         "integer": rng.integers(0, 4, (40, 300)).astype(float),  # ties at every depth
         "rounded_with_nan": np.where(rng.random((40, 300)) < 0.3, np.nan, np.round(rng.normal(size=(40, 300)), 1)),
+        "few_rankable": rng.random((40, 300)),  # fewer rankable entries than the depth: EMPTY slots
     }[kind]
-    valid = rng.random(scores.shape) < 0.8
+    valid = rng.random(scores.shape) < (0.05 if kind == "few_rankable" else 0.8)
     for depth in (1, 7, 50, 300):  # the partial selection below N / 4, the full sort above
         indices, top = top_k(scores, depth, valid)
         for row in range(len(scores)):

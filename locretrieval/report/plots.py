@@ -35,6 +35,8 @@ PANEL_WIDTH, PANEL_HEIGHT = 4.2, 3.6
 #: violins, which have no x label), the figure's one-line title; legends are inside the axes.
 #: Fixed rather than a tight layout, which measures every text with a draw of its own.
 MARGINS_INCHES = {"left": 0.8, "right": 0.2, "bottom": 0.6, "top": 0.75, "between": 0.9}
+#: Width in inches allowed per character of a 7-point tick label (0.65 em: above DejaVu Sans's mean).
+SMALL_CHARACTER_INCHES = 7 * 0.65 / 72
 #: `savefig` options per file suffix: PNG at zlib's fastest level (measured: 40 % less encoding time, 5 % larger files).
 SAVE_OPTIONS = {".png": {"pil_kwargs": {"compress_level": 1}}}
 PERCENT_LIMITS = (-2, 102)  # a little room around 0 and 100 %
@@ -82,9 +84,9 @@ class FigureFolder:
         return written[0]
 
 
-def _panels(count: int) -> tuple[plt.Figure, np.ndarray]:
+def _panels(count: int, panel_width: float = PANEL_WIDTH) -> tuple[plt.Figure, np.ndarray]:
     """A figure of ``count`` panels in a row, with `MARGINS_INCHES` around and between them."""
-    width = PANEL_WIDTH * count
+    width = panel_width * count
     margins = MARGINS_INCHES
     axis_width = (width - margins["left"] - margins["right"] - (count - 1) * margins["between"]) / count
     layout = {
@@ -95,8 +97,8 @@ def _panels(count: int) -> tuple[plt.Figure, np.ndarray]:
         "wspace": margins["between"] / axis_width,
     }
     # Titles sit at the top of their axes: auto-placing them above tick labels re-measures every
-    # tick label at each draw, and no panel has ticks at its top.
-    with pyplot().rc_context({"axes.titley": 1.0}):
+    # tick label at each draw, and no panel has ticks or (without offsets) an offset text at its top.
+    with pyplot().rc_context({"axes.titley": 1.0, "axes.formatter.useoffset": False}):
         figure, axes = pyplot().subplots(1, count, figsize=(width, PANEL_HEIGHT), squeeze=False, gridspec_kw=layout)
     return figure, axes[0]
 
@@ -258,7 +260,9 @@ def plot_query_violins(query_pearson: pd.DataFrame, figures: FigureFolder, color
     written = []
     for (dataset, groundtruth, metric), rows in query_pearson.groupby(FIGURE_KEYS, sort=True):
         panels = sorted(rows.groupby(["paradigm", "method"]).groups)
-        figure, axes = _panels(len(panels))
+        names = rows["ranking"].unique()
+        slot = SMALL_CHARACTER_INCHES * max(12, *(len(name) for name in names)) + 0.1  # a violin's label
+        figure, axes = _panels(len(panels), max(PANEL_WIDTH, MARGINS_INCHES["between"] + len(names) * slot))
         for axis, (paradigm, method) in zip(axes, panels):
             panel = rows[(rows["paradigm"] == paradigm) & (rows["method"] == method)]
             rankings = sorted(panel["ranking"].unique())
@@ -271,6 +275,8 @@ def plot_query_violins(query_pearson: pd.DataFrame, figures: FigureFolder, color
                     parts = axis.violinplot(defined, positions=[position], showmedians=True)
                     for body in parts["bodies"]:
                         body.set_facecolor(colors[ranking])
+                    for lines in ("cbars", "cmins", "cmaxes", "cmedians"):  # else the colour cycle's
+                        parts[lines].set_color(colors[ranking])
                 elif len(defined):
                     axis.scatter(np.full(len(defined), position), defined, color=colors[ranking], s=10)
             axis.set_xticks(range(1, len(rankings) + 1), labels, fontsize=7)
