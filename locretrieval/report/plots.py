@@ -171,7 +171,8 @@ def plot_localization_vs_k(
     table = table[table["subset"] == "all"]
     written = []
     for (dataset, paradigm), rows in table.groupby(["dataset", "paradigm"], sort=True):
-        for method in sorted(set(rows["method"]) & set(rows["method"] if methods is None else methods)):
+        drawn = set(rows["method"]) if methods is None else set(rows["method"]) & set(methods)
+        for method in sorted(drawn):
             curves = curves_for_method(rows, paradigm, method)
             thresholds = curves[THRESHOLD_COLUMNS].drop_duplicates().sort_values(THRESHOLD_COLUMNS)
             figure, axes = _panels(len(thresholds))

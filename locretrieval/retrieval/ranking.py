@@ -126,7 +126,8 @@ def top_k(
 def _best_columns(scores: np.ndarray, depth: int) -> np.ndarray:
     """Columns of the ``depth`` highest scores of each row, best first, ties by lower column:
     a partial selection, then the stable full sort for the rows where the selection split a
-    tie at its boundary (the order of ``-inf`` slots, never ranked, does not matter)."""
+    tie at its boundary (the order of ``-inf`` slots, never ranked, does not matter). Rows
+    shorter than ``4 * depth`` are sorted whole: there, selecting first saves little."""
     if not 0 < 4 * depth < scores.shape[1]:
         return np.argsort(-scores, axis=1, kind="stable")[:, :depth]
     chosen = np.argpartition(-scores, depth - 1, axis=1)[:, :depth]
