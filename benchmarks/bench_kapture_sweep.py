@@ -48,7 +48,7 @@ def write_features(root: Path, keypoints: int) -> None:
     from locretrieval.scene.kapture_io import load_kapture_scene
 
     defaults = OmegaConf.load(REPOSITORY / "configs" / "sfm" / "default.yaml")
-    settings = validated(SfmSettings, OmegaConf.merge(defaults, {"features": {"sift": {"max_num_features": keypoints}}}), "sfm")
+    settings = validated(SfmSettings, OmegaConf.merge(defaults, {"features": {"sift": {"max_num_features": keypoints}}, "matching": {"device": "cpu"}}), "sfm")
     scene = load_kapture_scene("sweep", [root / "mapping"], [root / "query"])
     for folder, images in ((root / "mapping", scene.database), (root / "query", scene.queries)):
         thumbnails = np.stack([np.asarray(Image.open(path).convert("L").resize((16, 12)), np.float32).ravel()

@@ -9,7 +9,7 @@ import zlib  # noqa: F401
 
 from locretrieval import config, models  # noqa: F401,E402  (register the config resolvers)
 
-__version__ = "0.4.0"
+__version__ = "0.5.0"
 
 
 def exit_without_final_collection() -> None:

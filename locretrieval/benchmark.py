@@ -14,6 +14,7 @@ maps), keyed by what produced them; it is never a place results are written to.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -24,6 +25,7 @@ import numpy as np
 import pandas as pd
 from scipy import sparse
 
+from locretrieval.cache import config_key
 from locretrieval.config import ConfigError, validated
 from locretrieval.groundtruth import GroundTruth
 from locretrieval.localization import approximation, global_sfm, local_sfm
@@ -31,7 +33,8 @@ from locretrieval.localization.approximation import ApproximationSettings
 from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.global_sfm import GlobalSfmSettings
 from locretrieval.localization.local_sfm import LocalSfmSettings
-from locretrieval.localization.sfm import SfmSettings
+from locretrieval.localization.plan import ParadigmWork, SfmPlan, UnitCosts, feature_work, measure_unit_costs
+from locretrieval.localization.sfm import SfmInputs, SfmSettings
 from locretrieval.metrics.localization import MetricsSettings, localization_table, query_error_table, query_subsets
 from locretrieval.metrics.retrieval import retrieval_tables
 from locretrieval.metrics.subsets import SubsetSettings, image_subsets
@@ -49,6 +52,16 @@ PARADIGMS: dict[str, Callable[..., list[PoseEstimates]]] = {
     "local_sfm": local_sfm.run,
     "global_sfm": global_sfm.run,
 }
+
+
+#: Planners of the paradigms that match local features (`locretrieval.localization.plan`):
+#: ``plan(scene, rankings or None, settings, sfm, cache_dir, num_rankings) -> ParadigmWork``.
+SFM_PLANNERS: dict[str, Callable[..., ParadigmWork]] = {
+    "local_sfm": local_sfm.plan,
+    "global_sfm": global_sfm.plan,
+}
+#: Unit costs measured in this process, by what they were measured on (`sfm_plan`).
+_unit_costs: dict[str, UnitCosts] = {}
 
 
 @dataclass
@@ -180,6 +193,29 @@ def scene_subsets(
     return tag_masks | image_masks, table
 
 
+def sfm_plan(
+    scene: Scene, rankings: Sequence[Ranking] | None, settings: BenchmarkSettings, cache_dir: str | Path | None,
+    num_rankings: int = 0,
+) -> SfmPlan | None:
+    """The work of the enabled SfM paradigms (`SfmPlan`; ``None`` when none is enabled or there
+    is no cache): exact for ``rankings``, or upper bounds for ``num_rankings`` rankings not
+    computed yet (``None``). When there is new work, unit costs are measured on a sample of the
+    scene (once per scene and settings in a process) for the forecast."""
+    enabled = [name for name in settings.paradigms.enabled() if name in SFM_PLANNERS]
+    if not enabled or cache_dir is None:
+        return None
+    cache_dir = Path(cache_dir)
+    inputs = SfmInputs.prepare(scene, settings.sfm, cache_dir, extract=False)
+    work = [SFM_PLANNERS[name](scene, rankings, getattr(settings.paradigms, name), settings.sfm, cache_dir, num_rankings) for name in enabled]
+    plan = SfmPlan(feature_work(inputs), work, rankings is not None, settings.sfm.processes)
+    if plan.features.new or plan.new_pairs() or any(w.maps.new or w.registrations.new for w in work):
+        key = config_key(scene.database.fingerprint(), scene.queries.fingerprint(), dataclasses.asdict(settings.sfm))
+        if key not in _unit_costs:
+            _unit_costs[key] = measure_unit_costs(scene, settings.sfm)
+        plan.costs = _unit_costs[key]
+    return plan
+
+
 def benchmark(
     scene: Scene,
     rankings: Sequence[Ranking],
@@ -198,6 +234,9 @@ def benchmark(
     check_supported(scene, settings.paradigms.enabled())
     warn_shallow_rankings(rankings, settings.paradigms.ks())
     depths = {ranking.name: ranking.depth for ranking in rankings}
+    plan = sfm_plan(scene, rankings, settings, cache_dir)
+    if plan is not None:
+        log.info("%s", plan.describe())
     estimates: list[PoseEstimates] = []
     for paradigm in settings.paradigms.enabled():
         paradigm_settings = getattr(settings.paradigms, paradigm)

@@ -12,7 +12,7 @@ from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.benchmark import (
-    BenchmarkResult, BenchmarkSettings, benchmark, build_rankings, check_supported, relevances, scene_subsets,
+    BenchmarkResult, BenchmarkSettings, benchmark, build_rankings, check_supported, relevances, scene_subsets, sfm_plan,
 )
 from locretrieval.cache import save_arrays
 from locretrieval.config import validated
@@ -33,7 +33,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     """Run the benchmark configured by ``cfg`` and write every output into ``output_dir``.
 
     Every config section, then every input file the run needs (`check_inputs`), is checked
-    before any work. Writes the tidy tables
+    before any work; with ``dry_run`` the SfM work is only planned and logged (`log_plan`). Writes the tidy tables
     (``results.csv``, ``query_errors.csv.gz``, ``retrieval.csv``, ``query_retrieval.csv.gz``,
     ``groundtruth_statistics.csv``, ``subsets.csv``), the rankings, LTVL exports,
     ``summary.json`` and the report built from those tables. Returns the localization table.
@@ -42,12 +42,15 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     settings = BenchmarkSettings.from_config(cfg)
     groundtruth_settings = validated(GroundTruthSettings, cfg.groundtruth, "groundtruth")
     subset_settings = validated(SubsetSettings, cfg.subsets, "subsets")
-    output_dir.mkdir(parents=True, exist_ok=True)
-    OmegaConf.save(cfg, output_dir / "config.yaml", resolve=True)  # as run; .hydra/ keeps the interpolations
     cache_dir = Path(cfg.paths.cache_dir)
     scene: Scene = instantiate(cfg.data)
     log.info("scene %s: %d database images, %d queries", scene.name, len(scene.database), len(scene.queries))
     check_inputs(cfg, scene, settings, groundtruth_settings, subset_settings)
+    if cfg.dry_run:
+        log_plan(cfg, scene, settings, groundtruth_settings, cache_dir)
+        return pd.DataFrame()
+    output_dir.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(cfg, output_dir / "config.yaml", resolve=True)  # as run; .hydra/ keeps the interpolations
 
     model = instantiate(cfg.model)
     descriptors = describe_scene(model, scene, cache_dir)
@@ -87,6 +90,19 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
         log.info("best %% localized over k, all queries:\n%s", best.to_string())
     log.info("results and report.md in %s", output_dir)
     return results
+
+
+def log_plan(cfg: DictConfig, scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings, cache_dir: Path) -> None:
+    """``dry_run``: log the SfM paradigms' work and its forecast (`sfm_plan`: upper bounds, since
+    no ranking is computed) and nothing else: no descriptor, feature, match or file is written."""
+    groundtruth_rankings = len(groundtruths.parsed()) if scene.queries.has_pose.any() else 0
+    num_rankings = 1 + groundtruth_rankings + int(bool(cfg.baselines.random))
+    plan = sfm_plan(scene, None, settings, cache_dir, num_rankings)
+    if plan is None:
+        log.info("dry run: no SfM paradigm is enabled, nothing to match")
+    else:
+        log.info("dry run over %d rankings (the model's, %d of the ground truth, %d random); nothing is computed:\n%s",
+                 num_rankings, groundtruth_rankings, int(bool(cfg.baselines.random)), plan.describe())
 
 
 def check_inputs(

@@ -37,9 +37,10 @@ def zoo_model(model: str, **options):
 
 
 def sfm_settings(*overrides: Mapping) -> SfmSettings:
-    """``configs/sfm/default.yaml`` run in this process (``workers: 1``), ``overrides`` merged in order."""
+    """``configs/sfm/default.yaml`` run in this process (``workers: 1``) on the CPU, ``overrides``
+    merged in order."""
     defaults = OmegaConf.load(CONFIGS / "sfm" / "default.yaml")
-    return validated(SfmSettings, OmegaConf.merge(defaults, {"workers": 1}, *overrides), "sfm")
+    return validated(SfmSettings, OmegaConf.merge(defaults, {"workers": 1, "matching": {"device": "cpu"}}, *overrides), "sfm")
 
 
 class StopAfterEpoch(L.Callback):

@@ -118,8 +118,8 @@ def test_groundtruth_ranks_by_shared_points_through_the_registry(scene, cache, s
     np.testing.assert_array_equal(again.ranking.indices, indices)
     # the joint map again: its matches are read from the cache, nothing is matched again
     calls = []
-    real = matching.mutual_nearest_neighbours
-    monkeypatch.setattr(matching, "mutual_nearest_neighbours", lambda *args: calls.append(1) or real(*args))
+    real = matching.NearestNeighbourMatcher.__call__
+    monkeypatch.setattr(matching.NearestNeighbourMatcher, "__call__", lambda *args: calls.append(1) or real(*args))
     recomputed = shared_points(database, queries, cache, SFM, 10)
     np.testing.assert_array_equal(recomputed.toarray(), shared)
     assert not calls

@@ -7,6 +7,7 @@ import kapture.io.csv as kapture_csv
 import kapture.io.features as kapture_features
 import numpy as np
 import pytest
+import torch
 from scipy.spatial.transform import Rotation
 
 import helpers
@@ -17,7 +18,7 @@ from locretrieval.localization import features as features_module
 from locretrieval.localization import matching
 from locretrieval.localization.features import extract_features
 from locretrieval.localization.matching import (
-    PairMatcher, TwoViewSettings, epipolar_inliers, essential_matrix, mutual_nearest_neighbours, sampson_errors,
+    NearestNeighbourMatcher, PairMatcher, TwoViewSettings, epipolar_inliers, essential_matrix, sampson_errors,
     two_view_inliers,
 )
 from locretrieval.localization.store import ShardedStore
@@ -126,15 +127,22 @@ def write_kapture_features(root: Path, names: list[str], keypoints: list[np.ndar
         kapture_features.image_descriptors_to_file(kapture_features.get_descriptors_fullpath("r2d2", kapture_dir, name), values)
 
 
-def test_kapture_features_are_read_with_the_pixel_offset(tmp_path):
-    rng = np.random.default_rng(0)
-    names = ["db/a.jpg", "db/sub/b.jpg"]
-    root = tmp_path / "mapping"
+def kapture_folder_with_features(root: Path, names: list[str], counts: tuple[int, ...], seed: int):
+    """Two images of a kapture folder at ``root`` with ``counts`` random R2D2-style keypoints
+    (x, y, scale) and descriptors: the image set, keypoints and descriptors."""
+    rng = np.random.default_rng(seed)
     camera = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
     images = ImageSet(names, root / "sensors" / "records_data", [camera] * 2, np.tile([1.0, 0, 0, 0], (2, 1)), np.zeros((2, 3)))
-    keypoints = [rng.uniform(0, 40, (n, 3)).astype(np.float32) for n in (7, 3)]
-    descriptors = [rng.normal(size=(n, 128)).astype(np.float32) for n in (7, 3)]
+    keypoints = [rng.uniform(0, 40, (n, 3)).astype(np.float32) for n in counts]
+    descriptors = [rng.normal(size=(n, 128)).astype(np.float32) for n in counts]
     write_kapture_features(root, names, keypoints, descriptors)
+    return images, keypoints, descriptors
+
+
+def test_kapture_features_are_read_with_the_pixel_offset(tmp_path):
+    names = ["db/a.jpg", "db/sub/b.jpg"]
+    root = tmp_path / "mapping"
+    images, keypoints, descriptors = kapture_folder_with_features(root, names, (7, 3), 0)
     config = {"type": "kapture", "kapture": {"name": "r2d2", "pixel_offset": 0.5}}
     store = extract_features(images, features(config), tmp_path / "cache", workers=1)
     for name, points, values in zip(names, keypoints, descriptors):
@@ -144,8 +152,41 @@ def test_kapture_features_are_read_with_the_pixel_offset(tmp_path):
     (root / "reconstruction" / "descriptors" / "r2d2" / "db" / "sub" / "b.jpg.desc").unlink()
     with pytest.raises(FileNotFoundError, match=r"descriptors 'r2d2' of image 'db/sub/b.jpg' not found: .*b\.jpg\.desc"):
         extract_features(images, features({**config, "kapture": {"pixel_offset": 0.0}}), tmp_path / "cache", workers=1)
-    with pytest.raises(ConfigError, match=r"sfm.features.kapture.nmae: unknown key; expected one of \['name', 'pixel_offset'\]"):
+    with pytest.raises(ConfigError, match=r"sfm.features.kapture.nmae: unknown key; expected one of \['name', 'pixel_offset', 'score_order'\]"):
         features({"type": "kapture", "kapture": {"nmae": "r2d2"}})
+
+
+def test_a_keypoint_budget_keeps_the_best_rows_of_kapture_features_by_their_score_order(tmp_path):
+    images, keypoints, descriptors = kapture_folder_with_features(tmp_path / "mapping", ["db/a.jpg", "db/b.jpg"], (9, 4), 5)
+    for order, rows in [("ascending", slice(4, 9)), ("descending", slice(0, 5))]:  # R2D2 writes the best last
+        config = {"type": "kapture", "max_keypoints": 5, "kapture": {"name": "r2d2", "pixel_offset": 0.0, "score_order": order}}
+        store = extract_features(images, features(config), tmp_path / "cache", workers=1)
+        read_points, read_values = store.load(["db/a.jpg"])["db/a.jpg"]
+        np.testing.assert_array_equal(read_points, keypoints[0][rows, :2])
+        np.testing.assert_array_equal(read_values, descriptors[0][rows])
+        assert len(store.keypoints(["db/b.jpg"])["db/b.jpg"]) == 4  # fewer than the budget: all
+    with pytest.raises(ConfigError, match=r"sfm.features.max_keypoints: needs the score order of the kapture features 'r2d2'"):
+        features({"type": "kapture", "max_keypoints": 5, "kapture": {"score_order": None}})
+
+
+def test_a_keypoint_budget_keeps_pycolmaps_strongest_sift_detections(scene, tmp_path):
+    database = scene.database.subset(np.arange(3))
+    full = extract_features(database, SFM.features, tmp_path, workers=1)
+    budget = extract_features(database, features({"max_keypoints": 12}), tmp_path, workers=1)
+    assert budget.folder != full.folder
+    for name in database.names:
+        all_points, kept = full.keypoints([name])[name], budget.keypoints([name])[name]
+        assert len(all_points) > 20 and len(kept) == 12
+        assert len(np.unique(kept, axis=0)) >= 10  # extra orientations of a detection come last
+        # the budget's keypoints are among the full set's (the same detector, its strongest detections)
+        assert np.linalg.norm(kept[:, None] - all_points[None], axis=-1).min(axis=1).max() < 1e-3
+
+
+def test_best_keypoints_prefer_new_locations_to_extra_sift_orientations():
+    points = np.array([[1, 1], [1, 1], [2, 2], [3, 3], [3, 3], [4, 4]], dtype=np.float32)  # pycolmap's order
+    np.testing.assert_array_equal(features_module.best_keypoints(points, 4, "sift"), [0, 2, 3, 5])
+    np.testing.assert_array_equal(features_module.best_keypoints(points, 5, "sift"), [0, 1, 2, 3, 5])
+    np.testing.assert_array_equal(features_module.best_keypoints(points, None, "sift"), np.arange(6))
 
 
 # ------------------------------------------------------------------------------------ matching
@@ -165,11 +206,43 @@ def reference_matches(first: np.ndarray, second: np.ndarray, ratio: float) -> se
     return result
 
 
-# small blocks: 50 columns of the 60 rows, the partners in blocks [40], [75] (alone: larger), [0, 1]
-@pytest.mark.parametrize("block_bytes, num_blocks", [(matching.SIMILARITY_BLOCK_BYTES, 1), (4 * 60 * 50, 3)])
-def test_mutual_nearest_neighbours_match_an_explicit_computation(block_bytes, num_blocks, monkeypatch):
-    monkeypatch.setattr(matching, "SIMILARITY_BLOCK_BYTES", block_bytes)
-    assert len(matching._blocks([40, 75, 0, 1], block_bytes // (4 * 60))) == num_blocks
+def direct_matches(first: np.ndarray, second: np.ndarray, ratio: float) -> np.ndarray:
+    """The whole float64 similarity matrix, argmax both ways (first index on ties), the ratio
+    test on each row's two best values (equal on a tie; no test with a single column)."""
+    a = first / np.linalg.norm(first, axis=1, keepdims=True)
+    b = second / np.linalg.norm(second, axis=1, keepdims=True)
+    similarity = a @ b.T
+    nearest, back = similarity.argmax(1), similarity.argmax(0)
+    two_best = np.sort(np.column_stack([similarity, np.full(len(a), -1.0)]), axis=1)[:, -2:]  # -1: a lone column's runner-up
+    passes = 2 - 2 * two_best[:, 1] <= ratio**2 * (2 - 2 * two_best[:, 0]) if similarity.shape[1] >= 2 else np.ones(len(a), bool)
+    keep = passes & (back[nearest] == np.arange(len(a)))
+    return np.column_stack([np.flatnonzero(keep), nearest[keep]])
+
+
+def ternary(count: int, dimension: int, nonzero: int, rng: np.random.Generator) -> np.ndarray:
+    """Rows of ``nonzero`` entries +-1 (a power of 4, so that normalised rows hold powers of two
+    and every similarity is exact in float16, float32 and float64): many exact ties."""
+    rows = np.zeros((count, dimension))
+    for row in rows:
+        row[rng.choice(dimension, nonzero, replace=False)] = rng.choice([-1.0, 1.0], nonzero)
+    return rows
+
+
+# blocks: one; 128 x 128 (several row blocks and column tiles, padded tiles)
+@pytest.mark.parametrize("block_bytes", [matching.CPU_BLOCK_BYTES, 4 * 128 * 128])
+@pytest.mark.parametrize("precision", ["float32", "float16"])
+def test_matcher_equals_the_direct_computation_with_ties(block_bytes, precision):
+    rng = np.random.default_rng(3)
+    for rows, columns, dimension, nonzero in [(300, 500, 32, 4), (260, 131, 16, 4), (129, 257, 64, 16), (7, 1, 16, 4)]:
+        first, second = ternary(rows, dimension, nonzero, rng), ternary(columns, dimension, nonzero, rng)
+        first[5], second[-1] = second[0], first[0]  # exact matches between the sets
+        for ratio in (1.0, 0.9, 0.7):
+            matcher = NearestNeighbourMatcher(ratio, "cpu", precision, block_bytes)
+            expected = direct_matches(first, second, ratio)
+            np.testing.assert_array_equal(matcher(first, [second])[0], expected, err_msg=f"{rows}x{columns}, ratio {ratio}")
+
+
+def test_matcher_equals_an_explicit_computation_on_real_valued_descriptors():
     rng = np.random.default_rng(1)
     first = rng.normal(size=(60, 16))
     # partners: noisy copies of a shuffled part of `first`, plus distractors; one empty
@@ -177,13 +250,47 @@ def test_mutual_nearest_neighbours_match_an_explicit_computation(block_bytes, nu
     for size in (40, 75, 0, 1):
         rows = rng.permutation(60)[: min(size, 30)]
         others.append(np.concatenate([first[rows] + 0.3 * rng.normal(size=(len(rows), 16)), rng.normal(size=(size - len(rows), 16))]))
-    matches = mutual_nearest_neighbours(first, others, 0.8)
+    matches = NearestNeighbourMatcher(0.8, block_bytes=4 * 128 * 128)(first, others)
     for other, found in zip(others, matches):
         assert found.dtype == np.int32 and found.shape[1] == 2
         if len(other) >= 2:
             assert {tuple(m) for m in found.tolist()} == reference_matches(first, other, 0.8)
     assert len(matches[0]) > 10 and len(matches[2]) == 0
     assert len(matches[3]) <= 1  # a single partner descriptor: no ratio test, mutual check only
+
+
+def test_matcher_block_shape_bounds_the_similarity_memory():
+    matcher = NearestNeighbourMatcher(0.8, block_bytes=8 << 20)
+    # about square, equal blocks: 20,000 columns = 157 tiles of 128 in 15 blocks of 11 tiles; rows in 15 blocks of 1,408
+    assert matcher.block_shape(20_000, 20_000, 4) == (1408, 1408)
+    assert matcher.block_shape(20_000, 300, 4) == (5120, 384)  # at most 5,376 rows fit: 4 blocks of 5,000 rounded up to 128
+    assert matcher.block_shape(2_000, 2_000, 4) == (2000, 1024)  # 2 x 8 tiles; 2,048 rows fit
+    assert matcher.block_shape(50, 20_000, 2) == (50, 2048)  # float16: 16 tiles (a side of 2,048) in 10 blocks of 16
+    for rows, columns, size in [(20_000, 20_000, 4), (3, 5, 4), (20_000, 300, 2), (1_000, 70_000, 4), (129, 64, 4)]:
+        height, width = matcher.block_shape(rows, columns, size)
+        assert height * width * size <= 8 << 20 and width % matching.TILE == 0 and (height == rows or height % matching.TILE == 0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (none here)")
+@pytest.mark.parametrize("precision", ["float32", "float16"])
+def test_matcher_on_the_gpu_equals_the_cpu_with_ties(precision):
+    rng = np.random.default_rng(4)
+    first, second = ternary(3000, 64, 16, rng), ternary(2500, 64, 16, rng)
+    settings = helpers.sfm_settings({"matching": {"device": "cuda", "precision": precision, "block_mib": 1}}).matching
+    gpu = settings.matcher(workers=2)
+    assert gpu.device.startswith("cuda") and gpu.block_bytes == 1 << 20
+    np.testing.assert_array_equal(gpu(first, [second])[0], NearestNeighbourMatcher(0.8, "cpu", precision)(first, [second])[0])
+
+
+def test_matching_settings_resolve_the_device_and_the_block():
+    settings = helpers.sfm_settings({"matching": {"block_mib": 2.5, "precision": "float16"}}).matching
+    matcher = settings.matcher()
+    assert (matcher.device, matcher.precision, matcher.block_bytes, matcher.ratio) == ("cpu", "float16", int(2.5 * 2**20), 0.8)
+    assert helpers.sfm_settings().matching.matcher().block_bytes == matching.CPU_BLOCK_BYTES
+    # where and in which blocks matches are computed is not what determines them
+    assert "device" not in settings.identity() and "block_mib" not in settings.identity() and settings.identity()["precision"] == "float16"
+    with pytest.raises(ConfigError, match="sfm.matching.precision"):
+        helpers.sfm_settings({"matching": {"precision": "int8"}})
 
 
 def geometric_error(x0: np.ndarray, x1: np.ndarray, q0, t0, q1, t1) -> float:
@@ -229,8 +336,8 @@ def test_matches_are_cached_per_pair_and_reused_for_larger_sets(scene, tmp_path,
     store = extract_features(database, SFM.features, tmp_path, workers=1)
     matcher = PairMatcher(database, store, database, store, SFM.matching, tmp_path)
     calls = []
-    real = matching.mutual_nearest_neighbours
-    monkeypatch.setattr(matching, "mutual_nearest_neighbours", lambda first, others, ratio: calls.append(len(others)) or real(first, others, ratio))
+    real = NearestNeighbourMatcher.__call__
+    monkeypatch.setattr(NearestNeighbourMatcher, "__call__", lambda self, first, others: calls.append(len(others)) or real(self, first, others))
     names = database.names
     # same heading at neighbouring stations (8 cameras per station)
     small = [(names[0], names[8]), (names[9], names[1]), (names[8], names[16])]

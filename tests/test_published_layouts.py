@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import kapture
@@ -22,6 +22,7 @@ import helpers
 from locretrieval.config import ConfigError
 from locretrieval.evaluation import evaluate
 from locretrieval.localization.features import extract_features
+from locretrieval.localization.pairs import database_pairs
 from locretrieval.scene import ImageSet
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
@@ -183,3 +184,28 @@ def test_inloc_refuses_global_sfm_at_start_up(rendered, tmp_path):
     with pytest.raises(ConfigError, match="dataset 'inloc' does not support global_sfm: InLoc's global map comes from its depth scans"):
         evaluate(cfg, tmp_path / "run")
     assert not (tmp_path / ".cache").exists()  # refused before any work (nothing cached)
+
+
+def test_a_dry_run_logs_the_plan_and_its_forecast_and_writes_nothing(rendered, tmp_path, caplog):
+    install(LAYOUTS["baidu"], rendered, tmp_path / "data")
+    scene = rendered[0]
+    cfg = helpers.evaluate_config(
+        "data=baidu", f"paths.data_dir={tmp_path / 'data'}", f"paths.root_dir={tmp_path}", "model=precomputed",
+        "model.feature_name=densevlad_multi", "paradigms.local_sfm.k=[3]", "paradigms.global_sfm.k=[1,3]", "sfm.workers=1",
+        "dry_run=true", *helpers.QUIET_EXTRACTION[:1],
+    )
+    before = {path for path in tmp_path.rglob("*")}
+    with caplog.at_level("INFO", logger="locretrieval"):
+        assert evaluate(cfg, tmp_path / "run").empty
+    assert {path for path in tmp_path.rglob("*")} == before  # no output folder, no cache: nothing but the log
+    plan = next(record.getMessage() for record in caplog.records if "SfM plan" in record.getMessage())
+    # 5 rankings (the model, 3 ground truths, random), 12 database images, 4 queries, each ranking's top 3 apart
+    rankings, queries, images = 5, 4, 12
+    query_pairs = min(rankings * queries * 3, queries * images)
+    map_pairs = len(database_pairs(scene.database, replace(helpers.sfm_settings().map_pairs, far=50.0, min_radius=10.0, max_per_image=None)))
+    assert map_pairs > 0 and "local features of 16 (16 new) images" in plan
+    assert (f"local_sfm: query pairs {query_pairs} ({query_pairs} new), database pairs {rankings * queries * 3} ({rankings * queries * 3} new), "
+            f"maps {rankings * queries} ({rankings * queries} new) (~3 pairs each), registrations {rankings * queries}") in plan
+    assert (f"global_sfm: query pairs {query_pairs} ({query_pairs} new), database pairs {map_pairs} ({map_pairs} new), maps 1 (1 new)"
+            f" (~{map_pairs} pairs each), registrations {rankings * queries * 2}") in plan
+    assert "matching on cpu" in plan and "forecast: features" in plan and "at most" in plan

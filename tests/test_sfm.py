@@ -20,6 +20,7 @@ from locretrieval.localization.features import FeatureStore, extract_features
 from locretrieval.localization.global_sfm import GlobalSfmSettings, global_map, map_cache_path
 from locretrieval.localization.local_sfm import LocalSfmSettings, local_map_pairs
 from locretrieval.localization.pairs import PairSelection, database_pairs
+from locretrieval.localization.plan import Work
 from locretrieval.localization.pnp import NO_KEYPOINTS, TOO_FEW_IMAGES, TOO_FEW_MATCHES, estimate_absolute_pose
 from locretrieval.localization.sfm import QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set
 from locretrieval.localization.triangulation import triangulate_known_poses
@@ -201,13 +202,13 @@ def test_local_maps_from_query_derived_matches_match_no_database_pair(scene, cac
 def count_matcher_calls(monkeypatch) -> list[int]:
     """Spy on the matcher (workers=1 runs it in this process): pairs matched per call."""
     calls = []
-    real = matching.mutual_nearest_neighbours
+    real = matching.NearestNeighbourMatcher.__call__
 
-    def counting(first, others, ratio):
+    def counting(self, first, others):
         calls.append(len(others))
-        return real(first, others, ratio)
+        return real(self, first, others)
 
-    monkeypatch.setattr(matching, "mutual_nearest_neighbours", counting)
+    monkeypatch.setattr(matching.NearestNeighbourMatcher, "__call__", counting)
     return calls
 
 
@@ -401,3 +402,50 @@ def test_global_map_pairs_are_the_most_overlapping_frusta(scene):
     # every chosen pair is among the best three of one of its images
     assert all(b in np.argsort(-radii[a], kind="stable")[:3] or a in np.argsort(-radii[b], kind="stable")[:3] for a, b in pairs)
     assert len(database_pairs(database, PairSelection(near=0.1, far=25.0, min_radius=1e6, max_per_image=None))) == 0
+
+
+def distinct_work(rankings, ks):
+    """Independently counted: query pairs of the top max(ks), database pairs within them, and
+    the distinct (query, top-k set) registrations and top-k sets of two or more images."""
+    query_pairs, database_pairs_, registrations, maps = set(), set(), set(), set()
+    for ranking in rankings:
+        for q, row in enumerate(ranking.indices):
+            top = [int(i) for i in row[: max(ks)] if i >= 0]
+            query_pairs.update((q, i) for i in top)
+            database_pairs_.update((min(a, b), max(a, b)) for a in top for b in top if a != b)
+            for k in ks:
+                images = tuple(sorted(top[:k]))
+                registrations.add((q, images))
+                maps.update([images] if len(images) >= 2 else [])
+    return query_pairs, database_pairs_, registrations, maps
+
+
+def test_the_plan_counts_the_work_that_the_paradigms_then_do(scene, cache, rankings, monkeypatch):
+    sfm = sfm_settings()
+    local, global_ = LocalSfmSettings(True, [3, 5], "database"), GlobalSfmSettings(True, [1, 5], None)
+
+    def plans():
+        return local_sfm.plan(scene, rankings, local, sfm, cache, 0), global_sfm.plan(scene, rankings, global_, sfm, cache, 0)
+
+    local_work, global_work = plans()
+    query_pairs, pairs_within, local_registrations, maps = distinct_work(rankings, [3, 5])
+    assert local_work.query_pairs == global_work.query_pairs == Work(len(query_pairs), len(query_pairs))
+    assert local_work.database_pairs == Work(len(pairs_within), len(pairs_within))
+    assert local_work.maps == Work(len(maps), len(maps)) and local_work.registrations == Work(len(local_registrations), len(local_registrations))
+    map_pairs = len(database_pairs(scene.database, sfm.map_pairs.for_scene(scene)))
+    assert global_work.database_pairs == Work(map_pairs, map_pairs) and global_work.maps == Work(1, 1)
+    global_registrations = len(distinct_work(rankings, [1, 5])[2])
+    assert global_work.registrations == Work(global_registrations, global_registrations)
+    # the runs match exactly the new pairs the plans counted
+    calls = count_matcher_calls(monkeypatch)
+    local_sfm.run(scene, rankings, local, sfm, cache)
+    assert sum(calls) == len(query_pairs) + len(pairs_within)
+    calls.clear()
+    global_sfm.run(scene, rankings, global_, sfm, cache)
+    already = len({(min(a, b), max(a, b)) for a, b in database_pairs(scene.database, sfm.map_pairs.for_scene(scene))} & pairs_within)
+    assert sum(calls) == map_pairs - already
+    # afterwards nothing is new
+    local_after, global_after = plans()
+    assert local_after.query_pairs.new == local_after.database_pairs.new == local_after.maps.new == local_after.registrations.new == 0
+    assert global_after.query_pairs.new == global_after.maps.new == global_after.registrations.new == 0
+    assert (local_after.maps.total, global_after.registrations.total) == (len(maps), global_registrations)

@@ -111,8 +111,8 @@ def compute_groundtruths(
                 raise ConfigError(f"groundtruth.definitions.{name}: the {kind} ground truth needs the sfm settings")
             sfm_for_scene = dataclasses.replace(sfm, map_pairs=sfm.map_pairs.for_scene(scene))
             parameters.update(sfm=sfm_for_scene, cache_dir=cache_dir)
-            produced_by["sfm"] = {key: dataclasses.asdict(getattr(sfm_for_scene, key))
-                                  for key in ("features", "matching", "triangulation", "map_pairs")}
+            produced_by["sfm"] = {key: dataclasses.asdict(getattr(sfm_for_scene, key)) for key in ("features", "triangulation", "map_pairs")}
+            produced_by["sfm"]["matching"] = sfm_for_scene.matching.identity()
         path = None
         if cache_dir is not None:
             key = config_key(CACHE_VERSION, kind, produced_by, settings.depth, *fingerprints)

@@ -15,7 +15,11 @@ The ``features`` config picks a ``type`` and reads that type's section:
   with their ``keypoints.txt``/``descriptors.txt`` headers, or the downloader's
   ``<dataset>/local_features/<name>/{keypoints,descriptors}/``, e.g. the published R2D2
   features ``r2d2_WASF-N8_20k``); ``pixel_offset`` is added to their x and y (0.5 converts keypoints whose first
-  pixel centre is (0, 0), as R2D2 and OpenCV write them, to COLMAP's convention).
+  pixel centre is (0, 0), as R2D2 and OpenCV write them, to COLMAP's convention);
+  ``score_order`` says how the rows are ordered by detector score (R2D2: ascending).
+
+``max_keypoints`` (both types; null: all) keeps each image's best keypoints: the best rows by
+score for kapture features, pycolmap's strongest detections for SIFT (`best_keypoints`).
 
 Features live in ``<cache_dir>/features/<image set fingerprint>-<config key>/`` as HDF5
 shards (`ShardedStore`) keyed by image name, computed once and reused across runs.
@@ -25,8 +29,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -70,29 +75,46 @@ class SiftSettings:
         require(self.peak_threshold > 0, "peak_threshold", f"must be positive, got {self.peak_threshold}")
 
 
+#: How the rows of a kapture keypoints file are ordered by detector score (R2D2's
+#: ``extract_kapture.py`` keeps the top-k by score in ascending order: the best rows last).
+SCORE_ORDERS = ("ascending", "descending")
+
+
 @dataclass
 class KaptureFeatureSettings:
     """Published features ``<name>`` of each kapture folder (``reconstruction/{keypoints,descriptors}/<name>/``
-    or the downloader's ``local_features/<name>/{keypoints,descriptors}/`` beside it); ``pixel_offset`` is added to their x and y (0.5: OpenCV/R2D2 pixel centres to COLMAP's)."""
+    or the downloader's ``local_features/<name>/{keypoints,descriptors}/`` beside it); ``pixel_offset`` is added to their x and y (0.5: OpenCV/R2D2 pixel centres to COLMAP's);
+    ``score_order``: how their rows are ordered by detector score (`SCORE_ORDERS`, or null: unknown)."""
 
     name: str
     pixel_offset: float
+    score_order: str | None
+
+    def __post_init__(self) -> None:
+        require(self.score_order is None or self.score_order in SCORE_ORDERS, "score_order",
+                f"must be one of {list(SCORE_ORDERS)} or null, got {self.score_order!r}")
 
 
 @dataclass
 class FeatureSettings:
-    """Local features: ``type`` (`FEATURE_TYPES`) picks the section that applies."""
+    """Local features: ``type`` (`FEATURE_TYPES`) picks the section that applies;
+    ``max_keypoints`` (null: all) keeps the best keypoints of each image (`best_keypoints`)."""
 
     type: str
+    max_keypoints: int | None
     sift: SiftSettings
     kapture: KaptureFeatureSettings
 
     def __post_init__(self) -> None:
         require(self.type in FEATURE_TYPES, "type", f"must be one of {list(FEATURE_TYPES)}, got {self.type!r}")
+        require(self.max_keypoints is None or self.max_keypoints > 0, "max_keypoints", f"must be positive or null, got {self.max_keypoints}")
+        require(self.max_keypoints is None or self.type != "kapture" or self.kapture.score_order is not None, "max_keypoints",
+                f"needs the score order of the kapture features {self.kapture.name!r} (sfm.features.kapture.score_order: "
+                f"{' or '.join(SCORE_ORDERS)}), which is not set")
 
     def identity(self) -> dict[str, Any]:
-        """What determines the features: the type and its own section only."""
-        return {"type": self.type, self.type: dataclasses.asdict(getattr(self, self.type))}
+        """What determines the features: the type, the keypoint budget and the type's own section."""
+        return {"type": self.type, "max_keypoints": self.max_keypoints, self.type: dataclasses.asdict(getattr(self, self.type))}
 
     def key(self) -> str:
         """Cache key of the features."""
@@ -118,9 +140,14 @@ class FeatureStore:
         return {name: record["keypoints"] for name, record in self.store.read(names, arrays=("keypoints",)).items()}
 
 
+def feature_store(images: ImageSet, settings: FeatureSettings, cache_dir: str | Path) -> FeatureStore:
+    """Where the features of ``images`` are cached (as far as they are: nothing is extracted)."""
+    return FeatureStore(Path(cache_dir) / "features" / f"{images.fingerprint(include_poses=False)}-{settings.key()}")
+
+
 def extract_features(images: ImageSet, settings: FeatureSettings, cache_dir: str | Path, workers: int) -> FeatureStore:
     """The features of every image of ``images``, extracting (or reading) only missing ones."""
-    store = FeatureStore(Path(cache_dir) / "features" / f"{images.fingerprint(include_poses=False)}-{settings.key()}")
+    store = feature_store(images, settings, cache_dir)
     paths = dict(zip(images.names, images.paths))
     missing = store.store.missing(images.names)
     if missing:
@@ -137,23 +164,59 @@ def extract_features(images: ImageSet, settings: FeatureSettings, cache_dir: str
 def _extract_shard(shared: tuple[str, FeatureSettings], images: list[tuple[str, str]]) -> int:
     """Worker: features of one chunk of ``(name, image path)``, written as one shard."""
     folder, settings = shared
+    features = read_or_extract(settings)
+    ShardedStore(folder).write({name: features(name, Path(path)) for name, path in images})
+    return len(images)
+
+
+def read_or_extract(settings: FeatureSettings) -> Callable[[str, Path], dict[str, np.ndarray]]:
+    """``(image name, path) -> {"keypoints", "descriptors"}`` of ``settings``, the best
+    ``max_keypoints`` of them (`best_keypoints`), in memory (nothing is cached)."""
     if settings.type == "sift":
-        extract = _sift_extractor(settings.sift)
-        records = {name: extract(Path(path)) for name, path in images}
+        extract = _sift_extractor(settings.sift, settings.max_keypoints)
+        source, order = (lambda name, path: extract(path)), "sift"
     else:
-        records = {name: _read_kapture_features(name, Path(path), settings.kapture) for name, path in images}
-    ShardedStore(folder).write(records)
-    return len(records)
+        source, order = partial(_read_kapture_features, settings=settings.kapture), settings.kapture.score_order
+
+    def features(name: str, path: Path) -> dict[str, np.ndarray]:
+        record = source(name, path)
+        kept = best_keypoints(record["keypoints"], settings.max_keypoints, order)
+        return {key: values[kept] for key, values in record.items()}
+
+    return features
 
 
-def _sift_extractor(settings: SiftSettings):
-    """``path -> {"keypoints", "descriptors"}`` with pycolmap's CPU SIFT."""
+def best_keypoints(keypoints: np.ndarray, budget: int | None, order: str | None) -> np.ndarray:
+    """Sorted row indices of the at most ``budget`` best of ``keypoints [n, >=2]`` (all: ``None``):
+
+    - ``ascending`` / ``descending``: the rows are ordered by detector score (`SCORE_ORDERS`),
+      the best are the last / first;
+    - ``sift``: pycolmap already kept its strongest detections (its ``max_num_features`` is the
+      budget), but a detection with two orientations is two rows: each location's first row
+      comes before the extra orientations.
+    """
+    if budget is None or len(keypoints) <= budget:
+        return np.arange(len(keypoints))
+    if order == "ascending":
+        return np.arange(len(keypoints) - budget, len(keypoints))
+    if order == "descending":
+        return np.arange(budget)
+    if order != "sift":
+        raise ValueError(f"unknown keypoint order {order!r}: expected one of {[*SCORE_ORDERS, 'sift']}")
+    _, first = np.unique(keypoints[:, :2], axis=0, return_index=True)
+    extra_orientations = np.setdiff1d(np.arange(len(keypoints)), first)
+    return np.sort(np.concatenate([np.sort(first), extra_orientations])[:budget])
+
+
+def _sift_extractor(settings: SiftSettings, budget: int | None) -> Callable[[Path], dict[str, np.ndarray]]:
+    """``path -> {"keypoints", "descriptors"}`` with pycolmap's CPU SIFT (at most ``budget``
+    detections, when it is below ``max_num_features``)."""
     import pycolmap
 
     options = pycolmap.FeatureExtractionOptions()
     options.num_threads = 1
     options.sift.first_octave = settings.first_octave
-    options.sift.max_num_features = settings.max_num_features
+    options.sift.max_num_features = min(settings.max_num_features, budget or settings.max_num_features)
     options.sift.peak_threshold = settings.peak_threshold
     extractor = pycolmap.FeatureExtractor.create(options)
     max_side = settings.max_side

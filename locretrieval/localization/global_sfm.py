@@ -31,9 +31,11 @@ from locretrieval.localization.colmap_model import read_colmap_map
 from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.pairs import database_pairs
 from locretrieval.localization.paradigm import ParadigmSettings
+from locretrieval.localization.plan import ParadigmWork, Work, database_pair_work, query_pair_work, registration_work
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS
+from locretrieval.localization.pose_cache import PoseCache
 from locretrieval.localization.sfm import (
-    Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, register_query, run_queries,
+    Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, query_tasks, register_query, run_queries,
 )
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.localization.triangulation import triangulate_known_poses
@@ -60,9 +62,36 @@ def run(
     """Paradigm entry point: the pose of every query for every ranking and every ``settings.k``."""
     inputs, ks = SfmInputs.for_rankings("global_sfm", scene, rankings, settings.k, sfm, cache_dir)
     sparse_map = global_map(inputs, settings.colmap_model, Path(cache_dir))
-    source = [settings.colmap_model, tree_signature(settings.colmap_model)] if settings.colmap_model else map_cache_path(inputs, Path(cache_dir)).stem
-    cache = inputs.pose_cache("global_sfm", [CACHE_VERSION, source], Path(cache_dir))
+    cache = _pose_cache(inputs, settings, Path(cache_dir))
     return run_queries("global_sfm", rankings, ks, localize_query, (inputs, sparse_map), sfm.processes, cache)
+
+
+def plan(
+    scene: Scene, rankings: Sequence[Ranking] | None, settings: GlobalSfmSettings, sfm: SfmSettings, cache_dir: Path, num_rankings: int
+) -> ParadigmWork:
+    """The work of `run` (`ParadigmWork`), without doing any: exact for ``rankings``, upper
+    bounds for ``num_rankings`` rankings not computed yet (``None``). The map's database pairs
+    are exact either way (from the known poses) unless the map is cached or given."""
+    inputs = SfmInputs.prepare(scene, sfm, cache_dir, extract=False)
+    query_pairs = query_pair_work(inputs, rankings, settings.k, num_rankings)
+    if settings.colmap_model or map_cache_path(inputs, cache_dir).exists():
+        map_pairs, maps = Work(0, 0), Work(1, 0)
+    else:
+        pairs = database_pairs(scene.database, inputs.map_pairs)
+        map_pairs = database_pair_work(inputs, [(scene.database.names[a], scene.database.names[b]) for a, b in pairs])
+        maps = Work(1, 1)
+    if rankings is None:
+        registrations = num_rankings * len(scene.queries) * len(settings.k)
+        return ParadigmWork("global_sfm", query_pairs, map_pairs, maps, map_pairs.total, Work(registrations, registrations))
+    tasks = query_tasks(rankings, [ranking.clamp_ks(settings.k) for ranking in rankings], _pose_cache(inputs, settings, cache_dir))
+    return ParadigmWork("global_sfm", query_pairs, map_pairs, maps, map_pairs.total, registration_work(tasks))
+
+
+def _pose_cache(inputs: SfmInputs, settings: GlobalSfmSettings, cache_dir: Path) -> PoseCache:
+    """The registration outcomes, keyed by the map (its cache file, or the COLMAP model's files)."""
+    model = settings.colmap_model
+    source = [model, tree_signature(model)] if model else map_cache_path(inputs, cache_dir).stem
+    return inputs.pose_cache("global_sfm", [CACHE_VERSION, source], cache_dir)
 
 
 def global_map(inputs: SfmInputs, colmap_model: str | None, cache_dir: Path) -> SparseMap:

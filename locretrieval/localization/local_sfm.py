@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
+from math import comb
 from pathlib import Path
 
 import numpy as np
@@ -40,9 +41,11 @@ from locretrieval.config import require
 from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.matching import epipolar_inliers
 from locretrieval.localization.paradigm import ParadigmSettings
+from locretrieval.localization.plan import ParadigmWork, Work, database_pair_work, query_pair_work, registration_work
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
+from locretrieval.localization.pose_cache import PoseCache
 from locretrieval.localization.sfm import (
-    Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, register_query, run_queries,
+    Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, query_tasks, register_query, run_queries,
 )
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.localization.triangulation import triangulate_known_poses
@@ -72,13 +75,43 @@ def run(
     """Paradigm entry point: the pose of every query for every ranking and every ``settings.k``."""
     inputs, ks = SfmInputs.for_rankings("local_sfm", scene, rankings, settings.k, sfm, cache_dir)
     if settings.map_matches == "database":
-        names = scene.database.names
-        pairs = [(names[a], names[b]) for a, b in local_map_pairs(rankings, ks)]
-        inputs.database_pairs.ensure(pairs, sfm.processes, "poses")
+        inputs.database_pairs.ensure(_database_pairs(scene, rankings, ks), sfm.processes, "poses")
     shared = (inputs, settings.map_matches, Path(cache_dir) / "local_maps")
-    maps = [CACHE_VERSION, settings.map_matches, inputs.database_pairs.stores["poses"].folder.name, asdict(sfm.triangulation)]
-    cache = inputs.pose_cache("local_sfm", maps, Path(cache_dir))
-    return run_queries("local_sfm", rankings, ks, localize_query, shared, sfm.processes, cache)
+    return run_queries("local_sfm", rankings, ks, localize_query, shared, sfm.processes, _pose_cache(inputs, settings, Path(cache_dir)))
+
+
+def plan(
+    scene: Scene, rankings: Sequence[Ranking] | None, settings: LocalSfmSettings, sfm: SfmSettings, cache_dir: Path, num_rankings: int
+) -> ParadigmWork:
+    """The work of `run` (`ParadigmWork`), without doing any: exact for ``rankings``, upper
+    bounds for ``num_rankings`` rankings not computed yet (``None``)."""
+    inputs = SfmInputs.prepare(scene, sfm, cache_dir, extract=False)
+    query_pairs = query_pair_work(inputs, rankings, settings.k, num_rankings)
+    pairs_per_map = float(np.mean([comb(min(k, len(scene.database)), 2) for k in settings.k]))
+    if rankings is None:
+        queries, depth = len(scene.queries), min(max(settings.k), len(scene.database))
+        bound = min(num_rankings * queries * comb(depth, 2), comb(len(scene.database), 2)) if settings.map_matches == "database" else 0
+        maps = num_rankings * queries * sum(1 for k in settings.k if k >= 2)
+        registrations = num_rankings * queries * len(settings.k)
+        return ParadigmWork("local_sfm", query_pairs, Work(bound, bound), Work(maps, maps), pairs_per_map, Work(registrations, registrations))
+    ks = [ranking.clamp_ks(settings.k) for ranking in rankings]
+    database_pairs = database_pair_work(inputs, _database_pairs(scene, rankings, ks) if settings.map_matches == "database" else [])
+    tasks = query_tasks(rankings, ks, _pose_cache(inputs, settings, cache_dir))
+    maps = {_map_key(inputs, settings.map_matches, task.query, images) for task in tasks for images in task.image_sets() if len(images) >= 2}
+    new_maps = {key for key in maps if not (cache_dir / "local_maps" / f"{key}.npz").is_file()}
+    return ParadigmWork("local_sfm", query_pairs, database_pairs, Work(len(maps), len(new_maps)), pairs_per_map, registration_work(tasks))
+
+
+def _database_pairs(scene: Scene, rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> list[tuple[str, str]]:
+    """The database pairs (names) of every local map (`local_map_pairs`)."""
+    names = scene.database.names
+    return [(names[a], names[b]) for a, b in local_map_pairs(rankings, ks)]
+
+
+def _pose_cache(inputs: SfmInputs, settings: LocalSfmSettings, cache_dir: Path) -> PoseCache:
+    """The registration outcomes, keyed by what the local maps are keyed by."""
+    maps = [CACHE_VERSION, settings.map_matches, inputs.database_pairs.stores["poses"].folder.name, asdict(inputs.settings.triangulation)]
+    return inputs.pose_cache("local_sfm", maps, cache_dir)
 
 
 def local_map_pairs(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> np.ndarray:

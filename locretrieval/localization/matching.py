@@ -1,8 +1,8 @@
 """Local feature matching between image pairs, geometric verification, and per-pair caches.
 
-Matching is mutual nearest neighbours with Lowe's ratio test on L2-normalised descriptors,
-one image against many partners at once (their descriptors stacked into one similarity block,
-a float32 matrix product). Matches ``int32 [m, 2]`` hold keypoint indices (first image, second image).
+Matching is mutual nearest neighbours with Lowe's ratio test on L2-normalised descriptors
+(`NearestNeighbourMatcher`: torch, on the CPU or a GPU, one block of the similarity matrix at a
+time). Matches ``int32 [m, 2]`` hold keypoint indices (first image, second image).
 
 Verification (``ensure(..., verification=...)``, then ``load(..., verification=...)``):
 
@@ -16,7 +16,7 @@ Verification (``ensure(..., verification=...)``, then ``load(..., verification=.
   ten times the matching, and PnP's RANSAC rejects the same outliers, so it is off by default.
 
 Caches, all `ShardedStore`s filled by worker processes:
-``<cache_dir>/matches/<features 0>--<features 1>--<ratio key>/`` (raw matches, keyed by the
+``<cache_dir>/matches/<features 0>--<features 1>--<ratio and precision key>/`` (raw matches, keyed by the
 pair of image names) and ``...--poses-<key>/``, ``...--two-view-<key>/`` (verified matches).
 A pair is matched once whatever k or verification needed it, and a database pair once in
 either order.
@@ -30,6 +30,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from itertools import groupby
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -39,8 +40,11 @@ from locretrieval.cache import config_key
 from locretrieval.config import require
 from locretrieval.localization.features import FeatureStore
 from locretrieval.localization.store import ShardedStore
-from locretrieval.localization.workers import parallel_map
+from locretrieval.localization.workers import parallel_map, resolve_workers
 from locretrieval.scene import Camera, ImageSet
+
+if TYPE_CHECKING:
+    import torch
 
 log = logging.getLogger(__name__)
 
@@ -50,8 +54,15 @@ VERIFICATIONS = ("none", "poses", "two_view")
 GEOMETRIC_CONFIGURATIONS = ("CALIBRATED", "UNCALIBRATED", "PLANAR", "PANORAMIC", "PLANAR_OR_PANORAMIC")
 #: Pairs per worker task (one shard of the cache).
 PAIRS_PER_SHARD = 512
-#: Bytes of similarity block computed at once.
-SIMILARITY_BLOCK_BYTES = 1 << 27
+#: Bytes of one block of similarities on a CPU: reduced while it is in the last-level cache.
+CPU_BLOCK_BYTES = 8 << 20
+#: Bytes of one block of similarities on a GPU (bounded memory, long enough kernels).
+CUDA_BLOCK_BYTES = 1 << 30
+#: Width of the column tiles through which each row's best column is found, and height of the
+#: groups of rows through which each column's is.
+TILE = 128
+#: Floating-point types of the similarities.
+PRECISIONS = ("float32", "float16")
 #: Smallest norm a descriptor is divided by (zero rows stay zero).
 NORM_EPSILON = 1e-12
 #: Bump when the meaning of cached matches changes.
@@ -76,18 +87,54 @@ class TwoViewSettings:
 class MatchingSettings:
     """Mutual nearest neighbours with Lowe's ``ratio`` test (1: off); database pairs verified
     against their known poses (Sampson error below ``max_epipolar_error`` px); query pairs
-    verified per ``query_verification`` (``none``: PnP RANSAC only, or ``two_view``)."""
+    verified per ``query_verification`` (``none``: PnP RANSAC only, or ``two_view``).
+    The matcher (`NearestNeighbourMatcher`) runs on ``device`` (``auto``: CUDA when there is a
+    GPU) with ``precision`` similarities in blocks of ``block_mib`` MiB (null: `CPU_BLOCK_BYTES`
+    on a CPU, on a GPU `CUDA_BLOCK_BYTES` or a quarter of each worker's share of its memory)."""
 
     ratio: float
     max_epipolar_error: float
     query_verification: str
     two_view: TwoViewSettings
+    device: str
+    precision: str
+    block_mib: float | None
 
     def __post_init__(self) -> None:
         require(0 < self.ratio <= 1, "ratio", f"must be in (0, 1], got {self.ratio}")
         require(self.max_epipolar_error > 0, "max_epipolar_error", f"must be a positive number of pixels, got {self.max_epipolar_error}")
         require(self.query_verification in ("none", "two_view"), "query_verification",
                 f"must be 'none' or 'two_view', got {self.query_verification!r}")
+        require(self.device == "auto" or self.device.split(":")[0] in ("cpu", "cuda"), "device",
+                f"must be auto, cpu or cuda[:N], got {self.device!r}")
+        require(self.precision in PRECISIONS, "precision", f"must be one of {list(PRECISIONS)}, got {self.precision!r}")
+        require(self.block_mib is None or self.block_mib > 0, "block_mib", f"must be a positive number of MiB or null, got {self.block_mib}")
+
+    def identity(self) -> dict[str, Any]:
+        """What determines the matches (not where or in which blocks they are computed)."""
+        settings = dataclasses.asdict(self)
+        return {key: settings[key] for key in ("ratio", "max_epipolar_error", "query_verification", "two_view", "precision")}
+
+    def matcher(self, workers: int = 1) -> NearestNeighbourMatcher:
+        """The matcher of these settings in a process that is one of ``workers`` sharing the
+        device. On a GPU, a worker process caps its memory at its share
+        (`torch.cuda.set_per_process_memory_fraction`); the main process (matching a small
+        workload itself, or holding a network in training) is never capped."""
+        import multiprocessing
+
+        from locretrieval.device import resolve_device
+
+        device = resolve_device(self.device)
+        block_bytes = CPU_BLOCK_BYTES if self.block_mib is None else int(self.block_mib * 2**20)
+        if device.type == "cuda":
+            import torch
+
+            share = 1.0 / max(1, workers) if multiprocessing.parent_process() is not None else 1.0
+            if share < 1.0:
+                torch.cuda.set_per_process_memory_fraction(share, device)
+            if self.block_mib is None:
+                block_bytes = min(CUDA_BLOCK_BYTES, int(share * torch.cuda.get_device_properties(device).total_memory / 4))
+        return NearestNeighbourMatcher(self.ratio, str(device), self.precision, block_bytes)
 
 
 def pair_key(pair: Pair) -> str:
@@ -103,60 +150,155 @@ def normalized_descriptors(descriptors: np.ndarray) -> np.ndarray:
     return values / np.maximum(np.linalg.norm(values, axis=1, keepdims=True), NORM_EPSILON)
 
 
-def mutual_nearest_neighbours(first: np.ndarray, others: Sequence[np.ndarray], ratio: float) -> list[np.ndarray]:
-    """Matches ``int32 [m, 2]`` between descriptors ``first [n, D]`` and each of ``others``.
+@dataclass(frozen=True)
+class NearestNeighbourMatcher:
+    """Mutual nearest neighbours with Lowe's ratio test, in torch on ``device``.
 
-    A pair (i, j) is kept when j is i's nearest neighbour in that image, i is j's nearest
-    neighbour, and the distance to j is at most ``ratio`` times the distance to i's second
-    nearest neighbour in that image. Partners are stacked so that one matrix product gives
-    a whole block of similarities, and one column-wise maximum every backward neighbour.
+    The similarity matrix of a pair is computed one block at a time, about square, of
+    ``block_bytes`` (on a CPU small enough to be reduced while it is in cache, which also keeps
+    the matrix product as fast as one whole product; on a GPU, bounded memory). Each block
+    updates running per-row and per-column state, so nothing of the size of the matrix is kept:
+
+    - per row: the best and second-best values and the best column, found through the maxima
+      of column tiles of `TILE` (``amax``, one vectorised pass: ``argmax`` over a long
+      row is several times slower on a CPU) and merged with the earlier blocks of the row;
+    - per column: the best value in each group of `TILE` rows (``amax`` again). A row's best
+      column is a mutual match only if that column's best value is the row's and first reached
+      in the row's group; only for those candidates is the column's first best row in the
+      group found, from their similarities recomputed (each candidate's column with its group's
+      rows: at most ``TILE / columns`` of the whole product).
+
+    Ties go to the lowest index both ways, as numpy's ``argmax``; a tie for the best value makes
+    the second-best equal to it. ``precision``: ``float32``, or ``float16`` similarities
+    (for GPUs; the README says how often it changes a match).
     """
-    matches = [np.empty((0, 2), dtype=np.int32) for _ in others]
-    if not len(first):
-        return matches
-    query = normalized_descriptors(first)
-    columns = max(1, SIMILARITY_BLOCK_BYTES // (4 * len(query)))
-    for block in _blocks([len(other) for other in others], columns):
-        stacked = [others[index] for index in block if len(others[index])]
-        if not stacked:
-            continue
-        similarity = query @ normalized_descriptors(np.concatenate(stacked)).T
-        back = similarity.argmax(axis=0)  # each partner keypoint's nearest query keypoint
-        offset = 0
-        for index in block:
-            size = len(others[index])
-            if size:
-                matches[index] = _mutual_ratio(similarity[:, offset : offset + size], back[offset : offset + size], ratio)
-            offset += size
-    return matches
 
+    ratio: float
+    device: str = "cpu"
+    precision: str = "float32"
+    block_bytes: int = CPU_BLOCK_BYTES
 
-def _blocks(sizes: Sequence[int], limit: int) -> list[range]:
-    """Consecutive index ranges whose sizes add up to at most ``limit`` (or one item)."""
-    blocks, start, total = [], 0, 0
-    for index, size in enumerate(sizes):
-        if index > start and total + size > limit:
-            blocks.append(range(start, index))
-            start, total = index, 0
-        total += size
-    if sizes:
-        blocks.append(range(start, len(sizes)))
-    return blocks
+    def __post_init__(self) -> None:
+        require(0 < self.ratio <= 1, "ratio", f"must be in (0, 1], got {self.ratio}")
+        require(self.precision in PRECISIONS, "precision", f"must be one of {list(PRECISIONS)}, got {self.precision!r}")
+        require(self.block_bytes >= 4 * TILE**2, "block_bytes", f"must hold {TILE} x {TILE} float32 similarities, got {self.block_bytes}")
 
+    def __call__(self, first: np.ndarray, others: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """Matches ``int32 [m, 2]`` (row in ``first``, row in the other) with each of ``others``."""
+        import torch
 
-def _mutual_ratio(similarity: np.ndarray, back: np.ndarray, ratio: float) -> np.ndarray:
-    """Mutual nearest neighbours passing the ratio test in one ``[n, m]`` similarity block
-    (``back [m]``: each column's best row)."""
-    rows = np.arange(len(similarity))
-    nearest = similarity.argmax(axis=1)
-    if similarity.shape[1] >= 2:
-        best, second = np.partition(similarity, -2, axis=1)[:, [-1, -2]].T
+        dtype = getattr(torch, self.precision)
+        query = torch.from_numpy(normalized_descriptors(first)).to(self.device, dtype)
+        return [self._match(query, torch.from_numpy(normalized_descriptors(other)).to(self.device, dtype)) for other in others]
+
+    def block_shape(self, rows: int, columns: int, element_size: int) -> tuple[int, int]:
+        """Rows (all, or a multiple of `TILE`) and columns (a multiple of `TILE`) of the blocks
+        of similarities: about square, at most ``block_bytes``, of equal sizes."""
+        tiles = -(-columns // TILE)
+        column_blocks = -(-tiles // max(1, int((self.block_bytes / element_size) ** 0.5) // TILE))
+        width = -(-tiles // column_blocks) * TILE
+        max_height = self.block_bytes // (width * element_size) // TILE * TILE
+        if rows <= max_height:
+            return rows, width
+        return -(-rows // -(-rows // max_height) // TILE) * TILE, width
+
+    def _match(self, query: "torch.Tensor", partner: "torch.Tensor") -> np.ndarray:
+        import torch
+
+        rows, columns = len(query), len(partner)
+        if not rows or not columns:
+            return np.empty((0, 2), dtype=np.int32)
+        height, width = self.block_shape(rows, columns, query.element_size())
+        state = _BestValues(rows, columns, query)
+        buffer = torch.empty((height, width), device=query.device, dtype=query.dtype)  # reused: no page faults
+        for first_column in range(0, columns, width):
+            tile = torch.zeros((query.shape[1], width), device=query.device, dtype=query.dtype)
+            valid = min(width, columns - first_column)
+            tile[:, :valid] = partner[first_column : first_column + valid].T
+            for first_row in range(0, rows, height):
+                stop = min(rows, first_row + height)
+                similarity = torch.mm(query[first_row:stop], tile, out=buffer[: stop - first_row])
+                similarity[:, valid:] = -torch.inf
+                state.update(similarity, first_row, first_column, valid)
+        mutual = state.mutual(query, partner).cpu().numpy()
+        best, second = state.row_best.float().cpu().numpy(), state.row_second.float().cpu().numpy()
         # squared distances of unit vectors: 2 - 2 s
-        passes = np.maximum(2 - 2 * best, 0) <= ratio**2 * np.maximum(2 - 2 * second, 0)
-    else:
-        passes = np.ones(len(similarity), dtype=bool)
-    keep = passes & (back[nearest] == rows)
-    return np.stack([rows[keep], nearest[keep]], 1).astype(np.int32)
+        passes = np.maximum(2 - 2 * best, 0) <= self.ratio**2 * np.maximum(2 - 2 * second, 0) if columns >= 2 else np.ones(rows, dtype=bool)
+        keep = passes & mutual
+        return np.column_stack([np.flatnonzero(keep), state.row_argmax.cpu().numpy()[keep]]).astype(np.int32)
+
+
+class _BestValues:
+    """Running best values of the rows (best, second best, first best column) and the best value
+    of each column in each group of `TILE` rows, of a similarity matrix seen a block at a time."""
+
+    def __init__(self, rows: int, columns: int, like: "torch.Tensor") -> None:
+        import torch
+
+        def full(shape: tuple[int, ...], value: float, dtype: "torch.dtype" = like.dtype) -> "torch.Tensor":
+            return torch.full(shape, value, device=like.device, dtype=dtype)
+
+        self.row_best, self.row_second, self.row_argmax = full((rows,), -torch.inf), full((rows,), -torch.inf), full((rows,), 0, torch.int64)
+        self.column_best = full((-(-rows // TILE), columns), -torch.inf)  # [group of rows, column]
+
+    def update(self, similarity: "torch.Tensor", first_row: int, first_column: int, valid: int) -> None:
+        """Merge one block: rows from ``first_row`` (a multiple of `TILE`; fewer than a multiple
+        of `TILE` rows only in the last block), columns from ``first_column``, of which the
+        first ``valid`` are real (the rest: -inf padding)."""
+        import torch
+
+        group, columns, whole = first_row // TILE, slice(first_column, first_column + valid), len(similarity) // TILE
+        if whole:
+            self.column_best[group : group + whole, columns] = similarity[: whole * TILE].view(whole, TILE, -1).amax(1)[:, :valid]
+        if whole * TILE < len(similarity):
+            self.column_best[group + whole, columns] = similarity[whole * TILE :].amax(0)[:valid]
+        rows = slice(first_row, first_row + len(similarity))
+        best, second, argmax = _row_best_two(similarity)
+        old_best = self.row_best[rows]
+        self.row_second[rows] = torch.maximum(torch.maximum(self.row_second[rows], second), torch.minimum(old_best, best))
+        self.row_argmax[rows] = torch.where(best > old_best, argmax + first_column, self.row_argmax[rows])
+        self.row_best[rows] = torch.maximum(old_best, best)
+
+    def mutual(self, query: "torch.Tensor", partner: "torch.Tensor") -> "torch.Tensor":
+        """Boolean ``[rows]``: the row is its best column's first best row (``query``, ``partner``:
+        the descriptors whose products the blocks held)."""
+        import torch
+
+        column_best = self.column_best.amax(0)
+        first_group = _first_equal(self.column_best.T, column_best)
+        group = torch.arange(len(self.row_best), device=query.device) // TILE
+        candidate = (self.row_best == column_best[self.row_argmax]) & (first_group[self.row_argmax] == group)
+        mutual = torch.zeros_like(candidate)
+        for index in torch.unique(group[candidate]).tolist():
+            members = torch.nonzero(candidate & (group == index)).squeeze(1)
+            start = index * TILE
+            recomputed = partner[self.row_argmax[members]] @ query[start : start + TILE].T  # [candidates, group rows]
+            mutual[members] = _first_equal(recomputed, recomputed.amax(1)) + start == members
+        return mutual
+
+
+def _row_best_two(similarity: "torch.Tensor") -> tuple["torch.Tensor", "torch.Tensor", "torch.Tensor"]:
+    """Each row's best value, second-best value (equal to the best on a tie) and first best
+    column, of a block whose width is a multiple of `TILE`."""
+    import torch
+
+    rows = torch.arange(len(similarity), device=similarity.device)
+    tiles = similarity.view(len(similarity), -1, TILE)
+    tile_best = tiles.amax(2)
+    best = tile_best.amax(1)
+    tile = _first_equal(tile_best, best)
+    within_tile = tiles[rows, tile]  # a copy: [rows, TILE]
+    column = _first_equal(within_tile, best)
+    within_tile[rows, column] = -torch.inf
+    tile_best[rows, tile] = within_tile.amax(1)
+    return best, tile_best.amax(1), tile * TILE + column
+
+
+def _first_equal(values: "torch.Tensor", targets: "torch.Tensor") -> "torch.Tensor":
+    """Per row, the first column of ``values`` equal to that row's target."""
+    import torch
+
+    return (values == targets[:, None]).to(torch.uint8).argmax(1)
 
 
 # --------------------------------------------------------------------------------- verification
@@ -253,7 +395,7 @@ class PairMatcher:
         self.same_set = features0.folder == features1.folder
         self.index = tuple({name: i for i, name in enumerate(images.names)} for images in self.images)
         root = Path(cache_dir) / "matches" / f"{features0.folder.name}--{features1.folder.name}"
-        raw_key = config_key(CACHE_VERSION, settings.ratio)
+        raw_key = config_key(CACHE_VERSION, settings.ratio, settings.precision)
         poses = (images0.fingerprint(), images1.fingerprint())  # pose verification depends on them
         self.stores = {
             "none": ShardedStore(f"{root}--{raw_key}"),
@@ -291,7 +433,7 @@ class PairMatcher:
         for start in range(0, len(todo), PAIRS_PER_SHARD):
             chunk = todo[start : start + PAIRS_PER_SHARD]
             keys = {pair_key(pair) for pair in chunk}
-            tasks.append((chunk, keys & missing_raw, keys & missing_verified, verification))
+            tasks.append((chunk, keys & missing_raw, keys & missing_verified, verification, resolve_workers(workers)))
         for _ in parallel_map(_match_shard, tasks, workers, "matching", shared=self):
             pass
         for store in self.stores.values():
@@ -324,18 +466,19 @@ class PairMatcher:
         )]
 
 
-def _match_shard(matcher: PairMatcher, task: tuple[list[Pair], set[str], set[str], str]) -> int:
-    """Worker: raw and verified matches of a batch of pairs, one new shard per store."""
-    pairs, missing_raw, missing_verified, verification = task
+def _match_shard(matcher: PairMatcher, task: tuple[list[Pair], set[str], set[str], str, int]) -> int:
+    """Worker (one of ``workers`` sharing the matching device): raw and verified matches of a
+    batch of pairs, one new shard per store."""
+    pairs, missing_raw, missing_verified, verification, workers = task
     features0 = matcher.features[0].load(sorted({name0 for name0, _ in pairs}))
     features1 = matcher.features[1].load(sorted({name1 for _, name1 in pairs}))
-    ratio = matcher.settings.ratio
+    nearest_neighbours = matcher.settings.matcher(workers)
     matches = {key: record["matches"] for key, record in matcher.stores["none"].read(
         pair_key(pair) for pair in pairs if pair_key(pair) not in missing_raw).items()}
     to_match = [pair for pair in pairs if pair_key(pair) in missing_raw]
     for name0, group in groupby(to_match, key=lambda pair: pair[0]):
         partners = [name1 for _, name1 in group]
-        computed = mutual_nearest_neighbours(features0[name0][1], [features1[name1][1] for name1 in partners], ratio)
+        computed = nearest_neighbours(features0[name0][1], [features1[name1][1] for name1 in partners])
         matches.update((pair_key((name0, name1)), pair_matches) for name1, pair_matches in zip(partners, computed))
     matcher.stores["none"].write({key: {"matches": matches[key]} for key in sorted(missing_raw)})
     matcher.stores[verification].write({

@@ -22,7 +22,7 @@ import numpy as np
 from locretrieval.cache import config_key
 from locretrieval.config import require
 from locretrieval.localization.estimates import LOCALIZED, PoseEstimates
-from locretrieval.localization.features import FeatureSettings, FeatureStore, extract_features
+from locretrieval.localization.features import FeatureSettings, FeatureStore, extract_features, feature_store
 from locretrieval.localization.matching import MatchingSettings, PairMatcher
 from locretrieval.localization.pairs import PairSelection
 from locretrieval.localization.pnp import NO_KEYPOINTS, TOO_FEW_MATCHES, PnPSettings, estimate_absolute_pose
@@ -72,11 +72,14 @@ class SfmInputs:
     query_pairs: PairMatcher
 
     @classmethod
-    def prepare(cls, scene: Scene, settings: SfmSettings, cache_dir: Path) -> "SfmInputs":
-        """Extract (or reuse) the local features of both image sets."""
-        workers = settings.processes
-        database_features = extract_features(scene.database, settings.features, cache_dir, workers)
-        query_features = extract_features(scene.queries, settings.features, cache_dir, workers)
+    def prepare(cls, scene: Scene, settings: SfmSettings, cache_dir: Path, extract: bool = True) -> "SfmInputs":
+        """Extract (or reuse) the local features of both image sets (``extract=False``: only
+        name their caches, as far as they are filled, to plan the work)."""
+        if extract:
+            database_features, query_features = (extract_features(images, settings.features, cache_dir, settings.processes)
+                                                 for images in (scene.database, scene.queries))
+        else:
+            database_features, query_features = (feature_store(images, settings.features, cache_dir) for images in (scene.database, scene.queries))
         return cls(
             scene,
             settings,
@@ -109,15 +112,19 @@ class SfmInputs:
     def query_verification(self) -> str:
         return self.settings.matching.query_verification
 
-    def match_queries(self, rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> int:
-        """Match every query to its top ``max(k)`` images of every ranking; returns new pairs matched."""
+    def ranked_pairs(self, rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> set[tuple[str, str]]:
+        """Every (query, database image) name pair of a query's top ``max(k)`` of a ranking."""
         queries, database = self.scene.queries.names, self.scene.database.names
         pairs = set()
         for ranking, ranking_ks in zip(rankings, ks):
             top = ranking.indices[:, : max(ranking_ks)]
             rows, slots = np.nonzero(top != EMPTY)
             pairs.update((queries[q], database[i]) for q, i in zip(rows, top[rows, slots]))
-        return self.query_pairs.ensure(pairs, self.settings.processes, self.query_verification)
+        return pairs
+
+    def match_queries(self, rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> int:
+        """Match every query to its top ``max(k)`` images of every ranking; returns new pairs matched."""
+        return self.query_pairs.ensure(self.ranked_pairs(rankings, ks), self.settings.processes, self.query_verification)
 
     def pose_cache(self, paradigm: str, maps: Any, cache_dir: Path) -> PoseCache:
         """The cached registration outcomes of ``paradigm`` (`PoseCache`) in ``<cache_dir>/poses/``,

@@ -49,6 +49,7 @@ def _initialize_worker(parent: int) -> None:
     while its workers start is noticed); one BLAS/OpenMP thread per worker (the processes
     already use every core)."""
     threading.Thread(target=exit_with_parent, args=(parent,), daemon=True).start()
+    os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = "1"  # torch reads them when it is imported (matching)
     import threadpoolctl
 
     import locretrieval  # (imports zlib before pycolmap)
