@@ -125,14 +125,16 @@ def build_rankings(
     groundtruths: Mapping[str, GroundTruth],
     retrieval: RetrievalSettings,
     random_seed: int | None,
+    given: Sequence[Ranking] = (),
 ) -> list[Ranking]:
-    """The descriptor rankings (faiss search, one per named set of descriptors), the
-    ground-truth rankings and, with a ``random_seed``, the random baseline; names are unique."""
+    """The descriptor rankings (faiss search, one per named set of descriptors), the ``given``
+    rankings (e.g. read from pairs files), the ground-truth rankings and, with a ``random_seed``,
+    the random baseline; names are unique."""
     rankings = [
         search(described.queries, described.database, retrieval.depth, name, retrieval.chunk_size)
         for name, described in descriptors.items()
     ]
-    rankings += [groundtruth.ranking for groundtruth in groundtruths.values()]
+    rankings += [*given, *(groundtruth.ranking for groundtruth in groundtruths.values())]
     if random_seed is not None:
         rankings.append(random_ranking(len(scene.queries), len(scene.database), retrieval.depth, random_seed))
     check_unique_names(rankings)

@@ -48,6 +48,15 @@ if not OmegaConf.has_resolver("precomputed_name"):
     OmegaConf.register_new_resolver("precomputed_name", precomputed_name)
 
 
+def file_stem(path: Any) -> str:
+    """``${file_stem:${model.path}}``: a file's name without its extension (a ranking name)."""
+    return Path(str(path)).stem
+
+
+if not OmegaConf.has_resolver("file_stem"):
+    OmegaConf.register_new_resolver("file_stem", file_stem)
+
+
 class ConfigError(ValueError):
     """A configuration value of the wrong type or range; the message names the full key."""
 

@@ -23,6 +23,7 @@ from locretrieval.metrics.localization import best_over_k
 from locretrieval.metrics.subsets import SubsetSettings, missing_mask_inputs
 from locretrieval.models.precomputed import PrecomputedDescriptor, missing_feature_folders
 from locretrieval.retrieval.descriptors import describe_scene
+from locretrieval.retrieval.pairs_file import PairsFileRanking
 from locretrieval.scene import Scene
 from locretrieval.scene.kapture_io import write_ltvl
 
@@ -53,14 +54,17 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     OmegaConf.save(cfg, output_dir / "config.yaml", resolve=True)  # as run; .hydra/ keeps the interpolations
 
     model = instantiate(cfg.model)
-    descriptors = describe_scene(model, scene, cache_dir)
+    if isinstance(model, PairsFileRanking):  # a ranking computed elsewhere: no descriptors
+        given, descriptors = [model.ranking(scene, settings.retrieval.depth)], {}
+    else:
+        given, descriptors = [], {model.name: describe_scene(model, scene, cache_dir)}
     groundtruths = {}
     if scene.queries.has_pose.any():
         groundtruths = compute_groundtruths(scene, groundtruth_settings, settings.sfm, cache_dir)
     else:
         log.warning("no query has a reference pose: ground truth and metrics are skipped, poses are only exported (ltvl/)")
     random_seed = int(cfg.seed) if cfg.baselines.random else None
-    rankings = build_rankings(scene, {model.name: descriptors}, groundtruths, settings.retrieval, random_seed)
+    rankings = build_rankings(scene, descriptors, groundtruths, settings.retrieval, random_seed, given)
     subsets, subset_table = scene_subsets(scene, subset_settings, cache_dir, str(cfg.device))
     if cfg.report.figure_formats:
         from locretrieval.report.painters import start_painters
@@ -124,7 +128,9 @@ def check_inputs(
 
 
 def model_inputs(model: DictConfig, scene: Scene) -> list[str]:
-    """The model's weight file (``model.weights``) or precomputed feature folders, if absent."""
+    """The model's weight file (``model.weights``), precomputed feature folders or pairs file, if absent."""
+    if issubclass(get_class(model._target_), PairsFileRanking):
+        return [] if Path(model.path).is_file() else [f"model.path: pairs file {model.path} not found"]
     if issubclass(get_class(model._target_), PrecomputedDescriptor):
         key = "model.path" if model.path is not None else "model.feature_name"
         return [f"{key}: {problem}" for problem in missing_feature_folders(model.path, model.feature_name, scene.sources)]
