@@ -14,9 +14,11 @@ from omegaconf import OmegaConf
 #: Public name -> module of `locretrieval.models` defining it.
 _MODULES = {
     "APGeMDescriptor": "apgem",
+    "CallableDescriptor": "external",
     "DELGDescriptor": "delg",
     "DenseVLAD": "densevlad",
     "GlobalDescriptor": "base",
+    "HubDescriptor": "external",
     "MissingWeightsError": "weights",
     "NetVLADDescriptor": "netvlad",
     "NetworkDescriptor": "torch_descriptor",
@@ -29,9 +31,11 @@ _MODULES = {
 
 __all__ = [
     "APGeMDescriptor",
+    "CallableDescriptor",
     "DELGDescriptor",
     "DenseVLAD",
     "GlobalDescriptor",
+    "HubDescriptor",
     "MissingWeightsError",
     "NetVLADDescriptor",
     "NetworkDescriptor",
@@ -59,6 +63,7 @@ if TYPE_CHECKING:
     from locretrieval.models.apgem import APGeMDescriptor
     from locretrieval.models.base import GlobalDescriptor
     from locretrieval.models.delg import DELGDescriptor
+    from locretrieval.models.external import CallableDescriptor, HubDescriptor
     from locretrieval.models.densevlad import DenseVLAD
     from locretrieval.models.feature_io import export_global_features, read_hloc_global_descriptors
     from locretrieval.models.netvlad import NetVLADDescriptor

@@ -13,6 +13,7 @@ it was found: on its device, in its memory layout, in train mode if it was.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
@@ -40,6 +41,9 @@ class Preprocessing:
 
     ``max_side``: images whose longer side exceeds it are shrunk (aspect kept, sides rounded)
     with PIL's bilinear filter, which antialiases when shrinking; ``None`` keeps full size.
+    ``size``: ``(width, height)`` every image is resized to instead (e.g. a network trained at
+    a fixed size). ``multiple_of``: then each side is rounded to the nearest positive multiple
+    (a ViT's patch size), at every scale too.
     ``scales``: the network runs on the image resized by each factor (bilinear, half-pixel
     centres, no antialiasing, as ``tf.image.resize``); per-scale descriptors are summed, then
     L2-normalised. Input is ``(rgb / 255 - mean) / std`` per RGB channel.
@@ -49,6 +53,8 @@ class Preprocessing:
     scales: tuple[float, ...] = (1.0,)
     mean: tuple[float, ...] = IMAGENET_MEAN
     std: tuple[float, ...] = IMAGENET_STD
+    size: tuple[int, int] | None = None
+    multiple_of: int | None = None
 
     def __post_init__(self) -> None:
         for name in ("scales", "mean", "std"):
@@ -57,21 +63,43 @@ class Preprocessing:
             object.__setattr__(self, "max_side", int(self.max_side))
             if self.max_side <= 0:
                 raise ValueError(f"max_side must be positive or null, got {self.max_side}")
+        if self.size is not None:
+            object.__setattr__(self, "size", tuple(int(v) for v in self.size))
+            if len(self.size) != 2 or min(self.size) <= 0:
+                raise ValueError(f"size must be [width, height] in pixels or null, got {list(self.size)}")
+        if self.multiple_of is not None and int(self.multiple_of) <= 0:
+            raise ValueError(f"multiple_of must be a positive number of pixels or null, got {self.multiple_of}")
         if not self.scales or min(self.scales) <= 0:
             raise ValueError(f"scales must be a non-empty list of positive factors, got {list(self.scales)}")
         if len(self.mean) != 3 or len(self.std) != 3 or min(self.std) <= 0:
             raise ValueError(f"mean and std need 3 values (RGB), std positive; got mean={self.mean}, std={self.std}")
 
     def target_size(self, width: int, height: int) -> tuple[int, int]:
-        """``(width, height)`` after the ``max_side`` resize."""
+        """``(width, height)`` after the ``size`` or ``max_side`` resize, in ``multiple_of`` steps."""
         longest = max(width, height)
-        if self.max_side is None or longest <= self.max_side:
-            return width, height
-        factor = self.max_side / longest
-        return max(1, round(width * factor)), max(1, round(height * factor))
+        if self.size is not None:
+            width, height = self.size
+        elif self.max_side is not None and longest > self.max_side:
+            factor = self.max_side / longest
+            width, height = max(1, round(width * factor)), max(1, round(height * factor))
+        return self._multiple(width), self._multiple(height)
+
+    def scaled_size(self, height: int, width: int, scale: float) -> tuple[int, int]:
+        """``(height, width)`` of an input of that size at ``scale``, in ``multiple_of`` steps."""
+        return self._multiple(max(1, round(height * scale))), self._multiple(max(1, round(width * scale)))
+
+    def _multiple(self, side: int) -> int:
+        if self.multiple_of is None:
+            return side
+        step = int(self.multiple_of)
+        return max(step, round(side / step) * step)
 
     def identity(self) -> dict[str, Any]:
-        return {**asdict(self), "resize": "PIL bilinear to max_side; scales: bilinear half-pixel"}
+        identity = {**asdict(self), "resize": "PIL bilinear to max_side; scales: bilinear half-pixel"}
+        for key in ("size", "multiple_of"):  # unset: the identity (and cache keys) of before they existed
+            if identity[key] is None:
+                del identity[key]
+        return identity
 
     def normalize(self, images: torch.Tensor) -> torch.Tensor:
         """``float32 [B, 3, H, W]`` network input ``(rgb / 255 - mean) / std`` of ``uint8`` RGB images
@@ -167,10 +195,6 @@ def _split_by_shape(items: list[LoadedImage]) -> list[list[LoadedImage]]:
     return list(groups.values())
 
 
-def scaled_size(height: int, width: int, scale: float) -> tuple[int, int]:
-    return max(1, round(height * scale)), max(1, round(width * scale))
-
-
 def describe_batch(
     network: RetrievalNet, images: torch.Tensor, preprocessing: Preprocessing, mixed_precision: bool = False
 ) -> torch.Tensor:
@@ -185,8 +209,8 @@ def describe_batch(
     total = None
     for scale in preprocessing.scales:
         scaled = x
-        if scale != 1.0:
-            size = scaled_size(x.shape[2], x.shape[3], scale)
+        size = preprocessing.scaled_size(x.shape[2], x.shape[3], scale)
+        if size != tuple(x.shape[2:]):
             scaled = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
         with torch.autocast(device.type, dtype=torch.float16, enabled=mixed_precision and device.type == "cuda"):
             descriptors = network(scaled).float()
@@ -208,8 +232,8 @@ def evaluation_mode(network: torch.nn.Module) -> Iterator[None]:
 
 
 def network_device(network: torch.nn.Module) -> torch.device:
-    """The device of a network's parameters."""
-    return next(network.parameters()).device
+    """The device of a network's parameters (or buffers: a network of a plain function has one)."""
+    return next(itertools.chain(network.parameters(), network.buffers())).device
 
 
 def extract_descriptors(

