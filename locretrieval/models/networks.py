@@ -2,7 +2,8 @@
 
 Tensors are ``[B, C, H, W]`` feature maps and ``[B, D]`` descriptors. Every model of the zoo
 (NetVLAD, AP-GeM, DELG, the trainable ``gem`` / ``netvlad_head`` models) and every network
-trained by `locretrieval.training` is a `RetrievalNet`: ``backbone -> pooling -> optional
+trained by `locretrieval.training` is a `RetrievalNet`: ``backbone -> pooling (GeM, NetVLAD, or
+a head of `locretrieval.models.heads`: MixVPR, SALAD, BoQ) -> optional
 whitening (affine) -> L2``, plus an optional projection applied after multi-scale
 aggregation (AP-GeM's PCA). `build_retrieval_net` builds one on a torchvision backbone and
 `load_weights` fills it from a state dict and records where the weights came from.
@@ -11,9 +12,11 @@ aggregation (AP-GeM's PCA). `build_retrieval_net` builds one on a torchvision ba
 from __future__ import annotations
 
 import hashlib
+import inspect
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from locretrieval.models.efficientnet import EfficientNetLite0
+from locretrieval.models.heads import BoQHead, MixVPRHead, SALADHead
 from locretrieval.models.weights import content_sha256
 
 #: Guards divisions by the norm of all-zero vectors.
@@ -157,20 +161,39 @@ def trunk_channels(trunk: nn.Module) -> int:
         return int(trunk.eval()(torch.zeros(1, 3, 64, 64, device=device)).shape[1])
 
 
+#: Today's aggregation heads (`locretrieval.models.heads`), built as ``head(channels, **options)``.
+HEADS: dict[str, type[nn.Module]] = {"mixvpr": MixVPRHead, "salad": SALADHead, "boq": BoQHead}
+
+
+def _head(head: type[nn.Module], channels: int, **options: Any) -> tuple[nn.Module, int]:
+    module = head(channels, **options)
+    return module, module.output_dim
+
+
 #: Pooling layers by ``type``, each built as ``builder(channels, **options) -> (module, output_dim)``.
 POOLINGS: dict[str, Callable[..., tuple[nn.Module, int]]] = {
     "gem": lambda channels, p, trainable: (GeMPooling(float(p), trainable=bool(trainable)), channels),
     "netvlad": lambda channels, clusters: (pooling := NetVLADPooling(channels, int(clusters)), pooling.output_dim),
+    **{kind: partial(_head, head) for kind, head in HEADS.items()},
 }
 
 
+def pooling_options(kind: str) -> set[str]:
+    """The options a pooling ``type`` takes (a head's have defaults)."""
+    return set(inspect.signature(HEADS.get(kind, POOLINGS[kind])).parameters) - {"channels"}
+
+
 def build_pooling(channels: int, pooling: Mapping[str, Any]) -> tuple[nn.Module, int]:
-    """``(module, output dimension)`` of a pooling spec: ``{type: gem, p: 3.0, trainable: true}``
-    or ``{type: netvlad, clusters: 64}``."""
+    """``(module, output dimension)`` of a pooling spec: ``{type: gem, p: 3.0, trainable: true}``,
+    ``{type: netvlad, clusters: 64}``, or a head of `HEADS` with its options (defaults
+    otherwise). Options of another type are left out, so that ``model.pooling.type=mixvpr``
+    works on a config written for GeM; an option no type takes is an error."""
     options = dict(pooling)
     kind = options.pop("type", None)
     if kind not in POOLINGS:
         raise ValueError(f"pooling type {kind!r} is not one of {sorted(POOLINGS)}")
+    others = set().union(*(pooling_options(other) for other in POOLINGS)) - pooling_options(kind)
+    options = {key: value for key, value in options.items() if key not in others}
     try:
         return POOLINGS[kind](channels, **options)
     except TypeError as error:
