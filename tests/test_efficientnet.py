@@ -17,7 +17,7 @@ from PIL import Image
 from locretrieval.models.efficientnet import package_weights
 from locretrieval.groundtruth import relative_pose_groundtruth
 from locretrieval.models import MissingWeightsError, TrainableDescriptor, efficientnet
-from locretrieval.models.efficientnet import EfficientNetLite0, efficientnet_lite0_weights_path, trunk_state_dict
+from locretrieval.models.efficientnet import efficientnet_lite0_weights_path, lite0_trunk, trunk_state_dict, upgrade_legacy_trunk
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
@@ -43,7 +43,7 @@ def package_state():
 
 @pytest.fixture(scope="module")
 def pretrained_trunk(package_state):
-    trunk = EfficientNetLite0().eval()
+    trunk = lite0_trunk().eval()
     trunk.load_state_dict(trunk_state_dict(package_state, PATH))
     return trunk
 
@@ -59,13 +59,13 @@ def photo_crops():
 def test_every_package_key_has_one_place_in_the_trunk(package_state):
     renamed = trunk_state_dict(package_state, PATH)
     assert sorted(k for k in package_state if k.startswith("_fc.")) == ["_fc.bias", "_fc.weight"]
-    assert len(package_state) == 296 and len(renamed) == 294 == len(EfficientNetLite0().state_dict())
-    EfficientNetLite0().load_state_dict(renamed, strict=True)
+    assert len(package_state) == 296 and len(renamed) == 294 == len(lite0_trunk().state_dict())
+    lite0_trunk().load_state_dict(renamed, strict=True)  # timm's tf_efficientnet_lite0: every key used, none missing
     with pytest.raises(ValueError, match=r"efficientnet-lite0-57934424\.pth: not EfficientNet-Lite0's layout: 0 trunk values "
                                          r"missing .* 1 keys without a place \(e\.g\. \['_blocks\.3\._se_reduce\.weight'\]"):
         trunk_state_dict({**package_state, "_blocks.3._se_reduce.weight": torch.zeros(1)}, PATH)
     incomplete = {k: v for k, v in package_state.items() if k != "_blocks.15._bn2.bias"}
-    with pytest.raises(ValueError, match=r"57934424\.pth: .*1 trunk values missing \(e\.g\. \['blocks\.15\.project\.1\.bias'\]\)"):
+    with pytest.raises(ValueError, match=r"57934424\.pth: .*1 trunk values missing \(e\.g\. \['timm\.blocks\.6\.0\.bn3\.bias'\]\)"):
         trunk_state_dict(incomplete, PATH)
 
 
@@ -77,15 +77,15 @@ def test_the_weight_file_comes_from_the_package_or_an_error_says_what_to_install
 
 
 def test_the_trunk_pads_like_tensorflow_and_has_1280_channels_at_stride_32():
-    trunk = EfficientNetLite0().eval()
+    trunk = lite0_trunk().eval()
     with torch.no_grad():
         assert trunk(torch.zeros(1, 3, 72, 96)).shape == (1, 1280, 3, 3)  # ceil(72 / 32), ceil(96 / 32)
-        assert trunk.stem[0](torch.zeros(1, 3, 7, 7)).shape[2:] == (4, 4)  # SAME: ceil(7 / 2)
+        assert trunk.timm.conv_stem(torch.zeros(1, 3, 7, 7)).shape[2:] == (4, 4)  # SAME: ceil(7 / 2)
         features = trunk(torch.randn(2, 3, 72, 96))
     assert 0.1 < features.std() < 10  # the initialisation keeps a new (eval-mode) network's activations alive
 
 
-def batch_norm_mismatch(trunk: EfficientNetLite0, images: torch.Tensor, mean, std) -> list[float]:
+def batch_norm_mismatch(trunk: torch.nn.Module, images: torch.Tensor, mean, std) -> list[float]:
     """Per batch-norm layer: how far the statistics of its input on ``images`` (RGB 0..255,
     normalised by ``mean``/``std``) are from its running statistics, as the mean over channels
     of ``(mean - running_mean)^2 / running_var + log(var / running_var)^2``."""
@@ -116,7 +116,10 @@ def test_tensorflow_same_padding_fits_the_stored_statistics_better_than_symmetri
     grid keeps interior statistics), the borders of the small deep maps can."""
     normalisation = (efficientnet.INPUT_MEAN, efficientnet.INPUT_STD)
     same = sum(batch_norm_mismatch(pretrained_trunk, photo_crops, *normalisation))
-    monkeypatch.setattr(efficientnet.SameConv2d, "forward", lambda self, x: torch.nn.functional.conv2d(
+    from timm.layers.conv2d_same import Conv2dSame  # timm's TF SAME convolutions (the stride-2 ones; stride 1 pads evenly anyway)
+
+    assert any(isinstance(m, Conv2dSame) for m in pretrained_trunk.modules())
+    monkeypatch.setattr(Conv2dSame, "forward", lambda self, x: torch.nn.functional.conv2d(
         x, self.weight, None, self.stride, tuple(k // 2 for k in self.kernel_size), 1, self.groups))
     assert same < 0.8 * sum(batch_norm_mismatch(pretrained_trunk, photo_crops, *normalisation))  # 27 vs 44
 
@@ -149,3 +152,35 @@ def test_pretrained_features_rank_the_database_better_than_random_ones(tmp_path)
     (pretrained_recall, pretrained_precision), (random_recall, random_precision) = (
         retrieval_at_5(model, scene, relevance) for model in (pretrained, random))
     assert pretrained_recall > random_recall and pretrained_precision > random_precision + 0.1  # 0.88 vs 0.69, 0.44 vs 0.24
+
+
+def legacy_names(package_state):
+    """The package's weights under the names of 0.4.0's hand-written trunk (its checkpoints' layout)."""
+    layers = {"_expand_conv": "expand.0", "_bn0": "expand.1", "_depthwise_conv": "depthwise.0", "_bn1": "depthwise.1",
+              "_project_conv": "project.0", "_bn2": "project.1"}
+    top = {"_conv_stem": "stem.0", "_bn0": "stem.1", "_conv_head": "head.0", "_bn1": "head.1"}
+    renamed = {}
+    for key, value in package_state.items():
+        parts = key.split(".")
+        if parts[0] == "_blocks":
+            renamed[f"blocks.{parts[1]}.{layers[parts[2]]}.{parts[3]}"] = value
+        elif parts[0] in top:
+            renamed[f"{top[parts[0]]}.{parts[1]}"] = value
+    return renamed
+
+
+def test_checkpoints_of_the_hand_written_trunk_of_0_4_0_still_load(package_state, tmp_path):
+    legacy = {f"backbone.{key}": value for key, value in legacy_names(package_state).items()}
+    legacy["pooling.p"] = torch.tensor([3.0])
+    upgraded = upgrade_legacy_trunk(legacy, "backbone.")
+    expected = {f"backbone.{key}": value for key, value in trunk_state_dict(package_state, PATH).items()}
+    assert upgraded.keys() == {*expected, "pooling.p"} and all(torch.equal(upgraded[k], v) for k, v in expected.items())
+    pretrained = TrainableDescriptor(weights=PATH, random_init=False, seed=0, **GEM)
+    pretrained.save_checkpoint(tmp_path / "new.pt")
+    content = torch.load(tmp_path / "new.pt", weights_only=True)
+    content["state_dict"] = {k: v for k, v in content["state_dict"].items() if not k.startswith("backbone.")} | legacy
+    torch.save(content, tmp_path / "legacy.pt")
+    reloaded = TrainableDescriptor(weights=tmp_path / "legacy.pt", random_init=False, seed=0, **GEM)
+    images = torch.rand(1, 3, 64, 80)
+    with torch.no_grad():
+        torch.testing.assert_close(reloaded.network.eval()(images), pretrained.network.eval()(images))

