@@ -294,3 +294,41 @@ def test_evaluation_mode_restores_each_layers_own_mode():
     with evaluation_mode(network):
         assert not any(layer.training for layer in network.modules())
     assert [layer.training for layer in network.modules()] == [True, True, False, True]
+
+
+def test_a_diverging_run_stops_at_the_step_naming_the_loss_and_the_learning_rate(tmp_path):
+    from locretrieval.training.module import TrainingDiverged
+
+    cfg = train_config(tmp_path, "optimizer.lr=1e6", "trainer.max_epochs=3", "training.batch.batches_per_epoch=3")
+    with pytest.raises(TrainingDiverged, match=r"training diverged at step \d+ \(epoch \d\): (the loss is nan|the loss is inf|the gradient "
+                                               r"of .* is not finite), learning rate \[.*\] \(optimizer.lr\); lower optimizer.lr"):
+        train(cfg, tmp_path / "run")
+    for checkpoint in (tmp_path / "run" / "checkpoints").glob("*.ckpt"):  # what was saved before holds finite weights only
+        state = torch.load(checkpoint, weights_only=False)["state_dict"]
+        assert all(torch.isfinite(value).all() for value in state.values() if value.is_floating_point())
+
+
+def test_resuming_from_a_file_that_is_not_a_checkpoint_of_this_project_is_refused_before_any_work(tmp_path):
+    from locretrieval.training.checkpoints import check_resume_checkpoint
+
+    (tmp_path / "notes.txt").write_text("not a checkpoint")
+    torch.save({"weights": torch.zeros(2)}, tmp_path / "other.pt")
+    cases = {
+        tmp_path / "absent.ckpt": r"ckpt_path: .*absent.ckpt not found",
+        tmp_path / "notes.txt": r"ckpt_path: .*notes.txt is not a Lightning checkpoint of locretrieval's train.py \(",
+        tmp_path / "other.pt": r"ckpt_path: .*other.pt is a PyTorch file but not a Lightning checkpoint",
+    }
+    for path, message in cases.items():
+        cfg = train_config(tmp_path / path.stem, f"ckpt_path={path}")
+        with pytest.raises((ValueError, FileNotFoundError), match=message) as error:
+            train(cfg, tmp_path / path.stem / "run")
+        assert "weights_only" not in str(error.value)
+        assert not (tmp_path / path.stem / ".cache").exists()  # refused before the scene was rendered
+    # a checkpoint of another architecture
+    first = train_config(tmp_path / "first")
+    train(first, tmp_path / "first" / "run")
+    descriptor = instantiate(first.model)
+    checkpoint = tmp_path / "first" / "run" / "checkpoints" / "last.ckpt"
+    check_resume_checkpoint(checkpoint, descriptor.model, descriptor.architecture)
+    with pytest.raises(ValueError, match=r"ckpt_path: .*last.ckpt.*resume with the model settings of the run that wrote it"):
+        check_resume_checkpoint(checkpoint, descriptor.model, {**descriptor.architecture, "whiten_dim": 64})

@@ -14,6 +14,10 @@ from locretrieval.models.extraction import Preprocessing, describe_batch
 from locretrieval.models.networks import RetrievalNet
 from locretrieval.models.weights import CHECKPOINT_FORMAT, EMBEDDED_CHECKPOINT_KEY, plain
 
+class TrainingDiverged(RuntimeError):
+    """A non-finite loss or gradient: training stops at that step, nothing is updated with it."""
+
+
 class RetrievalTraining(L.LightningModule):
     """Trains ``network`` with ``loss(descriptors, relevance, negatives)``.
 
@@ -70,8 +74,21 @@ class RetrievalTraining(L.LightningModule):
     def training_step(self, batch: tuple[torch.Tensor, torch.Tensor, torch.Tensor], batch_index: int) -> torch.Tensor:
         images, relevance, negatives = batch
         loss = self.loss(self(images), relevance, negatives)
+        if not torch.isfinite(loss):
+            raise TrainingDiverged(self._divergence(f"the loss is {loss.item()}"))
         self.log("train/loss", loss, prog_bar=True, batch_size=len(images))
         return loss
+
+    def on_after_backward(self) -> None:
+        """Stop before the optimizer step when a gradient is not finite (the weights stay as they were)."""
+        for name, parameter in self.network.named_parameters():
+            if parameter.grad is not None and not torch.isfinite(parameter.grad).all():
+                raise TrainingDiverged(self._divergence(f"the gradient of {name} is not finite"))
+
+    def _divergence(self, what: str) -> str:
+        rates = sorted({group["lr"] for optimizer in self.trainer.optimizers for group in optimizer.param_groups})
+        return (f"training diverged at step {self.global_step} (epoch {self.current_epoch}): {what}, learning rate {rates} "
+                f"(optimizer.lr); lower optimizer.lr. The checkpoints in checkpoints/ are from before it.")
 
     def configure_optimizers(self):
         optimizer = self.optimizer_factory(params=[p for p in self.network.parameters() if p.requires_grad])

@@ -24,6 +24,7 @@ from locretrieval.scene import ImageSet, Scene
 from locretrieval.scene.datasets import load_synthetic_dataset
 from locretrieval.scene.kapture_io import concatenate_image_sets
 from locretrieval.training.callbacks import HardNegativeMining, LocalizationValidation
+from locretrieval.training.checkpoints import check_resume_checkpoint
 from locretrieval.training.data import AugmentSettings, BatchSettings, RelevanceBatchSampler, TrainingData
 from locretrieval.training.module import RetrievalTraining
 from locretrieval.training.relevance import TrainingRelevanceSettings, combined_pairs
@@ -126,8 +127,10 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     OmegaConf.save(cfg, output_dir / "config.yaml", resolve=True)
     cache_dir = Path(cfg.paths.cache_dir)
 
-    scene: Scene = instantiate(cfg.data)
     descriptor = instantiate(cfg.model)  # the zoo model: network, preprocessing, weights checked
+    if cfg.get("ckpt_path"):  # before the scene and ground truth are prepared
+        check_resume_checkpoint(cfg.ckpt_path, descriptor.model, descriptor.architecture)
+    scene: Scene = instantiate(cfg.data)
     network, preprocessing = descriptor.network.train(), descriptor.preprocessing
     frozen = freeze_parameters(network, training.frozen)
     if frozen:
