@@ -7,6 +7,12 @@ import gc
 # compression calls (numpy savez_compressed, PNG writers) from crashing the process.
 import zlib  # noqa: F401
 
+import logging  # noqa: E402
+
+# faiss's loader logs at INFO each CPU-specific library it fails to find (AVX-512, AVX2) before
+# the one it loads: not about the run.
+logging.getLogger("faiss.loader").setLevel(logging.WARNING)
+
 from locretrieval import config, models  # noqa: F401,E402  (register the config resolvers)
 
 __version__ = "0.5.0"

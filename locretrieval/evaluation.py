@@ -19,7 +19,7 @@ from locretrieval.config import validated
 from locretrieval.groundtruth import DEFINITIONS, GroundTruthSettings, compute_groundtruths, statistics_table
 from locretrieval.localization.colmap_model import missing_model_files
 from locretrieval.localization.features import missing_kapture_features
-from locretrieval.metrics.localization import best_over_k
+from locretrieval.metrics.localization import best_over_k, median_errors
 from locretrieval.metrics.subsets import SubsetSettings, missing_mask_inputs
 from locretrieval.models.precomputed import PrecomputedDescriptor, missing_feature_folders
 from locretrieval.retrieval.descriptors import describe_scene
@@ -35,7 +35,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
 
     Every config section, then every input file the run needs (`check_inputs`), is checked
     before any work; with ``dry_run`` the SfM work is only planned and logged (`log_plan`). Writes the tidy tables
-    (``results.csv``, ``query_errors.csv.gz``, ``retrieval.csv``, ``query_retrieval.csv.gz``,
+    (``results.csv``, ``query_errors.csv.gz``, ``median_errors.csv``, ``retrieval.csv``, ``query_retrieval.csv.gz``,
     ``groundtruth_statistics.csv``, ``subsets.csv``), the rankings, LTVL exports,
     ``summary.json`` and the report built from those tables. Returns the localization table.
     """
@@ -163,6 +163,7 @@ def write_tables(result: BenchmarkResult, groundtruth_statistics: pd.DataFrame, 
         save_arrays(output_dir / "rankings" / f"{ranking.name}.npz", {"indices": ranking.indices, "scores": ranking.scores})
     result.localization.to_csv(output_dir / "results.csv", index=False)
     result.query_errors.to_csv(output_dir / "query_errors.csv.gz", index=False)
+    median_errors(result.query_errors).to_csv(output_dir / "median_errors.csv", index=False)
     groundtruth_statistics.to_csv(output_dir / "groundtruth_statistics.csv", index=False)
     subset_table.to_csv(output_dir / "subsets.csv", index=False)
     if len(result.retrieval.columns):

@@ -91,6 +91,14 @@ def test_run_writes_every_output(run):
     lines = ltvl.read_text().splitlines()
     assert len(lines) == 16 and all(len(line.split()) == 8 for line in lines)
     assert "![synthetic_mall_approximation_ewb](figures/synthetic_mall_approximation_ewb.png)" in (output / "report.md").read_text()
+    # median errors: one row per ranking x paradigm x method x k, each the median of that slice of the per-query errors
+    medians = pd.read_csv(output / "median_errors.csv")
+    assert len(medians) == sum(len(K_PER_PARADIGM[p]) for p, _, _ in expected_methods())
+    estimated = pd.read_csv(output / "query_errors.csv.gz")
+    slice_ = estimated[(estimated["ranking"] == "gt_relative_pose") & (estimated["paradigm"] == "global_sfm") & (estimated["k"] == 5)]
+    row = medians[(medians["ranking"] == "gt_relative_pose") & (medians["paradigm"] == "global_sfm") & (medians["k"] == 5)].iloc[0]
+    assert row["median_position_error_m"] == pytest.approx(np.nanmedian(slice_["position_error_m"]))
+    assert row["estimated_pct"] == pytest.approx(100 * slice_["failure"].isna().mean())
 
 
 def test_multirun_from_the_command_line(run):

@@ -158,11 +158,13 @@ def test_report_of_a_multirun_produces_every_figure_and_table(tmp_path):
     text = report.read_text()
     for stem in figures:
         assert f"(figures/{stem}.png)" in text
-    tables = ("table1_groundtruth_statistics", "table2_revisited", f"pearson_recall_{GROUNDTRUTH}", f"spearman_precision_{GROUNDTRUTH}")
+    tables = ("table1_groundtruth_statistics", "table2_revisited", f"pearson_recall_{GROUNDTRUTH}", f"spearman_precision_{GROUNDTRUTH}",
+              "median_errors")
     for stem in tables:
         assert (output / "tables" / f"{stem}.tex").read_text().startswith("\\begin{table}")
         assert (output / "tables" / f"{stem}.md").is_file()
     assert "gt\\_relative\\_pose" in (output / "tables" / "table1_groundtruth_statistics.tex").read_text()
+    assert "## Median errors" in text and "median_position_error_m" in (output / "tables" / "median_errors.md").read_text()
     pearson = pd.read_csv(output / "correlation_dataset_pearson.csv")
     assert set(pearson["ranking"]) == {"apgem", "netvlad"}  # descriptors only, from both runs
     assert len(pd.read_csv(output / "correlation_query_pearson.csv.gz")) > 0

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 
 from locretrieval.config import require
-from locretrieval.localization.estimates import PoseEstimates
+from locretrieval.localization.estimates import LOCALIZED, PoseEstimates
 from locretrieval.scene import ImageSet
 
 #: Columns of the tidy localization table, one row per
@@ -131,6 +131,31 @@ def query_error_table(dataset: str, estimates: Sequence[PoseEstimates], queries:
             )
         )
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=QUERY_ERROR_COLUMNS)
+
+
+#: Columns of the median-error table (`median_errors`), one row per dataset x ranking x paradigm x method x k.
+MEDIAN_ERROR_COLUMNS = [
+    "dataset", "ranking", "ranking_kind", "paradigm", "method", "k",
+    "median_position_error_m", "median_rotation_error_deg", "estimated_pct", "num_queries",
+]
+
+
+def median_errors(query_errors: pd.DataFrame) -> pd.DataFrame:
+    """Median position (m) and rotation (deg) errors over the queries with an estimate (and a
+    reference pose), and the % of queries with an estimate, per dataset x ranking x paradigm x
+    method x k of a per-query error table (`query_error_table`), as the reference tools report them."""
+    if query_errors.empty:
+        return pd.DataFrame(columns=MEDIAN_ERROR_COLUMNS)
+    keys = ["dataset", "ranking", "ranking_kind", "paradigm", "method", "k"]
+    rows = query_errors.assign(estimated=query_errors["failure"].fillna("") == LOCALIZED)
+    table = rows.groupby(keys, sort=False).agg(
+        median_position_error_m=("position_error_m", "median"),
+        median_rotation_error_deg=("rotation_error_deg", "median"),
+        estimated_pct=("estimated", "mean"),
+        num_queries=("query", "size"),
+    ).reset_index()
+    table["estimated_pct"] *= 100.0
+    return table[MEDIAN_ERROR_COLUMNS]
 
 
 def query_subsets(queries: ImageSet) -> dict[str, np.ndarray]:

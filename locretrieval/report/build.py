@@ -10,6 +10,7 @@ from pathlib import Path
 import pandas as pd
 
 from locretrieval.metrics.correlation import dataset_pearson, dataset_spearman, paired_metrics, query_pearson
+from locretrieval.metrics.localization import median_errors
 from locretrieval.metrics.retrieval import METRICS
 from locretrieval.report import markdown, plots
 from locretrieval.report.painters import Painters
@@ -256,6 +257,11 @@ def subset_section(
 def failure_section(writer: markdown.ReportWriter, tables: RunTables) -> None:
     if tables.query_errors.empty:
         return
+    writer.heading("Median errors")
+    medians = median_errors(tables.query_errors).drop(columns=["ranking_kind"]).set_index(["dataset", "paradigm", "method", "ranking", "k"])
+    caption = ("Median position (m) and rotation (deg) errors over the queries with an estimate and a reference pose, "
+               "and the % of queries with an estimate.")
+    writer.table(medians, "median_errors", caption, ".2f")
     writer.heading("Failures")
     failures = markdown.failure_summary(tables.query_errors)
     writer.text(failures.to_markdown(index=False) if len(failures) else "Every query received an estimate.")
