@@ -150,6 +150,9 @@ def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkp
     for key, value in direct.items():
         assert logged[key] == pytest.approx(value, abs=1e-6), key
     assert any(key.startswith("val/global_sfm/") for key in direct)
+    assert {"val/local_sfm/pnp/k5/0.25m_2deg", "val/local_sfm/pnp/k10/0.25m_2deg"} <= direct.keys()  # 2a by default too
+    sfm_validations = [entry for entry in validator.history if "val/local_sfm/pnp/k10/0.25m_2deg" in entry]
+    assert len(sfm_validations) >= 2  # before training and after the epoch
 
 
 def test_resuming_from_the_last_checkpoint_continues_the_same_curve(tmp_path):

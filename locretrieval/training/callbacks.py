@@ -149,8 +149,8 @@ class LocalizationValidation(L.Callback):
 
 
 #: What a console line shows of a validation (those present).
-HEADLINE = ("val/approximation/ewb/k3/5m_10deg", "val/approximation/csi/k3/5m_10deg", "val/global_sfm/pnp/k5/0.25m_2deg",
-            "val/retrieval/relative_pose/precision@5", "val/retrieval/relative_pose/recall@5")
+HEADLINE = ("val/approximation/ewb/k3/5m_10deg", "val/approximation/csi/k3/5m_10deg", "val/local_sfm/pnp/k10/0.25m_2deg",
+            "val/global_sfm/pnp/k5/0.25m_2deg", "val/retrieval/relative_pose/precision@5", "val/retrieval/relative_pose/recall@5")
 
 
 def headline(metrics: Mapping[str, float]) -> str:
