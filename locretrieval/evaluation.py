@@ -105,8 +105,9 @@ def log_plan(cfg: DictConfig, scene: Scene, settings: BenchmarkSettings, groundt
     if plan is None:
         log.info("dry run: no SfM paradigm is enabled, nothing to match")
     else:
-        log.info("dry run over %d rankings (the model's, %d of the ground truth, %d random); nothing is computed:\n%s",
-                 num_rankings, groundtruth_rankings, int(bool(cfg.baselines.random)), plan.describe())
+        log.info("dry run over %d rankings (the model's, %d of the ground truth, %d random); nothing is computed. The SfM "
+                 "paradigms' work (the co-observation ground truth, when enabled, first matches pairs of its own, not counted "
+                 "here):\n%s", num_rankings, groundtruth_rankings, int(bool(cfg.baselines.random)), plan.describe())
 
 
 def check_inputs(

@@ -239,7 +239,8 @@ def test_a_timm_backbone_loads_its_own_state_dict_without_the_classifier(scene, 
     vit = instantiate(helpers.evaluate_config("model=timm", "model.name=vit_small_patch14_dinov2", "model.pooling.type=boq",
                                               "model.random_init=true", *QUIET).model)
     assert vit.network.backbone(torch.rand(1, 3, 70, 98)).shape == (1, 384, 5, 7)
-    assert vit.network(torch.rand(1, 3, 70, 98)).shape == (1, vit.network.output_dim)
+    assert vit.network.backbone(torch.rand(1, 3, 100, 150)).shape == (1, 384, 8, 11)  # padded to the patch grid
+    assert vit.network(torch.rand(1, 3, 100, 150)).shape == (1, vit.network.output_dim)
     with pytest.raises(InstantiationException, match=r"the state dict of timm's 'resnet18'"):
         instantiate(helpers.evaluate_config("model=timm", "model.name=resnet18", f"model.weights={tmp_path / 'absent.pth'}", *QUIET).model)
 
@@ -251,3 +252,26 @@ def test_train_py_trains_a_timm_backbone(tmp_path):
     cfg = train_config(tmp_path, "model=timm", "model.name=resnet18", "model.weights=null", "model.random_init=true",
                        "+trainer.fast_dev_run=true", "paradigms.approximation.k=[1,3]")
     assert sorted({entry["epoch"] for entry in train(cfg, tmp_path / "run").history}) == [-1, 0]
+
+
+FIXED = '''import torch
+
+
+def build():
+    """A network that takes exactly 48 x 64 images (a linear layer on the flattened pixels)."""
+    torch.manual_seed(0)
+    return torch.nn.Sequential(torch.nn.Flatten(), torch.nn.Linear(3 * 48 * 64, 8))
+'''
+
+
+def test_a_fixed_size_network_is_probed_and_fed_at_its_size_and_its_code_keys_the_cache(scene, tmp_path, monkeypatch):
+    from hydra.utils import instantiate
+
+    (tmp_path / "fixed_net.py").write_text(FIXED)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    cfg = helpers.evaluate_config("model=callable", "model.target=fixed_net:build", "model.preprocessing.size=[64,48]", *QUIET)
+    model = instantiate(cfg.model)
+    assert model.network.output_dim == 8 and model.describe(scene.queries).shape == (3, 8)
+    code = model.identity()["architecture"]["code"]
+    (tmp_path / "fixed_net.py").write_text(FIXED + "\n# edited\n")  # another size: another cache key
+    assert instantiate(cfg.model).identity()["architecture"]["code"] != code

@@ -87,7 +87,7 @@ def plan(
     bounds for ``num_rankings`` rankings not computed yet (``None``)."""
     inputs = SfmInputs.prepare(scene, sfm, cache_dir, extract=False)
     query_pairs = query_pair_work(inputs, rankings, settings.k, num_rankings)
-    pairs_per_map = float(np.mean([comb(min(k, len(scene.database)), 2) for k in settings.k]))
+    pairs_per_map = float(np.mean([comb(min(k, len(scene.database)), 2) for k in settings.k if k >= 2] or [0]))
     if rankings is None:
         queries, depth = len(scene.queries), min(max(settings.k), len(scene.database))
         bound = min(num_rankings * queries * comb(depth, 2), comb(len(scene.database), 2)) if settings.map_matches == "database" else 0

@@ -117,9 +117,9 @@ class MatchingSettings:
 
     def matcher(self, workers: int = 1) -> NearestNeighbourMatcher:
         """The matcher of these settings in a process that is one of ``workers`` sharing the
-        device. On a GPU, a worker process caps its memory at its share
-        (`torch.cuda.set_per_process_memory_fraction`); the main process (matching a small
-        workload itself, or holding a network in training) is never capped."""
+        device. On a GPU, a worker process caps its memory at ``1 / (workers + 1)``
+        (`torch.cuda.set_per_process_memory_fraction`), leaving a share to the main process, which
+        is never capped (it matches small workloads itself and holds a network in training)."""
         import multiprocessing
 
         from locretrieval.device import resolve_device
@@ -129,9 +129,10 @@ class MatchingSettings:
         if device.type == "cuda":
             import torch
 
-            share = 1.0 / max(1, workers) if multiprocessing.parent_process() is not None else 1.0
+            # a worker's share leaves one for the main process (which holds a network in training)
+            share = 1.0 / (max(1, workers) + 1) if multiprocessing.parent_process() is not None else 1.0
             if share < 1.0:
-                torch.cuda.set_per_process_memory_fraction(share, device)
+                torch.cuda.set_per_process_memory_fraction(share, device.index if device.index is not None else torch.cuda.current_device())
             if self.block_mib is None:
                 block_bytes = min(CUDA_BLOCK_BYTES, int(share * torch.cuda.get_device_properties(device).total_memory / 4))
         return NearestNeighbourMatcher(self.ratio, str(device), self.precision, block_bytes)
@@ -169,7 +170,9 @@ class NearestNeighbourMatcher:
       rows: at most ``TILE / columns`` of the whole product).
 
     Ties go to the lowest index both ways, as numpy's ``argmax``; a tie for the best value makes
-    the second-best equal to it. ``precision``: ``float32``, or ``float16`` similarities
+    the second-best equal to it. (The recomputed candidate similarities may round differently from
+    the blocked product: two rows within one rounding step of each other for a column can then
+    be ordered differently; exact ties, as the tests use, cannot.) ``precision``: ``float32``, or ``float16`` similarities
     (for GPUs; the README says how often it changes a match).
     """
 

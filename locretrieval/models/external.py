@@ -16,6 +16,7 @@ without it the error names the repo and what to do.
 from __future__ import annotations
 
 import importlib
+import inspect
 import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -25,6 +26,7 @@ import torch
 from omegaconf import OmegaConf
 from torch import nn
 
+from locretrieval.cache import file_signature
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
 from locretrieval.models.networks import WeightsInfo, l2_normalize
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
@@ -45,7 +47,7 @@ class ModuleNet(nn.Module):
         super().__init__()
         self.module = module if isinstance(module, nn.Module) else _Function(module)
         self.register_buffer("device_marker", torch.empty(0), persistent=False)
-        height, width = preprocessing.scaled_size(*PROBE_SIZE, 1.0)
+        width, height = preprocessing.target_size(PROBE_SIZE[1], PROBE_SIZE[0])  # a fixed size, multiples of a patch
         was_training = self.module.training
         with torch.no_grad():
             self.module.eval()
@@ -162,4 +164,7 @@ class CallableDescriptor(ExternalDescriptor):
     model = "callable"
 
     def __init__(self, name: str, target: str, kwargs: Mapping[str, Any], **settings: Any) -> None:
-        super().__init__(name, callable_module(str(target), settings_of(kwargs)), {"target": str(target), "kwargs": settings_of(kwargs)}, **settings)
+        module = callable_module(str(target), settings_of(kwargs))
+        # the code's file (size, time): a function has no state dict to hash, so an edit must change the key
+        code = file_signature(inspect.getsourcefile(importlib.import_module(str(target).partition(":")[0])))
+        super().__init__(name, module, {"target": str(target), "kwargs": settings_of(kwargs), "code": list(code)}, **settings)

@@ -12,16 +12,16 @@ TIMM_PREFIX = "timm:"
 class TimmTrunk(nn.Module):
     """The feature map of a timm model (built without classifier and pooling, random weights):
     a ConvNet's ``forward_features`` ``[B, C, H, W]``; a ViT's patch tokens (its prefix tokens,
-    class and registers, dropped) as a ``[B, C, H / patch, W / patch]`` map, at any input size
-    that is a multiple of the patch (``dynamic_img_size``). Parameters are the timm model's,
+    class and registers, dropped) as a ``[B, C, H / patch, W / patch]`` map (rounded up: the input
+    is padded to the patch grid, ``dynamic_img_size`` and ``dynamic_img_pad``). Parameters are the timm model's,
     under ``timm.``."""
 
     def __init__(self, name: str) -> None:
         super().__init__()
         import timm
 
-        try:
-            self.timm = timm.create_model(name, pretrained=False, num_classes=0, global_pool="", dynamic_img_size=True)
+        try:  # a ViT takes any size, padded to its patch grid
+            self.timm = timm.create_model(name, pretrained=False, num_classes=0, global_pool="", dynamic_img_size=True, dynamic_img_pad=True)
         except TypeError:  # not a ViT: no dynamic image size to set
             self.timm = timm.create_model(name, pretrained=False, num_classes=0, global_pool="")
         except RuntimeError as error:
@@ -31,8 +31,8 @@ class TimmTrunk(nn.Module):
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         features = self.timm.forward_features(images)
-        if features.ndim == 4:
-            return features
+        if features.ndim == 4:  # channels last for some (Swin: output_fmt NHWC)
+            return features.permute(0, 3, 1, 2) if str(getattr(self.timm, "output_fmt", "NCHW")).endswith("NHWC") else features
         tokens = features[:, self.timm.num_prefix_tokens :]
-        height, width = images.shape[2] // self.patch[0], images.shape[3] // self.patch[1]
+        height, width = -(-images.shape[2] // self.patch[0]), -(-images.shape[3] // self.patch[1])  # the padded grid
         return tokens.transpose(1, 2).reshape(len(tokens), self.channels, height, width)

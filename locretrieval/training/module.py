@@ -74,13 +74,21 @@ class RetrievalTraining(L.LightningModule):
     def training_step(self, batch: tuple[torch.Tensor, torch.Tensor, torch.Tensor], batch_index: int) -> torch.Tensor:
         images, relevance, negatives = batch
         loss = self.loss(self(images), relevance, negatives)
-        if not torch.isfinite(loss):
-            raise TrainingDiverged(self._divergence(f"the loss is {loss.item()}"))
+        finite = bool(torch.isfinite(loss))
+        if self.trainer.world_size > 1:  # every rank stops together (one rank alone would hang the others)
+            finite = self.trainer.strategy.reduce_boolean_decision(finite, all=True)
+        if not finite:
+            what = "the loss of another rank is not finite" if torch.isfinite(loss) else f"the loss is {loss.item()}"
+            raise TrainingDiverged(self._divergence(what))
         self.log("train/loss", loss, prog_bar=True, batch_size=len(images))
         return loss
 
-    def on_after_backward(self) -> None:
-        """Stop before the optimizer step when a gradient is not finite (the weights stay as they were)."""
+    def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
+        """Stop before the optimizer step when a gradient is not finite (the weights stay as they
+        were). Gradients are unscaled here; with mixed precision a non-finite one is the gradient
+        scaler's to skip, as it does in its first steps, so there is no check."""
+        if "mixed" in str(self.trainer.precision) or str(self.trainer.precision).startswith("16"):
+            return
         for name, parameter in self.network.named_parameters():
             if parameter.grad is not None and not torch.isfinite(parameter.grad).all():
                 raise TrainingDiverged(self._divergence(f"the gradient of {name} is not finite"))
