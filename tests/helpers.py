@@ -11,6 +11,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.config import validated
 from locretrieval.localization.sfm import SfmSettings
+from locretrieval.scene import Scene
+from locretrieval.scene.kapture_io import load_kapture_scene
+from locretrieval.scene.synthetic import render_synthetic_dataset
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 #: Extraction overrides for tests: CPU, in this process, no progress bars.
@@ -34,6 +37,12 @@ def zoo_model(model: str, **options):
     parameters = OmegaConf.to_container(config.model, resolve=True)
     model_class = get_class(parameters.pop("_target_"))
     return model_class(**{**parameters, **options})
+
+
+def rendered_scene(root: Path, settings: Mapping) -> Scene:
+    """A synthetic scene rendered with ``settings`` into ``root`` and read back from its kapture folders."""
+    render_synthetic_dataset(dict(settings), root)
+    return load_kapture_scene("tiny", [root / "mapping"], [root / "query"])
 
 
 def sfm_settings(*overrides: Mapping) -> SfmSettings:

@@ -21,8 +21,6 @@ from locretrieval.localization.pairs import PairSelection, database_pairs, overl
 from locretrieval.localization.sfm import SfmInputs
 from locretrieval.retrieval import EMPTY
 from locretrieval.scene import ImageSet, Scene
-from locretrieval.scene.kapture_io import load_kapture_scene
-from locretrieval.scene.synthetic import render_synthetic_dataset
 from locretrieval.training.relevance import TrainingRelevanceSettings, training_pairs
 
 SCENE = {"width": 256, "height": 192, "num_database": 40, "num_queries": 8, "texture_size": 128, "length": 20.0,
@@ -39,9 +37,7 @@ def selection(**overrides) -> PairSelection:
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    root = tmp_path_factory.mktemp("co_observation_scene")
-    render_synthetic_dataset(SCENE, root)
-    return load_kapture_scene("tiny", [root / "mapping"], [root / "query"])
+    return helpers.rendered_scene(tmp_path_factory.mktemp("co_observation_scene"), SCENE)
 
 
 @pytest.fixture(scope="module")

@@ -16,9 +16,6 @@ from locretrieval.models.extraction import Preprocessing
 from locretrieval.models.networks import build_retrieval_net
 from locretrieval.models.trainable import read_trainable_weights
 from locretrieval.retrieval.descriptors import describe_scene
-from locretrieval.scene import ImageSet
-from locretrieval.scene.kapture_io import load_kapture_scene
-from locretrieval.scene.synthetic import render_synthetic_dataset
 
 SCENE = {"width": 128, "height": 96, "num_database": 8, "num_queries": 3, "texture_size": 64, "length": 20.0,
          "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
@@ -46,9 +43,7 @@ QUIET = ("device=cpu", "model.extraction.num_workers=0", "model.extraction.progr
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    root = tmp_path_factory.mktemp("external_scene")
-    render_synthetic_dataset(SCENE, root)
-    return load_kapture_scene("tiny", [root / "mapping"], [root / "query"])
+    return helpers.rendered_scene(tmp_path_factory.mktemp("external_scene"), SCENE)
 
 
 @pytest.fixture(scope="module")
