@@ -3,6 +3,7 @@
     python report.py outputs/evaluate/synthetic/densevlad/2025-01-01_12-00-00
     python report.py multirun/evaluate/2025-01-01_12-00-00 --output reports/all-models
     python report.py RUN_A RUN_B --groundtruth relative_pose
+    python report.py RUN --gallery queries=all k=10    # every query's top 10 in the galleries
 
 A directory without ``results.csv`` is searched for runs below it (a Hydra multirun).
 """
@@ -13,6 +14,8 @@ from pathlib import Path
 
 import locretrieval  # imports zlib before pycolmap; see locretrieval/__init__.py
 from locretrieval.report import build_report
+from locretrieval.report.gallery import run_gallery_settings
+from locretrieval.report.tables import find_run_dirs
 
 
 def main() -> None:
@@ -21,13 +24,16 @@ def main() -> None:
     parser.add_argument("--output", type=Path, help="report directory (default: the single run directory given)")
     parser.add_argument("--groundtruth", help="ground truth of the correlation analysis (default: relative pose)")
     parser.add_argument("--formats", nargs="+", default=["png", "pdf"], help="figure formats (default: png pdf)")
+    parser.add_argument("--gallery", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="report.gallery settings replacing the first run's (e.g. queries=all k=10)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] %(name)s: %(message)s")
     if args.output is None:
         if len(args.runs) != 1:
             parser.error("--output is required when several runs are given")
         args.output = args.runs[0]
-    print(build_report(args.runs, args.output, args.groundtruth, args.formats))
+    gallery, thumbnails = run_gallery_settings(find_run_dirs(args.runs)[0], args.gallery)
+    print(build_report(args.runs, args.output, args.groundtruth, args.formats, gallery=gallery, thumbnail_cache=thumbnails))
 
 
 if __name__ == "__main__":

@@ -30,6 +30,7 @@ from locretrieval.config import ConfigError, validated
 from locretrieval.groundtruth import GroundTruth
 from locretrieval.localization import approximation, global_sfm, local_sfm
 from locretrieval.localization.approximation import ApproximationSettings
+from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.global_sfm import GlobalSfmSettings
 from locretrieval.localization.local_sfm import LocalSfmSettings
@@ -45,40 +46,73 @@ from locretrieval.scene import Scene
 
 log = logging.getLogger(__name__)
 
-#: Paradigm entry points ``run(scene, rankings, settings, sfm, cache_dir) -> [PoseEstimates]``,
-#: in the order they run, by their section name in ``configs/paradigms``.
-PARADIGMS: dict[str, Callable[..., list[PoseEstimates]]] = {
-    "approximation": approximation.run,
-    "local_sfm": local_sfm.run,
-    "global_sfm": global_sfm.run,
-}
+@dataclass(frozen=True)
+class Paradigm:
+    """A localization paradigm: its ``settings`` schema (a `ParadigmSettings`, the section of
+    ``configs/paradigms`` of its name), its entry point ``run(scene, rankings, settings, sfm,
+    cache_dir) -> [PoseEstimates]``, and what it needs: ``uses_local_features`` (the ``sfm``
+    group's features and matches), ``plan`` (its work forecast, `locretrieval.localization.plan`,
+    ``plan(scene, rankings or None, settings, sfm, cache_dir, num_rankings) -> ParadigmWork``),
+    ``missing_inputs(settings) -> [problem]`` (files it reads that are absent) and ``cost``:
+    ``cheap`` (run at every training validation) or ``sfm`` (every ``sfm_every_n_epochs``)."""
+
+    settings: type[ParadigmSettings]
+    run: Callable[..., list[PoseEstimates]]
+    uses_local_features: bool = False
+    plan: Callable[..., ParadigmWork] | None = None
+    missing_inputs: Callable[[Any], list[str]] | None = None
+    cost: str = "cheap"
 
 
-#: Planners of the paradigms that match local features (`locretrieval.localization.plan`):
-#: ``plan(scene, rankings or None, settings, sfm, cache_dir, num_rankings) -> ParadigmWork``.
-SFM_PLANNERS: dict[str, Callable[..., ParadigmWork]] = {
-    "local_sfm": local_sfm.plan,
-    "global_sfm": global_sfm.plan,
+#: The paradigms, in the order they run, by their section name in ``configs/paradigms``. A new
+#: paradigm is its module (settings schema, ``run``) and one entry here (and its YAML section).
+PARADIGMS: dict[str, Paradigm] = {
+    "approximation": Paradigm(ApproximationSettings, approximation.run),
+    "local_sfm": Paradigm(LocalSfmSettings, local_sfm.run, uses_local_features=True, plan=local_sfm.plan, cost="sfm"),
+    "global_sfm": Paradigm(GlobalSfmSettings, global_sfm.run, uses_local_features=True, plan=global_sfm.plan,
+                           missing_inputs=global_sfm.missing_inputs, cost="sfm"),
 }
 #: Unit costs measured in this process, by what they were measured on (`sfm_plan`).
 _unit_costs: dict[str, UnitCosts] = {}
 
 
-@dataclass
 class ParadigmsSettings:
-    """The ``paradigms`` config group: one section per paradigm of `PARADIGMS`."""
+    """The ``paradigms`` config group: one checked section per `PARADIGMS` entry, read as an
+    attribute of its name (``settings.paradigms.local_sfm``)."""
 
-    approximation: ApproximationSettings
-    local_sfm: LocalSfmSettings
-    global_sfm: GlobalSfmSettings
+    def __init__(self, sections: Mapping[str, ParadigmSettings]) -> None:
+        self.sections = dict(sections)
+
+    @classmethod
+    def from_mapping(cls, mapping: Mapping[str, Any], key: str) -> "ParadigmsSettings":
+        """Each section of ``mapping`` checked by its paradigm's schema (`locretrieval.config.validated`);
+        an unknown or missing section is a `ConfigError` naming it."""
+        unknown = sorted(set(mapping) - set(PARADIGMS))
+        if unknown:
+            raise ConfigError(f"{key}.{unknown[0]}: unknown key; expected one of {list(PARADIGMS)}")
+        missing = [name for name in PARADIGMS if name not in mapping]
+        if missing:
+            raise ConfigError(f"{key}.{missing[0]}: missing; every paradigm needs its section (enabled: false switches it off)")
+        return cls({name: validated(paradigm.settings, mapping[name], f"{key}.{name}") for name, paradigm in PARADIGMS.items()})
+
+    def __getattr__(self, name: str) -> ParadigmSettings:
+        sections = self.__dict__.get("sections", {})
+        if name in sections:
+            return sections[name]
+        raise AttributeError(f"no paradigm section {name!r}; known: {list(sections)}")
 
     def enabled(self) -> list[str]:
         """The enabled paradigms, in the order of `PARADIGMS`."""
-        return [name for name in PARADIGMS if getattr(self, name).enabled]
+        return [name for name, section in self.sections.items() if section.enabled]
 
     def ks(self) -> list[int]:
         """Every k of an enabled paradigm, sorted."""
-        return sorted({k for name in self.enabled() for k in getattr(self, name).k})
+        return sorted({k for name in self.enabled() for k in self.sections[name].k})
+
+    def only(self, keep: Callable[[Paradigm], bool]) -> "ParadigmsSettings":
+        """These settings with the paradigms ``keep`` refuses switched off."""
+        return ParadigmsSettings({name: section if keep(PARADIGMS[name]) else dataclasses.replace(section, enabled=False)
+                                  for name, section in self.sections.items()})
 
 
 @dataclass
@@ -203,12 +237,12 @@ def sfm_plan(
     is no cache): exact for ``rankings``, or upper bounds for ``num_rankings`` rankings not
     computed yet (``None``). When there is new work, unit costs are measured on a sample of the
     scene (once per scene and settings in a process) for the forecast."""
-    enabled = [name for name in settings.paradigms.enabled() if name in SFM_PLANNERS]
+    enabled = [name for name in settings.paradigms.enabled() if PARADIGMS[name].plan is not None]
     if not enabled or cache_dir is None:
         return None
     cache_dir = Path(cache_dir)
     inputs = SfmInputs.prepare(scene, settings.sfm, cache_dir, extract=False)
-    work = [SFM_PLANNERS[name](scene, rankings, getattr(settings.paradigms, name), settings.sfm, cache_dir, num_rankings) for name in enabled]
+    work = [PARADIGMS[name].plan(scene, rankings, getattr(settings.paradigms, name), settings.sfm, cache_dir, num_rankings) for name in enabled]
     plan = SfmPlan(feature_work(inputs), work, rankings is not None, settings.sfm.processes)
     if plan.features.new or plan.new_pairs() or any(w.maps.new or w.registrations.new for w in work):
         key = config_key(scene.database.fingerprint(), scene.queries.fingerprint(), dataclasses.asdict(settings.sfm))
@@ -243,7 +277,7 @@ def benchmark(
     for paradigm in settings.paradigms.enabled():
         paradigm_settings = getattr(settings.paradigms, paradigm)
         log.info("paradigm %s, k=%s", paradigm, paradigm_settings.k)
-        computed = PARADIGMS[paradigm](scene, rankings, paradigm_settings, settings.sfm, cache_dir)
+        computed = PARADIGMS[paradigm].run(scene, rankings, paradigm_settings, settings.sfm, cache_dir)
         estimates += [e.labelled(paradigm_settings.k, depths[e.ranking]) for e in computed]
     thresholds = settings.metrics.thresholds
     localization = localization_table(scene.name, estimates, scene.queries, thresholds, subsets, settings.metrics.inclusive)

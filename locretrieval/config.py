@@ -78,10 +78,15 @@ def validated(schema: type[Schema], config: Any, key: str) -> Schema:
     """``config`` (a `DictConfig`, a mapping or already a ``schema`` instance) as a checked ``schema``.
 
     Interpolations are resolved against the config's own root first. Nested dataclass fields
-    are built recursively, so every error names the full key below ``key``.
+    are built recursively, so every error names the full key below ``key``. A schema that is not
+    a dataclass builds itself with its ``from_mapping(mapping, key)`` (sections known only from
+    a registry, e.g. the paradigms).
     """
     if isinstance(config, schema):
         return config
+    if not dataclasses.is_dataclass(schema):
+        mapping = OmegaConf.to_container(config, resolve=True) if isinstance(config, Container) else dict(config or {})
+        return schema.from_mapping(mapping, key)
     try:
         if isinstance(config, Container):
             config = OmegaConf.to_container(config, resolve=True)
@@ -143,3 +148,22 @@ def _type_name(hint: Any) -> str:
         return hint.__name__
     return str(hint).replace("typing.", "")
 
+
+
+def built(node: Any, key: str, **runtime: Any) -> Any:
+    """The object of the config node ``node`` at ``key`` (its ``_target_``, Hydra's `instantiate`).
+    A ``_partial_`` node is called with the ``runtime`` objects only the running code has (the
+    scene, the training pairs, the network, ...). A value its constructor refuses (a
+    `SettingError` of a range check) is a `ConfigError` naming the full key."""
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
+
+    try:
+        target = instantiate(node)
+        return target(**runtime) if runtime else target
+    except SettingError as error:
+        raise ConfigError(f"{key}.{error}") from None
+    except InstantiationException as error:
+        if isinstance(error.__cause__, SettingError):
+            raise ConfigError(f"{key}.{error.__cause__}") from None
+        raise

@@ -7,21 +7,25 @@ import logging
 import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.benchmark import (
-    BenchmarkResult, BenchmarkSettings, benchmark, build_rankings, check_supported, relevances, scene_subsets, sfm_plan,
+    PARADIGMS, BenchmarkResult, BenchmarkSettings, benchmark, build_rankings, check_supported, relevances, scene_subsets, sfm_plan,
 )
 from locretrieval.cache import save_arrays
 from locretrieval.config import validated
-from locretrieval.groundtruth import DEFINITIONS, GroundTruthSettings, compute_groundtruths, statistics_table
-from locretrieval.localization.colmap_model import missing_model_files
+from locretrieval.groundtruth import GroundTruthSettings, definition_type, compute_groundtruths, statistics_table
+from locretrieval.localization import global_sfm
+from locretrieval.localization.estimates import estimated_pose_table
 from locretrieval.localization.features import missing_kapture_features
 from locretrieval.metrics.localization import best_over_k, median_errors
 from locretrieval.metrics.subsets import SubsetSettings, missing_mask_inputs
 from locretrieval.models.precomputed import PrecomputedDescriptor, missing_feature_folders
+from locretrieval.report.gallery import GallerySettings, write_gallery_inputs
+from locretrieval.report.scene_view import SCENE_VIEW_FILE, SceneViewSettings, write_scene_view
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.retrieval.pairs_file import PairsFileRanking
 from locretrieval.scene import Scene
@@ -36,13 +40,16 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     Every config section, then every input file the run needs (`check_inputs`), is checked
     before any work; with ``dry_run`` the SfM work is only planned and logged (`log_plan`). Writes the tidy tables
     (``results.csv``, ``query_errors.csv.gz``, ``median_errors.csv``, ``retrieval.csv``, ``query_retrieval.csv.gz``,
-    ``groundtruth_statistics.csv``, ``subsets.csv``), the rankings, LTVL exports,
-    ``summary.json`` and the report built from those tables. Returns the localization table.
+    ``groundtruth_statistics.csv``, ``subsets.csv``, ``estimated_poses.csv.gz``), the rankings, what galleries read
+    (``images.csv``, ``relevance/``), LTVL exports, ``summary.json``, the 3D view (``scene_3d.html``, unless
+    ``report.scene_view.enabled`` is false) and the report built from those files. Returns the localization table.
     """
     started = time.perf_counter()
     settings = BenchmarkSettings.from_config(cfg)
     groundtruth_settings = validated(GroundTruthSettings, cfg.groundtruth, "groundtruth")
     subset_settings = validated(SubsetSettings, cfg.subsets, "subsets")
+    gallery_settings = validated(GallerySettings, cfg.report.gallery, "report.gallery")
+    scene_view_settings = validated(SceneViewSettings, cfg.report.scene_view, "report.scene_view")
     cache_dir = Path(cfg.paths.cache_dir)
     scene: Scene = instantiate(cfg.data)
     log.info("scene %s: %d database images, %d queries", scene.name, len(scene.database), len(scene.queries))
@@ -70,9 +77,15 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
         from locretrieval.report.painters import start_painters
 
         start_painters()  # the report's figure workers import matplotlib while the benchmark runs
-    result = benchmark(scene, rankings, settings, subsets, cache_dir, relevances(groundtruths, groundtruth_settings.relevance))
+    relevance = relevances(groundtruths, groundtruth_settings.relevance)
+    result = benchmark(scene, rankings, settings, subsets, cache_dir, relevance)
 
     write_tables(result, statistics_table(scene.name, groundtruths), subset_table, output_dir)
+    write_gallery_inputs(scene, relevance, output_dir)
+    poses = estimated_pose_table(scene.name, result.estimates, scene.queries.names)
+    poses.to_csv(output_dir / "estimated_poses.csv.gz", index=False)
+    if scene_view_settings.enabled:
+        write_scene_view(output_dir / SCENE_VIEW_FILE, scene, poses, global_map_points(scene, settings, cache_dir), scene_view_settings)
     exported = export_ltvl(scene, result, output_dir / "ltvl") if cfg.output.ltvl else 0
     summary = {
         "dataset": scene.name,
@@ -87,7 +100,8 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     (output_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     from locretrieval.report import build_report  # here: matplotlib is imported when figures are drawn
 
-    build_report([output_dir], output_dir, cfg.report.groundtruth, list(cfg.report.figure_formats))
+    build_report([output_dir], output_dir, cfg.report.groundtruth, list(cfg.report.figure_formats),
+                 gallery=gallery_settings, thumbnail_cache=cache_dir / "thumbnails")
     results = result.localization
     if len(results):
         best = best_over_k(results[results["subset"] == "all"], "position_threshold_m")
@@ -117,11 +131,11 @@ def check_inputs(
     `FileNotFoundError` names them all (model weights or feature folders, kapture local
     features, the COLMAP model, dynamic-object masks or their Mask R-CNN weights); before that,
     a paradigm or ground truth the dataset does not support is a `ConfigError`."""
-    check_supported(scene, [*settings.paradigms.enabled(), *(kind for kind, _ in groundtruths.parsed().values())])
+    check_supported(scene, [*settings.paradigms.enabled(), *map(definition_type, groundtruths.parsed().values())])
     missing = [
         *model_inputs(cfg.model, scene),
         *local_feature_inputs(scene, settings, groundtruths),
-        *colmap_model_inputs(settings),
+        *paradigm_inputs(settings),
         *missing_mask_inputs(scene.queries, subsets),
     ]
     if missing:
@@ -142,26 +156,32 @@ def model_inputs(model: DictConfig, scene: Scene) -> list[str]:
 def local_feature_inputs(scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings) -> list[str]:
     """The kapture local features (``sfm.features.type=kapture``) of both image sets, if an SfM
     paradigm or a ground truth matching features needs them and some are absent."""
-    sfm_paradigms = settings.paradigms.local_sfm.enabled or settings.paradigms.global_sfm.enabled
-    sfm_groundtruth = any(DEFINITIONS[kind].uses_sfm for kind, _ in groundtruths.parsed().values())
+    sfm_paradigms = any(PARADIGMS[name].uses_local_features for name in settings.paradigms.enabled())
+    sfm_groundtruth = any(definition.uses_sfm for definition in groundtruths.parsed().values())
     if settings.sfm.features.type != "kapture" or not (sfm_paradigms or sfm_groundtruth):
         return []
     features = settings.sfm.features.kapture
     return [f"sfm.features: {problem}" for images in (scene.database, scene.queries) for problem in missing_kapture_features(images, features)]
 
 
-def colmap_model_inputs(settings: BenchmarkSettings) -> list[str]:
-    """The files of ``paradigms.global_sfm.colmap_model``, if it is used and they are absent."""
-    global_sfm = settings.paradigms.global_sfm
-    if not (global_sfm.enabled and global_sfm.colmap_model):
-        return []
-    return [f"paradigms.global_sfm.colmap_model: {problem}" for problem in missing_model_files(global_sfm.colmap_model)]
+def paradigm_inputs(settings: BenchmarkSettings) -> list[str]:
+    """The files the enabled paradigms read (`Paradigm.missing_inputs`) that are absent."""
+    return [f"paradigms.{name}.{problem}" for name in settings.paradigms.enabled() if PARADIGMS[name].missing_inputs is not None
+            for problem in PARADIGMS[name].missing_inputs(getattr(settings.paradigms, name))]
+
+
+def global_map_points(scene: Scene, settings: BenchmarkSettings, cache_dir: Path) -> np.ndarray | None:
+    """The global SfM map's points (world, metres) when the paradigm is enabled and its map was built, else ``None``."""
+    if "global_sfm" not in settings.paradigms.enabled():
+        return None
+    return global_sfm.map_points(scene, settings.paradigms.global_sfm, settings.sfm, cache_dir)
 
 
 def write_tables(result: BenchmarkResult, groundtruth_statistics: pd.DataFrame, subset_table: pd.DataFrame, output_dir: Path) -> None:
     """The tidy tables and the rankings of a run (see `evaluate`)."""
     for ranking in result.rankings:
-        save_arrays(output_dir / "rankings" / f"{ranking.name}.npz", {"indices": ranking.indices, "scores": ranking.scores})
+        arrays = {"indices": ranking.indices, "scores": ranking.scores, "kind": np.asarray(ranking.kind)}
+        save_arrays(output_dir / "rankings" / f"{ranking.name}.npz", arrays)
     result.localization.to_csv(output_dir / "results.csv", index=False)
     result.query_errors.to_csv(output_dir / "query_errors.csv.gz", index=False)
     median_errors(result.query_errors).to_csv(output_dir / "median_errors.csv", index=False)

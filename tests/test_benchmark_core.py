@@ -5,6 +5,7 @@ import ast
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 from PIL import Image
@@ -207,3 +208,43 @@ def test_no_module_imports_from_a_layer_above_it():
 def test_config_values_of_the_wrong_type_or_range_name_the_full_key(override, message):
     with pytest.raises(ConfigError, match=message):
         BenchmarkSettings.from_config(evaluate_config(override, "paths.root_dir=/nonexistent"))
+
+
+def test_a_new_paradigm_is_its_module_and_one_registry_entry(scene, monkeypatch):
+    """A paradigm registered in `PARADIGMS` with its YAML section runs on every ranking: here the
+    pose of the top-ranked database image, which must equal paradigm 1 (EWB) at k=1."""
+    from dataclasses import dataclass
+
+    from locretrieval.benchmark import PARADIGMS, Paradigm
+    from locretrieval.localization.estimates import PoseEstimates
+    from locretrieval.localization.paradigm import ParadigmSettings
+
+    @dataclass
+    class TopImageSettings(ParadigmSettings):
+        def method_names(self):
+            return ["top_image"]
+
+    def top_image(scene, rankings, settings, sfm, cache_dir):
+        database, estimates = scene.database, []
+        for ranking in rankings:
+            top = ranking.indices[:, 0]
+            qvec, tvec = database.qvec[top][None].repeat(len(settings.k), 0), database.tvec[top][None].repeat(len(settings.k), 0)
+            failures = np.full((len(settings.k), len(top)), "", dtype=object)
+            estimates.append(PoseEstimates(ranking.name, ranking.kind, "top_image", "top_image", list(settings.k), qvec, tvec, failures))
+        return estimates
+
+    monkeypatch.setitem(PARADIGMS, "top_image", Paradigm(TopImageSettings, top_image))
+    cfg = evaluate_config("paradigms.local_sfm.enabled=false", "paradigms.global_sfm.enabled=false", "paradigms.approximation.k=[1]",
+                          "+paradigms.top_image={enabled: true, k: [1]}", "paths.root_dir=/nonexistent")
+    settings = BenchmarkSettings.from_config(cfg)
+    assert settings.paradigms.enabled() == ["approximation", "top_image"]
+    groundtruths = compute_groundtruths(scene, {"depth": 50, "definitions": {"relative_pose": cfg.groundtruth.definitions.relative_pose}})
+    rankings = build_rankings(scene, {}, groundtruths, settings.retrieval, random_seed=0)
+    table = benchmark(scene, rankings, settings, {"all": np.ones(len(scene.queries), dtype=bool)}, None, relevances(groundtruths)).localization
+    columns = ["ranking", "k", "position_threshold_m", "localized_pct"]
+    mine = table[table["paradigm"] == "top_image"][columns].sort_values(columns[:3]).reset_index(drop=True)
+    ewb = table[(table["paradigm"] == "approximation") & (table["method"] == "ewb")][columns].sort_values(columns[:3]).reset_index(drop=True)
+    assert len(mine) == 2 * len(settings.metrics.thresholds)  # random and the ground truth, each threshold
+    pd.testing.assert_frame_equal(mine, ewb)
+    with pytest.raises(ConfigError, match=r"paradigms.top_image: missing; every paradigm needs its section"):
+        BenchmarkSettings.from_config(evaluate_config("paths.root_dir=/nonexistent"))

@@ -10,7 +10,7 @@ import helpers
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
 from locretrieval.config import ConfigError
-from locretrieval.groundtruth import compute_groundtruths, frustum_groundtruth
+from locretrieval.groundtruth import DefinitionContext, compute_groundtruths, frustum_groundtruth
 from locretrieval.groundtruth.co_observation import co_observation_groundtruth, database_co_observations, shared_points
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.localization import matching
@@ -21,7 +21,7 @@ from locretrieval.localization.pairs import PairSelection, database_pairs, overl
 from locretrieval.localization.sfm import SfmInputs
 from locretrieval.retrieval import EMPTY
 from locretrieval.scene import ImageSet, Scene
-from locretrieval.training.relevance import TrainingRelevanceSettings, training_pairs
+from locretrieval.training.relevance import NegativeSettings, TrainingRelevanceSettings, training_pairs
 
 SCENE = {"width": 256, "height": 192, "num_database": 40, "num_queries": 8, "texture_size": 128, "length": 20.0,
          "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
@@ -185,10 +185,10 @@ def test_database_co_observations_train_by_the_share_of_points_of_the_global_map
     expected = np.array([[len(a & b) for b in points] for a in points])
     np.testing.assert_array_equal(counts, expected)
     assert (expected[~np.eye(len(points), dtype=bool)] >= 5).sum() > len(points)  # many pairs share points
-    settings = TrainingRelevanceSettings("co_observation", {"min_shared": 5}, "unrelated", 0.1, None)
-    graded = training_pairs(scene.database, settings, 25.0, sparse.csr_matrix(counts)).graded.toarray()
+    settings = TrainingRelevanceSettings({"type": "co_observation", "min_shared": 5}, NegativeSettings("unrelated", 0.1, None, None))
+    graded = training_pairs(scene.database, settings, DefinitionContext(far=25.0, shared_points=sparse.csr_matrix(counts))).graded.toarray()
     share = np.where(expected >= 5, expected / np.diag(expected)[:, None], 0.0)
     np.fill_diagonal(share, 0.0)
     np.testing.assert_allclose(graded, share)
     with pytest.raises(ValueError, match="needs the shared 3D points of the 40 images"):
-        training_pairs(scene.database, settings, 25.0)
+        training_pairs(scene.database, settings, DefinitionContext(far=25.0))

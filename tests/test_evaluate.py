@@ -133,7 +133,7 @@ def test_every_missing_input_is_named_in_one_error_before_any_work(tmp_path):
     with pytest.raises(FileNotFoundError) as error:
         evaluate(evaluate_config(*paths, *overrides), tmp_path / "run")
     message = str(error.value)
-    scene = next((cache / "synthetic").iterdir())  # the rendered kapture folders: no local features
+    scene = next(path for path in (cache / "synthetic").iterdir() if path.is_dir())  # the rendered kapture folders: no local features
     expected = [f"{missing}/AP-GeM-LM18/global_features.txt", f"{missing}/sfm not found", f"{missing}/maskrcnn.pth",
                 *(f"{scene / part}/reconstruction/{kind}/r2d2/{kind}.txt" for part in ("mapping", "query")
                   for kind in ("keypoints", "descriptors"))]  # fmt: skip

@@ -371,7 +371,7 @@ def test_cache_round_trip(pose_scene, tmp_path, monkeypatch):
         raise AssertionError("a cached ground truth was computed again")
 
     for kind in ("relative_pose", "frustum"):
-        monkeypatch.setitem(compute.DEFINITIONS, kind, dataclasses.replace(compute.DEFINITIONS[kind], build=not_again))
+        monkeypatch.setattr(compute.DEFINITIONS[kind], "groundtruth", not_again)
     second = compute_groundtruths(scene, config, cache_dir=tmp_path)
     for name, gt in first.items():
         assert second[name].name == gt.name
@@ -392,3 +392,49 @@ def test_chunked_scoring_equals_one_chunk(pose_scene, monkeypatch):
     np.testing.assert_array_equal(chunked.ranking.indices, whole.ranking.indices)
     np.testing.assert_array_equal(chunked.ranking.scores, whole.ranking.scores)
     assert (chunked.relevance != whole.relevance).nnz == 0
+
+
+def test_a_new_definition_is_its_module_and_one_registry_entry_serving_ranking_relevance_and_training(pose_scene, monkeypatch):
+    """A definition registered in `DEFINITIONS` ranks the benchmark's queries and grades training
+    pairs: here camera distance alone, relevant within ``radius`` metres, graded 1 - d / radius."""
+    from typing import ClassVar
+
+    from locretrieval.groundtruth import DefinitionContext, groundtruth_from_scores
+    from locretrieval.training.relevance import NegativeSettings, TrainingRelevanceSettings, training_pairs
+
+    @dataclasses.dataclass
+    class CameraDistance:
+        radius: float
+        uses_sfm: ClassVar[bool] = False
+
+        def distances(self, images, rows, others):
+            return geometry.pairwise_position_errors(images.centers[rows], others.centers)
+
+        def groundtruth(self, database, queries, depth, name, context):
+            def score_block(rows):
+                distance = self.distances(queries, rows, database)
+                return -distance, distance < self.radius, distance < self.radius
+
+            return groundtruth_from_scores(name, database, queries, depth, score_block)
+
+        def graded(self, images, rows, context):
+            distance = self.distances(images, rows, images)
+            return np.where(distance < self.radius, 1.0 - distance / self.radius, 0.0)
+
+    monkeypatch.setitem(compute.DEFINITIONS, "camera_distance", CameraDistance)
+    database, queries = pose_scene
+    found = compute_groundtruths(Scene("poses", database, queries), {"depth": 50, "definitions": {"near": {"type": "camera_distance", "radius": 12.0}}})
+    distance = np.linalg.norm(queries.centers[:, None] - database.centers[None], axis=2)  # d0 10 m, d1 0, d2 20, d3 30, d4 5
+    posed = queries.has_pose
+    np.testing.assert_array_equal(found["near"].relevance.toarray()[posed], distance[posed] < 12.0)
+    assert found["near"].ranking.indices[0, :3].tolist() == [1, 4, 0]
+
+    settings = TrainingRelevanceSettings({"type": "camera_distance", "radius": 12.0}, NegativeSettings("not_relevant", 0.1, None, None))
+    graded = training_pairs(database, settings, DefinitionContext(far=25.0)).graded.toarray()
+    between = np.linalg.norm(database.centers[:, None] - database.centers[None], axis=2)
+    expected = np.where(between < 12.0, 1.0 - between / 12.0, 0.0)
+    np.fill_diagonal(expected, 0.0)
+    np.testing.assert_allclose(graded, expected)
+    with pytest.raises(ConfigError, match=r"train_relevance.definition.radius: Value 'far' of type 'str' could not be converted"):
+        validated(TrainingRelevanceSettings, {"definition": {"type": "camera_distance", "radius": "far"},
+                                              "negatives": {"rule": "unrelated", "near": 0.1, "far": None, "max_rotation": None}}, "train_relevance")

@@ -3,6 +3,7 @@ the localization-validation callback, and train.py end to end through Hydra."""
 
 import dataclasses
 import re
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -16,19 +17,29 @@ from locretrieval import geometry
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
-from locretrieval.training.data import AugmentSettings, BatchSettings, RelevanceBatchSampler
-from locretrieval.training.relevance import TrainingRelevanceSettings, combined_pairs, training_pairs
-from locretrieval.training.run import freeze_parameters, train
-from locretrieval.training.callbacks import TRAINED, metric_rows
+from locretrieval.training.data import PhotometricAugmentation, RelevanceBatchSampler
+from locretrieval.training.relevance import NegativeSettings, TrainingRelevanceSettings, combined_pairs, training_pairs
+from locretrieval.training.run import train
+from locretrieval.training.callbacks import TRAINED, every_validation_metrics, metric_rows
 from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
-from locretrieval.config import validated
-from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths
+from locretrieval.config import ConfigError, validated
+from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, compute_groundtruths
 from locretrieval.retrieval.descriptors import describe_scene
 
 SCENE = {"width": 96, "height": 72, "num_database": 24, "num_queries": 6, "texture_size": 64, "length": 20.0,
          "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
          "hard_query_fraction": 0.0, "workers": 1, "seed": 5}  # fmt: skip
-RELATIVE_POSE = TrainingRelevanceSettings("relative_pose", {"position_threshold": 10.0, "rotation_threshold": 30.0}, "unrelated", 0.1, None)
+RELATIVE_POSE = TrainingRelevanceSettings({"type": "relative_pose", "position_threshold": 10.0, "rotation_threshold": 30.0},
+                                          NegativeSettings("unrelated", 0.1, None, None))
+AT_25M = DefinitionContext(far=25.0)
+#: A short training of the tiny scene: small batches, no SfM validation.
+TINY_TRAINING = ("datamodule.image_size=[96,72]", "datamodule.num_workers=0", "sampler.batches_per_epoch=2", "sampler.anchors=3",
+                 "sampler.negatives=2", "callbacks.localization_validation.sfm_every_n_epochs=null")
+
+
+def negatives(**changes):
+    """`RELATIVE_POSE` with other negatives settings."""
+    return dataclasses.replace(RELATIVE_POSE, negatives=dataclasses.replace(RELATIVE_POSE.negatives, **changes))
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +51,7 @@ def scene(tmp_path_factory):
 
 def test_relative_pose_training_pairs_against_a_direct_computation(scene):
     database = scene.database
-    pairs = training_pairs(database, RELATIVE_POSE, far=25.0)
+    pairs = training_pairs(database, RELATIVE_POSE, AT_25M)
     position = geometry.position_errors(database.centers[:, None], database.centers[None])
     rotation = geometry.rotation_errors_deg(database.qvec[:, None], database.qvec[None])
     relevant = (position < 10.0) & (rotation < 30.0)
@@ -53,16 +64,16 @@ def test_relative_pose_training_pairs_against_a_direct_computation(scene):
     overlap = pairwise_overlap_radii(frusta, frusta) > 0
     np.testing.assert_array_equal(pairs.related.toarray(), overlap | relevant)
     assert relevant.any() and (~overlap).any()  # both positives and surely unrelated pairs exist
-    strict = training_pairs(database, dataclasses.replace(RELATIVE_POSE, negatives="not_relevant"), far=25.0)
+    strict = training_pairs(database, negatives(rule="not_relevant"), AT_25M)
     np.testing.assert_array_equal(strict.related.toarray(), relevant)  # every pair not relevant may be a negative
-    facing = training_pairs(database, dataclasses.replace(RELATIVE_POSE, unrelated_rotation=90.0), far=25.0)
+    facing = training_pairs(database, negatives(max_rotation=90.0), AT_25M)
     np.testing.assert_array_equal(facing.related.toarray(), (overlap & (rotation <= 90.0)) | relevant)
     assert (overlap & (rotation > 90.0)).any()  # views facing each other share frustum volume: now negatives
 
 
 def test_batches_hold_anchors_with_positives_and_only_surely_unrelated_negatives(scene):
-    pairs = training_pairs(scene.database, RELATIVE_POSE, far=25.0)
-    sampler = RelevanceBatchSampler(pairs, BatchSettings(anchors=4, negatives=4, batches_per_epoch=5), seed=0)
+    pairs = training_pairs(scene.database, RELATIVE_POSE, AT_25M)
+    sampler = RelevanceBatchSampler(pairs, anchors=4, negatives=4, batches_per_epoch=5, seed=0)
     batches = list(sampler)
     assert len(batches) == 5 and all(len(b) == 12 for b in batches)
     graded, related = pairs.graded.toarray(), pairs.related.toarray()
@@ -88,19 +99,19 @@ def test_low_light_and_noise_augmentations_scale_the_brightness_and_add_noise_of
     image[:, :, 32:] = 80
     plain = dict(brightness=0.0, contrast=0.0, saturation=0.0, hue=0.0, low_light_probability=0.0, low_light_brightness=[0.25, 0.25],
                  blur_probability=0.0, blur_sigma=[1.0, 1.0], noise_probability=0.0, noise_sigma=0.1)
-    assert torch.equal(AugmentSettings(**plain).transform()(image), image)
-    dark = AugmentSettings(**{**plain, "low_light_probability": 1.0}).transform()(image).float()
+    assert torch.equal(PhotometricAugmentation(**plain).transform()(image), image)
+    dark = PhotometricAugmentation(**{**plain, "low_light_probability": 1.0}).transform()(image).float()
     np.testing.assert_allclose(dark.numpy(), 0.25 * image.float().numpy(), atol=1.0)
-    noisy = AugmentSettings(**{**plain, "noise_probability": 1.0}).transform()(image).float() - image.float()
+    noisy = PhotometricAugmentation(**{**plain, "noise_probability": 1.0}).transform()(image).float() - image.float()
     assert abs(noisy.std().item() / 255 - 0.1) < 0.005 and abs(noisy.mean().item()) < 1.0
     with pytest.raises(ValueError, match="low_light_brightness: must be"):
-        AugmentSettings(**{**plain, "low_light_brightness": [0.5, 1.5]})
+        PhotometricAugmentation(**{**plain, "low_light_brightness": [0.5, 1.5]})
 
 
 def test_images_of_different_training_scenes_are_unrelated(scene):
     first, second = scene.database.subset(np.arange(12)), scene.database.subset(np.arange(12, 24))
-    combined = combined_pairs([first, second], RELATIVE_POSE, far=25.0)
-    alone = [training_pairs(images, RELATIVE_POSE, far=25.0) for images in (first, second)]
+    combined = combined_pairs([first, second], RELATIVE_POSE, [AT_25M, AT_25M])
+    alone = [training_pairs(images, RELATIVE_POSE, AT_25M) for images in (first, second)]
     graded, related = combined.graded.toarray(), combined.related.toarray()
     np.testing.assert_array_equal(graded[:12, :12], alone[0].graded.toarray())
     np.testing.assert_array_equal(related[12:, 12:], alone[1].related.toarray())
@@ -114,8 +125,7 @@ def train_config(root, *overrides, image_side="model.max_side=96"):
     tiny += [f"data.render.conditions.{key}={value}" for key, value in SCENE["conditions"].items()]
     return helpers.compose_config(
         "train", f"paths.root_dir={root}", f"output_dir={root}/run", "device=cpu", *tiny,
-        image_side, "training.image_size=[96,72]", "training.num_workers=0", "training.batch.batches_per_epoch=2",
-        "training.batch.anchors=3", "training.batch.negatives=2", "validation.sfm_every_n_epochs=null",
+        image_side, *TINY_TRAINING,
         "trainer.max_epochs=1", "trainer.enable_progress_bar=false", *overrides,
     )
 
@@ -127,11 +137,42 @@ def test_fast_dev_run_of_train_py_through_hydra_compose(tmp_path):
     assert epochs == [-1, 0]  # before training, and after the one batch
     assert "val/approximation/ewb/k3/5m_10deg" in validator.history[0]
     assert (tmp_path / "run" / "validation.csv").exists() and (tmp_path / "run" / "report.md").exists()
-    assert set(validator.reference) == {"gt_relative_pose", "gt_frustum", "random"}
+    assert set(validator.reference) == {"densevlad", "gt_relative_pose", "gt_frustum", "random"}  # the reference rankings
+    expected = every_validation_metrics(BenchmarkSettings.from_config(cfg), ["relative_pose", "frustum"])
+    assert set(validator.history[1]) - {"epoch"} == set(expected)  # what checkpoints may monitor is what is logged
+
+
+def test_the_gallery_of_fixed_validation_queries_is_logged_to_tensorboard_and_the_report_at_each_validation(tmp_path):
+    validator = train(train_config(tmp_path), tmp_path / "run")
+    # the gallery of the same validation queries at each validation, in TensorBoard and the report
+    from io import BytesIO
+
+    from PIL import Image
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(tmp_path / "run" / "tensorboard" / "version_0"), size_guidance={"images": 0})
+    events.Reload()
+    logged = events.Images("val/gallery")
+    assert len(logged) == 2  # before training and after the batch
+    last = np.asarray(Image.open(BytesIO(logged[-1].encoded_image_string)).convert("RGB"))
+    np.testing.assert_array_equal(last, validator.galleries["last"])
+    assert len(validator.gallery_rows) == 6 and (tmp_path / "run" / "gallery_before.jpg").exists()  # the 6 queries of the tiny scene
+    assert "![gallery at the last validation](gallery_last.jpg)" in (tmp_path / "run" / "report.md").read_text()
+
+
+def test_a_checkpoint_monitoring_a_metric_never_logged_fails_at_start_up_naming_those_logged(tmp_path):
+    cfg = train_config(tmp_path, "callbacks.best_checkpoint.monitor=val/approximation/ewb/k4/5m_10deg")
+    with pytest.raises(ConfigError, match=r"callbacks.best_checkpoint.monitor: 'val/approximation/ewb/k4/5m_10deg' is not logged at "
+                                          r"every validation; .* the metrics are: .*val/approximation/ewb/k3/5m_10deg"):
+        train(cfg, tmp_path / "run")
+    assert not (Path(cfg.paths.cache_dir) / "synthetic").exists()  # before the scene is rendered
+    sfm_only = train_config(tmp_path, "callbacks.best_checkpoint.monitor=val/global_sfm/pnp/k5/0.25m_2deg")
+    with pytest.raises(ConfigError, match="is not logged at every validation"):  # logged every sfm_every_n_epochs only
+        train(sfm_only, tmp_path / "run")
 
 
 def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkpoint(tmp_path):
-    cfg = train_config(tmp_path, "validation.sfm_every_n_epochs=1", "paradigms.global_sfm.k=[1,3]")
+    cfg = train_config(tmp_path, "callbacks.localization_validation.sfm_every_n_epochs=1", "paradigms.global_sfm.k=[1,3]")
     validator = train(cfg, tmp_path / "run")
     logged = validator.history[-1]
     checkpoint = tmp_path / "run" / "checkpoints" / "last.ckpt"
@@ -156,8 +197,7 @@ def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkp
 
 
 def test_resuming_from_the_last_checkpoint_continues_the_same_curve(tmp_path):
-    common = ("training.augment.blur_probability=0", "training.augment.brightness=0", "training.augment.contrast=0",
-              "training.augment.saturation=0", "training.augment.hue=0", "trainer.deterministic=true")
+    common = ("~augmentation", "trainer.deterministic=true")
     straight = train(train_config(tmp_path / "straight", *common, "trainer.max_epochs=2"), tmp_path / "straight" / "run")
     checkpoints = tmp_path / "straight" / "run" / "checkpoints"
     assert torch.load(checkpoints / "last.ckpt", weights_only=False)["epoch"] == 1  # the last epoch, whichever was best
@@ -184,8 +224,7 @@ def test_two_process_cpu_ddp_smoke_run(tmp_path):
     command = [
         sys.executable, str(helpers.CONFIGS.parent / "train.py"), "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2",
         f"paths.root_dir={tmp_path}", f"hydra.run.dir={tmp_path}/run", "device=cpu", *tiny, "model.max_side=96",
-        "training.image_size=[96,72]", "training.num_workers=0", "training.batch.batches_per_epoch=2", "training.batch.anchors=3",
-        "training.batch.negatives=2", "validation.sfm_every_n_epochs=null", "trainer.max_epochs=1", "trainer.enable_progress_bar=false",
+        *TINY_TRAINING, "trainer.max_epochs=1", "trainer.enable_progress_bar=false",
         "model.backbone=resnet18", "model.weights=null", "model.random_init=true", "logger={}",
     ]
     done = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=tmp_path)
@@ -207,7 +246,7 @@ def test_extra_rendered_scenes_are_trained_on_with_their_queries_and_never_the_v
     sets = [world.database for world in worlds]
     assert [len(images) for images in sets] == [24, 30]  # the validation database; the other world's database + queries
     assert not set(validation_scene.queries.paths) & {p for images in sets for p in images.paths}
-    pairs = combined_pairs(sets, RELATIVE_POSE, far=25.0)
+    pairs = combined_pairs(sets, RELATIVE_POSE, [AT_25M] * len(sets))
     graded = pairs.graded.toarray()
     assert graded[24:48, 48:].any()  # the extra scene's database and queries are paired with each other
     itself = train_config(tmp_path, f"training.extra_renders=[{{seed: {SCENE['seed']}}}]")
@@ -216,8 +255,8 @@ def test_extra_rendered_scenes_are_trained_on_with_their_queries_and_never_the_v
 
 
 def test_hard_negatives_set_during_an_epoch_apply_to_its_later_batches(scene):
-    pairs = training_pairs(scene.database, RELATIVE_POSE, far=25.0)
-    sampler = RelevanceBatchSampler(pairs, BatchSettings(anchors=4, negatives=4, batches_per_epoch=6), seed=0)
+    pairs = training_pairs(scene.database, RELATIVE_POSE, AT_25M)
+    sampler = RelevanceBatchSampler(pairs, anchors=4, negatives=4, batches_per_epoch=6, seed=0)
     hard_image = {int(a): np.array([i for i in range(pairs.num_images) if i != a and not pairs.related[a, i]][:1])
                   for a in sampler.anchors}
     batches = iter(sampler)
@@ -239,11 +278,11 @@ def test_hard_negatives_are_the_highest_ranked_unrelated_images_by_the_current_n
 
     torch.manual_seed(0)
     network = RetrievalNet(torch.nn.Sequential(torch.nn.Conv2d(3, 16, 5, stride=2), torch.nn.ReLU()), GeMPooling(3.0), 16)
-    pairs = training_pairs(scene.database, RELATIVE_POSE, far=25.0)
-    sampler = RelevanceBatchSampler(pairs, BatchSettings(anchors=4, negatives=4, batches_per_epoch=1), seed=0)
+    pairs = training_pairs(scene.database, RELATIVE_POSE, AT_25M)
+    sampler = RelevanceBatchSampler(pairs, anchors=4, negatives=4, batches_per_epoch=1, seed=0)
     preprocessing = Preprocessing(max_side=None, scales=(1.0,))
     extraction = ExtractionSettings("cpu", 8, 0, False, False, None)
-    mining = HardNegativeMining([scene.database], pairs, sampler, every=5, per_anchor=3, preprocessing=preprocessing, extraction=extraction)
+    mining = HardNegativeMining([scene.database], pairs, sampler, preprocessing, extraction, every_n_steps=5, per_anchor=3)
     module = SimpleNamespace(network=network)
     for step in (0, 3, 4):  # not a multiple of 5 (or the first step): nothing mined
         mining.on_train_batch_start(SimpleNamespace(global_step=step), module, None, step)
@@ -261,7 +300,7 @@ def test_hard_negatives_are_the_highest_ranked_unrelated_images_by_the_current_n
 def test_frozen_batch_norm_keeps_the_pretrained_statistics_while_the_weights_learn(tmp_path, frozen):
     from locretrieval.models.weights import EMBEDDED_CHECKPOINT_KEY
 
-    cfg = train_config(tmp_path, f"training.freeze_batch_norm={frozen}")
+    cfg = train_config(tmp_path, f"module.freeze_batch_norm={frozen}")
     train(cfg, tmp_path / "run")
     trained = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", weights_only=False)[EMBEDDED_CHECKPOINT_KEY]["state_dict"]
     initial = instantiate(cfg.model).network.state_dict()
@@ -275,7 +314,7 @@ def test_frozen_batch_norm_keeps_the_pretrained_statistics_while_the_weights_lea
 def test_frozen_parameters_keep_their_pretrained_values(tmp_path):
     from locretrieval.models.weights import EMBEDDED_CHECKPOINT_KEY
 
-    patterns = "training.frozen=['backbone.timm.conv_stem.*','backbone.timm.blocks.[0-3].*']"
+    patterns = "module.frozen=['backbone.timm.conv_stem.*','backbone.timm.blocks.[0-3].*']"
     cfg = train_config(tmp_path, patterns)
     train(cfg, tmp_path / "run")
     trained = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", weights_only=False)[EMBEDDED_CHECKPOINT_KEY]["state_dict"]
@@ -285,8 +324,8 @@ def test_frozen_parameters_keep_their_pretrained_values(tmp_path):
     assert len(frozen) > 20
     assert all(torch.equal(trained[name], initial[name]) for name in frozen)
     assert not any(torch.equal(trained[name], initial[name]) for name in ("backbone.timm.conv_head.weight", "backbone.timm.blocks.6.0.conv_pwl.weight"))
-    with pytest.raises(ValueError, match="training.frozen: 'backbone.trunk.*' matches no parameter"):
-        freeze_parameters(network, ["backbone.trunk.*"])
+    with pytest.raises(ConfigError, match=r"module.frozen: 'backbone.trunk.\*' matches no parameter"):
+        train(train_config(tmp_path / "bad", "module.frozen=['backbone.trunk.*']"), tmp_path / "bad" / "run")
 
 
 def test_evaluation_mode_restores_each_layers_own_mode():
@@ -302,7 +341,7 @@ def test_evaluation_mode_restores_each_layers_own_mode():
 def test_a_diverging_run_stops_at_the_step_naming_the_loss_and_the_learning_rate(tmp_path):
     from locretrieval.training.module import TrainingDiverged
 
-    cfg = train_config(tmp_path, "optimizer.lr=1e6", "trainer.max_epochs=3", "training.batch.batches_per_epoch=3")
+    cfg = train_config(tmp_path, "optimizer.lr=1e6", "trainer.max_epochs=3", "sampler.batches_per_epoch=3")
     with pytest.raises(TrainingDiverged, match=r"training diverged at step \d+ \(epoch \d\): (the loss is nan|the loss is inf|the gradient "
                                                r"of .* is not finite), learning rate \[.*\] \(optimizer.lr\); lower optimizer.lr"):
         train(cfg, tmp_path / "run")
@@ -335,3 +374,104 @@ def test_resuming_from_a_file_that_is_not_a_checkpoint_of_this_project_is_refuse
     check_resume_checkpoint(checkpoint, descriptor.model, descriptor.architecture)
     with pytest.raises(ValueError, match=r"ckpt_path: .*last.ckpt.*resume with the model settings of the run that wrote it"):
         check_resume_checkpoint(checkpoint, descriptor.model, {**descriptor.architecture, "whiten_dim": 64})
+
+
+class Killed(Exception):
+    """Stands for the kill of a process in the middle of a write."""
+
+
+def test_a_run_killed_while_writing_last_ckpt_keeps_the_previous_checkpoint_whole(tmp_path, monkeypatch):
+    import errno
+    import os
+    import shutil
+
+    from locretrieval.training.checkpoints import check_resume_checkpoint
+
+    common = ("~augmentation", "trainer.max_epochs=2")
+    train(train_config(tmp_path, *common, "+callbacks.interrupt={_target_: helpers.StopAfterEpoch, epoch: 0}"), tmp_path / "run")
+    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    before = last.read_bytes()
+    assert torch.load(last, weights_only=False)["epoch"] == 0
+
+    # The next write of last.ckpt dies half-way through putting its bytes in place, as a kill would while
+    # a temporary file in /tmp (another file system, e.g. tmpfs) is copied over it.
+    rename = os.rename
+
+    def across_file_systems(source, destination, *args, **kwargs):
+        if str(destination).endswith("last.ckpt"):
+            raise OSError(errno.EXDEV, "Invalid cross-device link")
+        return rename(source, destination, *args, **kwargs)
+
+    def killed_half_way(source, destination, *args, **kwargs):  # shutil.move's copy when rename fails
+        data = Path(source).read_bytes()
+        Path(destination).write_bytes(data[: len(data) // 2])
+        raise Killed
+
+    monkeypatch.setattr(os, "rename", across_file_systems)
+    monkeypatch.setattr(shutil, "copyfile", killed_half_way)
+    original_save = torch.save
+
+    def save_killed_half_way(content, target, *args, **kwargs):  # our writer: dies half-way through its temporary file
+        if isinstance(content, dict) and "epoch" in content and str(target).endswith(".ckpt") and ".last.ckpt." in str(target):
+            original_save(content, target, *args, **kwargs)
+            Path(target).write_bytes(Path(target).read_bytes()[:1000])
+            raise Killed
+        return original_save(content, target, *args, **kwargs)
+
+    monkeypatch.setattr(torch, "save", save_killed_half_way)
+    with pytest.raises(Killed):
+        train(train_config(tmp_path, *common, f"ckpt_path={last}"), tmp_path / "run")
+    monkeypatch.undo()
+    assert last.read_bytes() == before  # the previous checkpoint, whole: resumable
+    descriptor = instantiate(train_config(tmp_path).model)
+    check_resume_checkpoint(last, descriptor.model, descriptor.architecture)
+    assert not [path.name for path in last.parent.iterdir() if path.name.startswith(".")]  # no temporary file left
+
+
+def test_two_trainings_of_a_joblib_multirun_share_one_cache_without_corrupting_it(tmp_path):
+    """Two jobs at once on a cold cache: the scene is rendered once (the other job waits for it),
+    features, matches, maps and ground truths are shared, and both validate exactly as a run alone
+    on the finished cache does."""
+    import subprocess
+    import sys
+
+    tiny = [f"data.render.{key}={value}" for key, value in SCENE.items() if key != "conditions"]
+    tiny += [f"data.render.conditions.{key}={value}" for key, value in SCENE["conditions"].items()]
+    common = [f"paths.root_dir={tmp_path}", f"paths.cache_dir={tmp_path}/cache", "device=cpu", *tiny, "model.max_side=96",
+              *TINY_TRAINING, "callbacks.localization_validation.sfm_every_n_epochs=1", "paradigms.global_sfm.k=[1,3]",
+              "paradigms.local_sfm.k=[3]", "trainer.max_epochs=1", "trainer.enable_progress_bar=false", "~logger"]
+    command = [sys.executable, str(helpers.CONFIGS.parent / "train.py"), "-m", "hydra/launcher=joblib_local",
+               f"hydra.sweep.dir={tmp_path}/multirun", "hydra.sweep.subdir=${hydra.job.num}", *common, "sampler.batches_per_epoch=2,3"]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=900, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    logs = [(tmp_path / "multirun" / job / "train.log").read_text() for job in ("0", "1")]
+    assert sum(log.count("rendering the synthetic scene") for log in logs) == 1  # one job rendered, the other read it
+    alone = train(train_config(tmp_path / "alone", f"paths.cache_dir={tmp_path}/cache", "callbacks.localization_validation.sfm_every_n_epochs=1",
+                               "paradigms.global_sfm.k=[1,3]", "paradigms.local_sfm.k=[3]", "~logger"), tmp_path / "alone" / "run")
+    before_training = {key: value for key, value in alone.history[0].items()}
+    assert any(key.startswith("val/global_sfm/") for key in before_training) and any(key.startswith("val/local_sfm/") for key in before_training)
+    for job in ("0", "1"):
+        history = pd.read_csv(tmp_path / "multirun" / job / "validation.csv")
+        first = history[history["epoch"] == -1].set_index("metric")["value"]
+        assert set(first.index) == set(before_training) - {"epoch"}
+        for key, value in first.items():
+            assert value == pytest.approx(before_training[key], abs=1e-6), (job, key)
+
+
+def test_the_gap_table_gives_the_share_of_the_gap_to_the_ground_truth_that_training_closed():
+    from types import SimpleNamespace
+
+    from locretrieval.training.report import gap_table
+
+    history = pd.DataFrame({"epoch": [-1, 0, 1, -1, 1, -1], "metric": ["val/approximation/ewb/k3/5m_10deg"] * 3
+                            + ["val/local_sfm/pnp/k10/0.25m_2deg"] * 2 + ["val/global_sfm/pnp/k5/0.25m_2deg"],
+                            "value": [10.0, 20.0, 40.0, 50.0, 60.0, 70.0]})
+    reference = {"densevlad": {"val/approximation/ewb/k3/5m_10deg": 20.0, "val/local_sfm/pnp/k10/0.25m_2deg": 40.0},
+                 "gt_relative_pose": {"val/approximation/ewb/k3/5m_10deg": 60.0, "val/local_sfm/pnp/k10/0.25m_2deg": 100.0},
+                 "gt_co_observation": {"val/local_sfm/pnp/k10/0.25m_2deg": 80.0}}
+    table = gap_table(SimpleNamespace(history_table=lambda: history, reference=reference)).set_index("metric")
+    assert list(table.index) == ["approximation/ewb/k3/5m_10deg", "local_sfm/pnp/k10/0.25m_2deg"]  # global SfM: validated once
+    assert table.loc["approximation/ewb/k3/5m_10deg", ["untrained", "trained", "densevlad", "groundtruth_value"]].tolist() == [10, 40, 20, 60]
+    assert table.loc["approximation/ewb/k3/5m_10deg", "gap_closed_pct"] == pytest.approx(100 * (40 - 20) / (60 - 20))
+    assert table.loc["local_sfm/pnp/k10/0.25m_2deg", "groundtruth"] == "gt_co_observation"  # 2a: the co-observation upper bound
+    assert table.loc["local_sfm/pnp/k10/0.25m_2deg", "gap_closed_pct"] == pytest.approx(100 * (60 - 40) / (80 - 40))

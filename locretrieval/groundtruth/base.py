@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, ClassVar, Protocol
 
 import numpy as np
 import pandas as pd
@@ -13,6 +15,9 @@ from tqdm import tqdm
 from locretrieval.retrieval import EMPTY, Ranking, relevant_hits, top_k
 from locretrieval.scene import ImageSet
 
+if TYPE_CHECKING:
+    from locretrieval.localization.sfm import SfmSettings
+
 #: Query-database pairs scored at once; bounds the memory of every definition.
 PAIRS_PER_CHUNK = 1 << 17
 
@@ -20,6 +25,37 @@ PAIRS_PER_CHUNK = 1 << 17
 #: the similarity of every pair (higher is better), which pairs may be ranked at all, and
 #: which are relevant.
 ScoreBlock = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class DefinitionContext:
+    """What a definition may need besides the images' poses and cameras: ``far``, the far plane
+    (metres) of frusta whose definition leaves it ``None`` (the scene's); for definitions that
+    match local features (``uses_sfm``), the SfM paradigms' ``sfm`` settings and ``cache_dir``
+    (benchmark rankings), or the precomputed ``shared_points [N, N]`` of a training image set
+    (`locretrieval.groundtruth.co_observation.database_co_observations`)."""
+
+    far: float | None = None
+    sfm: "SfmSettings | None" = None
+    cache_dir: Path | None = None
+    shared_points: sparse.csr_matrix | None = None
+
+
+class Definition(Protocol):
+    """A ground-truth definition (a typed parameter schema, checked in ``__post_init__``) that
+    gives both the benchmark's ranking and relevance of queries against the database and the
+    graded relevance of training pairs. ``uses_sfm``: it matches local features (the SfM
+    paradigms' settings, features and caches). Registered in
+    `locretrieval.groundtruth.compute.DEFINITIONS`."""
+
+    uses_sfm: ClassVar[bool]
+
+    def groundtruth(self, database: ImageSet, queries: ImageSet, depth: int, name: str, context: DefinitionContext) -> "GroundTruth":
+        """The ranking (top ``depth``) and relevance of ``queries`` against ``database``."""
+
+    def graded(self, images: ImageSet, rows: np.ndarray, context: DefinitionContext) -> np.ndarray:
+        """``[len(rows), N]`` relevance of images ``rows`` to every image of ``images``: > 0 where
+        relevant, higher for more relevant pairs, 0 elsewhere (the diagonal is the caller's)."""
 
 
 @dataclass(frozen=True)

@@ -18,12 +18,13 @@ import dataclasses
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 from scipy import sparse
 
 from locretrieval.config import require
-from locretrieval.groundtruth.base import GroundTruth, groundtruth_from_scores
+from locretrieval.groundtruth.base import DefinitionContext, GroundTruth, groundtruth_from_scores
 from locretrieval.localization.features import extract_features
 from locretrieval.localization.global_sfm import global_map
 from locretrieval.localization.matching import PairMatcher
@@ -36,15 +37,33 @@ from locretrieval.scene import ImageSet, Scene
 
 @dataclass
 class CoObservationDefinition:
-    """Relevant when sharing at least ``min_shared`` 3D points (the paper: 1); each query is
-    matched to its ``query_pairs`` most overlapping database images (by frustum)."""
+    """Relevant when sharing at least ``min_shared`` 3D points (the paper: 1); in the benchmark,
+    each query is matched to its ``query_pairs`` most overlapping database images (by frustum)."""
 
     min_shared: int
-    query_pairs: int
+    query_pairs: int = 50
+    uses_sfm: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         require(self.min_shared >= 1, "min_shared", f"must be >= 1 shared 3D point, got {self.min_shared}")
         require(self.query_pairs >= 1, "query_pairs", f"must be >= 1 database image per query, got {self.query_pairs}")
+
+    def groundtruth(self, database: ImageSet, queries: ImageSet, depth: int, name: str, context: DefinitionContext) -> GroundTruth:
+        """`co_observation_groundtruth` with these parameters and ``context``'s SfM settings and cache."""
+        if context.sfm is None:
+            raise ValueError(f"ground truth {name!r}: co-observation needs the sfm settings")
+        return co_observation_groundtruth(database, queries, depth=depth, name=name, sfm=context.sfm, cache_dir=context.cache_dir,
+                                          **dataclasses.asdict(self))
+
+    def graded(self, images: ImageSet, rows: np.ndarray, context: DefinitionContext) -> np.ndarray:
+        """The share of each row image's 3D points (``context.shared_points``, the diagonal: its own)
+        that the other image observes too, where they share at least ``min_shared``; else 0."""
+        shared_points = context.shared_points
+        if shared_points is None or shared_points.shape != (len(images), len(images)):
+            raise ValueError(f"co-observation training relevance needs the shared 3D points of the {len(images)} images")
+        shared = shared_points[rows].toarray().astype(np.float64)
+        own = np.maximum(shared[np.arange(len(rows)), rows], 1.0)[:, None]
+        return np.where(shared >= self.min_shared, shared / own, 0.0)
 
 
 def co_observation_groundtruth(

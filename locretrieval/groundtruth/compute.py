@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Callable
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -14,10 +14,10 @@ from scipy import sparse
 
 from locretrieval.cache import cached_arrays, config_key
 from locretrieval.config import ConfigError, require, validated
-from locretrieval.groundtruth.base import GroundTruth
-from locretrieval.groundtruth.co_observation import CoObservationDefinition, co_observation_groundtruth
-from locretrieval.groundtruth.frustum import FrustumDefinition, frustum_groundtruth
-from locretrieval.groundtruth.relative_pose import RelativePoseDefinition, relative_pose_groundtruth
+from locretrieval.groundtruth.base import Definition, DefinitionContext, GroundTruth
+from locretrieval.groundtruth.co_observation import CoObservationDefinition
+from locretrieval.groundtruth.frustum import FrustumDefinition
+from locretrieval.groundtruth.relative_pose import RelativePoseDefinition
 from locretrieval.localization.sfm import SfmSettings
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
@@ -25,23 +25,24 @@ from locretrieval.scene import Scene
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class DefinitionType:
-    """A ground-truth definition: its parameter schema and its builder, called as
-    ``build(database, queries, depth=..., name=..., **parameters)`` (plus ``sfm=`` and
-    ``cache_dir=`` when ``uses_sfm``: its features and matches are the SfM paradigms')."""
-
-    schema: type
-    build: Callable[..., GroundTruth]
-    uses_sfm: bool = False
-
-
-#: Ground-truth definition types by name (the ``type`` of a ``definitions`` entry).
-DEFINITIONS: dict[str, DefinitionType] = {
-    "relative_pose": DefinitionType(RelativePoseDefinition, relative_pose_groundtruth),
-    "frustum": DefinitionType(FrustumDefinition, frustum_groundtruth),
-    "co_observation": DefinitionType(CoObservationDefinition, co_observation_groundtruth, uses_sfm=True),
+#: Ground-truth definition types by name (the ``type`` of a ``definitions`` entry and of
+#: ``train_relevance.definition``): each a `Definition` (its module: schema, ranking, training
+#: relevance). A new definition is its module and one entry here.
+DEFINITIONS: dict[str, type[Definition]] = {
+    "relative_pose": RelativePoseDefinition,
+    "frustum": FrustumDefinition,
+    "co_observation": CoObservationDefinition,
 }
+
+
+def parse_definition(parameters: Mapping[str, Any], key: str, default_type: str | None = None) -> Definition:
+    """The checked definition of ``parameters`` (its ``type``, default ``default_type``, picks the
+    `DEFINITIONS` entry; the rest are its schema's fields); errors name ``key``."""
+    parameters = dict(parameters or {})
+    kind = parameters.pop("type", default_type)
+    require(kind in DEFINITIONS, f"{key}.type", f"unknown definition type {kind!r}; known: {sorted(DEFINITIONS)}")
+    return validated(DEFINITIONS[kind], parameters, key)
+
 
 #: Bump when the meaning of cached ground-truth files changes.
 CACHE_VERSION = 2
@@ -75,14 +76,9 @@ class GroundTruthSettings:
             kind = (parameters or {}).get("type", name)
             require(kind in DEFINITIONS, f"definitions.{name}.type", f"unknown definition type {kind!r}; known: {sorted(DEFINITIONS)}")
 
-    def parsed(self) -> dict[str, tuple[str, Any]]:
-        """``name -> (type, checked parameters)`` of every enabled definition, in ``enabled`` order."""
-        parsed = {}
-        for name, parameters in self.definitions.items():
-            parameters = dict(parameters or {})
-            kind = parameters.pop("type", name)
-            parsed[name] = (kind, validated(DEFINITIONS[kind].schema, parameters, f"groundtruth.definitions.{name}"))
-        return parsed
+    def parsed(self) -> dict[str, Definition]:
+        """``name -> checked definition`` of every enabled one, in ``enabled`` order."""
+        return {name: parse_definition(parameters, f"groundtruth.definitions.{name}", name) for name, parameters in self.definitions.items()}
 
 
 def compute_groundtruths(
@@ -100,32 +96,35 @@ def compute_groundtruths(
     database, queries = scene.database, scene.queries
     fingerprints = (database.fingerprint(), queries.fingerprint()) if cache_dir is not None else ()
     groundtruths = {}
-    for name, (kind, definition) in settings.parsed().items():
-        definition_type = DEFINITIONS[kind]
-        parameters = dataclasses.asdict(definition)
-        if "far" in parameters:  # a frustum far plane left null is the scene's
-            parameters["far"] = scene.far_plane(parameters["far"], f"groundtruth.definitions.{name}.far")
-        produced_by: dict[str, Any] = dict(parameters)
-        if definition_type.uses_sfm:
+    for name, definition in settings.parsed().items():
+        if "far" in dataclasses.asdict(definition):  # a frustum far plane left null is the scene's
+            definition = dataclasses.replace(definition, far=scene.far_plane(definition.far, f"groundtruth.definitions.{name}.far"))
+        produced_by: dict[str, Any] = dataclasses.asdict(definition)
+        context = DefinitionContext(cache_dir=Path(cache_dir) if cache_dir is not None else None)
+        if definition.uses_sfm:
             if sfm is None:
-                raise ConfigError(f"groundtruth.definitions.{name}: the {kind} ground truth needs the sfm settings")
-            sfm_for_scene = dataclasses.replace(sfm, map_pairs=sfm.map_pairs.for_scene(scene))
-            parameters.update(sfm=sfm_for_scene, cache_dir=cache_dir)
-            produced_by["sfm"] = {key: dataclasses.asdict(getattr(sfm_for_scene, key)) for key in ("features", "triangulation", "map_pairs")}
-            produced_by["sfm"]["matching"] = sfm_for_scene.matching.identity()
+                raise ConfigError(f"groundtruth.definitions.{name}: the {definition_type(definition)} ground truth needs the sfm settings")
+            context = dataclasses.replace(context, sfm=dataclasses.replace(sfm, map_pairs=sfm.map_pairs.for_scene(scene)))
+            produced_by["sfm"] = {key: dataclasses.asdict(getattr(context.sfm, key)) for key in ("features", "triangulation", "map_pairs")}
+            produced_by["sfm"]["matching"] = context.sfm.matching.identity()
         path = None
         if cache_dir is not None:
-            key = config_key(CACHE_VERSION, kind, produced_by, settings.depth, *fingerprints)
+            key = config_key(CACHE_VERSION, definition_type(definition), produced_by, settings.depth, *fingerprints)
             path = Path(cache_dir) / "groundtruth" / f"{name}-{key}.npz"
 
-        def build(parameters: dict[str, Any] = parameters, name: str = name) -> dict[str, np.ndarray]:
-            return _to_arrays(definition_type.build(database, queries, depth=settings.depth, name=f"gt_{name}", **parameters))
+        def build(definition: Definition = definition, context: DefinitionContext = context, name: str = name) -> dict[str, np.ndarray]:
+            return _to_arrays(definition.groundtruth(database, queries, settings.depth, f"gt_{name}", context))
 
         arrays, hit = cached_arrays(path, build)
         if hit:
             log.info("ground truth %s loaded from %s", name, path)
         groundtruths[name] = _from_arrays(arrays, f"gt_{name}")
     return groundtruths
+
+
+def definition_type(definition: Definition) -> str:
+    """The `DEFINITIONS` name of ``definition``'s type (part of its cache key)."""
+    return next(name for name, kind in DEFINITIONS.items() if isinstance(definition, kind))
 
 
 def _to_arrays(groundtruth: GroundTruth) -> dict[str, np.ndarray]:

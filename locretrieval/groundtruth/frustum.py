@@ -6,13 +6,15 @@ the two truncated viewing frusta (`locretrieval.frusta`, an exact linear program
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
 from locretrieval.config import require
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
-from locretrieval.groundtruth.base import GroundTruth, groundtruth_from_scores
+from locretrieval.groundtruth.base import DefinitionContext, GroundTruth, groundtruth_from_scores
 from locretrieval.scene import ImageSet
 
 
@@ -24,11 +26,30 @@ class FrustumDefinition:
     near: float
     far: float | None
     min_radius: float
+    uses_sfm: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
         require(self.near > 0, "near", f"must be a positive depth in metres, got {self.near}")
         require(self.far is None or self.far > self.near, "far", f"must exceed near ({self.near} m), got {self.far}")
         require(self.min_radius >= 0, "min_radius", f"must be >= 0 metres, got {self.min_radius}")
+
+    def frusta(self, images: ImageSet, rows: np.ndarray, context: DefinitionContext) -> TruncatedFrusta:
+        """The frusta of images ``rows``, truncated at ``near`` and ``far`` (``None``: ``context.far``)."""
+        far = self.far if self.far is not None else context.far
+        if far is None:
+            raise ValueError("frustum ground truth: far is null and no scene far plane was given")
+        return TruncatedFrusta.of_images(images, rows, self.near, far)
+
+    def groundtruth(self, database: ImageSet, queries: ImageSet, depth: int, name: str, context: DefinitionContext) -> GroundTruth:
+        """`frustum_groundtruth` with these parameters (``far`` ``None``: ``context.far``)."""
+        parameters = dataclasses.asdict(self)
+        parameters["far"] = self.far if self.far is not None else context.far
+        return frustum_groundtruth(database, queries, depth=depth, name=name, **parameters)
+
+    def graded(self, images: ImageSet, rows: np.ndarray, context: DefinitionContext) -> np.ndarray:
+        """The overlap radius (metres) where it exceeds ``min_radius``, else 0."""
+        radii = pairwise_overlap_radii(self.frusta(images, rows, context), self.frusta(images, np.arange(len(images)), context))
+        return np.where(radii > self.min_radius, radii, 0.0)
 
 
 def frustum_groundtruth(

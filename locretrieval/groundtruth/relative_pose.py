@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
 from locretrieval import geometry
 from locretrieval.config import require
-from locretrieval.groundtruth.base import GroundTruth, groundtruth_from_scores
+from locretrieval.groundtruth.base import DefinitionContext, GroundTruth, groundtruth_from_scores
 from locretrieval.scene import ImageSet
 
 
@@ -25,11 +27,30 @@ class RelativePoseDefinition:
     position_threshold: float
     rotation_threshold: float
     ranked: str = "within_thresholds"
+    uses_sfm: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
         require(self.position_threshold > 0, "position_threshold", f"must be positive metres, got {self.position_threshold}")
         require(self.rotation_threshold > 0, "rotation_threshold", f"must be positive degrees, got {self.rotation_threshold}")
         require(self.ranked in RANKED, "ranked", f"must be one of {list(RANKED)}, got {self.ranked!r}")
+
+    def scores(self, images: ImageSet, rows: np.ndarray, others: ImageSet) -> tuple[np.ndarray, np.ndarray]:
+        """``(s_rcp, relevant)``, each ``[len(rows), len(others)]``: the score of images ``rows``
+        against every image of ``others`` (`relative_pose_scores`) and whether the pair is within
+        both thresholds (strictly)."""
+        score, position, rotation = relative_pose_scores(
+            images.qvec[rows], images.centers[rows], others.qvec, others.centers, self.position_threshold, self.rotation_threshold
+        )
+        return score, (position < self.position_threshold) & (rotation < self.rotation_threshold)
+
+    def groundtruth(self, database: ImageSet, queries: ImageSet, depth: int, name: str, context: DefinitionContext) -> GroundTruth:
+        """`relative_pose_groundtruth` with these parameters."""
+        return relative_pose_groundtruth(database, queries, depth=depth, name=name, **dataclasses.asdict(self))
+
+    def graded(self, images: ImageSet, rows: np.ndarray, context: DefinitionContext) -> np.ndarray:
+        """``1 - s_rcp / 2`` within both thresholds (there ``s_rcp < 2``: in (0, 1]), else 0."""
+        score, relevant = self.scores(images, rows, images)
+        return np.where(relevant, 1.0 - score / 2.0, 0.0)
 
 
 def relative_pose_scores(
@@ -72,19 +93,10 @@ def relative_pose_groundtruth(
     3, and paradigm 1 at larger k averages those 3); ``"all"`` ranks every database image, so
     a query with fewer relevant images than ``k`` gets its ``k`` closest ones.
     """
-    RelativePoseDefinition(position_threshold, rotation_threshold, ranked)  # range checks
-    database_centers, query_centers = database.centers, queries.centers
+    definition = RelativePoseDefinition(position_threshold, rotation_threshold, ranked)  # range checks
 
     def score_block(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        score, position, rotation = relative_pose_scores(
-            queries.qvec[rows],
-            query_centers[rows],
-            database.qvec,
-            database_centers,
-            position_threshold,
-            rotation_threshold,
-        )
-        relevant = (position < position_threshold) & (rotation < rotation_threshold)
+        score, relevant = definition.scores(queries, rows, database)
         rankable = relevant if ranked == "within_thresholds" else np.ones(score.shape, dtype=bool)
         return -score, rankable, relevant
 

@@ -75,6 +75,9 @@ class ApproximationSettings(ParadigmSettings):
         require(bool(self.methods) and not unknown, "methods", f"must be a non-empty list of {list(METHODS)}, got {self.methods}")
         require(self.alpha > 0, "alpha", f"must be positive, got {self.alpha}")
 
+    def method_names(self) -> list[str]:
+        return list(self.methods)
+
 
 def run(
     scene: Scene, rankings: Sequence[Ranking], settings: ApproximationSettings, sfm: Any = None, cache_dir: Path | None = None

@@ -7,6 +7,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import pandas as pd
 
 from locretrieval import geometry
 
@@ -68,3 +69,25 @@ class PoseEstimates:
             geometry.position_errors(c_estimated, c_reference[None]),
             geometry.rotation_errors_deg(self.qvec, np.asarray(q_reference)[None]),
         )
+
+
+#: Columns of the estimated-pose table (``estimated_poses.csv.gz``): one row per ranking x
+#: paradigm x method x k x query with an estimate, the world-to-camera pose ``q = (qw, qx, qy, qz)``,
+#: ``t = (tx, ty, tz)`` (metres), as kapture stores it.
+ESTIMATED_POSE_COLUMNS = [
+    "dataset", "ranking", "ranking_kind", "paradigm", "method", "k", "query", "qw", "qx", "qy", "qz", "tx", "ty", "tz",
+]  # fmt: skip
+
+
+def estimated_pose_table(dataset: str, estimates: Sequence[PoseEstimates], query_names: Sequence[str]) -> pd.DataFrame:
+    """The estimated poses of every ``estimates`` (queries named by ``query_names``, in order), one
+    row per ranking x paradigm x method x k x query that has an estimate (`ESTIMATED_POSE_COLUMNS`)."""
+    frames = []
+    for e in estimates:
+        found = np.isfinite(e.qvec).all(-1) & np.isfinite(e.tvec).all(-1)  # [len(ks), Q]
+        k_rows, query_rows = np.nonzero(found)
+        labels = {"dataset": dataset, "ranking": e.ranking, "ranking_kind": e.ranking_kind, "paradigm": e.paradigm,
+                  "method": e.method, "k": np.asarray(e.ks)[k_rows], "query": np.asarray(query_names, dtype=object)[query_rows]}
+        poses = np.concatenate([e.qvec[found], e.tvec[found]], axis=1)
+        frames.append(pd.DataFrame({**labels, **dict(zip(ESTIMATED_POSE_COLUMNS[-7:], poses.T))}, columns=ESTIMATED_POSE_COLUMNS))
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=ESTIMATED_POSE_COLUMNS)

@@ -26,8 +26,10 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import numpy as np
+
 from locretrieval.cache import config_key, tree_signature
-from locretrieval.localization.colmap_model import read_colmap_map
+from locretrieval.localization.colmap_model import missing_model_files, read_colmap_map
 from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.pairs import database_pairs
 from locretrieval.localization.paradigm import ParadigmSettings
@@ -35,7 +37,7 @@ from locretrieval.localization.plan import ParadigmWork, Work, database_pair_wor
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS
 from locretrieval.localization.pose_cache import PoseCache
 from locretrieval.localization.sfm import (
-    Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, query_tasks, register_query, run_queries,
+    SFM_METHOD, Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, query_tasks, register_query, run_queries,
 )
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.localization.triangulation import triangulate_known_poses
@@ -54,6 +56,16 @@ class GlobalSfmSettings(ParadigmSettings):
     published ``colmap-sfm`` map), or ``None``: triangulate the database pairs of ``sfm.map_pairs``."""
 
     colmap_model: str | None
+
+    def method_names(self) -> list[str]:
+        return [SFM_METHOD]
+
+
+def missing_inputs(settings: GlobalSfmSettings) -> list[str]:
+    """The files of ``colmap_model`` that are absent, if one is given."""
+    if not settings.colmap_model:
+        return []
+    return [f"colmap_model: {problem}" for problem in missing_model_files(settings.colmap_model)]
 
 
 def run(
@@ -126,6 +138,19 @@ def map_cache_path(inputs: SfmInputs, cache_dir: Path) -> Path:
     matches = inputs.database_pairs.stores["poses"].folder.name
     key = config_key(CACHE_VERSION, matches, asdict(inputs.settings.triangulation), asdict(inputs.map_pairs))
     return cache_dir / "maps" / f"{key}.npz"
+
+
+def map_points(scene: Scene, settings: GlobalSfmSettings, sfm: SfmSettings, cache_dir: Path) -> np.ndarray | None:
+    """The 3D points ``[P, 3]`` (world coordinates, metres) of the global map `run` used: the
+    ``colmap_model``'s, or the triangulated map cached in ``cache_dir``; ``None`` when it was
+    not built (nothing is computed here)."""
+    if settings.colmap_model:
+        import pycolmap
+
+        model = pycolmap.Reconstruction(settings.colmap_model)
+        return np.array([point.xyz for point in model.points3D.values()], dtype=np.float64).reshape(-1, 3)
+    path = map_cache_path(SfmInputs.prepare(scene, sfm, Path(cache_dir), extract=False), Path(cache_dir))
+    return SparseMap.load(path).points if path.exists() else None
 
 
 def localize_query(shared: tuple[SfmInputs, SparseMap], task: QueryTask) -> list[list[Outcome]]:

@@ -45,7 +45,7 @@ from locretrieval.localization.plan import ParadigmWork, Work, database_pair_wor
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
 from locretrieval.localization.pose_cache import PoseCache
 from locretrieval.localization.sfm import (
-    Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, query_tasks, register_query, run_queries,
+    SFM_METHOD, Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, query_tasks, register_query, run_queries,
 )
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.localization.triangulation import triangulate_known_poses
@@ -67,6 +67,9 @@ class LocalSfmSettings(ParadigmSettings):
     def __post_init__(self) -> None:
         super().__post_init__()
         require(self.map_matches in MAP_MATCHES, "map_matches", f"must be one of {list(MAP_MATCHES)}, got {self.map_matches!r}")
+
+    def method_names(self) -> list[str]:
+        return [SFM_METHOD]
 
 
 def run(

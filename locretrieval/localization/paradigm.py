@@ -19,3 +19,7 @@ class ParadigmSettings:
     def __post_init__(self) -> None:
         require(len(self.k) > 0, "k", "must list at least one value, e.g. [1, 5, 10]")
         require(min(self.k) >= 1, "k", f"values must be >= 1, got {self.k}")
+
+    def method_names(self) -> list[str]:
+        """The ``method`` of every pose estimate the paradigm writes (a column of the results)."""
+        raise NotImplementedError(f"{type(self).__name__} must say which methods its paradigm writes")

@@ -36,6 +36,10 @@ from locretrieval.scene import Scene
 log = logging.getLogger(__name__)
 
 
+#: The ``method`` of the SfM paradigms' pose estimates: PnP + RANSAC on the retrieved images' 3D points.
+SFM_METHOD = "pnp"
+
+
 @dataclass
 class SfmSettings:
     """The ``sfm`` config group, shared by local SfM (2a), global SfM (2b) and the
@@ -263,4 +267,4 @@ def _estimates(paradigm: str, ranking: Ranking, ks: list[int], outcomes: Sequenc
     reasons = Counter(reason for reason in failures.ravel() if reason != LOCALIZED)
     if reasons:
         log.info("%s / %s: not localised %s (over %d queries x k=%s)", paradigm, ranking.name, dict(reasons), ranking.num_queries, ks)
-    return PoseEstimates(ranking.name, ranking.kind, paradigm, "pnp", ks, qvec, tvec, failures.astype(str))
+    return PoseEstimates(ranking.name, ranking.kind, paradigm, SFM_METHOD, ks, qvec, tvec, failures.astype(str))

@@ -19,6 +19,7 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -29,11 +30,9 @@ from locretrieval.models.networks import RetrievalNet, build_retrieval_net, load
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 from locretrieval.models.weights import (
     WEIGHT_SOURCES,
-    check_architecture,
-    check_checkpoint,
+    Weights,
     content_sha256,
-    is_checkpoint,
-    load_torch_file,
+    read_weights,
     require_weights,
     save_checkpoint,
 )
@@ -131,19 +130,25 @@ def _network_name(key: str) -> str:
 
 def read_apgem_weights(path: str | os.PathLike, architecture: Mapping[str, Any] | None = None) -> APGeMWeights:
     """Read a dirtorch checkpoint (restricted unpickling; PCA objects become arrays) or a
-    checkpoint `convert_apgem` wrote; raise unless it holds ``architecture`` (``backbone``,
-    ``out_dim``; ``None`` accepts any)."""
-    content = load_torch_file(path, _PCA_GLOBALS)
-    if is_checkpoint(content):
-        check_checkpoint(content, path, "apgem", architecture or {})
-        return APGeMWeights(
-            content["state_dict"],
-            content["architecture"]["backbone"],
-            content["architecture"]["out_dim"],
-            tuple(content["preprocessing"]["mean"]),
-            tuple(content["preprocessing"]["std"]),
-            {name: PCAWhitening.from_tensors(tensors) for name, tensors in content["extra"].get("pca", {}).items()},
-        )
+    checkpoint `convert_apgem` wrote (`read_weights`); raise unless it holds ``architecture``
+    (``backbone``, ``out_dim``; ``None`` accepts any)."""
+    weights = read_weights(path, "apgem", architecture or {}, _read_dirtorch, allowed=_PCA_GLOBALS)
+    if weights.checkpoint:
+        pcas = {name: PCAWhitening.from_tensors(tensors) for name, tensors in weights.extra.get("pca", {}).items()}
+    else:
+        pcas = dict(weights.extra["pca"])
+    return APGeMWeights(
+        dict(weights.state_dict),
+        weights.architecture["backbone"],
+        int(weights.architecture["out_dim"]),
+        tuple(float(v) for v in weights.preprocessing["mean"]),
+        tuple(float(v) for v in weights.preprocessing["std"]),
+        pcas,
+    )
+
+
+def _read_dirtorch(path: Path, content: Any) -> Weights:
+    """The weights of a dirtorch checkpoint's content (`AuthorsReader`); PCAs as `PCAWhitening` in ``extra``."""
     if not isinstance(content, dict) or "state_dict" not in content:
         raise ValueError(f"{path}: not a dirtorch checkpoint (a dict with 'state_dict', 'model_options')")
     options = dict(content.get("model_options") or {})
@@ -155,22 +160,14 @@ def read_apgem_weights(path: str | os.PathLike, architecture: Mapping[str, Any] 
     state = {_network_name(key.removeprefix("module.")): value for key, value in content["state_dict"].items()}
     if "whitening.weight" not in state:
         raise ValueError(f"{path}: state_dict has no 'fc.weight' (the 2048-D FC layer)")
-    check_architecture(
-        {"backbone": DIRTORCH_BACKBONES[arch], "out_dim": state["whitening.weight"].shape[0]}, path, architecture or {}
-    )
     preprocess = content.get("preprocess") or {}
     pcas = {
         str(name): PCAWhitening.from_attributes(vars(pca) if isinstance(pca, PicklePCA) else pca, f"{path} pca[{name!r}]")
         for name, pca in (content.get("pca") or {}).items()
     }
-    return APGeMWeights(
-        state,
-        DIRTORCH_BACKBONES[arch],
-        int(state["whitening.weight"].shape[0]),
-        tuple(float(v) for v in preprocess.get("mean", IMAGENET_MEAN)),
-        tuple(float(v) for v in preprocess.get("std", IMAGENET_STD)),
-        pcas,
-    )
+    architecture = {"backbone": DIRTORCH_BACKBONES[arch], "out_dim": int(state["whitening.weight"].shape[0])}
+    preprocessing = {"mean": preprocess.get("mean", IMAGENET_MEAN), "std": preprocess.get("std", IMAGENET_STD)}
+    return Weights(state, architecture, preprocessing, {"pca": pcas})
 
 
 def convert_apgem(source: str | os.PathLike, destination: str | os.PathLike) -> None:

@@ -41,10 +41,9 @@ from locretrieval.models.networks import GeMPooling, RetrievalNet, load_weights
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 from locretrieval.models.weights import (
     WEIGHT_SOURCES,
-    check_checkpoint,
+    Weights,
     content_sha256,
-    is_checkpoint,
-    load_torch_file,
+    read_weights,
     require_weights,
     save_checkpoint,
 )
@@ -253,17 +252,16 @@ class DELGDescriptor(TorchGlobalDescriptor):
     ) -> None:
         path = require_weights(weights, WEIGHT_SOURCES["delg"], name)
         architecture = {"units": tuple(int(u) for u in units), "whiten_dim": int(whiten_dim), "gem_power": float(gem_power)}
-        if path.is_dir() or path.suffix == ".npz":
-            state = delg_state_dict_from_tf(read_tf_variables(path), float(gem_power), whitening_scope)
-        else:
-            content = load_torch_file(path)
-            if not is_checkpoint(content):
-                raise ValueError(f"{path}: neither a TensorFlow model nor a locretrieval DELG checkpoint")
-            check_checkpoint(content, path, self.model, architecture)
-            state = content["state_dict"]
+        def read_tensorflow(file: Path, content: Any) -> Weights:
+            """DELG's TensorFlow variables (a SavedModel folder or an ``.npz``), as `AuthorsReader`."""
+            if content is not None:
+                raise ValueError(f"{file}: neither a TensorFlow model nor a locretrieval DELG checkpoint")
+            return Weights(delg_state_dict_from_tf(read_tf_variables(file), float(gem_power), whitening_scope))
+
+        weights = read_weights(path, self.model, architecture, read_tensorflow, authors_file=lambda file: file.is_dir() or file.suffix == ".npz")
         network, info = load_weights(
             lambda: build_delg_network(architecture["units"], architecture["whiten_dim"], architecture["gem_power"], float(bn_eps)),
-            state,
+            weights.state_dict,
             path,
         )
         preprocessing = Preprocessing(max_side=max_side, scales=tuple(scales), mean=DELG_MEAN, std=DELG_STD)

@@ -36,11 +36,9 @@ from locretrieval.models.networks import RetrievalNet, build_retrieval_net, load
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 from locretrieval.models.weights import (
     WEIGHT_SOURCES,
-    check_architecture,
-    check_checkpoint,
+    Weights,
     content_sha256,
-    is_checkpoint,
-    load_torch_file,
+    read_weights,
     require_weights,
     save_checkpoint,
 )
@@ -135,6 +133,14 @@ def architecture_of(state_dict: dict[str, torch.Tensor]) -> dict[str, Any]:
     }
 
 
+def _read_struct(path: Path, content: Any) -> Weights:
+    """The weights of the authors' struct ``.mat`` (`AuthorsReader`): inputs ``rgb - average`` in 0-255."""
+    if content is not None:
+        raise ValueError(f"{path}: neither a struct .mat nor a locretrieval NetVLAD checkpoint")
+    state, average = read_netvlad_struct(path)
+    return Weights(state, architecture_of(state), {"mean": list(average / 255.0), "std": [1 / 255.0] * 3})
+
+
 def convert_netvlad(source: str | os.PathLike, destination: str | os.PathLike) -> None:
     """Write the struct ``.mat`` as a plain locretrieval checkpoint (no scipy/MATLAB layout needed)."""
     state, average = read_netvlad_struct(source)
@@ -164,16 +170,8 @@ class NetVLADDescriptor(TorchGlobalDescriptor):
     ) -> None:
         path = require_weights(weights, WEIGHT_SOURCES["netvlad"], name)
         architecture = {"clusters": int(clusters), "whiten_dim": None if whiten_dim is None else int(whiten_dim)}
-        if path.suffix.lower() == ".mat":
-            state, average = read_netvlad_struct(path)
-            mean, std = average / 255.0, [1 / 255.0] * 3
-            check_architecture(architecture_of(state), path, architecture)
-        else:
-            content = load_torch_file(path)
-            if not is_checkpoint(content):
-                raise ValueError(f"{path}: neither a struct .mat nor a locretrieval NetVLAD checkpoint")
-            check_checkpoint(content, path, self.model, architecture)
-            state, mean, std = content["state_dict"], content["preprocessing"]["mean"], content["preprocessing"]["std"]
-        network, info = load_weights(lambda: build_netvlad_network(**architecture), state, path)
+        weights = read_weights(path, self.model, architecture, _read_struct, authors_file=lambda file: file.suffix.lower() == ".mat")
+        network, info = load_weights(lambda: build_netvlad_network(**architecture), weights.state_dict, path)
+        mean, std = weights.preprocessing["mean"], weights.preprocessing["std"]
         preprocessing = Preprocessing(max_side=max_side, scales=tuple(scales), mean=tuple(mean), std=tuple(std))
         super().__init__(name, network, preprocessing, architecture, info, extraction)

@@ -25,11 +25,9 @@ from locretrieval.models.networks import TIMM_PREFIX, build_retrieval_net, load_
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 from locretrieval.models.weights import (
     MissingWeightsError,
-    check_checkpoint,
-    embedded_checkpoint,
-    is_checkpoint,
-    load_torch_file,
+    Weights,
     WeightSource,
+    read_weights,
     require_weights,
     torchvision_source,
 )
@@ -46,28 +44,26 @@ def read_trainable_weights(
     """State dict from our checkpoint of ``model`` with the ``(mean, std)`` it was trained with, or
     from an ImageNet backbone state dict (torchvision's, the EfficientNet-Lite0 package's, or a
     timm model's, ``.safetensors`` too; prefixed to the backbone's place) with ``None``."""
-    if path.suffix == ".safetensors":
-        from safetensors.torch import load_file  # a tensors-only format: nothing to unpickle
+    weights = read_weights(path, model, architecture, lambda file, content: _backbone_weights(file, content, model, architecture))
+    if not weights.checkpoint:
+        return dict(weights.state_dict), None
+    state = dict(weights.state_dict)
+    if architecture.get("backbone") == "efficientnet_lite0":  # 0.4.0 named its own EfficientNet-Lite0's layers
+        state = efficientnet.upgrade_legacy_trunk(state, "backbone.")
+    return state, (tuple(weights.preprocessing["mean"]), tuple(weights.preprocessing["std"]))
 
-        content = load_file(path)
-    else:
-        content = embedded_checkpoint(load_torch_file(path))
-    if is_checkpoint(content):
-        check_checkpoint(content, path, model, architecture)
-        stored = content["preprocessing"]
-        state = content["state_dict"]
-        if architecture.get("backbone") == "efficientnet_lite0":  # 0.4.0 named its own EfficientNet-Lite0's layers
-            state = efficientnet.upgrade_legacy_trunk(state, "backbone.")
-        return state, (tuple(stored["mean"]), tuple(stored["std"]))
-    if isinstance(content, Mapping) and content and all(isinstance(v, torch.Tensor) for v in content.values()):
-        backbone = str(architecture.get("backbone", ""))
-        if backbone.startswith(TIMM_PREFIX):
-            classifier = f"{timm_pretrained_cfg(backbone).get('classifier') or 'head'}."
-            return {f"backbone.timm.{key}": value for key, value in content.items() if not key.startswith(classifier)}, None
-        if efficientnet.is_efficientnet_state_dict(content):
-            content = efficientnet.trunk_state_dict(content, path)
-        return {f"backbone.{key}": value for key, value in content.items() if not key.startswith(_CLASSIFIER_PREFIXES)}, None
-    raise ValueError(f"{path}: neither a torchvision state dict nor a locretrieval checkpoint of model {model!r}")
+
+def _backbone_weights(path: Path, content: Any, model: str, architecture: Mapping[str, Any]) -> Weights:
+    """An ImageNet backbone state dict at the backbone's place (`AuthorsReader`), its classifier dropped."""
+    if not (isinstance(content, Mapping) and content and all(isinstance(v, torch.Tensor) for v in content.values())):
+        raise ValueError(f"{path}: neither a torchvision state dict nor a locretrieval checkpoint of model {model!r}")
+    backbone = str(architecture.get("backbone", ""))
+    if backbone.startswith(TIMM_PREFIX):
+        classifier = f"{timm_pretrained_cfg(backbone).get('classifier') or 'head'}."
+        return Weights({f"backbone.timm.{key}": value for key, value in content.items() if not key.startswith(classifier)})
+    if efficientnet.is_efficientnet_state_dict(content):
+        content = efficientnet.trunk_state_dict(content, path)
+    return Weights({f"backbone.{key}": value for key, value in content.items() if not key.startswith(_CLASSIFIER_PREFIXES)})
 
 
 def timm_pretrained_cfg(backbone: str) -> dict[str, Any]:

@@ -10,8 +10,8 @@ import hashlib
 import json
 import os
 import pickle
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -192,6 +192,64 @@ def embedded_checkpoint(content: Any) -> Any:
     if isinstance(content, dict) and is_checkpoint(content.get(EMBEDDED_CHECKPOINT_KEY)):
         return content[EMBEDDED_CHECKPOINT_KEY]
     return content
+
+
+@dataclass(frozen=True)
+class Weights:
+    """What a weight file holds for a model: the network's ``state_dict``, the ``architecture``
+    and ``preprocessing`` settings it was made with (those the authors' reader knows; ``None``
+    where unknown, e.g. an ImageNet state dict), and model-specific ``extra`` tensors (e.g.
+    AP-GeM's PCA). ``checkpoint``: read from a locretrieval checkpoint (not the authors' file)."""
+
+    state_dict: Mapping[str, torch.Tensor]
+    architecture: Mapping[str, Any] | None = None
+    preprocessing: Mapping[str, Any] | None = None
+    extra: Mapping[str, Any] = field(default_factory=dict)
+    checkpoint: bool = False
+
+
+#: ``read(path, content) -> Weights``: the authors' format of a model; ``content`` is ``None`` for a
+#: file `read_weights` does not unpickle (its ``authors_file`` says so), else the safely loaded file.
+AuthorsReader = Callable[[Path, Any], Weights]
+
+
+def read_weights(
+    path: str | os.PathLike,
+    model: str,
+    architecture: Mapping[str, Any],
+    authors: AuthorsReader | None = None,
+    authors_file: Callable[[Path], bool] | None = None,
+    allowed: Iterable[Any] = (),
+) -> Weights:
+    """The weights of ``model`` in ``path``, the one loader of every model: a locretrieval
+    checkpoint (plain, or inside a Lightning checkpoint of train.py), checked to hold ``model``
+    with the configured ``architecture``, or the authors' own file read by ``authors``. Files
+    that ``authors_file`` recognises (a MATLAB struct, a TensorFlow folder) go to ``authors``
+    unopened; others are read as tensors only (``.safetensors``) or with the restricted unpickler
+    (``allowed`` globals), and what is not our checkpoint goes to ``authors``, which raises when
+    the content is not its format; the architecture an authors' file holds is checked too."""
+    path = Path(path)
+    if authors is not None and authors_file is not None and authors_file(path):
+        return _checked(authors(path, None), path, architecture)
+    if path.suffix == ".safetensors":
+        from safetensors.torch import load_file  # a tensors-only format: nothing to unpickle
+
+        content = load_file(path)
+    else:
+        content = embedded_checkpoint(load_torch_file(path, allowed))
+    if is_checkpoint(content):
+        check_checkpoint(content, path, model, architecture)
+        return Weights(content["state_dict"], content["architecture"], content["preprocessing"], content["extra"], checkpoint=True)
+    if authors is None:
+        raise ValueError(f"{path}: not a locretrieval checkpoint of model {model!r}")
+    return _checked(authors(path, content), path, architecture)
+
+
+def _checked(weights: Weights, path: Path, architecture: Mapping[str, Any]) -> Weights:
+    """``weights`` of an authors' file, after checking the architecture it holds (where its reader knows it)."""
+    if weights.architecture is not None:
+        check_architecture(weights.architecture, path, architecture)
+    return weights
 
 
 def check_checkpoint(content: Mapping[str, Any], path: Path, model: str, architecture: Mapping[str, Any]) -> None:

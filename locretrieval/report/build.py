@@ -12,8 +12,11 @@ import pandas as pd
 from locretrieval.metrics.correlation import dataset_pearson, dataset_spearman, paired_metrics, query_pearson
 from locretrieval.metrics.localization import median_errors
 from locretrieval.metrics.retrieval import METRICS
-from locretrieval.report import markdown, plots
+from locretrieval.report import markdown, plots, scene_view
+from locretrieval.report.gallery import GallerySettings, gallery_section
+from locretrieval.report.html import write_html
 from locretrieval.report.painters import Painters
+from locretrieval.report.published import published_section
 from locretrieval.report.tables import RunTables, load_runs
 
 log = logging.getLogger(__name__)
@@ -49,10 +52,13 @@ def build_report(
     primary_groundtruth: str | None = None,
     figure_formats: Sequence[str] = ("png", "pdf"),
     figure_workers: int | None = None,
+    gallery: GallerySettings | None = None,
+    thumbnail_cache: str | Path | None = None,
 ) -> Path:
-    """Regenerate ``report.md``, ``figures/`` (in ``figure_formats``), ``tables/`` (Markdown + LaTeX) and
-    the correlation tables in ``output_dir`` from the tables of the runs at or below
-    ``run_dirs`` (a multirun's runs are concatenated, repeated ground-truth rows dropped).
+    """Regenerate ``report.md`` and ``report.html``, ``figures/`` (in ``figure_formats``), ``tables/``
+    (Markdown + LaTeX), the correlation tables and, with ``gallery`` settings, the retrieval
+    galleries (`gallery_section`, thumbnails cached in ``thumbnail_cache``) in ``output_dir`` from
+    the runs at or below ``run_dirs`` (a multirun's runs are concatenated, repeated ground-truth rows dropped).
 
     Correlations and the subset figure use ``primary_groundtruth`` (default: the relative
     pose definition, the paper's choice, else the first ground truth by name). Figures are
@@ -71,15 +77,19 @@ def build_report(
     writer = markdown.ReportWriter(output_dir, f"locretrieval report: {', '.join(datasets) or 'no results'}")
     colors = plots.ranking_colors(pd.concat([tables.results["ranking"], tables.retrieval["ranking"]]))
     overview(writer, tables, groundtruth)
+    writer.text(*filter(None, [scene_view.link(tables.run_dirs, output_dir)]))
     groundtruth_section(writer, tables)
     localization_section(writer, tables, painters, colors)
+    published_section(writer, tables.run_dirs)
     retrieval_section(writer, tables, painters, colors)
     revisited_section(writer, tables)
     correlation_section(writer, tables, correlations, groundtruth, painters, colors)
     subset_section(writer, tables, groundtruth, painters, colors)
     failure_section(writer, tables)
+    if gallery is not None:
+        gallery_section(writer, tables.run_dirs, groundtruth, gallery, loosest_threshold(tables.results), thumbnail_cache)
     path = writer.write(output_dir / "report.md")
-    log.info("report written to %s", path)
+    log.info("report written to %s and %s", path, write_html(path))
     return path
 
 

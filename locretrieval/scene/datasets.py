@@ -13,6 +13,8 @@ import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from filelock import FileLock
+
 from locretrieval.cache import config_key
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.types import Scene
@@ -125,13 +127,17 @@ def load_synthetic_dataset(
     keyed = {k: v for k, v in config.items() if k not in RENDER_ONLY_KEYS}
     keyed["device"] = resolve_device(str(config["device"])).type  # "auto" keys what it resolves to: float results may differ
     folder = Path(cache_dir) / "synthetic" / config_key(keyed)
-    if not (folder / "synthetic_config.json").is_file():
-        from locretrieval.scene.synthetic import render_synthetic_dataset
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    # one process renders, the others (a multirun's jobs on one cache) wait and read its scene:
+    # a second render would replace the folders the first process is reading
+    with FileLock(folder.parent / f".{folder.name}.lock"):
+        if not (folder / "synthetic_config.json").is_file():
+            from locretrieval.scene.synthetic import render_synthetic_dataset
 
-        log.info("rendering the synthetic scene into %s", folder)
-        render_synthetic_dataset(config, folder)
-    else:
-        log.info("synthetic scene cached in %s", folder)
+            log.info("rendering the synthetic scene into %s", folder)
+            render_synthetic_dataset(config, folder)
+        else:
+            log.info("synthetic scene cached in %s", folder)
     return load_dataset(
         name, folder, "mapping", ["query"], ltvl_name_style=ltvl_name_style, frustum_far=frustum_far, query_tags=["query"]
     )

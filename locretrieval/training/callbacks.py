@@ -13,10 +13,12 @@ import pandas as pd
 from lightning.pytorch.utilities import rank_zero_only
 
 from locretrieval.benchmark import BenchmarkResult, BenchmarkSettings, benchmark, build_rankings, relevances
+from locretrieval.config import require
 from locretrieval.groundtruth import GroundTruth
-from locretrieval.models import NetworkDescriptor
+from locretrieval.metrics.retrieval import METRICS
+from locretrieval.models import GlobalDescriptor, NetworkDescriptor
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
-from locretrieval.retrieval import EMPTY, Ranking
+from locretrieval.retrieval import EMPTY, Ranking, relevant_hits
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.retrieval.index import search
 from locretrieval.training.data import RelevanceBatchSampler
@@ -46,14 +48,32 @@ def metric_rows(result: BenchmarkResult, ranking: str, retrieval_ks: Collection[
     return metrics
 
 
+def every_validation_settings(settings: BenchmarkSettings) -> BenchmarkSettings:
+    """``settings`` with only the paradigms that run at every validation (cost ``cheap``)."""
+    return dataclasses.replace(settings, paradigms=settings.paradigms.only(lambda paradigm: paradigm.cost == "cheap"))
+
+
+def every_validation_metrics(settings: BenchmarkSettings, groundtruths: Collection[str]) -> list[str]:
+    """The `metric_rows` keys logged at every validation (those a checkpoint or early stopping may
+    monitor): the cheap paradigms' localization per method, k and threshold, and the retrieval
+    metrics against each ground truth in ``groundtruths`` (when the queries have poses)."""
+    paradigms = every_validation_settings(settings).paradigms
+    thresholds = [f"{position:g}m_{rotation:g}deg" for position, rotation in settings.metrics.thresholds]
+    keys = [f"val/{name}/{method}/k{k}/{threshold}" for name in paradigms.enabled()
+            for method in getattr(paradigms, name).method_names() for k in getattr(paradigms, name).k for threshold in thresholds]
+    return keys + [f"val/retrieval/{groundtruth}/{metric}@{k}" for groundtruth in groundtruths for metric in METRICS for k in settings.paradigms.ks()]
+
+
 class LocalizationValidation(L.Callback):
     """Every ``every_n_epochs`` (and once before training): describe the validation ``scene``
     with the current network, rank with faiss, run paradigm 1 and the retrieval metrics on all
     its queries; every ``sfm_every_n_epochs`` also the SfM paradigms (features and matches are
     cached in ``cache_dir``, so only new pairs are matched). Metrics are logged as
     `metric_rows` keys, so ``ModelCheckpoint`` and early stopping can monitor them; the
-    ground-truth and random rankings are benchmarked once, logged as ``reference/...``.
-    ``relevance_scope``: the retrieval metrics' relevance (`relevances`).
+    ``reference_models`` (descriptors by name, e.g. DenseVLAD), ground-truth and random rankings
+    are benchmarked once, logged as ``reference/<name>/...``.
+    ``relevance_scope``: the retrieval metrics' relevance (`relevances`). ``gallery_queries`` fixed
+    validation queries have their top ``gallery_k`` logged as an image at each validation.
     Runs on rank 0; ``history`` holds every validation (epoch -1: before training)."""
 
     def __init__(
@@ -63,12 +83,18 @@ class LocalizationValidation(L.Callback):
         settings: BenchmarkSettings,
         preprocessing: Preprocessing,
         extraction: ExtractionSettings,
-        every_n_epochs: int,
-        sfm_every_n_epochs: int | None,
         cache_dir: str | Path | None,
         random_seed: int | None,
         relevance_scope: str,
+        every_n_epochs: int,
+        sfm_every_n_epochs: int | None,
+        gallery_queries: int = 0,
+        gallery_k: int = 5,
+        reference_models: Mapping[str, GlobalDescriptor] | None = None,
     ) -> None:
+        require(every_n_epochs >= 1, "every_n_epochs", f"must be >= 1, got {every_n_epochs}")
+        require(sfm_every_n_epochs is None or sfm_every_n_epochs >= 1, "sfm_every_n_epochs", f"must be >= 1 or null, got {sfm_every_n_epochs}")
+        require(gallery_queries >= 0 and gallery_k >= 1, "gallery_queries", f"must be >= 0 queries of gallery_k >= 1 images, got {gallery_queries}, {gallery_k}")
         self.scene, self.groundtruths, self.settings = scene, dict(groundtruths), settings
         self.relevance = relevances(self.groundtruths, relevance_scope)
         self.preprocessing, self.extraction = preprocessing, extraction
@@ -77,17 +103,16 @@ class LocalizationValidation(L.Callback):
         self.subsets = {"all": np.ones(len(scene.queries), dtype=bool)}
         self.history: list[dict[str, float]] = []
         self.reference: dict[str, dict[str, float]] = {}
+        posed = np.flatnonzero(scene.queries.has_pose)  # a fixed set: the same queries at every validation
+        self.gallery_rows = np.sort(np.random.default_rng(0).choice(posed, size=min(gallery_queries, len(posed)), replace=False))
+        self.gallery_k = gallery_k
+        self.galleries: dict[str, np.ndarray] = {}  # "before" training and the "last" validation
+        self.reference_models = dict(reference_models or {})
+        self._thumbnails = None
 
     def _settings(self, with_sfm: bool) -> BenchmarkSettings:
-        if with_sfm:
-            return self.settings
-        paradigms = self.settings.paradigms
-        approximation_only = dataclasses.replace(
-            paradigms,
-            local_sfm=dataclasses.replace(paradigms.local_sfm, enabled=False),
-            global_sfm=dataclasses.replace(paradigms.global_sfm, enabled=False),
-        )
-        return dataclasses.replace(self.settings, paradigms=approximation_only)
+        """The benchmark settings of a validation: every paradigm, or the cheap ones (`Paradigm.cost`)."""
+        return self.settings if with_sfm else every_validation_settings(self.settings)
 
     def validate(self, network, with_sfm: bool) -> BenchmarkResult:
         """The benchmark of ``network`` (a `RetrievalNet`) on the validation scene."""
@@ -97,7 +122,10 @@ class LocalizationValidation(L.Callback):
         return benchmark(self.scene, rankings, self._settings(with_sfm), self.subsets, self.cache_dir, self.relevance)
 
     def _references(self) -> list[Ranking]:
-        return build_rankings(self.scene, {}, self.groundtruths, self.settings.retrieval, self.random_seed)
+        """The rankings the trained network is compared with: the reference models' (descriptors
+        cached in ``cache_dir``), the ground truths' and the random one."""
+        described = {name: describe_scene(model, self.scene, self.cache_dir) for name, model in self.reference_models.items()}
+        return build_rankings(self.scene, described, self.groundtruths, self.settings.retrieval, self.random_seed)
 
     def _wants_sfm(self, epoch: int) -> bool:
         return self.sfm_every_n_epochs is not None and (epoch < 0 or (epoch + 1) % self.sfm_every_n_epochs == 0)
@@ -115,7 +143,7 @@ class LocalizationValidation(L.Callback):
                 log.info("reference %s: %s", name, headline(metrics))
                 if trainer.logger is not None:
                     trainer.logger.log_metrics({k.replace("val/", f"reference/{name}/"): v for k, v in metrics.items()}, step=0)
-        metrics = self._record(pl_module, epoch=-1)
+        metrics = self._record(trainer, pl_module, epoch=-1)
         if trainer.logger is not None:  # before training: no pl_module.log outside the loop
             trainer.logger.log_metrics(metrics, step=trainer.global_step)
 
@@ -123,17 +151,40 @@ class LocalizationValidation(L.Callback):
         epoch = trainer.current_epoch
         if (epoch + 1) % self.every_n_epochs:
             return
-        metrics = self._record(pl_module, epoch) if trainer.is_global_zero else None
+        metrics = self._record(trainer, pl_module, epoch) if trainer.is_global_zero else None
         metrics = trainer.strategy.broadcast(metrics, src=0)  # every rank logs them: checkpointing monitors them
         for key, value in metrics.items():
             pl_module.log(key, value)
 
-    def _record(self, pl_module: L.LightningModule, epoch: int) -> dict[str, float]:
-        """Validate the module's network after ``epoch`` (-1: before training), keep and print the metrics."""
-        metrics = metric_rows(self.validate(pl_module.network, self._wants_sfm(epoch)), TRAINED, self.settings.paradigms.ks())
+    def _record(self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int) -> dict[str, float]:
+        """Validate the module's network after ``epoch`` (-1: before training), keep and print the
+        metrics, and log the gallery of the fixed validation queries."""
+        result = self.validate(pl_module.network, self._wants_sfm(epoch))
+        metrics = metric_rows(result, TRAINED, self.settings.paradigms.ks())
         self.history.append({"epoch": epoch, **metrics})
         log.info("validation after epoch %d:\n%s", epoch, headline_table({TRAINED: metrics, **self.reference}))
+        if len(self.gallery_rows):
+            self._log_gallery(trainer, next(r for r in result.rankings if r.name == TRAINED), epoch)
         return metrics
+
+    def _log_gallery(self, trainer: L.Trainer, ranking: Ranking, epoch: int) -> None:
+        """The top ``gallery_k`` of the gallery queries, framed relevant or not under the relative-pose
+        ground truth (else the first one), to TensorBoard (``val/gallery``) and the training report."""
+        from lightning.pytorch.loggers import TensorBoardLogger
+
+        from locretrieval.report.gallery import Thumbnails, gallery_image
+
+        if self._thumbnails is None:
+            self._thumbnails = Thumbnails(160, Path(self.cache_dir) / "thumbnails" if self.cache_dir is not None else None)
+        indices = ranking.indices[self.gallery_rows, : self.gallery_k]
+        relevance = self.relevance.get("relative_pose", next(iter(self.relevance.values()), None))
+        relevant = relevant_hits(indices, relevance[self.gallery_rows]) if relevance is not None else None
+        queries, database = self.scene.queries.paths, self.scene.database.paths
+        image = gallery_image([queries[q] for q in self.gallery_rows], database, indices, relevant, self._thumbnails)
+        self.galleries["before" if epoch < 0 else "last"] = image
+        for logger in trainer.loggers:
+            if isinstance(logger, TensorBoardLogger):
+                logger.experiment.add_image("val/gallery", image, global_step=trainer.global_step, dataformats="HWC")
 
     def history_table(self) -> pd.DataFrame:
         """Tidy ``epoch, metric, value`` of every validation."""
@@ -165,15 +216,17 @@ def headline_table(rankings: Mapping[str, Mapping[str, float]]) -> str:
 
 
 class HardNegativeMining(L.Callback):
-    """Every ``every`` training steps, describe the training images with the current network and
+    """Every ``every_n_steps`` training steps, describe the training images with the current network and
     give the sampler each anchor's ``per_anchor`` highest-ranked images among those it may be
     pushed from. The sampler builds batches lazily, so they apply from the next batches it builds
     (a DataLoader prefetches a few)."""
 
-    def __init__(self, sets: Sequence[ImageSet], pairs: TrainingPairs, sampler: RelevanceBatchSampler, every: int,
-                 per_anchor: int, preprocessing: Preprocessing, extraction: ExtractionSettings) -> None:
+    def __init__(self, sets: Sequence[ImageSet], pairs: TrainingPairs, sampler: RelevanceBatchSampler,
+                 preprocessing: Preprocessing, extraction: ExtractionSettings, every_n_steps: int, per_anchor: int) -> None:
+        require(every_n_steps >= 1, "every_n_steps", f"must be >= 1 (miner=null: no mining), got {every_n_steps}")
+        require(per_anchor >= 1, "per_anchor", f"must be >= 1, got {per_anchor}")
         self.sets, self.pairs, self.sampler = list(sets), pairs, sampler
-        self.every, self.per_anchor = every, per_anchor
+        self.every, self.per_anchor = every_n_steps, per_anchor
         self.preprocessing, self.extraction = preprocessing, extraction
         self.mined_at_step = 0
 

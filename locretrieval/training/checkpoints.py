@@ -1,4 +1,4 @@
-"""Lightning checkpoints of train.py: checked before a run resumes from one."""
+"""Lightning checkpoints of train.py: written atomically, checked before a run resumes from one."""
 
 from __future__ import annotations
 
@@ -7,7 +7,25 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import torch
+from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
+
+from locretrieval.cache import atomic_path
 from locretrieval.models.weights import EMBEDDED_CHECKPOINT_KEY, check_checkpoint, load_torch_file
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Lightning's checkpoint writer, made atomic on local paths: the checkpoint is written to a
+    temporary file beside its target and renamed over it (`atomic_path`), so a run killed while
+    writing ``last.ckpt`` leaves the previous one whole. (Lightning's own writer stages the file in
+    the system temporary folder and moves it into place, which is a non-atomic copy whenever that
+    folder is on another file system than the run's.)"""
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path: str | os.PathLike, storage_options: Any | None = None) -> None:
+        if storage_options is not None or "://" in str(path):  # remote storage: Lightning's own writer
+            return super().save_checkpoint(checkpoint, path, storage_options)
+        with atomic_path(path) as temporary:
+            torch.save(checkpoint, temporary)
 
 
 def check_resume_checkpoint(path: str | os.PathLike, model: str, architecture: Mapping[str, Any]) -> None:

@@ -20,7 +20,7 @@ from locretrieval.training.relevance import TrainingPairs
 
 
 @dataclass
-class AugmentSettings:
+class PhotometricAugmentation:
     """Photometric augmentations of training images (never geometric: poses define relevance),
     applied in this order: ``brightness``/``contrast``/``saturation``/``hue``, torchvision
     ``ColorJitter`` ranges; with ``low_light_probability``, the brightness scaled by a factor
@@ -59,21 +59,6 @@ class AugmentSettings:
         return v2.Compose([jitter, low_light, blur, noise])
 
 
-@dataclass
-class BatchSettings:
-    """A batch: ``anchors`` images that have a positive, one ``positive`` of each, and
-    ``negatives`` more images, hard ones (mined) when available; ``batches_per_epoch``."""
-
-    anchors: int
-    negatives: int
-    batches_per_epoch: int
-
-    def __post_init__(self) -> None:
-        require(self.anchors >= 1, "anchors", f"must be >= 1, got {self.anchors}")
-        require(self.negatives >= 0, "negatives", f"must be >= 0, got {self.negatives}")
-        require(self.batches_per_epoch >= 1, "batches_per_epoch", f"must be >= 1, got {self.batches_per_epoch}")
-
-
 class TrainingImages(Dataset):
     """Training images decoded as RGB, resized to ``size`` ``(width, height)``, augmented."""
 
@@ -92,14 +77,18 @@ class TrainingImages(Dataset):
 
 
 class RelevanceBatchSampler(Sampler[list[int]]):
-    """Batches of image indices: anchors (images with a positive), a random positive of each,
-    then negatives. An anchor's negatives are surely unrelated to it (`TrainingPairs`): its
-    mined hard negatives when `set_hard_negatives` gave some, random ones otherwise. Each
-    epoch draws new batches from ``seed`` and the epoch number (`set_epoch`)."""
+    """``batches_per_epoch`` batches of image indices: ``anchors`` images that have a positive, a
+    random positive of each, then ``negatives`` more images. An anchor's negatives are surely
+    unrelated to it (`TrainingPairs`): its mined hard negatives when `set_hard_negatives` gave
+    some, random ones otherwise. Each epoch draws new batches from ``seed`` and the epoch
+    number (`set_epoch`)."""
 
-    def __init__(self, pairs: TrainingPairs, settings: BatchSettings, seed: int) -> None:
+    def __init__(self, pairs: TrainingPairs, anchors: int, negatives: int, batches_per_epoch: int, seed: int) -> None:
+        require(anchors >= 1, "anchors", f"must be >= 1, got {anchors}")
+        require(negatives >= 0, "negatives", f"must be >= 0, got {negatives}")
+        require(batches_per_epoch >= 1, "batches_per_epoch", f"must be >= 1, got {batches_per_epoch}")
         self.pairs = pairs
-        self.settings = settings
+        self.num_anchors, self.num_negatives, self.batches_per_epoch = anchors, negatives, batches_per_epoch
         self.seed = seed
         self.epoch = 0
         self.anchors = np.flatnonzero(np.diff(pairs.graded.indptr) > 0)
@@ -113,7 +102,7 @@ class RelevanceBatchSampler(Sampler[list[int]]):
         self.rank, self.world_size = rank, world_size
 
     def __len__(self) -> int:
-        return max(1, self.settings.batches_per_epoch // self.world_size)
+        return max(1, self.batches_per_epoch // self.world_size)
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
@@ -132,11 +121,11 @@ class RelevanceBatchSampler(Sampler[list[int]]):
                 yield batch
 
     def _batch(self, rng: np.random.Generator) -> list[int]:
-        anchors = rng.choice(self.anchors, size=min(self.settings.anchors, len(self.anchors)), replace=False)
+        anchors = rng.choice(self.anchors, size=min(self.num_anchors, len(self.anchors)), replace=False)
         chosen = list(anchors)
         for anchor in anchors:
             chosen.append(int(rng.choice(self.pairs.positives(anchor))))
-        for anchor in rng.choice(anchors, size=self.settings.negatives):
+        for anchor in rng.choice(anchors, size=self.num_negatives):
             chosen.append(self._negative(int(anchor), rng))
         return [int(i) for i in chosen]
 
@@ -163,13 +152,17 @@ def collate(pairs: TrainingPairs):
 
 
 class TrainingData(L.LightningDataModule):
-    """The training images and their sampler (validation is the `LocalizationValidation` callback's)."""
+    """The training images (``paths``, resized to ``image_size`` ``[width, height]``, augmented by
+    ``augmentation`` when given), batched by ``sampler`` and decoded by ``num_workers`` DataLoader
+    processes (validation is the `LocalizationValidation` callback's)."""
 
     def __init__(self, paths: Sequence[Path], pairs: TrainingPairs, sampler: RelevanceBatchSampler,
-                 size: Sequence[int], augment: AugmentSettings | None, num_workers: int) -> None:
+                 augmentation: PhotometricAugmentation | None, image_size: Sequence[int], num_workers: int) -> None:
+        require(len(image_size) == 2 and min(image_size) >= 32, "image_size", f"must be [width, height] >= 32 px, got {list(image_size)}")
+        require(num_workers >= 0, "num_workers", f"must be >= 0, got {num_workers}")
         super().__init__()
         self.paths, self.pairs, self.sampler = list(paths), pairs, sampler
-        self.dataset = TrainingImages(paths, size, augment.transform() if augment is not None else None)
+        self.dataset = TrainingImages(paths, image_size, augmentation.transform() if augmentation is not None else None)
         self.num_workers = num_workers
 
     def train_dataloader(self) -> DataLoader:

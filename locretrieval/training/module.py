@@ -3,16 +3,38 @@ ranking loss on batches of images and their ground-truth relevance."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+import fnmatch
+import logging
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict
 from typing import Any
 
 import lightning as L
 import torch
 
+from locretrieval.config import SettingError
 from locretrieval.models.extraction import Preprocessing, describe_batch
 from locretrieval.models.networks import RetrievalNet
 from locretrieval.models.weights import CHECKPOINT_FORMAT, EMBEDDED_CHECKPOINT_KEY, plain
+
+log = logging.getLogger(__name__)
+
+
+def freeze_parameters(network: torch.nn.Module, patterns: Sequence[str]) -> list[str]:
+    """Keep the parameters whose names match a shell-style ``pattern`` (``backbone.blocks.[0-9].*``)
+    fixed; returns their names. A pattern that matches no parameter is an error naming some."""
+    names = [name for name, _ in network.named_parameters()]
+    for pattern in patterns:
+        if not any(fnmatch.fnmatchcase(name, pattern) for name in names):
+            raise SettingError("frozen", f"{pattern!r} matches no parameter of the network "
+                               f"(names are like {names[0]!r}, {names[len(names) // 2]!r}, {names[-1]!r})")
+    frozen = []
+    for name, parameter in network.named_parameters():
+        if any(fnmatch.fnmatchcase(name, pattern) for pattern in patterns):
+            parameter.requires_grad_(False)
+            frozen.append(name)
+    return frozen
+
 
 class TrainingDiverged(RuntimeError):
     """A non-finite loss or gradient: training stops at that step, nothing is updated with it."""
@@ -29,6 +51,8 @@ class RetrievalTraining(L.LightningModule):
     ``freeze_batch_norm``: batch-norm layers stay in eval mode while training (the pretrained
     running statistics normalise every batch and are never updated; their affine parameters
     still learn), as retrieval fine-tuning does with small batches (Radenovic et al., TPAMI 2019).
+    ``frozen``: shell patterns of parameter names kept fixed (`freeze_parameters`);
+    ``compile_network``: ``torch.compile`` the network's forward pass.
     """
 
     def __init__(
@@ -42,8 +66,12 @@ class RetrievalTraining(L.LightningModule):
         architecture: Mapping[str, Any],
         compile_network: bool = False,
         freeze_batch_norm: bool = False,
+        frozen: Sequence[str] = (),
     ) -> None:
         super().__init__()
+        names = freeze_parameters(network, frozen)
+        if names:
+            log.info("%d of %d parameter tensors frozen (module.frozen)", len(names), len(list(network.parameters())))
         self.network = network
         self.forward_network = torch.compile(network) if compile_network else network
         self.preprocessing = preprocessing

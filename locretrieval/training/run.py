@@ -3,30 +3,27 @@ Lightning, validate by localization every epoch, write the validation curves and
 
 from __future__ import annotations
 
-import fnmatch
 import logging
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import lightning as L
 import numpy as np
-import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.benchmark import BenchmarkSettings
-from locretrieval.config import require, validated
-from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths
+from locretrieval.config import ConfigError, built, require, validated
+from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, compute_groundtruths
 from locretrieval.groundtruth.co_observation import database_co_observations
 from locretrieval.scene import ImageSet, Scene
 from locretrieval.scene.datasets import load_synthetic_dataset
 from locretrieval.scene.kapture_io import concatenate_image_sets
-from locretrieval.training.callbacks import HardNegativeMining, LocalizationValidation
+from locretrieval.training.callbacks import LocalizationValidation, every_validation_metrics
 from locretrieval.training.checkpoints import check_resume_checkpoint
-from locretrieval.training.data import AugmentSettings, BatchSettings, RelevanceBatchSampler, TrainingData
-from locretrieval.training.module import RetrievalTraining
 from locretrieval.training.relevance import TrainingRelevanceSettings, combined_pairs
 from locretrieval.training.report import write_training_report
 
@@ -35,61 +32,16 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class TrainingSettings:
-    """The ``training`` config section: which images are trained on (``validation_database``:
-    the validation scene's own database, map-specific training; ``extra_renders``: render
-    overrides of separately rendered synthetic scenes, all their images), the ``image_size``
-    ``[width, height]`` of training batches, ``batch``, ``augment``, hard-negative mining every
-    ``hard_negatives_every_n_steps`` training steps (0: off, ``hard_negatives_per_anchor`` kept per image),
-    DataLoader ``num_workers``, ``compile`` (``torch.compile``), ``freeze_batch_norm`` (batch-norm
-    layers in eval mode while training, `RetrievalTraining`) and ``frozen`` (`freeze_parameters`)."""
+    """The ``training`` config section, which images are trained on: ``validation_database``, the
+    validation scene's own database (map-specific training); ``extra_renders``, render overrides
+    of separately rendered synthetic scenes (all their images)."""
 
     validation_database: bool
     extra_renders: list[dict]
-    image_size: list[int]
-    batch: BatchSettings
-    augment: AugmentSettings
-    hard_negatives_every_n_steps: int
-    hard_negatives_per_anchor: int
-    num_workers: int
-    compile: bool
-    freeze_batch_norm: bool
-    frozen: list[str]
 
     def __post_init__(self) -> None:
         require(self.validation_database or bool(self.extra_renders), "validation_database",
                 "no training images: set validation_database=true or give extra_renders")
-        require(len(self.image_size) == 2 and min(self.image_size) >= 32, "image_size", f"must be [width, height] >= 32 px, got {self.image_size}")
-        require(self.hard_negatives_every_n_steps >= 0, "hard_negatives_every_n_steps",
-                f"must be >= 0, got {self.hard_negatives_every_n_steps}")
-
-
-@dataclass
-class ValidationSettings:
-    """The ``validation`` config section: paradigm 1 every ``every_n_epochs``, the SfM paradigms
-    every ``sfm_every_n_epochs`` (``None``: never)."""
-
-    every_n_epochs: int
-    sfm_every_n_epochs: int | None
-
-    def __post_init__(self) -> None:
-        require(self.every_n_epochs >= 1, "every_n_epochs", f"must be >= 1, got {self.every_n_epochs}")
-        require(self.sfm_every_n_epochs is None or self.sfm_every_n_epochs >= 1, "sfm_every_n_epochs", "must be >= 1 or null")
-
-
-def freeze_parameters(network: torch.nn.Module, patterns: Sequence[str]) -> list[str]:
-    """Keep the parameters whose names match a shell-style ``pattern`` (``backbone.blocks.[0-9].*``)
-    fixed; returns their names. A pattern that matches no parameter is an error naming some."""
-    names = [name for name, _ in network.named_parameters()]
-    for pattern in patterns:
-        if not any(fnmatch.fnmatchcase(name, pattern) for name in names):
-            raise ValueError(f"training.frozen: {pattern!r} matches no parameter of the network "
-                             f"(names are like {names[0]!r}, {names[len(names) // 2]!r}, {names[-1]!r})")
-    frozen = []
-    for name, parameter in network.named_parameters():
-        if any(fnmatch.fnmatchcase(name, pattern) for pattern in patterns):
-            parameter.requires_grad_(False)
-            frozen.append(name)
-    return frozen
 
 
 def training_worlds(cfg: DictConfig, scene: Scene, settings: TrainingSettings) -> list[Scene]:
@@ -116,58 +68,75 @@ def _without_queries(name: str, images: ImageSet, scene: Scene) -> Scene:
 
 
 def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
-    """Train the configured model; returns the validation callback (its ``history``)."""
+    """Train the configured model; returns the validation callback (its ``history``). Every
+    object is built from its config group (`built`); what is checked without the scene (sections,
+    the resumed checkpoint, the metrics checkpoints monitor) is checked before it is prepared."""
     L.seed_everything(int(cfg.seed), workers=True)
     settings = BenchmarkSettings.from_config(cfg)
     training = validated(TrainingSettings, cfg.training, "training")
-    validation = validated(ValidationSettings, cfg.validation, "validation")
     relevance = validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance")
     groundtruth_settings = validated(GroundTruthSettings, cfg.groundtruth, "groundtruth")
     output_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, output_dir / "config.yaml", resolve=True)
     cache_dir = Path(cfg.paths.cache_dir)
+    if "localization_validation" not in (cfg.get("callbacks") or {}):
+        raise ConfigError("callbacks.localization_validation: missing; training is validated by localization (callbacks=default)")
+    callbacks = {name: built(node, f"callbacks.{name}") for name, node in cfg.callbacks.items()
+                 if node is not None and name != "localization_validation"}
+    check_monitors(callbacks, every_validation_metrics(settings, list(groundtruth_settings.parsed())))
 
     descriptor = instantiate(cfg.model)  # the zoo model: network, preprocessing, weights checked
     if cfg.get("ckpt_path"):  # before the scene and ground truth are prepared
         check_resume_checkpoint(cfg.ckpt_path, descriptor.model, descriptor.architecture)
     scene: Scene = instantiate(cfg.data)
     network, preprocessing = descriptor.network.train(), descriptor.preprocessing
-    frozen = freeze_parameters(network, training.frozen)
-    if frozen:
-        log.info("%d of %d parameter tensors frozen (training.frozen)", len(frozen), len(list(network.parameters())))
     worlds = training_worlds(cfg, scene, training)
     sets = [world.database for world in worlds]
-    far = scene.far_plane(relevance.far, "train_relevance.far")
-    shared_points = ([database_co_observations(world, settings.sfm, cache_dir) for world in worlds]
-                     if relevance.type == "co_observation" else None)
-    pairs = combined_pairs(sets, relevance, far, shared_points)
+    pairs = combined_pairs(sets, relevance, [pair_context(world, scene, relevance, settings, cache_dir) for world in worlds])
     log.info("training on %d images (%d with a relevant partner), validating on %d queries of %s",
              pairs.num_images, int((np.diff(pairs.graded.indptr) > 0).sum()), len(scene.queries), scene.name)
-    sampler = RelevanceBatchSampler(pairs, training.batch, int(cfg.seed))
+    sampler = built(cfg.sampler, "sampler", pairs=pairs)
+    augmentation = built(cfg.augmentation, "augmentation") if cfg.get("augmentation") else None
     paths = [path for images in sets for path in images.paths]
-    data = TrainingData(paths, pairs, sampler, training.image_size, training.augment, training.num_workers)
+    data = built(cfg.datamodule, "datamodule", paths=paths, pairs=pairs, sampler=sampler, augmentation=augmentation)
 
     groundtruths = compute_groundtruths(scene, groundtruth_settings, settings.sfm, cache_dir)
     extraction = descriptor.settings
-    validator = LocalizationValidation(
-        scene, groundtruths, settings, preprocessing, extraction, validation.every_n_epochs,
-        validation.sfm_every_n_epochs, cache_dir, int(cfg.seed) if cfg.baselines.random else None,
-        groundtruth_settings.relevance,
+    callbacks["localization_validation"] = validator = built(
+        cfg.callbacks.localization_validation, "callbacks.localization_validation", scene=scene, groundtruths=groundtruths, settings=settings, preprocessing=preprocessing, extraction=extraction,
+        cache_dir=cache_dir, random_seed=int(cfg.seed) if cfg.baselines.random else None, relevance_scope=groundtruth_settings.relevance,
+        reference_models={name: instantiate(node) for name, node in (cfg.get("validation_references") or {}).items()},
     )
-    module = RetrievalTraining(
-        network, preprocessing, instantiate(cfg.loss), instantiate(cfg.optimizer),
-        instantiate(cfg.scheduler) if cfg.get("scheduler") else None,
-        descriptor.model, descriptor.architecture, training.compile, training.freeze_batch_norm,
+    if cfg.get("miner"):
+        callbacks["miner"] = built(cfg.miner, "miner", sets=sets, pairs=pairs, sampler=sampler, preprocessing=preprocessing, extraction=extraction)
+    module = built(
+        cfg.module, "module", network=network, preprocessing=preprocessing, loss=instantiate(cfg.loss),
+        optimizer=instantiate(cfg.optimizer), scheduler=instantiate(cfg.scheduler) if cfg.get("scheduler") else None,
+        model=descriptor.model, architecture=descriptor.architecture,
     )
-    callbacks = [validator, *(instantiate(c) for c in (cfg.callbacks or {}).values())]
-    if training.hard_negatives_every_n_steps:
-        callbacks.append(HardNegativeMining(sets, pairs, sampler, training.hard_negatives_every_n_steps,
-                                            training.hard_negatives_per_anchor, preprocessing, extraction))
-    loggers = [instantiate(c) for c in (cfg.logger or {}).values()]
-    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
-    if training.freeze_batch_norm:  # Lightning warns of the (intended) eval-mode batch norm
+    loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values()]
+    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=list(callbacks.values()), logger=loggers or False)
+    if module.freeze_batch_norm:  # Lightning warns of the (intended) eval-mode batch norm
         warnings.filterwarnings("ignore", message=r"Found \d+ module\(s\) in eval mode at the start of training")
     trainer.fit(module, datamodule=data, ckpt_path=cfg.get("ckpt_path"))
     if trainer.is_global_zero:
         write_training_report(validator, output_dir)
     return validator
+
+
+def pair_context(world: Scene, scene: Scene, relevance: TrainingRelevanceSettings, settings: BenchmarkSettings, cache_dir: Path) -> DefinitionContext:
+    """What the training definition needs on ``world``: the validation ``scene``'s far plane, and
+    for a definition that matches features, the shared 3D points of the world's known-pose map."""
+    far = scene.far_plane(None, "data.frustum_far") if scene.frustum_far is not None else None
+    shared = database_co_observations(world, settings.sfm, cache_dir) if relevance.definition.uses_sfm else None
+    return DefinitionContext(far=far, shared_points=shared)
+
+
+def check_monitors(callbacks: Mapping[str, Any], metrics: Sequence[str]) -> None:
+    """Raise `ConfigError` naming the callback when one monitors (``monitor``) a metric that is not
+    logged at every validation (``metrics``, `every_validation_metrics`), listing those that are."""
+    for name, callback in callbacks.items():
+        monitor = getattr(callback, "monitor", None)
+        if monitor is not None and monitor not in metrics:
+            raise ConfigError(f"callbacks.{name}.monitor: {monitor!r} is not logged at every validation; with these paradigms, "
+                              f"k and thresholds the metrics are: {', '.join(metrics)}")

@@ -1,0 +1,87 @@
+"""The HTML report of a tiny evaluation run, opened from file:// in headless Chromium: every image
+loads and the console holds no error; so does the 3D view when the run wrote one.
+
+Needs Debian's ``chromium`` and ``chromium-driver`` (``apt-get install chromium chromium-driver``)
+and selenium (the ``dev`` extra); skipped, saying which is missing, without them.
+"""
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from helpers import evaluate_config
+from locretrieval.evaluation import evaluate
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMEDRIVER = shutil.which("chromedriver")
+pytestmark = pytest.mark.skipif(
+    not (CHROMIUM and CHROMEDRIVER),
+    reason="headless Chromium is not installed: apt-get install chromium chromium-driver (Debian packages)",
+)
+webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed: pip install -e '.[dev]'")
+
+#: The scene of tests/test_evaluate.py, the approximation paradigm only (seconds).
+TINY_RUN = [
+    "data.render.width=160", "data.render.height=120", "data.render.num_database=32", "data.render.num_queries=16",
+    "data.render.texture_size=64", "data.render.length=20.0", "data.render.workers=1", "data.render.seed=3",
+    "model.max_side=160", "model.step=4", "subsets.blur_width=160", "device=cpu",
+    "paradigms.local_sfm.enabled=false", "paradigms.global_sfm.enabled=false", "output.ltvl=false",
+]  # fmt: skip
+#: JavaScript: once the page and its images are loaded, each image's source, whether it finished and its width.
+IMAGES = """
+const done = arguments[arguments.length - 1];
+const images = Array.from(document.images);
+Promise.all(images.map(i => i.complete ? null : new Promise(r => { i.onload = r; i.onerror = r; })))
+  .then(() => done(images.map(i => [i.getAttribute("src"), i.complete, i.naturalWidth])));
+"""
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("browser")
+    output = root / "run"
+    evaluate(evaluate_config(f"paths.root_dir={root}", "report.figure_formats=[png]", *TINY_RUN), output)
+    return output
+
+
+@pytest.fixture(scope="module")
+def browser():
+    options = webdriver.ChromeOptions()
+    options.binary_location = CHROMIUM
+    for argument in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--window-size=1400,1000"):
+        options.add_argument(argument)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    driver = webdriver.Chrome(options=options, service=webdriver.ChromeService(executable_path=CHROMEDRIVER))
+    driver.set_script_timeout(60)
+    yield driver
+    driver.quit()
+
+
+def open_page(browser, page: Path) -> tuple[list, list]:
+    """Load ``page`` from file://; returns ``[src, complete, naturalWidth]`` per image and the console's SEVERE entries."""
+    browser.get_log("browser")  # drop what earlier pages logged
+    browser.get(page.resolve().as_uri())
+    images = browser.execute_async_script(IMAGES)
+    return images, [entry for entry in browser.get_log("browser") if entry["level"] == "SEVERE"]
+
+
+def test_report_html_shows_every_figure_and_gallery_image_without_console_errors(run, browser):
+    images, errors = open_page(browser, run / "report.html")
+    assert errors == []
+    sources = [src for src, _, _ in images]
+    assert any(src.startswith("figures/") for src in sources) and any(src.startswith("galleries/") for src in sources)
+    assert len([src for src in sources if src.startswith("galleries/")]) == len(list((run / "galleries").rglob("*.jpg"))) == 15
+    broken = [src for src, complete, width in images if not (complete and width > 0)]
+    assert broken == []
+    assert browser.title.startswith("locretrieval report")
+
+
+def test_the_3d_view_loads_without_console_errors(run, browser):
+    page = run / "scene_3d.html"
+    if not page.is_file():
+        pytest.skip("this run wrote no scene_3d.html (the 3D view is not part of evaluate.py yet)")
+    assert 'href="scene_3d.html"' in (run / "report.html").read_text()
+    images, errors = open_page(browser, page)
+    assert errors == []
+    assert all(complete and width > 0 for _, complete, width in images)
