@@ -41,35 +41,27 @@ class StepTimer:
         self.start = self.end = None
 
 
-def training_parts(overrides: list[str]):
-    """The config, datamodule, module and optimizer train.py builds (no validation callback)."""
-    from hydra import compose, initialize_config_dir
-    from hydra.utils import instantiate
+def training_setup(overrides: list[str]):
+    """The config, datamodule and module train.py builds (`training_parts`, `training_module`;
+    no validation callback, no scheduler)."""
     from pathlib import Path
 
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
     from locretrieval.benchmark import BenchmarkSettings
-    from locretrieval.config import built, validated
-    from locretrieval.training.relevance import TrainingRelevanceSettings, combined_pairs
-    from locretrieval.training.run import TrainingSettings, pair_context, training_worlds
+    from locretrieval.config import validated
+    from locretrieval.training.relevance import TrainingRelevanceSettings
+    from locretrieval.training.run import TrainingSettings, training_module, training_parts
 
     root = Path(__file__).resolve().parents[1]
     with initialize_config_dir(config_dir=str(root / "configs"), version_base="1.3"):  # the cache of `make train`: .cache/
-        cfg = compose("train", overrides=[f"paths.root_dir={root}", "output_dir=/tmp/bench_training", *overrides])
-    settings = BenchmarkSettings.from_config(cfg)
+        cfg = compose("train", overrides=[f"paths.root_dir={root}", "output_dir=/tmp/bench_training", "~scheduler", *overrides])
     descriptor = instantiate(cfg.model)
-    scene = instantiate(cfg.data)
-    worlds = training_worlds(cfg, scene, validated(TrainingSettings, cfg.training, "training"))
-    relevance = validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance")
-    sets = [world.database for world in worlds]
-    pairs = combined_pairs(sets, relevance, [pair_context(w, scene, relevance, settings, Path(cfg.paths.cache_dir)) for w in worlds])
-    sampler = built(cfg.sampler, "sampler", pairs=pairs)
-    augmentation = built(cfg.augmentation, "augmentation") if cfg.get("augmentation") else None
-    data = built(cfg.datamodule, "datamodule", paths=[p for images in sets for p in images.paths], pairs=pairs,
-                 sampler=sampler, augmentation=augmentation)
-    module = built(cfg.module, "module", network=descriptor.network.train(), preprocessing=descriptor.preprocessing,
-                   loss=instantiate(cfg.loss), optimizer=instantiate(cfg.optimizer), scheduler=None,
-                   model=descriptor.model, architecture=descriptor.architecture)
-    return cfg, data, module
+    parts = training_parts(cfg, instantiate(cfg.data), descriptor.preprocessing, BenchmarkSettings.from_config(cfg),
+                           validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance"),
+                           validated(TrainingSettings, cfg.training, "training"))
+    return cfg, parts.datamodule, training_module(cfg, descriptor)
 
 
 def loop_images_per_second(cfg, data, module, steps: int) -> tuple[float, float, float]:
@@ -113,7 +105,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--overrides", nargs="*", default=[])
     arguments = parser.parse_args()
-    cfg, data, module = training_parts(arguments.overrides)
+    cfg, data, module = training_setup(arguments.overrides)
     torch.set_flush_denormal(True)  # as RetrievalTraining.on_fit_start
     bare = bare_images_per_second(data, module, arguments.steps)
     loop, step, wait = loop_images_per_second(cfg, data, module, arguments.steps)

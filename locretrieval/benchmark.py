@@ -46,6 +46,10 @@ from locretrieval.scene import Scene
 
 log = logging.getLogger(__name__)
 
+#: How often training validates a paradigm: every validation, or every ``sfm_every_n_epochs``.
+PARADIGM_COSTS = ("cheap", "sfm")
+
+
 @dataclass(frozen=True)
 class Paradigm:
     """A localization paradigm: its ``settings`` schema (a `ParadigmSettings`, the section of
@@ -53,8 +57,10 @@ class Paradigm:
     cache_dir) -> [PoseEstimates]``, and what it needs: ``uses_local_features`` (the ``sfm``
     group's features and matches), ``plan`` (its work forecast, `locretrieval.localization.plan`,
     ``plan(scene, rankings or None, settings, sfm, cache_dir, num_rankings) -> ParadigmWork``),
-    ``missing_inputs(settings) -> [problem]`` (files it reads that are absent) and ``cost``:
-    ``cheap`` (run at every training validation) or ``sfm`` (every ``sfm_every_n_epochs``)."""
+    ``missing_inputs(settings) -> [problem]`` (files it reads that are absent), ``cost``:
+    ``cheap`` (run at every training validation) or ``sfm`` (every ``sfm_every_n_epochs``), and
+    ``map_points(scene, settings, sfm, cache_dir) -> [P, 3] or None`` (the 3D points of a map it
+    built, for the report's 3D view)."""
 
     settings: type[ParadigmSettings]
     run: Callable[..., list[PoseEstimates]]
@@ -62,6 +68,11 @@ class Paradigm:
     plan: Callable[..., ParadigmWork] | None = None
     missing_inputs: Callable[[Any], list[str]] | None = None
     cost: str = "cheap"
+    map_points: Callable[..., np.ndarray | None] | None = None
+
+    def __post_init__(self) -> None:
+        if self.cost not in PARADIGM_COSTS:
+            raise ValueError(f"paradigm {self.run.__module__}: cost must be one of {PARADIGM_COSTS}, got {self.cost!r}")
 
 
 #: The paradigms, in the order they run, by their section name in ``configs/paradigms``. A new
@@ -70,18 +81,18 @@ PARADIGMS: dict[str, Paradigm] = {
     "approximation": Paradigm(ApproximationSettings, approximation.run),
     "local_sfm": Paradigm(LocalSfmSettings, local_sfm.run, uses_local_features=True, plan=local_sfm.plan, cost="sfm"),
     "global_sfm": Paradigm(GlobalSfmSettings, global_sfm.run, uses_local_features=True, plan=global_sfm.plan,
-                           missing_inputs=global_sfm.missing_inputs, cost="sfm"),
+                           missing_inputs=global_sfm.missing_inputs, cost="sfm", map_points=global_sfm.map_points),
 }
 #: Unit costs measured in this process, by what they were measured on (`sfm_plan`).
 _unit_costs: dict[str, UnitCosts] = {}
 
 
+@dataclass
 class ParadigmsSettings:
     """The ``paradigms`` config group: one checked section per `PARADIGMS` entry, read as an
     attribute of its name (``settings.paradigms.local_sfm``)."""
 
-    def __init__(self, sections: Mapping[str, ParadigmSettings]) -> None:
-        self.sections = dict(sections)
+    sections: dict[str, ParadigmSettings]
 
     @classmethod
     def from_mapping(cls, mapping: Mapping[str, Any], key: str) -> "ParadigmsSettings":

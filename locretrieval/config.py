@@ -10,9 +10,12 @@ error `validated` prefixes with the section's key.
 
 from __future__ import annotations
 
+import collections.abc
 import dataclasses
+import inspect
 import os
 import re
+import types
 import typing
 from collections.abc import Sequence
 from pathlib import Path
@@ -78,13 +81,13 @@ def validated(schema: type[Schema], config: Any, key: str) -> Schema:
     """``config`` (a `DictConfig`, a mapping or already a ``schema`` instance) as a checked ``schema``.
 
     Interpolations are resolved against the config's own root first. Nested dataclass fields
-    are built recursively, so every error names the full key below ``key``. A schema that is not
-    a dataclass builds itself with its ``from_mapping(mapping, key)`` (sections known only from
-    a registry, e.g. the paradigms).
+    are built recursively, so every error names the full key below ``key``. A schema with a
+    ``from_mapping(mapping, key)`` builds itself (sections known only from a registry, e.g. the
+    paradigms).
     """
     if isinstance(config, schema):
         return config
-    if not dataclasses.is_dataclass(schema):
+    if hasattr(schema, "from_mapping"):
         mapping = OmegaConf.to_container(config, resolve=True) if isinstance(config, Container) else dict(config or {})
         return schema.from_mapping(mapping, key)
     try:
@@ -150,14 +153,57 @@ def _type_name(hint: Any) -> str:
 
 
 
+#: Keys of a config node that are Hydra's, not its target's.
+_HYDRA_NODE_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_")
+#: Annotations OmegaConf checks and converts; any other parameter is checked as ``Any``.
+_SIMPLE_TYPES = (int, float, bool, str)
+
+
+def check_node(node: Any, key: str) -> None:
+    """Raise `ConfigError` naming the full key when the config node ``node`` (a ``_target_`` node)
+    has a key its target does not take, or a value its target's annotation refuses (int, float,
+    bool, str, optional and list of them), as `validated` does for a schema: before any work."""
+    from hydra.utils import get_object
+
+    target = get_object(node["_target_"])
+    values = {name: value for name, value in OmegaConf.to_container(node, resolve=True).items() if name not in _HYDRA_NODE_KEYS}
+    parameters = inspect.signature(target).parameters
+    if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
+        unknown = [name for name in values if name not in parameters]
+        if unknown:
+            raise ConfigError(f"{key}.{unknown[0]}: unknown key; expected one of {list(parameters)}")
+    try:
+        hints = typing.get_type_hints(target.__init__ if isinstance(target, type) else target)
+    except Exception:  # annotations that do not resolve (a library's forward references): keys only
+        hints = {}
+    schema = dataclasses.make_dataclass(f"Node_{key.replace('.', '_')}", [(name, _checkable(hints.get(name, Any))) for name in values])
+    validated(schema, values, key)
+
+
+def _checkable(hint: Any) -> Any:
+    """``hint`` where OmegaConf can check it (simple types, optional, lists of them), else ``Any``."""
+    if hint in _SIMPLE_TYPES:
+        return hint
+    arguments = [argument for argument in typing.get_args(hint) if argument is not type(None)]
+    if typing.get_origin(hint) in (typing.Union, types.UnionType) and len(arguments) == 1:
+        inner = _checkable(arguments[0])
+        return Any if inner is Any else typing.Optional[inner]
+    if typing.get_origin(hint) in (list, Sequence, collections.abc.Sequence) and len(arguments) == 1 and arguments[0] in _SIMPLE_TYPES:
+        return typing.List[arguments[0]]
+    return Any
+
+
 def built(node: Any, key: str, **runtime: Any) -> Any:
     """The object of the config node ``node`` at ``key`` (its ``_target_``, Hydra's `instantiate`).
     A ``_partial_`` node is called with the ``runtime`` objects only the running code has (the
-    scene, the training pairs, the network, ...). A value its constructor refuses (a
-    `SettingError` of a range check) is a `ConfigError` naming the full key."""
+    scene, the training pairs, the network, ...); giving them to a node that is not partial is an
+    error naming the key. A value its constructor refuses (a `SettingError` of a range check) is a
+    `ConfigError` naming the full key."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
+    if runtime and not node.get("_partial_", False):
+        raise ConfigError(f"{key}: needs _partial_: true (the run gives it {sorted(runtime)})")
     try:
         target = instantiate(node)
         return target(**runtime) if runtime else target

@@ -18,7 +18,6 @@ from locretrieval.benchmark import (
 from locretrieval.cache import save_arrays
 from locretrieval.config import validated
 from locretrieval.groundtruth import GroundTruthSettings, definition_type, compute_groundtruths, statistics_table
-from locretrieval.localization import global_sfm
 from locretrieval.localization.estimates import estimated_pose_table
 from locretrieval.localization.features import missing_kapture_features
 from locretrieval.metrics.localization import best_over_k, median_errors
@@ -171,10 +170,13 @@ def paradigm_inputs(settings: BenchmarkSettings) -> list[str]:
 
 
 def global_map_points(scene: Scene, settings: BenchmarkSettings, cache_dir: Path) -> np.ndarray | None:
-    """The global SfM map's points (world, metres) when the paradigm is enabled and its map was built, else ``None``."""
-    if "global_sfm" not in settings.paradigms.enabled():
-        return None
-    return global_sfm.map_points(scene, settings.paradigms.global_sfm, settings.sfm, cache_dir)
+    """The points (world, metres) of the first enabled paradigm's map that was built (`Paradigm.map_points`), else ``None``."""
+    for name in settings.paradigms.enabled():
+        if PARADIGMS[name].map_points is not None:
+            points = PARADIGMS[name].map_points(scene, getattr(settings.paradigms, name), settings.sfm, cache_dir)
+            if points is not None:
+                return points
+    return None
 
 
 def write_tables(result: BenchmarkResult, groundtruth_statistics: pd.DataFrame, subset_table: pd.DataFrame, output_dir: Path) -> None:

@@ -185,7 +185,7 @@ def test_database_co_observations_train_by_the_share_of_points_of_the_global_map
     expected = np.array([[len(a & b) for b in points] for a in points])
     np.testing.assert_array_equal(counts, expected)
     assert (expected[~np.eye(len(points), dtype=bool)] >= 5).sum() > len(points)  # many pairs share points
-    settings = TrainingRelevanceSettings({"type": "co_observation", "min_shared": 5}, NegativeSettings("unrelated", 0.1, None, None))
+    settings = TrainingRelevanceSettings({"type": "co_observation", "min_shared": 5, "query_pairs": 50}, NegativeSettings("unrelated", 0.1, None, None))
     graded = training_pairs(scene.database, settings, DefinitionContext(far=25.0, shared_points=sparse.csr_matrix(counts))).graded.toarray()
     share = np.where(expected >= 5, expected / np.diag(expected)[:, None], 0.0)
     np.fill_diagonal(share, 0.0)

@@ -475,3 +475,17 @@ def test_the_gap_table_gives_the_share_of_the_gap_to_the_ground_truth_that_train
     assert table.loc["approximation/ewb/k3/5m_10deg", "gap_closed_pct"] == pytest.approx(100 * (40 - 20) / (60 - 20))
     assert table.loc["local_sfm/pnp/k10/0.25m_2deg", "groundtruth"] == "gt_co_observation"  # 2a: the co-observation upper bound
     assert table.loc["local_sfm/pnp/k10/0.25m_2deg", "gap_closed_pct"] == pytest.approx(100 * (60 - 40) / (80 - 40))
+
+
+@pytest.mark.parametrize(("override", "message"), [
+    ("sampler.anchors=abc", r"sampler.anchors: Value 'abc' of type 'str' could not be converted to Integer"),
+    ("+sampler.anchor=3", r"sampler.anchor: unknown key; expected one of \['pairs', 'anchors', 'negatives', 'batches_per_epoch', 'seed'\]"),
+    ("augmentation.brightness=abc", r"augmentation.brightness: Value 'abc' of type 'str' could not be converted to Float"),
+    ("callbacks.localization_validation.every_n_epochs=often", r"callbacks.localization_validation.every_n_epochs: Value 'often'"),
+    ("train_relevance.definition=relative_pose", r"train_relevance.definition: must be a mapping with a type of"),
+])
+def test_every_object_node_is_checked_by_its_full_key_before_the_scene_is_prepared(tmp_path, override, message):
+    cfg = train_config(tmp_path, override)
+    with pytest.raises(ConfigError, match=message):
+        train(cfg, tmp_path / "run")
+    assert not (Path(cfg.paths.cache_dir) / "synthetic").exists()

@@ -12,6 +12,7 @@ import pandas as pd
 from scipy import sparse
 from tqdm import tqdm
 
+from locretrieval.config import ConfigError
 from locretrieval.retrieval import EMPTY, Ranking, relevant_hits, top_k
 from locretrieval.scene import ImageSet
 
@@ -33,12 +34,24 @@ class DefinitionContext:
     (metres) of frusta whose definition leaves it ``None`` (the scene's); for definitions that
     match local features (``uses_sfm``), the SfM paradigms' ``sfm`` settings and ``cache_dir``
     (benchmark rankings), or the precomputed ``shared_points [N, N]`` of a training image set
-    (`locretrieval.groundtruth.co_observation.database_co_observations`)."""
+    (`locretrieval.groundtruth.co_observation.database_co_observations`); ``key``: the config key
+    of the definition and the ``scene``'s name, named in errors."""
 
     far: float | None = None
     sfm: "SfmSettings | None" = None
     cache_dir: Path | None = None
     shared_points: sparse.csr_matrix | None = None
+    key: str = "groundtruth.definitions"
+    scene: str = ""
+
+    def far_plane(self, far: float | None) -> float:
+        """``far`` (metres), or the scene's ``far`` where it is ``None``; a `ConfigError` naming
+        ``<key>.far`` when neither is set."""
+        if far is not None:
+            return float(far)
+        if self.far is None:
+            raise ConfigError(f"{self.key}.far is null (the dataset's frustum far plane) but scene {self.scene!r} has no frustum_far")
+        return float(self.far)
 
 
 class Definition(Protocol):

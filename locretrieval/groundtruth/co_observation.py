@@ -41,7 +41,7 @@ class CoObservationDefinition:
     each query is matched to its ``query_pairs`` most overlapping database images (by frustum)."""
 
     min_shared: int
-    query_pairs: int = 50
+    query_pairs: int
     uses_sfm: ClassVar[bool] = True
 
     def __post_init__(self) -> None:

@@ -38,9 +38,12 @@ DEFINITIONS: dict[str, type[Definition]] = {
 def parse_definition(parameters: Mapping[str, Any], key: str, default_type: str | None = None) -> Definition:
     """The checked definition of ``parameters`` (its ``type``, default ``default_type``, picks the
     `DEFINITIONS` entry; the rest are its schema's fields); errors name ``key``."""
-    parameters = dict(parameters or {})
+    if not isinstance(parameters, Mapping):
+        raise ConfigError(f"{key}: must be a mapping with a type of {sorted(DEFINITIONS)} and its parameters, got {parameters!r}")
+    parameters = dict(parameters)
     kind = parameters.pop("type", default_type)
-    require(kind in DEFINITIONS, f"{key}.type", f"unknown definition type {kind!r}; known: {sorted(DEFINITIONS)}")
+    if kind not in DEFINITIONS:
+        raise ConfigError(f"{key}.type: unknown definition type {kind!r}; known: {sorted(DEFINITIONS)}")
     return validated(DEFINITIONS[kind], parameters, key)
 
 
@@ -72,9 +75,8 @@ class GroundTruthSettings:
         require(not unknown, "enabled", f"{unknown} have no entry in groundtruth.definitions (defined: {sorted(definitions)})")
         # a definition set to null is switched off (e.g. groundtruth.definitions.co_observation=null)
         self.definitions = {name: definitions[name] for name in enabled if definitions[name] is not None}
-        for name, parameters in self.definitions.items():
-            kind = (parameters or {}).get("type", name)
-            require(kind in DEFINITIONS, f"definitions.{name}.type", f"unknown definition type {kind!r}; known: {sorted(DEFINITIONS)}")
+        for name, parameters in self.definitions.items():  # each checked now, by its type's schema
+            parse_definition(parameters, f"groundtruth.definitions.{name}", name)
 
     def parsed(self) -> dict[str, Definition]:
         """``name -> checked definition`` of every enabled one, in ``enabled`` order."""
@@ -97,10 +99,9 @@ def compute_groundtruths(
     fingerprints = (database.fingerprint(), queries.fingerprint()) if cache_dir is not None else ()
     groundtruths = {}
     for name, definition in settings.parsed().items():
-        if "far" in dataclasses.asdict(definition):  # a frustum far plane left null is the scene's
-            definition = dataclasses.replace(definition, far=scene.far_plane(definition.far, f"groundtruth.definitions.{name}.far"))
-        produced_by: dict[str, Any] = dataclasses.asdict(definition)
-        context = DefinitionContext(cache_dir=Path(cache_dir) if cache_dir is not None else None)
+        produced_by: dict[str, Any] = {**dataclasses.asdict(definition), "scene_far": scene.frustum_far}  # far: null is the scene's
+        context = DefinitionContext(scene.frustum_far, cache_dir=Path(cache_dir) if cache_dir is not None else None,
+                                    key=f"groundtruth.definitions.{name}", scene=scene.name)
         if definition.uses_sfm:
             if sfm is None:
                 raise ConfigError(f"groundtruth.definitions.{name}: the {definition_type(definition)} ground truth needs the sfm settings")
@@ -124,7 +125,7 @@ def compute_groundtruths(
 
 def definition_type(definition: Definition) -> str:
     """The `DEFINITIONS` name of ``definition``'s type (part of its cache key)."""
-    return next(name for name, kind in DEFINITIONS.items() if isinstance(definition, kind))
+    return next(name for name, kind in DEFINITIONS.items() if type(definition) is kind)
 
 
 def _to_arrays(groundtruth: GroundTruth) -> dict[str, np.ndarray]:

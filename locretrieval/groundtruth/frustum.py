@@ -34,16 +34,12 @@ class FrustumDefinition:
         require(self.min_radius >= 0, "min_radius", f"must be >= 0 metres, got {self.min_radius}")
 
     def frusta(self, images: ImageSet, rows: np.ndarray, context: DefinitionContext) -> TruncatedFrusta:
-        """The frusta of images ``rows``, truncated at ``near`` and ``far`` (``None``: ``context.far``)."""
-        far = self.far if self.far is not None else context.far
-        if far is None:
-            raise ValueError("frustum ground truth: far is null and no scene far plane was given")
-        return TruncatedFrusta.of_images(images, rows, self.near, far)
+        """The frusta of images ``rows``, truncated at ``near`` and ``far`` (``None``: the scene's)."""
+        return TruncatedFrusta.of_images(images, rows, self.near, context.far_plane(self.far))
 
     def groundtruth(self, database: ImageSet, queries: ImageSet, depth: int, name: str, context: DefinitionContext) -> GroundTruth:
-        """`frustum_groundtruth` with these parameters (``far`` ``None``: ``context.far``)."""
-        parameters = dataclasses.asdict(self)
-        parameters["far"] = self.far if self.far is not None else context.far
+        """`frustum_groundtruth` with these parameters (``far`` ``None``: the scene's)."""
+        parameters = {**dataclasses.asdict(self), "far": context.far_plane(self.far)}
         return frustum_groundtruth(database, queries, depth=depth, name=name, **parameters)
 
     def graded(self, images: ImageSet, rows: np.ndarray, context: DefinitionContext) -> np.ndarray:

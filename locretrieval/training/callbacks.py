@@ -10,6 +10,7 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 import pandas as pd
+import torch
 from lightning.pytorch.utilities import rank_zero_only
 
 from locretrieval.benchmark import BenchmarkResult, BenchmarkSettings, benchmark, build_rankings, relevances
@@ -56,12 +57,13 @@ def every_validation_settings(settings: BenchmarkSettings) -> BenchmarkSettings:
 def every_validation_metrics(settings: BenchmarkSettings, groundtruths: Collection[str]) -> list[str]:
     """The `metric_rows` keys logged at every validation (those a checkpoint or early stopping may
     monitor): the cheap paradigms' localization per method, k and threshold, and the retrieval
-    metrics against each ground truth in ``groundtruths`` (when the queries have poses)."""
+    metrics against each ground truth in ``groundtruths`` at every k within the ranking depth."""
     paradigms = every_validation_settings(settings).paradigms
     thresholds = [f"{position:g}m_{rotation:g}deg" for position, rotation in settings.metrics.thresholds]
     keys = [f"val/{name}/{method}/k{k}/{threshold}" for name in paradigms.enabled()
             for method in getattr(paradigms, name).method_names() for k in getattr(paradigms, name).k for threshold in thresholds]
-    return keys + [f"val/retrieval/{groundtruth}/{metric}@{k}" for groundtruth in groundtruths for metric in METRICS for k in settings.paradigms.ks()]
+    ks = [k for k in settings.paradigms.ks() if k <= settings.retrieval.depth]
+    return keys + [f"val/retrieval/{groundtruth}/{metric}@{k}" for groundtruth in groundtruths for metric in METRICS for k in ks]
 
 
 class LocalizationValidation(L.Callback):
@@ -90,6 +92,7 @@ class LocalizationValidation(L.Callback):
         sfm_every_n_epochs: int | None,
         gallery_queries: int = 0,
         gallery_k: int = 5,
+        gallery_size: int = 160,
         reference_models: Mapping[str, GlobalDescriptor] | None = None,
     ) -> None:
         require(every_n_epochs >= 1, "every_n_epochs", f"must be >= 1, got {every_n_epochs}")
@@ -105,7 +108,9 @@ class LocalizationValidation(L.Callback):
         self.reference: dict[str, dict[str, float]] = {}
         posed = np.flatnonzero(scene.queries.has_pose)  # a fixed set: the same queries at every validation
         self.gallery_rows = np.sort(np.random.default_rng(0).choice(posed, size=min(gallery_queries, len(posed)), replace=False))
-        self.gallery_k = gallery_k
+        self.gallery_k, self.gallery_size = gallery_k, gallery_size
+        # relevance marks by relative pose, else the first ground truth there is
+        self.gallery_groundtruth = "relative_pose" if "relative_pose" in self.relevance else next(iter(self.relevance), None)
         self.galleries: dict[str, np.ndarray] = {}  # "before" training and the "last" validation
         self.reference_models = dict(reference_models or {})
         self._thumbnails = None
@@ -168,17 +173,17 @@ class LocalizationValidation(L.Callback):
         return metrics
 
     def _log_gallery(self, trainer: L.Trainer, ranking: Ranking, epoch: int) -> None:
-        """The top ``gallery_k`` of the gallery queries, framed relevant or not under the relative-pose
-        ground truth (else the first one), to TensorBoard (``val/gallery``) and the training report."""
+        """The top ``gallery_k`` of the gallery queries, framed relevant or not under
+        ``gallery_groundtruth``, to TensorBoard (``val/gallery``) and the training report."""
         from lightning.pytorch.loggers import TensorBoardLogger
 
         from locretrieval.report.gallery import Thumbnails, gallery_image
 
         if self._thumbnails is None:
-            self._thumbnails = Thumbnails(160, Path(self.cache_dir) / "thumbnails" if self.cache_dir is not None else None)
+            self._thumbnails = Thumbnails(self.gallery_size, Path(self.cache_dir) / "thumbnails" if self.cache_dir is not None else None)
         indices = ranking.indices[self.gallery_rows, : self.gallery_k]
-        relevance = self.relevance.get("relative_pose", next(iter(self.relevance.values()), None))
-        relevant = relevant_hits(indices, relevance[self.gallery_rows]) if relevance is not None else None
+        groundtruth = self.gallery_groundtruth
+        relevant = relevant_hits(indices, self.relevance[groundtruth][self.gallery_rows]) if groundtruth is not None else None
         queries, database = self.scene.queries.paths, self.scene.database.paths
         image = gallery_image([queries[q] for q in self.gallery_rows], database, indices, relevant, self._thumbnails)
         self.galleries["before" if epoch < 0 else "last"] = image
@@ -192,11 +197,13 @@ class LocalizationValidation(L.Callback):
         return pd.DataFrame(rows, columns=["epoch", "metric", "value"])
 
     def state_dict(self) -> dict:
-        return {"history": self.history, "reference": self.reference}
+        galleries = {key: torch.from_numpy(image) for key, image in self.galleries.items()}  # tensors: a safe load reads them
+        return {"history": self.history, "reference": self.reference, "galleries": galleries}
 
     def load_state_dict(self, state_dict: dict) -> None:
         self.history = list(state_dict["history"])
         self.reference = dict(state_dict["reference"])
+        self.galleries = {key: image.numpy() for key, image in state_dict.get("galleries", {}).items()}
 
 
 #: What a console line shows of a validation (those present).
@@ -223,7 +230,7 @@ class HardNegativeMining(L.Callback):
 
     def __init__(self, sets: Sequence[ImageSet], pairs: TrainingPairs, sampler: RelevanceBatchSampler,
                  preprocessing: Preprocessing, extraction: ExtractionSettings, every_n_steps: int, per_anchor: int) -> None:
-        require(every_n_steps >= 1, "every_n_steps", f"must be >= 1 (miner=null: no mining), got {every_n_steps}")
+        require(every_n_steps >= 1, "every_n_steps", f"must be >= 1 (~miner on the command line: no mining), got {every_n_steps}")
         require(per_anchor >= 1, "per_anchor", f"must be >= 1, got {per_anchor}")
         self.sets, self.pairs, self.sampler = list(sets), pairs, sampler
         self.every, self.per_anchor = every_n_steps, per_anchor

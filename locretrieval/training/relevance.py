@@ -17,7 +17,7 @@ neither are ambiguous and ignored by every loss.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,7 +27,7 @@ from scipy import sparse
 from locretrieval import geometry
 from locretrieval.config import ConfigError, SettingError, require
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
-from locretrieval.groundtruth import Definition, DefinitionContext, parse_definition
+from locretrieval.groundtruth import DefinitionContext, parse_definition
 from locretrieval.scene import ImageSet
 
 #: Image pairs scored at once.
@@ -68,7 +68,7 @@ class TrainingRelevanceSettings:
     negatives: NegativeSettings
 
     def __post_init__(self) -> None:
-        if isinstance(self.definition, Mapping):
+        if not hasattr(self.definition, "graded"):  # a mapping from the config (anything else is refused by name)
             try:
                 self.definition = parse_definition(self.definition, "definition")
             except ConfigError as error:  # named under train_relevance by `validated`
@@ -81,7 +81,7 @@ class TrainingPairs:
     """``graded [N, N]`` (sparse float): the relevance score of each relevant pair (> 0), the
     diagonal empty; ``related [N, N]`` (sparse bool): pairs that may not serve as negatives
     (relevant ones, and unless negatives are ``not_relevant`` those whose frusta overlap, at a
-    rotation within ``unrelated_rotation``).
+    rotation within ``negatives.max_rotation``).
     Negatives are the pairs outside ``related`` (and off the diagonal)."""
 
     graded: sparse.csr_matrix
@@ -118,7 +118,7 @@ def training_pairs(images: ImageSet, settings: TrainingRelevanceSettings, contex
     if negatives.rule == "unrelated":
         far = negatives.far if negatives.far is not None else context.far
         if far is None:
-            raise ConfigError("train_relevance.negatives.far is null (the dataset's frustum far plane) but the dataset sets none")
+            raise ConfigError(f"train_relevance.negatives.far is null (the dataset's frustum far plane) but scene {context.scene!r} has no frustum_far")
         frusta = TruncatedFrusta.of_images(images, np.arange(count), negatives.near, far)
     graded_blocks, related_blocks = [], []
     rows_per_chunk = max(1, PAIRS_PER_CHUNK // count)

@@ -53,7 +53,7 @@ def gallery_lines(validation: LocalizationValidation, output_dir: Path) -> list[
         if key in validation.galleries:
             Image.fromarray(validation.galleries[key]).save(output_dir / file, quality=85)
             lines += [f"Top {validation.gallery_k} of validation queries {caption} (query first; green: relevant, red: not, "
-                      "by relative pose):", "", f"![gallery {caption}]({file})", ""]
+                      f"by the {validation.gallery_groundtruth} ground truth):", "", f"![gallery {caption}]({file})", ""]
     return lines
 
 

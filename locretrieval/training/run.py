@@ -16,7 +16,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.benchmark import BenchmarkSettings
-from locretrieval.config import ConfigError, built, require, validated
+from locretrieval.config import ConfigError, built, check_node, require, validated
 from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, compute_groundtruths
 from locretrieval.groundtruth.co_observation import database_co_observations
 from locretrieval.scene import ImageSet, Scene
@@ -24,7 +24,7 @@ from locretrieval.scene.datasets import load_synthetic_dataset
 from locretrieval.scene.kapture_io import concatenate_image_sets
 from locretrieval.training.callbacks import LocalizationValidation, every_validation_metrics
 from locretrieval.training.checkpoints import check_resume_checkpoint
-from locretrieval.training.relevance import TrainingRelevanceSettings, combined_pairs
+from locretrieval.training.relevance import TrainingPairs, TrainingRelevanceSettings, combined_pairs
 from locretrieval.training.report import write_training_report
 
 log = logging.getLogger(__name__)
@@ -67,69 +67,114 @@ def _without_queries(name: str, images: ImageSet, scene: Scene) -> Scene:
     return Scene(name, images, images.subset(np.arange(0)), ltvl_name_style=scene.ltvl_name_style, frustum_far=scene.frustum_far)
 
 
+#: The config nodes of the objects train.py builds (besides callbacks and loggers), checked first.
+OBJECT_NODES = ("sampler", "augmentation", "datamodule", "module", "miner", "loss", "optimizer", "scheduler", "trainer")
+
+
+@dataclass
+class TrainingParts:
+    """What the training loop consumes: the image ``sets`` trained on (one per world), their
+    ``pairs``, the ``sampler`` of batches and the ``datamodule``."""
+
+    sets: list[ImageSet]
+    pairs: TrainingPairs
+    sampler: Any
+    datamodule: Any
+
+
 def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     """Train the configured model; returns the validation callback (its ``history``). Every
-    object is built from its config group (`built`); what is checked without the scene (sections,
-    the resumed checkpoint, the metrics checkpoints monitor) is checked before it is prepared."""
+    object is built from its config group (`built`); what can be checked without the scene (the
+    sections and object nodes, the resumed checkpoint, the metrics checkpoints monitor) is
+    checked before it is prepared."""
     L.seed_everything(int(cfg.seed), workers=True)
     settings = BenchmarkSettings.from_config(cfg)
     training = validated(TrainingSettings, cfg.training, "training")
     relevance = validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance")
     groundtruth_settings = validated(GroundTruthSettings, cfg.groundtruth, "groundtruth")
+    callbacks = checked_callbacks(cfg, settings, groundtruth_settings)
     output_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, output_dir / "config.yaml", resolve=True)
     cache_dir = Path(cfg.paths.cache_dir)
-    if "localization_validation" not in (cfg.get("callbacks") or {}):
-        raise ConfigError("callbacks.localization_validation: missing; training is validated by localization (callbacks=default)")
-    callbacks = {name: built(node, f"callbacks.{name}") for name, node in cfg.callbacks.items()
-                 if node is not None and name != "localization_validation"}
-    check_monitors(callbacks, every_validation_metrics(settings, list(groundtruth_settings.parsed())))
 
     descriptor = instantiate(cfg.model)  # the zoo model: network, preprocessing, weights checked
     if cfg.get("ckpt_path"):  # before the scene and ground truth are prepared
         check_resume_checkpoint(cfg.ckpt_path, descriptor.model, descriptor.architecture)
     scene: Scene = instantiate(cfg.data)
-    network, preprocessing = descriptor.network.train(), descriptor.preprocessing
+    parts = training_parts(cfg, scene, descriptor.preprocessing, settings, relevance, training)
+    groundtruths = compute_groundtruths(scene, groundtruth_settings, settings.sfm, cache_dir)
+    validator = built(
+        cfg.callbacks.localization_validation, "callbacks.localization_validation", scene=scene, groundtruths=groundtruths,
+        settings=settings, preprocessing=descriptor.preprocessing, extraction=descriptor.settings, cache_dir=cache_dir,
+        random_seed=int(cfg.seed) if cfg.baselines.random else None, relevance_scope=groundtruth_settings.relevance,
+        reference_models={name: instantiate(node) for name, node in (cfg.get("validation_references") or {}).items()},
+    )
+    callbacks = {"localization_validation": validator, **callbacks}  # first: early stopping reads what it logged
+    if cfg.get("miner"):
+        callbacks["miner"] = built(cfg.miner, "miner", sets=parts.sets, pairs=parts.pairs, sampler=parts.sampler,
+                                   preprocessing=descriptor.preprocessing, extraction=descriptor.settings)
+    module = training_module(cfg, descriptor)
+    loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values()]
+    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=list(callbacks.values()), logger=loggers or False)
+    if module.freeze_batch_norm:  # Lightning warns of the (intended) eval-mode batch norm
+        warnings.filterwarnings("ignore", message=r"Found \d+ module\(s\) in eval mode at the start of training")
+    trainer.fit(module, datamodule=parts.datamodule, ckpt_path=cfg.get("ckpt_path"))
+    if trainer.is_global_zero:
+        write_training_report(validator, output_dir)
+    return validator
+
+
+def checked_callbacks(cfg: DictConfig, settings: BenchmarkSettings, groundtruths: GroundTruthSettings) -> dict[str, L.Callback]:
+    """Check every object node (`check_node`: keys and types) and build the callbacks that need
+    nothing from the run (checkpoints, ...), their monitors checked (`check_monitors`); the
+    validation callback is built once the scene is there."""
+    nodes = {key: cfg[key] for key in OBJECT_NODES if cfg.get(key)}
+    nodes |= {f"callbacks.{name}": node for name, node in (cfg.get("callbacks") or {}).items() if node is not None}
+    nodes |= {f"logger.{name}": node for name, node in (cfg.get("logger") or {}).items() if node is not None}
+    nodes |= {f"validation_references.{name}": node for name, node in (cfg.get("validation_references") or {}).items()}
+    for key, node in nodes.items():
+        check_node(node, key)
+    if "callbacks.localization_validation" not in nodes:
+        raise ConfigError("callbacks.localization_validation: missing; training is validated by localization (callbacks=default)")
+    callbacks = {name: built(node, f"callbacks.{name}") for name, node in cfg.callbacks.items()
+                 if node is not None and name != "localization_validation"}
+    check_monitors(callbacks, every_validation_metrics(settings, list(groundtruths.parsed())))
+    return callbacks
+
+
+def training_parts(cfg: DictConfig, scene: Scene, preprocessing: Any, settings: BenchmarkSettings,
+                   relevance: TrainingRelevanceSettings, training: TrainingSettings) -> TrainingParts:
+    """The training images of ``scene`` (and the extra renders), their relevance pairs, the sampler
+    and the datamodule, from their config nodes."""
     worlds = training_worlds(cfg, scene, training)
     sets = [world.database for world in worlds]
+    cache_dir = Path(cfg.paths.cache_dir)
     pairs = combined_pairs(sets, relevance, [pair_context(world, scene, relevance, settings, cache_dir) for world in worlds])
     log.info("training on %d images (%d with a relevant partner), validating on %d queries of %s",
              pairs.num_images, int((np.diff(pairs.graded.indptr) > 0).sum()), len(scene.queries), scene.name)
     sampler = built(cfg.sampler, "sampler", pairs=pairs)
     augmentation = built(cfg.augmentation, "augmentation") if cfg.get("augmentation") else None
     paths = [path for images in sets for path in images.paths]
-    data = built(cfg.datamodule, "datamodule", paths=paths, pairs=pairs, sampler=sampler, augmentation=augmentation)
+    datamodule = built(cfg.datamodule, "datamodule", paths=paths, pairs=pairs, sampler=sampler, augmentation=augmentation)
+    return TrainingParts(sets, pairs, sampler, datamodule)
 
-    groundtruths = compute_groundtruths(scene, groundtruth_settings, settings.sfm, cache_dir)
-    extraction = descriptor.settings
-    callbacks["localization_validation"] = validator = built(
-        cfg.callbacks.localization_validation, "callbacks.localization_validation", scene=scene, groundtruths=groundtruths, settings=settings, preprocessing=preprocessing, extraction=extraction,
-        cache_dir=cache_dir, random_seed=int(cfg.seed) if cfg.baselines.random else None, relevance_scope=groundtruth_settings.relevance,
-        reference_models={name: instantiate(node) for name, node in (cfg.get("validation_references") or {}).items()},
-    )
-    if cfg.get("miner"):
-        callbacks["miner"] = built(cfg.miner, "miner", sets=sets, pairs=pairs, sampler=sampler, preprocessing=preprocessing, extraction=extraction)
-    module = built(
-        cfg.module, "module", network=network, preprocessing=preprocessing, loss=instantiate(cfg.loss),
+
+def training_module(cfg: DictConfig, descriptor: Any) -> Any:
+    """The LightningModule of ``cfg.module`` training the model's network with ``loss``,
+    ``optimizer`` and ``scheduler`` (none when the group is removed)."""
+    return built(
+        cfg.module, "module", network=descriptor.network.train(), preprocessing=descriptor.preprocessing, loss=instantiate(cfg.loss),
         optimizer=instantiate(cfg.optimizer), scheduler=instantiate(cfg.scheduler) if cfg.get("scheduler") else None,
         model=descriptor.model, architecture=descriptor.architecture,
     )
-    loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values()]
-    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=list(callbacks.values()), logger=loggers or False)
-    if module.freeze_batch_norm:  # Lightning warns of the (intended) eval-mode batch norm
-        warnings.filterwarnings("ignore", message=r"Found \d+ module\(s\) in eval mode at the start of training")
-    trainer.fit(module, datamodule=data, ckpt_path=cfg.get("ckpt_path"))
-    if trainer.is_global_zero:
-        write_training_report(validator, output_dir)
-    return validator
 
 
 def pair_context(world: Scene, scene: Scene, relevance: TrainingRelevanceSettings, settings: BenchmarkSettings, cache_dir: Path) -> DefinitionContext:
     """What the training definition needs on ``world``: the validation ``scene``'s far plane, and
-    for a definition that matches features, the shared 3D points of the world's known-pose map."""
-    far = scene.far_plane(None, "data.frustum_far") if scene.frustum_far is not None else None
+    for a definition that matches features (``uses_sfm``), the 3D points each pair of the world's
+    images shares in its known-pose map."""
     shared = database_co_observations(world, settings.sfm, cache_dir) if relevance.definition.uses_sfm else None
-    return DefinitionContext(far=far, shared_points=shared)
+    return DefinitionContext(far=scene.frustum_far, shared_points=shared, key="train_relevance.definition", scene=scene.name)
 
 
 def check_monitors(callbacks: Mapping[str, Any], metrics: Sequence[str]) -> None:
