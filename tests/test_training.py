@@ -489,3 +489,18 @@ def test_every_object_node_is_checked_by_its_full_key_before_the_scene_is_prepar
     with pytest.raises(ConfigError, match=message):
         train(cfg, tmp_path / "run")
     assert not (Path(cfg.paths.cache_dir) / "synthetic").exists()
+
+
+def test_the_gap_table_of_several_runs_closes_the_gap_of_the_means(tmp_path):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("gap_table", helpers.CONFIGS.parent / "scripts" / "gap_table.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    for run, (trained, densevlad, truth) in {"a": (40.0, 20.0, 60.0), "b": (20.0, 20.0, 30.0)}.items():
+        (tmp_path / run).mkdir()
+        pd.DataFrame([{"metric": "approximation/ewb/k3/5m_10deg", "untrained": 10.0, "trained": trained, "densevlad": densevlad,
+                       "groundtruth": "gt_relative_pose", "groundtruth_value": truth, "gap_closed_pct": 0.0}]).to_csv(tmp_path / run / "gap.csv", index=False)
+    text = script.markdown(script.load([tmp_path / "a", tmp_path / "b"]))
+    mean = next(line for line in text.splitlines() if "| mean" in line)
+    assert f"{100 * (30.0 - 20.0) / (45.0 - 20.0):.1f}" in mean  # the gap of the means: 40 %, not the mean of 50 % and 0 %
