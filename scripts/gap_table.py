@@ -3,6 +3,7 @@ paradigm, DenseVLAD / untrained / trained / ground truth (% localized), and over
 means and the share of the mean gap closed, ``(trained - densevlad) / (groundtruth - densevlad)``.
 
     python scripts/gap_table.py outputs/train/... [more runs]     # prints Markdown
+    python scripts/gap_table.py --wide ...   # one row per run, a cell "DenseVLAD / untrained / trained / GT (gap %)" per paradigm
 """
 
 import argparse
@@ -19,21 +20,41 @@ def load(runs: list[Path]) -> pd.DataFrame:
     return pd.concat(tables, ignore_index=True)
 
 
-def markdown(table: pd.DataFrame) -> str:
-    """One row per run and paradigm metric, then the mean over runs per metric with its gap closed."""
-    columns = [GAP_BASELINE, "untrained", "trained", "groundtruth_value"]
-    means = table.groupby("metric", sort=False)[columns].mean().reset_index().assign(run="mean")
+#: The values of a gap row, % localized.
+VALUES = [GAP_BASELINE, "untrained", "trained", "groundtruth_value"]
+
+
+def with_means(table: pd.DataFrame) -> pd.DataFrame:
+    """``table`` and, per metric, a row ``run == "mean"``: the means over runs and the gap closed of the means."""
+    means = table.groupby("metric", sort=False)[VALUES].mean().reset_index().assign(run="mean")
     means["gap_closed_pct"] = 100 * (means["trained"] - means[GAP_BASELINE]) / (means["groundtruth_value"] - means[GAP_BASELINE])
     means["groundtruth"] = table.groupby("metric", sort=False)["groundtruth"].first().values
-    shown = pd.concat([table, means], ignore_index=True)[["metric", "run", *columns, "groundtruth", "gap_closed_pct"]]
-    shown = shown.sort_values(["metric", "run"], key=lambda column: column.map(lambda value: (value == "mean", value)))
-    return shown.to_markdown(index=False, floatfmt=".1f")
+    shown = pd.concat([table, means], ignore_index=True)[["metric", "run", *VALUES, "groundtruth", "gap_closed_pct"]]
+    return shown.sort_values(["metric", "run"], key=lambda column: column.map(lambda value: (value == "mean", value)))
+
+
+def markdown(table: pd.DataFrame) -> str:
+    """One row per run and paradigm metric, then the mean over runs per metric with its gap closed."""
+    return with_means(table).to_markdown(index=False, floatfmt=".1f")
+
+
+def wide_markdown(table: pd.DataFrame) -> str:
+    """One row per run (then the mean), one column per metric: ``densevlad / untrained / trained /
+    ground truth (gap closed %)``."""
+    shown = with_means(table)
+    cells = shown.apply(lambda row: " / ".join(f"{row[value]:.1f}" for value in VALUES) + f" ({row['gap_closed_pct']:.0f} %)", axis=1)
+    wide = shown.assign(cell=cells).pivot(index="run", columns="metric", values="cell")
+    wide = wide.loc[sorted(wide.index, key=lambda run: (run == "mean", run)), list(dict.fromkeys(shown["metric"]))]
+    return wide.reset_index().to_markdown(index=False)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", type=Path)
-    print(markdown(load(parser.parse_args().runs)))
+    parser.add_argument("--wide", action="store_true", help="one row per run, one cell per paradigm")
+    arguments = parser.parse_args()
+    table = load(arguments.runs)
+    print(wide_markdown(table) if arguments.wide else markdown(table))
 
 
 if __name__ == "__main__":

