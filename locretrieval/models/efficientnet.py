@@ -44,8 +44,6 @@ _TOP_NAMES = {"_conv_stem": "conv_stem", "_bn0": "bn1", "_conv_head": "conv_head
 _LEGACY_LAYERS = {"expand.0": "_expand_conv", "expand.1": "_bn0", "depthwise.0": "_depthwise_conv", "depthwise.1": "_bn1",
                   "project.0": "_project_conv", "project.1": "_bn2"}  # fmt: skip
 _LEGACY_TOP = {"stem.0": "_conv_stem", "stem.1": "_bn0", "head.0": "_conv_head", "head.1": "_bn1"}
-#: Lite0's blocks as (stage, index in stage), for 0.4.0's checkpoints.
-_LITE0_PLACES = [(stage, index) for stage, repeats in enumerate((1, 2, 2, 3, 3, 4, 1)) for index in range(repeats)]
 #: Input normalisation ``(rgb / 255 - mean) / std`` the weights expect: ``(rgb - 127) / 128``.
 INPUT_MEAN, INPUT_STD = (127 / 255,) * 3, (128 / 255,) * 3
 
@@ -110,7 +108,7 @@ def trunk_state_dict(state_dict: Mapping[str, torch.Tensor], path: str | Path, b
     value must be given, with its shape; otherwise an error names ``path`` and the keys."""
     with torch.device("meta"):
         trunk = lite_trunk(backbone)
-    places = [(stage, index) for stage, blocks in enumerate(trunk.timm.blocks) for index in range(len(blocks))]
+    places = _block_places(trunk)
     renamed, unknown = {}, []
     for key, value in state_dict.items():
         if key.startswith(CLASSIFIER_PREFIX):
@@ -128,6 +126,11 @@ def trunk_state_dict(state_dict: Mapping[str, torch.Tensor], path: str | Path, b
                          f"(e.g. {missing[:3]}), {len(extra)} keys without a place (e.g. {extra[:3]}), "
                          f"{len(reshaped)} of another shape (e.g. {reshaped[:3]})")
     return renamed
+
+
+def _block_places(trunk: TimmTrunk) -> list[tuple[int, int]]:
+    """The (stage, index in stage) of the trunk's blocks in order: ``_blocks.N`` is the N-th."""
+    return [(stage, index) for stage, blocks in enumerate(trunk.timm.blocks) for index in range(len(blocks))]
 
 
 def variant_of(state_dict: Mapping[str, torch.Tensor], path: str | Path) -> str:
@@ -160,20 +163,22 @@ def upgrade_legacy_trunk(state_dict: Mapping[str, torch.Tensor], prefix: str) ->
     `lite_trunk`; other keys, and state dicts already in timm's names, are returned as they are."""
     if f"{prefix}stem.0.weight" not in state_dict:
         return dict(state_dict)
+    with torch.device("meta"):
+        places = _block_places(lite_trunk("efficientnet_lite0"))
     upgraded = {}
     for key, value in state_dict.items():
-        upgraded[_upgraded_name(key, prefix) if key.startswith(prefix) else key] = value
+        upgraded[_upgraded_name(key, prefix, places) if key.startswith(prefix) else key] = value
     return upgraded
 
 
-def _upgraded_name(key: str, prefix: str) -> str:
+def _upgraded_name(key: str, prefix: str, places: list[tuple[int, int]]) -> str:
     """A key of 0.4.0's Lite0 trunk under ``prefix`` renamed onto `lite_trunk` (through EfficientNet-PyTorch's name)."""
     parts = key.removeprefix(prefix).split(".")
     if parts[0] == "blocks":  # blocks.N.<layer>.<index>.<tensor>
         package = f"_blocks.{parts[1]}.{_LEGACY_LAYERS[f'{parts[2]}.{parts[3]}']}.{parts[4]}"
     else:  # stem|head.<index>.<tensor>
         package = f"{_LEGACY_TOP[f'{parts[0]}.{parts[1]}']}.{parts[2]}"
-    return f"{prefix}timm.{_timm_name(package, _LITE0_PLACES)}"
+    return f"{prefix}timm.{_timm_name(package, places)}"
 
 
 def package_weights(name: str) -> str:
