@@ -228,3 +228,17 @@ def test_checkpoints_of_the_hand_written_trunk_of_0_4_0_still_load(package_state
     images = torch.rand(1, 3, 64, 80)
     with torch.no_grad():
         torch.testing.assert_close(reloaded.network.eval()(images), pretrained.network.eval()(images))
+
+
+def test_package_weights_for_another_backbone_are_refused_naming_the_file_and_backbone():
+    from pathlib import Path
+
+    from locretrieval.models.trainable import read_trainable_weights
+
+    lite1 = Path(package_weights_path("efficientnet_lite1"))
+    with pytest.raises(ValueError, match=r"efficientnet-lite1-77cc7160\.pth: an EfficientNet-Lite package's weights, but model\.backbone is 'resnet50'"):
+        read_trainable_weights(lite1, "trainable", {"backbone": "resnet50"})
+    with pytest.raises(ValueError, match=r"efficientnet-lite1-77cc7160\.pth: not the layout of efficientnet_lite0"):
+        read_trainable_weights(lite1, "trainable", {"backbone": "efficientnet_lite0"})
+    state, _ = read_trainable_weights(lite1, "trainable", {})  # no backbone named: the layout says which
+    assert len(state) == 384 and "backbone.timm.blocks.5.4.conv_dw.weight" in state
