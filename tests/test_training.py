@@ -17,7 +17,7 @@ from locretrieval import geometry
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
-from locretrieval.training.data import PhotometricAugmentation, RelevanceBatchSampler
+from locretrieval.training.data import TrainingAugmentation, RelevanceBatchSampler
 from locretrieval.training.relevance import NegativeSettings, TrainingRelevanceSettings, combined_pairs, training_pairs
 from locretrieval.training.run import train
 from locretrieval.training.callbacks import TRAINED, every_validation_metrics, metric_rows
@@ -111,15 +111,33 @@ def test_low_light_and_noise_augmentations_scale_the_brightness_and_add_noise_of
     torch.manual_seed(0)
     image = torch.full((3, 64, 64), 160, dtype=torch.uint8)
     image[:, :, 32:] = 80
-    plain = dict(brightness=0.0, contrast=0.0, saturation=0.0, hue=0.0, low_light_probability=0.0, low_light_brightness=[0.25, 0.25],
+    plain = dict(zoom_probability=0.0, zoom=[1.0, 1.0], brightness=0.0, contrast=0.0, saturation=0.0, hue=0.0, low_light_probability=0.0, low_light_brightness=[0.25, 0.25],
                  blur_probability=0.0, blur_sigma=[1.0, 1.0], noise_probability=0.0, noise_sigma=0.1)
-    assert torch.equal(PhotometricAugmentation(**plain).transform()(image), image)
-    dark = PhotometricAugmentation(**{**plain, "low_light_probability": 1.0}).transform()(image).float()
+    assert torch.equal(TrainingAugmentation(**plain).transform()(image), image)
+    dark = TrainingAugmentation(**{**plain, "low_light_probability": 1.0}).transform()(image).float()
     np.testing.assert_allclose(dark.numpy(), 0.25 * image.float().numpy(), atol=1.0)
-    noisy = PhotometricAugmentation(**{**plain, "noise_probability": 1.0}).transform()(image).float() - image.float()
+    noisy = TrainingAugmentation(**{**plain, "noise_probability": 1.0}).transform()(image).float() - image.float()
     assert abs(noisy.std().item() / 255 - 0.1) < 0.005 and abs(noisy.mean().item()) < 1.0
     with pytest.raises(ValueError, match="low_light_brightness: must be"):
-        PhotometricAugmentation(**{**plain, "low_light_brightness": [0.5, 1.5]})
+        TrainingAugmentation(**{**plain, "low_light_brightness": [0.5, 1.5]})
+
+
+def test_zoom_augmentation_scales_offsets_from_the_image_centre_by_its_factor():
+    plain = dict(zoom_probability=1.0, zoom=[1.25, 1.25], brightness=0.0, contrast=0.0, saturation=0.0, hue=0.0,
+                 low_light_probability=0.0, low_light_brightness=[0.25, 0.25], blur_probability=0.0, blur_sigma=[1.0, 1.0],
+                 noise_probability=0.0, noise_sigma=0.1)
+    width, height, offset = 320, 240, 48                          # an edge 48 px right of the centre column
+    image = torch.zeros((3, height, width), dtype=torch.uint8)
+    image[:, :, width // 2 + offset:] = 200
+    image[:, height // 2 - 2:height // 2 + 2, width // 2 - 2:width // 2 + 2] = 255  # a centre mark
+    zoomed = TrainingAugmentation(**plain).transform()(image)
+    assert zoomed.shape == image.shape
+    first_bright = int((zoomed[0].float().mean(0) > 100).nonzero()[0])
+    assert abs(first_bright - (width // 2 + 1.25 * offset)) <= 1     # a longer focal length: offsets x 1.25 (208 -> 220)
+    assert zoomed[0, height // 2, width // 2] == 255                  # the centre stays (same optical axis, same pose)
+    assert torch.equal(TrainingAugmentation(**{**plain, "zoom_probability": 0.0}).transform()(image), image)
+    with pytest.raises(ValueError, match="zoom: must be"):
+        TrainingAugmentation(**{**plain, "zoom": [0.8, 1.2]})
 
 
 def test_images_of_different_training_scenes_are_unrelated(scene):

@@ -1,5 +1,5 @@
 """Training batches from ground-truth relevance: images, a sampler of anchors with positives and
-negatives (hard negatives mined with the current network), photometric augmentations."""
+negatives (hard negatives mined with the current network), augmentations that keep the pose."""
 
 from __future__ import annotations
 
@@ -20,14 +20,20 @@ from locretrieval.training.relevance import TrainingPairs
 
 
 @dataclass
-class PhotometricAugmentation:
-    """Photometric augmentations of training images (never geometric: poses define relevance),
-    applied in this order: ``brightness``/``contrast``/``saturation``/``hue``, torchvision
-    ``ColorJitter`` ranges; with ``low_light_probability``, the brightness scaled by a factor
-    in ``low_light_brightness`` (night queries of a day-only map); with ``blur_probability``, a
-    Gaussian blur of sigma in ``blur_sigma`` (pixels); with ``noise_probability``, Gaussian
-    noise of standard deviation ``noise_sigma`` (intensities in [0, 1])."""
+class TrainingAugmentation:
+    """Augmentations of training images that keep each image's pose (poses define relevance),
+    applied in this order: with ``zoom_probability``, a zoom about the image centre by a factor
+    in ``zoom`` (a longer focal length at the same pose: query cameras with a narrower field of
+    view than the map's, which a network trained on the map's views alone retrieves as if they
+    stood further forward, docs/results.md); ``brightness``/``contrast``/``saturation``/``hue``,
+    torchvision ``ColorJitter`` ranges; with ``low_light_probability``, the brightness scaled by a
+    factor in ``low_light_brightness`` (night queries of a day-only map); with
+    ``blur_probability``, a Gaussian blur of sigma in ``blur_sigma`` (pixels); with
+    ``noise_probability``, Gaussian noise of standard deviation ``noise_sigma`` (intensities in
+    [0, 1])."""
 
+    zoom_probability: float
+    zoom: list[float]
     brightness: float
     contrast: float
     saturation: float
@@ -40,8 +46,10 @@ class PhotometricAugmentation:
     noise_sigma: float
 
     def __post_init__(self) -> None:
-        for name in ("low_light_probability", "blur_probability", "noise_probability"):
+        for name in ("zoom_probability", "low_light_probability", "blur_probability", "noise_probability"):
             require(0 <= getattr(self, name) <= 1, name, f"must be in [0, 1], got {getattr(self, name)}")
+        require(len(self.zoom) == 2 and 1 <= self.zoom[0] <= self.zoom[1], "zoom",
+                f"must be [min, max] focal-length factors, 1 <= min <= max (a zoom in keeps the image filled), got {self.zoom}")
         require(len(self.low_light_brightness) == 2 and 0 < self.low_light_brightness[0] <= self.low_light_brightness[1] <= 1,
                 "low_light_brightness", f"must be [min, max] factors, 0 < min <= max <= 1, got {self.low_light_brightness}")
         require(len(self.blur_sigma) == 2 and 0 < self.blur_sigma[0] <= self.blur_sigma[1], "blur_sigma",
@@ -50,13 +58,15 @@ class PhotometricAugmentation:
 
     def transform(self) -> v2.Transform:
         """The augmentation of ``uint8 [3, H, W]`` images."""
+        zoom = v2.RandomApply([v2.RandomAffine(degrees=0.0, scale=tuple(self.zoom), interpolation=v2.InterpolationMode.BILINEAR)],
+                              p=self.zoom_probability)
         jitter = v2.ColorJitter(self.brightness, self.contrast, self.saturation, self.hue)
         low_light = v2.RandomApply([v2.ColorJitter(brightness=tuple(self.low_light_brightness))], p=self.low_light_probability)
         blur = v2.RandomApply([v2.GaussianBlur(9, tuple(self.blur_sigma))], p=self.blur_probability)
         noise = v2.RandomApply([
             v2.ToDtype(torch.float32, scale=True), v2.GaussianNoise(sigma=self.noise_sigma), v2.ToDtype(torch.uint8, scale=True),
         ], p=self.noise_probability)
-        return v2.Compose([jitter, low_light, blur, noise])
+        return v2.Compose([zoom, jitter, low_light, blur, noise])
 
 
 class TrainingImages(Dataset):
@@ -169,7 +179,7 @@ class TrainingData(L.LightningDataModule):
     processes (validation is the `LocalizationValidation` callback's)."""
 
     def __init__(self, paths: Sequence[Path], pairs: TrainingPairs, sampler: RelevanceBatchSampler,
-                 augmentation: PhotometricAugmentation | None, image_size: Sequence[int], num_workers: int) -> None:
+                 augmentation: TrainingAugmentation | None, image_size: Sequence[int], num_workers: int) -> None:
         require(len(image_size) == 2 and min(image_size) >= 32, "image_size", f"must be [width, height] >= 32 px, got {list(image_size)}")
         require(num_workers >= 0, "num_workers", f"must be >= 0, got {num_workers}")
         super().__init__()
