@@ -17,7 +17,7 @@ from locretrieval import geometry
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
-from locretrieval.training.data import TrainingAugmentation, RelevanceBatchSampler
+from locretrieval.training.data import RelevanceBatchSampler, TrainingAugmentation
 from locretrieval.training.relevance import NegativeSettings, TrainingRelevanceSettings, combined_pairs, training_pairs
 from locretrieval.training.run import train
 from locretrieval.training.callbacks import TRAINED, every_validation_metrics, metric_rows
