@@ -1,14 +1,16 @@
-"""Today's aggregation heads (MixVPR, SALAD, BoQ): the property that defines each, their registry
-entries, and training through train.py."""
+"""Today's aggregation heads (MixVPR, SALAD, BoQ) and GeM over a spatial pyramid: the property
+that defines each, their registry entries, and training through train.py."""
 
 import math
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
 
+import helpers
 from locretrieval.models.heads import BoQHead, MixVPRHead, SALADHead
-from locretrieval.models.networks import build_pooling, build_retrieval_net
+from locretrieval.models.networks import GeMPooling, build_pooling, build_retrieval_net, l2_normalize
 from locretrieval.training.run import train
 from test_training import train_config
 
@@ -63,6 +65,36 @@ def test_boq_output_is_rows_times_dim_of_its_learned_queries():
     assert sum(q.numel() for q in head.queries) == 3 * 4 * 16  # a bag of queries per block
 
 
+def test_gem_pyramid_is_gem_of_each_grid_cell_with_every_level_weighing_the_same():
+    torch.manual_seed(3)
+    features = torch.rand(2, 3, 4, 6) * 2.0
+    pooling, dimension = build_pooling(3, {"type": "gem_pyramid", "p": 3.0, "trainable": True, "levels": [[1, 1], [2, 3]]})
+    descriptors = pooling(features)
+    assert dimension == 3 * (1 + 6) and descriptors.shape == (2, 21)
+    power = features.numpy().astype("float64") ** 3
+    whole = power.mean(axis=(2, 3)) ** (1 / 3)  # [B, C]
+    cells = power.reshape(2, 3, 2, 2, 3, 2).mean(axis=(3, 5)) ** (1 / 3)  # 2 x 3 blocks of 2 x 2 pixels: [B, C, rows, cols]
+    cells = cells.reshape(2, 3 * 6)  # cells fastest within a channel
+    expected = [block / np.linalg.norm(block, axis=1, keepdims=True) for block in (whole, cells)]
+    torch.testing.assert_close(descriptors.double(), torch.tensor(np.concatenate(expected, axis=1)))
+    # the whole-image level alone is GeM's direction; the descriptor's norm is the number of levels
+    single, _ = build_pooling(3, {"type": "gem_pyramid", "p": 3.0, "trainable": True, "levels": [[1, 1]]})
+    torch.testing.assert_close(single(features), l2_normalize(GeMPooling(3.0)(features)))
+    torch.testing.assert_close(descriptors.norm(dim=1), torch.full((2,), 2**0.5))
+    with pytest.raises(ValueError, match=r"gem_pyramid levels must be \(rows, cols\) grids of at least 1 x 1"):
+        build_pooling(3, {"type": "gem_pyramid", "p": 3.0, "trainable": True, "levels": [[0, 2]]})
+
+
+def test_gem_pyramid_starts_from_the_pretrained_trunk_and_gems_initial_power():
+    """``model=lite0_gem_pyramid``: no parameter is random (unlike a head), ``p`` from the config."""
+    model = helpers.zoo_model("lite0_gem_pyramid")
+    assert model.identity()["weights"]["random_parameters"] == []
+    assert model.network.pooling.p.item() == 3.0 and model.network.output_dim == 1280 * 4
+    assert model.architecture["pooling"] == {"type": "gem_pyramid", "p": 3.0, "trainable": True, "levels": [[1, 1], [1, 3]]}
+    descriptors = model.network.eval()(torch.rand(2, 3, 96, 128))
+    assert descriptors.shape == (2, 5120)
+
+
 def test_a_head_ignores_another_types_options_and_refuses_unknown_ones():
     module, dimension = build_pooling(64, {"type": "mixvpr", "p": 3.0, "trainable": True, "out_rows": 2})  # GeM's p, trainable
     assert isinstance(module, MixVPRHead) and dimension == 256 * 2
@@ -72,10 +104,11 @@ def test_a_head_ignores_another_types_options_and_refuses_unknown_ones():
     assert network(torch.rand(1, 3, 128, 96)).shape == (1, network.output_dim) and not math.isnan(network.output_dim)
 
 
-@pytest.mark.parametrize("head", ["mixvpr", "salad", "boq"])
+@pytest.mark.parametrize("head", ["mixvpr", "salad", "boq", "gem_pyramid"])
 def test_train_py_trains_each_head(head, tmp_path):
-    # the head starts from random weights (the trunk from ImageNet): model.random_init says so
-    overrides = [f"model.pooling.type={head}", "model.random_init=true", "+trainer.fast_dev_run=true", "paradigms.approximation.k=[1,3]"]
+    # a head starts from random weights (the trunk from ImageNet): model.random_init says so
+    model = ["model=lite0_gem_pyramid"] if head == "gem_pyramid" else [f"model.pooling.type={head}", "model.random_init=true"]
+    overrides = [*model, "+trainer.fast_dev_run=true", "paradigms.approximation.k=[1,3]"]
     if head == "salad":
         overrides.append("+model.pooling.clusters=4")  # 96 x 72 images: 3 x 2 local features of EfficientNet-Lite0
     validator = train(train_config(tmp_path, *overrides), tmp_path / "run")

@@ -539,3 +539,37 @@ def test_the_gap_table_of_several_runs_closes_the_gap_of_the_means(tmp_path):
     assert f"{100 * (30.0 - 20.0) / (45.0 - 20.0):.1f}" in mean  # the gap of the means: 40 %, not the mean of 50 % and 0 %
     wide = script.wide_markdown(script.load([tmp_path / "a", tmp_path / "b"]))
     assert "| mean  | 20.0 / 10.0 / 30.0 / 45.0 (40 %)" in wide and "| a     | 20.0 / 10.0 / 40.0 / 60.0 (50 %)" in wide
+
+
+@pytest.mark.parametrize("frozen_backbone", [False, True])
+def test_head_lr_scale_moves_the_head_that_much_faster_than_the_backbone(frozen_backbone):
+    """Adam's first step moves every parameter by its group's learning rate (m / sqrt(v) = +-1)."""
+    from functools import partial
+
+    from locretrieval.models.extraction import Preprocessing
+    from locretrieval.models.networks import GeMPooling, RetrievalNet
+    from locretrieval.training.module import RetrievalTraining
+
+    torch.manual_seed(0)
+    trunk = torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, stride=2), torch.nn.ReLU())
+    network = RetrievalNet(trunk, GeMPooling(3.0, trainable=False), 8, whitening=torch.nn.Linear(8, 4))
+    module = RetrievalTraining(network, Preprocessing(max_side=None, scales=(1.0,)), None, partial(torch.optim.Adam, lr=1e-3),
+                               partial(torch.optim.lr_scheduler.CosineAnnealingLR, T_max=4), "gem", {},
+                               frozen=["backbone.*"] if frozen_backbone else [], head_lr_scale=10.0)
+    optimizers = module.configure_optimizers()
+    optimizer = optimizers["optimizer"]
+    before = {name: p.detach().clone() for name, p in network.named_parameters()}
+    network(torch.rand(2, 3, 16, 16)).pow(3).sum().backward()
+    optimizer.step()
+    steps = {name: (p.detach() - before[name]).abs() for name, p in network.named_parameters()}
+    torch.testing.assert_close(steps["whitening.weight"], torch.full((4, 8), 1e-2), atol=1e-5, rtol=0)
+    trunk_step = 0.0 if frozen_backbone else 1e-3
+    torch.testing.assert_close(steps["backbone.0.weight"], torch.full((8, 3, 3, 3), trunk_step), atol=1e-6, rtol=0)
+    assert [group["name"] for group in optimizer.param_groups] == (["head"] if frozen_backbone else ["backbone", "head"])
+    optimizers["lr_scheduler"].step()  # the schedule keeps the ratio
+    rates = {group["name"]: group["lr"] for group in optimizer.param_groups}
+    assert rates["head"] == pytest.approx(1e-2 * (1 + np.cos(np.pi / 4)) / 2)
+    if not frozen_backbone:
+        assert rates["head"] == pytest.approx(10 * rates["backbone"])
+    with pytest.raises(ValueError, match="module.head_lr_scale must be positive"):
+        RetrievalTraining(network, Preprocessing(max_side=None, scales=(1.0,)), None, None, None, "gem", {}, head_lr_scale=0)

@@ -23,14 +23,13 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import OmegaConf
 from torch import nn
 
 from locretrieval.cache import file_signature
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
 from locretrieval.models.networks import WeightsInfo, l2_normalize
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
-from locretrieval.models.weights import content_sha256, embedded_checkpoint, load_torch_file, plain
+from locretrieval.models.weights import content_sha256, embedded_checkpoint, load_torch_file, settings_of
 
 HUB_SOURCES = ("local", "github")
 #: ``(height, width)`` of the probe image that finds a network's output dimension.
@@ -95,11 +94,6 @@ class ExternalDescriptor(TorchGlobalDescriptor):
                 raise ValueError(f"model {name!r}: model.weights needs a module with parameters, not a function")
             info = load_state(module, Path(weights), name)
         super().__init__(name, ModuleNet(module, preprocessing), preprocessing, source, info, extraction)
-
-
-def settings_of(node: Any) -> dict[str, Any]:
-    """A config node (or mapping) as plain JSON types."""
-    return plain(OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else dict(node))
 
 
 def load_state(module: nn.Module, path: Path, name: str) -> WeightsInfo:

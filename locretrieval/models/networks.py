@@ -2,8 +2,8 @@
 
 Tensors are ``[B, C, H, W]`` feature maps and ``[B, D]`` descriptors. Every model of the zoo
 (NetVLAD, AP-GeM, DELG, the trainable ``gem`` / ``netvlad_head`` models) and every network
-trained by `locretrieval.training` is a `RetrievalNet`: ``backbone -> pooling (GeM, NetVLAD, or
-a head of `locretrieval.models.heads`: MixVPR, SALAD, BoQ) -> optional
+trained by `locretrieval.training` is a `RetrievalNet`: ``backbone -> pooling (GeM, GeM over a
+spatial pyramid, NetVLAD, or a head of `locretrieval.models.heads`: MixVPR, SALAD, BoQ) -> optional
 whitening (affine) -> L2``, plus an optional projection applied after multi-scale
 aggregation (AP-GeM's PCA). `build_retrieval_net` builds one on a torchvision backbone and
 `load_weights` fills it from a state dict and records where the weights came from.
@@ -53,6 +53,37 @@ class GeMPooling(nn.Module):
         with torch.autocast(features.device.type, enabled=False):
             x = features.float().clamp(min=self.eps).pow(self.p)
             return x.mean(dim=(2, 3)).pow(1.0 / self.p)
+
+
+class SpatialPyramidGeM(GeMPooling):
+    """GeM over a pyramid of image regions, concatenated: where things are in the image, not only
+    what is seen (a pooling that keeps the layout and has no parameter but ``p``, so a pretrained
+    trunk starts from GeM's descriptor, unlike a head that starts random).
+
+    ``levels`` are ``(rows, cols)`` grids; each cell is GeM over its region
+    (``adaptive_avg_pool2d`` of ``x^p``: regions overlap by a cell where the map does not divide).
+    Each level's cells, flattened row-major (cells fastest, channels slowest: ``c * cells + i``), are
+    L2-normalised together, so every level weighs the same in the final (unit) descriptor. The
+    ``(1, 1)`` level alone is GeM up to a scale.
+    """
+
+    def __init__(
+        self, channels: int, levels: tuple[tuple[int, int], ...], p: float = 3.0, trainable: bool = True, eps: float = 1e-6
+    ) -> None:
+        super().__init__(p, trainable, eps)
+        self.levels = tuple((int(rows), int(cols)) for rows, cols in levels)
+        if not self.levels or any(rows < 1 or cols < 1 for rows, cols in self.levels):
+            raise ValueError(f"gem_pyramid levels must be (rows, cols) grids of at least 1 x 1, got {levels!r}")
+        self.output_dim = channels * sum(rows * cols for rows, cols in self.levels)
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        with torch.autocast(features.device.type, enabled=False):
+            x = features.float().clamp(min=self.eps).pow(self.p)
+            blocks = [
+                l2_normalize(F.adaptive_avg_pool2d(x, grid).pow(1.0 / self.p).flatten(1))
+                for grid in self.levels
+            ]
+            return torch.cat(blocks, dim=1)
 
 
 class NetVLADPooling(nn.Module):
@@ -178,6 +209,10 @@ def _head(head: type[nn.Module], channels: int, **options: Any) -> tuple[nn.Modu
 #: Pooling layers by ``type``, each built as ``builder(channels, **options) -> (module, output_dim)``.
 POOLINGS: dict[str, Callable[..., tuple[nn.Module, int]]] = {
     "gem": lambda channels, p, trainable: (GeMPooling(float(p), trainable=bool(trainable)), channels),
+    "gem_pyramid": lambda channels, p, trainable, levels=((1, 1), (2, 2)): (
+        pooling := SpatialPyramidGeM(channels, levels, float(p), trainable=bool(trainable)),
+        pooling.output_dim,
+    ),
     "netvlad": lambda channels, clusters: (pooling := NetVLADPooling(channels, int(clusters)), pooling.output_dim),
     **{kind: partial(_head, head) for kind, head in HEADS.items()},
 }

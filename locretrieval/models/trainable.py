@@ -29,6 +29,7 @@ from locretrieval.models.weights import (
     WeightSource,
     read_weights,
     require_weights,
+    settings_of,
     torchvision_source,
 )
 
@@ -99,9 +100,14 @@ def backbone_normalization(backbone: str) -> Normalization:
     return IMAGENET_MEAN, IMAGENET_STD
 
 
+#: Pooling types whose only parameter is GeM's power ``p``.
+GEM_POOLINGS = ("gem", "gem_pyramid")
+
+
 def initial_values(pooling: Mapping[str, Any]) -> dict[str, torch.Tensor]:
-    """Parameters the configuration sets (GeM's initial ``p``), used where a weight file has none."""
-    return {"pooling.p": torch.tensor([float(pooling["p"])])} if pooling.get("type") == "gem" else {}
+    """Parameters the configuration sets (GeM's initial ``p``, plain or over a pyramid), used where
+    a weight file has none."""
+    return {"pooling.p": torch.tensor([float(pooling["p"])])} if pooling.get("type") in GEM_POOLINGS else {}
 
 
 class TrainableDescriptor(TorchGlobalDescriptor):
@@ -124,7 +130,7 @@ class TrainableDescriptor(TorchGlobalDescriptor):
         scales: Sequence[float],
         extraction: ExtractionSettings | Mapping[str, Any],
     ) -> None:
-        pooling = dict(pooling)
+        pooling = settings_of(pooling)
         architecture = {"backbone": str(backbone), "pooling": pooling, "whiten_dim": whiten_dim}
         source = backbone_source(str(backbone))
         if weights is None and not random_init:

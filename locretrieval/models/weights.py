@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 
 from locretrieval.cache import atomic_path, tree_signature
 
@@ -180,6 +181,11 @@ def save_checkpoint(
 def plain(value: Any) -> Any:
     """``value`` as plain JSON types (tuples become lists), for storing and comparing settings."""
     return json.loads(json.dumps(value))
+
+
+def settings_of(node: Any) -> dict[str, Any]:
+    """A config node (or mapping) as plain JSON types."""
+    return plain(OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else dict(node))
 
 
 def is_checkpoint(content: Any) -> bool:

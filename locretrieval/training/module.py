@@ -53,6 +53,9 @@ class RetrievalTraining(L.LightningModule):
     still learn), as retrieval fine-tuning does with small batches (Radenovic et al., TPAMI 2019).
     ``frozen``: shell patterns of parameter names kept fixed (`freeze_parameters`);
     ``compile_network``: ``torch.compile`` the network's forward pass.
+    ``head_lr_scale``: the learning rate of the parameters outside the backbone (pooling or head,
+    whitening, projection) is the optimizer's times this (and follows the same schedule): a head
+    that starts random can learn faster than the pretrained trunk.
     """
 
     def __init__(
@@ -67,6 +70,7 @@ class RetrievalTraining(L.LightningModule):
         compile_network: bool = False,
         freeze_batch_norm: bool = False,
         frozen: Sequence[str] = (),
+        head_lr_scale: float = 1.0,
     ) -> None:
         super().__init__()
         names = freeze_parameters(network, frozen)
@@ -79,6 +83,9 @@ class RetrievalTraining(L.LightningModule):
         self.optimizer_factory, self.scheduler_factory = optimizer, scheduler
         self.model_name, self.architecture = model, plain(dict(architecture))
         self.freeze_batch_norm = freeze_batch_norm
+        if not head_lr_scale > 0:
+            raise ValueError(f"module.head_lr_scale must be positive, got {head_lr_scale}")
+        self.head_lr_scale = float(head_lr_scale)
 
     def train(self, mode: bool = True) -> RetrievalTraining:
         super().train(mode)
@@ -127,10 +134,21 @@ class RetrievalTraining(L.LightningModule):
                 f"(optimizer.lr); lower optimizer.lr. The checkpoints in checkpoints/ are from before it.")
 
     def configure_optimizers(self):
-        optimizer = self.optimizer_factory(params=[p for p in self.network.parameters() if p.requires_grad])
+        optimizer = self.optimizer_factory(params=self._parameter_groups())
+        for group in optimizer.param_groups:  # before the scheduler records each group's initial lr
+            if group["name"] == "head":
+                group["lr"] *= self.head_lr_scale
         if self.scheduler_factory is None:
             return optimizer
         return {"optimizer": optimizer, "lr_scheduler": self.scheduler_factory(optimizer=optimizer)}
+
+    def _parameter_groups(self) -> list[dict[str, Any]]:
+        """The trainable parameters in named optimizer groups: ``backbone`` and ``head`` (the rest
+        of the network), each where it has any."""
+        trunk = {id(p) for p in self.network.backbone.parameters()}
+        trainable = [p for p in self.network.parameters() if p.requires_grad]
+        groups = {"backbone": [p for p in trainable if id(p) in trunk], "head": [p for p in trainable if id(p) not in trunk]}
+        return [{"params": params, "name": name} for name, params in groups.items() if params]
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         checkpoint[EMBEDDED_CHECKPOINT_KEY] = {
