@@ -573,3 +573,5 @@ def test_head_lr_scale_moves_the_head_that_much_faster_than_the_backbone(frozen_
         assert rates["head"] == pytest.approx(10 * rates["backbone"])
     with pytest.raises(ValueError, match="module.head_lr_scale must be positive"):
         RetrievalTraining(network, Preprocessing(max_side=None, scales=(1.0,)), None, None, None, "gem", {}, head_lr_scale=0)
+    with pytest.raises(ValueError, match="module.head_lr_scale=10.0 needs a network with a backbone .* Sequential has no 'backbone'"):
+        RetrievalTraining(trunk, Preprocessing(max_side=None, scales=(1.0,)), None, None, None, "gem", {}, head_lr_scale=10.0)

@@ -85,6 +85,9 @@ class RetrievalTraining(L.LightningModule):
         self.freeze_batch_norm = freeze_batch_norm
         if not head_lr_scale > 0:
             raise ValueError(f"module.head_lr_scale must be positive, got {head_lr_scale}")
+        if head_lr_scale != 1 and not hasattr(network, "backbone"):
+            raise ValueError(f"module.head_lr_scale={head_lr_scale} needs a network with a backbone and a head "
+                             f"(a zoo model's RetrievalNet); {type(network).__name__} has no 'backbone'")
         self.head_lr_scale = float(head_lr_scale)
 
     def train(self, mode: bool = True) -> RetrievalTraining:
@@ -144,8 +147,8 @@ class RetrievalTraining(L.LightningModule):
 
     def _parameter_groups(self) -> list[dict[str, Any]]:
         """The trainable parameters in named optimizer groups: ``backbone`` and ``head`` (the rest
-        of the network), each where it has any."""
-        trunk = {id(p) for p in self.network.backbone.parameters()}
+        of the network), each where it has any; a network without a backbone is all ``backbone``."""
+        trunk = {id(p) for p in getattr(self.network, "backbone", self.network).parameters()}
         trainable = [p for p in self.network.parameters() if p.requires_grad]
         groups = {"backbone": [p for p in trainable if id(p) in trunk], "head": [p for p in trainable if id(p) not in trunk]}
         return [{"params": params, "name": name} for name, params in groups.items() if params]
