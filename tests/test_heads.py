@@ -81,6 +81,8 @@ def test_gem_pyramid_is_gem_of_each_grid_cell_with_every_level_weighing_the_same
     single, _ = build_pooling(3, {"type": "gem_pyramid", "p": 3.0, "trainable": True, "levels": [[1, 1]]})
     torch.testing.assert_close(single(features), l2_normalize(GeMPooling(3.0)(features)))
     torch.testing.assert_close(descriptors.norm(dim=1), torch.full((2,), 2**0.5))
+    default, dimension = build_pooling(3, {"type": "gem_pyramid", "p": 3.0, "trainable": True})  # model.pooling.type=gem_pyramid
+    assert default.levels == ((1, 1), (1, 3)) and dimension == 3 * 4
     with pytest.raises(ValueError, match=r"gem_pyramid levels must be \(rows, cols\) grids of at least 1 x 1"):
         build_pooling(3, {"type": "gem_pyramid", "p": 3.0, "trainable": True, "levels": [[0, 2]]})
 

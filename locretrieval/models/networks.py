@@ -209,7 +209,7 @@ def _head(head: type[nn.Module], channels: int, **options: Any) -> tuple[nn.Modu
 #: Pooling layers by ``type``, each built as ``builder(channels, **options) -> (module, output_dim)``.
 POOLINGS: dict[str, Callable[..., tuple[nn.Module, int]]] = {
     "gem": lambda channels, p, trainable: (GeMPooling(float(p), trainable=bool(trainable)), channels),
-    "gem_pyramid": lambda channels, p, trainable, levels=((1, 1), (2, 2)): (
+    "gem_pyramid": lambda channels, p, trainable, levels=((1, 1), (1, 3)): (
         pooling := SpatialPyramidGeM(channels, levels, float(p), trainable=bool(trainable)),
         pooling.output_dim,
     ),
