@@ -571,6 +571,9 @@ def test_head_lr_scale_moves_the_head_that_much_faster_than_the_backbone(frozen_
     assert rates["head"] == pytest.approx(1e-2 * (1 + np.cos(np.pi / 4)) / 2)
     if not frozen_backbone:
         assert rates["head"] == pytest.approx(10 * rates["backbone"])
+    plain = RetrievalTraining(network, Preprocessing(max_side=None, scales=(1.0,)), None, partial(torch.optim.Adam, lr=1e-3),
+                              None, "gem", {}).configure_optimizers()
+    assert len(plain.param_groups) == 1 and plain.param_groups[0]["lr"] == 1e-3  # scale 1: one group, as before 0.9.0
     with pytest.raises(ValueError, match="module.head_lr_scale must be positive"):
         RetrievalTraining(network, Preprocessing(max_side=None, scales=(1.0,)), None, None, None, "gem", {}, head_lr_scale=0)
     with pytest.raises(ValueError, match="module.head_lr_scale=10.0 needs a network with a backbone .* Sequential has no 'backbone'"):

@@ -139,17 +139,20 @@ class RetrievalTraining(L.LightningModule):
     def configure_optimizers(self):
         optimizer = self.optimizer_factory(params=self._parameter_groups())
         for group in optimizer.param_groups:  # before the scheduler records each group's initial lr
-            if group["name"] == "head":
+            if group.get("name") == "head":
                 group["lr"] *= self.head_lr_scale
         if self.scheduler_factory is None:
             return optimizer
         return {"optimizer": optimizer, "lr_scheduler": self.scheduler_factory(optimizer=optimizer)}
 
-    def _parameter_groups(self) -> list[dict[str, Any]]:
-        """The trainable parameters in named optimizer groups: ``backbone`` and ``head`` (the rest
-        of the network), each where it has any; a network without a backbone is all ``backbone``."""
-        trunk = {id(p) for p in getattr(self.network, "backbone", self.network).parameters()}
+    def _parameter_groups(self) -> list[torch.nn.Parameter] | list[dict[str, Any]]:
+        """The trainable parameters: one group with ``head_lr_scale`` 1 (the optimizer state of
+        earlier runs resumes), else named groups ``backbone`` and ``head`` (the rest of the
+        network), each where it has any."""
         trainable = [p for p in self.network.parameters() if p.requires_grad]
+        if self.head_lr_scale == 1:
+            return trainable
+        trunk = {id(p) for p in self.network.backbone.parameters()}
         groups = {"backbone": [p for p in trainable if id(p) in trunk], "head": [p for p in trainable if id(p) not in trunk]}
         return [{"params": params, "name": name} for name, params in groups.items() if params]
 
