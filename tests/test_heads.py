@@ -77,7 +77,7 @@ def test_gem_pyramid_is_gem_of_each_grid_cell_with_every_level_weighing_the_same
     cells = cells.reshape(2, 3 * 6)  # cells fastest within a channel
     expected = [block / np.linalg.norm(block, axis=1, keepdims=True) for block in (whole, cells)]
     torch.testing.assert_close(descriptors.double(), torch.tensor(np.concatenate(expected, axis=1)))
-    # the whole-image level alone is GeM's direction; the descriptor's norm is the number of levels
+    # the whole-image level alone is GeM's direction; the descriptor's norm is the square root of the number of levels
     single, _ = build_pooling(3, {"type": "gem_pyramid", "p": 3.0, "trainable": True, "levels": [[1, 1]]})
     torch.testing.assert_close(single(features), l2_normalize(GeMPooling(3.0)(features)))
     torch.testing.assert_close(descriptors.norm(dim=1), torch.full((2,), 2**0.5))

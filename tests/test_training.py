@@ -107,12 +107,17 @@ def test_several_positives_per_anchor_are_distinct_relevant_images_in_anchor_ord
         RelevanceBatchSampler(pairs, anchors=4, negatives=2, batches_per_epoch=5, seed=0, positives=0)
 
 
+#: `TrainingAugmentation` settings that change nothing (each test switches one transform on).
+NO_AUGMENTATION = dict(zoom_probability=0.0, zoom=[1.0, 1.0], brightness=0.0, contrast=0.0, saturation=0.0, hue=0.0,
+                       low_light_probability=0.0, low_light_brightness=[0.25, 0.25], blur_probability=0.0, blur_sigma=[1.0, 1.0],
+                       noise_probability=0.0, noise_sigma=0.1)
+
+
 def test_low_light_and_noise_augmentations_scale_the_brightness_and_add_noise_of_the_given_sigma():
     torch.manual_seed(0)
     image = torch.full((3, 64, 64), 160, dtype=torch.uint8)
     image[:, :, 32:] = 80
-    plain = dict(zoom_probability=0.0, zoom=[1.0, 1.0], brightness=0.0, contrast=0.0, saturation=0.0, hue=0.0, low_light_probability=0.0, low_light_brightness=[0.25, 0.25],
-                 blur_probability=0.0, blur_sigma=[1.0, 1.0], noise_probability=0.0, noise_sigma=0.1)
+    plain = NO_AUGMENTATION
     assert torch.equal(TrainingAugmentation(**plain).transform()(image), image)
     dark = TrainingAugmentation(**{**plain, "low_light_probability": 1.0}).transform()(image).float()
     np.testing.assert_allclose(dark.numpy(), 0.25 * image.float().numpy(), atol=1.0)
@@ -123,9 +128,7 @@ def test_low_light_and_noise_augmentations_scale_the_brightness_and_add_noise_of
 
 
 def test_zoom_augmentation_scales_offsets_from_the_image_centre_by_its_factor():
-    plain = dict(zoom_probability=1.0, zoom=[1.25, 1.25], brightness=0.0, contrast=0.0, saturation=0.0, hue=0.0,
-                 low_light_probability=0.0, low_light_brightness=[0.25, 0.25], blur_probability=0.0, blur_sigma=[1.0, 1.0],
-                 noise_probability=0.0, noise_sigma=0.1)
+    plain = {**NO_AUGMENTATION, "zoom_probability": 1.0, "zoom": [1.25, 1.25]}
     width, height, offset = 320, 240, 48                          # an edge 48 px right of the centre column
     image = torch.zeros((3, height, width), dtype=torch.uint8)
     image[:, :, width // 2 + offset:] = 200
