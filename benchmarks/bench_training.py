@@ -61,7 +61,7 @@ def training_setup(overrides: list[str]):
     parts = training_parts(cfg, instantiate(cfg.data), descriptor.preprocessing, BenchmarkSettings.from_config(cfg),
                            validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance"),
                            validated(TrainingSettings, cfg.training, "training"))
-    return cfg, parts.datamodule, training_module(cfg, descriptor)
+    return cfg, parts.datamodule, training_module(cfg, descriptor, parts.pairs)
 
 
 def loop_images_per_second(cfg, data, module, steps: int) -> tuple[float, float, float]:
@@ -83,7 +83,7 @@ def bare_images_per_second(data, module, steps: int) -> float:
     """Images/s of forward + loss + backward + optimizer step on one batch already decoded."""
     import torch
 
-    images, relevance, negatives = next(iter(data.train_dataloader()))
+    images, relevance, negatives, _ = next(iter(data.train_dataloader()))
     optimizer = module.optimizer_factory(params=[p for p in module.network.parameters() if p.requires_grad])
     module.train()
     times = []

@@ -163,12 +163,14 @@ class RelevanceBatchSampler(Sampler[list[int]]):
 
 
 def collate(pairs: TrainingPairs):
-    """The collate function of a batch: ``(images uint8 [B, 3, H, W], relevance [B, B], negatives [B, B])``."""
+    """The collate function of a batch: ``(images uint8 [B, 3, H, W], relevance [B, B], negatives
+    [B, B], indices int64 [B])``, ``indices`` the images' rows in ``pairs``."""
 
-    def stack(items: list[tuple[torch.Tensor, int]]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def stack(items: list[tuple[torch.Tensor, int]]) -> tuple[torch.Tensor, ...]:
         indices = np.array([index for _, index in items])
         relevance, negatives = pairs.batch(indices)
-        return torch.stack([image for image, _ in items]), torch.from_numpy(relevance), torch.from_numpy(negatives)
+        images = torch.stack([image for image, _ in items])
+        return images, torch.from_numpy(relevance), torch.from_numpy(negatives), torch.from_numpy(indices)
 
     return stack
 

@@ -91,24 +91,26 @@ class TripletLoss(nn.Module):
 
     def forward(self, descriptors: torch.Tensor, relevance: torch.Tensor, negatives: torch.Tensor) -> torch.Tensor:
         positive, negative = _masks(descriptors, relevance, negatives)
-        valid = positive[:, :, None] & negative[:, None, :]  # [a, p, n]
-        if not valid.any():
+        rows = positive.any(1).nonzero(as_tuple=True)[0]  # the anchors only: [a, p, n] grows with the cube of B
+        if not len(rows):
             return _zero(descriptors)
-        triplets = self._select(descriptors, valid)
-        per_triplet = self.loss(descriptors, None, triplets)["loss"]["losses"]
-        return _mean_per_anchor(per_triplet, triplets[0], len(descriptors))
+        valid = positive[rows, :, None] & negative[rows, None, :]  # [a, p, n]
+        anchors, positives, unrelated = self._select(descriptors, rows, valid)
+        per_triplet = self.loss(descriptors, None, (rows[anchors], positives, unrelated))["loss"]["losses"]
+        return _mean_per_anchor(per_triplet, rows[anchors], len(descriptors))
 
-    def _select(self, descriptors: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """``(anchors, positives, negatives)``: every valid triplet or each anchor's hardest."""
+    def _select(self, descriptors: torch.Tensor, rows: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """``(anchors, positives, negatives)``, anchors as positions in ``rows``: every valid triplet
+        or each anchor's hardest."""
         if self.max_triplets_per_anchor is None:
             return valid.nonzero(as_tuple=True)
         size = len(descriptors)
         with torch.no_grad():
-            similarity = descriptors @ descriptors.T
+            similarity = descriptors[rows] @ descriptors.T
             violation = (similarity[:, None, :] - similarity[:, :, None]).masked_fill(~valid, float("-inf"))
             keep = min(self.max_triplets_per_anchor, size * size)
-            order = torch.sort(violation.view(size, -1), dim=1, descending=True, stable=True).indices[:, :keep]
-        chosen = torch.zeros_like(valid).view(size, -1).scatter_(1, order, True).view_as(valid)
+            order = torch.sort(violation.view(len(rows), -1), dim=1, descending=True, stable=True).indices[:, :keep]
+        chosen = torch.zeros_like(valid).view(len(rows), -1).scatter_(1, order, True).view_as(valid)
         return (chosen & valid).nonzero(as_tuple=True)
 
 

@@ -16,6 +16,8 @@ from locretrieval.config import SettingError
 from locretrieval.models.extraction import Preprocessing, describe_batch
 from locretrieval.models.networks import RetrievalNet
 from locretrieval.models.weights import CHECKPOINT_FORMAT, EMBEDDED_CHECKPOINT_KEY, plain
+from locretrieval.training.memory import DescriptorMemory
+from locretrieval.training.relevance import TrainingPairs
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +58,9 @@ class RetrievalTraining(L.LightningModule):
     ``head_lr_scale``: the learning rate of the parameters outside the backbone (pooling or head,
     whitening, projection) is the optimizer's times this (and follows the same schedule): a head
     that starts random can learn faster than the pretrained trunk.
+    ``memory_size``: a cross-batch memory (`DescriptorMemory`) of the descriptors of the last this
+    many training images, every batch's anchors ranked against them too, their relevance read from
+    ``pairs``; 0: each anchor is ranked against its batch only.
     """
 
     def __init__(
@@ -71,6 +76,8 @@ class RetrievalTraining(L.LightningModule):
         freeze_batch_norm: bool = False,
         frozen: Sequence[str] = (),
         head_lr_scale: float = 1.0,
+        memory_size: int = 0,
+        pairs: TrainingPairs | None = None,
     ) -> None:
         super().__init__()
         names = freeze_parameters(network, frozen)
@@ -89,6 +96,10 @@ class RetrievalTraining(L.LightningModule):
             raise ValueError(f"module.head_lr_scale={head_lr_scale} needs a network with a backbone and a head "
                              f"(a zoo model's RetrievalNet); {type(network).__name__} has no 'backbone'")
         self.head_lr_scale = float(head_lr_scale)
+        if memory_size and pairs is None:
+            raise ValueError("module.memory_size needs the training pairs (train.py gives them)")
+        self.memory = DescriptorMemory(int(memory_size)) if memory_size else None
+        self.pairs = pairs
 
     def train(self, mode: bool = True) -> RetrievalTraining:
         super().train(mode)
@@ -109,9 +120,20 @@ class RetrievalTraining(L.LightningModule):
         torch.set_flush_denormal(True)
         self.train()  # Lightning keeps the modes it finds: freeze batch norm here
 
-    def training_step(self, batch: tuple[torch.Tensor, torch.Tensor, torch.Tensor], batch_index: int) -> torch.Tensor:
-        images, relevance, negatives = batch
-        loss = self.loss(self(images), relevance, negatives)
+    def batch_loss(self, batch: tuple[torch.Tensor, ...]) -> torch.Tensor:
+        """The loss of a batch ``(images, relevance, negatives, indices)`` (`training.data.collate`),
+        ranked against the memory's images too when there is one, which then remembers the batch."""
+        images, relevance, negatives, indices = batch
+        descriptors = self(images)
+        if self.memory is None:
+            return self.loss(descriptors, relevance, negatives)
+        candidates, relevance, negatives = self.memory.extend(descriptors, relevance, negatives, indices, self.pairs)
+        self.memory.write(descriptors, indices)
+        return self.loss(candidates, relevance, negatives)
+
+    def training_step(self, batch: tuple[torch.Tensor, ...], batch_index: int) -> torch.Tensor:
+        loss = self.batch_loss(batch)
+        images = batch[0]
         finite = bool(torch.isfinite(loss))
         if self.trainer.world_size > 1:  # every rank stops together (one rank alone would hang the others)
             finite = self.trainer.strategy.reduce_boolean_decision(finite, all=True)

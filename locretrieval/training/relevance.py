@@ -97,9 +97,14 @@ class TrainingPairs:
 
     def batch(self, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(relevance float32 [B, B], negatives bool [B, B])`` among the images ``indices``."""
-        relevance = self.graded[indices][:, indices].toarray().astype(np.float32)
-        negatives = ~self.related[indices][:, indices].toarray()
-        same = indices[:, None] == indices[None]
+        return self.block(indices, indices)
+
+    def block(self, rows: np.ndarray, columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(relevance float32 [R, C], negatives bool [R, C])`` of the images ``rows`` to the images
+        ``columns``; an image paired with itself is neither."""
+        relevance = self.graded[rows][:, columns].toarray().astype(np.float32)
+        negatives = ~self.related[rows][:, columns].toarray()
+        same = rows[:, None] == columns[None]
         relevance[same] = 0.0
         negatives[same] = False
         return relevance, negatives

@@ -113,7 +113,7 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     if cfg.get("miner"):
         callbacks["miner"] = built(cfg.miner, "miner", sets=parts.sets, pairs=parts.pairs, sampler=parts.sampler,
                                    preprocessing=descriptor.preprocessing, extraction=descriptor.settings)
-    module = training_module(cfg, descriptor)
+    module = training_module(cfg, descriptor, parts.pairs)
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values()]
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=list(callbacks.values()), logger=loggers or False)
     if module.freeze_batch_norm:  # Lightning warns of the (intended) eval-mode batch norm
@@ -159,13 +159,13 @@ def training_parts(cfg: DictConfig, scene: Scene, preprocessing: Any, settings: 
     return TrainingParts(sets, pairs, sampler, datamodule)
 
 
-def training_module(cfg: DictConfig, descriptor: Any) -> Any:
+def training_module(cfg: DictConfig, descriptor: Any, pairs: TrainingPairs) -> Any:
     """The LightningModule of ``cfg.module`` training the model's network with ``loss``,
-    ``optimizer`` and ``scheduler`` (none when the group is removed)."""
+    ``optimizer`` and ``scheduler`` (none when the group is removed) on the training ``pairs``."""
     return built(
         cfg.module, "module", network=descriptor.network.train(), preprocessing=descriptor.preprocessing, loss=instantiate(cfg.loss),
         optimizer=instantiate(cfg.optimizer), scheduler=instantiate(cfg.scheduler) if cfg.get("scheduler") else None,
-        model=descriptor.model, architecture=descriptor.architecture,
+        model=descriptor.model, architecture=descriptor.architecture, pairs=pairs,
     )
 
 
