@@ -28,7 +28,8 @@ def reordered(ranking: Ranking, pose_scores: np.ndarray, shortlist: int) -> Rank
     """``ranking`` with each query's first ``shortlist`` images sorted by ``pose_scores [Q, N]``
     (smaller: closer in pose; ties keep the descriptor's order), the rest as it was."""
     top = ranking.indices[:, :shortlist]
-    keys = np.where(top == EMPTY, np.inf, np.take_along_axis(pose_scores, np.where(top == EMPTY, 0, top), axis=1))
+    empty = top == EMPTY
+    keys = np.where(empty, np.inf, np.take_along_axis(pose_scores, np.where(empty, 0, top), axis=1))
     order = np.argsort(keys, axis=1, kind="stable")
     indices = ranking.indices.copy()
     indices[:, :shortlist] = np.take_along_axis(top, order, axis=1)
