@@ -49,3 +49,27 @@ def test_reordering_the_whole_database_by_pose_is_the_relative_pose_ground_truth
     np.testing.assert_allclose(table.loc["top 3 by pose"], table.loc["as ranked"])
     assert table.loc["as ranked"].iloc[-1] < expected[-1]  # a random ranking is below the ground truth on this scene
     assert list(table.columns) == ["0.5 m, 5 deg", "5 m, 10 deg"]
+
+
+def test_the_database_against_itself_leaves_each_image_out(scene):
+    """``--database``: the relative-pose row against EWB over each database image's three nearest
+    other images, scored ``c / tau_c + R / tau_R`` here from the centres and the wxyz quaternions."""
+    database = script.database_as_queries(scene)
+    size = len(scene.database)
+    centers, qvec = scene.database.centers, scene.database.qvec
+    distance = np.linalg.norm(centers[:, None] - centers[None], axis=-1)
+    angle = np.degrees(2 * np.arccos(np.clip(np.abs(qvec @ qvec.T), 0.0, 1.0)))
+    score = distance / 25.0 + angle / 45.0
+    np.fill_diagonal(score, np.inf)
+    nearest = np.argsort(score, axis=1, kind="stable")[:, :size - 1]
+    estimate = approximate_poses(scene.database, Ranking("n", nearest, np.zeros(nearest.shape), "groundtruth"), [3], ["ewb"],
+                                 alpha=1.0)[0]
+    expected = 100 * localized(*estimate.errors(qvec, scene.database.tvec), THRESHOLDS)[:, 0].mean(axis=1)
+    rng = np.random.default_rng(4)
+    others = np.array([[j for j in rng.permutation(size) if j != i] for i in range(size)])
+    ranking = Ranking("shuffled", others, np.zeros(others.shape), "baseline")
+    table = script.shortlist_table(database, ranking, [size - 1], 3, 25.0, 45.0, THRESHOLDS, exclude_self=True)
+    np.testing.assert_allclose(table.loc["relative pose (whole database)"], expected)
+    np.testing.assert_allclose(table.loc[f"top {size - 1} by pose"], expected)
+    with_self = script.shortlist_table(database, ranking, [size - 1], 3, 25.0, 45.0, THRESHOLDS)
+    assert with_self.loc["relative pose (whole database)"].iloc[-1] > expected[-1]  # each image its own first neighbour
