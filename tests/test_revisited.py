@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from locretrieval.metrics.revisited import REVISITED_COLUMNS, evaluate_revisited, load_revisited_groundtruth
+from locretrieval.restricted_pickle import RefusedGlobalError
 from locretrieval.retrieval import EMPTY, Ranking
 
 # 8 database images, 2 queries.
@@ -70,3 +71,59 @@ def test_malformed_files_are_reported_with_their_path(tmp_path):
     outside.write_bytes(pickle.dumps({**GROUNDTRUTH, "imlist": ["db0", "db1"]}))
     with pytest.raises(ValueError, match="outside.pkl.*q0"):
         load_revisited_groundtruth(outside)
+
+
+def _published_structure() -> dict:
+    """A ``gnd_*.pkl`` content with numpy arrays where the authors' files may hold them."""
+    return {
+        "imlist": [f"db{i}" for i in range(8)],
+        "qimlist": ["q0", "q1"],
+        "gnd": [
+            {"easy": np.array([0, 3]), "hard": np.array([5]), "junk": np.array([1]), "bbx": np.array([1.5, 2.0, 40.0, 30.5])},
+            {"easy": np.array([], dtype=np.int64), "hard": [2], "junk": [], "bbx": [np.float64(0.5), 0.0, 10.0, 10.0]},
+        ],
+    }
+
+
+@pytest.mark.parametrize("protocol", [2, pickle.HIGHEST_PROTOCOL])
+@pytest.mark.parametrize("numpy_module", ["numpy._core.multiarray", "numpy.core.multiarray"])
+def test_published_files_with_numpy_arrays_load(tmp_path, protocol, numpy_module):
+    content = pickle.dumps(_published_structure(), protocol=protocol)
+    if protocol == 2:  # text GLOBAL opcodes: rewrite them as numpy 1.x wrote them
+        content = content.replace(b"numpy._core.multiarray", numpy_module.encode())
+    path = tmp_path / "gnd_roxford5k.pkl"
+    path.write_bytes(content)
+    loaded = load_revisited_groundtruth(path)
+    assert loaded.qimlist == ["q0", "q1"] and loaded.imlist[7] == "db7"
+    np.testing.assert_array_equal(loaded.gnd[0]["bbx"], [1.5, 2.0, 40.0, 30.5])
+    positives, junk = loaded.labels("medium")
+    assert positives.toarray().nonzero()[1].tolist() == [0, 3, 5, 2]
+    assert junk.toarray().nonzero()[1].tolist() == [1]
+
+
+class _CreatesMarker:
+    """Unpickled without restriction, calls ``os.system('touch <marker>')``."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        import os
+
+        return os.system, (f"touch {self.marker}",)
+
+
+def test_a_pickle_that_would_run_code_is_refused_naming_file_and_global(tmp_path):
+    marker = tmp_path / "marker"
+    path = tmp_path / "gnd_roxford5k.pkl"
+    path.write_bytes(pickle.dumps({**GROUNDTRUTH, "gnd": [_CreatesMarker(marker), GROUNDTRUTH["gnd"][1]]}))
+    with pytest.raises(RefusedGlobalError, match=rf"{path}: refused to unpickle the global (posix|os)\.system"):
+        load_revisited_groundtruth(path)
+    assert not marker.exists()
+
+
+def test_other_callables_than_numpy_reconstruction_are_refused(tmp_path):
+    path = tmp_path / "gnd.pkl"
+    path.write_bytes(pickle.dumps({"imlist": [], "qimlist": [], "gnd": [], "when": __import__("datetime").date(2020, 1, 1)}))
+    with pytest.raises(RefusedGlobalError, match=r"gnd\.pkl: refused to unpickle the global datetime\.date"):
+        load_revisited_groundtruth(path)

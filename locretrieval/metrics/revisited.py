@@ -21,7 +21,6 @@ it does not hold count as never retrieved, and a query with no positive retrieve
 
 from __future__ import annotations
 
-import pickle
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +29,7 @@ import numpy as np
 import pandas as pd
 from scipy import sparse
 
+from locretrieval.restricted_pickle import load_plain_pickle
 from locretrieval.retrieval import EMPTY, Ranking, relevant_hits
 
 #: Where the authors publish the ground-truth files.
@@ -74,18 +74,17 @@ class RevisitedGroundTruth:
 
 
 def load_revisited_groundtruth(path: str | Path) -> RevisitedGroundTruth:
-    """Read a revisited Oxford/Paris ``gnd_*.pkl`` file, checking its structure."""
+    """Read a revisited Oxford/Paris ``gnd_*.pkl`` file, checking its structure.
+
+    The file is unpickled with `load_plain_pickle`: a global other than builtin containers,
+    scalars and numpy arrays is refused (``RefusedGlobalError`` naming the file and the global)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(
             f"revisited ground-truth file not found: {path}; the authors publish it at "
             + " and ".join(GROUNDTRUTH_URLS.values())
         )
-    with open(path, "rb") as stream:
-        try:
-            content = pickle.load(stream)
-        except (pickle.UnpicklingError, EOFError, AttributeError, ValueError) as error:
-            raise ValueError(f"{path}: not a readable pickle ({error})") from error
+    content = load_plain_pickle(path)  # a published file: plain data only, no code runs
     if not isinstance(content, dict) or not {"imlist", "qimlist", "gnd"} <= set(content):
         found = sorted(content) if isinstance(content, dict) else type(content).__name__
         raise ValueError(f"{path}: expected a dict with imlist, qimlist and gnd, found {found}")
