@@ -34,6 +34,7 @@ from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.global_sfm import GlobalSfmSettings
 from locretrieval.localization.local_sfm import LocalSfmSettings
+from locretrieval.localization.pipeline import SfmStages, run_sfm
 from locretrieval.localization.plan import ParadigmWork, SfmPlan, UnitCosts, feature_work, measure_unit_costs
 from locretrieval.localization.sfm import SfmInputs, SfmSettings
 from locretrieval.metrics.localization import MetricsSettings, localization_table, query_error_table, query_subsets
@@ -60,15 +61,21 @@ class Paradigm:
     ``missing_inputs(settings) -> [problem]`` (files it reads that are absent), ``cost``:
     ``cheap`` (run at every training validation) or ``sfm`` (every ``sfm_every_n_epochs``), and
     ``map_points(scene, settings, sfm, cache_dir) -> [P, 3] or None`` (the 3D points of a map it
-    built, for the report's 3D view)."""
+    built, for the report's 3D view). An SfM paradigm gives its ``stages`` of the SfM pipeline
+    (`SfmStages`): the benchmark runs every enabled one through one pipeline (`run_sfm`)."""
 
     settings: type[ParadigmSettings]
     run: Callable[..., list[PoseEstimates]]
-    uses_local_features: bool = False
+    stages: SfmStages | None = None
     plan: Callable[..., ParadigmWork] | None = None
     missing_inputs: Callable[[Any], list[str]] | None = None
     cost: str = "cheap"
     map_points: Callable[..., np.ndarray | None] | None = None
+
+    @property
+    def uses_local_features(self) -> bool:
+        """Whether it reads the ``sfm`` group's local features and matches."""
+        return self.stages is not None
 
     def __post_init__(self) -> None:
         if self.cost not in PARADIGM_COSTS:
@@ -79,8 +86,8 @@ class Paradigm:
 #: paradigm is its module (settings schema, ``run``) and one entry here (and its YAML section).
 PARADIGMS: dict[str, Paradigm] = {
     "approximation": Paradigm(ApproximationSettings, approximation.run),
-    "local_sfm": Paradigm(LocalSfmSettings, local_sfm.run, uses_local_features=True, plan=local_sfm.plan, cost="sfm"),
-    "global_sfm": Paradigm(GlobalSfmSettings, global_sfm.run, uses_local_features=True, plan=global_sfm.plan,
+    "local_sfm": Paradigm(LocalSfmSettings, local_sfm.run, local_sfm.STAGES, plan=local_sfm.plan, cost="sfm"),
+    "global_sfm": Paradigm(GlobalSfmSettings, global_sfm.run, global_sfm.STAGES, plan=global_sfm.plan,
                            missing_inputs=global_sfm.missing_inputs, cost="sfm", map_points=global_sfm.map_points),
 }
 #: Unit costs measured in this process, by what they were measured on (`sfm_plan`).
@@ -263,6 +270,25 @@ def sfm_plan(
     return plan
 
 
+def sfm_paradigms(settings: BenchmarkSettings) -> dict[str, tuple[SfmStages, ParadigmSettings]]:
+    """The enabled SfM paradigms: name -> (their pipeline stages, their settings)."""
+    return {name: (PARADIGMS[name].stages, getattr(settings.paradigms, name)) for name in settings.paradigms.enabled()
+            if PARADIGMS[name].stages is not None}
+
+
+def run_sfm_shard(scene: Scene, rankings: Sequence[Ranking], settings: BenchmarkSettings, cache_dir: str | Path | None) -> None:
+    """This job's share (``sfm.shard``) of the enabled SfM paradigms' work, into the shared cache
+    (`locretrieval.localization.pipeline`); the run without ``sfm.shard`` then finds all of it."""
+    check_supported(scene, settings.paradigms.enabled())
+    paradigms = sfm_paradigms(settings)
+    if not paradigms:
+        log.info("sfm.shard=%s: no SfM paradigm is enabled, nothing to do", settings.sfm.shard)
+        return
+    run_sfm(scene, rankings, paradigms, settings.sfm, cache_dir)
+    log.info("sfm.shard=%s: this job's share of %s is in %s; once every shard has run, the same command without "
+             "sfm.shard writes the results", settings.sfm.shard, " and ".join(paradigms), cache_dir)
+
+
 def benchmark(
     scene: Scene,
     rankings: Sequence[Ranking],
@@ -281,14 +307,19 @@ def benchmark(
     check_supported(scene, settings.paradigms.enabled())
     warn_shallow_rankings(rankings, settings.paradigms.ks())
     depths = {ranking.name: ranking.depth for ranking in rankings}
+    if settings.sfm.job_shard is not None:
+        raise ValueError(f"sfm.shard={settings.sfm.shard}: a shard's job computes its share of the SfM work (run_sfm_shard), "
+                         "not results; run without sfm.shard to assemble them")
     plan = sfm_plan(scene, rankings, settings, cache_dir)
     if plan is not None:
         log.info("%s", plan.describe())
+    sfm_estimates = run_sfm(scene, rankings, sfm_paradigms(settings), settings.sfm, cache_dir) if sfm_paradigms(settings) else {}
     estimates: list[PoseEstimates] = []
     for paradigm in settings.paradigms.enabled():
         paradigm_settings = getattr(settings.paradigms, paradigm)
         log.info("paradigm %s, k=%s", paradigm, paradigm_settings.k)
-        computed = PARADIGMS[paradigm].run(scene, rankings, paradigm_settings, settings.sfm, cache_dir)
+        computed = sfm_estimates[paradigm] if paradigm in sfm_estimates else PARADIGMS[paradigm].run(
+            scene, rankings, paradigm_settings, settings.sfm, cache_dir)
         estimates += [e.labelled(paradigm_settings.k, depths[e.ranking]) for e in computed]
     thresholds = settings.metrics.thresholds
     localization = localization_table(scene.name, estimates, scene.queries, thresholds, subsets, settings.metrics.inclusive)

@@ -13,7 +13,8 @@ from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.benchmark import (
-    PARADIGMS, BenchmarkResult, BenchmarkSettings, benchmark, build_rankings, check_supported, relevances, scene_subsets, sfm_plan,
+    PARADIGMS, BenchmarkResult, BenchmarkSettings, benchmark, build_rankings, check_supported, relevances, run_sfm_shard, scene_subsets,
+    sfm_plan,
 )
 from locretrieval.cache import save_arrays
 from locretrieval.config import validated
@@ -42,6 +43,9 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     ``groundtruth_statistics.csv``, ``subsets.csv``, ``estimated_poses.csv.gz``), the rankings, what galleries read
     (``images.csv``, ``relevance/``), LTVL exports, ``summary.json``, the 3D view (``scene_3d.html``, unless
     ``report.scene_view.enabled`` is false) and the report built from those files. Returns the localization table.
+    With ``sfm.shard=i/n`` the run is one job of a sharded evaluation: it computes the rankings and
+    its share of the SfM work into the cache (`run_sfm_shard`), writes nothing else and returns an
+    empty table.
     """
     started = time.perf_counter()
     settings = BenchmarkSettings.from_config(cfg)
@@ -71,6 +75,9 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
         log.warning("no query has a reference pose: ground truth and metrics are skipped, poses are only exported (ltvl/)")
     random_seed = int(cfg.seed) if cfg.baselines.random else None
     rankings = build_rankings(scene, descriptors, groundtruths, settings.retrieval, random_seed, given)
+    if settings.sfm.job_shard is not None:  # one job of a sharded evaluation: its SfM work, no results
+        run_sfm_shard(scene, rankings, settings, cache_dir)
+        return pd.DataFrame()
     subsets, subset_table = scene_subsets(scene, subset_settings, cache_dir, str(cfg.device))
     if cfg.report.figure_formats:
         from locretrieval.report.painters import start_painters

@@ -17,9 +17,11 @@ from locretrieval.config import ConfigError
 from locretrieval.localization import features as features_module
 from locretrieval.localization import matching
 from locretrieval.localization.features import extract_features
-from locretrieval.localization.matching import (
-    NearestNeighbourMatcher, PairMatcher, TwoViewSettings, epipolar_inliers, essential_matrix, sampson_errors,
-    two_view_inliers,
+from locretrieval.localization import nearest_neighbours
+from locretrieval.localization.matching import PairMatcher
+from locretrieval.localization.nearest_neighbours import BatchedMatcher, NearestNeighbourMatcher
+from locretrieval.localization.verification import (
+    NoVerification, PoseVerification, TwoViewVerification, epipolar_inliers, essential_matrices, sampson_errors, two_view_inliers,
 )
 from locretrieval.localization.store import ShardedStore
 from locretrieval.scene import Camera, ImageSet
@@ -32,6 +34,7 @@ SCENE = {"width": 256, "height": 192, "num_database": 40, "num_queries": 6, "tex
 
 
 SFM = helpers.sfm_settings()
+POSES, TWO_VIEW = PoseVerification(4.0), TwoViewVerification(4.0, 15)
 
 
 def features(overrides):
@@ -229,7 +232,7 @@ def ternary(count: int, dimension: int, nonzero: int, rng: np.random.Generator) 
 
 
 # blocks: one; 128 x 128 (several row blocks and column tiles, padded tiles)
-@pytest.mark.parametrize("block_bytes", [matching.CPU_BLOCK_BYTES, 4 * 128 * 128])
+@pytest.mark.parametrize("block_bytes", [nearest_neighbours.CPU_BLOCK_BYTES, 4 * 128 * 128])
 @pytest.mark.parametrize("precision", ["float32", "float16"])
 def test_matcher_equals_the_direct_computation_with_ties(block_bytes, precision):
     rng = np.random.default_rng(3)
@@ -237,7 +240,7 @@ def test_matcher_equals_the_direct_computation_with_ties(block_bytes, precision)
         first, second = ternary(rows, dimension, nonzero, rng), ternary(columns, dimension, nonzero, rng)
         first[5], second[-1] = second[0], first[0]  # exact matches between the sets
         for ratio in (1.0, 0.9, 0.7):
-            matcher = NearestNeighbourMatcher(ratio, "cpu", precision, block_bytes)
+            matcher = NearestNeighbourMatcher(ratio, precision, block_bytes)
             expected = direct_matches(first, second, ratio)
             np.testing.assert_array_equal(matcher(first, [second])[0], expected, err_msg=f"{rows}x{columns}, ratio {ratio}")
 
@@ -268,25 +271,76 @@ def test_matcher_block_shape_bounds_the_similarity_memory():
     assert matcher.block_shape(50, 20_000, 2) == (50, 2048)  # float16: 16 tiles (a side of 2,048) in 10 blocks of 16
     for rows, columns, size in [(20_000, 20_000, 4), (3, 5, 4), (20_000, 300, 2), (1_000, 70_000, 4), (129, 64, 4)]:
         height, width = matcher.block_shape(rows, columns, size)
-        assert height * width * size <= 8 << 20 and width % matching.TILE == 0 and (height == rows or height % matching.TILE == 0)
+        assert height * width * size <= 8 << 20 and width % nearest_neighbours.TILE == 0 and (height == rows or height % nearest_neighbours.TILE == 0)
+
+
+PARTNER_SIZES = (500, 131, 1, 0, 257, 300)
+
+
+def ternary_partners(rng: np.random.Generator, rows: int = 260, dimension: int = 32) -> tuple[np.ndarray, list[np.ndarray]]:
+    """A first image and partners of several sizes (one of one row, one empty) with exact ties
+    and exact matches between them."""
+    first = ternary(rows, dimension, 4, rng)
+    partners = [ternary(size, dimension, 4, rng) for size in PARTNER_SIZES]
+    first[5], partners[0][-1], partners[4][3] = partners[0][0], first[0], first[7]
+    return first, partners
+
+
+# batches: every partner at once; a few partners per batch, the first image's rows split in blocks of 128
+@pytest.mark.parametrize("batch_bytes", [1 << 30, 4 * 128 * 600])
+@pytest.mark.parametrize("precision", ["float32", "float16"])
+def test_batched_matcher_equals_the_direct_computation_and_the_blocked_matcher_with_ties(batch_bytes, precision):
+    first, partners = ternary_partners(np.random.default_rng(5))
+    counts = {}
+    for ratio in (1.0, 0.9, 0.7):
+        batched = BatchedMatcher(ratio, "cpu", precision, batch_bytes)(first, partners)
+        counts[ratio] = [len(found) for found in batched]
+        blocked = NearestNeighbourMatcher(ratio, precision, 4 * 128 * 128)(first, partners)
+        for size, found, expected in zip(PARTNER_SIZES, batched, blocked):
+            assert found.dtype == np.int32 and found.shape[1] == 2
+            np.testing.assert_array_equal(found, expected, err_msg=f"{size} partner rows, ratio {ratio}")
+            if size:
+                np.testing.assert_array_equal(found, direct_matches(first, partners[PARTNER_SIZES.index(size)], ratio))
+    assert counts[1.0][0] > 20 and counts[0.7][0] >= 2 and counts[1.0][3] == 0  # the exact copies pass any ratio
+
+
+def test_batched_matcher_splits_its_work_within_the_memory_it_is_given():
+    widths = [500, 131, 1, 257, 300]  # padded to 512, 256, 128, 384, 384
+    # 800 columns of 260 float32 rows: 512 + 512 do not fit, 2 x 256 do, 3 x 384 do not, 2 x 384 do
+    assert BatchedMatcher(0.8, "cpu", "float32", 4 * 260 * 800)._batches(260, widths, 4) == [[0], [1, 2], [3, 4]]
+    assert BatchedMatcher(0.8, "cpu", "float32", 1 << 30)._batches(260, widths, 4) == [[0, 1, 2, 3, 4]]
+    # 295 columns: each partner alone, the 512-wide one in row blocks of 128 (the smallest block)
+    assert BatchedMatcher(0.8, "cpu", "float32", 4 * 128 * 600)._batches(260, widths, 4) == [[0], [1], [2], [3], [4]]
+
+
+def test_batched_matcher_equals_an_explicit_computation_on_real_valued_descriptors():
+    rng = np.random.default_rng(1)
+    first = rng.normal(size=(60, 16))
+    others = [np.concatenate([first[rng.permutation(60)[:30]] + 0.3 * rng.normal(size=(30, 16)), rng.normal(size=(size, 16))])
+              for size in (10, 45, 200)]
+    for other, found in zip(others, BatchedMatcher(0.8, "cpu", "float32", 4 * 128 * 300)(first, others)):
+        assert len(found) > 10 and {tuple(m) for m in found.tolist()} == reference_matches(first, other, 0.8)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (none here)")
+@pytest.mark.parametrize("batch_mib", [None, 0.3])
 @pytest.mark.parametrize("precision", ["float32", "float16"])
-def test_matcher_on_the_gpu_equals_the_cpu_with_ties(precision):
+def test_batched_matcher_on_the_gpu_equals_the_cpu_with_ties(precision, batch_mib):
     rng = np.random.default_rng(4)
-    first, second = ternary(3000, 64, 16, rng), ternary(2500, 64, 16, rng)
-    settings = helpers.sfm_settings({"matching": {"device": "cuda", "precision": precision, "block_mib": 1}}).matching
-    gpu = settings.matcher(workers=2)
-    assert gpu.device.startswith("cuda") and gpu.block_bytes == 1 << 20
-    np.testing.assert_array_equal(gpu(first, [second])[0], NearestNeighbourMatcher(0.8, "cpu", precision)(first, [second])[0])
+    first, partners = ternary_partners(rng, rows=3000, dimension=64)
+    partners += [ternary(2500, 64, 16, rng), ternary(20_000, 64, 16, rng)]
+    settings = helpers.sfm_settings({"matching": {"device": "cuda", "precision": precision, "block_mib": batch_mib}}).matching
+    gpu = settings.matcher()
+    assert isinstance(gpu, BatchedMatcher) and gpu.device.startswith("cuda")
+    for found, expected in zip(gpu(first, partners), NearestNeighbourMatcher(0.8, precision)(first, partners)):
+        np.testing.assert_array_equal(found, expected)
 
 
 def test_matching_settings_resolve_the_device_and_the_block():
     settings = helpers.sfm_settings({"matching": {"block_mib": 2.5, "precision": "float16"}}).matching
     matcher = settings.matcher()
     assert (matcher.device, matcher.precision, matcher.block_bytes, matcher.ratio) == ("cpu", "float16", int(2.5 * 2**20), 0.8)
-    assert helpers.sfm_settings().matching.matcher().block_bytes == matching.CPU_BLOCK_BYTES
+    assert helpers.sfm_settings().matching.matcher().block_bytes == nearest_neighbours.CPU_BLOCK_BYTES
     # where and in which blocks matches are computed is not what determines them
     assert "device" not in settings.identity() and "block_mib" not in settings.identity() and settings.identity()["precision"] == "float16"
     with pytest.raises(ConfigError, match="sfm.matching.precision"):
@@ -316,7 +370,7 @@ def test_sampson_error_approximates_the_geometric_error_and_bounds_matches_in_pi
     cam0 = points @ geometry.quaternion_to_matrix(q0).T + t0
     cam1 = points @ geometry.quaternion_to_matrix(q1).T + t1
     x0, x1 = cam0[:, :2] / cam0[:, 2:], cam1[:, :2] / cam1[:, 2:]
-    essential = essential_matrix(q0, t0, q1, t1)
+    essential = essential_matrices(q0, t0, q1, t1)
     assert sampson_errors(x0, x1, essential).max() < 1e-10
     noisy = x1 + rng.normal(0, 0.004, x1.shape)
     expected = [geometric_error(a, b, q0, t0, q1, t1) for a, b in zip(x0[:10], noisy[:10])]
@@ -341,28 +395,28 @@ def test_matches_are_cached_per_pair_and_reused_for_larger_sets(scene, tmp_path,
     names = database.names
     # same heading at neighbouring stations (8 cameras per station)
     small = [(names[0], names[8]), (names[9], names[1]), (names[8], names[16])]
-    assert matcher.ensure(small, workers=1, verification="none") == 3
+    assert matcher.ensure(small, workers=1, verification=NoVerification()) == 3
     assert sum(calls) == 3
     # verifying cached raw matches matches nothing again
-    assert matcher.ensure(small, workers=1, verification="poses") == 0
+    assert matcher.ensure(small, workers=1, verification=POSES) == 0
     assert sum(calls) == 3
-    raw_small, verified_small = matcher.load(small), matcher.load(small, "poses")
+    raw_small, verified_small = matcher.load(small, NoVerification()), matcher.load(small, POSES)
     for pair in small:
         assert {tuple(m) for m in verified_small[pair].tolist()} <= {tuple(m) for m in raw_small[pair].tolist()}
     assert sum(map(len, verified_small.values())) > 0
     # the same pairs, reversed or repeated, are not matched again; a larger set matches only its new pairs
-    assert matcher.ensure([(names[8], names[0]), (names[1], names[9]), (names[0], names[0])], workers=1, verification="poses") == 0
+    assert matcher.ensure([(names[8], names[0]), (names[1], names[9]), (names[0], names[0])], workers=1, verification=POSES) == 0
     larger = small + [(names[0], names[16]), (names[17], names[1])]
-    assert matcher.ensure(larger, workers=1, verification="poses") == 2
+    assert matcher.ensure(larger, workers=1, verification=POSES) == 2
     assert sum(calls) == 5
-    forward = matcher.load([(names[1], names[9])], "poses")[(names[1], names[9])]
-    backward = matcher.load([(names[9], names[1])], "poses")[(names[9], names[1])]
+    forward = matcher.load([(names[1], names[9])], POSES)[(names[1], names[9])]
+    backward = matcher.load([(names[9], names[1])], POSES)[(names[9], names[1])]
     np.testing.assert_array_equal(backward, forward[:, ::-1])
     # verification keeps a subset of the raw matches, and a new matcher reads the cache
-    raw = PairMatcher(database, store, database, store, SFM.matching, tmp_path).load([(names[1], names[9])])[(names[1], names[9])]
+    raw = PairMatcher(database, store, database, store, SFM.matching, tmp_path).load([(names[1], names[9])], NoVerification())[(names[1], names[9])]
     assert len(forward) and {tuple(m) for m in forward.tolist()} <= {tuple(m) for m in raw.tolist()}
     with pytest.raises(KeyError, match="no record"):
-        matcher.load([(names[5], names[6])])
+        matcher.load([(names[5], names[6])], NoVerification())
 
 
 def test_pose_verification_keeps_the_true_matches_by_the_rendered_depth(scene, tmp_path):
@@ -376,9 +430,9 @@ def test_pose_verification_keeps_the_true_matches_by_the_rendered_depth(scene, t
     matcher = PairMatcher(database, store, database, store, SFM.matching, tmp_path)
     first, second = 1, 9  # looking across the corridor from neighbouring stations
     pair = (database.names[first], database.names[second])
-    matcher.ensure([pair], workers=1, verification="poses")
-    raw = matcher.load([pair])[pair]
-    verified = {tuple(m) for m in matcher.load([pair], "poses")[pair].tolist()}
+    matcher.ensure([pair], workers=1, verification=POSES)
+    raw = matcher.load([pair], NoVerification())[pair]
+    verified = {tuple(m) for m in matcher.load([pair], POSES)[pair].tolist()}
     keypoints = store.keypoints(list(pair))
     camera = database.cameras[first]
     depth = kapture_records.depth_map_from_file(str(database.depth_paths[first]), (camera.width, camera.height))
@@ -402,8 +456,8 @@ def test_two_view_verification_keeps_raw_matches_consistent_with_the_poses(scene
     matcher = PairMatcher(database, store, database, store, SFM.matching, tmp_path)
     first, second = 1, 9
     pair = (database.names[first], database.names[second])
-    matcher.ensure([pair], workers=1, verification="two_view")
-    raw, verified = matcher.load([pair])[pair], matcher.load([pair], "two_view")[pair]
+    matcher.ensure([pair], workers=1, verification=TWO_VIEW)
+    raw, verified = matcher.load([pair], NoVerification())[pair], matcher.load([pair], TWO_VIEW)[pair]
     assert len(verified) >= 15 and {tuple(m) for m in verified.tolist()} <= {tuple(m) for m in raw.tolist()}
     keypoints = store.keypoints(list(pair))
     consistent = epipolar_inliers(
@@ -426,5 +480,52 @@ def test_two_view_inliers_only_of_scene_geometries(configuration, kept, monkeypa
     camera = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
     keypoints = np.zeros((10, 2))
     matches = np.array([[3, 1], [0, 2]] + [[i, i] for i in range(4, 10)])
-    inliers = two_view_inliers(keypoints, keypoints, matches, camera, camera, TwoViewSettings(max_error=4.0, min_num_inliers=5))
+    inliers = two_view_inliers(keypoints, keypoints, matches, camera, camera, TwoViewVerification(max_error=4.0, min_num_inliers=5))
     np.testing.assert_array_equal(inliers, [0, 1] if kept else [])
+
+
+def ternary_feature_scene(cache: Path, count: int = 12, keypoints: int = 300) -> tuple[ImageSet, "FeatureStore"]:
+    """``count`` posed images of one camera whose cached features are ternary descriptors (exact
+    similarities: the CPU and batched matchers agree bit for bit) at random keypoints."""
+    rng = np.random.default_rng(9)
+    camera = Camera("PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0))
+    qvec = geometry.normalize_quaternions(np.column_stack([np.ones(count), 0.05 * rng.normal(size=(count, 3))]))
+    images = ImageSet([f"db/{i:02d}.jpg" for i in range(count)], Path("/nonexistent"), [camera] * count, qvec, rng.normal(size=(count, 3)))
+    store = features_module.feature_store(images, SFM.features, cache)
+    shared = ternary(keypoints // 2, 32, 4, rng)  # rows every image holds: mutual matches across pairs
+    store.store.write({name: {"keypoints": rng.uniform(0, 480, (keypoints, 2)).astype(np.float32),
+                              "descriptors": np.concatenate([shared, ternary(keypoints - len(shared), 32, 4, rng)])[rng.permutation(keypoints)]}
+                       for name in images.names})
+    return images, store
+
+
+def stored(matcher: PairMatcher, pairs, verification) -> dict:
+    return {pair: matches.tolist() for pair, matches in matcher.load(pairs, verification).items()}
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_matching_on_a_device_stores_what_the_cpu_workers_store(tmp_path, monkeypatch, workers):
+    """The device path (one owner process, descriptors read ahead and kept resident, each image
+    against its partners in one product, shards verified and written by CPU workers) run with the
+    batched matcher on the CPU, with room for 3 images' descriptors: the same stores as the CPU path."""
+    images, store = ternary_feature_scene(tmp_path / "cpu")
+    pairs = [(a, b) for a in images.names for b in images.names if a < b]
+    on_cpu = PairMatcher(images, store, images, store, SFM.matching, tmp_path / "cpu")
+    assert on_cpu.ensure(pairs, 1, POSES) == len(pairs)
+
+    images, store = ternary_feature_scene(tmp_path / "device")
+    on_device = PairMatcher(images, store, images, store, SFM.matching, tmp_path / "device")
+    monkeypatch.setattr(matching, "PAIRS_PER_SHARD", 5)  # 14 shards: the worker pool verifies them
+    monkeypatch.setattr(matching, "HOST_RESIDENT_BYTES", 3 * 300 * 32 * 4)
+    batched = BatchedMatcher(SFM.matching.ratio, "cpu", SFM.matching.precision, 4 * 300 * 1024)
+    monkeypatch.setattr(matching.MatchingSettings, "matcher", lambda self: batched)
+    reads = []
+    real = matching.partial_descriptors
+    monkeypatch.setattr(matching, "partial_descriptors", lambda features: lambda names: reads.append(len(names)) or real(features)(names))
+    assert on_device.ensure(pairs, workers, POSES) == len(pairs)
+    assert stored(on_device, pairs, NoVerification()) == stored(on_cpu, pairs, NoVerification())
+    assert stored(on_device, pairs, POSES) == stored(on_cpu, pairs, POSES)
+    assert sum(map(len, stored(on_device, pairs, NoVerification()).values())) > len(pairs) * 100
+    assert 0 < sum(map(len, stored(on_device, pairs, POSES).values())) < sum(map(len, stored(on_device, pairs, NoVerification()).values()))
+    # evicted images are read again, but no image twice for one shard
+    assert len(images) < sum(reads) <= len(pairs) * 2

@@ -116,10 +116,11 @@ def shared_points(database: ImageSet, queries: ImageSet, cache_dir: Path, sfm: S
     query_pair_rows = overlapping_pairs(queries, database, query_selection, exclude_self=False)
     named_database = [(database.names[a], database.names[b]) for a, b in database_pair_rows]
     named_queries = [(queries.names[q], database.names[t]) for q, t in query_pair_rows]
-    database_matcher.ensure(named_database, workers, "poses")
-    query_matcher.ensure(named_queries, workers, "poses")
-    database_matches = database_matcher.load(named_database, "poses")
-    query_matches = query_matcher.load(named_queries, "poses")
+    verification = sfm.matching.database_verification  # queries with a reference pose: verified by it too
+    database_matcher.ensure(named_database, workers, verification)
+    query_matcher.ensure(named_queries, workers, verification)
+    database_matches = database_matcher.load(named_database, verification)
+    query_matches = query_matcher.load(named_queries, verification)
 
     # joint image order: database 0..N-1, then the posed queries (`overlapping_pairs` pairs only those)
     offset = len(database)

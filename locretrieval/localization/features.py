@@ -145,11 +145,14 @@ def feature_store(images: ImageSet, settings: FeatureSettings, cache_dir: str | 
     return FeatureStore(Path(cache_dir) / "features" / f"{images.fingerprint(include_poses=False)}-{settings.key()}")
 
 
-def extract_features(images: ImageSet, settings: FeatureSettings, cache_dir: str | Path, workers: int) -> FeatureStore:
-    """The features of every image of ``images``, extracting (or reading) only missing ones."""
+def extract_features(
+    images: ImageSet, settings: FeatureSettings, cache_dir: str | Path, workers: int, names: Sequence[str] | None = None
+) -> FeatureStore:
+    """The features of every image of ``images`` (or of those ``names``), extracting (or reading)
+    only missing ones."""
     store = feature_store(images, settings, cache_dir)
     paths = dict(zip(images.names, images.paths))
-    missing = store.store.missing(images.names)
+    missing = store.store.missing(images.names if names is None else names)
     if missing:
         log.info("local features (%s) of %d images into %s", settings.type, len(missing), store.folder)
         chunks = [missing[start : start + IMAGES_PER_SHARD] for start in range(0, len(missing), IMAGES_PER_SHARD)]

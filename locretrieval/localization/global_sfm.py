@@ -27,15 +27,18 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from filelock import FileLock
 
 from locretrieval.cache import config_key, tree_signature
 from locretrieval.localization.colmap_model import missing_model_files, read_colmap_map
 from locretrieval.localization.estimates import PoseEstimates
+from locretrieval.localization.features import extract_features
 from locretrieval.localization.pairs import database_pairs
 from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.plan import ParadigmWork, Work, database_pair_work, query_pair_work, registration_work
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS
 from locretrieval.localization.pose_cache import PoseCache
+from locretrieval.localization.pipeline import SfmStages, run_sfm
 from locretrieval.localization.sfm import (
     SFM_METHOD, Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, query_tasks, register_query, run_queries,
 )
@@ -70,12 +73,39 @@ def missing_inputs(settings: GlobalSfmSettings) -> list[str]:
 
 def run(
     scene: Scene, rankings: Sequence[Ranking], settings: GlobalSfmSettings, sfm: SfmSettings, cache_dir: Path | None
-) -> list[PoseEstimates]:
-    """Paradigm entry point: the pose of every query for every ranking and every ``settings.k``."""
-    inputs, ks = SfmInputs.for_rankings("global_sfm", scene, rankings, settings.k, sfm, cache_dir)
-    sparse_map = global_map(inputs, settings.colmap_model, Path(cache_dir))
-    cache = _pose_cache(inputs, settings, Path(cache_dir))
-    return run_queries("global_sfm", rankings, ks, localize_query, (inputs, sparse_map), sfm.processes, cache)
+) -> list[PoseEstimates] | None:
+    """Paradigm entry point: the pose of every query for every ranking and every ``settings.k``
+    (through the SfM pipeline, `run_sfm`, with this paradigm alone)."""
+    estimates = run_sfm(scene, rankings, {"global_sfm": (STAGES, settings)}, sfm, cache_dir)
+    return None if estimates is None else estimates["global_sfm"]
+
+
+def shared_map_pairs(inputs: SfmInputs, settings: GlobalSfmSettings) -> list[tuple[str, str]]:
+    """The database pairs of the global map (`database_pairs` of ``sfm.map_pairs``), unless the
+    map is cached or an existing COLMAP model."""
+    if settings.colmap_model or map_cache_path(inputs, inputs.cache_dir).exists():
+        return []
+    database = inputs.scene.database
+    return [(database.names[a], database.names[b]) for a, b in database_pairs(database, inputs.map_pairs)]
+
+
+def query_map_pairs(inputs: SfmInputs, rankings: Sequence[Ranking], ks, settings: GlobalSfmSettings, queries) -> list[tuple[str, str]]:
+    """None: the global map is every query's."""
+    return []
+
+
+def localize(
+    inputs: SfmInputs, rankings: Sequence[Ranking], ks: Sequence[list[int]], settings: GlobalSfmSettings, cache_dir: Path,
+    queries: Sequence[int] | None,
+) -> list[PoseEstimates] | None:
+    """Triangulate (the global map, once) and register every query in it (in worker processes)."""
+    sparse_map = global_map(inputs, settings.colmap_model, cache_dir)
+    cache = _pose_cache(inputs, settings, cache_dir)
+    return run_queries("global_sfm", rankings, ks, localize_query, (inputs, sparse_map), inputs.settings.processes, cache, queries)
+
+
+#: This paradigm's stages of the SfM pipeline.
+STAGES = SfmStages(shared_map_pairs, query_map_pairs, localize)
 
 
 def plan(
@@ -114,19 +144,23 @@ def global_map(inputs: SfmInputs, colmap_model: str | None, cache_dir: Path) -> 
         keypoints = inputs.database_features.keypoints(database.names)
         return read_colmap_map(colmap_model, database.names, [keypoints[n] for n in database.names])
     path = map_cache_path(inputs, cache_dir)
-    if path.exists():
-        log.info("global map loaded from %s", path)
-        return SparseMap.load(path)
-    pairs = database_pairs(database, inputs.map_pairs)
-    named = [(database.names[a], database.names[b]) for a, b in pairs]
-    inputs.database_pairs.ensure(named, inputs.settings.processes, "poses")
-    matches = inputs.database_pairs.load(named, "poses")
-    keypoints = inputs.database_features.keypoints(database.names)
-    sparse_map = triangulate_known_poses(
-        database.cameras, database.qvec, database.tvec, [keypoints[n] for n in database.names],
-        {(int(a), int(b)): matches[pair] for (a, b), pair in zip(pairs, named)}, inputs.settings.triangulation,
-    )
-    sparse_map.save(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with FileLock(f"{path}.lock"):  # one builder among the jobs sharing the cache (shards); the others wait and read it
+        if path.exists():
+            log.info("global map loaded from %s", path)
+            return SparseMap.load(path)
+        pairs = database_pairs(database, inputs.map_pairs)
+        named = [(database.names[a], database.names[b]) for a, b in pairs]
+        workers = inputs.settings.processes
+        extract_features(database, inputs.settings.features, cache_dir, workers)
+        inputs.database_pairs.ensure(named, workers, inputs.database_verification)
+        matches = inputs.database_pairs.load(named, inputs.database_verification)
+        keypoints = inputs.database_features.keypoints(database.names)
+        sparse_map = triangulate_known_poses(
+            database.cameras, database.qvec, database.tvec, [keypoints[n] for n in database.names],
+            {(int(a), int(b)): matches[pair] for (a, b), pair in zip(pairs, named)}, inputs.settings.triangulation,
+        )
+        sparse_map.save(path)
     log.info("global map: %d points from %d database images (%d pairs), saved to %s", sparse_map.num_points, len(database), len(pairs), path)
     return sparse_map
 
@@ -135,7 +169,7 @@ def map_cache_path(inputs: SfmInputs, cache_dir: Path) -> Path:
     """Where the triangulated map is cached: keyed by its pose-verified matches' store (whose
     name encodes the features, the ratio, the epipolar bound and the database poses), the
     triangulation settings and the pair selection."""
-    matches = inputs.database_pairs.stores["poses"].folder.name
+    matches = inputs.database_pairs.store(inputs.database_verification).folder.name
     key = config_key(CACHE_VERSION, matches, asdict(inputs.settings.triangulation), asdict(inputs.map_pairs))
     return cache_dir / "maps" / f"{key}.npz"
 

@@ -39,16 +39,17 @@ import numpy as np
 from locretrieval.cache import config_key
 from locretrieval.config import require
 from locretrieval.localization.estimates import PoseEstimates
-from locretrieval.localization.matching import epipolar_inliers
 from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.plan import ParadigmWork, Work, database_pair_work, query_pair_work, registration_work
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
 from locretrieval.localization.pose_cache import PoseCache
+from locretrieval.localization.pipeline import SfmStages, run_sfm
 from locretrieval.localization.sfm import (
     SFM_METHOD, Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, query_tasks, register_query, run_queries,
 )
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.localization.triangulation import triangulate_known_poses
+from locretrieval.localization.verification import epipolar_inliers
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import Scene
 
@@ -74,13 +75,42 @@ class LocalSfmSettings(ParadigmSettings):
 
 def run(
     scene: Scene, rankings: Sequence[Ranking], settings: LocalSfmSettings, sfm: SfmSettings, cache_dir: Path | None
-) -> list[PoseEstimates]:
-    """Paradigm entry point: the pose of every query for every ranking and every ``settings.k``."""
-    inputs, ks = SfmInputs.for_rankings("local_sfm", scene, rankings, settings.k, sfm, cache_dir)
-    if settings.map_matches == "database":
-        inputs.database_pairs.ensure(_database_pairs(scene, rankings, ks), sfm.processes, "poses")
-    shared = (inputs, settings.map_matches, Path(cache_dir) / "local_maps")
-    return run_queries("local_sfm", rankings, ks, localize_query, shared, sfm.processes, _pose_cache(inputs, settings, Path(cache_dir)))
+) -> list[PoseEstimates] | None:
+    """Paradigm entry point: the pose of every query for every ranking and every ``settings.k``
+    (through the SfM pipeline, `run_sfm`, with this paradigm alone)."""
+    estimates = run_sfm(scene, rankings, {"local_sfm": (STAGES, settings)}, sfm, cache_dir)
+    return None if estimates is None else estimates["local_sfm"]
+
+
+def shared_map_pairs(inputs: SfmInputs, settings: LocalSfmSettings) -> list[tuple[str, str]]:
+    """None: every local map is its query's."""
+    return []
+
+
+def query_map_pairs(
+    inputs: SfmInputs, rankings: Sequence[Ranking], ks: Sequence[Sequence[int]], settings: LocalSfmSettings, queries: Sequence[int] | None
+) -> list[tuple[str, str]]:
+    """The database pairs (names) of every local map of ``queries`` (None: all) with ``database``
+    map matches (`local_map_pairs`); none with ``query`` map matches."""
+    if settings.map_matches != "database":
+        return []
+    names = inputs.scene.database.names
+    return [(names[a], names[b]) for a, b in local_map_pairs(rankings, ks, queries)]
+
+
+def localize(
+    inputs: SfmInputs, rankings: Sequence[Ranking], ks: Sequence[list[int]], settings: LocalSfmSettings, cache_dir: Path,
+    queries: Sequence[int] | None,
+) -> list[PoseEstimates] | None:
+    """Triangulate and register: each query's local maps built and the query registered in each
+    (`localize_query`, in worker processes), outcomes cached."""
+    shared = (inputs, settings.map_matches, cache_dir / "local_maps")
+    cache = _pose_cache(inputs, settings, cache_dir)
+    return run_queries("local_sfm", rankings, ks, localize_query, shared, inputs.settings.processes, cache, queries)
+
+
+#: This paradigm's stages of the SfM pipeline.
+STAGES = SfmStages(shared_map_pairs, query_map_pairs, localize)
 
 
 def plan(
@@ -98,30 +128,31 @@ def plan(
         registrations = num_rankings * queries * len(settings.k)
         return ParadigmWork("local_sfm", query_pairs, Work(bound, bound), Work(maps, maps), pairs_per_map, Work(registrations, registrations))
     ks = [ranking.clamp_ks(settings.k) for ranking in rankings]
-    database_pairs = database_pair_work(inputs, _database_pairs(scene, rankings, ks) if settings.map_matches == "database" else [])
+    database_pairs = database_pair_work(inputs, query_map_pairs(inputs, rankings, ks, settings, None))
     tasks = query_tasks(rankings, ks, _pose_cache(inputs, settings, cache_dir))
     maps = {_map_key(inputs, settings.map_matches, task.query, images) for task in tasks for images in task.image_sets() if len(images) >= 2}
     new_maps = {key for key in maps if not (cache_dir / "local_maps" / f"{key}.npz").is_file()}
     return ParadigmWork("local_sfm", query_pairs, database_pairs, Work(len(maps), len(new_maps)), pairs_per_map, registration_work(tasks))
 
 
-def _database_pairs(scene: Scene, rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> list[tuple[str, str]]:
-    """The database pairs (names) of every local map (`local_map_pairs`)."""
-    names = scene.database.names
-    return [(names[a], names[b]) for a, b in local_map_pairs(rankings, ks)]
-
-
 def _pose_cache(inputs: SfmInputs, settings: LocalSfmSettings, cache_dir: Path) -> PoseCache:
     """The registration outcomes, keyed by what the local maps are keyed by."""
-    maps = [CACHE_VERSION, settings.map_matches, inputs.database_pairs.stores["poses"].folder.name, asdict(inputs.settings.triangulation)]
+    maps = [CACHE_VERSION, settings.map_matches, _database_matches(inputs), asdict(inputs.settings.triangulation)]
     return inputs.pose_cache("local_sfm", maps, cache_dir)
 
 
-def local_map_pairs(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> np.ndarray:
-    """Distinct database pairs ``[P, 2]`` (a < b) of any local map: both among one query's top ``max(k)``."""
+def _database_matches(inputs: SfmInputs) -> str:
+    """The name of the pose-verified database matches' store (features, ratio, epipolar bound, poses)."""
+    return inputs.database_pairs.store(inputs.database_verification).folder.name
+
+
+def local_map_pairs(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]], queries: Sequence[int] | None = None) -> np.ndarray:
+    """Distinct database pairs ``[P, 2]`` (a < b) of any local map: both among one query's top
+    ``max(k)`` (of ``queries``, or every query)."""
     pairs = [np.empty((0, 2), dtype=np.int64)]
+    rows = slice(None) if queries is None else np.asarray(queries, dtype=np.int64)
     for ranking, ranking_ks in zip(rankings, ks):
-        top = ranking.indices[:, : max(ranking_ks)]
+        top = ranking.indices[rows, : max(ranking_ks)]
         first, second = np.triu_indices(top.shape[1], 1)
         a, b = top[:, first].ravel(), top[:, second].ravel()
         valid = (a != EMPTY) & (b != EMPTY) & (a != b)
@@ -170,9 +201,9 @@ def _map_key(inputs: SfmInputs, map_matches: str, query: int, selected: tuple[in
     epipolar bound, poses), the triangulation settings and, for ``query`` map matches (derived
     from the query's), the query and its matches' store."""
     names = [inputs.scene.database.names[i] for i in selected]
-    source = [inputs.database_pairs.stores["poses"].folder.name]
+    source = [_database_matches(inputs)]
     if map_matches == "query":
-        source = [inputs.query_pairs.stores[inputs.query_verification].folder.name, inputs.scene.queries.names[query]]
+        source = [inputs.query_pairs.store(inputs.query_verification).folder.name, inputs.scene.queries.names[query]]
     return config_key(CACHE_VERSION, map_matches, source, names, asdict(inputs.settings.triangulation))
 
 
@@ -185,7 +216,7 @@ def _map_matches(
     database = inputs.scene.database
     pairs = sorted({(a, b) for images in image_sets for a in images for b in images if a < b})
     if map_matches == "database":
-        loaded = inputs.database_pairs.load([(database.names[a], database.names[b]) for a, b in pairs], "poses")
+        loaded = inputs.database_pairs.load([(database.names[a], database.names[b]) for a, b in pairs], inputs.database_verification)
         return {(a, b): loaded[(database.names[a], database.names[b])] for a, b in pairs}
     partner = {}
     for image, matches in query_matches.items():

@@ -21,10 +21,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from locretrieval.localization.features import read_or_extract
-from locretrieval.localization.matching import epipolar_inliers, pair_key
+from locretrieval.localization.matching import pair_key
 from locretrieval.localization.pnp import estimate_absolute_pose
 from locretrieval.localization.sfm import QueryTask, SfmInputs, SfmSettings, correspondences
 from locretrieval.localization.triangulation import triangulate_known_poses
+from locretrieval.localization.verification import epipolar_inliers
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
 
@@ -142,13 +143,13 @@ def query_pair_work(inputs: SfmInputs, rankings: Sequence[Ranking] | None, ks: S
         bound = min(num_rankings * len(scene.queries) * min(max(ks), len(scene.database)), len(scene.queries) * len(scene.database))
         return Work(bound, bound)
     pairs = inputs.query_pairs.canonical(inputs.ranked_pairs(rankings, [r.clamp_ks(ks) for r in rankings]))
-    return Work(len(pairs), len(inputs.query_pairs.stores["none"].missing(map(pair_key, pairs))))
+    return Work(len(pairs), len(inputs.query_pairs.raw.missing(map(pair_key, pairs))))
 
 
 def database_pair_work(inputs: SfmInputs, pairs: Iterable[tuple[str, str]]) -> Work:
     """Database pairs (names), and those not matched yet."""
     pairs = inputs.database_pairs.canonical(pairs)
-    return Work(len(pairs), len(inputs.database_pairs.stores["none"].missing(map(pair_key, pairs))))
+    return Work(len(pairs), len(inputs.database_pairs.raw.missing(map(pair_key, pairs))))
 
 
 def registration_work(tasks: Sequence[QueryTask]) -> Work:
@@ -173,7 +174,7 @@ def measure_unit_costs(scene: Scene, settings: SfmSettings) -> UnitCosts:
     query = features(scene.queries.names[0], scene.queries.paths[0])
     feature_seconds = (time.perf_counter() - started) / (len(sample) + 1)
 
-    matcher = settings.matching.matcher(workers=1)
+    matcher = settings.matching.matcher()
     matcher(records[0]["descriptors"][:2], [records[1]["descriptors"][:2]])  # torch's first call: not a pair's cost
     pairs = [(a, b) for a in range(len(sample)) for b in range(a + 1, len(sample))]
     started = time.perf_counter()

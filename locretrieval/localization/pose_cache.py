@@ -2,15 +2,17 @@
 
 A query registered from a set of database images (a local map triangulated from them, or
 their observations of the global map) gives the same outcome whichever ranking, k or run
-selects the set: pycolmap's RANSAC is seeded (``sfm.pnp.random_seed``). One file per
+selects the set: pycolmap's RANSAC is seeded (``sfm.pnp.random_seed``). One folder per
 paradigm source (its map or maps, the query matches' store and the PnP settings, all in the
-file name's key) holds every outcome computed so far, each keyed by the query's name and the
+folder name's key) holds every outcome computed so far, each keyed by the query's name and the
 set's database image names; a rerun, another ranking of the same images, or the training
 callback's next epoch computes only the sets it has not seen.
 
-Concurrent runs sharing a cache folder each rewrite the file atomically with what they read
-and computed: the last writer wins, so a concurrent run's new outcomes may be missing from the
-file later (computed again, never wrong).
+Safe for concurrent writers (shards of one evaluation, several runs sharing a cache): each save
+writes a new part file holding only that writer's new outcomes, atomically, and readers take the
+union of the parts, so no writer's entries are lost. When a folder holds more than `MAX_PARTS`
+parts, a save merges every part it read with its own into one file and deletes the parts it
+merged (never those written since it read); a reader that finds a part gone reads the folder again.
 """
 
 from __future__ import annotations
@@ -22,11 +24,13 @@ from pathlib import Path
 
 import numpy as np
 
-from locretrieval.cache import load_arrays, save_arrays
+from locretrieval.cache import config_key, load_arrays, save_arrays
 from locretrieval.localization.estimates import LOCALIZED
 
 log = logging.getLogger(__name__)
 
+#: Part files a folder may hold before a save merges them.
+MAX_PARTS = 32
 #: Bytes of an entry's key (a truncated SHA-256 of the query's and the images' names).
 KEY_BYTES = 16
 #: A query's result for one set of images: world-to-camera (q wxyz, t), or a failure reason.
@@ -34,21 +38,40 @@ Outcome = tuple[np.ndarray, np.ndarray] | str
 
 
 class PoseCache:
-    """Outcomes by (query, set of database images) of one paradigm source, stored at ``path``
-    (``.npz``: entry keys as uint8 rows of 16 bytes, ``qvec`` wxyz, ``tvec``, failure ``reason``, ``""`` when
-    localised); ``path=None`` caches within this object only."""
+    """Outcomes by (query, set of database images) of one paradigm source, stored in the folder
+    ``path`` (part files ``.npz``: entry keys as uint8 rows of 16 bytes, ``qvec`` wxyz, ``tvec``,
+    failure ``reason``, ``""`` when localised); ``path=None`` caches within this object only."""
 
     def __init__(self, path: Path | None, query_names: Sequence[str], database_names: Sequence[str]) -> None:
         self.path = path
         self.query_names = query_names
         self.database_names = database_names
         self.outcomes: dict[bytes, Outcome] = {}
-        self.new = 0
-        if path is not None and path.is_file():
-            arrays = load_arrays(path)
-            for key, qvec, tvec, reason in zip(arrays["keys"], arrays["qvec"], arrays["tvec"], arrays["reason"]):
+        self._new: dict[bytes, Outcome] = {}
+        self._parts_read: list[Path] = []
+        if path is not None:
+            self._read()
+
+    @property
+    def new(self) -> int:
+        """Outcomes put since the last save."""
+        return len(self._new)
+
+    def _read(self) -> None:
+        """Every part of the folder (again from the start when a concurrent merge removed one)."""
+        while True:
+            parts = sorted(self.path.glob("[!.]*.npz")) if self.path.is_dir() else []
+            try:
+                arrays = [load_arrays(part) for part in parts]
+            except FileNotFoundError:
+                continue
+            break
+        for part in arrays:
+            for key, qvec, tvec, reason in zip(part["keys"], part["qvec"], part["tvec"], part["reason"]):
                 self.outcomes[key.tobytes()] = (qvec, tvec) if reason == LOCALIZED else str(reason)
-            log.info("%d registration outcomes read from %s", len(self.outcomes), path)
+        self._parts_read = parts
+        if parts:
+            log.info("%d registration outcomes read from %d part(s) in %s", len(self.outcomes), len(parts), self.path)
 
     def entry(self, query: int, images: Iterable[int]) -> bytes:
         """The key of a query registered from database images ``images`` (indices)."""
@@ -61,26 +84,41 @@ class PoseCache:
     def put(self, query: int, images: Iterable[int], outcome: Outcome) -> None:
         key = self.entry(query, images)
         if key not in self.outcomes:
-            self.outcomes[key] = outcome
-            self.new += 1
+            self.outcomes[key] = self._new[key] = outcome
 
     def save(self) -> None:
-        """Write every outcome (read and new) when some are new."""
-        if self.path is None or not self.new:
+        """Write the new outcomes as a part of their own; merge the parts read with them when
+        the folder holds more than `MAX_PARTS`."""
+        if self.path is None or not self._new:
             return
-        keys = list(self.outcomes)
-        qvec, tvec = np.full((len(keys), 4), np.nan), np.full((len(keys), 3), np.nan)
-        reasons = []
-        for row, key in enumerate(keys):
-            outcome = self.outcomes[key]
-            if isinstance(outcome, str):
-                reasons.append(outcome)
-            else:
-                qvec[row], tvec[row] = outcome
-                reasons.append(LOCALIZED)
-        save_arrays(self.path, {
-            "keys": np.frombuffer(b"".join(keys), np.uint8).reshape(-1, KEY_BYTES),
-            "qvec": qvec, "tvec": tvec, "reason": np.array(reasons, dtype=str),
-        })
-        log.info("%d new registration outcomes (%d in all) saved to %s", self.new, len(keys), self.path)
-        self.new = 0
+        merge = len(self._parts_read) >= MAX_PARTS
+        entries = self.outcomes if merge else self._new
+        _write_part(self.path, entries)
+        if merge:
+            for part in self._parts_read:
+                part.unlink(missing_ok=True)
+            self._parts_read = []
+        log.info("%d new registration outcomes saved to %s%s", len(self._new), self.path,
+                 f" (merged with {len(self.outcomes) - len(self._new)} read)" if merge else "")
+        self._new = {}
+
+
+def _write_part(folder: Path, entries: dict[bytes, Outcome]) -> Path:
+    """One part file of ``entries``, named by their keys (two writers of the same entries write
+    the same file), written atomically."""
+    keys = sorted(entries)
+    qvec, tvec = np.full((len(keys), 4), np.nan), np.full((len(keys), 3), np.nan)
+    reasons = []
+    for row, key in enumerate(keys):
+        outcome = entries[key]
+        if isinstance(outcome, str):
+            reasons.append(outcome)
+        else:
+            qvec[row], tvec[row] = outcome
+            reasons.append(LOCALIZED)
+    path = folder / f"{config_key(b''.join(keys).hex())}.npz"
+    save_arrays(path, {
+        "keys": np.frombuffer(b"".join(keys), np.uint8).reshape(-1, KEY_BYTES),
+        "qvec": qvec, "tvec": tvec, "reason": np.array(reasons, dtype=str),
+    })
+    return path

@@ -29,6 +29,7 @@ from locretrieval.localization.pnp import NO_KEYPOINTS, TOO_FEW_MATCHES, PnPSett
 from locretrieval.localization.pose_cache import Outcome, PoseCache
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.localization.triangulation import TriangulationSettings
+from locretrieval.localization.verification import PairVerification
 from locretrieval.localization.workers import parallel_map, resolve_workers
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import Scene
@@ -45,8 +46,9 @@ class SfmSettings:
     """The ``sfm`` config group, shared by local SfM (2a), global SfM (2b) and the
     co-observation ground truth so that they share their cached features and matches:
     local ``features``, ``matching``, ``triangulation`` with known poses, ``pnp``
-    registration, the database pairs of global maps (``map_pairs``, by frustum overlap) and
-    the worker processes (``workers``: ``null`` or 0, one per core; 1, in this process)."""
+    registration, the database pairs of global maps (``map_pairs``, by frustum overlap), the
+    worker processes (``workers``: ``null`` or 0, one per core; 1, in this process) and this job's
+    ``shard`` of the work (``i/n``: the i-th of n jobs sharing the cache; null: all of it)."""
 
     features: FeatureSettings
     matching: MatchingSettings
@@ -54,9 +56,17 @@ class SfmSettings:
     pnp: PnPSettings
     map_pairs: PairSelection
     workers: int | None
+    shard: str | None
 
     def __post_init__(self) -> None:
         require(self.workers is None or self.workers >= 0, "workers", f"must be >= 0 or null, got {self.workers}")
+        require(self.shard is None or Shard.parse(self.shard) is not None, "shard",
+                f"must be 'i/n' with 0 <= i < n (this job's share of the SfM work), or null, got {self.shard!r}")
+
+    @property
+    def job_shard(self) -> "Shard | None":
+        """This job's `Shard` of the SfM work, or None: all of it."""
+        return Shard.parse(self.shard) if self.shard is not None else None
 
     @property
     def processes(self) -> int:
@@ -64,12 +74,38 @@ class SfmSettings:
         return resolve_workers(self.workers)
 
 
+@dataclass(frozen=True)
+class Shard:
+    """The ``index``-th of ``count`` jobs sharing one evaluation's SfM work (``sfm.shard=i/n``):
+    every list of work items, sorted, is split by taking every ``count``-th from ``index``."""
+
+    index: int
+    count: int
+
+    @classmethod
+    def parse(cls, text: str) -> "Shard | None":
+        """``"i/n"`` as a shard, None when it is not one."""
+        parts = str(text).split("/")
+        if len(parts) != 2 or not all(part.strip().isdigit() for part in parts):
+            return None
+        index, count = int(parts[0]), int(parts[1])
+        return cls(index, count) if 0 <= index < count else None
+
+    def take(self, items: Sequence[Any]) -> list[Any]:
+        """This shard's items of ``items`` (in a deterministic order)."""
+        return list(items[self.index :: self.count])
+
+    def __str__(self) -> str:
+        return f"{self.index}/{self.count}"
+
+
 @dataclass
 class SfmInputs:
-    """Cached features and matches of a scene, picklable for worker processes."""
+    """Cached features and matches of a scene (in ``cache_dir``), picklable for worker processes."""
 
     scene: Scene
     settings: SfmSettings
+    cache_dir: Path
     database_features: FeatureStore
     query_features: FeatureStore
     database_pairs: PairMatcher
@@ -87,25 +123,12 @@ class SfmInputs:
         return cls(
             scene,
             settings,
+            Path(cache_dir),
             database_features,
             query_features,
             PairMatcher(scene.database, database_features, scene.database, database_features, settings.matching, cache_dir),
             PairMatcher(scene.queries, query_features, scene.database, database_features, settings.matching, cache_dir),
         )
-
-    @classmethod
-    def for_rankings(
-        cls, paradigm: str, scene: Scene, rankings: Sequence[Ranking], ks: Sequence[int], settings: SfmSettings,
-        cache_dir: Path | None,
-    ) -> tuple["SfmInputs", list[list[int]]]:
-        """The inputs of an SfM paradigm: features of the scene, every query matched to its top
-        ``max(k)`` images of every ranking, and each ranking's ks (clamped to its depth)."""
-        if cache_dir is None:
-            raise ValueError(f"{paradigm} needs a cache directory for its features, matches and maps")
-        ranking_ks = [ranking.clamp_ks(ks) for ranking in rankings]
-        inputs = cls.prepare(scene, settings, Path(cache_dir))
-        inputs.match_queries(rankings, ranking_ks)
-        return inputs, ranking_ks
 
     @property
     def map_pairs(self) -> PairSelection:
@@ -113,30 +136,34 @@ class SfmInputs:
         return self.settings.map_pairs.for_scene(self.scene)
 
     @property
-    def query_verification(self) -> str:
-        return self.settings.matching.query_verification
+    def query_verification(self) -> PairVerification:
+        return self.settings.matching.query_verifier
 
-    def ranked_pairs(self, rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> set[tuple[str, str]]:
-        """Every (query, database image) name pair of a query's top ``max(k)`` of a ranking."""
-        queries, database = self.scene.queries.names, self.scene.database.names
+    @property
+    def database_verification(self) -> PairVerification:
+        return self.settings.matching.database_verification
+
+    def ranked_pairs(
+        self, rankings: Sequence[Ranking], ks: Sequence[Sequence[int]], queries: Sequence[int] | None = None
+    ) -> set[tuple[str, str]]:
+        """Every (query, database image) name pair of a query's top ``max(k)`` of a ranking (of
+        the ``queries`` given, or all)."""
+        query_names, database = self.scene.queries.names, self.scene.database.names
+        rows = np.arange(len(query_names)) if queries is None else np.asarray(queries, dtype=np.int64)
         pairs = set()
         for ranking, ranking_ks in zip(rankings, ks):
-            top = ranking.indices[:, : max(ranking_ks)]
-            rows, slots = np.nonzero(top != EMPTY)
-            pairs.update((queries[q], database[i]) for q, i in zip(rows, top[rows, slots]))
+            top = ranking.indices[rows, : max(ranking_ks)]
+            row, slot = np.nonzero(top != EMPTY)
+            pairs.update((query_names[q], database[i]) for q, i in zip(rows[row], top[row, slot]))
         return pairs
-
-    def match_queries(self, rankings: Sequence[Ranking], ks: Sequence[Sequence[int]]) -> int:
-        """Match every query to its top ``max(k)`` images of every ranking; returns new pairs matched."""
-        return self.query_pairs.ensure(self.ranked_pairs(rankings, ks), self.settings.processes, self.query_verification)
 
     def pose_cache(self, paradigm: str, maps: Any, cache_dir: Path) -> PoseCache:
         """The cached registration outcomes of ``paradigm`` (`PoseCache`) in ``<cache_dir>/poses/``,
         keyed by ``maps`` (what the paradigm's maps are keyed by), the query matches' store
         (features of both sets, ratio, verification) and the PnP settings."""
-        queries = self.query_pairs.stores[self.query_verification].folder.name
+        queries = self.query_pairs.store(self.query_verification).folder.name
         key = config_key(maps, queries, dataclasses.asdict(self.settings.pnp))
-        return PoseCache(cache_dir / "poses" / f"{paradigm}-{key}.npz", self.scene.queries.names, self.scene.database.names)
+        return PoseCache(cache_dir / "poses" / f"{paradigm}-{key}", self.scene.queries.names, self.scene.database.names)
 
     def query_matches(self, query: int, database: Sequence[int]) -> tuple[np.ndarray, dict[int, np.ndarray]]:
         """The query's keypoints and its (verified) matches to each database image."""
@@ -234,11 +261,15 @@ def _never(images: tuple[int, ...]) -> Outcome:
 def run_queries(
     paradigm: str, rankings: Sequence[Ranking], ks: Sequence[list[int]],
     localize: Callable[[Any, QueryTask], list[list[Outcome]]], shared: Any, workers: int, cache: PoseCache,
-) -> list[PoseEstimates]:
+    queries: Sequence[int] | None = None,
+) -> list[PoseEstimates] | None:
     """Run ``localize(shared, task)`` (outcomes ``[ranking][k]`` of one query) in worker processes
     on every query with an image set whose outcome ``cache`` does not hold, add the new outcomes
-    to the cache and save it, and gather one `PoseEstimates` per ranking; failures are logged."""
+    to the cache and save it, and gather one `PoseEstimates` per ranking; failures are logged.
+    With ``queries`` (a shard's), only those are localised and cached, and nothing is gathered."""
     tasks = query_tasks(rankings, ks, cache)
+    if queries is not None:
+        tasks = [tasks[q] for q in queries]
     pending = [task for task in tasks if not task.complete]
     if len(pending) < len(tasks):
         log.info("%s: %d of %d queries fully read from the registration cache", paradigm, len(tasks) - len(pending), len(tasks))
@@ -249,6 +280,8 @@ def run_queries(
             for k, outcome in zip(ranking_ks, per_k):
                 cache.put(task.query, top[:k], outcome)
     cache.save()
+    if queries is not None:
+        return None
     return [_estimates(paradigm, ranking, ranking_ks, [per_query[r] for per_query in outcomes])
             for r, (ranking, ranking_ks) in enumerate(zip(rankings, ks))]
 

@@ -90,12 +90,18 @@ def triangulate_known_poses(
 
 
 def _sparse_map(reconstruction: pycolmap.Reconstruction, num_keypoints: Sequence[int]) -> SparseMap:
-    point_ids = sorted(reconstruction.point3D_ids())
-    row_of = {point_id: row for row, point_id in enumerate(point_ids)}
-    points = np.array([reconstruction.points3D[i].xyz for i in point_ids], dtype=np.float64).reshape(-1, 3)
-    observations = [np.full(n, -1, dtype=np.int64) for n in num_keypoints]
-    for point_id in point_ids:
-        row = row_of[point_id]
-        for element in reconstruction.points3D[point_id].track.elements:
-            observations[element.image_id - 1][element.point2D_idx] = row
+    """The reconstruction's points (rows in ascending point id) and each image's observations,
+    read per image (a loop over observations, not over every point's track in Python)."""
+    point_ids = np.array(sorted(reconstruction.point3D_ids()), dtype=np.int64)
+    points3D = reconstruction.points3D
+    points = np.array([points3D[i].xyz for i in point_ids.tolist()], dtype=np.float64).reshape(-1, 3)
+    observations = []
+    for index, count in enumerate(num_keypoints):
+        ids = np.full(count, -1, dtype=np.int64)
+        image = reconstruction.images[index + 1]
+        observed = np.asarray(image.get_observation_point2D_idxs(), dtype=np.int64)
+        if len(observed):
+            observed_ids = np.fromiter((p.point3D_id for p in image.get_observation_points2D()), dtype=np.int64, count=len(observed))
+            ids[observed] = np.searchsorted(point_ids, observed_ids)
+        observations.append(ids)
     return SparseMap(points, observations)

@@ -8,6 +8,8 @@ it once per call.
 
 from __future__ import annotations
 
+import collections
+import contextlib
 import multiprocessing
 import os
 import pickle
@@ -124,12 +126,7 @@ def parallel_map(
                 yield function(task) if shared is None else function(shared, task)
                 progress.update()
             return
-        with tempfile.TemporaryDirectory(prefix="locretrieval-shared-") as folder:
-            shared_file = None
-            if shared is not None:
-                shared_file = str(Path(folder) / "shared.pickle")
-                with open(shared_file, "wb") as stream:
-                    pickle.dump(shared, stream, protocol=pickle.HIGHEST_PROTOCOL)
+        with _shared_file(shared) as shared_file:
             try:
                 for result in _pools.get(workers).map(partial(_call, function, shared_file), tasks, chunksize=1):
                     yield result
@@ -137,3 +134,57 @@ def parallel_map(
             except BrokenProcessPool:
                 _pools.discard(workers)
                 raise
+
+
+@contextlib.contextmanager
+def task_stream(
+    function: Callable[..., Any], tasks: int, workers: int | None, description: str, shared: Any = None
+) -> Iterator[Callable[[Any], None]]:
+    """``submit(task)`` hands ``function(shared, task)`` (or ``function(task)``) to this process's
+    worker pool and returns at once, so the caller goes on producing tasks (e.g. a GPU matching
+    while the CPUs verify); at most two tasks per worker wait at a time (the caller blocks on the
+    oldest beyond that). Leaving the block waits for every task and raises the first error.
+    ``workers == 1``, or a small workload (as `parallel_map` judges it from the ``tasks`` expected),
+    runs each task in this process when it is submitted."""
+    workers = resolve_workers(workers)
+    progress: Any = tqdm(total=tasks, desc=description, unit="task", disable=None, leave=False)
+    with progress:
+        if workers == 1 or tasks <= 1 or (not _pools.started(workers) and tasks < MIN_TASKS_PER_WORKER * workers):
+            def run_here(task: Any) -> None:
+                function(task) if shared is None else function(shared, task)
+                progress.update()
+
+            yield run_here
+            return
+        pool, pending = _pools.get(workers), collections.deque()
+        with _shared_file(shared) as shared_file:
+            def submit(task: Any) -> None:
+                while len(pending) >= 2 * workers:
+                    pending.popleft().result()
+                    progress.update()
+                pending.append(pool.submit(_call, function, shared_file, task))
+
+            try:
+                yield submit
+                while pending:
+                    pending.popleft().result()
+                    progress.update()
+            except BrokenProcessPool:
+                _pools.discard(workers)
+                raise
+            finally:
+                for future in pending:
+                    future.cancel()
+
+
+@contextlib.contextmanager
+def _shared_file(shared: Any) -> Iterator[str | None]:
+    """``shared`` pickled once into a temporary file the workers load (None: nothing shared)."""
+    if shared is None:
+        yield None
+        return
+    with tempfile.TemporaryDirectory(prefix="locretrieval-shared-") as folder:
+        shared_file = str(Path(folder) / "shared.pickle")
+        with open(shared_file, "wb") as stream:
+            pickle.dump(shared, stream, protocol=pickle.HIGHEST_PROTOCOL)
+        yield shared_file
