@@ -98,7 +98,7 @@ def main() -> None:
         command = [
             sys.executable, str(REPOSITORY / "evaluate.py"), "data=kapture", f"data.root={data}",
             "data.mapping=mapping", "data.queries=[query]", "model=precomputed", "model.feature_name=thumbnail",
-            "sfm.features.type=kapture", f"sfm.features.kapture.name={FEATURE_NAME}",
+            "sfm/features=kapture", f"sfm.features.name={FEATURE_NAME}",
             f"paradigms.approximation.k={K}", f"paradigms.local_sfm.k={K}", f"paradigms.global_sfm.k={K}",
             f"paths.cache_dir={root / 'cache'}", f"hydra.run.dir={root / 'run'}",
         ]

@@ -1,6 +1,7 @@
-"""Time and peak memory of the benchmark core at dataset scale, on generated data.
+"""Time and peak memory of the benchmark core at dataset scale, on generated data; the SfM sweep projected and checked.
 
-    .venv/bin/python benchmarks/bench_scale.py [--size baidu|aachen|robotcar] [--dimension 4096] [--keypoints 20000]
+    .venv/bin/python benchmarks/bench_scale.py [--size baidu aachen robotcar] [--dimension 4096] [--keypoints 20000]
+                                               [--slice 0.02] [--slice-keypoints 20000]
 
 ``baidu``: Baidu-mall's 689 database images and 2,292 queries, handheld cameras in a
 150 m x 60 m mall; ``aachen``: Aachen Day-Night v1.1's 6,697 database images and 1,015 queries,
@@ -15,19 +16,27 @@ on every ranking, the localization and retrieval metrics. Each step prints its w
 the peak of the numpy memory it allocated (tracemalloc) and the process's peak resident
 memory so far (ru_maxrss; faiss and BLAS included).
 
-Then the SfM paradigms (2a, 2b) at the published local-feature count (``--keypoints``, 20,000:
-the R2D2 features ``r2d2_WASF-N8_20k`` the data configs select): their work counted exactly
-(`local_sfm.plan`, `global_sfm.plan`) for these rankings, the k lists of
-``configs/paradigms/default.yaml`` and the dataset config's ``sfm.map_pairs``; each stage timed
-on a sample at that count (reading an image's published features, matching a pair, a map of
-generated points triangulated with known poses, a registration by PnP); and the projected
-time of the full sweep on this CPU and with matching on a GPU (measured where there is one;
-otherwise ``2 n^2 D / (--gpu-tflops x 10^12)`` per pair, the product at that throughput).
+Then the SfM paradigms (2a, 2b) with the dataset config's settings (``sfm``, from
+``python evaluate.py data=<size>``) at the published local-feature count (``--keypoints``,
+20,000: the R2D2 features the data configs select), on the device a run would use:
+
+1. their work counted exactly (`local_sfm.plan`, `global_sfm.plan`) for these rankings and the k
+   lists of ``configs/paradigms/default.yaml``;
+2. unit costs measured by the product's own `measure_unit_costs` on 10 database images and a
+   query of a generated world (`sfm_world.FeatureWorld`: points with descriptors, each image's
+   features their projections plus clutter, written as R2D2 kapture files and read back):
+   reading features, matching (as the pipeline batches it), verification, triangulation, PnP;
+3. the full sweep's forecast (`SfmPlan.forecast`, what ``evaluate.py`` logs) per stage;
+4. **the forecast checked**: a slice of the work (the ``--slice`` share of the queries with the
+   smallest x and the database images within 25 m of them, their own rankings, features of
+   the generated world at ``--slice-keypoints``) forecast the same way, then run end to end
+   through the SfM pipeline (`run_sfm`, both paradigms) and timed.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import resource
 import tempfile
@@ -48,15 +57,15 @@ from locretrieval.groundtruth import frustum_groundtruth, groundtruth_from_score
 from locretrieval.localization import approximation, global_sfm, local_sfm
 from locretrieval.localization.global_sfm import GlobalSfmSettings
 from locretrieval.localization.local_sfm import LocalSfmSettings
-from locretrieval.localization.matching import NearestNeighbourMatcher
+from locretrieval.localization.pipeline import run_sfm
+from locretrieval.localization.plan import SfmPlan, UnitCosts, feature_work, measure_unit_costs
 from locretrieval.localization.sfm import SfmSettings
-from locretrieval.localization.pnp import estimate_absolute_pose
-from locretrieval.localization.triangulation import triangulate_known_poses
 from locretrieval.metrics.localization import localization_table, query_error_table
 from locretrieval.metrics.retrieval import retrieval_tables
 from locretrieval.retrieval import random_ranking
 from locretrieval.retrieval.index import search
 from locretrieval.scene import Camera, ImageSet, Scene
+from sfm_world import FeatureWorld
 
 CAMERA = Camera("PINHOLE", 1024, 1024, (500.0, 500.0, 512.0, 512.0))
 #: (database images, queries) of each dataset
@@ -66,6 +75,10 @@ DEPTH = 50
 KS = [1, 2, 3, 5, 10, 20, 50]  # configs/paradigms/default.yaml, approximation
 THRESHOLDS = [[0.25, 2.0], [0.5, 5.0], [5.0, 10.0]]  # configs/evaluate.yaml
 GIB = 2.0**30
+#: Database images of the unit-cost sample (the product's plan measures on fewer, the scene's own).
+UNIT_COST_IMAGES = 10
+#: Each SfM paradigm's plan.
+PARADIGM_PLANS = {"local_sfm": local_sfm.plan, "global_sfm": global_sfm.plan}
 
 
 def images(centers: np.ndarray, yaw: np.ndarray, rng: np.random.Generator, prefix: str) -> ImageSet:
@@ -145,16 +158,41 @@ def measure(label: str, function, *args, **kwargs):
     return result
 
 
+def scene_rankings(scene: Scene, database_descriptors: np.ndarray, query_descriptors: np.ndarray, rng: np.random.Generator, seed: int,
+                   timed=lambda label, function, *args, **kwargs: function(*args, **kwargs)) -> tuple[list, dict]:
+    """The five rankings of a run (faiss on the descriptors, the relative-pose, frustum and
+    synthetic co-observation ground truths, random) and the ground truths; ``timed(label, f, ...)`` calls each step."""
+    database, queries = scene.database, scene.queries
+    ranking = timed("retrieval (faiss, top 50)", search, query_descriptors, database_descriptors, DEPTH)
+    groundtruths = {
+        "relative_pose": timed("ground truth: relative pose (25 m, 45 deg)", relative_pose_groundtruth, database, queries,
+                               depth=DEPTH, position_threshold=25.0, rotation_threshold=45.0),
+        "frustum": timed("ground truth: frustum (0.1-50 m)", frustum_groundtruth, database, queries, depth=DEPTH, near=0.1, far=50.0, min_radius=0.0),
+    }
+    groundtruths["co_observation"] = timed("ground truth: co-observation (synthetic)", synthetic_co_observation,
+                                           database, queries, groundtruths["frustum"].relevance, rng)
+    baseline = timed("random baseline ranking", random_ranking, len(queries), len(database), DEPTH, seed)
+    return [ranking, *(gt.ranking for gt in groundtruths.values()), baseline], groundtruths
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--size", choices=sorted(SIZES), default="aachen")
+    parser.add_argument("--size", choices=sorted(SIZES), nargs="+", default=["aachen"])
     parser.add_argument("--dimension", type=int, default=4096)
     parser.add_argument("--noise", type=float, default=0.5, help="descriptor noise (relative to the features)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--keypoints", type=int, default=20_000, help="local features per image (the published R2D2: 20,000)")
-    parser.add_argument("--gpu-tflops", type=float, default=50.0, help="GPU float32 throughput of the projection without a GPU")
+    parser.add_argument("--slice", type=float, default=None, help="share of the queries in the checked slice (default: 0.02 on a GPU, 0.005 on a CPU)")
+    parser.add_argument("--slice-keypoints", type=int, default=None, help="keypoints per image in the slice (default: --keypoints on a GPU, 1,000 on a CPU)")
     args = parser.parse_args()
+    device = torch.cuda.get_device_name() if torch.cuda.is_available() else f"CPU ({os.cpu_count()} cores)"
+    print(f"device: {device}, torch {torch.__version__}")
+    for size in args.size:
+        run_size(argparse.Namespace(**{**vars(args), "size": size}))
 
+
+def run_size(args: argparse.Namespace) -> None:
+    """Every step at ``args.size``, then the SfM paradigms (`sfm_at_scale`)."""
     rng = np.random.default_rng(args.seed)
     num_database, num_queries = SIZES[args.size]
     started = time.perf_counter()
@@ -176,25 +214,9 @@ def main() -> None:
     )
 
     tracemalloc.start()
-    ranking = measure("retrieval (faiss, top 50)", search, query_descriptors, database_descriptors, DEPTH)
-    groundtruths = {
-        "relative_pose": measure(
-            "ground truth: relative pose (25 m, 45 deg)", relative_pose_groundtruth, database, queries,
-            depth=DEPTH, position_threshold=25.0, rotation_threshold=45.0,
-        ),
-        "frustum": measure(
-            "ground truth: frustum (0.1-50 m)", frustum_groundtruth, database, queries,
-            depth=DEPTH, near=0.1, far=50.0, min_radius=0.0,
-        ),
-    }
-    groundtruths["co_observation"] = measure(
-        "ground truth: co-observation (synthetic)", synthetic_co_observation,
-        database, queries, groundtruths["frustum"].relevance, rng,
-    )
-    baseline = measure("random baseline ranking", random_ranking, num_queries, num_database, DEPTH, args.seed)
+    rankings, groundtruths = scene_rankings(scene, database_descriptors, query_descriptors, rng, args.seed, measure)
     settings = approximation.ApproximationSettings(enabled=True, k=KS, methods=list(approximation.METHODS), alpha=8.0)
-    estimates = measure("paradigm 1: descriptor (ewb, bdi, csi)", approximation.run, scene, [ranking], settings)
-    rankings = [ranking, *(gt.ranking for gt in groundtruths.values()), baseline]
+    estimates = measure("paradigm 1: descriptor (ewb, bdi, csi)", approximation.run, scene, rankings[:1], settings)
     estimates += measure("paradigm 1: ground truths + random (ewb)", approximation.run, scene, rankings[1:], settings)
     subsets = {"all": np.ones(num_queries, dtype=bool)}
     measure(
@@ -208,111 +230,123 @@ def main() -> None:
     errors = localized.errors(queries.qvec, queries.tvec)[0][KS.index(10)]
     print(f"sanity: descriptor R@1 {recall['value'].iloc[0]:.2f}, R@50 {recall['value'].iloc[-1]:.2f} (relative pose); "
           f"bdi k=10 median position error {np.nanmedian(errors):.1f} m")
-    sfm_at_scale(scene, rankings, args, rng)
+    tracemalloc.stop()
+
+    def descriptors_of(database_rows: np.ndarray, query_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return database_descriptors[database_rows], query_descriptors[query_rows]
+
+    sfm_at_scale(scene, rankings, descriptors_of, args, rng)
 
 
 def dataset_sfm(size: str) -> SfmSettings:
-    """``configs/sfm/default.yaml`` with the dataset config's ``sfm`` section (its ``map_pairs``)."""
-    dataset = OmegaConf.load(CONFIGS / "data" / f"{size}.yaml")
-    sfm = OmegaConf.merge(OmegaConf.load(CONFIGS / "sfm" / "default.yaml"), {"matching": {"device": "cpu"}}, dataset.sfm)
-    return validated(SfmSettings, sfm, "sfm")
+    """The ``sfm`` settings of ``python evaluate.py data=<size>`` (its preset and ``sfm`` section)."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        cfg = compose(config_name="evaluate", overrides=[f"data={size}"])
+    return validated(SfmSettings, cfg.sfm, "sfm")
 
 
-def sfm_at_scale(scene: Scene, rankings, args, rng: np.random.Generator) -> None:
-    """The SfM paradigms' work for ``rankings`` and its projected time at ``args.keypoints``."""
-    sfm = dataset_sfm(args.size)
+def sfm_paradigms() -> dict[str, tuple]:
+    """The SfM paradigms of ``configs/paradigms/default.yaml``: name -> (stages, settings)."""
     paradigms = OmegaConf.load(CONFIGS / "paradigms" / "default.yaml")
-    local_settings = LocalSfmSettings(True, list(paradigms.local_sfm.k), str(paradigms.local_sfm.map_matches))
-    global_settings = GlobalSfmSettings(True, list(paradigms.global_sfm.k), None)
-    with tempfile.TemporaryDirectory(prefix="bench_scale-") as cache:
-        work = [
-            measure(f"plan: local SfM, k={local_settings.k}", local_sfm.plan, scene, rankings, local_settings, sfm, Path(cache), 0),
-            measure(f"plan: global SfM, k={global_settings.k}", global_sfm.plan, scene, rankings, global_settings, sfm, Path(cache), 0),
-        ]
-    for w in work:
-        print(f"  {w.paradigm}: query pairs {w.query_pairs.total:,}, database pairs {w.database_pairs.total:,}, "
-              f"maps {w.maps.total:,} (~{w.pairs_per_map:,.0f} pairs each), registrations {w.registrations.total:,}")
-    n, processes = args.keypoints, os.cpu_count() or 1
-    sample = measure(f"sample at {n:,} keypoints per image", unit_costs, scene, n, sfm, rng)
-    pairs = max(w.query_pairs.total for w in work) + sum(w.database_pairs.total for w in work)
-    triangulated = sum(w.maps.total * w.pairs_per_map for w in work)
-    registrations = sum(w.registrations.total for w in work)
-    images = len(scene.database) + len(scene.queries)
-    rest = (images * sample["read"] + triangulated * sample["triangulation"] + registrations * sample["registration"]) / processes
-    print(f"  per unit: read features {sample['read']:.3f} s/image, match {sample['matching']:.3f} s/pair ({sample['matches']:.0f} "
-          f"matches), triangulate {sample['triangulation']:.3f} s/pair ({sample['map_points']:,.0f} points in a 10-image map), "
-          f"register {sample['registration']:.3f} s/query ({sample['correspondences']:,.0f} correspondences)")
-    gpu = sample.get("gpu_matching", 2 * n * n * 128 / (args.gpu_tflops * 1e12))
-    source = "measured" if "gpu_matching" in sample else f"projected at {args.gpu_tflops:g} TFLOP/s"
-    for label, per_pair in (("this CPU", sample["matching"]), (f"GPU matching ({source}, {gpu * 1e3:.1f} ms/pair)", gpu)):
-        total = pairs * per_pair + rest
-        print(f"projected full SfM sweep ({args.size}, {label}, {processes} processes): {total / 3600:.1f} h "
-              f"(matching {pairs:,} pairs {pairs * per_pair / 3600:.1f} h, features, maps and registrations {rest / 3600:.1f} h)")
+    return {
+        "local_sfm": (local_sfm.STAGES, LocalSfmSettings(True, list(paradigms.local_sfm.k), str(paradigms.local_sfm.map_matches))),
+        "global_sfm": (global_sfm.STAGES, GlobalSfmSettings(True, list(paradigms.global_sfm.k), None)),
+    }
 
 
-def unit_costs(scene: Scene, count: int, sfm: SfmSettings, rng: np.random.Generator) -> dict[str, float]:
-    """Seconds per unit at ``count`` keypoints per image: reading an image's published features
-    (float32 R2D2 files), matching a pair (CPU; GPU too where there is one), triangulating a map
-    of 10 nearby database images of generated points (per matched pair) and a PnP registration."""
-    with tempfile.TemporaryDirectory(prefix="bench_scale-features-") as folder:
-        path = Path(folder) / "image.desc"
-        rng.normal(size=(count, 128)).astype(np.float32).tofile(path)
+def sfm_plan(scene: Scene, rankings, sfm: SfmSettings, cache: Path) -> SfmPlan:
+    """The exact SfM work of both paradigms for ``rankings`` (no cost yet)."""
+    from locretrieval.localization.sfm import SfmInputs
+
+    work = [PARADIGM_PLANS[name](scene, rankings, settings, sfm, cache, 0) for name, (_, settings) in sfm_paradigms().items()]
+    return SfmPlan(feature_work(SfmInputs.prepare(scene, sfm, cache, extract=False)), work, True, sfm.processes)
+
+
+def with_kapture_root(scene: Scene, root: Path) -> Scene:
+    """``scene`` with its images under the kapture folder ``root`` (where `FeatureWorld` writes their features)."""
+    records = root / "sensors" / "records_data"
+    return Scene(scene.name, dataclasses.replace(scene.database, image_root=records), dataclasses.replace(scene.queries, image_root=records),
+                 frustum_far=scene.frustum_far)
+
+
+def measured_unit_costs(scene: Scene, sfm: SfmSettings, keypoints: int, rng: np.random.Generator, folder: Path) -> UnitCosts:
+    """`measure_unit_costs` on the first database image, its 9 nearest and the nearest query,
+    their features generated (`FeatureWorld`) at ``keypoints`` and written as kapture files."""
+    database, queries = scene.database, scene.queries
+    near = np.argsort(np.linalg.norm(database.centers - database.centers[0], axis=1), kind="stable")[:UNIT_COST_IMAGES]
+    query = int(np.argmin(np.linalg.norm(queries.centers - database.centers[0], axis=1)))
+    sample = with_kapture_root(Scene(scene.name, database.subset(near), queries.subset(np.array([query])), frustum_far=scene.frustum_far), folder)
+    world = FeatureWorld(sample.database.centers, scene.frustum_far, rng)
+    world.write(sample.database, range(len(near)), keypoints, scene.frustum_far, sfm.features.kapture.name)
+    world.write(sample.queries, [0], keypoints, scene.frustum_far, sfm.features.kapture.name)
+    return measure_unit_costs(sample, sfm, sample_images=UNIT_COST_IMAGES)
+
+
+def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Generator) -> None:
+    """The SfM paradigms' work for ``rankings``, its forecast at ``args.keypoints``, and a slice forecast then run."""
+    sfm = dataset_sfm(args.size)
+    processes = sfm.processes
+    with tempfile.TemporaryDirectory(prefix="bench_scale-") as folder:
+        folder = Path(folder)
+        plan = measure("plan: both SfM paradigms", sfm_plan, scene, rankings, sfm, folder / "cache")
+        for w in plan.paradigms:
+            print(f"  {w.paradigm}: query pairs {w.query_pairs.total:,}, database pairs {w.database_pairs.total:,}, "
+                  f"maps {w.maps.total:,} (~{w.pairs_per_map:,.0f} pairs each), registrations {w.registrations.total:,}")
+        plan.costs = measure(f"unit costs at {args.keypoints:,} keypoints", measured_unit_costs, scene, sfm, args.keypoints, rng, folder / "units")
+        print(unit_cost_line(plan.costs))
+        print(forecast_line(f"projected full SfM sweep ({args.size}, {args.keypoints:,} keypoints", plan, processes))
+
+        on_gpu = plan.costs.device.startswith("cuda")
+        fraction = args.slice if args.slice is not None else (0.02 if on_gpu else 0.005)
+        keypoints = args.slice_keypoints or (args.keypoints if on_gpu else 1000)
+        slice_scene, slice_rankings = scene_slice(scene, descriptors_of, fraction, args.seed, folder / "slice")
+        world = FeatureWorld(np.concatenate([slice_scene.database.centers, slice_scene.queries.centers]), scene.frustum_far, rng)
+        for images in (slice_scene.database, slice_scene.queries):
+            world.write(images, range(len(images)), keypoints, scene.frustum_far, sfm.features.kapture.name)
+        slice_plan = sfm_plan(slice_scene, slice_rankings, sfm, folder / "slice_cache")
+        slice_plan.costs = measure_unit_costs(slice_scene, sfm, sample_images=UNIT_COST_IMAGES)
+        forecast = sum(slice_plan.forecast().values())
+        stages: dict[str, float] = {}
         started = time.perf_counter()
-        for _ in range(3):
-            np.fromfile(path, dtype=np.float32).reshape(count, 128)
-        read = (time.perf_counter() - started) / 3
-    first = rng.normal(size=(count, 128)).astype(np.float32)
-    second = np.concatenate([first[: count // 4] + 0.4 * rng.normal(size=(count // 4, 128)), rng.normal(size=(count - count // 4, 128))])
-    matcher = NearestNeighbourMatcher(sfm.matching.ratio)
-    matcher(first[:256], [second[:256]])
-    started = time.perf_counter()
-    matches = matcher(first, [second])[0]
-    costs = {"read": read, "matching": time.perf_counter() - started, "matches": len(matches)}
-    if torch.cuda.is_available():
-        gpu = NearestNeighbourMatcher(sfm.matching.ratio, "cuda")
-        gpu(first, [second])
-        torch.cuda.synchronize()
-        started = time.perf_counter()
-        gpu(first, [second])
-        torch.cuda.synchronize()
-        costs["gpu_matching"] = time.perf_counter() - started
-    return costs | generated_map_costs(scene.database, count, sfm, rng)
+        run_sfm(slice_scene, slice_rankings, sfm_paradigms(), sfm, folder / "slice_cache", stages)
+        measured = time.perf_counter() - started
+        print(f"slice: {len(slice_scene.queries)} queries ({100 * fraction:g} %) and {len(slice_scene.database)} database images at "
+              f"{keypoints:,} keypoints: {slice_plan.new_pairs():,} pairs, "
+              f"{sum(w.maps.new for w in slice_plan.paradigms):,} maps, {sum(w.registrations.new for w in slice_plan.paradigms):,} registrations")
+        print(forecast_line("  slice forecast", slice_plan, processes))
+        print(f"  slice measured end to end: {measured:.1f} s (" + ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in stages.items())
+              + f") against {forecast:.1f} s forecast: measured / forecast {measured / forecast:.2f}")
 
 
-def generated_map_costs(database: ImageSet, count: int, sfm: SfmSettings, rng: np.random.Generator) -> dict[str, float]:
-    """Triangulation per matched pair and PnP per registration on generated geometry: 10 database
-    images near the first, 40,000 points in front of them, each image's keypoints the projections
-    it sees (filled up to ``count`` with clutter), pairs matched through shared points."""
-    near = np.argsort(np.linalg.norm(database.centers - database.centers[0], axis=1))[:10]
-    points = database.centers[near].mean(axis=0) + rng.normal(0.0, 15.0, (40_000, 3))
-    keypoints, observed = [], []
-    for i in near:
-        camera_points = geometry.quaternion_to_matrix(database.qvec[i]) @ points.T + database.tvec[i][:, None]
-        pixels = 500.0 * camera_points[:2] / camera_points[2] + 512.0
-        visible = np.flatnonzero((camera_points[2] > 1.0) & (pixels >= 0).all(0) & (pixels < 1024).all(0))[:count]
-        clutter = rng.uniform(0, 1024, (count - len(visible), 2))
-        keypoints.append(np.vstack([pixels[:, visible].T + rng.normal(0, 0.5, (len(visible), 2)), clutter]).astype(np.float32))
-        observed.append(dict(zip(visible.tolist(), range(len(visible)))))
-    matches = {}
-    for a in range(len(near)):
-        for b in range(a + 1, len(near)):
-            shared = observed[a].keys() & observed[b].keys()
-            matches[(a, b)] = np.array([[observed[a][p], observed[b][p]] for p in shared], dtype=np.int64).reshape(-1, 2)
-    started = time.perf_counter()
-    sparse_map = triangulate_known_poses([CAMERA] * len(near), database.qvec[near], database.tvec[near], keypoints, matches, sfm.triangulation)
-    triangulation = (time.perf_counter() - started) / len(matches)
-    # a registration: the first image's own observations of map points as 2D-3D correspondences, a third of them wrong
-    ids = sparse_map.observations[0]
-    observed_points = np.flatnonzero(ids >= 0)
-    points2D = keypoints[0][observed_points].astype(np.float64)
-    points3D = sparse_map.points[ids[observed_points]].copy()
-    wrong = rng.random(len(points3D)) < 1 / 3
-    points3D[wrong] += rng.normal(0.0, 10.0, (int(wrong.sum()), 3))
-    started = time.perf_counter()
-    estimate_absolute_pose(points2D, points3D, CAMERA, sfm.pnp)
-    registration = time.perf_counter() - started
-    return {"triangulation": triangulation, "registration": registration, "map_points": sparse_map.num_points,
-            "correspondences": len(points2D)}
+def unit_cost_line(costs: UnitCosts) -> str:
+    return (f"  per unit ({costs.keypoints:,.0f} keypoints, matching on {costs.device}): read features {costs.features:.4f} s/image, "
+            f"match {costs.matching:.4f} s/pair, verify {costs.pose_verification:.4f} s/database pair and {costs.query_verification:.4f} "
+            f"s/query pair, triangulate {costs.triangulation:.4f} s/pair, register {costs.registration:.4f} s/query")
+
+
+def forecast_line(label: str, plan: SfmPlan, processes: int) -> str:
+    stages = plan.forecast()
+    total = sum(stages.values())
+    return (f"{label}, {processes} processes): {_hours(total)} (" + ", ".join(f"{stage} {_hours(seconds)}" for stage, seconds in stages.items()) + ")")
+
+
+def _hours(seconds: float) -> str:
+    return f"{seconds / 3600:.2f} h" if seconds >= 3600 else f"{seconds:.1f} s"
+
+
+def scene_slice(scene: Scene, descriptors_of, fraction: float, seed: int, root: Path) -> tuple[Scene, list]:
+    """The ``fraction`` of the queries with the smallest x, the database images within 25 m of
+    them (at least 60), and their rankings (faiss, ground truths, random) on that sub-scene."""
+    queries = np.argsort(scene.queries.centers[:, 0], kind="stable")[: max(1, round(fraction * len(scene.queries)))]
+    centers = scene.queries.centers[queries]
+    distance = np.linalg.norm(scene.database.centers[:, None, :2] - centers[None, :, :2], axis=2).min(1)
+    database = np.sort(np.argsort(distance, kind="stable")[: max(60, int((distance <= 25.0).sum()))])
+    sub = with_kapture_root(Scene(f"{scene.name}-slice", scene.database.subset(database), scene.queries.subset(queries),
+                                  frustum_far=scene.frustum_far), root)
+    database_descriptors, query_descriptors = descriptors_of(database, queries)
+    return sub, scene_rankings(sub, database_descriptors, query_descriptors, np.random.default_rng(seed), seed)[0]
 
 
 if __name__ == "__main__":

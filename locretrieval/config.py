@@ -99,6 +99,23 @@ def validated(schema: type[Schema], config: Any, key: str) -> Schema:
     return _build(schema, node, key)
 
 
+def part(kind: type) -> Any:
+    """A schema field holding an object chosen by ``_target_`` (``query_verification: Any =
+    part(PairVerification)``): `validated` checks its node's keys against the target's
+    parameters (`check_node`), builds it and requires an instance of ``kind``."""
+    return dataclasses.field(metadata={"part": kind})
+
+
+def _build_part(kind: type, node: Any, where: str) -> Any:
+    if not isinstance(node, Container) or "_target_" not in node:
+        raise ConfigError(f"{where}: expected a node with a _target_ (a {kind.__name__}), got {node!r}")
+    check_node(node, where)
+    built_part = built(node, where)
+    if not isinstance(built_part, kind):
+        raise ConfigError(f"{where}._target_: {node['_target_']} does not build a {kind.__name__}")
+    return built_part
+
+
 def _build(schema: type[Schema], node: DictConfig, key: str) -> Schema:
     hints = typing.get_type_hints(schema)
     values = {}
@@ -108,7 +125,9 @@ def _build(schema: type[Schema], node: DictConfig, key: str) -> Schema:
             value = node[field.name]
         except MissingMandatoryValue:
             raise ConfigError(f"{where}: missing; expected {_type_name(hints[field.name])}") from None
-        if dataclasses.is_dataclass(hints[field.name]):
+        if "part" in field.metadata:
+            values[field.name] = _build_part(field.metadata["part"], value, where)
+        elif dataclasses.is_dataclass(hints[field.name]):
             values[field.name] = _build(hints[field.name], value, where)
         else:
             values[field.name] = OmegaConf.to_container(value) if isinstance(value, Container) else value

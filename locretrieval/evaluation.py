@@ -20,7 +20,6 @@ from locretrieval.cache import save_arrays
 from locretrieval.config import validated
 from locretrieval.groundtruth import GroundTruthSettings, definition_type, compute_groundtruths, statistics_table
 from locretrieval.localization.estimates import estimated_pose_table
-from locretrieval.localization.features import missing_kapture_features
 from locretrieval.metrics.localization import best_over_k, median_errors
 from locretrieval.metrics.subsets import SubsetSettings, missing_mask_inputs
 from locretrieval.models.precomputed import PrecomputedDescriptor, missing_feature_folders
@@ -160,14 +159,15 @@ def model_inputs(model: DictConfig, scene: Scene) -> list[str]:
 
 
 def local_feature_inputs(scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings) -> list[str]:
-    """The kapture local features (``sfm.features.type=kapture``) of both image sets, if an SfM
-    paradigm or a ground truth matching features needs them and some are absent."""
+    """The files the local features read (`LocalFeatures.missing_inputs`: e.g. the kapture
+    features of both image sets) that are absent, if an SfM paradigm or a ground truth matching
+    features needs them."""
     sfm_paradigms = any(PARADIGMS[name].uses_local_features for name in settings.paradigms.enabled())
     sfm_groundtruth = any(definition.uses_sfm for definition in groundtruths.parsed().values())
-    if settings.sfm.features.type != "kapture" or not (sfm_paradigms or sfm_groundtruth):
+    if not (sfm_paradigms or sfm_groundtruth):
         return []
-    features = settings.sfm.features.kapture
-    return [f"sfm.features: {problem}" for images in (scene.database, scene.queries) for problem in missing_kapture_features(images, features)]
+    features = settings.sfm.features
+    return [f"sfm.features: {problem}" for images in (scene.database, scene.queries) for problem in features.missing_inputs(images)]
 
 
 def paradigm_inputs(settings: BenchmarkSettings) -> list[str]:

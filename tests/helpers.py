@@ -1,7 +1,7 @@
 """Shared test helpers: the project's configs composed by Hydra, zoo models built from them, a
 callback that interrupts training."""
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import lightning as L
@@ -45,10 +45,11 @@ def rendered_scene(root: Path, settings: Mapping) -> Scene:
     return load_kapture_scene("tiny", [root / "mapping"], [root / "query"])
 
 
-def sfm_settings(*overrides: Mapping) -> SfmSettings:
-    """``configs/sfm/default.yaml`` run in this process (``workers: 1``) on the CPU, ``overrides``
-    merged in order."""
-    defaults = OmegaConf.load(CONFIGS / "sfm" / "default.yaml")
+def sfm_settings(*overrides: Mapping, choices: Sequence[str] = ()) -> SfmSettings:
+    """The ``sfm`` group as ``evaluate.yaml`` composes it (``configs/sfm/default.yaml``, with the
+    group ``choices``, e.g. ``sfm/features=kapture``), run in this process (``workers: 1``) on
+    the CPU, ``overrides`` merged in order."""
+    defaults = OmegaConf.to_container(compose_config("evaluate", *choices).sfm, resolve=True)  # plain: overrides may add keys
     return validated(SfmSettings, OmegaConf.merge(defaults, {"workers": 1, "matching": {"device": "cpu"}}, *overrides), "sfm")
 
 

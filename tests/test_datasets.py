@@ -55,16 +55,17 @@ def test_every_data_config_has_the_same_keys():
 def test_data_configs_set_the_papers_settings(dataset, min_radius, max_per_image):
     cfg = compose_data(dataset)
     assert (cfg.sfm.map_pairs.min_radius, cfg.sfm.map_pairs.max_per_image) == (min_radius, max_per_image)
-    assert cfg.sfm.features.type == "kapture" and cfg.sfm.features.kapture.name == "r2d2_WASF-N8_20k"
+    assert cfg.sfm.features._target_.endswith("KaptureFeatures") and cfg.sfm.features.name == "r2d2_WASF-N8_20k"
     # the reference registrator: COLMAP's image_registrator on two-view verified matches
     assert (cfg.sfm.pnp.max_error, cfg.sfm.pnp.min_num_inliers, cfg.sfm.pnp.min_inlier_ratio) == (12.0, 30, 0.25)
-    assert cfg.sfm.matching.query_verification == "two_view"
+    assert cfg.sfm.query_verification._target_.endswith("TwoViewVerification")
     assert cfg.sfm.triangulation == compose_data("synthetic").sfm.triangulation  # the rest: the defaults
     assert compose_data(dataset, "sfm.map_pairs.max_per_image=7").sfm.map_pairs.max_per_image == 7  # the command line wins
     own = compose_data(dataset, "sfm=default").sfm
     assert own.pnp.min_num_inliers == 12 and own.map_pairs.min_radius == min_radius  # the paper's pairs stay
+    assert own.features._target_.endswith("SiftFeatures") and own.query_verification._target_.endswith("NoVerification")
     synthetic = compose_data("synthetic").sfm
-    assert synthetic.features.type == "sift" and synthetic.pnp.min_num_inliers == 12 and synthetic.map_pairs.max_per_image == 20
+    assert synthetic.features._target_.endswith("SiftFeatures") and synthetic.pnp.min_num_inliers == 12 and synthetic.map_pairs.max_per_image == 20
 
 
 @pytest.mark.parametrize("dataset", DATASETS)

@@ -127,7 +127,7 @@ SMALL_SCENE = ["data.render.width=96", "data.render.height=72", "data.render.num
 def test_every_missing_input_is_named_in_one_error_before_any_work(tmp_path):
     missing, cache = tmp_path / "missing", tmp_path / "cache"
     paths = [f"paths.root_dir={tmp_path}", f"paths.cache_dir={cache}", *SMALL_SCENE]
-    overrides = ["model=precomputed", f"model.path={missing}/AP-GeM-LM18", "sfm.features.type=kapture",
+    overrides = ["model=precomputed", f"model.path={missing}/AP-GeM-LM18", "sfm/features=kapture",
                  f"paradigms.global_sfm.colmap_model={missing}/sfm", "subsets.mask_source=maskrcnn",
                  f"subsets.maskrcnn_weights={missing}/maskrcnn.pth"]  # fmt: skip
     with pytest.raises(FileNotFoundError) as error:

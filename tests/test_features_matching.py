@@ -1,5 +1,6 @@
 """Local features (pycolmap SIFT, kapture files), matching, verification and their caches."""
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import kapture
@@ -8,15 +9,17 @@ import kapture.io.features as kapture_features
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 from scipy.spatial.transform import Rotation
 
 import helpers
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
-from locretrieval.config import ConfigError
+from locretrieval.config import ConfigError, validated
 from locretrieval.localization import features as features_module
 from locretrieval.localization import matching
-from locretrieval.localization.features import extract_features
+from locretrieval.localization.features import LocalFeatures, extract_features
+from locretrieval.localization.sfm import SfmSettings
 from locretrieval.localization import nearest_neighbours
 from locretrieval.localization.matching import PairMatcher
 from locretrieval.localization.nearest_neighbours import BatchedMatcher, NearestNeighbourMatcher
@@ -37,9 +40,9 @@ SFM = helpers.sfm_settings()
 POSES, TWO_VIEW = PoseVerification(4.0), TwoViewVerification(4.0, 15)
 
 
-def features(overrides):
-    """The default local-feature settings with ``overrides``."""
-    return helpers.sfm_settings({"features": overrides}).features
+def features(overrides, kind="sift"):
+    """The local features ``sfm/features=<kind>`` with ``overrides``."""
+    return helpers.sfm_settings({"features": overrides}, choices=[f"sfm/features={kind}"]).features
 
 
 @pytest.fixture(scope="module")
@@ -91,7 +94,7 @@ def test_sift_features_are_cached_and_in_full_resolution_pixels(scene, tmp_path)
     shards = sorted(full.folder.iterdir())
     again = extract_features(database, SFM.features, tmp_path, workers=1)
     assert sorted(again.folder.iterdir()) == shards  # nothing recomputed
-    half = extract_features(database, features({"sift": {"max_side": 128}}), tmp_path, workers=1)
+    half = extract_features(database, features({"max_side": 128}), tmp_path, workers=1)
     assert half.folder != full.folder
     for name in database.names:
         keypoints, descriptors = full.load([name])[name]
@@ -146,30 +149,30 @@ def test_kapture_features_are_read_with_the_pixel_offset(tmp_path):
     names = ["db/a.jpg", "db/sub/b.jpg"]
     root = tmp_path / "mapping"
     images, keypoints, descriptors = kapture_folder_with_features(root, names, (7, 3), 0)
-    config = {"type": "kapture", "kapture": {"name": "r2d2", "pixel_offset": 0.5}}
-    store = extract_features(images, features(config), tmp_path / "cache", workers=1)
+    config = {"name": "r2d2", "pixel_offset": 0.5}
+    store = extract_features(images, features(config, "kapture"), tmp_path / "cache", workers=1)
     for name, points, values in zip(names, keypoints, descriptors):
         read_points, read_values = store.load([name])[name]
         np.testing.assert_allclose(read_points, points[:, :2] + 0.5)
         np.testing.assert_array_equal(read_values, values)
     (root / "reconstruction" / "descriptors" / "r2d2" / "db" / "sub" / "b.jpg.desc").unlink()
     with pytest.raises(FileNotFoundError, match=r"descriptors 'r2d2' of image 'db/sub/b.jpg' not found: .*b\.jpg\.desc"):
-        extract_features(images, features({**config, "kapture": {"pixel_offset": 0.0}}), tmp_path / "cache", workers=1)
-    with pytest.raises(ConfigError, match=r"sfm.features.kapture.nmae: unknown key; expected one of \['name', 'pixel_offset', 'score_order'\]"):
-        features({"type": "kapture", "kapture": {"nmae": "r2d2"}})
+        extract_features(images, features({**config, "pixel_offset": 0.0}, "kapture"), tmp_path / "cache", workers=1)
+    with pytest.raises(ConfigError, match=r"sfm.features.nmae: unknown key; expected one of \['max_keypoints', 'name', 'pixel_offset', 'score_order'\]"):
+        features({"nmae": "r2d2"}, "kapture")
 
 
 def test_a_keypoint_budget_keeps_the_best_rows_of_kapture_features_by_their_score_order(tmp_path):
     images, keypoints, descriptors = kapture_folder_with_features(tmp_path / "mapping", ["db/a.jpg", "db/b.jpg"], (9, 4), 5)
     for order, rows in [("ascending", slice(4, 9)), ("descending", slice(0, 5))]:  # R2D2 writes the best last
-        config = {"type": "kapture", "max_keypoints": 5, "kapture": {"name": "r2d2", "pixel_offset": 0.0, "score_order": order}}
-        store = extract_features(images, features(config), tmp_path / "cache", workers=1)
+        config = {"max_keypoints": 5, "name": "r2d2", "pixel_offset": 0.0, "score_order": order}
+        store = extract_features(images, features(config, "kapture"), tmp_path / "cache", workers=1)
         read_points, read_values = store.load(["db/a.jpg"])["db/a.jpg"]
         np.testing.assert_array_equal(read_points, keypoints[0][rows, :2])
         np.testing.assert_array_equal(read_values, descriptors[0][rows])
         assert len(store.keypoints(["db/b.jpg"])["db/b.jpg"]) == 4  # fewer than the budget: all
     with pytest.raises(ConfigError, match=r"sfm.features.max_keypoints: needs the score order of the kapture features 'r2d2'"):
-        features({"type": "kapture", "max_keypoints": 5, "kapture": {"score_order": None}})
+        features({"max_keypoints": 5, "score_order": None}, "kapture")
 
 
 def test_a_keypoint_budget_keeps_pycolmaps_strongest_sift_detections(scene, tmp_path):
@@ -529,3 +532,66 @@ def test_matching_on_a_device_stores_what_the_cpu_workers_store(tmp_path, monkey
     assert 0 < sum(map(len, stored(on_device, pairs, POSES).values())) < sum(map(len, stored(on_device, pairs, NoVerification()).values()))
     # evicted images are read again, but no image twice for one shard
     assert len(images) < sum(reads) <= len(pairs) * 2
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (none here)")
+@pytest.mark.parametrize("precision", ["float32", "float16"])
+def test_matching_on_the_gpu_stores_what_the_cpu_workers_store(tmp_path, monkeypatch, precision):
+    """The GPU owner process (resident descriptors, batched products, CPU workers verifying and
+    writing) against the CPU workers, through `PairMatcher.ensure`, at both precisions."""
+    cpu = helpers.sfm_settings({"matching": {"precision": precision}}).matching
+    gpu = helpers.sfm_settings({"matching": {"device": "cuda", "precision": precision}}).matching
+    assert isinstance(gpu.matcher(), BatchedMatcher)
+    monkeypatch.setattr(matching, "PAIRS_PER_SHARD", 5)
+    found = []
+    for name, settings in (("cpu", cpu), ("gpu", gpu)):
+        images, store = ternary_feature_scene(tmp_path / name)
+        pairs = [(a, b) for a in images.names for b in images.names if a < b]
+        matcher = PairMatcher(images, store, images, store, settings, tmp_path / name)
+        assert matcher.ensure(pairs, 2, POSES) == len(pairs)
+        found.append((stored(matcher, pairs, NoVerification()), stored(matcher, pairs, POSES)))
+    assert found[0] == found[1]
+
+
+@dataclass
+class GridFeatures(LocalFeatures):
+    """A kind of local features from outside the package: keypoints on a grid of ``step`` px,
+    each a descriptor of its grid cell (so images of one camera match cell for cell)."""
+
+    max_keypoints: int | None
+    step: int
+
+    def identity(self) -> dict:
+        return {"type": "grid", "step": self.step, "max_keypoints": self.max_keypoints}
+
+    def records(self):
+        def record(name: str, path: Path) -> dict[str, np.ndarray]:
+            xy = np.stack(np.meshgrid(np.arange(8, 200, self.step), np.arange(8, 150, self.step)), -1).reshape(-1, 2)
+            cells = np.random.default_rng(0).normal(size=(len(xy), 16)).astype(np.float32)
+            return {"keypoints": xy.astype(np.float32), "descriptors": cells}
+
+        return record
+
+    @property
+    def keypoint_order(self) -> str:
+        return "descending"
+
+
+def test_local_features_and_a_verification_from_outside_the_package_are_chosen_by_target(tmp_path):
+    nodes = {"features": {"_target_": f"{__name__}.GridFeatures", "max_keypoints": 50, "step": 16},
+             "query_verification": {"_target_": "locretrieval.localization.verification.PoseVerification", "max_epipolar_error": 2.0}}
+    plain = OmegaConf.to_container(helpers.compose_config("evaluate").sfm, resolve=True)
+    settings = validated(SfmSettings, {**plain, **nodes, "workers": 1, "matching": {**plain["matching"], "device": "cpu"}}, "sfm")
+    assert isinstance(settings.features, GridFeatures) and settings.query_verification == PoseVerification(2.0)
+    camera = Camera("PINHOLE", 200, 150, (150.0, 150.0, 100.0, 75.0))
+    images = ImageSet(["a.jpg", "b.jpg"], Path("/nonexistent"), [camera] * 2, np.tile([1.0, 0, 0, 0], (2, 1)), np.zeros((2, 3)))
+    store = extract_features(images, settings.features, tmp_path, workers=1)
+    assert len(store.keypoints(["a.jpg"])["a.jpg"]) == 50  # its budget, its keypoint order
+    matcher = PairMatcher(images, store, images, store, settings.matching, tmp_path)
+    matcher.ensure([("a.jpg", "b.jpg")], 1, settings.query_verification)
+    np.testing.assert_array_equal(matcher.load([("a.jpg", "b.jpg")], settings.query_verification)[("a.jpg", "b.jpg")], np.tile(np.arange(50), (2, 1)).T)
+    wrong = {**plain, "features": {"_target_": "locretrieval.localization.verification.NoVerification"}}
+    with pytest.raises(ConfigError, match=r"sfm.features._target_: locretrieval.localization.verification.NoVerification does not build a LocalFeatures"):
+        validated(SfmSettings, wrong, "sfm")
+    with pytest.raises(ConfigError, match=r"sfm.query_verification.max_eror: unknown key"):
+        validated(SfmSettings, {**plain, "query_verification": {**nodes["query_verification"], "max_eror": 1}}, "sfm")

@@ -69,7 +69,7 @@ def test_local_feature_headers_are_parsed_not_evaluated(tmp_path):
     marker = tmp_path / "pwned"
     root = tmp_path / "mapping"
     write_local_features(root, command_dtype(marker), "float32")
-    config = helpers.sfm_settings({"features": {"type": "kapture", "kapture": {"name": "r2d2"}}}).features
+    config = helpers.sfm_settings({"features": {"name": "r2d2"}}, choices=["sfm/features=kapture"]).features
     images = image_set(root / "sensors" / "records_data")
     with pytest.raises(KaptureFormatError, match=r"keypoints\.txt:2: dtype .*__import__"):
         extract_features(images, config, tmp_path / "cache", workers=1)
@@ -109,7 +109,7 @@ def test_local_feature_file_of_the_wrong_size_names_file_and_row_size(tmp_path):
     write_local_features(root, "float32", "float32")
     descriptors = root / "reconstruction" / "descriptors" / "r2d2" / "cam" / "b.jpg.desc"
     descriptors.write_bytes(descriptors.read_bytes()[:-4])
-    config = helpers.sfm_settings({"features": {"type": "kapture", "kapture": {"name": "r2d2"}}}).features
+    config = helpers.sfm_settings({"features": {"name": "r2d2"}}, choices=["sfm/features=kapture"]).features
     with pytest.raises(ValueError, match=r"b\.jpg\.desc: 156 bytes is not a whole number of descriptors rows of 8 x float32"):
         extract_features(image_set(root / "sensors" / "records_data"), config, tmp_path / "cache", workers=1)
 

@@ -109,7 +109,7 @@ def published_folder(directory: Path, rows: list[dict]) -> Path:
     return directory
 
 
-R2D2 = {"type": "kapture", "kapture": {"name": "r2d2_WASF-N8_20k"}, "max_keypoints": None}
+R2D2 = {"_target_": "locretrieval.localization.features.KaptureFeatures", "name": "r2d2_WASF-N8_20k", "max_keypoints": None}
 PUBLISHED_ROW = {
     "dataset": "robotcar", "local_feature": "r2d2_WASF_N8_big 20k", "global_feature": "netvlad_vd16pitts",
     "paradigm": "global_sfm", "method": "pnp", "k": 5, "condition": "night",
@@ -147,8 +147,10 @@ def test_the_report_shows_the_published_value_and_the_difference(tmp_path, monke
 
 @pytest.mark.parametrize(
     ("features", "described"),
-    [({"type": "sift"}, "local features sift;"),
-     ({**R2D2, "max_keypoints": 5000}, "local features kapture r2d2_WASF-N8_20k (best 5000);")],  # not the published 20k
+    [({"_target_": "locretrieval.localization.features.SiftFeatures"}, "local features sift;"),
+     ({**R2D2, "max_keypoints": 5000}, "local features kapture r2d2_WASF-N8_20k (best 5000);"),  # not the published 20k
+     ({"type": "kapture", "kapture": {"name": "r2d2_WASF-N8_20k"}, "max_keypoints": 5000},  # a run of 0.10 or earlier
+      "local features kapture r2d2_WASF-N8_20k (best 5000);")],
 )  # fmt: skip
 def test_when_nothing_matches_one_line_says_what_was_looked_for(tmp_path, monkeypatch, features, described):
     run = write_run(tmp_path / "run", "robotcar", [("night", "netvlad", "global_sfm", "pnp", 5, 0.25, 2.0, 20.0)], features)

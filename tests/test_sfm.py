@@ -129,7 +129,8 @@ def test_the_global_map_cache_key_follows_what_the_map_depends_on(scene, cache):
         return map_cache_path(inputs, cache)
 
     base = path()
-    assert path(matching={"two_view": {"max_error": 3.0}}) == base  # query verification only
+    assert path(query_verification={"_target_": "locretrieval.localization.verification.TwoViewVerification", "max_error": 3.0,
+                                    "min_num_inliers": 15}) == base  # query pairs only
     assert path(triangulation={"min_angle": 3.0}) != base
     assert path(matching={"ratio": 0.9}) != base
     assert path(matching={"max_epipolar_error": 8.0}) != base

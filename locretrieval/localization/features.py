@@ -1,25 +1,28 @@
-"""Local features of an image set, cached on disk: SIFT through pycolmap, or kapture files.
+"""The features stage of the SfM pipeline: local features of an image set, cached on disk.
 
 Keypoints are ``float32 [n, 2]`` pixel coordinates in the full-resolution image, in COLMAP's
 convention (the centre of the first pixel is (0.5, 0.5)), the convention of `Camera`.
 Descriptors are ``[n, D]`` as produced (pycolmap: uint8 RootSIFT scaled by 512; kapture:
 the stored dtype).
 
-The ``features`` config picks a ``type`` and reads that type's section:
+The local features are an object chosen by ``_target_`` (``sfm/features=sift|kapture|...``), a
+`LocalFeatures`:
 
-- ``sift``: ``max_side`` (px; images whose longer side exceeds it are downscaled for
-  extraction, keypoints scaled back), ``first_octave``, ``max_num_features``,
+- `SiftFeatures`: pycolmap's SIFT; ``max_side`` (px; images whose longer side exceeds it are
+  downscaled for extraction, keypoints scaled back), ``first_octave``, ``max_num_features``,
   ``peak_threshold`` (pycolmap's SIFT options);
-- ``kapture``: precomputed features of the kapture folder each image comes from
+- `KaptureFeatures`: precomputed features ``name`` of the kapture folder each image comes from
   (``reconstruction/keypoints/<name>/<image>.kpt`` and ``descriptors/<name>/<image>.desc``
   with their ``keypoints.txt``/``descriptors.txt`` headers, or the downloader's
   ``<dataset>/local_features/<name>/{keypoints,descriptors}/``, e.g. the published R2D2
-  features ``r2d2_WASF-N8_20k``); ``pixel_offset`` is added to their x and y (0.5 converts keypoints whose first
-  pixel centre is (0, 0), as R2D2 and OpenCV write them, to COLMAP's convention);
-  ``score_order`` says how the rows are ordered by detector score (R2D2: ascending).
+  features ``r2d2_WASF-N8_20k``: ``sfm=r2d2_published``); ``pixel_offset`` is added to their x
+  and y (0.5 converts keypoints whose first pixel centre is (0, 0), as R2D2 and OpenCV write
+  them, to COLMAP's convention); ``score_order`` says how the rows are ordered by detector
+  score (R2D2: ascending).
 
-``max_keypoints`` (both types; null: all) keeps each image's best keypoints: the best rows by
-score for kapture features, pycolmap's strongest detections for SIFT (`best_keypoints`).
+``max_keypoints`` (every kind; null: all) keeps each image's best keypoints: the best rows by
+score for kapture features, pycolmap's strongest detections for SIFT (`best_keypoints`). A new
+kind is a `LocalFeatures` subclass (``identity``, ``records``, ``keypoint_order``) and a YAML.
 
 Features live in ``<cache_dir>/features/<image set fingerprint>-<config key>/`` as HDF5
 shards (`ShardedStore`) keyed by image name, computed once and reused across runs.
@@ -27,7 +30,7 @@ shards (`ShardedStore`) keyed by image name, computed once and reused across run
 
 from __future__ import annotations
 
-import dataclasses
+import abc
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -50,7 +53,6 @@ from locretrieval.scene.images import read_image
 
 log = logging.getLogger(__name__)
 
-FEATURE_TYPES = ("sift", "kapture")
 SIFT_DIMENSION = 128
 #: Images per shard (one task of a worker).
 IMAGES_PER_SHARD = 32
@@ -58,21 +60,65 @@ IMAGES_PER_SHARD = 32
 CACHE_VERSION = 1
 
 
+class LocalFeatures(abc.ABC):
+    """Local features of images, keeping each image's ``max_keypoints`` best (None: all)."""
+
+    max_keypoints: int | None
+
+    @abc.abstractmethod
+    def identity(self) -> dict[str, Any]:
+        """What determines the features (the cache key)."""
+
+    @abc.abstractmethod
+    def records(self) -> Callable[[str, Path], dict[str, np.ndarray]]:
+        """``(image name, path) -> {"keypoints", "descriptors"}``, every keypoint (in a worker process)."""
+
+    @property
+    @abc.abstractmethod
+    def keypoint_order(self) -> str | None:
+        """How `best_keypoints` finds the best rows (`SCORE_ORDERS`, ``sift``, or None: unknown)."""
+
+    def missing_inputs(self, images: ImageSet) -> list[str]:
+        """What reading the features of ``images`` would miss (files it reads)."""
+        return []
+
+    def key(self) -> str:
+        """Cache key of the features."""
+        return config_key(CACHE_VERSION, self.identity())
+
+    def _check_budget(self) -> None:
+        require(self.max_keypoints is None or self.max_keypoints > 0, "max_keypoints", f"must be positive or null, got {self.max_keypoints}")
+
+
 @dataclass
-class SiftSettings:
+class SiftFeatures(LocalFeatures):
     """pycolmap SIFT: images whose longer side exceeds ``max_side`` px are downscaled for
     extraction (keypoints scaled back); ``first_octave``, ``max_num_features`` and
-    ``peak_threshold`` are pycolmap's SIFT options."""
+    ``peak_threshold`` are pycolmap's SIFT options; at most ``max_keypoints`` detections."""
 
+    max_keypoints: int | None
     max_side: int
     first_octave: int
     max_num_features: int
     peak_threshold: float
 
     def __post_init__(self) -> None:
+        self._check_budget()
         require(self.max_side > 0, "max_side", f"must be a positive number of pixels, got {self.max_side}")
         require(self.max_num_features > 0, "max_num_features", f"must be positive, got {self.max_num_features}")
         require(self.peak_threshold > 0, "peak_threshold", f"must be positive, got {self.peak_threshold}")
+
+    def identity(self) -> dict[str, Any]:
+        options = {key: getattr(self, key) for key in ("max_side", "first_octave", "max_num_features", "peak_threshold")}
+        return {"type": "sift", "max_keypoints": self.max_keypoints, "sift": options}
+
+    def records(self) -> Callable[[str, Path], dict[str, np.ndarray]]:
+        extract = _sift_extractor(self, self.max_keypoints)
+        return lambda name, path: extract(path)
+
+    @property
+    def keypoint_order(self) -> str:
+        return "sift"
 
 
 #: How the rows of a kapture keypoints file are ordered by detector score (R2D2's
@@ -81,44 +127,38 @@ SCORE_ORDERS = ("ascending", "descending")
 
 
 @dataclass
-class KaptureFeatureSettings:
-    """Published features ``<name>`` of each kapture folder (``reconstruction/{keypoints,descriptors}/<name>/``
-    or the downloader's ``local_features/<name>/{keypoints,descriptors}/`` beside it); ``pixel_offset`` is added to their x and y (0.5: OpenCV/R2D2 pixel centres to COLMAP's);
-    ``score_order``: how their rows are ordered by detector score (`SCORE_ORDERS`, or null: unknown)."""
+class KaptureFeatures(LocalFeatures):
+    """Published features ``name`` of each kapture folder (``reconstruction/{keypoints,descriptors}/<name>/``
+    or the downloader's ``local_features/<name>/{keypoints,descriptors}/`` beside it); ``pixel_offset``
+    is added to their x and y (0.5: OpenCV/R2D2 pixel centres to COLMAP's); ``score_order``: how
+    their rows are ordered by detector score (`SCORE_ORDERS`, or null: unknown, then no ``max_keypoints``)."""
 
+    max_keypoints: int | None
     name: str
     pixel_offset: float
     score_order: str | None
 
     def __post_init__(self) -> None:
+        self._check_budget()
         require(self.score_order is None or self.score_order in SCORE_ORDERS, "score_order",
                 f"must be one of {list(SCORE_ORDERS)} or null, got {self.score_order!r}")
-
-
-@dataclass
-class FeatureSettings:
-    """Local features: ``type`` (`FEATURE_TYPES`) picks the section that applies;
-    ``max_keypoints`` (null: all) keeps the best keypoints of each image (`best_keypoints`)."""
-
-    type: str
-    max_keypoints: int | None
-    sift: SiftSettings
-    kapture: KaptureFeatureSettings
-
-    def __post_init__(self) -> None:
-        require(self.type in FEATURE_TYPES, "type", f"must be one of {list(FEATURE_TYPES)}, got {self.type!r}")
-        require(self.max_keypoints is None or self.max_keypoints > 0, "max_keypoints", f"must be positive or null, got {self.max_keypoints}")
-        require(self.max_keypoints is None or self.type != "kapture" or self.kapture.score_order is not None, "max_keypoints",
-                f"needs the score order of the kapture features {self.kapture.name!r} (sfm.features.kapture.score_order: "
+        require(self.max_keypoints is None or self.score_order is not None, "max_keypoints",
+                f"needs the score order of the kapture features {self.name!r} (sfm.features.score_order: "
                 f"{' or '.join(SCORE_ORDERS)}), which is not set")
 
     def identity(self) -> dict[str, Any]:
-        """What determines the features: the type, the keypoint budget and the type's own section."""
-        return {"type": self.type, "max_keypoints": self.max_keypoints, self.type: dataclasses.asdict(getattr(self, self.type))}
+        options = {"name": self.name, "pixel_offset": self.pixel_offset, "score_order": self.score_order}
+        return {"type": "kapture", "max_keypoints": self.max_keypoints, "kapture": options}
 
-    def key(self) -> str:
-        """Cache key of the features."""
-        return config_key(CACHE_VERSION, self.identity())
+    def records(self) -> Callable[[str, Path], dict[str, np.ndarray]]:
+        return partial(_read_kapture_features, settings=self)
+
+    @property
+    def keypoint_order(self) -> str | None:
+        return self.score_order
+
+    def missing_inputs(self, images: ImageSet) -> list[str]:
+        return missing_kapture_features(images, self)
 
 
 class FeatureStore:
@@ -140,13 +180,13 @@ class FeatureStore:
         return {name: record["keypoints"] for name, record in self.store.read(names, arrays=("keypoints",)).items()}
 
 
-def feature_store(images: ImageSet, settings: FeatureSettings, cache_dir: str | Path) -> FeatureStore:
+def feature_store(images: ImageSet, settings: LocalFeatures, cache_dir: str | Path) -> FeatureStore:
     """Where the features of ``images`` are cached (as far as they are: nothing is extracted)."""
     return FeatureStore(Path(cache_dir) / "features" / f"{images.fingerprint(include_poses=False)}-{settings.key()}")
 
 
 def extract_features(
-    images: ImageSet, settings: FeatureSettings, cache_dir: str | Path, workers: int, names: Sequence[str] | None = None
+    images: ImageSet, settings: LocalFeatures, cache_dir: str | Path, workers: int, names: Sequence[str] | None = None
 ) -> FeatureStore:
     """The features of every image of ``images`` (or of those ``names``), extracting (or reading)
     only missing ones."""
@@ -154,17 +194,17 @@ def extract_features(
     paths = dict(zip(images.names, images.paths))
     missing = store.store.missing(images.names if names is None else names)
     if missing:
-        log.info("local features (%s) of %d images into %s", settings.type, len(missing), store.folder)
+        log.info("local features (%s) of %d images into %s", type(settings).__name__, len(missing), store.folder)
         chunks = [missing[start : start + IMAGES_PER_SHARD] for start in range(0, len(missing), IMAGES_PER_SHARD)]
         tasks = [[(name, str(paths[name])) for name in chunk] for chunk in chunks]
         shared = (str(store.folder), settings)
-        for _ in parallel_map(_extract_shard, tasks, workers, f"features ({settings.type})", shared):
+        for _ in parallel_map(_extract_shard, tasks, workers, f"features ({type(settings).__name__})", shared):
             pass
         store.store.refresh()
     return store
 
 
-def _extract_shard(shared: tuple[str, FeatureSettings], images: list[tuple[str, str]]) -> int:
+def _extract_shard(shared: tuple[str, LocalFeatures], images: list[tuple[str, str]]) -> int:
     """Worker: features of one chunk of ``(name, image path)``, written as one shard."""
     folder, settings = shared
     features = read_or_extract(settings)
@@ -172,14 +212,10 @@ def _extract_shard(shared: tuple[str, FeatureSettings], images: list[tuple[str, 
     return len(images)
 
 
-def read_or_extract(settings: FeatureSettings) -> Callable[[str, Path], dict[str, np.ndarray]]:
+def read_or_extract(settings: LocalFeatures) -> Callable[[str, Path], dict[str, np.ndarray]]:
     """``(image name, path) -> {"keypoints", "descriptors"}`` of ``settings``, the best
     ``max_keypoints`` of them (`best_keypoints`), in memory (nothing is cached)."""
-    if settings.type == "sift":
-        extract = _sift_extractor(settings.sift, settings.max_keypoints)
-        source, order = (lambda name, path: extract(path)), "sift"
-    else:
-        source, order = partial(_read_kapture_features, settings=settings.kapture), settings.kapture.score_order
+    source, order = settings.records(), settings.keypoint_order
 
     def features(name: str, path: Path) -> dict[str, np.ndarray]:
         record = source(name, path)
@@ -211,7 +247,7 @@ def best_keypoints(keypoints: np.ndarray, budget: int | None, order: str | None)
     return np.sort(np.concatenate([np.sort(first), extra_orientations])[:budget])
 
 
-def _sift_extractor(settings: SiftSettings, budget: int | None) -> Callable[[Path], dict[str, np.ndarray]]:
+def _sift_extractor(settings: SiftFeatures, budget: int | None) -> Callable[[Path], dict[str, np.ndarray]]:
     """``path -> {"keypoints", "descriptors"}`` with pycolmap's CPU SIFT (at most ``budget``
     detections, when it is below ``max_num_features``)."""
     import pycolmap
@@ -262,7 +298,7 @@ def kapture_feature_folder(root: Path, kind: str, features: str) -> Path:
     return folder
 
 
-def missing_kapture_features(images: ImageSet, settings: KaptureFeatureSettings) -> list[str]:
+def missing_kapture_features(images: ImageSet, settings: KaptureFeatures) -> list[str]:
     """What reading the kapture features of ``images`` would miss: each absent feature folder, and
     per kapture folder the images without a keypoints or descriptors file (counted, one named)."""
     names_by_root: dict[Path, list[str]] = {}
@@ -282,7 +318,7 @@ def missing_kapture_features(images: ImageSet, settings: KaptureFeatureSettings)
     return problems
 
 
-def _read_kapture_features(image_name: str, image_path: Path, settings: KaptureFeatureSettings) -> dict[str, np.ndarray]:
+def _read_kapture_features(image_name: str, image_path: Path, settings: KaptureFeatures) -> dict[str, np.ndarray]:
     """Keypoints (x, y shifted by ``pixel_offset``) and descriptors of one image from kapture files."""
     root = kapture_root_of(image_path, image_name)
     features = settings.name

@@ -124,9 +124,9 @@ def plan(
         maps = Work(1, 1)
     if rankings is None:
         registrations = num_rankings * len(scene.queries) * len(settings.k)
-        return ParadigmWork("global_sfm", query_pairs, map_pairs, maps, map_pairs.total, Work(registrations, registrations))
+        return ParadigmWork("global_sfm", query_pairs, map_pairs, maps, map_pairs.total, Work(registrations, registrations), parallel_maps=False)
     tasks = query_tasks(rankings, [ranking.clamp_ks(settings.k) for ranking in rankings], _pose_cache(inputs, settings, cache_dir))
-    return ParadigmWork("global_sfm", query_pairs, map_pairs, maps, map_pairs.total, registration_work(tasks))
+    return ParadigmWork("global_sfm", query_pairs, map_pairs, maps, map_pairs.total, registration_work(tasks), parallel_maps=False)
 
 
 def _pose_cache(inputs: SfmInputs, settings: GlobalSfmSettings, cache_dir: Path) -> PoseCache:

@@ -43,15 +43,13 @@ from locretrieval.localization.nearest_neighbours import (
 )
 from locretrieval.localization.store import ShardedStore
 from locretrieval.localization.verification import (
-    NoVerification, PairVerification, PoseVerification, TwoViewVerification, VerificationBatch, pair_indices, verify_pairs,
+    NoVerification, PairVerification, PoseVerification, VerificationBatch, pair_indices, verify_pairs,
 )
 from locretrieval.localization.workers import parallel_map, resolve_workers, task_stream
 from locretrieval.scene import ImageSet
 
 log = logging.getLogger(__name__)
 
-#: Query verifications by their config name.
-QUERY_VERIFICATIONS = ("none", "two_view")
 #: Pairs per shard of the cache (one task of a worker).
 PAIRS_PER_SHARD = 512
 #: Share of a GPU's free memory for one batch of similarities, and for resident descriptors.
@@ -67,24 +65,18 @@ Pair = tuple[str, str]
 @dataclass
 class MatchingSettings:
     """Mutual nearest neighbours with Lowe's ``ratio`` test (1: off); database pairs verified
-    against their known poses (Sampson error below ``max_epipolar_error`` px); query pairs
-    verified per ``query_verification`` (``none``: PnP RANSAC only, or ``two_view``).
-    Matching runs on ``device`` (``auto``: CUDA when there is a GPU) with ``precision``
+    against their known poses (Sampson error below ``max_epipolar_error`` px). Matching runs on ``device`` (``auto``: CUDA when there is a GPU) with ``precision``
     similarities; ``block_mib`` MiB of them at once (null: `CPU_BLOCK_BYTES` on a CPU, a quarter
     of the free memory on a GPU)."""
 
     ratio: float
     max_epipolar_error: float
-    query_verification: str
-    two_view: TwoViewVerification
     device: str
     precision: str
     block_mib: float | None
 
     def __post_init__(self) -> None:
         require(0 < self.ratio <= 1, "ratio", f"must be in (0, 1], got {self.ratio}")
-        require(self.query_verification in QUERY_VERIFICATIONS, "query_verification",
-                f"must be one of {list(QUERY_VERIFICATIONS)}, got {self.query_verification!r}")
         require(self.device == "auto" or self.device.split(":")[0] in ("cpu", "cuda"), "device",
                 f"must be auto, cpu or cuda[:N], got {self.device!r}")
         require(self.precision in PRECISIONS, "precision", f"must be one of {list(PRECISIONS)}, got {self.precision!r}")
@@ -96,15 +88,10 @@ class MatchingSettings:
         """Database pairs: Sampson error against the known poses."""
         return PoseVerification(self.max_epipolar_error)
 
-    @cached_property
-    def query_verifier(self) -> PairVerification:
-        """Query-database pairs: ``query_verification``."""
-        return self.two_view if self.query_verification == "two_view" else NoVerification()
-
     def identity(self) -> dict[str, Any]:
         """What determines the matches (not where or in which blocks they are computed)."""
         settings = dataclasses.asdict(self)
-        return {key: settings[key] for key in ("ratio", "max_epipolar_error", "query_verification", "two_view", "precision")}
+        return {key: settings[key] for key in ("ratio", "max_epipolar_error", "precision")}
 
     def matcher(self) -> NearestNeighbourMatcher | BatchedMatcher:
         """The matcher of these settings in this process: `NearestNeighbourMatcher` on a CPU,
@@ -148,16 +135,15 @@ class PairMatcher:
         self.index = tuple({name: i for i, name in enumerate(images.names)} for images in self.images)
         self.root = f"{Path(cache_dir) / 'matches' / f'{features0.folder.name}--{features1.folder.name}'}--{config_key(CACHE_VERSION, settings.ratio, settings.precision)}"
         self.raw = ShardedStore(self.root)
-        self._verified: dict[str, ShardedStore] = {}
+        self._verified: dict[PairVerification, ShardedStore] = {}
 
     def store(self, verification: PairVerification) -> ShardedStore:
         """The store of the matches that ``verification`` keeps (the raw store for `NoVerification`)."""
         if isinstance(verification, NoVerification):
             return self.raw
-        name = verification.store_name(*self.images)
-        if name not in self._verified:
-            self._verified[name] = ShardedStore(f"{self.root}--{name}")
-        return self._verified[name]
+        if verification not in self._verified:  # its name may hash both image sets: once
+            self._verified[verification] = ShardedStore(f"{self.root}--{verification.store_name(*self.images)}")
+        return self._verified[verification]
 
     def _stored(self, pair: Pair) -> tuple[Pair, bool]:
         """The pair as stored, and whether it is the reverse of the one asked."""

@@ -25,8 +25,10 @@ safe for concurrent writers, so a plain run afterwards finds every pair, map and
 
 from __future__ import annotations
 
+import contextlib
 import logging
-from collections.abc import Callable, Mapping, Sequence
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -63,10 +65,11 @@ class SfmStages:
 
 def run_sfm(
     scene: Scene, rankings: Sequence[Ranking], paradigms: Mapping[str, tuple[SfmStages, ParadigmSettings]],
-    sfm: SfmSettings, cache_dir: str | Path | None,
+    sfm: SfmSettings, cache_dir: str | Path | None, timings: dict[str, float] | None = None,
 ) -> dict[str, list[PoseEstimates]] | None:
     """Every SfM paradigm of ``paradigms`` (name -> its stages and settings) on every ranking:
-    the pose estimates by paradigm, or None for a job of ``sfm.shard`` (its share cached only)."""
+    the pose estimates by paradigm, or None for a job of ``sfm.shard`` (its share cached only).
+    The seconds each stage took are logged, and put in ``timings`` when it is given."""
     if cache_dir is None:
         raise ValueError(f"{' and '.join(paradigms)} need a cache directory for their features, matches and maps")
     cache_dir = Path(cache_dir)
@@ -84,14 +87,36 @@ def run_sfm(
         log.info("SfM shard %s: %d of %d queries, %d of %d database pairs", shard, len(queries), len(scene.queries),
                  len(shard.take(map_pairs)), len(map_pairs))
         map_pairs = shard.take(map_pairs)
-    extract_stage(inputs, cache_dir, shard, query_pairs, map_pairs)
-    match_stage(inputs, query_pairs, map_pairs)
-    if shard is not None:  # this job's maps' pairs that another job's share holds and has not written yet
-        own_maps = [pair for name, (stages, settings) in paradigms.items() for pair in stages.query_map_pairs(inputs, rankings, ks[name], settings, queries)]
-        extract_stage(inputs, cache_dir, shard, [], own_maps, whole_sets=False)
-        inputs.database_pairs.ensure(own_maps, sfm.processes, inputs.database_verification)
-    estimates = {name: stages.localize(inputs, rankings, ks[name], settings, cache_dir, queries) for name, (stages, settings) in paradigms.items()}
+    clock = StageClock(timings)
+    with clock("features"):
+        extract_stage(inputs, cache_dir, shard, query_pairs, map_pairs)
+    with clock("match + verify"):
+        match_stage(inputs, query_pairs, map_pairs)
+        if shard is not None:  # this job's maps' pairs that another job's share holds and has not written yet
+            own_maps = [pair for name, (stages, settings) in paradigms.items() for pair in stages.query_map_pairs(inputs, rankings, ks[name], settings, queries)]
+            extract_stage(inputs, cache_dir, shard, [], own_maps, whole_sets=False)
+            inputs.database_pairs.ensure(own_maps, sfm.processes, inputs.database_verification)
+    estimates = {}
+    for name, (stages, settings) in paradigms.items():
+        with clock(f"{name}: triangulate + register"):
+            estimates[name] = stages.localize(inputs, rankings, ks[name], settings, cache_dir, queries)
+    log.info("SfM stages: %s", ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in clock.seconds.items()))
     return None if shard is not None else estimates
+
+
+class StageClock:
+    """Seconds per stage: ``with clock(stage): ...``, kept in ``timings`` when it is given."""
+
+    def __init__(self, timings: dict[str, float] | None) -> None:
+        self.seconds = timings if timings is not None else {}
+
+    @contextlib.contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        started = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] = time.perf_counter() - started
 
 
 def extract_stage(

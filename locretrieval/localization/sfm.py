@@ -20,9 +20,9 @@ from typing import Any
 import numpy as np
 
 from locretrieval.cache import config_key
-from locretrieval.config import require
+from locretrieval.config import part, require
 from locretrieval.localization.estimates import LOCALIZED, PoseEstimates
-from locretrieval.localization.features import FeatureSettings, FeatureStore, extract_features, feature_store
+from locretrieval.localization.features import FeatureStore, LocalFeatures, extract_features, feature_store
 from locretrieval.localization.matching import MatchingSettings, PairMatcher
 from locretrieval.localization.pairs import PairSelection
 from locretrieval.localization.pnp import NO_KEYPOINTS, TOO_FEW_MATCHES, PnPSettings, estimate_absolute_pose
@@ -45,13 +45,15 @@ SFM_METHOD = "pnp"
 class SfmSettings:
     """The ``sfm`` config group, shared by local SfM (2a), global SfM (2b) and the
     co-observation ground truth so that they share their cached features and matches:
-    local ``features``, ``matching``, ``triangulation`` with known poses, ``pnp``
+    local ``features`` (a `LocalFeatures` chosen by ``_target_``), ``matching``, the ``query_verification`` of query-database matches (a
+    `PairVerification` chosen by ``_target_``), ``triangulation`` with known poses, ``pnp``
     registration, the database pairs of global maps (``map_pairs``, by frustum overlap), the
     worker processes (``workers``: ``null`` or 0, one per core; 1, in this process) and this job's
     ``shard`` of the work (``i/n``: the i-th of n jobs sharing the cache; null: all of it)."""
 
-    features: FeatureSettings
+    features: Any = part(LocalFeatures)
     matching: MatchingSettings
+    query_verification: Any = part(PairVerification)
     triangulation: TriangulationSettings
     pnp: PnPSettings
     map_pairs: PairSelection
@@ -137,7 +139,7 @@ class SfmInputs:
 
     @property
     def query_verification(self) -> PairVerification:
-        return self.settings.matching.query_verifier
+        return self.settings.query_verification
 
     @property
     def database_verification(self) -> PairVerification:

@@ -69,6 +69,7 @@ class PairVerification(abc.ABC):
         return True
 
 
+@dataclass(unsafe_hash=True)  # hashable: the key of its store (never changed once built)
 class NoVerification(PairVerification):
     """The raw matches, unverified."""
 
@@ -83,7 +84,7 @@ class NoVerification(PairVerification):
         return False
 
 
-@dataclass
+@dataclass(unsafe_hash=True)  # hashable: the key of its store (never changed once built)
 class PoseVerification(PairVerification):
     """Matches within ``max_epipolar_error`` pixels (Sampson error) of the epipolar geometry of
     the two images' known poses."""
@@ -113,7 +114,7 @@ class PoseVerification(PairVerification):
         return kept
 
 
-@dataclass
+@dataclass(unsafe_hash=True)  # hashable: the key of its store (never changed once built)
 class TwoViewVerification(PairVerification):
     """pycolmap's two-view geometry (RANSAC ``max_error`` px, at least ``min_num_inliers``)."""
 

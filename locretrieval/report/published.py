@@ -47,7 +47,7 @@ GLOBAL_FEATURES = {
     "netvlad": "netvlad_vd16pitts",  # Pitts30k VGG16 (their openibl_vgg16_netvlad is another)
 }
 
-#: Kapture local-feature folder names (``sfm.features.kapture.name``) -> the published local feature.
+#: Kapture local-feature folder names (``sfm.features.name``) -> the published local feature.
 #: Both published sets have 20,000 keypoints per image: a run keeping fewer (``max_keypoints``) matches neither.
 LOCAL_FEATURES = {
     "r2d2_WASF-N8_20k": "r2d2_WASF_N8_big 20k",  # the kapture downloader's name of the paper's R2D2 features
@@ -205,9 +205,12 @@ def local_feature(run_dir: Path) -> tuple[str, str | None]:
     if not path.is_file():
         return "unknown (no config.yaml)", None
     features = OmegaConf.load(path).get("sfm", {}).get("features", {})
-    if features.get("type") != "kapture":
-        return str(features.get("type", "unknown")), None
-    name, kept = str(features.get("kapture", {}).get("name")), features.get("max_keypoints")
+    target = str(features.get("_target_", ""))
+    # the kind: SiftFeatures -> sift; runs before sfm.features had a _target_ wrote `type` and `kapture.name`
+    kind = target.rsplit(".", 1)[-1].removesuffix("Features").lower() if target else str(features.get("type", "unknown"))
+    if kind != "kapture":
+        return kind, None
+    name, kept = str(features.get("name") or features.get("kapture", {}).get("name")), features.get("max_keypoints")
     described = f"kapture {name}" + (f" (best {kept})" if kept is not None else "")
     full = kept is None or kept >= PUBLISHED_KEYPOINTS
     return described, LOCAL_FEATURES.get(name, name) if full else None
