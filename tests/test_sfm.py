@@ -1,5 +1,6 @@
 """Paradigms 2a (local SfM) and 2b (global SfM) and their building blocks on a tiny rendered scene."""
 
+import dataclasses
 import shutil
 
 import kapture.io.records as kapture_records
@@ -14,7 +15,8 @@ import pycolmap
 from locretrieval import geometry
 from locretrieval.groundtruth import relative_pose_groundtruth
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
-from locretrieval.localization import global_sfm, local_sfm, matching
+from locretrieval.localization import global_sfm, local_sfm, matching, pipeline
+from locretrieval.localization.pipeline import run_sfm
 from locretrieval.localization.colmap_model import read_colmap_map, to_pycolmap_camera, to_rigid3d
 from locretrieval.localization.features import FeatureStore, extract_features
 from locretrieval.localization.global_sfm import GlobalSfmSettings, global_map, map_cache_path
@@ -339,6 +341,29 @@ def test_results_do_not_depend_on_worker_processes_and_reruns_reuse_the_caches(s
         np.testing.assert_array_equal(a.qvec, b.qvec)
         np.testing.assert_array_equal(a.tvec, b.tvec)
         np.testing.assert_array_equal(a.failures, b.failures)
+
+
+def test_queries_streamed_in_chunks_give_the_results_of_one_pass(scene, cache, rankings, monkeypatch, tmp_path):
+    """Chunks of 3 of the 8 queries: each chunk's pairs matched while the last chunk is triangulated
+    and registered (a thread and 2 workers), then the outcomes gathered: those of one pass."""
+    paradigms = {"local_sfm": (local_sfm.STAGES, LocalSfmSettings(True, [2, 4], "database")),
+                 "global_sfm": (global_sfm.STAGES, GlobalSfmSettings(True, [1, 3], None))}
+    one_pass = run_sfm(scene, rankings, paradigms, sfm_settings(), cache)
+    shutil.copytree(cache / "features", tmp_path / "streamed" / "features")
+    monkeypatch.setattr(pipeline, "QUERIES_PER_CHUNK", 3)
+    chunks = []
+    recording = dataclasses.replace(local_sfm.STAGES, localize=lambda *args: chunks.append(args[-1]) or local_sfm.localize(*args))
+    paradigms["local_sfm"] = (recording, paradigms["local_sfm"][1])
+    timings = {}
+    streamed = run_sfm(scene, rankings, paradigms, sfm_settings(workers=2), tmp_path / "streamed", timings)
+    assert chunks == [[0, 1, 2], [3, 4, 5], [6, 7], None]  # three chunks, then every outcome gathered from the cache
+    assert set(timings) == {"features", "match + verify", "local_sfm: triangulate + register", "global_sfm: triangulate + register"}
+    for name in paradigms:
+        for a, b in zip(one_pass[name], streamed[name]):
+            np.testing.assert_array_equal(a.qvec, b.qvec)
+            np.testing.assert_array_equal(a.tvec, b.tvec)
+            np.testing.assert_array_equal(a.failures, b.failures)
+        assert any((e.failures == "").any() for e in streamed[name])
 
 
 def write_colmap_model(folder, database, keypoints, sparse_map):

@@ -1,18 +1,20 @@
 """The SfM paradigms as one pipeline of explicit stages, driven once for every enabled SfM paradigm.
 
-Each stage runs over the whole scene and every ranking at once, and hands the next one its
-results through the caches:
+The stages hand each other their results through the caches:
 
 1. **features**: local features of both image sets (`extract_features`, ``sfm.features``);
-2. **match + verify**: every query pair any paradigm needs (each query with its top ``max(k)``
-   images of every ranking, verified per ``sfm.matching.query_verification``) and every database
-   pair of any map (pose-verified), each store filled in one pass (`PairMatcher.ensure`: CPU
-   workers, or the GPU fed by them);
-3. **triangulate + register**: each paradigm's `SfmStages.localize`, per query in worker processes
-   (a local map is triangulated and the query registered in it at once; the global map once).
+2. **match + verify** (`PairMatcher.ensure`: CPU workers, or the GPU fed by them): the database
+   pairs of the maps every query shares (the global map), then, per chunk of queries, each
+   query with its top ``max(k)`` images of every ranking (verified per
+   ``sfm.query_verification``) and the database pairs of its local maps (pose-verified);
+3. **triangulate + register**: each paradigm's `SfmStages.localize`, per query in worker
+   processes (a local map is triangulated and the query registered in it at once; the global
+   map once), outcomes cached.
 
-`run_sfm` is the driver. The paradigms say what they need (`SfmStages`) and never match anything
-themselves, so one evaluation matches each store once.
+`run_sfm` is the driver: it streams the queries in chunks, so that while one chunk is
+triangulated and registered the next one is matched (on a GPU the two stages then overlap), and
+gathers every outcome from the cache at the end. The paradigms say what they need
+(`SfmStages`) and never match anything themselves, so one evaluation matches each pair once.
 
 **Shards** (``sfm.shard=i/n``, e.g. a Hydra multirun over ``0/n,...,n-1/n`` on the joblib or
 submitit launcher): job ``i`` does every ``n``-th item of each stage's sorted work (images,
@@ -27,7 +29,9 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,6 +47,8 @@ from locretrieval.scene import Scene
 log = logging.getLogger(__name__)
 
 Pair = tuple[str, str]
+#: Queries per chunk of the streamed stages (a chunk is triangulated and registered while the next is matched).
+QUERIES_PER_CHUNK = 512
 
 
 @dataclass(frozen=True)
@@ -69,7 +75,11 @@ def run_sfm(
 ) -> dict[str, list[PoseEstimates]] | None:
     """Every SfM paradigm of ``paradigms`` (name -> its stages and settings) on every ranking:
     the pose estimates by paradigm, or None for a job of ``sfm.shard`` (its share cached only).
-    The seconds each stage took are logged, and put in ``timings`` when it is given."""
+
+    The queries are streamed in chunks of `QUERIES_PER_CHUNK`: while one chunk is triangulated
+    and registered (a thread driving the worker processes), the next chunk's pairs are matched
+    (on the GPU, or the workers). The seconds each stage worked are logged (stages overlap, so
+    they may add up to more than the run), and put in ``timings`` when it is given."""
     if cache_dir is None:
         raise ValueError(f"{' and '.join(paradigms)} need a cache directory for their features, matches and maps")
     cache_dir = Path(cache_dir)
@@ -77,38 +87,53 @@ def run_sfm(
     inputs = SfmInputs.prepare(scene, sfm, cache_dir, extract=False)
     ks = {name: [ranking.clamp_ks(settings.k) for ranking in rankings] for name, (_, settings) in paradigms.items()}
     deepest = [[max(max(ks[name][r]) for name in paradigms)] for r in range(len(rankings))]
-    queries = None if shard is None else shard.take(range(len(scene.queries)))
-    query_pairs = inputs.ranked_pairs(rankings, deepest, queries)
-    map_pairs = inputs.database_pairs.canonical(
-        pair for name, (stages, settings) in paradigms.items()
-        for pair in [*stages.shared_map_pairs(inputs, settings), *stages.query_map_pairs(inputs, rankings, ks[name], settings, None)]
-    )
-    if shard is not None:
+    queries = list(range(len(scene.queries))) if shard is None else shard.take(range(len(scene.queries)))
+
+    def query_map_pairs(chunk: Sequence[int] | None) -> list[Pair]:
+        return [pair for name, (stages, settings) in paradigms.items() for pair in stages.query_map_pairs(inputs, rankings, ks[name], settings, chunk)]
+
+    shared_pairs = [pair for stages, settings in paradigms.values() for pair in stages.shared_map_pairs(inputs, settings)]
+    if shard is not None:  # every database pair of any map, split among the jobs
+        all_pairs = inputs.database_pairs.canonical([*shared_pairs, *query_map_pairs(None)])
         log.info("SfM shard %s: %d of %d queries, %d of %d database pairs", shard, len(queries), len(scene.queries),
-                 len(shard.take(map_pairs)), len(map_pairs))
-        map_pairs = shard.take(map_pairs)
+                 len(shard.take(all_pairs)), len(all_pairs))
+        shared_pairs = shard.take(all_pairs)
     clock = StageClock(timings)
     with clock("features"):
-        extract_stage(inputs, cache_dir, shard, query_pairs, map_pairs)
+        extract_stage(inputs, cache_dir, shard, inputs.ranked_pairs(rankings, deepest, queries), [*shared_pairs, *query_map_pairs(queries)])
     with clock("match + verify"):
-        match_stage(inputs, query_pairs, map_pairs)
-        if shard is not None:  # this job's maps' pairs that another job's share holds and has not written yet
-            own_maps = [pair for name, (stages, settings) in paradigms.items() for pair in stages.query_map_pairs(inputs, rankings, ks[name], settings, queries)]
-            extract_stage(inputs, cache_dir, shard, [], own_maps, whole_sets=False)
-            inputs.database_pairs.ensure(own_maps, sfm.processes, inputs.database_verification)
-    estimates = {}
-    for name, (stages, settings) in paradigms.items():
-        with clock(f"{name}: triangulate + register"):
-            estimates[name] = stages.localize(inputs, rankings, ks[name], settings, cache_dir, queries)
+        match_stage(inputs, [], shared_pairs)
+
+    def localize(chunk: Sequence[int] | None) -> dict[str, list[PoseEstimates] | None]:
+        found = {}
+        for name, (stages, settings) in paradigms.items():
+            with clock(f"{name}: triangulate + register"):
+                found[name] = stages.localize(inputs, rankings, ks[name], settings, cache_dir, chunk)
+        return found
+
+    with ThreadPoolExecutor(1, thread_name_prefix="sfm-localize") as background:
+        localizing = None
+        for start in range(0, len(queries), QUERIES_PER_CHUNK):
+            chunk = queries[start : start + QUERIES_PER_CHUNK]
+            with clock("match + verify"):
+                match_stage(inputs, inputs.ranked_pairs(rankings, deepest, chunk), query_map_pairs(chunk))
+            if localizing is not None:
+                localizing.result()  # one chunk localised at a time: the worker processes are its
+            localizing = background.submit(localize, chunk)
+        if localizing is not None:
+            localizing.result()
+    estimates = None if shard is not None else localize(None)  # every outcome is cached now: gathered
     log.info("SfM stages: %s", ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in clock.seconds.items()))
-    return None if shard is not None else estimates
+    return estimates
 
 
 class StageClock:
-    """Seconds per stage: ``with clock(stage): ...``, kept in ``timings`` when it is given."""
+    """Seconds each stage worked, summed over its calls: ``with clock(stage): ...`` (from several
+    threads), kept in ``timings`` when it is given."""
 
     def __init__(self, timings: dict[str, float] | None) -> None:
         self.seconds = timings if timings is not None else {}
+        self._lock = threading.Lock()
 
     @contextlib.contextmanager
     def __call__(self, stage: str) -> Iterator[None]:
@@ -116,7 +141,8 @@ class StageClock:
         try:
             yield
         finally:
-            self.seconds[stage] = time.perf_counter() - started
+            with self._lock:
+                self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - started
 
 
 def extract_stage(

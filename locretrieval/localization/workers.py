@@ -88,15 +88,17 @@ class SpawnedPools:
     def __init__(self, initializer: Callable[[int], None]) -> None:
         self.initializer = initializer
         self.pools: dict[int, ProcessPoolExecutor] = {}
+        self._lock = threading.Lock()  # the SfM pipeline submits from two threads
 
     def started(self, workers: int) -> bool:
         return workers in self.pools
 
     def get(self, workers: int) -> ProcessPoolExecutor:
-        if workers not in self.pools:
-            context = multiprocessing.get_context("spawn")
-            self.pools[workers] = ProcessPoolExecutor(workers, mp_context=context, initializer=self.initializer, initargs=(os.getpid(),))
-        return self.pools[workers]
+        with self._lock:
+            if workers not in self.pools:
+                context = multiprocessing.get_context("spawn")
+                self.pools[workers] = ProcessPoolExecutor(workers, mp_context=context, initializer=self.initializer, initargs=(os.getpid(),))
+            return self.pools[workers]
 
     def discard(self, workers: int) -> None:
         """Shut a broken pool down; the next `get` starts a new one."""
