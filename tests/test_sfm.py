@@ -7,6 +7,7 @@ import kapture.io.records as kapture_records
 import numpy as np
 import pytest
 from PIL import Image
+from scipy.spatial.transform import Rotation
 
 import helpers
 
@@ -25,8 +26,10 @@ from locretrieval.localization.pairs import PairSelection, database_pairs
 from locretrieval.localization.plan import Work
 from locretrieval.localization.pnp import NO_KEYPOINTS, TOO_FEW_IMAGES, TOO_FEW_MATCHES, estimate_absolute_pose
 from locretrieval.localization.sfm import QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set
-from locretrieval.localization.triangulation import triangulate_known_poses
+from locretrieval.localization import triangulation as triangulation_module
+from locretrieval.localization.triangulation import BatchedTriangulation, MapInput, triangulate_known_poses
 from locretrieval.retrieval import Ranking, random_ranking
+from locretrieval.scene import Camera
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 
@@ -37,9 +40,10 @@ BLANK = 7  # this query's image is replaced by a uniform one
 PAIRS = {"far": 25.0, "max_per_image": 10}  # global-map pairs (the scene has no frustum_far)
 
 
-def sfm_settings(**overrides) -> SfmSettings:
-    """The default SfM settings in this process, global-map pairs by `PAIRS`, ``overrides`` merged in."""
-    return helpers.sfm_settings({"map_pairs": PAIRS}, overrides)
+def sfm_settings(triangulation_kind: str = "colmap", **overrides) -> SfmSettings:
+    """The default SfM settings in this process (``sfm/triangulation=<triangulation_kind>``),
+    global-map pairs by `PAIRS`, ``overrides`` merged in."""
+    return helpers.sfm_settings({"map_pairs": PAIRS}, overrides, choices=[f"sfm/triangulation={triangulation_kind}"])
 
 
 def run_local(scene, rankings, k, cache, map_matches="database", sfm=None):
@@ -99,9 +103,10 @@ def backproject(images, index, pixels):
 # --------------------------------------------------------------------------- building blocks
 
 
-def test_triangulation_with_known_poses_recovers_the_rendered_points(scene, cache, monkeypatch):
+@pytest.mark.parametrize("kind", ["colmap", "batched"])
+def test_triangulation_with_known_poses_recovers_the_rendered_points(scene, cache, monkeypatch, kind):
     database = scene.database
-    inputs = SfmInputs.prepare(scene, sfm_settings(), cache)
+    inputs = SfmInputs.prepare(scene, sfm_settings(kind), cache)
     sparse_map = global_map(inputs, None, cache)
     assert sparse_map.num_points > 500
     keypoints = inputs.database_features.keypoints(database.names)
@@ -263,13 +268,13 @@ def test_local_maps_of_the_same_images_in_another_order_are_built_once(scene, ca
     top = truth.indices[:, :3]
     reversed_ranking = Ranking("reversed", top[:, ::-1], truth.scores[:, :3][:, ::-1], "groundtruth")
     built = []
-    real = local_sfm.triangulate_known_poses
+    real = triangulation_module.triangulate_known_poses
 
     def counting(cameras, qvec, tvec, *rest):
         built.append(len(cameras))
         return real(cameras, qvec, tvec, *rest)
 
-    monkeypatch.setattr(local_sfm, "triangulate_known_poses", counting)
+    monkeypatch.setattr(triangulation_module, "triangulate_known_poses", counting)
     forward, backward = run_local(scene, [truth.top(3), reversed_ranking], [2, 3], cache)
     # per query: the two top-2 sets {first, second} and {second, third}, and one top-3 set; a
     # set that several queries share is triangulated once (then read from the cache)
@@ -288,7 +293,7 @@ def test_a_rerun_reads_its_local_maps_from_the_cache(scene, cache, rankings, mon
     def refuse(*_):
         raise AssertionError("a cached local map was triangulated again")
 
-    monkeypatch.setattr(local_sfm, "triangulate_known_poses", refuse)
+    monkeypatch.setattr(triangulation_module, "triangulate_known_poses", refuse)
     shutil.rmtree(cache / "poses")  # registered again, in maps read from the cache
     again = run_local(scene, rankings, [2, 3], cache, map_matches)
     for a, b in zip(first, again):
@@ -404,14 +409,60 @@ def test_an_existing_colmap_model_serves_as_the_global_map(scene, cache, ranking
         read_colmap_map(tmp_path / "model", database.names, shifted)
 
 
-def test_triangulating_pairs_without_matches_gives_an_empty_map(scene):
+@pytest.mark.parametrize("kind", ["colmap", "batched"])
+def test_triangulating_pairs_without_matches_gives_an_empty_map(scene, kind):
     database = scene.database.subset(np.arange(3))
     keypoints = [np.zeros((4, 2)), np.zeros((0, 2)), np.ones((2, 2))]
     no_matches = {(0, 2): np.empty((0, 2), np.int32)}
-    sparse_map = triangulate_known_poses(
-        database.cameras, database.qvec, database.tvec, keypoints, no_matches, sfm_settings().triangulation
-    )
+    sparse_map = sfm_settings(kind).triangulation.triangulate(database.cameras, database.qvec, database.tvec, keypoints, no_matches)
     assert sparse_map.num_points == 0 and [len(o) for o in sparse_map.observations] == [4, 0, 2]
+
+
+def projected_views(points: np.ndarray, count: int, rng: np.random.Generator):
+    """``count`` cameras on a circle of 10 m looking at ``points`` (world, around the origin, far
+    from it: 1,000 m east) and each point's exact projection in every camera (COLMAP pixels)."""
+    camera = Camera("PINHOLE", 640, 480, (400.0, 400.0, 320.0, 240.0))
+    angles = np.linspace(-0.3, 0.3, count)
+    centers = np.column_stack([1000.0 + 10 * np.sin(angles), 0.0 * angles, -10 * np.cos(angles)])
+    qvec, tvec, keypoints = [], [], []
+    for center, angle in zip(centers, angles):
+        rotation = Rotation.from_euler("y", -angle).as_matrix()  # camera z towards the points
+        x, y, z, w = Rotation.from_matrix(rotation).as_quat()
+        qvec.append([w, x, y, z])
+        tvec.append(-rotation @ center)
+        in_camera = (points - 0.0) @ rotation.T + tvec[-1]
+        keypoints.append(in_camera[:, :2] / in_camera[:, 2:] * 400.0 + [320.0, 240.0])
+    return [camera] * count, np.array(qvec), np.array(tvec), keypoints
+
+
+def test_batched_triangulation_solves_exact_tracks_and_drops_an_outlier_observation():
+    rng = np.random.default_rng(2)
+    points = np.column_stack([1000.0 + rng.uniform(-2, 2, 50), rng.uniform(-1, 1, 50), rng.uniform(3, 6, 50)])
+    cameras, qvec, tvec, keypoints = projected_views(points, 4, rng)
+    keypoints[2][7] += [30.0, -20.0]  # one observation of point 7 off by 36 px
+    every = np.column_stack([np.arange(50), np.arange(50)])
+    matches = {(a, b): every for a in range(4) for b in range(a + 1, 4)}
+    batched = BatchedTriangulation(min_angle=1.5, max_reprojection_error=4.0)
+    sparse_map = batched.triangulate(cameras, qvec, tvec, keypoints, matches)
+    assert sparse_map.num_points == 50
+    order = sparse_map.observations[0]  # image 0 sees every point
+    np.testing.assert_allclose(sparse_map.points[order], points, atol=1e-6)  # 1,000 m from the origin: solved near the cameras
+    assert sparse_map.observations[2][7] == -1 and (sparse_map.observations[2][np.arange(50) != 7] >= 0).all()
+    # two views: points whose two rays meet at less than min_angle are dropped
+    centers = geometry.camera_centers(qvec[:2], tvec[:2])
+    rays = [(points - center) / np.linalg.norm(points - center, axis=1, keepdims=True) for center in centers]
+    angles = np.degrees(np.arccos(np.einsum("pi,pi->p", *rays)))
+    threshold = float(np.median(angles))
+    two_views = BatchedTriangulation(min_angle=threshold, max_reprojection_error=4.0)
+    narrow = two_views.triangulate(cameras[:2], qvec[:2], tvec[:2], keypoints[:2], {(0, 1): every})
+    np.testing.assert_array_equal(narrow.observations[0] >= 0, angles >= threshold)
+    # several maps in one call: each the map it is alone, bit for bit
+    other = (cameras[:3], qvec[:3], tvec[:3], keypoints[:3], {(0, 1): every[:20], (1, 2): every[10:40]})
+    together = batched.triangulate_many([MapInput(*other), MapInput(cameras, qvec, tvec, keypoints, matches)])
+    for alone, joint in zip([batched.triangulate(*other), sparse_map], together):
+        np.testing.assert_array_equal(alone.points, joint.points)
+        for a, b in zip(alone.observations, joint.observations):
+            np.testing.assert_array_equal(a, b)
 
 
 def test_global_map_pairs_are_the_most_overlapping_frusta(scene):

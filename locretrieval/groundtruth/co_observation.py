@@ -31,7 +31,6 @@ from locretrieval.localization.matching import PairMatcher
 from locretrieval.localization.pairs import database_pairs, overlapping_pairs
 from locretrieval.localization.sfm import SfmInputs, SfmSettings
 from locretrieval.localization.sparse_map import SparseMap
-from locretrieval.localization.triangulation import triangulate_known_poses
 from locretrieval.scene import ImageSet, Scene
 
 
@@ -130,13 +129,12 @@ def shared_points(database: ImageSet, queries: ImageSet, cache_dir: Path, sfm: S
     posed_names = [queries.names[q] for q in posed]
     keypoints = database_features.keypoints(database.names)
     query_keypoints = query_features.keypoints(posed_names)
-    joint: SparseMap = triangulate_known_poses(
+    joint: SparseMap = sfm.triangulation.triangulate(
         database.cameras + [queries.cameras[q] for q in posed],
         np.concatenate([database.qvec, queries.qvec[posed]]),
         np.concatenate([database.tvec, queries.tvec[posed]]),
         [keypoints[n] for n in database.names] + [query_keypoints[n] for n in posed_names],
         matches,
-        sfm.triangulation,
     )
     observed = _incidence(joint.observed_points(), joint.num_points)
     counts = (observed[offset:] @ observed[:offset].T).tocoo()

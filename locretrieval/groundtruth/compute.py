@@ -106,7 +106,9 @@ def compute_groundtruths(
             if sfm is None:
                 raise ConfigError(f"groundtruth.definitions.{name}: the {definition_type(definition)} ground truth needs the sfm settings")
             context = dataclasses.replace(context, sfm=dataclasses.replace(sfm, map_pairs=sfm.map_pairs.for_scene(scene)))
-            produced_by["sfm"] = {key: dataclasses.asdict(getattr(context.sfm, key)) for key in ("features", "triangulation", "map_pairs")}
+            sfm = context.sfm
+            produced_by["sfm"] = {"features": sfm.features.identity(), "triangulation": sfm.triangulation.identity(),
+                                  "map_pairs": dataclasses.asdict(sfm.map_pairs)}
             produced_by["sfm"]["matching"] = context.sfm.matching.identity()
         path = None
         if cache_dir is not None:

@@ -43,7 +43,6 @@ from locretrieval.localization.sfm import (
     SFM_METHOD, Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, query_tasks, register_query, run_queries,
 )
 from locretrieval.localization.sparse_map import SparseMap
-from locretrieval.localization.triangulation import triangulate_known_poses
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
 
@@ -156,9 +155,9 @@ def global_map(inputs: SfmInputs, colmap_model: str | None, cache_dir: Path) -> 
         inputs.database_pairs.ensure(named, workers, inputs.database_verification)
         matches = inputs.database_pairs.load(named, inputs.database_verification)
         keypoints = inputs.database_features.keypoints(database.names)
-        sparse_map = triangulate_known_poses(
+        sparse_map = inputs.settings.triangulation.triangulate(
             database.cameras, database.qvec, database.tvec, [keypoints[n] for n in database.names],
-            {(int(a), int(b)): matches[pair] for (a, b), pair in zip(pairs, named)}, inputs.settings.triangulation,
+            {(int(a), int(b)): matches[pair] for (a, b), pair in zip(pairs, named)},
         )
         sparse_map.save(path)
     log.info("global map: %d points from %d database images (%d pairs), saved to %s", sparse_map.num_points, len(database), len(pairs), path)
@@ -170,7 +169,7 @@ def map_cache_path(inputs: SfmInputs, cache_dir: Path) -> Path:
     name encodes the features, the ratio, the epipolar bound and the database poses), the
     triangulation settings and the pair selection."""
     matches = inputs.database_pairs.store(inputs.database_verification).folder.name
-    key = config_key(CACHE_VERSION, matches, asdict(inputs.settings.triangulation), asdict(inputs.map_pairs))
+    key = config_key(CACHE_VERSION, matches, inputs.settings.triangulation.identity(), asdict(inputs.map_pairs))
     return cache_dir / "maps" / f"{key}.npz"
 
 

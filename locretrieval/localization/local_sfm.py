@@ -13,7 +13,7 @@ For each query, ranking and k:
    either way, map-map matches are then kept only within ``matching.max_epipolar_error``
    pixels of the epipolar geometry of the two known poses;
 3. COLMAP's triangulator builds tracks across the k images and triangulates them
-   (`triangulate_known_poses`; two-view tracks kept, ``triangulation`` options); the map is
+   (``sfm.triangulation``: COLMAP's, or the batched one, every map of a query in one call); the map is
    cached in ``<cache_dir>/local_maps/`` keyed by its images, the matches' store and the
    triangulation settings (and, with ``query`` map matches, the query), so a map shared by
    several queries or a rerun is triangulated once;
@@ -48,7 +48,7 @@ from locretrieval.localization.sfm import (
     SFM_METHOD, Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, query_tasks, register_query, run_queries,
 )
 from locretrieval.localization.sparse_map import SparseMap
-from locretrieval.localization.triangulation import triangulate_known_poses
+from locretrieval.localization.triangulation import MapInput
 from locretrieval.localization.verification import epipolar_inliers
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import Scene
@@ -137,7 +137,7 @@ def plan(
 
 def _pose_cache(inputs: SfmInputs, settings: LocalSfmSettings, cache_dir: Path) -> PoseCache:
     """The registration outcomes, keyed by what the local maps are keyed by."""
-    maps = [CACHE_VERSION, settings.map_matches, _database_matches(inputs), asdict(inputs.settings.triangulation)]
+    maps = [CACHE_VERSION, settings.map_matches, _database_matches(inputs), inputs.settings.triangulation.identity()]
     return inputs.pose_cache("local_sfm", maps, cache_dir)
 
 
@@ -161,9 +161,10 @@ def local_map_pairs(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]], qu
 
 
 def localize_query(shared: tuple[SfmInputs, str, Path], task: QueryTask) -> list[list[Outcome]]:
-    """Outcomes ``[ranking][k]`` of one query; a map (an image set whose outcome is not known)
-    is triangulated (or read from ``maps``, the cache folder) and the query registered in it
-    once, whichever rankings, ks and orders select its images."""
+    """Outcomes ``[ranking][k]`` of one query; its maps (the image sets whose outcome is not
+    known) are read from ``maps`` (the cache folder) or triangulated, all of them in one call of
+    the triangulation, and the query registered in each once, whichever rankings, ks and orders
+    select its images."""
     inputs, map_matches, maps = shared
     database = inputs.scene.database
     pending = task.pending()
@@ -171,26 +172,26 @@ def localize_query(shared: tuple[SfmInputs, str, Path], task: QueryTask) -> list
     query_keypoints, query_matches = inputs.query_matches(task.query, images)
     keypoints = inputs.database_features.keypoints([database.names[i] for i in images])
     map_pairs = _map_matches(inputs, pending, map_matches, query_matches, len(query_keypoints), keypoints)
+    paths = {selected: maps / f"{_map_key(inputs, map_matches, task.query, selected)}.npz" for selected in sorted(pending) if len(selected) >= 2}
+    built = [selected for selected, path in paths.items() if not path.is_file()]
+    sparse_maps = dict(zip(built, inputs.settings.triangulation.triangulate_many([
+        MapInput([database.cameras[i] for i in selected], database.qvec[list(selected)], database.tvec[list(selected)],
+                 [keypoints[database.names[i]] for i in selected],
+                 {(s, t): map_pairs[(a, b)] for s, a in enumerate(selected) for t, b in enumerate(selected) if a < b})
+        for selected in built
+    ])))
+    for selected in built:
+        sparse_maps[selected].save(paths[selected])
 
     def localize(selected: tuple[int, ...]) -> Outcome:
         if not selected:
             return EMPTY_RETRIEVAL
         if len(selected) < 2:
             return TOO_FEW_IMAGES
-        slots = {i: s for s, i in enumerate(selected)}
-        path = maps / f"{_map_key(inputs, map_matches, task.query, selected)}.npz"
-        if path.is_file():
-            sparse_map = SparseMap.load(path)
-        else:
-            sparse_map = triangulate_known_poses(
-                [database.cameras[i] for i in selected], database.qvec[list(selected)], database.tvec[list(selected)],
-                [keypoints[database.names[i]] for i in selected],
-                {(slots[a], slots[b]): map_pairs[(a, b)] for a in selected for b in selected if a < b},
-                inputs.settings.triangulation,
-            )
-            sparse_map.save(path)
+        sparse_map = sparse_maps[selected] if selected in sparse_maps else SparseMap.load(paths[selected])
         if not sparse_map.num_points:
             return NO_3D_POINTS
+        slots = {i: s for s, i in enumerate(selected)}
         return register_query(inputs, task.query, query_keypoints, {i: query_matches[i] for i in selected}, sparse_map, slots)
 
     return outcomes_per_image_set(task, localize)
@@ -204,7 +205,7 @@ def _map_key(inputs: SfmInputs, map_matches: str, query: int, selected: tuple[in
     source = [_database_matches(inputs)]
     if map_matches == "query":
         source = [inputs.query_pairs.store(inputs.query_verification).folder.name, inputs.scene.queries.names[query]]
-    return config_key(CACHE_VERSION, map_matches, source, names, asdict(inputs.settings.triangulation))
+    return config_key(CACHE_VERSION, map_matches, source, names, inputs.settings.triangulation.identity())
 
 
 def _map_matches(

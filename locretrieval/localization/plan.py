@@ -26,7 +26,6 @@ from locretrieval.localization.features import read_or_extract
 from locretrieval.localization.matching import pair_key
 from locretrieval.localization.pnp import estimate_absolute_pose
 from locretrieval.localization.sfm import QueryTask, SfmInputs, SfmSettings, correspondences
-from locretrieval.localization.triangulation import triangulate_known_poses
 from locretrieval.localization.verification import PairVerification, VerificationBatch, verify_pairs
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import ImageSet, Scene
@@ -213,9 +212,8 @@ def measure_unit_costs(scene: Scene, settings: SfmSettings, sample_images: int =
                                             list(query_matches.values()), {scene.queries.names[0]: query["keypoints"]}, keypoints)
 
     started = time.perf_counter()
-    sparse_map = triangulate_known_poses(
-        [database.cameras[i] for i in sample], database.qvec[sample], database.tvec[sample],
-        [r["keypoints"] for r in records], verified, settings.triangulation,
+    sparse_map = settings.triangulation.triangulate(
+        [database.cameras[i] for i in sample], database.qvec[sample], database.tvec[sample], [r["keypoints"] for r in records], verified,
     )
     triangulation_seconds = (time.perf_counter() - started) / len(pairs)
 

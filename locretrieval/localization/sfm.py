@@ -28,7 +28,7 @@ from locretrieval.localization.pairs import PairSelection
 from locretrieval.localization.pnp import NO_KEYPOINTS, TOO_FEW_MATCHES, PnPSettings, estimate_absolute_pose
 from locretrieval.localization.pose_cache import Outcome, PoseCache
 from locretrieval.localization.sparse_map import SparseMap
-from locretrieval.localization.triangulation import TriangulationSettings
+from locretrieval.localization.triangulation import Triangulation
 from locretrieval.localization.verification import PairVerification
 from locretrieval.localization.workers import parallel_map, resolve_workers
 from locretrieval.retrieval import EMPTY, Ranking
@@ -46,7 +46,7 @@ class SfmSettings:
     """The ``sfm`` config group, shared by local SfM (2a), global SfM (2b) and the
     co-observation ground truth so that they share their cached features and matches:
     local ``features`` (a `LocalFeatures` chosen by ``_target_``), ``matching``, the ``query_verification`` of query-database matches (a
-    `PairVerification` chosen by ``_target_``), ``triangulation`` with known poses, ``pnp``
+    `PairVerification` chosen by ``_target_``), ``triangulation`` with known poses (a `Triangulation` chosen by ``_target_``), ``pnp``
     registration, the database pairs of global maps (``map_pairs``, by frustum overlap), the
     worker processes (``workers``: ``null`` or 0, one per core; 1, in this process) and this job's
     ``shard`` of the work (``i/n``: the i-th of n jobs sharing the cache; null: all of it)."""
@@ -54,7 +54,7 @@ class SfmSettings:
     features: Any = part(LocalFeatures)
     matching: MatchingSettings
     query_verification: Any = part(PairVerification)
-    triangulation: TriangulationSettings
+    triangulation: Any = part(Triangulation)
     pnp: PnPSettings
     map_pairs: PairSelection
     workers: int | None
