@@ -60,6 +60,7 @@ from locretrieval.localization.local_sfm import LocalSfmSettings
 from locretrieval.localization.pipeline import run_sfm
 from locretrieval.localization.plan import SfmPlan, UnitCosts, feature_work, measure_unit_costs
 from locretrieval.localization.sfm import SfmSettings
+from locretrieval.localization.triangulation import BatchedTriangulation, MapInput
 from locretrieval.metrics.localization import localization_table, query_error_table
 from locretrieval.metrics.retrieval import retrieval_tables
 from locretrieval.retrieval import random_ranking
@@ -279,8 +280,8 @@ def measured_unit_costs(scene: Scene, sfm: SfmSettings, keypoints: int, rng: np.
     query = int(np.argmin(np.linalg.norm(queries.centers - database.centers[0], axis=1)))
     sample = with_kapture_root(Scene(scene.name, database.subset(near), queries.subset(np.array([query])), frustum_far=scene.frustum_far), folder)
     world = FeatureWorld(sample.database.centers, scene.frustum_far, rng)
-    world.write(sample.database, range(len(near)), keypoints, scene.frustum_far, sfm.features.kapture.name)
-    world.write(sample.queries, [0], keypoints, scene.frustum_far, sfm.features.kapture.name)
+    world.write(sample.database, range(len(near)), keypoints, scene.frustum_far, sfm.features.name)
+    world.write(sample.queries, [0], keypoints, scene.frustum_far, sfm.features.name)
     return measure_unit_costs(sample, sfm, sample_images=UNIT_COST_IMAGES)
 
 
@@ -297,6 +298,9 @@ def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Ge
         plan.costs = measure(f"unit costs at {args.keypoints:,} keypoints", measured_unit_costs, scene, sfm, args.keypoints, rng, folder / "units")
         print(unit_cost_line(plan.costs))
         print(forecast_line(f"projected full SfM sweep ({args.size}, {args.keypoints:,} keypoints", plan, processes))
+        ratio = measure("batched against COLMAP triangulation", batched_triangulation_ratio, scene, sfm, args.keypoints, rng)
+        batched = dataclasses.replace(plan, costs=dataclasses.replace(plan.costs, triangulation=plan.costs.triangulation * ratio))
+        print(forecast_line(f"  with sfm/triangulation=batched ({ratio:.2f} of COLMAP's time per map", batched, processes))
 
         on_gpu = plan.costs.device.startswith("cuda")
         fraction = args.slice if args.slice is not None else (0.02 if on_gpu else 0.005)
@@ -304,7 +308,7 @@ def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Ge
         slice_scene, slice_rankings = scene_slice(scene, descriptors_of, fraction, args.seed, folder / "slice")
         world = FeatureWorld(np.concatenate([slice_scene.database.centers, slice_scene.queries.centers]), scene.frustum_far, rng)
         for images in (slice_scene.database, slice_scene.queries):
-            world.write(images, range(len(images)), keypoints, scene.frustum_far, sfm.features.kapture.name)
+            world.write(images, range(len(images)), keypoints, scene.frustum_far, sfm.features.name)
         slice_plan = sfm_plan(slice_scene, slice_rankings, sfm, folder / "slice_cache")
         slice_plan.costs = measure_unit_costs(slice_scene, sfm, sample_images=UNIT_COST_IMAGES)
         forecast = sum(slice_plan.forecast().values())
@@ -318,6 +322,30 @@ def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Ge
         print(forecast_line("  slice forecast", slice_plan, processes))
         print(f"  slice measured end to end: {measured:.1f} s (" + ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in stages.items())
               + f") against {forecast:.1f} s forecast: measured / forecast {measured / forecast:.2f}")
+
+
+def batched_triangulation_ratio(scene: Scene, sfm: SfmSettings, keypoints: int, rng: np.random.Generator) -> float:
+    """`BatchedTriangulation`'s time over the configured triangulation's on one map of the first
+    database image and its 9 nearest, generated features with their true correspondences."""
+    database = scene.database
+    near = np.argsort(np.linalg.norm(database.centers - database.centers[0], axis=1), kind="stable")[:UNIT_COST_IMAGES]
+    images = database.subset(near)
+    world = FeatureWorld(images.centers, scene.frustum_far, rng)
+    features = [world.features(images, i, keypoints, scene.frustum_far) for i in range(len(near))]
+    matches = {}
+    for a in range(len(near)):
+        for b in range(a + 1, len(near)):
+            shared, rows_a, rows_b = np.intersect1d(features[a][2], features[b][2], return_indices=True)
+            matches[(a, b)] = np.column_stack([rows_a, rows_b])[shared >= 0]
+    map_input = MapInput(images.cameras, images.qvec, images.tvec, [f[0][:, :2] + 0.5 for f in features], matches)
+    batched = BatchedTriangulation(sfm.triangulation.min_angle, sfm.triangulation.max_reprojection_error)
+    seconds = []
+    for triangulation in (sfm.triangulation, batched):
+        triangulation.triangulate_many([map_input])  # first call: imports
+        started = time.perf_counter()
+        triangulation.triangulate_many([map_input])
+        seconds.append(time.perf_counter() - started)
+    return seconds[1] / seconds[0]
 
 
 def unit_cost_line(costs: UnitCosts) -> str:

@@ -39,9 +39,10 @@ class FeatureWorld:
         self.descriptors = rng.normal(size=(count, DIMENSION)).astype(np.float32)
         self.rng = rng
 
-    def features(self, images: ImageSet, index: int, keypoints: int, far: float) -> tuple[np.ndarray, np.ndarray]:
-        """Keypoints ``float32 [n, 3]`` (x, y, scale; OpenCV pixel centres, as R2D2 writes them)
-        and descriptors ``float32 [n, 128]`` of image ``index``."""
+    def features(self, images: ImageSet, index: int, keypoints: int, far: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Keypoints ``float32 [n, 3]`` (x, y, scale; OpenCV pixel centres, as R2D2 writes them),
+        descriptors ``float32 [n, 128]`` of image ``index``, and the point each keypoint observes
+        (``int64 [n]``, -1: clutter)."""
         camera = images.cameras[index]
         in_camera = self.points @ geometry.quaternion_to_matrix(images.qvec[index]).T + images.tvec[index]
         depth = in_camera[:, 2]
@@ -56,7 +57,8 @@ class FeatureWorld:
         values = np.concatenate([self.descriptors[seen] + DESCRIPTOR_NOISE * self.rng.normal(size=(len(seen), DIMENSION)),
                                  self.rng.normal(size=(clutter, DIMENSION))]).astype(np.float32)
         order = self.rng.permutation(keypoints)
-        return np.column_stack([xy, np.ones(keypoints)]).astype(np.float32)[order], values[order]
+        observed = np.concatenate([seen, np.full(clutter, -1)])
+        return np.column_stack([xy, np.ones(keypoints)]).astype(np.float32)[order], values[order], observed[order]
 
     def write(self, images: ImageSet, indices, keypoints: int, far: float, feature_name: str) -> None:
         """The features of ``images[indices]`` as kapture files under the kapture folder the images
@@ -67,7 +69,7 @@ class FeatureWorld:
         kapture_csv.descriptors_to_file(kapture_csv.get_feature_csv_fullpath(kapture.Descriptors, feature_name, root),
                                         kapture.Descriptors(feature_name, np.float32, DIMENSION, feature_name, "L2"))
         for index in indices:
-            points, values = self.features(images, int(index), keypoints, far)
+            points, values, _ = self.features(images, int(index), keypoints, far)
             name = images.names[int(index)]
             kapture_features.image_keypoints_to_file(kapture_features.get_keypoints_fullpath(feature_name, root, name), points)
             kapture_features.image_descriptors_to_file(kapture_features.get_descriptors_fullpath(feature_name, root, name), values)

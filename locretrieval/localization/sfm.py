@@ -242,11 +242,14 @@ def outcomes_per_image_set(task: QueryTask, localize: Callable[[tuple[int, ...]]
     return [[outcome(tuple(sorted(top[:k]))) for k in ks] for top, ks in zip(task.top, task.ks)]
 
 
-def query_tasks(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]], cache: PoseCache) -> list[QueryTask]:
-    """Per query, its top ``max(k)`` database images of each ranking and its cached outcomes."""
+def query_tasks(
+    rankings: Sequence[Ranking], ks: Sequence[Sequence[int]], cache: PoseCache, queries: Sequence[int] | None = None
+) -> list[QueryTask]:
+    """Per query (of ``queries``, or every one), its top ``max(k)`` database images of each
+    ranking and its cached outcomes."""
     rows = [ranking.indices[:, : max(ranking_ks)] for ranking, ranking_ks in zip(rankings, ks)]
     tasks = []
-    for q in range(rankings[0].num_queries):
+    for q in range(rankings[0].num_queries) if queries is None else queries:
         task = QueryTask(q, tuple(tuple(int(i) for i in row[q] if i != EMPTY) for row in rows), tuple(map(tuple, ks)))
         for images in task.image_sets():
             outcome = cache.get(q, images)
@@ -269,9 +272,7 @@ def run_queries(
     on every query with an image set whose outcome ``cache`` does not hold, add the new outcomes
     to the cache and save it, and gather one `PoseEstimates` per ranking; failures are logged.
     With ``queries`` (a shard's), only those are localised and cached, and nothing is gathered."""
-    tasks = query_tasks(rankings, ks, cache)
-    if queries is not None:
-        tasks = [tasks[q] for q in queries]
+    tasks = query_tasks(rankings, ks, cache, queries)
     pending = [task for task in tasks if not task.complete]
     if len(pending) < len(tasks):
         log.info("%s: %d of %d queries fully read from the registration cache", paradigm, len(tasks) - len(pending), len(tasks))
