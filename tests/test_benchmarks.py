@@ -17,6 +17,11 @@ TINY_RUNS = {
         ["--queries", "300", "--database", "40", "--dimension", "16", "--depth", "5", "--check", "50"],
         [r"5 x\s+bdi, D=16:\s+[\d.]+ s", r"max difference \d\.\de-(0[7-9]|1\d)"],  # weights within 1e-6 of float64
     ),
+    "bench_matching.py": (
+        ["--keypoints", "300", "--repeats", "1", "--pipeline-images", "3"],
+        [r"\s+300 \|\s+float32 \|\s+[\d.]+ \|\s+[\d.]+ \|\s+[\d.]+ \|\s+[\d.]+ \| matcher: [\d.]+x the bare product's time",
+         r"float16 at 300 keypoints: \d+\.\d\d % of float32's matches"],
+    ),
     "bench_groundtruth.py": (
         ["--queries", "40", "--database", "30", "--length", "30", "--width", "10"],
         [r"relative_pose:\s+[\d.]+ s", r"frustum:\s+[\d.]+ s"],
