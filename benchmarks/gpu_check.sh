@@ -22,9 +22,9 @@ step() {
     echo "== exit $code in $((SECONDS - started)) s" | tee -a "$log"
     [ "$code" -eq 0 ] || status=1
 }
-step "CUDA tests" timeout 150 "$PYTHON" -m pytest -q -p no:cacheprovider tests/test_features_matching.py tests/test_densevlad.py -k "gpu or cuda or device"
-step "bench_matching" timeout 120 "$PYTHON" benchmarks/bench_matching.py --keypoints 5000 20000 --repeats 5
-step "bench_scale baidu" timeout 240 "$PYTHON" benchmarks/bench_scale.py --size baidu
-step "evaluate on the GPU (built-in scene, 16 queries)" timeout 120 "$PYTHON" evaluate.py device=cuda paths.root_dir=/tmp/gpu_check \
+step "CUDA tests" timeout 120 "$PYTHON" -m pytest -q -p no:cacheprovider tests/test_features_matching.py tests/test_densevlad.py -k "gpu or cuda or device"
+step "bench_matching" timeout 90 "$PYTHON" benchmarks/bench_matching.py --keypoints 5000 20000 --repeats 5
+step "bench_scale baidu" timeout 300 "$PYTHON" benchmarks/bench_scale.py --size baidu
+step "evaluate on the GPU (built-in scene, 16 queries)" timeout 90 "$PYTHON" evaluate.py device=cuda paths.root_dir=/tmp/gpu_check \
     data.render.num_database=48 data.render.num_queries=16 report.figure_formats=[] report.scene_view.enabled=false output.ltvl=false
 exit $status
