@@ -1,11 +1,18 @@
-"""Training speed: images/s of train.py's loop against a bare forward + backward + optimizer step
-of the same network, loss and batch, in the same process (the hardware's limit for this step).
+"""Training speed on the device train.py would use: images/s of its loop against a bare forward +
+backward + optimizer step of the same network, loss and batch, in the same process (the hardware's
+limit for this step), and the data pipeline alone.
 
-The loop is Lightning's, as `train.py` builds it from ``configs/train.yaml`` (sampler, datamodule
-with its decoding workers and augmentation, module, optimizer), run for ``--steps`` steps without
-validation or checkpoints on the default synthetic scene (rendered into the cache once). A
-callback splits each step into the wait for its batch (data pipeline) and the step itself. The
-bare step repeats one batch already in memory: no decoding, no augmentation, no Lightning.
+- The loop is Lightning's, as `train.py` builds it from ``configs/train.yaml`` (its trainer:
+  ``trainer=auto``, a GPU with mixed precision when there is one; sampler, datamodule with its
+  workers reading the decoded-image cache, the augmentation of each batch on the device, module,
+  optimizer), run for ``--steps`` steps without validation or checkpoints on the default
+  synthetic scene (rendered into the cache once). A callback splits each step into the wait for
+  its batch (data pipeline) and the step itself.
+- The bare step repeats one batch already on the device (augmented once): no reading, no
+  Lightning, under the loop's autocast.
+- The pipeline alone: the DataLoader's batches (sampler, workers, collate) with no network, read
+  from the decoded cache, beside the same batches decoded from the image files at every step (as
+  train.py did before the cache).
 
     .venv/bin/python benchmarks/bench_training.py [--steps 20] [--overrides datamodule.num_workers=0 ...]
 """
@@ -65,12 +72,13 @@ def training_setup(overrides: list[str]):
 
 
 def loop_images_per_second(cfg, data, module, steps: int) -> tuple[float, float, float]:
-    """``(images/s, mean step s, mean batch wait s)`` of Lightning's loop over ``steps`` steps (the first two not timed)."""
+    """``(images/s, mean step s, mean batch wait s)`` of Lightning's loop over ``steps`` steps (the
+    first two not timed), on train.py's accelerator and precision."""
     import lightning as L
 
     timer = StepTimer()
-    trainer = L.Trainer(accelerator="cpu", devices=1, max_steps=steps, logger=False, enable_checkpointing=False,
-                        enable_progress_bar=False, enable_model_summary=False, callbacks=[timer.callback],
+    trainer = L.Trainer(accelerator=cfg.trainer.accelerator, precision=cfg.trainer.precision, devices=1, max_steps=steps, logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False, callbacks=[timer.callback],
                         use_distributed_sampler=False, num_sanity_val_steps=0)
     data.sampler.batches_per_epoch = steps
     trainer.fit(module, datamodule=data)
@@ -79,23 +87,67 @@ def loop_images_per_second(cfg, data, module, steps: int) -> tuple[float, float,
     return batch / (step + wait), float(step), float(wait)
 
 
-def bare_images_per_second(data, module, steps: int) -> float:
-    """Images/s of forward + loss + backward + optimizer step on one batch already decoded."""
+def bare_images_per_second(cfg, data, module, steps: int) -> float:
+    """Images/s of forward + loss + backward + optimizer step on one batch already on the device
+    (augmented once), under the loop's precision (float16 autocast and a gradient scaler on a GPU)."""
     import torch
 
-    images, relevance, negatives, _ = next(iter(data.train_dataloader()))
+    device = torch.device("cuda" if cfg.trainer.accelerator == "gpu" else "cpu")
+    batch = [tensor.to(device) for tensor in next(iter(data.train_dataloader()))]
+    images, relevance, negatives, _ = batch
+    if data.augmentation is not None:
+        images = data.augmentation.augment(images)
+    module.to(device).train()
     optimizer = module.optimizer_factory(params=[p for p in module.network.parameters() if p.requires_grad])
-    module.train()
+    mixed = str(cfg.trainer.precision) == "16-mixed"
+    scaler = torch.amp.GradScaler(device.type, enabled=mixed)
     times = []
     for _ in range(steps):
         start = time.perf_counter()
-        loss = module.loss(module(images), relevance, negatives)
+        with torch.autocast(device.type, dtype=torch.float16, enabled=mixed):
+            loss = module.loss(module(images), relevance, negatives)
         optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
+        scaler.scale(loss).backward()
+        scaler.step(optimizer)
+        scaler.update()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
         times.append(time.perf_counter() - start)
-    torch.set_flush_denormal(True)
+    module.cpu()
     return len(images) / float(np.mean(times[2:]))
+
+
+def pipeline_images_per_second(data, steps: int) -> tuple[float, float]:
+    """Images/s of the DataLoader's batches with no network: read from the decoded cache, and
+    decoded from the image files at every step (the same sampler, workers and collate)."""
+    from torch.utils.data import DataLoader
+
+    from locretrieval.training.data import collate
+    from locretrieval.training.decoded import decode
+
+    class DecodedEveryStep:
+        def __len__(self) -> int:
+            return len(data.paths)
+
+        def __getitem__(self, index: int):
+            import torch
+
+            image = decode(data.paths[index], data.dataset.decoded.shape[2:0:-1])
+            return torch.from_numpy(image).permute(2, 0, 1).contiguous(), index
+
+    rates = []
+    for dataset in (data.dataset, DecodedEveryStep()):
+        loader = DataLoader(dataset, batch_sampler=data.sampler, collate_fn=collate(data.pairs), num_workers=data.num_workers,
+                            persistent_workers=data.num_workers > 0)
+        data.sampler.batches_per_epoch = steps + 2
+        batches = iter(loader)
+        for _ in range(2):  # the workers start
+            next(batches)
+        started, count = time.perf_counter(), 0
+        for images, *_ in batches:
+            count += len(images)
+        rates.append(count / (time.perf_counter() - started))
+    return rates[0], rates[1]
 
 
 def main() -> None:
@@ -107,10 +159,13 @@ def main() -> None:
     arguments = parser.parse_args()
     cfg, data, module = training_setup(arguments.overrides)
     torch.set_flush_denormal(True)  # as RetrievalTraining.on_fit_start
-    bare = bare_images_per_second(data, module, arguments.steps)
+    device = torch.cuda.get_device_name() if cfg.trainer.accelerator == "gpu" else f"CPU ({torch.get_num_threads()} torch threads)"
+    print(f"device: {device}, precision {cfg.trainer.precision}; model {cfg.model.name}, batch {len(next(iter(data.sampler)))} images of "
+          f"{list(cfg.datamodule.image_size)}, {data.num_workers} DataLoader workers")
+    cached, decoded = pipeline_images_per_second(data, arguments.steps)
+    print(f"data pipeline alone (no network): {cached:.0f} images/s from the decoded cache, {decoded:.0f} images/s decoding every image")
+    bare = bare_images_per_second(cfg, data, module, arguments.steps)
     loop, step, wait = loop_images_per_second(cfg, data, module, arguments.steps)
-    print(f"model {cfg.model.name}, batch {len(next(iter(data.sampler)))} images of {list(cfg.datamodule.image_size)}, "
-          f"{torch.get_num_threads()} torch threads, {cfg.datamodule.num_workers} decoding workers")
     print(f"bare forward+backward+step: {bare:.1f} images/s")
     print(f"train.py loop: {loop:.1f} images/s ({bare / loop:.2f}x the bare step's time; per step {step:.3f} s computing, "
           f"{wait:.3f} s waiting for the batch)")

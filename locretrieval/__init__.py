@@ -15,7 +15,7 @@ logging.getLogger("faiss.loader").setLevel(logging.WARNING)
 
 from locretrieval import config, models  # noqa: F401,E402  (register the config resolvers)
 
-__version__ = "0.10.1"
+__version__ = "0.11.0"
 
 
 def exit_without_final_collection() -> None:

@@ -60,6 +60,24 @@ if not OmegaConf.has_resolver("file_stem"):
     OmegaConf.register_new_resolver("file_stem", file_stem)
 
 
+def trainer_accelerator(device: str) -> str:
+    """``${trainer_accelerator:${device}}``: Lightning's accelerator for the run's ``device``
+    (``auto``: ``gpu`` when torch sees a CUDA GPU, else ``cpu``)."""
+    from locretrieval.device import resolve_device
+
+    return "gpu" if resolve_device(str(device)).type == "cuda" else "cpu"
+
+
+def trainer_precision(device: str) -> str:
+    """``${trainer_precision:${device}}``: mixed float16 on a GPU, float32 on a CPU."""
+    return "16-mixed" if trainer_accelerator(device) == "gpu" else "32-true"
+
+
+for _name, _resolver in (("trainer_accelerator", trainer_accelerator), ("trainer_precision", trainer_precision)):
+    if not OmegaConf.has_resolver(_name):
+        OmegaConf.register_new_resolver(_name, _resolver)
+
+
 class ConfigError(ValueError):
     """A configuration value of the wrong type or range; the message names the full key."""
 

@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from torchvision.transforms import v2
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
@@ -19,7 +20,7 @@ from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 from locretrieval.training.data import RelevanceBatchSampler, TrainingAugmentation
 from locretrieval.training.relevance import NegativeSettings, TrainingRelevanceSettings, combined_pairs, training_pairs
-from locretrieval.training.run import train
+from locretrieval.training.run import ValidationScope, train
 from locretrieval.training.callbacks import TRAINED, every_validation_metrics, metric_rows
 from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
 from locretrieval.config import ConfigError, validated
@@ -113,15 +114,74 @@ NO_AUGMENTATION = dict(zoom_probability=0.0, zoom=[1.0, 1.0], brightness=0.0, co
                        noise_probability=0.0, noise_sigma=0.1)
 
 
+def augmented(settings: dict, image: torch.Tensor) -> torch.Tensor:
+    """``image [3, H, W]`` through `TrainingAugmentation.augment` (a batch of one)."""
+    return TrainingAugmentation(**settings).augment(image[None])[0]
+
+
+def per_image_reference(settings: TrainingAugmentation) -> v2.Transform:
+    """The same augmentations as torchvision's per-image transforms (how 0.10 applied them, each
+    image in a DataLoader worker): the reference distributions."""
+    return v2.Compose([
+        v2.RandomApply([v2.RandomAffine(degrees=0.0, scale=tuple(settings.zoom), interpolation=v2.InterpolationMode.BILINEAR)],
+                       p=settings.zoom_probability),
+        v2.ColorJitter(settings.brightness, settings.contrast, settings.saturation, settings.hue),
+        v2.RandomApply([v2.ColorJitter(brightness=tuple(settings.low_light_brightness))], p=settings.low_light_probability),
+        v2.RandomApply([v2.GaussianBlur(9, tuple(settings.blur_sigma))], p=settings.blur_probability),
+        v2.RandomApply([v2.ToDtype(torch.float32, scale=True), v2.GaussianNoise(sigma=settings.noise_sigma),
+                        v2.ToDtype(torch.uint8, scale=True)], p=settings.noise_probability),
+    ])
+
+
+def image_statistics(images: torch.Tensor) -> dict[str, np.ndarray]:
+    """Per image: mean intensity, contrast (std of the grey image), saturation (channel spread),
+    sharpness (mean absolute horizontal gradient) and the width of the bright central square."""
+    values = images.float() / 255
+    grey = values.mean(1)
+    return {
+        "brightness": values.mean((1, 2, 3)).numpy(),
+        "contrast": grey.std((1, 2)).numpy(),
+        "saturation": (values.amax(1) - values.amin(1)).mean((1, 2)).numpy(),
+        "sharpness": (grey[:, :, 1:] - grey[:, :, :-1]).abs().mean((1, 2)).numpy(),
+        "square": (grey[:, grey.shape[1] // 2] > 0.5).float().sum(1).numpy(),
+    }
+
+
+def test_batch_augmentation_draws_the_distributions_of_the_per_image_transforms():
+    """Each image of a batch its own draw: 1,000 copies of one textured image through the batch
+    augmentation (kornia) and through torchvision's per-image transforms give the same
+    distributions of brightness, contrast, saturation, sharpness and zoom (two-sample KS tests)."""
+    from scipy.stats import ks_2samp
+
+    settings = TrainingAugmentation(**{**NO_AUGMENTATION, "zoom_probability": 0.5, "zoom": [1.0, 1.35], "brightness": 0.3,
+                                       "contrast": 0.3, "saturation": 0.2, "hue": 0.02, "low_light_probability": 0.3,
+                                       "low_light_brightness": [0.15, 0.5], "blur_probability": 0.3, "blur_sigma": [0.5, 2.0],
+                                       "noise_probability": 0.3, "noise_sigma": 0.03})
+    rng = np.random.default_rng(0)
+    image = torch.from_numpy(rng.integers(40, 120, (3, 48, 64), dtype=np.uint8))
+    image[1] += 40
+    image[2] += 80  # bluish: saturation to change
+    image[0, :, ::4] = 30  # a red-free stripe pattern: colour, edges
+    image[:, 16:32, 24:40] = 220  # the central square the zoom enlarges
+    batch = image.expand(1000, -1, -1, -1).contiguous()
+    torch.manual_seed(1)
+    ours = image_statistics(settings.augment(batch))
+    reference = per_image_reference(settings)
+    theirs = image_statistics(torch.stack([reference(one) for one in batch]))
+    for name in ours:
+        assert ks_2samp(ours[name], theirs[name]).pvalue > 0.01, (name, ours[name].mean(), theirs[name].mean())
+    assert ours["square"].std() > 0 and ours["brightness"].std() > 0.02  # each image drew its own zoom and light
+
+
 def test_low_light_and_noise_augmentations_scale_the_brightness_and_add_noise_of_the_given_sigma():
     torch.manual_seed(0)
     image = torch.full((3, 64, 64), 160, dtype=torch.uint8)
     image[:, :, 32:] = 80
     plain = NO_AUGMENTATION
-    assert torch.equal(TrainingAugmentation(**plain).transform()(image), image)
-    dark = TrainingAugmentation(**{**plain, "low_light_probability": 1.0}).transform()(image).float()
+    assert torch.equal(augmented(plain, image), image)
+    dark = augmented({**plain, "low_light_probability": 1.0}, image).float()
     np.testing.assert_allclose(dark.numpy(), 0.25 * image.float().numpy(), atol=1.0)
-    noisy = TrainingAugmentation(**{**plain, "noise_probability": 1.0}).transform()(image).float() - image.float()
+    noisy = augmented({**plain, "noise_probability": 1.0}, image).float() - image.float()
     assert abs(noisy.std().item() / 255 - 0.1) < 0.005 and abs(noisy.mean().item()) < 1.0
     with pytest.raises(ValueError, match="low_light_brightness: must be"):
         TrainingAugmentation(**{**plain, "low_light_brightness": [0.5, 1.5]})
@@ -133,12 +193,12 @@ def test_zoom_augmentation_scales_offsets_from_the_image_centre_by_its_factor():
     image = torch.zeros((3, height, width), dtype=torch.uint8)
     image[:, :, width // 2 + offset:] = 200
     image[:, height // 2 - 2:height // 2 + 2, width // 2 - 2:width // 2 + 2] = 255  # a centre mark
-    zoomed = TrainingAugmentation(**plain).transform()(image)
+    zoomed = augmented(plain, image)
     assert zoomed.shape == image.shape
     first_bright = int((zoomed[0].float().mean(0) > 100).nonzero()[0])
     assert abs(first_bright - (width // 2 + 1.25 * offset)) <= 1     # a longer focal length: offsets x 1.25 (208 -> 220)
     assert zoomed[0, height // 2, width // 2] == 255                  # the centre stays (same optical axis, same pose)
-    assert torch.equal(TrainingAugmentation(**{**plain, "zoom_probability": 0.0}).transform()(image), image)
+    assert torch.equal(augmented({**plain, "zoom_probability": 0.0}, image), image)
     with pytest.raises(ValueError, match="zoom: must be"):
         TrainingAugmentation(**{**plain, "zoom": [0.8, 1.2]})
 
@@ -581,3 +641,25 @@ def test_head_lr_scale_moves_the_head_that_much_faster_than_the_backbone(frozen_
         RetrievalTraining(network, Preprocessing(max_side=None, scales=(1.0,)), None, None, None, "gem", {}, head_lr_scale=0)
     with pytest.raises(ValueError, match="module.head_lr_scale=10.0 needs a network with a backbone .* Sequential has no 'backbone'"):
         RetrievalTraining(trunk, Preprocessing(max_side=None, scales=(1.0,)), None, None, None, "gem", {}, head_lr_scale=10.0)
+
+
+def test_validation_on_a_seeded_subset_of_the_queries_with_capped_sfm_features(tmp_path):
+    scope = ValidationScope(max_queries=4, seed=3, sfm_max_keypoints=200, budget_minutes=None)
+    cfg = train_config(tmp_path, "training.validation.max_queries=4", "training.validation.seed=3",
+                       "training.validation.sfm_max_keypoints=200", "+trainer.fast_dev_run=true")
+    validator = train(cfg, tmp_path / "run")
+    full = instantiate(cfg.data)
+    expected = np.sort(np.random.default_rng(3).choice(len(full.queries), size=4, replace=False))
+    assert validator.scene.queries.names == [full.queries.names[q] for q in expected]  # the same queries at every validation
+    assert validator.settings.sfm.features.max_keypoints == 200
+    settings = scope.settings(BenchmarkSettings.from_config(cfg))
+    assert settings.sfm.features.max_keypoints == 200 and scope.scene(full).queries.names == validator.scene.queries.names
+    assert ValidationScope(None, 0, None, None).scene(full) is full
+
+
+def test_a_validation_forecast_above_its_budget_is_refused_before_training(tmp_path):
+    cfg = train_config(tmp_path, "callbacks.localization_validation.sfm_every_n_epochs=1", "training.validation.budget_minutes=0.001")
+    with pytest.raises(ConfigError, match=r"training.validation.budget_minutes: one validation's SfM work is forecast at [\d.]+ min, "
+                                          r"above the budget of 0.001 min \(6 queries, [\d,]+ pairs to match .*training.validation.max_queries"):
+        train(cfg, tmp_path / "run")
+    assert not (tmp_path / "run" / "checkpoints").exists()  # refused before any step

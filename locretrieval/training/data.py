@@ -1,8 +1,11 @@
-"""Training batches from ground-truth relevance: images, a sampler of anchors with positives and
-negatives (hard negatives mined with the current network), augmentations that keep the pose."""
+"""Training batches from ground-truth relevance: images decoded once into a memory-mapped cache
+(`locretrieval.training.decoded`), a sampler of anchors with positives and negatives (hard
+negatives mined with the current network), augmentations that keep the pose, applied to the
+whole batch on the training device."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -10,12 +13,10 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 import torch
-from PIL import Image
 from torch.utils.data import DataLoader, Dataset, Sampler
-from torchvision.transforms import v2
 
 from locretrieval.config import require
-from locretrieval.scene.images import read_image
+from locretrieval.training.decoded import decoded_images
 from locretrieval.training.relevance import TrainingPairs
 
 
@@ -30,7 +31,8 @@ class TrainingAugmentation:
     factor in ``low_light_brightness`` (night queries of a day-only map); with
     ``blur_probability``, a Gaussian blur of sigma in ``blur_sigma`` (pixels); with
     ``noise_probability``, Gaussian noise of standard deviation ``noise_sigma`` (intensities in
-    [0, 1])."""
+    [0, 1]). Each image of a batch draws its own parameters (kornia, on the batch's device: the
+    distributions of torchvision's per-image transforms, tested)."""
 
     zoom_probability: float
     zoom: list[float]
@@ -56,34 +58,36 @@ class TrainingAugmentation:
                 f"must be [min, max] pixels, 0 < min <= max, got {self.blur_sigma}")
         require(self.noise_sigma >= 0, "noise_sigma", f"must be >= 0, got {self.noise_sigma}")
 
-    def transform(self) -> v2.Transform:
-        """The augmentation of ``uint8 [3, H, W]`` images."""
-        zoom = v2.RandomApply([v2.RandomAffine(degrees=0.0, scale=tuple(self.zoom), interpolation=v2.InterpolationMode.BILINEAR)],
-                              p=self.zoom_probability)
-        jitter = v2.ColorJitter(self.brightness, self.contrast, self.saturation, self.hue)
-        low_light = v2.RandomApply([v2.ColorJitter(brightness=tuple(self.low_light_brightness))], p=self.low_light_probability)
-        blur = v2.RandomApply([v2.GaussianBlur(9, tuple(self.blur_sigma))], p=self.blur_probability)
-        noise = v2.RandomApply([
-            v2.ToDtype(torch.float32, scale=True), v2.GaussianNoise(sigma=self.noise_sigma), v2.ToDtype(torch.uint8, scale=True),
-        ], p=self.noise_probability)
-        return v2.Compose([zoom, jitter, low_light, blur, noise])
+    def augment(self, images: torch.Tensor) -> torch.Tensor:
+        """The augmented ``uint8 [B, 3, H, W]`` images (on their device), each its own draw."""
+        if not len(images):
+            return images
+        augmented = self._pipeline().to(images.device)(images.float() / 255.0)
+        return (augmented.clamp(0.0, 1.0) * 255.0).round().to(torch.uint8)
+
+    def _pipeline(self) -> torch.nn.Module:
+        import kornia.augmentation as K
+
+        return K.AugmentationSequential(
+            K.RandomAffine(degrees=0.0, scale=tuple(self.zoom), p=self.zoom_probability),
+            K.ColorJitter(self.brightness, self.contrast, self.saturation, self.hue, p=1.0),
+            K.ColorJitter(brightness=tuple(self.low_light_brightness), p=self.low_light_probability),
+            K.RandomGaussianBlur((9, 9), sigma=tuple(self.blur_sigma), p=self.blur_probability),
+            K.RandomGaussianNoise(mean=0.0, std=self.noise_sigma, p=self.noise_probability),
+        )
 
 
 class TrainingImages(Dataset):
-    """Training images decoded as RGB, resized to ``size`` ``(width, height)``, augmented."""
+    """Training images from the decoded cache (`decoded_images`: ``uint8 [N, H, W, 3]``), as ``uint8 [3, H, W]``."""
 
-    def __init__(self, paths: Sequence[Path], size: Sequence[int], augment: v2.Transform | None) -> None:
-        self.paths = list(paths)
-        self.size = (int(size[0]), int(size[1]))
-        self.augment = augment
+    def __init__(self, decoded: np.ndarray) -> None:
+        self.decoded = decoded
 
     def __len__(self) -> int:
-        return len(self.paths)
+        return len(self.decoded)
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, int]:
-        rgb = Image.fromarray(read_image(self.paths[index])).resize(self.size, Image.Resampling.BILINEAR)
-        image = torch.from_numpy(np.array(rgb)).permute(2, 0, 1).contiguous()
-        return (self.augment(image) if self.augment is not None else image), index
+        return torch.from_numpy(np.array(self.decoded[index])).permute(2, 0, 1).contiguous(), index
 
 
 class RelevanceBatchSampler(Sampler[list[int]]):
@@ -176,21 +180,38 @@ def collate(pairs: TrainingPairs):
 
 
 class TrainingData(L.LightningDataModule):
-    """The training images (``paths``, resized to ``image_size`` ``[width, height]``, augmented by
-    ``augmentation`` when given), batched by ``sampler`` and decoded by ``num_workers`` DataLoader
-    processes (validation is the `LocalizationValidation` callback's)."""
+    """The training images (``paths``, decoded once at ``image_size`` ``[width, height]`` into the
+    cache of ``cache_dir``), batched by ``sampler`` and read by ``num_workers`` DataLoader
+    processes (null: half the cores, at most 8), into pinned memory when training on a GPU; each
+    batch is augmented by ``augmentation`` (when given) on the training device, after its transfer
+    (validation is the `LocalizationValidation` callback's)."""
 
     def __init__(self, paths: Sequence[Path], pairs: TrainingPairs, sampler: RelevanceBatchSampler,
-                 augmentation: TrainingAugmentation | None, image_size: Sequence[int], num_workers: int) -> None:
+                 augmentation: TrainingAugmentation | None, image_size: Sequence[int], num_workers: int | None, cache_dir: str | Path) -> None:
         require(len(image_size) == 2 and min(image_size) >= 32, "image_size", f"must be [width, height] >= 32 px, got {list(image_size)}")
-        require(num_workers >= 0, "num_workers", f"must be >= 0, got {num_workers}")
+        require(num_workers is None or num_workers >= 0, "num_workers", f"must be >= 0 or null, got {num_workers}")
         super().__init__()
-        self.paths, self.pairs, self.sampler = list(paths), pairs, sampler
-        self.dataset = TrainingImages(paths, image_size, augmentation.transform() if augmentation is not None else None)
-        self.num_workers = num_workers
+        self.paths, self.pairs, self.sampler, self.augmentation = list(paths), pairs, sampler, augmentation
+        self.dataset = TrainingImages(decoded_images(self.paths, image_size, cache_dir))
+        self.num_workers = num_workers if num_workers is not None else default_workers()
 
     def train_dataloader(self) -> DataLoader:
+        on_gpu = False
         if self.trainer is not None:
             self.sampler.shard(self.trainer.global_rank, self.trainer.world_size)
-        return DataLoader(self.dataset, batch_sampler=self.sampler, collate_fn=collate(self.pairs),
-                          num_workers=self.num_workers, persistent_workers=self.num_workers > 0)
+            on_gpu = self.trainer.strategy.root_device.type == "cuda"
+        return DataLoader(self.dataset, batch_sampler=self.sampler, collate_fn=collate(self.pairs), num_workers=self.num_workers,
+                          persistent_workers=self.num_workers > 0, pin_memory=on_gpu)
+
+    def on_after_batch_transfer(self, batch: tuple[torch.Tensor, ...], dataloader_idx: int) -> tuple[torch.Tensor, ...]:
+        """Training batches augmented on their device (`TrainingAugmentation.augment`)."""
+        if self.augmentation is None or self.trainer is None or not self.trainer.training:
+            return batch
+        images, *rest = batch
+        return (self.augmentation.augment(images), *rest)
+
+
+def default_workers() -> int:
+    """DataLoader processes when ``num_workers`` is null: half the cores, at least 1, at most 8
+    (they copy decoded images; the augmentation runs on the training device)."""
+    return max(1, min(8, (os.cpu_count() or 2) // 2))

@@ -3,6 +3,7 @@ Lightning, validate by localization every epoch, write the validation curves and
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import warnings
 from collections.abc import Mapping, Sequence
@@ -15,7 +16,7 @@ import numpy as np
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from locretrieval.benchmark import BenchmarkSettings
+from locretrieval.benchmark import BenchmarkSettings, sfm_plan
 from locretrieval.config import ConfigError, built, check_node, require, validated
 from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, compute_groundtruths
 from locretrieval.groundtruth.co_observation import database_co_observations
@@ -31,13 +32,49 @@ log = logging.getLogger(__name__)
 
 
 @dataclass
+class ValidationScope:
+    """How much of the validation scene each validation localizes, so that it fits a large scene:
+    ``max_queries`` (a fixed subset drawn with ``seed``; null: every query), the SfM paradigms'
+    local features capped at ``sfm_max_keypoints`` per image (null: ``sfm.features``' own), and
+    ``budget_minutes``: a validation whose SfM work is forecast (`sfm_plan`) to take longer is
+    refused before training starts (null: no bound)."""
+
+    max_queries: int | None
+    seed: int
+    sfm_max_keypoints: int | None
+    budget_minutes: float | None
+
+    def __post_init__(self) -> None:
+        require(self.max_queries is None or self.max_queries >= 1, "max_queries", f"must be >= 1 or null, got {self.max_queries}")
+        require(self.sfm_max_keypoints is None or self.sfm_max_keypoints >= 1, "sfm_max_keypoints",
+                f"must be >= 1 or null, got {self.sfm_max_keypoints}")
+        require(self.budget_minutes is None or self.budget_minutes > 0, "budget_minutes", f"must be positive or null, got {self.budget_minutes}")
+
+    def scene(self, scene: Scene) -> Scene:
+        """``scene`` with its ``max_queries`` validation queries (all when there are fewer), in their order."""
+        if self.max_queries is None or self.max_queries >= len(scene.queries):
+            return scene
+        rows = np.sort(np.random.default_rng(self.seed).choice(len(scene.queries), size=self.max_queries, replace=False))
+        return dataclasses.replace(scene, queries=scene.queries.subset(rows))
+
+    def settings(self, settings: BenchmarkSettings) -> BenchmarkSettings:
+        """The benchmark settings of a validation: the local features capped at ``sfm_max_keypoints``."""
+        features = settings.sfm.features
+        if self.sfm_max_keypoints is None or (features.max_keypoints is not None and features.max_keypoints <= self.sfm_max_keypoints):
+            return settings
+        sfm = dataclasses.replace(settings.sfm, features=dataclasses.replace(features, max_keypoints=self.sfm_max_keypoints))
+        return dataclasses.replace(settings, sfm=sfm)
+
+
+@dataclass
 class TrainingSettings:
     """The ``training`` config section, which images are trained on: ``validation_database``, the
     validation scene's own database (map-specific training); ``extra_renders``, render overrides
-    of separately rendered synthetic scenes (all their images)."""
+    of separately rendered synthetic scenes (all their images); and the ``validation`` scope."""
 
     validation_database: bool
     extra_renders: list[dict]
+    validation: ValidationScope
 
     def __post_init__(self) -> None:
         require(self.validation_database or bool(self.extra_renders), "validation_database",
@@ -101,11 +138,13 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     if cfg.get("ckpt_path"):  # before the scene and ground truth are prepared
         check_resume_checkpoint(cfg.ckpt_path, descriptor.model, descriptor.architecture)
     scene: Scene = instantiate(cfg.data)
+    validation_scene, validation_settings = training.validation.scene(scene), training.validation.settings(settings)
+    check_validation_budget(cfg, validation_scene, validation_settings, groundtruth_settings, training.validation, cache_dir)
     parts = training_parts(cfg, scene, descriptor.preprocessing, settings, relevance, training)
-    groundtruths = compute_groundtruths(scene, groundtruth_settings, settings.sfm, cache_dir)
+    groundtruths = compute_groundtruths(validation_scene, groundtruth_settings, validation_settings.sfm, cache_dir)
     validator = built(
-        cfg.callbacks.localization_validation, "callbacks.localization_validation", scene=scene, groundtruths=groundtruths,
-        settings=settings, preprocessing=descriptor.preprocessing, extraction=descriptor.settings, cache_dir=cache_dir,
+        cfg.callbacks.localization_validation, "callbacks.localization_validation", scene=validation_scene, groundtruths=groundtruths,
+        settings=validation_settings, preprocessing=descriptor.preprocessing, extraction=descriptor.settings, cache_dir=cache_dir,
         random_seed=int(cfg.seed) if cfg.baselines.random else None, relevance_scope=groundtruth_settings.relevance,
         reference_models={name: instantiate(node) for name, node in (cfg.get("validation_references") or {}).items()},
     )
@@ -122,6 +161,33 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     if trainer.is_global_zero:
         write_training_report(validator, output_dir)
     return validator
+
+
+def check_validation_budget(cfg: DictConfig, scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings,
+                            scope: ValidationScope, cache_dir: Path) -> None:
+    """Log the SfM work of the first (largest) validation with its forecast (`sfm_plan`: upper
+    bounds for the trained ranking, the reference models', the ground truths' and random's), and
+    raise `ConfigError` naming the keys to change when it exceeds ``scope.budget_minutes``."""
+    every = cfg.callbacks.localization_validation.get("sfm_every_n_epochs")
+    if every is None or not scene.queries.has_pose.any():
+        return
+    rankings = 1 + len(cfg.get("validation_references") or {}) + len(groundtruths.parsed()) + int(bool(cfg.baselines.random))
+    plan = sfm_plan(scene, None, settings, cache_dir, rankings)
+    if plan is None:
+        return
+    log.info("SfM work of the first validation (%d queries, %d rankings; later ones: the trained ranking's new pairs only):\n%s",
+             len(scene.queries), rankings, plan.describe())
+    if scope.budget_minutes is None or plan.costs is None:
+        return
+    minutes = sum(plan.forecast().values()) / 60
+    if minutes > scope.budget_minutes:
+        keypoints = settings.sfm.features.max_keypoints or f"{plan.costs.keypoints:.0f} (measured)"
+        raise ConfigError(
+            f"training.validation.budget_minutes: one validation's SfM work is forecast at {minutes:.1f} min, above the budget of "
+            f"{scope.budget_minutes:g} min ({len(scene.queries)} queries, {plan.new_pairs():,} pairs to match at {keypoints} keypoints per "
+            f"image, {sum(w.registrations.total for w in plan.paradigms):,} registrations; the forecast is logged above). Lower "
+            "training.validation.max_queries or training.validation.sfm_max_keypoints, lower paradigms.local_sfm.k / "
+            "paradigms.global_sfm.k, or validate without the SfM paradigms (callbacks.localization_validation.sfm_every_n_epochs=null)")
 
 
 def checked_callbacks(cfg: DictConfig, settings: BenchmarkSettings, groundtruths: GroundTruthSettings) -> dict[str, L.Callback]:
@@ -155,7 +221,8 @@ def training_parts(cfg: DictConfig, scene: Scene, preprocessing: Any, settings: 
     sampler = built(cfg.sampler, "sampler", pairs=pairs)
     augmentation = built(cfg.augmentation, "augmentation") if cfg.get("augmentation") else None
     paths = [path for images in sets for path in images.paths]
-    datamodule = built(cfg.datamodule, "datamodule", paths=paths, pairs=pairs, sampler=sampler, augmentation=augmentation)
+    datamodule = built(cfg.datamodule, "datamodule", paths=paths, pairs=pairs, sampler=sampler, augmentation=augmentation,
+                       cache_dir=cache_dir)
     return TrainingParts(sets, pairs, sampler, datamodule)
 
 
