@@ -31,6 +31,10 @@ from locretrieval.training.report import write_training_report
 log = logging.getLogger(__name__)
 
 
+#: The data configs `training.scenes` names.
+DATA_CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "data"
+
+
 @dataclass
 class ValidationScope:
     """How much of the validation scene each validation localizes, so that it fits a large scene:
@@ -69,22 +73,37 @@ class ValidationScope:
 @dataclass
 class TrainingSettings:
     """The ``training`` config section, which images are trained on: ``validation_database``, the
-    validation scene's own database (map-specific training); ``extra_renders``, render overrides
-    of separately rendered synthetic scenes (all their images); and the ``validation`` scope."""
+    validation scene's own database (map-specific training); ``scenes``, the databases of other
+    scenes, each a data config's name (``aachen``) or ``{config: <name>, <its keys>}`` (``{config:
+    kapture, mapping: /my/mapping, queries: []}``); ``extra_renders``, render overrides of
+    separately rendered synthetic scenes (all their images); and the ``validation`` scope.
+    Relevance is computed within each scene, never across."""
 
     validation_database: bool
+    scenes: list[Any]
     extra_renders: list[dict]
     validation: ValidationScope
 
     def __post_init__(self) -> None:
-        require(self.validation_database or bool(self.extra_renders), "validation_database",
-                "no training images: set validation_database=true or give extra_renders")
+        require(self.validation_database or bool(self.extra_renders) or bool(self.scenes), "validation_database",
+                "no training images: set validation_database=true or give scenes or extra_renders")
+        known = sorted(path.stem for path in DATA_CONFIGS.glob("*.yaml"))
+        for index, entry in enumerate(self.scenes):
+            require(isinstance(entry, str) or (isinstance(entry, dict) and isinstance(entry.get("config"), str)), f"scenes[{index}]",
+                    f"must be a data config's name or {{config: <name>, ...its keys}}, got {entry!r}")
+            name = entry if isinstance(entry, str) else entry["config"]
+            require(name in known, f"scenes[{index}]", f"no data config {name!r}; expected one of {known}")
 
 
 def training_worlds(cfg: DictConfig, scene: Scene, settings: TrainingSettings) -> list[Scene]:
-    """Scenes whose databases are trained on, without queries: the validation scene's database
-    and/or separately rendered scenes (all their images)."""
+    """Scenes whose databases are trained on, without queries: the validation scene's database,
+    the databases of the ``scenes`` listed, and/or separately rendered scenes (all their images)."""
     worlds = [_without_queries(scene.name, scene.database, scene)] if settings.validation_database else []
+    for index, entry in enumerate(settings.scenes):
+        listed = listed_scene(cfg, entry)
+        if listed.database.fingerprint() == scene.database.fingerprint():
+            raise ValueError(f"training.scenes[{index}] ({entry!r}) is the validation scene's database: training.validation_database trains on it")
+        worlds.append(_without_queries(f"{listed.name}_{index}", listed.database, listed))
     if settings.extra_renders:
         if "render" not in cfg.data:
             raise ValueError("training.extra_renders needs the synthetic data config (data=synthetic)")
@@ -97,6 +116,17 @@ def training_worlds(cfg: DictConfig, scene: Scene, settings: TrainingSettings) -
             images = concatenate_image_sets([extra.database, extra.queries])  # one world: paired together
             worlds.append(_without_queries(extra.name, images, scene))
     return worlds
+
+
+def listed_scene(cfg: DictConfig, entry: Any) -> Scene:
+    """The scene of a ``training.scenes`` entry: the data node of ``configs/data/<name>.yaml`` (its
+    keys overridden by the entry's), instantiated with the run's config (paths)."""
+    name, overrides = (entry, {}) if isinstance(entry, str) else (entry["config"], {k: v for k, v in entry.items() if k != "config"})
+    loaded = OmegaConf.load(DATA_CONFIGS / f"{name}.yaml")
+    node = loaded if "_target_" in loaded else loaded.data  # the published datasets' configs are `@package _global_`
+    run = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))  # the run's config, its data node replaced
+    run.data = OmegaConf.merge(node, overrides)
+    return instantiate(run.data)
 
 
 def _without_queries(name: str, images: ImageSet, scene: Scene) -> Scene:
@@ -215,7 +245,7 @@ def training_parts(cfg: DictConfig, scene: Scene, preprocessing: Any, settings: 
     worlds = training_worlds(cfg, scene, training)
     sets = [world.database for world in worlds]
     cache_dir = Path(cfg.paths.cache_dir)
-    pairs = combined_pairs(sets, relevance, [pair_context(world, scene, relevance, settings, cache_dir) for world in worlds])
+    pairs = combined_pairs(sets, relevance, [pair_context(world, relevance, settings, cache_dir) for world in worlds])
     log.info("training on %d images (%d with a relevant partner), validating on %d queries of %s",
              pairs.num_images, int((np.diff(pairs.graded.indptr) > 0).sum()), len(scene.queries), scene.name)
     sampler = built(cfg.sampler, "sampler", pairs=pairs)
@@ -236,12 +266,13 @@ def training_module(cfg: DictConfig, descriptor: Any, pairs: TrainingPairs) -> A
     )
 
 
-def pair_context(world: Scene, scene: Scene, relevance: TrainingRelevanceSettings, settings: BenchmarkSettings, cache_dir: Path) -> DefinitionContext:
-    """What the training definition needs on ``world``: the validation ``scene``'s far plane, and
-    for a definition that matches features (``uses_sfm``), the 3D points each pair of the world's
-    images shares in its known-pose map."""
+def pair_context(world: Scene, relevance: TrainingRelevanceSettings, settings: BenchmarkSettings, cache_dir: Path) -> DefinitionContext:
+    """What the training definition needs on ``world``: its far plane (the validation scene's for
+    its database and the extra renders, a listed scene's own), and for a definition that matches
+    features (``uses_sfm``), the 3D points each pair of the world's images shares in its
+    known-pose map."""
     shared = database_co_observations(world, settings.sfm, cache_dir) if relevance.definition.uses_sfm else None
-    return DefinitionContext(far=scene.frustum_far, shared_points=shared, key="train_relevance.definition", scene=scene.name)
+    return DefinitionContext(far=world.frustum_far, shared_points=shared, key="train_relevance.definition", scene=world.name)
 
 
 def check_monitors(callbacks: Mapping[str, Any], metrics: Sequence[str]) -> None:
