@@ -143,8 +143,11 @@ def _build(schema: type[Schema], node: DictConfig, key: str) -> Schema:
             value = node[field.name]
         except MissingMandatoryValue:
             raise ConfigError(f"{where}: missing; expected {_type_name(hints[field.name])}") from None
+        item = _dataclass_items(hints[field.name])
         if "part" in field.metadata:
             values[field.name] = _build_part(field.metadata["part"], value, where)
+        elif item is not None:
+            values[field.name] = [_build(item, entry, f"{where}[{index}]") for index, entry in enumerate(value)]
         elif dataclasses.is_dataclass(hints[field.name]):
             values[field.name] = _build(hints[field.name], value, where)
         else:
@@ -153,6 +156,14 @@ def _build(schema: type[Schema], node: DictConfig, key: str) -> Schema:
         return schema(**values)
     except SettingError as error:
         raise ConfigError(f"{key}.{error}") from None
+
+
+def _dataclass_items(hint: Any) -> type | None:
+    """``X`` when ``hint`` is a list of dataclass ``X`` (each built and checked), else None."""
+    arguments = typing.get_args(hint)
+    if typing.get_origin(hint) in (list, Sequence, collections.abc.Sequence) and len(arguments) == 1 and dataclasses.is_dataclass(arguments[0]):
+        return arguments[0]
+    return None
 
 
 def _message(schema: type, key: str, error: OmegaConfBaseException) -> str:

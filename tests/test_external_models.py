@@ -1,6 +1,7 @@
 """Networks defined elsewhere: a torch.hub entry point of a local repository written here, and a
 researcher's callable; their preprocessing (fixed size, multiples of a patch size) and cache keys."""
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -268,5 +269,7 @@ def test_a_fixed_size_network_is_probed_and_fed_at_its_size_and_its_code_keys_th
     model = instantiate(cfg.model)
     assert model.network.output_dim == 8 and model.describe(scene.queries).shape == (3, 8)
     code = model.identity()["architecture"]["code"]
-    (tmp_path / "fixed_net.py").write_text(FIXED + "\n# edited\n")  # another size: another cache key
+    os.utime(tmp_path / "fixed_net.py", ns=(10**18, 10**18))  # a fresh copy (another time, the same content): the same key
+    assert instantiate(cfg.model).identity()["architecture"]["code"] == code
+    (tmp_path / "fixed_net.py").write_text(FIXED + "\n# edited\n")  # edited code: another cache key
     assert instantiate(cfg.model).identity()["architecture"]["code"] != code

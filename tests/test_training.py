@@ -556,7 +556,7 @@ def test_two_trainings_of_a_joblib_multirun_share_one_cache_without_corrupting_i
 def test_the_gap_table_gives_the_share_of_the_gap_to_the_ground_truth_that_training_closed():
     from types import SimpleNamespace
 
-    from locretrieval.training.report import gap_table
+    from locretrieval.training.report import TrainingReportSettings, gap_table
 
     history = pd.DataFrame({"epoch": [-1, 0, 1, -1, 1, -1], "metric": ["val/approximation/ewb/k3/5m_10deg"] * 3
                             + ["val/local_sfm/pnp/k10/0.25m_2deg"] * 2 + ["val/global_sfm/pnp/k5/0.25m_2deg"],
@@ -564,7 +564,8 @@ def test_the_gap_table_gives_the_share_of_the_gap_to_the_ground_truth_that_train
     reference = {"densevlad": {"val/approximation/ewb/k3/5m_10deg": 20.0, "val/local_sfm/pnp/k10/0.25m_2deg": 40.0},
                  "gt_relative_pose": {"val/approximation/ewb/k3/5m_10deg": 60.0, "val/local_sfm/pnp/k10/0.25m_2deg": 100.0},
                  "gt_co_observation": {"val/local_sfm/pnp/k10/0.25m_2deg": 80.0}}
-    table = gap_table(SimpleNamespace(history_table=lambda: history, reference=reference)).set_index("metric")
+    report = validated(TrainingReportSettings, helpers.compose_config("train").report, "report")  # the default rows
+    table = gap_table(SimpleNamespace(history_table=lambda: history, reference=reference), report).set_index("metric")
     assert list(table.index) == ["approximation/ewb/k3/5m_10deg", "local_sfm/pnp/k10/0.25m_2deg"]  # global SfM: validated once
     assert table.loc["approximation/ewb/k3/5m_10deg", ["untrained", "trained", "densevlad", "groundtruth_value"]].tolist() == [10, 40, 20, 60]
     assert table.loc["approximation/ewb/k3/5m_10deg", "gap_closed_pct"] == pytest.approx(100 * (40 - 20) / (60 - 20))
@@ -663,3 +664,62 @@ def test_a_validation_forecast_above_its_budget_is_refused_before_training(tmp_p
                                           r"above the budget of 0.001 min \(6 queries, [\d,]+ pairs to match .*training.validation.max_queries"):
         train(cfg, tmp_path / "run")
     assert not (tmp_path / "run" / "checkpoints").exists()  # refused before any step
+
+
+class TemperatureLoss(torch.nn.Module):
+    """A loss with a parameter: ListNet-style cross-entropy at a learned temperature."""
+
+    def __init__(self, temperature: float = 0.1) -> None:
+        super().__init__()
+        self.log_temperature = torch.nn.Parameter(torch.tensor(float(np.log(temperature))))
+
+    def forward(self, descriptors, relevance, negatives):
+        scores = descriptors @ descriptors.T / self.log_temperature.exp()
+        target = relevance / relevance.sum(1, keepdim=True).clamp_min(1e-9)
+        mask = (relevance > 0) | negatives
+        logits = scores.masked_fill(~mask, -1e4)
+        rows = relevance.sum(1) > 0
+        return -(target * torch.log_softmax(logits, 1))[rows].sum(1).mean()
+
+
+@pytest.mark.parametrize("head_lr_scale", [1.0, 10.0])
+def test_the_parameters_of_a_loss_are_optimized(tmp_path, head_lr_scale):
+    from functools import partial
+
+    from locretrieval.models.extraction import Preprocessing
+    from locretrieval.models.networks import GeMPooling, RetrievalNet
+    from locretrieval.training.module import RetrievalTraining
+
+    torch.manual_seed(0)
+    network = RetrievalNet(torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, stride=2), torch.nn.ReLU()), GeMPooling(3.0, trainable=False), 8)
+    loss = TemperatureLoss()
+    module = RetrievalTraining(network, Preprocessing(max_side=None, scales=(1.0,)), loss, partial(torch.optim.Adam, lr=1e-2), None,
+                               "gem", {}, head_lr_scale=head_lr_scale)
+    optimizer = module.configure_optimizers()
+    assert any(parameter is loss.log_temperature for group in optimizer.param_groups for parameter in group["params"])
+    before = loss.log_temperature.item()
+    relevance = torch.tensor([[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, 0, 1], [0, 0, 1, 0]], dtype=torch.float32)
+    module.batch_loss((torch.randint(0, 255, (4, 3, 16, 16), dtype=torch.uint8), relevance, relevance == 0, torch.arange(4))).backward()
+    optimizer.step()
+    assert loss.log_temperature.item() != before  # the loss learned (Adam: by the learning rate)
+    assert abs(abs(loss.log_temperature.item() - before) - 1e-2) < 1e-4
+
+
+
+def test_the_report_says_which_requested_gap_row_it_cannot_fill(tmp_path, caplog):
+    cfg = train_config(tmp_path, "paradigms.approximation.k=[1,5]", "callbacks.localization_validation.sfm_every_n_epochs=null",
+                       "callbacks.best_checkpoint.monitor=val/approximation/ewb/k5/5m_10deg", "+trainer.fast_dev_run=true")
+    with caplog.at_level("WARNING"):
+        train(cfg, tmp_path / "run")
+    text = (tmp_path / "run" / "report.md").read_text()
+    assert "Requested row approximation/ewb/k3/5m_10deg (report.gap) is not filled: k=3 is not in paradigms.approximation.k [1, 5]." in text
+    assert "Requested row local_sfm/pnp/k10/0.25m_2deg (report.gap) is not filled: the SfM paradigms are not validated" in text
+    assert "report.gap row approximation/ewb/k3/5m_10deg cannot be filled" in caplog.text
+    moved = train_config(tmp_path / "moved", "+trainer.fast_dev_run=true", "callbacks.localization_validation.sfm_every_n_epochs=null",
+                         "report.gap=[{paradigm: approximation, method: ewb, k: 1, threshold: [5.0, 10.0], groundtruths: [relative_pose]}]")
+    train(moved, tmp_path / "moved" / "run")
+    gaps = pd.read_csv(tmp_path / "moved" / "run" / "gap.csv")
+    assert list(gaps["metric"]) == ["approximation/ewb/k1/5m_10deg"] and list(gaps["groundtruth"]) == ["gt_relative_pose"]
+    wrong = train_config(tmp_path / "wrong", "report.baseline=netvlad")
+    with pytest.raises(ConfigError, match=r"report.baseline: 'netvlad' is not a validation reference \(validation_references: \['densevlad'\]\)"):
+        train(wrong, tmp_path / "wrong" / "run")

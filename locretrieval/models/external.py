@@ -25,7 +25,6 @@ from typing import Any
 import torch
 from torch import nn
 
-from locretrieval.cache import file_signature
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
 from locretrieval.models.networks import WeightsInfo, l2_normalize
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
@@ -159,6 +158,6 @@ class CallableDescriptor(ExternalDescriptor):
 
     def __init__(self, name: str, target: str, kwargs: Mapping[str, Any], **settings: Any) -> None:
         module = callable_module(str(target), settings_of(kwargs))
-        # the code's file (size, time): a function has no state dict to hash, so an edit must change the key
-        code = file_signature(inspect.getsourcefile(importlib.import_module(str(target).partition(":")[0])))
-        super().__init__(name, module, {"target": str(target), "kwargs": settings_of(kwargs), "code": list(code)}, **settings)
+        # the code's content: a function has no state dict to hash, so an edit must change the key (a copy, a fresh clone must not)
+        code = content_sha256(inspect.getsourcefile(importlib.import_module(str(target).partition(":")[0])))[:16]
+        super().__init__(name, module, {"target": str(target), "kwargs": settings_of(kwargs), "code": code}, **settings)

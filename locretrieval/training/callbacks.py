@@ -76,6 +76,7 @@ class LocalizationValidation(L.Callback):
     are benchmarked once, logged as ``reference/<name>/...``.
     ``relevance_scope``: the retrieval metrics' relevance (`relevances`). ``gallery_queries`` fixed
     validation queries have their top ``gallery_k`` logged as an image at each validation.
+    ``headline``: the metrics a validation prints (the training report's gap rows).
     Runs on rank 0; ``history`` holds every validation (epoch -1: before training)."""
 
     def __init__(
@@ -94,6 +95,7 @@ class LocalizationValidation(L.Callback):
         gallery_k: int = 5,
         gallery_size: int = 160,
         reference_models: Mapping[str, GlobalDescriptor] | None = None,
+        headline: Sequence[str] = (),
     ) -> None:
         require(every_n_epochs >= 1, "every_n_epochs", f"must be >= 1, got {every_n_epochs}")
         require(sfm_every_n_epochs is None or sfm_every_n_epochs >= 1, "sfm_every_n_epochs", f"must be >= 1 or null, got {sfm_every_n_epochs}")
@@ -113,6 +115,7 @@ class LocalizationValidation(L.Callback):
         self.gallery_groundtruth = "relative_pose" if "relative_pose" in self.relevance else next(iter(self.relevance), None)
         self.galleries: dict[str, np.ndarray] = {}  # "before" training and the "last" validation
         self.reference_models = dict(reference_models or {})
+        self.headline = list(headline)
         self._thumbnails = None
 
     def _settings(self, with_sfm: bool) -> BenchmarkSettings:
@@ -145,7 +148,7 @@ class LocalizationValidation(L.Callback):
                                self.subsets, self.cache_dir, self.relevance)
             self.reference = {r.name: metric_rows(result, r.name, self.settings.paradigms.ks()) for r in rankings}
             for name, metrics in self.reference.items():
-                log.info("reference %s: %s", name, headline(metrics))
+                log.info("reference %s: %s", name, headline_line(metrics, self.headline))
                 if trainer.logger is not None:
                     trainer.logger.log_metrics({k.replace("val/", f"reference/{name}/"): v for k, v in metrics.items()}, step=0)
         metrics = self._record(trainer, pl_module, epoch=-1)
@@ -167,7 +170,7 @@ class LocalizationValidation(L.Callback):
         result = self.validate(pl_module.network, self._wants_sfm(epoch))
         metrics = metric_rows(result, TRAINED, self.settings.paradigms.ks())
         self.history.append({"epoch": epoch, **metrics})
-        log.info("validation after epoch %d:\n%s", epoch, headline_table({TRAINED: metrics, **self.reference}))
+        log.info("validation after epoch %d:\n%s", epoch, headline_table({TRAINED: metrics, **self.reference}, self.headline))
         if len(self.gallery_rows):
             self._log_gallery(trainer, next(r for r in result.rankings if r.name == TRAINED), epoch)
         return metrics
@@ -206,20 +209,18 @@ class LocalizationValidation(L.Callback):
         self.galleries = {key: image.numpy() for key, image in state_dict.get("galleries", {}).items()}
 
 
-#: What a console line shows of a validation (those present).
-HEADLINE = ("val/approximation/ewb/k3/5m_10deg", "val/approximation/csi/k3/5m_10deg", "val/local_sfm/pnp/k10/0.25m_2deg",
-            "val/global_sfm/pnp/k5/0.25m_2deg", "val/retrieval/relative_pose/precision@5", "val/retrieval/relative_pose/recall@5")
+def headline_line(metrics: Mapping[str, float], keys: Sequence[str]) -> str:
+    """The metrics ``keys`` of a validation (those present) as one line."""
+    return ", ".join(f"{key.removeprefix('val/')}={metrics[key]:.3g}" for key in keys if key in metrics)
 
 
-def headline(metrics: Mapping[str, float]) -> str:
-    """The `HEADLINE` metrics of a validation as one line."""
-    return ", ".join(f"{key.removeprefix('val/')}={metrics[key]:.3g}" for key in HEADLINE if key in metrics)
-
-
-def headline_table(rankings: Mapping[str, Mapping[str, float]]) -> str:
-    """The `HEADLINE` metrics of several rankings as a console table (rankings as rows)."""
-    table = pd.DataFrame({name: {key.removeprefix("val/"): metrics.get(key) for key in HEADLINE} for name, metrics in rankings.items()}).T
-    return table.dropna(axis=1, how="all").to_string(float_format=lambda value: f"{value:.3g}")
+def headline_table(rankings: Mapping[str, Mapping[str, float]], keys: Sequence[str]) -> str:
+    """The metrics ``keys`` of several rankings as a console table (rankings as rows; none: their count)."""
+    table = pd.DataFrame({name: {key.removeprefix("val/"): metrics.get(key) for key in keys} for name, metrics in rankings.items()}).T
+    table = table.dropna(axis=1, how="all")
+    if not len(table.columns):
+        return f"{len(next(iter(rankings.values()), {}))} metrics (no headline configured)"
+    return table.to_string(float_format=lambda value: f"{value:.3g}")
 
 
 class HardNegativeMining(L.Callback):

@@ -168,14 +168,17 @@ class RetrievalTraining(L.LightningModule):
         return {"optimizer": optimizer, "lr_scheduler": self.scheduler_factory(optimizer=optimizer)}
 
     def _parameter_groups(self) -> list[torch.nn.Parameter] | list[dict[str, Any]]:
-        """The trainable parameters: one group with ``head_lr_scale`` 1 (the optimizer state of
-        earlier runs resumes), else named groups ``backbone`` and ``head`` (the rest of the
-        network), each where it has any."""
+        """The trainable parameters of the network and of the loss (a learned temperature or
+        margin): one group with ``head_lr_scale`` 1 (the optimizer state of earlier runs
+        resumes), else named groups ``backbone``, ``head`` (the rest of the network) and ``loss``,
+        each where it has any."""
         trainable = [p for p in self.network.parameters() if p.requires_grad]
+        learned_loss = [p for p in self.loss.parameters() if p.requires_grad] if isinstance(self.loss, torch.nn.Module) else []
         if self.head_lr_scale == 1:
-            return trainable
+            return trainable + learned_loss
         trunk = {id(p) for p in self.network.backbone.parameters()}
-        groups = {"backbone": [p for p in trainable if id(p) in trunk], "head": [p for p in trainable if id(p) not in trunk]}
+        groups = {"backbone": [p for p in trainable if id(p) in trunk], "head": [p for p in trainable if id(p) not in trunk],
+                  "loss": learned_loss}
         return [{"params": params, "name": name} for name, params in groups.items() if params]
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:

@@ -2,42 +2,92 @@
 
 from __future__ import annotations
 
+from collections.abc import Collection, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
 
-from locretrieval.training.callbacks import HEADLINE, LocalizationValidation
+from locretrieval.benchmark import PARADIGMS, BenchmarkSettings
+from locretrieval.config import require
+from locretrieval.training.callbacks import LocalizationValidation
 
 
-#: Per paradigm, the metric of the gap table and the ground truth closing it (the first present).
-GAP_METRICS = {
-    "val/approximation/ewb/k3/5m_10deg": ("gt_relative_pose",),
-    "val/local_sfm/pnp/k10/0.25m_2deg": ("gt_co_observation", "gt_relative_pose"),
-    "val/global_sfm/pnp/k5/0.25m_2deg": ("gt_relative_pose",),
-}
-#: The reference descriptor the gap is measured from (`LocalizationValidation.reference_models`).
-GAP_BASELINE = "densevlad"
+@dataclass
+class GapRow:
+    """A row of the gap table: ``paradigm``'s ``method`` at ``k``, % of the validation queries
+    localized within ``threshold`` ``[metres, degrees]``, closing the gap to the first of
+    ``groundtruths`` (ground-truth definitions) that was validated."""
+
+    paradigm: str
+    method: str
+    k: int
+    threshold: list[float]
+    groundtruths: list[str]
+
+    def __post_init__(self) -> None:
+        require(len(self.threshold) == 2, "threshold", f"must be [metres, degrees], got {self.threshold}")
+        require(len(self.groundtruths) >= 1, "groundtruths", "must name at least one ground-truth definition")
+
+    @property
+    def metric(self) -> str:
+        """Its key in the validation metrics (`callbacks.metric_rows`)."""
+        return f"val/{self.paradigm}/{self.method}/k{self.k}/{self.threshold[0]:g}m_{self.threshold[1]:g}deg"
+
+    def unfilled(self, settings: BenchmarkSettings, groundtruths: Collection[str], sfm_validated: bool) -> str | None:
+        """Why a validation cannot fill the row with these settings, or None."""
+        sections = settings.paradigms.sections
+        if self.paradigm not in sections:
+            return f"no paradigm {self.paradigm!r} (paradigms: {list(sections)})"
+        section = sections[self.paradigm]
+        if not section.enabled:
+            return f"paradigms.{self.paradigm}.enabled is false"
+        if PARADIGMS[self.paradigm].cost == "sfm" and not sfm_validated:
+            return "the SfM paradigms are not validated (callbacks.localization_validation.sfm_every_n_epochs is null)"
+        if self.method not in section.method_names():
+            return f"{self.paradigm} has no method {self.method!r} (methods: {section.method_names()})"
+        if self.k not in section.k:
+            return f"k={self.k} is not in paradigms.{self.paradigm}.k {section.k}"
+        if [float(value) for value in self.threshold] not in [[float(p), float(r)] for p, r in settings.metrics.thresholds]:
+            return f"the threshold {self.threshold} is not in metrics.thresholds {settings.metrics.thresholds}"
+        if not set(self.groundtruths) & set(groundtruths):
+            return f"none of its ground truths {self.groundtruths} is validated (groundtruth: {sorted(groundtruths)})"
+        return None
 
 
-def gap_table(validation: LocalizationValidation) -> pd.DataFrame:
-    """Per `GAP_METRICS` metric validated before and after training: untrained (before training),
-    trained (its last validation), the baseline descriptor, the ground truth, and the share of
-    the gap between baseline and ground truth that training closed, ``100 (trained - baseline) /
+@dataclass
+class TrainingReportSettings:
+    """The ``report`` section of train.yaml: the ``gap`` rows of the training report and the
+    ``baseline`` they measure the gap from (a ``validation_references`` name)."""
+
+    baseline: str
+    gap: list[GapRow]
+
+    def metrics(self) -> list[str]:
+        """The validation metrics of the gap rows: the report's figure and the console's headline."""
+        return [row.metric for row in self.gap]
+
+
+def gap_table(validation: LocalizationValidation, settings: TrainingReportSettings) -> pd.DataFrame:
+    """Per gap row validated before and after training: untrained (before training), trained
+    (its last validation), the baseline descriptor, the ground truth, and the share of the gap
+    between baseline and ground truth that training closed, ``100 (trained - baseline) /
     (groundtruth - baseline)`` (% localized; NaN without a baseline or ground truth)."""
     history = validation.history_table()
+    baseline = settings.baseline
     rows = []
-    for metric, groundtruths in GAP_METRICS.items():
-        values = history[history["metric"] == metric].sort_values("epoch")
+    for row in settings.gap:
+        values = history[history["metric"] == row.metric].sort_values("epoch")
         if len(values) < 2:
             continue
-        groundtruth = next((name for name in groundtruths if metric in validation.reference.get(name, {})), None)
-        truth = validation.reference[groundtruth][metric] if groundtruth else float("nan")
-        baseline = validation.reference.get(GAP_BASELINE, {}).get(metric, float("nan"))
+        groundtruth = next((f"gt_{name}" for name in row.groundtruths if row.metric in validation.reference.get(f"gt_{name}", {})), None)
+        truth = validation.reference[groundtruth][row.metric] if groundtruth else float("nan")
+        reference = validation.reference.get(baseline, {}).get(row.metric, float("nan"))
         trained = float(values["value"].iloc[-1])
-        rows.append({"metric": metric.removeprefix("val/"), "untrained": float(values["value"].iloc[0]), "trained": trained,
-                     GAP_BASELINE: baseline, "groundtruth": groundtruth, "groundtruth_value": truth,
-                     "gap_closed_pct": 100.0 * (trained - baseline) / (truth - baseline) if truth != baseline else float("nan")})
-    return pd.DataFrame(rows, columns=["metric", "untrained", "trained", GAP_BASELINE, "groundtruth", "groundtruth_value", "gap_closed_pct"])
+        rows.append({"metric": row.metric.removeprefix("val/"), "untrained": float(values["value"].iloc[0]), "trained": trained,
+                     baseline: reference, "groundtruth": groundtruth, "groundtruth_value": truth,
+                     "gap_closed_pct": 100.0 * (trained - reference) / (truth - reference) if truth != reference else float("nan")})
+    return pd.DataFrame(rows, columns=["metric", "untrained", "trained", baseline, "groundtruth", "groundtruth_value", "gap_closed_pct"])
 
 
 #: The galleries of the training report: ``(key in LocalizationValidation.galleries, file, caption)``.
@@ -57,11 +107,13 @@ def gallery_lines(validation: LocalizationValidation, output_dir: Path) -> list[
     return lines
 
 
-def write_training_report(validation: LocalizationValidation, output_dir: Path) -> pd.DataFrame:
+def write_training_report(validation: LocalizationValidation, output_dir: Path, settings: TrainingReportSettings,
+                          unfilled: Mapping[str, str]) -> pd.DataFrame:
     """Write ``validation.csv`` (epoch, metric, value; epoch -1 is before training) and
-    ``report.md`` (headline metrics per epoch against the reference rankings, a figure, the gap
-    table of `gap_table` (also ``gap.csv``), the
-    galleries of the fixed validation queries before training and at the last validation)."""
+    ``report.md`` (the gap rows' metrics per epoch against the reference rankings, a figure, the
+    gap table of `gap_table` (also ``gap.csv``), a line per requested row it cannot fill
+    (``unfilled``: metric -> why), the galleries of the fixed validation queries before training
+    and at the last validation)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -70,7 +122,7 @@ def write_training_report(validation: LocalizationValidation, output_dir: Path) 
     table = validation.history_table()
     table.to_csv(output_dir / "validation.csv", index=False)
     wide = table.pivot(index="epoch", columns="metric", values="value")
-    shown = [m for m in HEADLINE if m in wide.columns]
+    shown = [m for m in settings.metrics() if m in wide.columns]
     lines = ["# Training report", "", "% of validation queries localized (epoch -1: before training).", ""]
     if shown:
         lines += [wide[shown].rename(columns=lambda m: m.removeprefix("val/")).to_markdown(floatfmt=".3g"), ""]
@@ -87,11 +139,13 @@ def write_training_report(validation: LocalizationValidation, output_dir: Path) 
         figure.savefig(output_dir / "validation.png", dpi=100)
         plt.close(figure)
         lines += ["![validation curves](validation.png)", ""]
-    gaps = gap_table(validation)
+    gaps = gap_table(validation, settings)
     gaps.to_csv(output_dir / "gap.csv", index=False)
     if len(gaps):
-        lines += [f"What training bought, per paradigm (% localized; the share of the gap between {GAP_BASELINE} and the ground "
-                  "truth that training closed):", "", gaps.to_markdown(index=False, floatfmt=".3g"), ""]
+        lines += [f"What training bought, per paradigm (% localized; the share of the gap between {settings.baseline} and the "
+                  "ground truth that training closed):", "", gaps.to_markdown(index=False, floatfmt=".3g"), ""]
+    lines += [f"Requested row {metric.removeprefix('val/')} (report.gap) is not filled: {why}." for metric, why in unfilled.items()]
+    lines += [""] if unfilled else []
     references = {name: {m: v for m, v in metrics.items() if m in shown} for name, metrics in validation.reference.items()}
     if references:
         lines += ["Reference rankings:", "", pd.DataFrame(references).T.to_markdown(floatfmt=".3g"), ""]

@@ -26,7 +26,7 @@ from locretrieval.scene.kapture_io import concatenate_image_sets
 from locretrieval.training.callbacks import LocalizationValidation, every_validation_metrics
 from locretrieval.training.checkpoints import check_resume_checkpoint
 from locretrieval.training.relevance import TrainingPairs, TrainingRelevanceSettings, combined_pairs
-from locretrieval.training.report import write_training_report
+from locretrieval.training.report import TrainingReportSettings, write_training_report
 
 log = logging.getLogger(__name__)
 
@@ -159,6 +159,8 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     training = validated(TrainingSettings, cfg.training, "training")
     relevance = validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance")
     groundtruth_settings = validated(GroundTruthSettings, cfg.groundtruth, "groundtruth")
+    report = validated(TrainingReportSettings, cfg.report, "report")
+    unfilled = unfilled_report_rows(cfg, report, training.validation.settings(settings), groundtruth_settings)
     callbacks = checked_callbacks(cfg, settings, groundtruth_settings)
     output_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, output_dir / "config.yaml", resolve=True)
@@ -177,6 +179,7 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
         settings=validation_settings, preprocessing=descriptor.preprocessing, extraction=descriptor.settings, cache_dir=cache_dir,
         random_seed=int(cfg.seed) if cfg.baselines.random else None, relevance_scope=groundtruth_settings.relevance,
         reference_models={name: instantiate(node) for name, node in (cfg.get("validation_references") or {}).items()},
+        headline=report.metrics(),
     )
     callbacks = {"localization_validation": validator, **callbacks}  # first: early stopping reads what it logged
     if cfg.get("miner"):
@@ -189,8 +192,22 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
         warnings.filterwarnings("ignore", message=r"Found \d+ module\(s\) in eval mode at the start of training")
     trainer.fit(module, datamodule=parts.datamodule, ckpt_path=cfg.get("ckpt_path"))
     if trainer.is_global_zero:
-        write_training_report(validator, output_dir)
+        write_training_report(validator, output_dir, report, unfilled)
     return validator
+
+
+def unfilled_report_rows(cfg: DictConfig, report: TrainingReportSettings, settings: BenchmarkSettings,
+                         groundtruths: GroundTruthSettings) -> dict[str, str]:
+    """The gap rows (``report.gap``) that validation cannot fill with these settings: metric ->
+    why, each logged as a warning; a ``report.baseline`` that is no validation reference is an error."""
+    references = list(cfg.get("validation_references") or {})
+    if report.baseline not in references:
+        raise ConfigError(f"report.baseline: {report.baseline!r} is not a validation reference (validation_references: {references})")
+    sfm_validated = cfg.callbacks.localization_validation.get("sfm_every_n_epochs") is not None
+    unfilled = {row.metric: why for row in report.gap if (why := row.unfilled(settings, groundtruths.parsed(), sfm_validated))}
+    for metric, why in unfilled.items():
+        log.warning("report.gap row %s cannot be filled: %s", metric.removeprefix("val/"), why)
+    return unfilled
 
 
 def check_validation_budget(cfg: DictConfig, scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings,
