@@ -170,3 +170,35 @@ def test_shapes_and_settings_are_checked():
         TripletLoss(0.1, max_triplets_per_anchor=0)
     with pytest.raises(ValueError, match="temperatures"):
         ListwiseLoss(0.1, 0.0)
+
+
+def test_a_pytorch_metric_learning_loss_is_given_the_relevant_and_surely_unrelated_pairs():
+    from pytorch_metric_learning.losses import MultiSimilarityLoss
+
+    from locretrieval.training.losses import MetricLearningLoss
+
+    given = []
+
+    class Recording(MultiSimilarityLoss):
+        def forward(self, embeddings, labels=None, indices_tuple=None, *args, **kwargs):
+            given.append((labels, tuple(index.tolist() for index in indices_tuple)))
+            return super().forward(embeddings, labels, indices_tuple, *args, **kwargs)
+
+    torch.manual_seed(0)
+    descriptors = torch.nn.functional.normalize(torch.randn(5, 8), dim=1).requires_grad_()
+    relevance = torch.zeros(5, 5)
+    relevance[0, 1] = relevance[1, 0] = 0.9
+    relevance[2, 3] = 0.4  # graded, one-sided: a pair of the anchor 2 only
+    negatives = torch.ones(5, 5, dtype=torch.bool)
+    negatives[0, 2] = negatives[2, 0] = False  # ambiguous: neither
+    loss = MetricLearningLoss(Recording(alpha=1.0, beta=50.0, base=0.0))(descriptors, relevance, negatives)
+    loss.backward()
+    labels, (a1, p, a2, n) = given[0]
+    assert labels is None  # never class labels
+    assert sorted(zip(a1, p)) == [(0, 1), (1, 0), (2, 3)]
+    expected_negatives = {(a, b) for a in (0, 1, 2) for b in range(5) if a != b and relevance[a, b] == 0 and negatives[a, b]}
+    assert set(zip(a2, n)) == expected_negatives  # anchors 3 and 4 have no relevant partner: not anchors
+    assert descriptors.grad is not None and torch.isfinite(loss)
+    # the same pairs through PML's own loss give the same value: the adapter adds nothing else
+    direct = MultiSimilarityLoss(alpha=1.0, beta=50.0, base=0.0)(descriptors, None, (torch.tensor(a1), torch.tensor(p), torch.tensor(a2), torch.tensor(n)))
+    assert float(direct) == pytest.approx(float(loss))

@@ -723,3 +723,8 @@ def test_the_report_says_which_requested_gap_row_it_cannot_fill(tmp_path, caplog
     wrong = train_config(tmp_path / "wrong", "report.baseline=netvlad")
     with pytest.raises(ConfigError, match=r"report.baseline: 'netvlad' is not a validation reference \(validation_references: \['densevlad'\]\)"):
         train(wrong, tmp_path / "wrong" / "run")
+
+
+def test_train_py_takes_a_step_with_a_pytorch_metric_learning_loss(tmp_path):
+    validator = train(train_config(tmp_path, "loss=multi_similarity", "+trainer.fast_dev_run=true"), tmp_path / "run")
+    assert [entry["epoch"] for entry in validator.history] == [-1, 0]

@@ -140,6 +140,25 @@ class ContrastiveLoss(nn.Module):
                 + _mean_per_anchor(per_pair["neg_loss"]["losses"], pairs[2], size))  # fmt: skip
 
 
+class MetricLearningLoss(nn.Module):
+    """Any pytorch-metric-learning loss (``loss``, e.g. ``MultiSimilarityLoss``, the field's VPR
+    recipes' loss) on the batch's pairs: every relevant pair as a positive and every surely
+    unrelated pair as a negative (the project's negatives rule, `train_relevance.negatives`),
+    given to it as ``indices_tuple`` ``(a1, p, a2, n)``, never as class labels (graded relevance
+    is no partition into classes). Its own reducer and distance apply (cosine similarity by
+    default for most; the descriptors are unit vectors)."""
+
+    def __init__(self, loss: nn.Module) -> None:
+        super().__init__()
+        self.loss = loss
+
+    def forward(self, descriptors: torch.Tensor, relevance: torch.Tensor, negatives: torch.Tensor) -> torch.Tensor:
+        positive, negative = _masks(descriptors, relevance, negatives)
+        if not positive.any():
+            return _zero(descriptors)
+        return self.loss(descriptors, None, positive.nonzero(as_tuple=True) + negative.nonzero(as_tuple=True))
+
+
 class ListwiseLoss(nn.Module):
     """ListNet top-one cross-entropy (Cao et al., ICML 2007) that learns the graded order: per
     anchor, over its candidates (relevant and surely unrelated partners, relevance 0 for the
