@@ -369,3 +369,29 @@ def test_runs_on_the_configured_device(textures_scene, fitted):
         torch.from_numpy(array).cuda() for array in fitted_arrays(fitted).values()
     )
     np.testing.assert_allclose(gpu.describe(textures_scene.queries), fitted.describe(textures_scene.queries), atol=1e-3)
+
+
+def _fit_with_threads(scene, threads: int, results) -> None:
+    import faiss
+
+    torch.set_num_threads(threads)
+    faiss.omp_set_num_threads(threads)
+    model = DenseVLAD(**{**SMALL, "vocabulary_samples": 60_000})
+    model.fit(scene.database)
+    results.put({**fitted_arrays(model), "queries": model.describe(scene.queries)})
+
+
+def test_the_fit_and_the_descriptors_do_not_depend_on_the_thread_count(textures_scene):
+    """One process with 1 torch and faiss thread, one with 2: the same vocabulary, PCA and descriptors, bit for bit."""
+    import multiprocessing
+
+    context = multiprocessing.get_context("spawn")
+    outcomes = []
+    for threads in (1, 2):
+        results = context.Queue()
+        job = context.Process(target=_fit_with_threads, args=(textures_scene, threads, results))
+        job.start()
+        outcomes.append(results.get(timeout=300))
+        job.join(60)
+    for name in outcomes[0]:
+        np.testing.assert_array_equal(outcomes[0][name], outcomes[1][name], err_msg=name)
