@@ -1,5 +1,6 @@
 import dataclasses
 import logging
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -394,47 +395,56 @@ def test_chunked_scoring_equals_one_chunk(pose_scene, monkeypatch):
     assert (chunked.relevance != whole.relevance).nnz == 0
 
 
-def test_a_new_definition_is_its_module_and_one_registry_entry_serving_ranking_relevance_and_training(pose_scene, monkeypatch):
-    """A definition registered in `DEFINITIONS` ranks the benchmark's queries and grades training
-    pairs: here camera distance alone, relevant within ``radius`` metres, graded 1 - d / radius."""
-    from typing import ClassVar
+@dataclasses.dataclass
+class CameraDistance:
+    """A ground-truth definition from outside the package: camera distance alone, relevant
+    within ``radius`` metres, graded 1 - d / radius."""
 
-    from locretrieval.groundtruth import DefinitionContext, groundtruth_from_scores
+    radius: float
+    uses_sfm: ClassVar[bool] = False
+
+    def distances(self, images, rows, others):
+        return geometry.pairwise_position_errors(images.centers[rows], others.centers)
+
+    def groundtruth(self, database, queries, depth, name, context):
+        from locretrieval.groundtruth import groundtruth_from_scores
+
+        def score_block(rows):
+            distance = self.distances(queries, rows, database)
+            return -distance, distance < self.radius, distance < self.radius
+
+        return groundtruth_from_scores(name, database, queries, depth, score_block)
+
+    def graded(self, images, rows, context):
+        distance = self.distances(images, rows, images)
+        return np.where(distance < self.radius, 1.0 - distance / self.radius, 0.0)
+
+
+OUTSIDE = f"{__name__}.CameraDistance"
+
+
+def test_a_definition_from_outside_the_package_is_chosen_by_target_for_ranking_relevance_and_training(pose_scene):
+    """A definition chosen by its ``_target_`` (no registry entry) ranks the benchmark's queries and grades training pairs."""
+    from locretrieval.groundtruth import DefinitionContext, definition_type
     from locretrieval.training.relevance import NegativeSettings, TrainingRelevanceSettings, training_pairs
 
-    @dataclasses.dataclass
-    class CameraDistance:
-        radius: float
-        uses_sfm: ClassVar[bool] = False
-
-        def distances(self, images, rows, others):
-            return geometry.pairwise_position_errors(images.centers[rows], others.centers)
-
-        def groundtruth(self, database, queries, depth, name, context):
-            def score_block(rows):
-                distance = self.distances(queries, rows, database)
-                return -distance, distance < self.radius, distance < self.radius
-
-            return groundtruth_from_scores(name, database, queries, depth, score_block)
-
-        def graded(self, images, rows, context):
-            distance = self.distances(images, rows, images)
-            return np.where(distance < self.radius, 1.0 - distance / self.radius, 0.0)
-
-    monkeypatch.setitem(compute.DEFINITIONS, "camera_distance", CameraDistance)
     database, queries = pose_scene
-    found = compute_groundtruths(Scene("poses", database, queries), {"depth": 50, "definitions": {"near": {"type": "camera_distance", "radius": 12.0}}})
+    found = compute_groundtruths(Scene("poses", database, queries), {"depth": 50, "definitions": {"near": {"_target_": OUTSIDE, "radius": 12.0}}})
     distance = np.linalg.norm(queries.centers[:, None] - database.centers[None], axis=2)  # d0 10 m, d1 0, d2 20, d3 30, d4 5
     posed = queries.has_pose
     np.testing.assert_array_equal(found["near"].relevance.toarray()[posed], distance[posed] < 12.0)
     assert found["near"].ranking.indices[0, :3].tolist() == [1, 4, 0]
 
-    settings = TrainingRelevanceSettings({"type": "camera_distance", "radius": 12.0}, NegativeSettings("not_relevant", 0.1, None, None))
+    settings = TrainingRelevanceSettings({"_target_": OUTSIDE, "radius": 12.0}, NegativeSettings("not_relevant", 0.1, None, None))
+    assert definition_type(settings.definition) == OUTSIDE
     graded = training_pairs(database, settings, DefinitionContext(far=25.0)).graded.toarray()
     between = np.linalg.norm(database.centers[:, None] - database.centers[None], axis=2)
     expected = np.where(between < 12.0, 1.0 - between / 12.0, 0.0)
     np.fill_diagonal(expected, 0.0)
     np.testing.assert_allclose(graded, expected)
     with pytest.raises(ConfigError, match=r"train_relevance.definition.radius: Value 'far' of type 'str' could not be converted"):
-        validated(TrainingRelevanceSettings, {"definition": {"type": "camera_distance", "radius": "far"},
+        validated(TrainingRelevanceSettings, {"definition": {"_target_": OUTSIDE, "radius": "far"},
                                               "negatives": {"rule": "unrelated", "near": 0.1, "far": None, "max_rotation": None}}, "train_relevance")
+    for target, message in ((f"{__name__}.Missing", r"cannot import"), ("locretrieval.scene.Camera", r"is not a ground-truth definition")):
+        with pytest.raises(ConfigError, match=rf"groundtruth.definitions.near._target_: .*{message}"):
+            compute_groundtruths(Scene("poses", database, queries), {"depth": 50, "definitions": {"near": {"_target_": target}}})

@@ -25,9 +25,9 @@ from locretrieval.scene import Scene
 log = logging.getLogger(__name__)
 
 
-#: Ground-truth definition types by name (the ``type`` of a ``definitions`` entry and of
-#: ``train_relevance.definition``): each a `Definition` (its module: schema, ranking, training
-#: relevance). A new definition is its module and one entry here.
+#: The built-in ground-truth definition types by name (the ``type`` of a ``definitions`` entry
+#: and of ``train_relevance.definition``): each a `Definition` (its module: schema, ranking,
+#: training relevance). Another one, in any package, is chosen by its ``_target_`` instead.
 DEFINITIONS: dict[str, type[Definition]] = {
     "relative_pose": RelativePoseDefinition,
     "frustum": FrustumDefinition,
@@ -36,11 +36,15 @@ DEFINITIONS: dict[str, type[Definition]] = {
 
 
 def parse_definition(parameters: Mapping[str, Any], key: str, default_type: str | None = None) -> Definition:
-    """The checked definition of ``parameters`` (its ``type``, default ``default_type``, picks the
-    `DEFINITIONS` entry; the rest are its schema's fields); errors name ``key``."""
+    """The checked definition of ``parameters``: its ``_target_`` (a `Definition` class of any
+    package), else its ``type`` (default ``default_type``) picks the `DEFINITIONS` entry; the rest
+    are its schema's fields. Errors name ``key``."""
     if not isinstance(parameters, Mapping):
-        raise ConfigError(f"{key}: must be a mapping with a type of {sorted(DEFINITIONS)} and its parameters, got {parameters!r}")
+        raise ConfigError(f"{key}: must be a mapping with a type of {sorted(DEFINITIONS)} (or a _target_) and its parameters, "
+                          f"got {parameters!r}")
     parameters = dict(parameters)
+    if "_target_" in parameters:
+        return validated(definition_class(str(parameters.pop("_target_")), key), parameters, key)
     kind = parameters.pop("type", default_type)
     if kind not in DEFINITIONS:
         raise ConfigError(f"{key}.type: unknown definition type {kind!r}; known: {sorted(DEFINITIONS)}")
@@ -125,9 +129,23 @@ def compute_groundtruths(
     return groundtruths
 
 
+def definition_class(target: str, key: str) -> type[Definition]:
+    """The `Definition` class a ``_target_`` names; a `ConfigError` naming ``<key>._target_`` otherwise."""
+    from hydra.utils import get_class
+
+    try:
+        kind = get_class(target)
+    except Exception as error:  # Hydra wraps the import error
+        raise ConfigError(f"{key}._target_: cannot import {target!r} ({error})") from None
+    if not dataclasses.is_dataclass(kind) or not all(hasattr(kind, name) for name in ("uses_sfm", "groundtruth", "graded")):
+        raise ConfigError(f"{key}._target_: {target} is not a ground-truth definition (a dataclass with uses_sfm, groundtruth and graded)")
+    return kind
+
+
 def definition_type(definition: Definition) -> str:
-    """The `DEFINITIONS` name of ``definition``'s type (part of its cache key)."""
-    return next(name for name, kind in DEFINITIONS.items() if type(definition) is kind)
+    """The `DEFINITIONS` name of ``definition``'s type, or its class's import path (part of its cache key)."""
+    kind = type(definition)
+    return next((name for name, known in DEFINITIONS.items() if kind is known), f"{kind.__module__}.{kind.__qualname__}")
 
 
 def _to_arrays(groundtruth: GroundTruth) -> dict[str, np.ndarray]:
