@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 from PIL import Image
 from scipy.ndimage import gaussian_filter
 
@@ -23,6 +24,9 @@ import locretrieval  # noqa: F401
 from locretrieval.models import DenseVLAD
 from locretrieval.scene import Camera, ImageSet
 
+
+#: The model's config: its defaults.
+CONFIG = Path(__file__).resolve().parents[1] / "configs" / "model" / "densevlad.yaml"
 
 def texture_images(root: Path, prefix: str, count: int, width: int, height: int, seed: int) -> ImageSet:
     rng = np.random.default_rng(seed)
@@ -42,8 +46,10 @@ def benchmark(args: argparse.Namespace, width: int, height: int) -> None:
         root = Path(folder)
         database = texture_images(root, "db", args.images, width, height, seed=0)
         queries = texture_images(root, "query", args.images, width, height, seed=1)
-        model = DenseVLAD(max_side=args.max_side, upsample=args.upsample, step=args.step,
-                          batch_size=args.batch_size, device=args.device)
+        values = OmegaConf.to_container(OmegaConf.load(CONFIG))  # the model's defaults: its YAML
+        values.pop("_target_")
+        model = DenseVLAD(**{**values, "max_side": args.max_side, "upsample": args.upsample, "step": args.step,
+                             "batch_size": args.batch_size, "device": args.device})
         start = time.perf_counter()
         model.fit(database)
         fit_seconds = time.perf_counter() - start

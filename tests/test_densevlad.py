@@ -7,7 +7,10 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
+from omegaconf import OmegaConf
 from scipy.ndimage import gaussian_filter
+
+import helpers
 
 from locretrieval.models import DenseVLAD
 from locretrieval.models import densevlad
@@ -26,6 +29,14 @@ from locretrieval.scene import Camera, ImageSet, Scene
 
 # Small, fast settings: images are resized to 128 px; the algorithm is the default one.
 SMALL = dict(max_side=128, step=3, vocabulary_samples=20_000, kmeans_iterations=10, device="cpu")
+
+
+def small_densevlad(kind: type = DenseVLAD, **options) -> DenseVLAD:
+    """``kind`` (DenseVLAD or a subclass) with the values of ``configs/model/densevlad.yaml``,
+    `SMALL` and ``options`` over them."""
+    values = OmegaConf.to_container(OmegaConf.load(helpers.CONFIGS / "model" / "densevlad.yaml"))
+    values.pop("_target_")
+    return kind(**{**values, **SMALL, **options})
 
 
 def texture(seed: int, size: int = 176) -> np.ndarray:
@@ -58,7 +69,7 @@ def textures_scene(tmp_path_factory) -> Scene:
 
 @pytest.fixture(scope="module")
 def fitted(textures_scene) -> DenseVLAD:
-    model = DenseVLAD(**SMALL)
+    model = small_densevlad()
     model.fit(textures_scene.database)
     return model
 
@@ -227,7 +238,7 @@ def test_fitted_model_shapes_norms_and_small_database_pca(textures_scene, fitted
 
 
 def test_fit_and_describe_are_deterministic(textures_scene, fitted, caplog):
-    again = DenseVLAD(**SMALL)
+    again = small_densevlad()
     with caplog.at_level(logging.INFO, logger="locretrieval.models.densevlad"):
         again.fit(textures_scene.database)
     assert "6 database images support 5 PCA dimensions (configured 4096)" in caplog.text
@@ -258,11 +269,11 @@ def test_cpu_vlads_a_few_rows_at_a_time_equal_the_torch_whole_image_computation(
 
 def test_small_images_keep_their_size_unless_upsampled(tmp_path):
     images = image_set(tmp_path, {"small.png": texture(1, 96)[:72], "large.png": texture(2, 256)[:192]})
-    assert DenseVLAD(**SMALL)._load(images, 0).shape == (1, 72, 96)
-    assert DenseVLAD(**SMALL, upsample=True)._load(images, 0).shape == (1, 96, 128)
+    assert small_densevlad()._load(images, 0).shape == (1, 72, 96)
+    assert small_densevlad(upsample=True)._load(images, 0).shape == (1, 96, 128)
     for upsample in (False, True):
-        assert DenseVLAD(**SMALL, upsample=upsample)._load(images, 1).shape == (1, 96, 128)
-    assert DenseVLAD(**SMALL).identity() != DenseVLAD(**SMALL, upsample=True).identity()
+        assert small_densevlad(upsample=upsample)._load(images, 1).shape == (1, 96, 128)
+    assert small_densevlad().identity() != small_densevlad(upsample=True).identity()
 
 
 def test_shifted_crops_retrieve_their_source_texture(textures_scene, fitted):
@@ -281,10 +292,10 @@ def test_describe_scene_cache_hit_runs_nothing_and_leaves_the_model_unfitted(tmp
             Counting.describe_calls += 1
             return super().describe(images)
 
-    first = Counting(**SMALL)
+    first = small_densevlad(Counting)
     database, queries = describe_scene(first, textures_scene, tmp_path)
     assert Counting.describe_calls == 2
-    fresh = Counting(**SMALL)
+    fresh = small_densevlad(Counting)
     cached_database, cached_queries = describe_scene(fresh, textures_scene, tmp_path)
     assert Counting.describe_calls == 2
     np.testing.assert_array_equal(cached_database, database)
@@ -298,7 +309,7 @@ def test_contrast_threshold_drops_faint_regions_from_the_vlad(tmp_path, fitted):
     pixels[:, 64:] = 100 + np.arange(64)[None, :] // 16  # right half: a ramp of one grey level per 16 px
     images = image_set(tmp_path, {"half_faint.png": pixels})
     threshold = 0.1
-    model = DenseVLAD(**{**SMALL, "bin_sizes": (4,), "contrast_threshold": threshold})
+    model = small_densevlad(bin_sizes=(4,), contrast_threshold=threshold)
     model._centroids = fitted._centroids
     vlad = model._vlads(images)[0]
 
@@ -323,7 +334,7 @@ def test_whitening_regularisation_bounds_the_gain_of_small_components(textures_s
     eigenvalues, vectors = eigenvalues[::-1][:5], vectors[:, ::-1][:, :5]  # the N - 1 = 5 non-zero components
     grams = {}
     for regularization in (0.0, 1.0):
-        model = DenseVLAD(**{**SMALL, "whitening_regularization": regularization})
+        model = small_densevlad(whitening_regularization=regularization)
         model.fit(textures_scene.database)
         descriptors = model.describe(textures_scene.database).astype(np.float64)
         gains = eigenvalues / (eigenvalues + regularization * eigenvalues[0])
@@ -348,23 +359,23 @@ def test_resizing_makes_the_descriptor_resolution_independent(tmp_path, fitted):
 
 def test_errors(tmp_path, textures_scene):
     with pytest.raises(RuntimeError, match="not fitted"):
-        DenseVLAD(**SMALL).describe(textures_scene.queries)
+        small_densevlad().describe(textures_scene.queries)
     with pytest.raises(ValueError, match="step must be positive"):
-        DenseVLAD(step=0)
+        small_densevlad(step=0)
     tiny = image_set(tmp_path, {"a.png": texture(1, 64), "b.png": texture(2, 64)})
     with pytest.raises(ValueError, match=r"a\.png .* too small for SIFT bins of 10 px"):
-        DenseVLAD(**{**SMALL, "max_side": 24}).fit(tiny)
+        small_densevlad(max_side=24).fit(tiny)
     flat = image_set(tmp_path / "flat", {name: np.full((64, 64), 90, np.uint8) for name in ("a.png", "b.png")})
     with pytest.raises(ValueError, match="fewer than the 128 visual words"):
-        DenseVLAD(**SMALL).fit(flat)
+        small_densevlad().fit(flat)
     with pytest.raises(ValueError, match="at least 2 database images"):
-        DenseVLAD(**SMALL).fit(textures_scene.database.subset(np.array([0])))
+        small_densevlad().fit(textures_scene.database.subset(np.array([0])))
 
 
 def test_runs_on_the_configured_device(textures_scene, fitted):
     if not torch.cuda.is_available():
         pytest.skip("no CUDA GPU on this machine")
-    gpu = DenseVLAD(**{**SMALL, "device": "cuda"})
+    gpu = small_densevlad(device="cuda")
     gpu._centroids, gpu._pca_mean, gpu._pca_projection = (
         torch.from_numpy(array).cuda() for array in fitted_arrays(fitted).values()
     )
@@ -376,7 +387,7 @@ def _fit_with_threads(scene, threads: int, results) -> None:
 
     torch.set_num_threads(threads)
     faiss.omp_set_num_threads(threads)
-    model = DenseVLAD(**{**SMALL, "vocabulary_samples": 60_000})
+    model = small_densevlad(vocabulary_samples=60_000)
     model.fit(scene.database)
     results.put({**fitted_arrays(model), "queries": model.describe(scene.queries)})
 

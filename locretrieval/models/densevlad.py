@@ -369,6 +369,7 @@ def torch_threads(count: int) -> Iterator[None]:
 
 class DenseVLAD(GlobalDescriptor):
     """DenseVLAD with vocabulary and PCA-whitening learned on the database (see module doc).
+    Every parameter comes from ``configs/model/densevlad.yaml`` (the one place of its defaults).
 
     Whitening divides principal component ``i`` by ``sqrt(lambda_i + r * lambda_1)``
     (``r = whitening_regularization``), which bounds the gain of near-zero eigenvalues.
@@ -380,23 +381,24 @@ class DenseVLAD(GlobalDescriptor):
 
     def __init__(
         self,
-        name: str = "densevlad",
-        max_side: int = 640,
-        upsample: bool = False,
-        step: int = 2,
-        bin_sizes: Sequence[int] = (4, 6, 8, 10),
-        magnification: float = 6.0,
-        window_size: float = 1.5,
-        contrast_threshold: float = 0.005,
-        num_words: int = 128,
-        vocabulary_images: int = 500,
-        vocabulary_samples: int = 100_000,
-        kmeans_iterations: int = 25,
-        pca_dim: int = 4096,
-        whitening_regularization: float = 1e-3,
-        seed: int = 0,
-        batch_size: int = 4,
-        device: str = "auto",
+        *,
+        name: str,
+        max_side: int,
+        upsample: bool,
+        step: int,
+        bin_sizes: Sequence[int],
+        magnification: float,
+        window_size: float,
+        contrast_threshold: float,
+        num_words: int,
+        vocabulary_images: int,
+        vocabulary_samples: int,
+        kmeans_iterations: int,
+        pca_dim: int,
+        whitening_regularization: float,
+        seed: int,
+        batch_size: int,
+        device: str,
     ) -> None:
         super().__init__(name)
         self.max_side = int(max_side)
