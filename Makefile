@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: evaluate train test benchmark venv clean
+.PHONY: evaluate train test lint benchmark venv clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -25,6 +25,11 @@ train: $(STAMP)
 ## Run the test suite.
 test: $(STAMP)
 	$(BIN)/python -m pytest $(ARGS)
+
+## Check the code's format and lint (ruff, with pyproject.toml's settings); CI runs it before the tests.
+lint: $(STAMP)
+	$(BIN)/ruff format --check .
+	$(BIN)/ruff check .
 
 ## Print speed figures (benchmarks/, listed in the README).
 benchmark: $(STAMP)

@@ -1,8 +1,8 @@
 """Benchmark a global descriptor and the ground-truth rankings on a scene (Hydra entry point).
 
-    python evaluate.py                                  # DenseVLAD on the built-in synthetic scene
-    python evaluate.py data=baidu model=precomputed model.path=/path/to/global_features/AP-GeM
-    python evaluate.py -m model=densevlad,precomputed   # multirun sweep
+python evaluate.py                                  # DenseVLAD on the built-in synthetic scene
+python evaluate.py data=baidu model=precomputed model.path=/path/to/global_features/AP-GeM
+python evaluate.py -m model=densevlad,precomputed   # multirun sweep
 """
 
 from pathlib import Path

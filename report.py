@@ -24,8 +24,13 @@ def main() -> None:
     parser.add_argument("--output", type=Path, help="report directory (default: the single run directory given)")
     parser.add_argument("--groundtruth", help="ground truth of the correlation analysis (default: relative pose)")
     parser.add_argument("--formats", nargs="+", default=["png", "pdf"], help="figure formats (default: png pdf)")
-    parser.add_argument("--gallery", nargs="+", default=[], metavar="KEY=VALUE",
-                        help="report.gallery settings replacing the first run's (e.g. queries=all k=10)")
+    parser.add_argument(
+        "--gallery",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        help="report.gallery settings replacing the first run's (e.g. queries=all k=10)",
+    )
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] %(name)s: %(message)s")
     if args.output is None:
@@ -33,7 +38,11 @@ def main() -> None:
             parser.error("--output is required when several runs are given")
         args.output = args.runs[0]
     gallery, thumbnails = run_gallery_settings(find_run_dirs(args.runs)[0], args.gallery)
-    print(build_report(args.runs, args.output, args.groundtruth, args.formats, gallery=gallery, thumbnail_cache=thumbnails))
+    print(
+        build_report(
+            args.runs, args.output, args.groundtruth, args.formats, gallery=gallery, thumbnail_cache=thumbnails
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -1,9 +1,9 @@
 """Train a descriptor for localization with ground-truth relevance (Hydra entry point).
 
-    python train.py                                # synthetic scene, EfficientNet-Lite0 + GeM, loss=listwise
-    python train.py loss=triplet train_relevance=frustum trainer.max_epochs=20
-    python train.py -m loss=ap,triplet,contrastive,listwise      # a sweep, one directory per run
-    python train.py ckpt_path=<run>/checkpoints/last.ckpt        # resume
+python train.py                                # synthetic scene, EfficientNet-Lite0 + GeM, loss=listwise
+python train.py loss=triplet train_relevance=frustum trainer.max_epochs=20
+python train.py -m loss=ap,triplet,contrastive,listwise      # a sweep, one directory per run
+python train.py ckpt_path=<run>/checkpoints/last.ckpt        # resume
 """
 
 from pathlib import Path

@@ -37,14 +37,18 @@ def main() -> None:
     parser.add_argument("--dimension", type=int, nargs="+", default=[256, 4096])
     parser.add_argument("--depth", type=int, default=50)
     parser.add_argument("--check", type=int, default=500, help="queries whose BDI weights are compared with float64")
-    parser.add_argument("--alpha", type=float, default=OmegaConf.load(PARADIGMS).approximation.alpha, help="CSI exponent")
+    parser.add_argument(
+        "--alpha", type=float, default=OmegaConf.load(PARADIGMS).approximation.alpha, help="CSI exponent"
+    )
     args = parser.parse_args()
 
     rng = np.random.default_rng(0)
     camera = Camera("PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0))
     qvec = Rotation.random(args.database, random_state=0).as_quat()[:, [3, 0, 1, 2]]
     tvec = geometry.translations_from_centers(qvec, rng.uniform(-50, 50, size=(args.database, 3)))
-    database = ImageSet([f"db/{i}.jpg" for i in range(args.database)], "/nonexistent", [camera] * args.database, qvec, tvec)
+    database = ImageSet(
+        [f"db/{i}.jpg" for i in range(args.database)], "/nonexistent", [camera] * args.database, qvec, tvec
+    )
     ks = list(range(1, args.depth + 1))
     for dimension in args.dimension:
         database_descriptors = unit_rows(rng, args.database, dimension)
@@ -68,8 +72,10 @@ def main() -> None:
                 f"paradigm 1: {args.queries} queries x k=1..{args.depth} x {'+'.join(methods):>11}, "
                 f"D={dimension}: {elapsed:6.2f} s"
             )
-        print(f"BDI weights, float32 products vs float64, first {args.check} queries, D={dimension}: "
-              f"max difference {bdi_weight_difference(ranking, ks, args.check):.1e}")
+        print(
+            f"BDI weights, float32 products vs float64, first {args.check} queries, D={dimension}: "
+            f"max difference {bdi_weight_difference(ranking, ks, args.check):.1e}"
+        )
 
 
 def bdi_weights(ranking: Ranking, ks: list[int], rows: slice) -> np.ndarray:

@@ -24,9 +24,9 @@ import locretrieval  # noqa: F401
 from locretrieval.models import DenseVLAD
 from locretrieval.scene import Camera, ImageSet
 
-
 #: The model's config: its defaults.
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "model" / "densevlad.yaml"
+
 
 def texture_images(root: Path, prefix: str, count: int, width: int, height: int, seed: int) -> ImageSet:
     rng = np.random.default_rng(seed)
@@ -48,8 +48,16 @@ def benchmark(args: argparse.Namespace, width: int, height: int) -> None:
         queries = texture_images(root, "query", args.images, width, height, seed=1)
         values = OmegaConf.to_container(OmegaConf.load(CONFIG))  # the model's defaults: its YAML
         values.pop("_target_")
-        model = DenseVLAD(**{**values, "max_side": args.max_side, "upsample": args.upsample, "step": args.step,
-                             "batch_size": args.batch_size, "device": args.device})
+        model = DenseVLAD(
+            **{
+                **values,
+                "max_side": args.max_side,
+                "upsample": args.upsample,
+                "step": args.step,
+                "batch_size": args.batch_size,
+                "device": args.device,
+            }
+        )
         start = time.perf_counter()
         model.fit(database)
         fit_seconds = time.perf_counter() - start
@@ -60,9 +68,11 @@ def benchmark(args: argparse.Namespace, width: int, height: int) -> None:
         descriptors = model.describe(queries)
         describe_seconds = time.perf_counter() - start
 
-    print(f"device {model.device} ({torch.get_num_threads()} torch threads), images {width}x{height}, "
-          f"max side {args.max_side}{' (upsampled)' if args.upsample else ''}, step {args.step} px, "
-          f"bins {list(model.bin_sizes)}")
+    print(
+        f"device {model.device} ({torch.get_num_threads()} torch threads), images {width}x{height}, "
+        f"max side {args.max_side}{' (upsampled)' if args.upsample else ''}, step {args.step} px, "
+        f"bins {list(model.bin_sizes)}"
+    )
     print(f"  fit on {args.images} images (vocabulary + PCA to {descriptors.shape[1]} dims): {fit_seconds:.2f} s")
     print(f"  describe {args.images} images: {describe_seconds:.2f} s = {args.images / describe_seconds:.2f} images/s")
 

@@ -36,7 +36,9 @@ def write_images(folder: Path, count: int, size: tuple[int, int], rng: np.random
 
 def image_set(root: Path, names: list[str], size: tuple[int, int]) -> ImageSet:
     camera = Camera("SIMPLE_PINHOLE", size[0], size[1], (size[0] * 0.8, size[0] / 2, size[1] / 2))
-    return ImageSet(names, root, [camera] * len(names), np.tile([1.0, 0, 0, 0], (len(names), 1)), np.zeros((len(names), 3)))
+    return ImageSet(
+        names, root, [camera] * len(names), np.tile([1.0, 0, 0, 0], (len(names), 1)), np.zeros((len(names), 3))
+    )
 
 
 def write_run(run: Path, scene: Scene, rng: np.random.Generator, depth: int = 50) -> None:
@@ -44,11 +46,14 @@ def write_run(run: Path, scene: Scene, rng: np.random.Generator, depth: int = 50
     num_queries, num_database = len(scene.queries), len(scene.database)
     indices = np.argsort(rng.random((num_queries, num_database)), axis=1)[:, :depth]
     save_arrays(run / "rankings" / "bench.npz", {"indices": indices, "kind": np.asarray("descriptor")})
-    write_gallery_inputs(scene, {"relative_pose": sparse.csr_matrix(rng.random((num_queries, num_database)) < 0.01)}, run)
+    write_gallery_inputs(
+        scene, {"relative_pose": sparse.csr_matrix(rng.random((num_queries, num_database)) < 0.01)}, run
+    )
     position = rng.exponential(2.0, num_queries)
     pd.DataFrame({
-        "dataset": "bench", "ranking": "bench", "ranking_kind": "descriptor", "paradigm": "approximation", "method": "ewb",
-        "k": 5, "query": scene.queries.names, "position_error_m": position, "rotation_error_deg": 3 * position, "failure": "",
+        "dataset": "bench", "ranking": "bench", "ranking_kind": "descriptor", "paradigm": "approximation",
+        "method": "ewb", "k": 5, "query": scene.queries.names, "position_error_m": position,
+        "rotation_error_deg": 3 * position, "failure": "",
     }).to_csv(run / "query_errors.csv.gz", index=False)  # fmt: skip
 
 
@@ -66,8 +71,15 @@ def main() -> None:
         started = time.perf_counter()
         database = write_images(root / "images" / "db", args.database, size, rng)
         queries = write_images(root / "images" / "query", args.queries, size, rng)
-        print(f"{args.database + args.queries} JPEG images of {args.size} written in {time.perf_counter() - started:.1f} s")
-        scene = Scene("bench", image_set(root / "images" / "db", database, size), image_set(root / "images" / "query", queries, size))
+        print(
+            f"{args.database + args.queries} JPEG images of {args.size} "
+            f"written in {time.perf_counter() - started:.1f} s"
+        )
+        scene = Scene(
+            "bench",
+            image_set(root / "images" / "db", database, size),
+            image_set(root / "images" / "query", queries, size),
+        )
         write_run(root / "run", scene, rng)
         settings = GallerySettings("all", args.k, 0, 0, 0, 160)
         for label in ("cold (thumbnails made)", "warm (thumbnails from the disk cache)"):
@@ -76,8 +88,10 @@ def main() -> None:
             gallery_section(writer, [root / "run"], "relative_pose", settings, (5.0, 10.0), root / "thumbnails")
             writer.write(root / "report" / "report.md")
             elapsed = time.perf_counter() - started
-            print(f"galleries of {args.queries} queries x top {args.k}, {label}: {elapsed:.2f} s "
-                  f"({1000 * elapsed / args.queries:.2f} ms per query)")
+            print(
+                f"galleries of {args.queries} queries x top {args.k}, {label}: {elapsed:.2f} s "
+                f"({1000 * elapsed / args.queries:.2f} ms per query)"
+            )
 
 
 if __name__ == "__main__":

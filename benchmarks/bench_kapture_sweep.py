@@ -35,8 +35,18 @@ K = "[1,2,3,4,5,10,20]"
 def render(root: Path, args: argparse.Namespace) -> None:
     from locretrieval.scene.synthetic.dataset import render_synthetic_dataset
 
-    render_synthetic_dataset({"width": args.width, "height": args.height, "num_database": args.database,
-                              "num_queries": args.queries, "length": 20.0, "seed": 0, "workers": 1}, root)
+    render_synthetic_dataset(
+        {
+            "width": args.width,
+            "height": args.height,
+            "num_database": args.database,
+            "num_queries": args.queries,
+            "length": 20.0,
+            "seed": 0,
+            "workers": 1,
+        },
+        root,
+    )
 
 
 def write_features(root: Path, keypoints: int) -> None:
@@ -48,23 +58,35 @@ def write_features(root: Path, keypoints: int) -> None:
     from locretrieval.scene.kapture_io import load_kapture_scene
 
     defaults = OmegaConf.load(REPOSITORY / "configs" / "sfm" / "default.yaml")
-    settings = validated(SfmSettings, OmegaConf.merge(defaults, {"features": {"sift": {"max_num_features": keypoints}}, "matching": {"device": "cpu"}}), "sfm")
+    settings = validated(
+        SfmSettings,
+        OmegaConf.merge(
+            defaults, {"features": {"sift": {"max_num_features": keypoints}}, "matching": {"device": "cpu"}}
+        ),
+        "sfm",
+    )
     scene = load_kapture_scene("sweep", [root / "mapping"], [root / "query"])
     for folder, images in ((root / "mapping", scene.database), (root / "query", scene.queries)):
-        thumbnails = np.stack([np.asarray(Image.open(path).convert("L").resize((16, 12)), np.float32).ravel()
-                               for path in images.paths])
+        thumbnails = np.stack(
+            [np.asarray(Image.open(path).convert("L").resize((16, 12)), np.float32).ravel() for path in images.paths]
+        )
         thumbnails -= thumbnails.mean(axis=1, keepdims=True)
-        export_global_features(images.names, thumbnails / np.linalg.norm(thumbnails, axis=1, keepdims=True),
-                               folder, "thumbnail")
+        export_global_features(
+            images.names, thumbnails / np.linalg.norm(thumbnails, axis=1, keepdims=True), folder, "thumbnail"
+        )
         local = extract_features(images, settings.features, root / "extraction", workers=1).load(images.names)
         reconstruction = folder / "reconstruction"
-        for kind, header in (("keypoints", f"{FEATURE_NAME}, float32, 2"),
-                             ("descriptors", f"{FEATURE_NAME}, float32, 128, {FEATURE_NAME}, L2")):
+        for kind, header in (
+            ("keypoints", f"{FEATURE_NAME}, float32, 2"),
+            ("descriptors", f"{FEATURE_NAME}, float32, 128, {FEATURE_NAME}, L2"),
+        ):
             (reconstruction / kind / FEATURE_NAME).mkdir(parents=True, exist_ok=True)
             (reconstruction / kind / FEATURE_NAME / f"{kind}.txt").write_text(f"# kapture format: 1.1\n{header}\n")
         for name, (points, descriptors) in local.items():
-            for kind, array, suffix in (("keypoints", points - 0.5, "kpt"),  # R2D2's pixel centres start at 0
-                                        ("descriptors", descriptors / np.linalg.norm(descriptors, axis=1, keepdims=True), "desc")):
+            for kind, array, suffix in (
+                ("keypoints", points - 0.5, "kpt"),  # R2D2's pixel centres start at 0
+                ("descriptors", descriptors / np.linalg.norm(descriptors, axis=1, keepdims=True), "desc"),
+            ):
                 path = reconstruction / kind / FEATURE_NAME / f"{name}.{suffix}"
                 path.parent.mkdir(parents=True, exist_ok=True)
                 np.ascontiguousarray(array, dtype=np.float32).tofile(path)
@@ -96,11 +118,21 @@ def main() -> None:
             render(data, args)
             write_features(data, args.keypoints)
         command = [
-            sys.executable, str(REPOSITORY / "evaluate.py"), "data=kapture", f"data.root={data}",
-            "data.mapping=mapping", "data.queries=[query]", "model=precomputed", "model.feature_name=thumbnail",
-            "sfm/features=kapture", f"sfm.features.name={FEATURE_NAME}",
-            f"paradigms.approximation.k={K}", f"paradigms.local_sfm.k={K}", f"paradigms.global_sfm.k={K}",
-            f"paths.cache_dir={root / 'cache'}", f"hydra.run.dir={root / 'run'}",
+            sys.executable,
+            str(REPOSITORY / "evaluate.py"),
+            "data=kapture",
+            f"data.root={data}",
+            "data.mapping=mapping",
+            "data.queries=[query]",
+            "model=precomputed",
+            "model.feature_name=thumbnail",
+            "sfm/features=kapture",
+            f"sfm.features.name={FEATURE_NAME}",
+            f"paradigms.approximation.k={K}",
+            f"paradigms.local_sfm.k={K}",
+            f"paradigms.global_sfm.k={K}",
+            f"paths.cache_dir={root / 'cache'}",
+            f"hydra.run.dir={root / 'run'}",
         ]
         subprocess.run(["rm", "-rf", str(root / "cache"), str(root / "run")], check=True)
         started = time.time()
@@ -113,8 +145,10 @@ def main() -> None:
     for offset, message in stages(log, started):
         print(f"{offset:6.2f} s (+{offset - previous:5.2f})  {message}")
         previous = offset
-    print(f"{args.database} database + {args.queries} query images, {args.keypoints} keypoints, every paradigm at "
-          f"k={K}: cold evaluate.py {seconds:.1f} s (last log line at {previous:.1f} s)")
+    print(
+        f"{args.database} database + {args.queries} query images, {args.keypoints} keypoints, every paradigm at "
+        f"k={K}: cold evaluate.py {seconds:.1f} s (last log line at {previous:.1f} s)"
+    )
 
 
 if __name__ == "__main__":

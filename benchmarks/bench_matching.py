@@ -1,6 +1,7 @@
 """Pairs per second of local-feature matching against the naive torch matcher and the bare product.
 
-    .venv/bin/python benchmarks/bench_matching.py [--keypoints 2000 5000 20000] [--repeats 3] [--partners 8] [--pipeline-images 6]
+    .venv/bin/python benchmarks/bench_matching.py [--keypoints 2000 5000 20000] [--repeats 3]
+        [--partners 8] [--pipeline-images 6]
 
 For each keypoint count n, on the device the SfM pipeline uses (a CUDA GPU when there is one,
 else the CPU), in the same process:
@@ -51,8 +52,12 @@ def descriptor_pair(count: int, rng: np.random.Generator) -> tuple[np.ndarray, n
     """``count`` descriptors each; half of the second image's are noisy copies of the first's."""
     first = rng.normal(size=(count, DIMENSION)).astype(np.float32)
     copies = rng.permutation(count)[: count // 2]
-    second = np.concatenate([first[copies] + 0.5 * rng.normal(size=(len(copies), DIMENSION)),
-                             rng.normal(size=(count - len(copies), DIMENSION))]).astype(np.float32)
+    second = np.concatenate(
+        [
+            first[copies] + 0.5 * rng.normal(size=(len(copies), DIMENSION)),
+            rng.normal(size=(count - len(copies), DIMENSION)),
+        ]
+    ).astype(np.float32)
     return first, second
 
 
@@ -80,22 +85,39 @@ def naive_matches(a: torch.Tensor, b: torch.Tensor, ratio: float) -> torch.Tenso
     s = a @ b.T
     values, columns = s.topk(2, dim=1)
     back = s.max(0).indices
-    keep = (back[columns[:, 0]] == torch.arange(len(a), device=a.device)) & (2 - 2 * values[:, 0] <= ratio**2 * (2 - 2 * values[:, 1]))
+    keep = (back[columns[:, 0]] == torch.arange(len(a), device=a.device)) & (
+        2 - 2 * values[:, 0] <= ratio**2 * (2 - 2 * values[:, 1])
+    )
     return torch.stack([torch.nonzero(keep).squeeze(1), columns[keep, 0]], 1)
 
 
-def pipeline_seconds(images: int, count: int, rng: np.random.Generator, device: str, precision: str) -> tuple[float, int]:
+def pipeline_seconds(
+    images: int, count: int, rng: np.random.Generator, device: str, precision: str
+) -> tuple[float, int]:
     """Seconds per pair of `PairMatcher.ensure` over all pairs of ``images`` images of ``count``
     generated descriptors held in a feature store (raw matches written), and the pairs."""
     base = rng.normal(size=(count, DIMENSION)).astype(np.float32)
     camera = Camera("PINHOLE", 1024, 768, (500.0, 500.0, 512.0, 384.0))
-    image_set = ImageSet([f"db/{i:03d}.jpg" for i in range(images)], Path("/nonexistent"), [camera] * images,
-                         np.tile([1.0, 0.0, 0.0, 0.0], (images, 1)), np.zeros((images, 3)))
+    image_set = ImageSet(
+        [f"db/{i:03d}.jpg" for i in range(images)],
+        Path("/nonexistent"),
+        [camera] * images,
+        np.tile([1.0, 0.0, 0.0, 0.0], (images, 1)),
+        np.zeros((images, 3)),
+    )
     with tempfile.TemporaryDirectory(prefix="bench_matching-") as cache:
-        store = feature_store(image_set, SiftFeatures(None, 640, 0, 4096, 0.0066667), cache)  # any key: the store is filled here
+        store = feature_store(
+            image_set, SiftFeatures(None, 640, 0, 4096, 0.0066667), cache
+        )  # any key: the store is filled here
         for name in image_set.names:
-            store.store.write({name: {"keypoints": rng.uniform(0, 768, (count, 2)).astype(np.float32),
-                                      "descriptors": (base + 0.5 * rng.normal(size=base.shape)).astype(np.float32)}})
+            store.store.write(
+                {
+                    name: {
+                        "keypoints": rng.uniform(0, 768, (count, 2)).astype(np.float32),
+                        "descriptors": (base + 0.5 * rng.normal(size=base.shape)).astype(np.float32),
+                    }
+                }
+            )
         matcher = PairMatcher(image_set, store, image_set, store, matching_settings(device, precision), cache)
         pairs = [(a, b) for a in image_set.names for b in image_set.names if a < b]
         started = time.perf_counter()
@@ -110,7 +132,9 @@ def _config(section: str) -> dict:
 
 def matching_settings(device: str, precision: str) -> MatchingSettings:
     """The default matching settings on ``device`` with ``precision`` similarities."""
-    return validated(MatchingSettings, {**_config("matching"), "device": device, "precision": precision}, "sfm.matching")
+    return validated(
+        MatchingSettings, {**_config("matching"), "device": device, "precision": precision}, "sfm.matching"
+    )
 
 
 def main() -> None:
@@ -118,7 +142,12 @@ def main() -> None:
     parser.add_argument("--keypoints", type=int, nargs="+", default=[2000, 5000, 20000])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--partners", type=int, default=8, help="partners of one image per batched product (GPU)")
-    parser.add_argument("--pipeline-images", type=int, default=None, help="images whose every pair the pipeline matches (default: 16 on a GPU, 4 on a CPU)")
+    parser.add_argument(
+        "--pipeline-images",
+        type=int,
+        default=None,
+        help="images whose every pair the pipeline matches (default: 16 on a GPU, 4 on a CPU)",
+    )
     args = parser.parse_args()
     rng = np.random.default_rng(0)
     device = resolve_device("auto")
@@ -127,8 +156,11 @@ def main() -> None:
     name = torch.cuda.get_device_name() if on_gpu else (platform.processor() or platform.machine())
     print(f"device: {device} ({name}), torch {torch.__version__} on {torch.get_num_threads()} threads")
     precisions = ("float32", "float16") if on_gpu else ("float32",)
-    print(f"{'keypoints':>9} | {'precision':>9} | {'bare product':>12} | {'naive torch':>11} | {'matcher':>9} | {'pipeline':>9} | pairs/s "
-          "(best of repeats; bare, naive, matcher, pipeline)")
+    print(
+        f"{'keypoints':>9} | {'precision':>9} | {'bare product':>12} | "
+        f"{'naive torch':>11} | {'matcher':>9} | {'pipeline':>9} | pairs/s "
+        "(best of repeats; bare, naive, matcher, pipeline)"
+    )
     pairs = {}
     for count in args.keypoints:
         first, second = pairs[count] = descriptor_pair(count, rng)
@@ -147,8 +179,13 @@ def main() -> None:
                 matched = timed(lambda: matcher(first, [second]), args.repeats)[0]
             images = args.pipeline_images or (16 if on_gpu else 4)
             pipeline, _ = pipeline_seconds(images, count, rng, str(device), precision)
-            print(f"{count:>9} | {precision:>9} | {1 / bare:12.1f} | {1 / naive:11.1f} | {1 / matched:9.1f} | {1 / pipeline:9.1f} | "
-                  f"matcher: {matched / bare:.2f}x the bare product's time, {naive / matched:.2f}x the naive matcher's speed", flush=True)
+            print(
+                f"{count:>9} | {precision:>9} | {1 / bare:12.1f} | "
+                f"{1 / naive:11.1f} | {1 / matched:9.1f} | {1 / pipeline:9.1f} | "
+                f"matcher: {matched / bare:.2f}x the bare product's time, "
+                f"{naive / matched:.2f}x the naive matcher's speed",
+                flush=True,
+            )
     smallest = min(args.keypoints)
     first, second = pairs[smallest]
     if on_gpu:
@@ -157,10 +194,15 @@ def main() -> None:
             reference = BatchedMatcher(RATIO, str(device), "float32")(first, [second])[0]
             half = BatchedMatcher(RATIO, str(device), "float16")(first, [second])[0]
             cpu = NearestNeighbourMatcher(RATIO)(first, [second])[0]
-            print(f"{count} keypoints: float16 keeps {100 * agreement(reference, half):.2f} % of float32's matches; "
-                  f"GPU float32 keeps {100 * agreement(cpu, reference):.2f} % of the CPU's")
+            print(
+                f"{count} keypoints: float16 keeps {100 * agreement(reference, half):.2f} % of float32's matches; "
+                f"GPU float32 keeps {100 * agreement(cpu, reference):.2f} % of the CPU's"
+            )
     else:
-        half = agreement(NearestNeighbourMatcher(RATIO)(first, [second])[0], NearestNeighbourMatcher(RATIO, "float16")(first, [second])[0])
+        half = agreement(
+            NearestNeighbourMatcher(RATIO)(first, [second])[0],
+            NearestNeighbourMatcher(RATIO, "float16")(first, [second])[0],
+        )
         print(f"CPU float16 at {smallest} keypoints: {100 * half:.2f} % of float32's matches")
         print("no CUDA GPU: the GPU figures (batched matcher, float16 floors) are not measured here")
 

@@ -107,7 +107,9 @@ def main() -> None:
             for workers in args.workers:
                 results = context.Queue()
                 started = time.perf_counter()
-                process = context.Process(target=measure, args=(name, paths, [(width, height)] * len(paths), args.device, workers, results))
+                process = context.Process(
+                    target=measure, args=(name, paths, [(width, height)] * len(paths), args.device, workers, results)
+                )
                 process.start()
                 row = results.get()
                 process.join()
@@ -115,13 +117,17 @@ def main() -> None:
                 print(f"{name} (workers={workers}) done in {time.perf_counter() - started:.0f} s", flush=True)
 
     print(f"\n{args.images} JPEGs of {width}x{height}; shares of summed decode + resize + forward time\n")
-    print("| model | device | workers | network input | scales | images/s | decode | resize | forward | peak RSS (MiB) | peak CUDA (MiB) |")
+    print(
+        "| model | device | workers | network input | scales | images/s "
+        "| decode | resize | forward | peak RSS (MiB) | peak CUDA (MiB) |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         total = r["decode_s"] + r["resize_s"] + r["forward_s"]
         cuda = "-" if r["cuda_peak_mib"] is None else f"{r['cuda_peak_mib']:.0f}"
         print(
-            f"| {r['model']} | {r['device']} | {r['workers']} | {r['input']} | {r['scales']} | {r['images_per_s']:.3f} | "
+            f"| {r['model']} | {r['device']} | {r['workers']} | "
+            f"{r['input']} | {r['scales']} | {r['images_per_s']:.3f} | "
             f"{r['decode_s'] / total:.0%} | {r['resize_s'] / total:.0%} | {r['forward_s'] / total:.0%} | "
             f"{r['peak_rss_mib']:.0f} | {cuda} |"
         )

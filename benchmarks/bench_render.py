@@ -42,25 +42,39 @@ def per_image(environment_name: str, images: int) -> None:
     start = time.perf_counter()
     environment = build_environment(config)
     renderer = Renderer(environment, resolve_device(config["device"]))
-    print(f"{environment_name}: scene + textures ({config['texture_size']} px) built in {time.perf_counter() - start:.2f} s")
+    print(
+        f"{environment_name}: scene + textures ({config['texture_size']} px) "
+        f"built in {time.perf_counter() - start:.2f} s"
+    )
     database_camera, query_cameras = cameras(config)
     plans = plan_database({**config, "database_dynamic": 0.0}, environment, renderer, database_camera)
     rng = np.random.default_rng(0)
-    kinds = {"database day": ({"day"}, database_camera), "query night": ({"night"}, query_cameras[0]),
-             "query blur": ({"day", "blur"}, query_cameras[0]), "query noise": ({"day", "noise"}, query_cameras[0]),
-             "query dynamic": ({"day", "dynamic"}, query_cameras[0])}
+    kinds = {
+        "database day": ({"day"}, database_camera),
+        "query night": ({"night"}, query_cameras[0]),
+        "query blur": ({"day", "blur"}, query_cameras[0]),
+        "query noise": ({"day", "noise"}, query_cameras[0]),
+        "query dynamic": ({"day", "dynamic"}, query_cameras[0]),
+    }
     for kind, (tags, camera) in kinds.items():
         wall, cpu = time.perf_counter(), cpu_seconds()
         for plan in plans:
             viewpoint, image_tags, objects = plan.viewpoint, set(tags), None
             if "dynamic" in tags:
-                objects = place_dynamic_objects(environment, renderer, camera, viewpoint.rotation, viewpoint.center, 3, rng)
+                objects = place_dynamic_objects(
+                    environment, renderer, camera, viewpoint.rotation, viewpoint.center, 3, rng
+                )
                 if not len(objects):
                     image_tags, objects = {"day"}, None
-            render_plan(renderer, environment, ImagePlan("query", plan.index, camera, viewpoint, image_tags, objects), config)
+            render_plan(
+                renderer, environment, ImagePlan("query", plan.index, camera, viewpoint, image_tags, objects), config
+            )
         n = len(plans)
-        print(f"  {kind:14s} {config['width']}x{config['height']}: "
-              f"{(time.perf_counter() - wall) / n:.3f} s/image wall, {(cpu_seconds() - cpu) / n:.3f} s/image CPU ({n} images)")
+        print(
+            f"  {kind:14s} {config['width']}x{config['height']}: "
+            f"{(time.perf_counter() - wall) / n:.3f} s/image wall, "
+            f"{(cpu_seconds() - cpu) / n:.3f} s/image CPU ({n} images)"
+        )
 
 
 def full(environment_name: str) -> None:
@@ -70,8 +84,10 @@ def full(environment_name: str) -> None:
         wall, cpu = time.perf_counter(), cpu_seconds()
         render_synthetic_dataset(config, folder)
         wall, cpu = time.perf_counter() - wall, cpu_seconds() - cpu
-    print(f"{environment_name}: default dataset ({total} images, {DEFAULT_CONFIG['workers']} workers): "
-          f"{wall:.1f} s wall, {cpu:.1f} s CPU of all processes, {wall / total:.3f} s/image wall")
+    print(
+        f"{environment_name}: default dataset ({total} images, {DEFAULT_CONFIG['workers']} workers): "
+        f"{wall:.1f} s wall, {cpu:.1f} s CPU of all processes, {wall / total:.3f} s/image wall"
+    )
 
 
 def main() -> None:

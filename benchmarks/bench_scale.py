@@ -46,9 +46,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.spatial.transform import Rotation
-
 from omegaconf import OmegaConf
+from scipy.spatial.transform import Rotation
+from sfm_world import FeatureWorld
 
 from locretrieval import geometry
 from locretrieval.benchmark import relevances
@@ -66,7 +66,6 @@ from locretrieval.metrics.retrieval import retrieval_tables
 from locretrieval.retrieval import random_ranking
 from locretrieval.retrieval.index import search
 from locretrieval.scene import Camera, ImageSet, Scene
-from sfm_world import FeatureWorld
 
 CAMERA = Camera("PINHOLE", 1024, 1024, (500.0, 500.0, 512.0, 512.0))
 #: (database images, queries) of each dataset
@@ -94,11 +93,15 @@ def images(centers: np.ndarray, yaw: np.ndarray, rng: np.random.Generator, prefi
 
 
 def city(count: int, rng: np.random.Generator, prefix: str, size: tuple[float, float] = (600.0, 600.0)) -> ImageSet:
-    centers = np.column_stack([rng.uniform(0.0, size[0], count), rng.uniform(0.0, size[1], count), rng.uniform(1.4, 1.8, count)])
+    centers = np.column_stack(
+        [rng.uniform(0.0, size[0], count), rng.uniform(0.0, size[1], count), rng.uniform(1.4, 1.8, count)]
+    )
     return images(centers, rng.uniform(0.0, 360.0, count), rng, prefix)
 
 
-def route(count: int, rng: np.random.Generator, prefix: str, path: tuple[np.ndarray, np.ndarray], spread: float) -> ImageSet:
+def route(
+    count: int, rng: np.random.Generator, prefix: str, path: tuple[np.ndarray, np.ndarray], spread: float
+) -> ImageSet:
     """``count`` images, 3 per car position (left, rear, right) at random points of ``path``
     (points, headings) moved sideways by ``spread`` metres (standard deviation)."""
     points, headings = path
@@ -120,7 +123,9 @@ def road(length: float, step: float, rng: np.random.Generator) -> tuple[np.ndarr
     return np.column_stack([xy, np.full(len(xy), 1.5)]), heading
 
 
-def descriptors(image_set: ImageSet, projection: np.ndarray, phase: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
+def descriptors(
+    image_set: ImageSet, projection: np.ndarray, phase: np.ndarray, noise: float, rng: np.random.Generator
+) -> np.ndarray:
     """L2-normalised float32 ``[n, D]``: random Fourier features of (centre / 15 m, viewing
     direction / 0.5) plus Gaussian noise, in chunks of images."""
     viewing = geometry.quaternion_to_matrix(image_set.qvec)[:, 2]  # camera z-axis in world coordinates
@@ -155,23 +160,53 @@ def measure(label: str, function, *args, **kwargs):
     elapsed = time.perf_counter() - started
     peak = tracemalloc.get_traced_memory()[1] - before
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / GIB
-    print(f"{label:<44} {elapsed:8.2f} s | step peak {peak / GIB:6.2f} GiB | process peak RSS {rss:6.2f} GiB", flush=True)
+    print(
+        f"{label:<44} {elapsed:8.2f} s | step peak {peak / GIB:6.2f} GiB | process peak RSS {rss:6.2f} GiB", flush=True
+    )
     return result
 
 
-def scene_rankings(scene: Scene, database_descriptors: np.ndarray, query_descriptors: np.ndarray, rng: np.random.Generator, seed: int,
-                   timed=lambda label, function, *args, **kwargs: function(*args, **kwargs)) -> tuple[list, dict]:
+def scene_rankings(
+    scene: Scene,
+    database_descriptors: np.ndarray,
+    query_descriptors: np.ndarray,
+    rng: np.random.Generator,
+    seed: int,
+    timed=lambda label, function, *args, **kwargs: function(*args, **kwargs),
+) -> tuple[list, dict]:
     """The five rankings of a run (faiss on the descriptors, the relative-pose, frustum and
     synthetic co-observation ground truths, random) and the ground truths; ``timed(label, f, ...)`` calls each step."""
     database, queries = scene.database, scene.queries
     ranking = timed("retrieval (faiss, top 50)", search, query_descriptors, database_descriptors, DEPTH)
     groundtruths = {
-        "relative_pose": timed("ground truth: relative pose (25 m, 45 deg)", relative_pose_groundtruth, database, queries,
-                               depth=DEPTH, position_threshold=25.0, rotation_threshold=45.0),
-        "frustum": timed("ground truth: frustum (0.1-50 m)", frustum_groundtruth, database, queries, depth=DEPTH, near=0.1, far=50.0, min_radius=0.0),
+        "relative_pose": timed(
+            "ground truth: relative pose (25 m, 45 deg)",
+            relative_pose_groundtruth,
+            database,
+            queries,
+            depth=DEPTH,
+            position_threshold=25.0,
+            rotation_threshold=45.0,
+        ),
+        "frustum": timed(
+            "ground truth: frustum (0.1-50 m)",
+            frustum_groundtruth,
+            database,
+            queries,
+            depth=DEPTH,
+            near=0.1,
+            far=50.0,
+            min_radius=0.0,
+        ),
     }
-    groundtruths["co_observation"] = timed("ground truth: co-observation (synthetic)", synthetic_co_observation,
-                                           database, queries, groundtruths["frustum"].relevance, rng)
+    groundtruths["co_observation"] = timed(
+        "ground truth: co-observation (synthetic)",
+        synthetic_co_observation,
+        database,
+        queries,
+        groundtruths["frustum"].relevance,
+        rng,
+    )
     baseline = timed("random baseline ranking", random_ranking, len(queries), len(database), DEPTH, seed)
     return [ranking, *(gt.ranking for gt in groundtruths.values()), baseline], groundtruths
 
@@ -182,9 +217,21 @@ def main() -> None:
     parser.add_argument("--dimension", type=int, default=4096)
     parser.add_argument("--noise", type=float, default=0.5, help="descriptor noise (relative to the features)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--keypoints", type=int, default=20_000, help="local features per image (the published R2D2: 20,000)")
-    parser.add_argument("--slice", type=float, default=None, help="share of the queries in the checked slice (default: 0.02 on a GPU, 0.005 on a CPU)")
-    parser.add_argument("--slice-keypoints", type=int, default=None, help="keypoints per image in the slice (default: --keypoints on a GPU, 1,000 on a CPU)")
+    parser.add_argument(
+        "--keypoints", type=int, default=20_000, help="local features per image (the published R2D2: 20,000)"
+    )
+    parser.add_argument(
+        "--slice",
+        type=float,
+        default=None,
+        help="share of the queries in the checked slice (default: 0.02 on a GPU, 0.005 on a CPU)",
+    )
+    parser.add_argument(
+        "--slice-keypoints",
+        type=int,
+        default=None,
+        help="keypoints per image in the slice (default: --keypoints on a GPU, 1,000 on a CPU)",
+    )
     args = parser.parse_args()
     device = torch.cuda.get_device_name() if torch.cuda.is_available() else f"CPU ({os.cpu_count()} cores)"
     print(f"device: {device}, torch {torch.__version__}")
@@ -222,15 +269,30 @@ def run_size(args: argparse.Namespace) -> None:
     subsets = {"all": np.ones(num_queries, dtype=bool)}
     measure(
         "localization metrics (tables)",
-        lambda: (localization_table(args.size, estimates, queries, THRESHOLDS, subsets), query_error_table(args.size, estimates, queries)),
+        lambda: (
+            localization_table(args.size, estimates, queries, THRESHOLDS, subsets),
+            query_error_table(args.size, estimates, queries),
+        ),
     )
     relevance = measure("relevance in the top 50", relevances, groundtruths)
-    tables = measure("retrieval metrics (P/R/mAP@1..50)", retrieval_tables, args.size, rankings, relevance, queries, subsets, range(1, DEPTH + 1), KS)
+    tables = measure(
+        "retrieval metrics (P/R/mAP@1..50)",
+        retrieval_tables,
+        args.size,
+        rankings,
+        relevance,
+        queries,
+        subsets,
+        range(1, DEPTH + 1),
+        KS,
+    )
     recall = tables[0].query("ranking == 'descriptor' and groundtruth == 'relative_pose' and metric == 'recall'")
     localized = [e for e in estimates if e.ranking == "descriptor" and e.method == "bdi"][0]
     errors = localized.errors(queries.qvec, queries.tvec)[0][KS.index(10)]
-    print(f"sanity: descriptor R@1 {recall['value'].iloc[0]:.2f}, R@50 {recall['value'].iloc[-1]:.2f} (relative pose); "
-          f"bdi k=10 median position error {np.nanmedian(errors):.1f} m")
+    print(
+        f"sanity: descriptor R@1 {recall['value'].iloc[0]:.2f}, R@50 {recall['value'].iloc[-1]:.2f} (relative pose); "
+        f"bdi k=10 median position error {np.nanmedian(errors):.1f} m"
+    )
     tracemalloc.stop()
 
     def descriptors_of(database_rows: np.ndarray, query_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -252,7 +314,10 @@ def sfm_paradigms() -> dict[str, tuple]:
     """The SfM paradigms of ``configs/paradigms/default.yaml``: name -> (stages, settings)."""
     paradigms = OmegaConf.load(CONFIGS / "paradigms" / "default.yaml")
     return {
-        "local_sfm": (local_sfm.STAGES, LocalSfmSettings(True, list(paradigms.local_sfm.k), str(paradigms.local_sfm.map_matches))),
+        "local_sfm": (
+            local_sfm.STAGES,
+            LocalSfmSettings(True, list(paradigms.local_sfm.k), str(paradigms.local_sfm.map_matches)),
+        ),
         "global_sfm": (global_sfm.STAGES, GlobalSfmSettings(True, list(paradigms.global_sfm.k), None)),
     }
 
@@ -261,24 +326,36 @@ def sfm_plan(scene: Scene, rankings, sfm: SfmSettings, cache: Path) -> SfmPlan:
     """The exact SfM work of both paradigms for ``rankings`` (no cost yet)."""
     from locretrieval.localization.sfm import SfmInputs
 
-    work = [PARADIGM_PLANS[name](scene, rankings, settings, sfm, cache, 0) for name, (_, settings) in sfm_paradigms().items()]
+    work = [
+        PARADIGM_PLANS[name](scene, rankings, settings, sfm, cache, 0)
+        for name, (_, settings) in sfm_paradigms().items()
+    ]
     return SfmPlan(feature_work(SfmInputs.prepare(scene, sfm, cache, extract=False)), work, True, sfm.processes)
 
 
 def with_kapture_root(scene: Scene, root: Path) -> Scene:
     """``scene`` with its images under the kapture folder ``root`` (where `FeatureWorld` writes their features)."""
     records = root / "sensors" / "records_data"
-    return Scene(scene.name, dataclasses.replace(scene.database, image_root=records), dataclasses.replace(scene.queries, image_root=records),
-                 frustum_far=scene.frustum_far)
+    return Scene(
+        scene.name,
+        dataclasses.replace(scene.database, image_root=records),
+        dataclasses.replace(scene.queries, image_root=records),
+        frustum_far=scene.frustum_far,
+    )
 
 
-def measured_unit_costs(scene: Scene, sfm: SfmSettings, keypoints: int, rng: np.random.Generator, folder: Path) -> UnitCosts:
+def measured_unit_costs(
+    scene: Scene, sfm: SfmSettings, keypoints: int, rng: np.random.Generator, folder: Path
+) -> UnitCosts:
     """`measure_unit_costs` on the first database image, its 9 nearest and the nearest query,
     their features generated (`FeatureWorld`) at ``keypoints`` and written as kapture files."""
     database, queries = scene.database, scene.queries
     near = np.argsort(np.linalg.norm(database.centers - database.centers[0], axis=1), kind="stable")[:UNIT_COST_IMAGES]
     query = int(np.argmin(np.linalg.norm(queries.centers - database.centers[0], axis=1)))
-    sample = with_kapture_root(Scene(scene.name, database.subset(near), queries.subset(np.array([query])), frustum_far=scene.frustum_far), folder)
+    sample = with_kapture_root(
+        Scene(scene.name, database.subset(near), queries.subset(np.array([query])), frustum_far=scene.frustum_far),
+        folder,
+    )
     world = FeatureWorld(sample.database.centers, scene.frustum_far, rng)
     world.write(sample.database, range(len(near)), keypoints, scene.frustum_far, sfm.features.name)
     world.write(sample.queries, [0], keypoints, scene.frustum_far, sfm.features.name)
@@ -293,20 +370,38 @@ def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Ge
         folder = Path(folder)
         plan = measure("plan: both SfM paradigms", sfm_plan, scene, rankings, sfm, folder / "cache")
         for w in plan.paradigms:
-            print(f"  {w.paradigm}: query pairs {w.query_pairs.total:,}, database pairs {w.database_pairs.total:,}, "
-                  f"maps {w.maps.total:,} (~{w.pairs_per_map:,.0f} pairs each), registrations {w.registrations.total:,}")
-        plan.costs = measure(f"unit costs at {args.keypoints:,} keypoints", measured_unit_costs, scene, sfm, args.keypoints, rng, folder / "units")
+            print(
+                f"  {w.paradigm}: query pairs {w.query_pairs.total:,}, database pairs {w.database_pairs.total:,}, "
+                f"maps {w.maps.total:,} (~{w.pairs_per_map:,.0f} pairs each), registrations {w.registrations.total:,}"
+            )
+        plan.costs = measure(
+            f"unit costs at {args.keypoints:,} keypoints",
+            measured_unit_costs,
+            scene,
+            sfm,
+            args.keypoints,
+            rng,
+            folder / "units",
+        )
         print(unit_cost_line(plan.costs))
         print(forecast_line(f"projected full SfM sweep ({args.size}, {args.keypoints:,} keypoints", plan, processes))
-        ratio = measure("batched against COLMAP triangulation", batched_triangulation_ratio, scene, sfm, args.keypoints, rng)
-        batched = dataclasses.replace(plan, costs=dataclasses.replace(plan.costs, triangulation=plan.costs.triangulation * ratio))
-        print(forecast_line(f"  with sfm/triangulation=batched ({ratio:.2f} of COLMAP's time per map", batched, processes))
+        ratio = measure(
+            "batched against COLMAP triangulation", batched_triangulation_ratio, scene, sfm, args.keypoints, rng
+        )
+        batched = dataclasses.replace(
+            plan, costs=dataclasses.replace(plan.costs, triangulation=plan.costs.triangulation * ratio)
+        )
+        print(
+            forecast_line(f"  with sfm/triangulation=batched ({ratio:.2f} of COLMAP's time per map", batched, processes)
+        )
 
         on_gpu = plan.costs.device.startswith("cuda")
         fraction = args.slice if args.slice is not None else (0.02 if on_gpu else 0.005)
         keypoints = args.slice_keypoints or (args.keypoints if on_gpu else 1000)
         slice_scene, slice_rankings = scene_slice(scene, descriptors_of, fraction, args.seed, folder / "slice")
-        world = FeatureWorld(np.concatenate([slice_scene.database.centers, slice_scene.queries.centers]), scene.frustum_far, rng)
+        world = FeatureWorld(
+            np.concatenate([slice_scene.database.centers, slice_scene.queries.centers]), scene.frustum_far, rng
+        )
         for images in (slice_scene.database, slice_scene.queries):
             world.write(images, range(len(images)), keypoints, scene.frustum_far, sfm.features.name)
         slice_plan = sfm_plan(slice_scene, slice_rankings, sfm, folder / "slice_cache")
@@ -316,12 +411,19 @@ def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Ge
         started = time.perf_counter()
         run_sfm(slice_scene, slice_rankings, sfm_paradigms(), sfm, folder / "slice_cache", stages)
         measured = time.perf_counter() - started
-        print(f"slice: {len(slice_scene.queries)} queries ({100 * fraction:g} %) and {len(slice_scene.database)} database images at "
-              f"{keypoints:,} keypoints: {slice_plan.new_pairs():,} pairs, "
-              f"{sum(w.maps.new for w in slice_plan.paradigms):,} maps, {sum(w.registrations.new for w in slice_plan.paradigms):,} registrations")
+        print(
+            f"slice: {len(slice_scene.queries)} queries ({100 * fraction:g} %) "
+            f"and {len(slice_scene.database)} database images at "
+            f"{keypoints:,} keypoints: {slice_plan.new_pairs():,} pairs, "
+            f"{sum(w.maps.new for w in slice_plan.paradigms):,} maps, "
+            f"{sum(w.registrations.new for w in slice_plan.paradigms):,} registrations"
+        )
         print(forecast_line("  slice forecast", slice_plan, processes))
-        print(f"  slice measured end to end: {measured:.1f} s (" + ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in stages.items())
-              + f") against {forecast:.1f} s forecast: measured / forecast {measured / forecast:.2f}")
+        print(
+            f"  slice measured end to end: {measured:.1f} s ("
+            + ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in stages.items())
+            + f") against {forecast:.1f} s forecast: measured / forecast {measured / forecast:.2f}"
+        )
 
 
 def batched_triangulation_ratio(scene: Scene, sfm: SfmSettings, keypoints: int, rng: np.random.Generator) -> float:
@@ -349,15 +451,23 @@ def batched_triangulation_ratio(scene: Scene, sfm: SfmSettings, keypoints: int, 
 
 
 def unit_cost_line(costs: UnitCosts) -> str:
-    return (f"  per unit ({costs.keypoints:,.0f} keypoints, matching on {costs.device}): read features {costs.features:.4f} s/image, "
-            f"match {costs.matching:.4f} s/pair, verify {costs.pose_verification:.4f} s/database pair and {costs.query_verification:.4f} "
-            f"s/query pair, triangulate {costs.triangulation:.4f} s/pair, register {costs.registration:.4f} s/query")
+    return (
+        f"  per unit ({costs.keypoints:,.0f} keypoints, matching on "
+        f"{costs.device}): read features {costs.features:.4f} s/image, "
+        f"match {costs.matching:.4f} s/pair, verify {costs.pose_verification:.4f} "
+        f"s/database pair and {costs.query_verification:.4f} "
+        f"s/query pair, triangulate {costs.triangulation:.4f} s/pair, register {costs.registration:.4f} s/query"
+    )
 
 
 def forecast_line(label: str, plan: SfmPlan, processes: int) -> str:
     stages = plan.forecast()
     total = sum(stages.values())
-    return (f"{label}, {processes} processes): {_hours(total)} (" + ", ".join(f"{stage} {_hours(seconds)}" for stage, seconds in stages.items()) + ")")
+    return (
+        f"{label}, {processes} processes): {_hours(total)} ("
+        + ", ".join(f"{stage} {_hours(seconds)}" for stage, seconds in stages.items())
+        + ")"
+    )
 
 
 def _hours(seconds: float) -> str:
@@ -371,8 +481,15 @@ def scene_slice(scene: Scene, descriptors_of, fraction: float, seed: int, root: 
     centers = scene.queries.centers[queries]
     distance = np.linalg.norm(scene.database.centers[:, None, :2] - centers[None, :, :2], axis=2).min(1)
     database = np.sort(np.argsort(distance, kind="stable")[: max(60, int((distance <= 25.0).sum()))])
-    sub = with_kapture_root(Scene(f"{scene.name}-slice", scene.database.subset(database), scene.queries.subset(queries),
-                                  frustum_far=scene.frustum_far), root)
+    sub = with_kapture_root(
+        Scene(
+            f"{scene.name}-slice",
+            scene.database.subset(database),
+            scene.queries.subset(queries),
+            frustum_far=scene.frustum_far,
+        ),
+        root,
+    )
     database_descriptors, query_descriptors = descriptors_of(database, queries)
     return sub, scene_rankings(sub, database_descriptors, query_descriptors, np.random.default_rng(seed), seed)[0]
 

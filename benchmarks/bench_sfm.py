@@ -17,7 +17,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
@@ -54,7 +53,9 @@ def fresh_cache(features_from: Path) -> Path:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cache-dir", type=Path, default=Path(".cache"), help="where the synthetic scene is (rendered if missing)")
+    parser.add_argument(
+        "--cache-dir", type=Path, default=Path(".cache"), help="where the synthetic scene is (rendered if missing)"
+    )
     parser.add_argument("--workers", type=int, default=0, help="worker processes (0: one per core)")
     parser.add_argument("--queries", type=int, default=64, help="queries of the scene used")
     args = parser.parse_args()
@@ -63,12 +64,22 @@ def main() -> None:
 
     # configs/evaluate.yaml's scene and sfm settings, so that `make evaluate`'s scene is reused
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        cfg = compose("evaluate", [f"paths.cache_dir={args.cache_dir.resolve()}", "paths.root_dir=.", f"data.render.workers={workers}"])
+        cfg = compose(
+            "evaluate",
+            [f"paths.cache_dir={args.cache_dir.resolve()}", "paths.root_dir=.", f"data.render.workers={workers}"],
+        )
     full = instantiate(cfg.data)
-    scene = Scene(full.name, full.database, full.queries.subset(np.arange(min(args.queries, len(full.queries)))),
-                  frustum_far=full.frustum_far)
+    scene = Scene(
+        full.name,
+        full.database,
+        full.queries.subset(np.arange(min(args.queries, len(full.queries)))),
+        frustum_far=full.frustum_far,
+    )
     camera = scene.database.cameras[0]
-    print(f"scene: {len(scene.database)} database images, {len(scene.queries)} queries, {camera.width}x{camera.height}, {workers} worker(s)")
+    print(
+        f"scene: {len(scene.database)} database images, {len(scene.queries)} "
+        f"queries, {camera.width}x{camera.height}, {workers} worker(s)"
+    )
     sfm = validated(SfmSettings, cfg.sfm, "sfm")
     with tempfile.TemporaryDirectory(prefix="bench_sfm-") as root:
         benchmark(scene, Path(root) / "base", sfm, workers)
@@ -82,14 +93,21 @@ def benchmark(scene: Scene, base: Path, sfm: SfmSettings, workers: int) -> None:
     elapsed, _ = timed(extract_features, database, features, base, workers)
     elapsed_queries, _ = timed(extract_features, queries, features, base, workers)
     total = len(database) + len(queries)
-    print(f"SIFT, {workers} worker(s), {total} images (pool start included): {total / (elapsed + elapsed_queries):.1f} images/s")
+    print(
+        f"SIFT, {workers} worker(s), {total} images (pool start included): "
+        f"{total / (elapsed + elapsed_queries):.1f} images/s"
+    )
 
-    groundtruth = relative_pose_groundtruth(database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0).ranking
+    groundtruth = relative_pose_groundtruth(
+        database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0
+    ).ranking
     rankings = [groundtruth, random_ranking(len(queries), len(database), 50, 0)]
     parallel = dataclasses.replace(sfm, workers=workers)
     query_features, database_features = (extract_features(images, features, base, 1) for images in (queries, database))
     matcher = PairMatcher(queries, query_features, database, database_features, sfm.matching, base)
-    pairs = [(queries.names[q], database.names[i]) for q in range(min(8, len(queries))) for i in range(0, len(database), 2)]
+    pairs = [
+        (queries.names[q], database.names[i]) for q in range(min(8, len(queries))) for i in range(0, len(database), 2)
+    ]
     elapsed, matched = timed(matcher.ensure, pairs, 1)
     print(f"matching (mutual NN + ratio, 1 process): {1000 * elapsed / matched:.1f} ms/pair")
 
@@ -106,10 +124,14 @@ def benchmark(scene: Scene, base: Path, sfm: SfmSettings, workers: int) -> None:
         inputs = SfmInputs.prepare(scene, dataclasses.replace(sfm, workers=1), cache)
         k = 10 if name == "local_sfm" else 5
         maps = Path(tempfile.mkdtemp(dir=base.parent)) / "local_maps"  # triangulated again, not read
-        shared = (inputs, "database", maps) if name == "local_sfm" else (inputs, global_sfm.global_map(inputs, None, cache))
+        shared = (
+            (inputs, "database", maps) if name == "local_sfm" else (inputs, global_sfm.global_map(inputs, None, cache))
+        )
         tasks = query_tasks([groundtruth], [[k]], PoseCache(None, queries.names, database.names))
         elapsed, _ = timed(lambda: [module.localize_query(shared, task) for task in tasks])
-        print(f"{name}: {1000 * elapsed / len(tasks):.0f} ms per query at k={k} (cached features and matches, 1 process)")
+        print(
+            f"{name}: {1000 * elapsed / len(tasks):.0f} ms per query at k={k} (cached features and matches, 1 process)"
+        )
 
 
 if __name__ == "__main__":

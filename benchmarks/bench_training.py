@@ -62,12 +62,21 @@ def training_setup(overrides: list[str]):
     from locretrieval.training.run import TrainingSettings, training_module, training_parts
 
     root = Path(__file__).resolve().parents[1]
-    with initialize_config_dir(config_dir=str(root / "configs"), version_base="1.3"):  # the cache of `make train`: .cache/
-        cfg = compose("train", overrides=[f"paths.root_dir={root}", "output_dir=/tmp/bench_training", "~scheduler", *overrides])
+    with initialize_config_dir(
+        config_dir=str(root / "configs"), version_base="1.3"
+    ):  # the cache of `make train`: .cache/
+        cfg = compose(
+            "train", overrides=[f"paths.root_dir={root}", "output_dir=/tmp/bench_training", "~scheduler", *overrides]
+        )
     descriptor = instantiate(cfg.model)
-    parts = training_parts(cfg, instantiate(cfg.data), descriptor.preprocessing, BenchmarkSettings.from_config(cfg),
-                           validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance"),
-                           validated(TrainingSettings, cfg.training, "training"))
+    parts = training_parts(
+        cfg,
+        instantiate(cfg.data),
+        descriptor.preprocessing,
+        BenchmarkSettings.from_config(cfg),
+        validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance"),
+        validated(TrainingSettings, cfg.training, "training"),
+    )
     return cfg, parts.datamodule, training_module(cfg, descriptor, parts.pairs)
 
 
@@ -77,9 +86,19 @@ def loop_images_per_second(cfg, data, module, steps: int) -> tuple[float, float,
     import lightning as L
 
     timer = StepTimer()
-    trainer = L.Trainer(accelerator=cfg.trainer.accelerator, precision=cfg.trainer.precision, devices=1, max_steps=steps, logger=False,
-                        enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False, callbacks=[timer.callback],
-                        use_distributed_sampler=False, num_sanity_val_steps=0)
+    trainer = L.Trainer(
+        accelerator=cfg.trainer.accelerator,
+        precision=cfg.trainer.precision,
+        devices=1,
+        max_steps=steps,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        callbacks=[timer.callback],
+        use_distributed_sampler=False,
+        num_sanity_val_steps=0,
+    )
     data.sampler.batches_per_epoch = steps
     trainer.fit(module, datamodule=data)
     batch = len(next(iter(data.sampler)))
@@ -137,8 +156,13 @@ def pipeline_images_per_second(data, steps: int) -> tuple[float, float]:
 
     rates = []
     for dataset in (data.dataset, DecodedEveryStep()):
-        loader = DataLoader(dataset, batch_sampler=data.sampler, collate_fn=collate(data.pairs), num_workers=data.num_workers,
-                            persistent_workers=data.num_workers > 0)
+        loader = DataLoader(
+            dataset,
+            batch_sampler=data.sampler,
+            collate_fn=collate(data.pairs),
+            num_workers=data.num_workers,
+            persistent_workers=data.num_workers > 0,
+        )
         data.sampler.batches_per_epoch = steps + 2
         batches = iter(loader)
         for _ in range(2):  # the workers start
@@ -159,16 +183,29 @@ def main() -> None:
     arguments = parser.parse_args()
     cfg, data, module = training_setup(arguments.overrides)
     torch.set_flush_denormal(True)  # as RetrievalTraining.on_fit_start
-    device = torch.cuda.get_device_name() if cfg.trainer.accelerator == "gpu" else f"CPU ({torch.get_num_threads()} torch threads)"
-    print(f"device: {device}, precision {cfg.trainer.precision}; model {cfg.model.name}, batch {len(next(iter(data.sampler)))} images of "
-          f"{list(cfg.datamodule.image_size)}, {data.num_workers} DataLoader workers")
+    device = (
+        torch.cuda.get_device_name()
+        if cfg.trainer.accelerator == "gpu"
+        else f"CPU ({torch.get_num_threads()} torch threads)"
+    )
+    print(
+        f"device: {device}, precision {cfg.trainer.precision}; "
+        f"model {cfg.model.name}, batch {len(next(iter(data.sampler)))} images of "
+        f"{list(cfg.datamodule.image_size)}, {data.num_workers} DataLoader workers"
+    )
     cached, decoded = pipeline_images_per_second(data, arguments.steps)
-    print(f"data pipeline alone (no network): {cached:.0f} images/s from the decoded cache, {decoded:.0f} images/s decoding every image")
+    print(
+        f"data pipeline alone (no network): {cached:.0f} images/s from "
+        f"the decoded cache, {decoded:.0f} images/s decoding every image"
+    )
     bare = bare_images_per_second(cfg, data, module, arguments.steps)
     loop, step, wait = loop_images_per_second(cfg, data, module, arguments.steps)
     print(f"bare forward+backward+step: {bare:.1f} images/s")
-    print(f"train.py loop: {loop:.1f} images/s ({bare / loop:.2f}x the bare step's time; per step {step:.3f} s computing, "
-          f"{wait:.3f} s waiting for the batch)")
+    print(
+        f"train.py loop: {loop:.1f} images/s ({bare / loop:.2f}x "
+        f"the bare step's time; per step {step:.3f} s computing, "
+        f"{wait:.3f} s waiting for the batch)"
+    )
 
 
 if __name__ == "__main__":

@@ -2,12 +2,11 @@
 
 import atexit
 import gc
+import logging  # noqa: E402
 
 # pycolmap exports its own deflate/inflate symbols: importing zlib first keeps later
 # compression calls (numpy savez_compressed, PNG writers) from crashing the process.
 import zlib  # noqa: F401
-
-import logging  # noqa: E402
 
 # faiss's loader logs at INFO each CPU-specific library it fails to find (AVX-512, AVX2) before
 # the one it loads: not about the run.

@@ -30,10 +30,10 @@ from locretrieval.config import ConfigError, validated
 from locretrieval.groundtruth import GroundTruth
 from locretrieval.localization import approximation, global_sfm, local_sfm
 from locretrieval.localization.approximation import ApproximationSettings
-from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.global_sfm import GlobalSfmSettings
 from locretrieval.localization.local_sfm import LocalSfmSettings
+from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.pipeline import SfmStages, run_sfm
 from locretrieval.localization.plan import ParadigmWork, SfmPlan, UnitCosts, feature_work, measure_unit_costs
 from locretrieval.localization.sfm import SfmInputs, SfmSettings
@@ -87,8 +87,15 @@ class Paradigm:
 PARADIGMS: dict[str, Paradigm] = {
     "approximation": Paradigm(ApproximationSettings, approximation.run),
     "local_sfm": Paradigm(LocalSfmSettings, local_sfm.run, local_sfm.STAGES, plan=local_sfm.plan, cost="sfm"),
-    "global_sfm": Paradigm(GlobalSfmSettings, global_sfm.run, global_sfm.STAGES, plan=global_sfm.plan,
-                           missing_inputs=global_sfm.missing_inputs, cost="sfm", map_points=global_sfm.map_points),
+    "global_sfm": Paradigm(
+        GlobalSfmSettings,
+        global_sfm.run,
+        global_sfm.STAGES,
+        plan=global_sfm.plan,
+        missing_inputs=global_sfm.missing_inputs,
+        cost="sfm",
+        map_points=global_sfm.map_points,
+    ),
 }
 #: Unit costs measured in this process, by what they were measured on (`sfm_plan`).
 _unit_costs: dict[str, UnitCosts] = {}
@@ -110,8 +117,12 @@ class ParadigmsSettings:
             raise ConfigError(f"{key}.{unknown[0]}: unknown key; expected one of {list(PARADIGMS)}")
         missing = [name for name in PARADIGMS if name not in mapping]
         if missing:
-            raise ConfigError(f"{key}.{missing[0]}: missing; every paradigm needs its section (enabled: false switches it off)")
-        return cls({name: validated(paradigm.settings, mapping[name], f"{key}.{name}") for name, paradigm in PARADIGMS.items()})
+            raise ConfigError(
+                f"{key}.{missing[0]}: missing; every paradigm needs its section (enabled: false switches it off)"
+            )
+        return cls(
+            {name: validated(paradigm.settings, mapping[name], f"{key}.{name}") for name, paradigm in PARADIGMS.items()}
+        )
 
     def __getattr__(self, name: str) -> ParadigmSettings:
         sections = self.__dict__.get("sections", {})
@@ -129,8 +140,12 @@ class ParadigmsSettings:
 
     def only(self, keep: Callable[[Paradigm], bool]) -> "ParadigmsSettings":
         """These settings with the paradigms ``keep`` refuses switched off."""
-        return ParadigmsSettings({name: section if keep(PARADIGMS[name]) else dataclasses.replace(section, enabled=False)
-                                  for name, section in self.sections.items()})
+        return ParadigmsSettings(
+            {
+                name: section if keep(PARADIGMS[name]) else dataclasses.replace(section, enabled=False)
+                for name, section in self.sections.items()
+            }
+        )
 
 
 @dataclass
@@ -210,8 +225,11 @@ def check_supported(scene: Scene, names: Sequence[str]) -> None:
     cannot run (`Scene.unsupported`), saying why and how to switch it off."""
     refused = [f"{name}: {scene.unsupported[name]}" for name in names if name in scene.unsupported]
     if refused:
-        raise ConfigError(f"dataset {scene.name!r} does not support " + "; ".join(refused)
-                          + " (switch it off, e.g. paradigms.<name>.enabled=false)")
+        raise ConfigError(
+            f"dataset {scene.name!r} does not support "
+            + "; ".join(refused)
+            + " (switch it off, e.g. paradigms.<name>.enabled=false)"
+        )
 
 
 def warn_shallow_rankings(rankings: Sequence[Ranking], ks: Sequence[int]) -> None:
@@ -222,7 +240,9 @@ def warn_shallow_rankings(rankings: Sequence[Ranking], ks: Sequence[int]) -> Non
         beyond = sorted(k for k in ks if k > min(shallow.values()))
         log.warning(
             "k values %s exceed the images ranked per query %s: those k use them all; results, LTVL files and "
-            "figures keep the requested k, results.csv's k_effective holds the k used", beyond, shallow,
+            "figures keep the requested k, results.csv's k_effective holds the k used",
+            beyond,
+            shallow,
         )
 
 
@@ -248,7 +268,10 @@ def scene_subsets(
 
 
 def sfm_plan(
-    scene: Scene, rankings: Sequence[Ranking] | None, settings: BenchmarkSettings, cache_dir: str | Path | None,
+    scene: Scene,
+    rankings: Sequence[Ranking] | None,
+    settings: BenchmarkSettings,
+    cache_dir: str | Path | None,
     num_rankings: int = 0,
 ) -> SfmPlan | None:
     """The work of the enabled SfM paradigms (`SfmPlan`; ``None`` when none is enabled or there
@@ -260,7 +283,10 @@ def sfm_plan(
         return None
     cache_dir = Path(cache_dir)
     inputs = SfmInputs.prepare(scene, settings.sfm, cache_dir, extract=False)
-    work = [PARADIGMS[name].plan(scene, rankings, getattr(settings.paradigms, name), settings.sfm, cache_dir, num_rankings) for name in enabled]
+    work = [
+        PARADIGMS[name].plan(scene, rankings, getattr(settings.paradigms, name), settings.sfm, cache_dir, num_rankings)
+        for name in enabled
+    ]
     plan = SfmPlan(feature_work(inputs), work, rankings is not None, settings.sfm.processes)
     if plan.features.new or plan.new_pairs() or any(w.maps.new or w.registrations.new for w in work):
         key = config_key(scene.database.fingerprint(), scene.queries.fingerprint(), dataclasses.asdict(settings.sfm))
@@ -272,11 +298,16 @@ def sfm_plan(
 
 def sfm_paradigms(settings: BenchmarkSettings) -> dict[str, tuple[SfmStages, ParadigmSettings]]:
     """The enabled SfM paradigms: name -> (their pipeline stages, their settings)."""
-    return {name: (PARADIGMS[name].stages, getattr(settings.paradigms, name)) for name in settings.paradigms.enabled()
-            if PARADIGMS[name].stages is not None}
+    return {
+        name: (PARADIGMS[name].stages, getattr(settings.paradigms, name))
+        for name in settings.paradigms.enabled()
+        if PARADIGMS[name].stages is not None
+    }
 
 
-def run_sfm_shard(scene: Scene, rankings: Sequence[Ranking], settings: BenchmarkSettings, cache_dir: str | Path | None) -> None:
+def run_sfm_shard(
+    scene: Scene, rankings: Sequence[Ranking], settings: BenchmarkSettings, cache_dir: str | Path | None
+) -> None:
     """This job's share (``sfm.shard``) of the enabled SfM paradigms' work, into the shared cache
     (`locretrieval.localization.pipeline`); the run without ``sfm.shard`` then finds all of it."""
     check_supported(scene, settings.paradigms.enabled())
@@ -285,8 +316,13 @@ def run_sfm_shard(scene: Scene, rankings: Sequence[Ranking], settings: Benchmark
         log.info("sfm.shard=%s: no SfM paradigm is enabled, nothing to do", settings.sfm.shard)
         return
     run_sfm(scene, rankings, paradigms, settings.sfm, cache_dir)
-    log.info("sfm.shard=%s: this job's share of %s is in %s; once every shard has run, the same command without "
-             "sfm.shard writes the results", settings.sfm.shard, " and ".join(paradigms), cache_dir)
+    log.info(
+        "sfm.shard=%s: this job's share of %s is in %s; once every shard has run, the same command without "
+        "sfm.shard writes the results",
+        settings.sfm.shard,
+        " and ".join(paradigms),
+        cache_dir,
+    )
 
 
 def benchmark(
@@ -308,26 +344,42 @@ def benchmark(
     warn_shallow_rankings(rankings, settings.paradigms.ks())
     depths = {ranking.name: ranking.depth for ranking in rankings}
     if settings.sfm.job_shard is not None:
-        raise ValueError(f"sfm.shard={settings.sfm.shard}: a shard's job computes its share of the SfM work (run_sfm_shard), "
-                         "not results; run without sfm.shard to assemble them")
+        raise ValueError(
+            f"sfm.shard={settings.sfm.shard}: a shard's job computes its share of the SfM work (run_sfm_shard), "
+            "not results; run without sfm.shard to assemble them"
+        )
     plan = sfm_plan(scene, rankings, settings, cache_dir)
     if plan is not None:
         log.info("%s", plan.describe())
-    sfm_estimates = run_sfm(scene, rankings, sfm_paradigms(settings), settings.sfm, cache_dir) if sfm_paradigms(settings) else {}
+    sfm_estimates = (
+        run_sfm(scene, rankings, sfm_paradigms(settings), settings.sfm, cache_dir) if sfm_paradigms(settings) else {}
+    )
     estimates: list[PoseEstimates] = []
     for paradigm in settings.paradigms.enabled():
         paradigm_settings = getattr(settings.paradigms, paradigm)
         log.info("paradigm %s, k=%s", paradigm, paradigm_settings.k)
-        computed = sfm_estimates[paradigm] if paradigm in sfm_estimates else PARADIGMS[paradigm].run(
-            scene, rankings, paradigm_settings, settings.sfm, cache_dir)
+        computed = (
+            sfm_estimates[paradigm]
+            if paradigm in sfm_estimates
+            else PARADIGMS[paradigm].run(scene, rankings, paradigm_settings, settings.sfm, cache_dir)
+        )
         estimates += [e.labelled(paradigm_settings.k, depths[e.ranking]) for e in computed]
     thresholds = settings.metrics.thresholds
-    localization = localization_table(scene.name, estimates, scene.queries, thresholds, subsets, settings.metrics.inclusive)
+    localization = localization_table(
+        scene.name, estimates, scene.queries, thresholds, subsets, settings.metrics.inclusive
+    )
     query_errors = query_error_table(scene.name, estimates, scene.queries)
     retrieval, query_retrieval = pd.DataFrame(), pd.DataFrame()
     if relevance:
         retrieval, query_retrieval = retrieval_tables(
-            scene.name, rankings, relevance, scene.queries, subsets,
-            range(1, settings.retrieval.depth + 1), settings.paradigms.ks(),
+            scene.name,
+            rankings,
+            relevance,
+            scene.queries,
+            subsets,
+            range(1, settings.retrieval.depth + 1),
+            settings.paradigms.ks(),
         )
-    return BenchmarkResult(scene.name, list(rankings), estimates, localization, query_errors, retrieval, query_retrieval)
+    return BenchmarkResult(
+        scene.name, list(rankings), estimates, localization, query_errors, retrieval, query_retrieval
+    )

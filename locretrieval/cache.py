@@ -28,8 +28,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         path.parent.mkdir(parents=True, exist_ok=True)
         handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
     except OSError as error:
-        raise OSError(error.errno, f"cannot write {path} ({error.strerror}); is the cache folder writable? "
-                      "(paths.cache_dir or $LOCRETRIEVAL_CACHE)") from None
+        raise OSError(
+            error.errno,
+            f"cannot write {path} ({error.strerror}); is the cache folder writable? "
+            "(paths.cache_dir or $LOCRETRIEVAL_CACHE)",
+        ) from None
     os.close(handle)
     try:
         yield Path(temporary)

@@ -33,7 +33,11 @@ def folder_label(folders: Sequence[str | os.PathLike]) -> str:
     the downloader's layout (``.../global_features/AP-GeM-LM18/global_features`` -> ``AP-GeM-LM18``)."""
 
     def label(folder: Path) -> str:
-        return folder.parent.name if folder.name == "global_features" and folder.parent.parent.name == "global_features" else folder.name
+        return (
+            folder.parent.name
+            if folder.name == "global_features" and folder.parent.parent.name == "global_features"
+            else folder.name
+        )
 
     return "+".join(dict.fromkeys(label(Path(folder)) for folder in folders))
 
@@ -161,7 +165,11 @@ def _build(schema: type[Schema], node: DictConfig, key: str) -> Schema:
 def _dataclass_items(hint: Any) -> type | None:
     """``X`` when ``hint`` is a list of dataclass ``X`` (each built and checked), else None."""
     arguments = typing.get_args(hint)
-    if typing.get_origin(hint) in (list, Sequence, collections.abc.Sequence) and len(arguments) == 1 and dataclasses.is_dataclass(arguments[0]):
+    if (
+        typing.get_origin(hint) in (list, Sequence, collections.abc.Sequence)
+        and len(arguments) == 1
+        and dataclasses.is_dataclass(arguments[0])
+    ):
         return arguments[0]
     return None
 
@@ -200,7 +208,6 @@ def _type_name(hint: Any) -> str:
     return str(hint).replace("typing.", "")
 
 
-
 #: Keys of a config node that are Hydra's, not its target's.
 _HYDRA_NODE_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_")
 #: Annotations OmegaConf checks and converts; any other parameter is checked as ``Any``.
@@ -214,7 +221,11 @@ def check_node(node: Any, key: str) -> None:
     from hydra.utils import get_object
 
     target = get_object(node["_target_"])
-    values = {name: value for name, value in OmegaConf.to_container(node, resolve=True).items() if name not in _HYDRA_NODE_KEYS}
+    values = {
+        name: value
+        for name, value in OmegaConf.to_container(node, resolve=True).items()
+        if name not in _HYDRA_NODE_KEYS
+    }
     parameters = inspect.signature(target).parameters
     if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
         unknown = [name for name in values if name not in parameters]
@@ -224,7 +235,9 @@ def check_node(node: Any, key: str) -> None:
         hints = typing.get_type_hints(target.__init__ if isinstance(target, type) else target)
     except Exception:  # annotations that do not resolve (a library's forward references): keys only
         hints = {}
-    schema = dataclasses.make_dataclass(f"Node_{key.replace('.', '_')}", [(name, _checkable(hints.get(name, Any))) for name in values])
+    schema = dataclasses.make_dataclass(
+        f"Node_{key.replace('.', '_')}", [(name, _checkable(hints.get(name, Any))) for name in values]
+    )
     validated(schema, values, key)
 
 
@@ -236,7 +249,11 @@ def _checkable(hint: Any) -> Any:
     if typing.get_origin(hint) in (typing.Union, types.UnionType) and len(arguments) == 1:
         inner = _checkable(arguments[0])
         return Any if inner is Any else typing.Optional[inner]
-    if typing.get_origin(hint) in (list, Sequence, collections.abc.Sequence) and len(arguments) == 1 and arguments[0] in _SIMPLE_TYPES:
+    if (
+        typing.get_origin(hint) in (list, Sequence, collections.abc.Sequence)
+        and len(arguments) == 1
+        and arguments[0] in _SIMPLE_TYPES
+    ):
         return typing.List[arguments[0]]
     return Any
 

@@ -13,12 +13,20 @@ from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.benchmark import (
-    PARADIGMS, BenchmarkResult, BenchmarkSettings, benchmark, build_rankings, check_supported, relevances, run_sfm_shard, scene_subsets,
+    PARADIGMS,
+    BenchmarkResult,
+    BenchmarkSettings,
+    benchmark,
+    build_rankings,
+    check_supported,
+    relevances,
+    run_sfm_shard,
+    scene_subsets,
     sfm_plan,
 )
 from locretrieval.cache import save_arrays
 from locretrieval.config import validated
-from locretrieval.groundtruth import GroundTruthSettings, definition_type, compute_groundtruths, statistics_table
+from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths, definition_type, statistics_table
 from locretrieval.localization.estimates import estimated_pose_table
 from locretrieval.metrics.localization import best_over_k, median_errors
 from locretrieval.metrics.subsets import SubsetSettings, missing_mask_inputs
@@ -71,7 +79,9 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     if scene.queries.has_pose.any():
         groundtruths = compute_groundtruths(scene, groundtruth_settings, settings.sfm, cache_dir)
     else:
-        log.warning("no query has a reference pose: ground truth and metrics are skipped, poses are only exported (ltvl/)")
+        log.warning(
+            "no query has a reference pose: ground truth and metrics are skipped, poses are only exported (ltvl/)"
+        )
     random_seed = int(cfg.seed) if cfg.baselines.random else None
     rankings = build_rankings(scene, descriptors, groundtruths, settings.retrieval, random_seed, given)
     if settings.sfm.job_shard is not None:  # one job of a sharded evaluation: its SfM work, no results
@@ -90,7 +100,13 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     poses = estimated_pose_table(scene.name, result.estimates, scene.queries.names)
     poses.to_csv(output_dir / "estimated_poses.csv.gz", index=False)
     if scene_view_settings.enabled:
-        write_scene_view(output_dir / SCENE_VIEW_FILE, scene, poses, global_map_points(scene, settings, cache_dir), scene_view_settings)
+        write_scene_view(
+            output_dir / SCENE_VIEW_FILE,
+            scene,
+            poses,
+            global_map_points(scene, settings, cache_dir),
+            scene_view_settings,
+        )
     exported = export_ltvl(scene, result, output_dir / "ltvl") if cfg.output.ltvl else 0
     summary = {
         "dataset": scene.name,
@@ -105,8 +121,14 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     (output_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     from locretrieval.report import build_report  # here: matplotlib is imported when figures are drawn
 
-    build_report([output_dir], output_dir, cfg.report.groundtruth, list(cfg.report.figure_formats),
-                 gallery=gallery_settings, thumbnail_cache=cache_dir / "thumbnails")
+    build_report(
+        [output_dir],
+        output_dir,
+        cfg.report.groundtruth,
+        list(cfg.report.figure_formats),
+        gallery=gallery_settings,
+        thumbnail_cache=cache_dir / "thumbnails",
+    )
     results = result.localization
     if len(results):
         best = best_over_k(results[results["subset"] == "all"], "position_threshold_m")
@@ -115,7 +137,9 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     return results
 
 
-def log_plan(cfg: DictConfig, scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings, cache_dir: Path) -> None:
+def log_plan(
+    cfg: DictConfig, scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings, cache_dir: Path
+) -> None:
     """``dry_run``: log the SfM paradigms' work and its forecast (`sfm_plan`: upper bounds, since
     no ranking is computed) and nothing else: no descriptor, feature, match or file is written."""
     groundtruth_rankings = len(groundtruths.parsed()) if scene.queries.has_pose.any() else 0
@@ -124,13 +148,24 @@ def log_plan(cfg: DictConfig, scene: Scene, settings: BenchmarkSettings, groundt
     if plan is None:
         log.info("dry run: no SfM paradigm is enabled, nothing to match")
     else:
-        log.info("dry run over %d rankings (the model's, %d of the ground truth, %d random); nothing is computed. The SfM "
-                 "paradigms' work (the co-observation ground truth, when enabled, first matches pairs of its own, not counted "
-                 "here):\n%s", num_rankings, groundtruth_rankings, int(bool(cfg.baselines.random)), plan.describe())
+        log.info(
+            "dry run over %d rankings (the model's, %d of the ground truth, %d random); nothing is computed. The SfM "
+            "paradigms' work (the co-observation ground truth, "
+            "when enabled, first matches pairs of its own, not counted "
+            "here):\n%s",
+            num_rankings,
+            groundtruth_rankings,
+            int(bool(cfg.baselines.random)),
+            plan.describe(),
+        )
 
 
 def check_inputs(
-    cfg: DictConfig, scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings, subsets: SubsetSettings
+    cfg: DictConfig,
+    scene: Scene,
+    settings: BenchmarkSettings,
+    groundtruths: GroundTruthSettings,
+    subsets: SubsetSettings,
 ) -> None:
     """Stop before the first expensive stage when inputs the run needs are missing: one
     `FileNotFoundError` names them all (model weights or feature folders, kapture local
@@ -144,7 +179,9 @@ def check_inputs(
         *missing_mask_inputs(scene.queries, subsets),
     ]
     if missing:
-        raise FileNotFoundError(f"{len(missing)} missing input(s); nothing was computed:\n" + "\n".join(f"- {m}" for m in missing))
+        raise FileNotFoundError(
+            f"{len(missing)} missing input(s); nothing was computed:\n" + "\n".join(f"- {m}" for m in missing)
+        )
 
 
 def model_inputs(model: DictConfig, scene: Scene) -> list[str]:
@@ -153,9 +190,15 @@ def model_inputs(model: DictConfig, scene: Scene) -> list[str]:
         return [] if Path(model.path).is_file() else [f"model.path: pairs file {model.path} not found"]
     if issubclass(get_class(model._target_), PrecomputedDescriptor):
         key = "model.path" if model.path is not None else "model.feature_name"
-        return [f"{key}: {problem}" for problem in missing_feature_folders(model.path, model.feature_name, scene.sources)]
+        return [
+            f"{key}: {problem}" for problem in missing_feature_folders(model.path, model.feature_name, scene.sources)
+        ]
     weights = model.get("weights")
-    return [f"model.weights: weight file {weights} not found"] if weights is not None and not Path(weights).exists() else []
+    return (
+        [f"model.weights: weight file {weights} not found"]
+        if weights is not None and not Path(weights).exists()
+        else []
+    )
 
 
 def local_feature_inputs(scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings) -> list[str]:
@@ -167,17 +210,26 @@ def local_feature_inputs(scene: Scene, settings: BenchmarkSettings, groundtruths
     if not (sfm_paradigms or sfm_groundtruth):
         return []
     features = settings.sfm.features
-    return [f"sfm.features: {problem}" for images in (scene.database, scene.queries) for problem in features.missing_inputs(images)]
+    return [
+        f"sfm.features: {problem}"
+        for images in (scene.database, scene.queries)
+        for problem in features.missing_inputs(images)
+    ]
 
 
 def paradigm_inputs(settings: BenchmarkSettings) -> list[str]:
     """The files the enabled paradigms read (`Paradigm.missing_inputs`) that are absent."""
-    return [f"paradigms.{name}.{problem}" for name in settings.paradigms.enabled() if PARADIGMS[name].missing_inputs is not None
-            for problem in PARADIGMS[name].missing_inputs(getattr(settings.paradigms, name))]
+    return [
+        f"paradigms.{name}.{problem}"
+        for name in settings.paradigms.enabled()
+        if PARADIGMS[name].missing_inputs is not None
+        for problem in PARADIGMS[name].missing_inputs(getattr(settings.paradigms, name))
+    ]
 
 
 def global_map_points(scene: Scene, settings: BenchmarkSettings, cache_dir: Path) -> np.ndarray | None:
-    """The points (world, metres) of the first enabled paradigm's map that was built (`Paradigm.map_points`), else ``None``."""
+    """The points (world, metres) of the first enabled paradigm's map that was built
+    (`Paradigm.map_points`), else ``None``."""
     for name in settings.paradigms.enabled():
         if PARADIGMS[name].map_points is not None:
             points = PARADIGMS[name].map_points(scene, getattr(settings.paradigms, name), settings.sfm, cache_dir)
@@ -186,7 +238,9 @@ def global_map_points(scene: Scene, settings: BenchmarkSettings, cache_dir: Path
     return None
 
 
-def write_tables(result: BenchmarkResult, groundtruth_statistics: pd.DataFrame, subset_table: pd.DataFrame, output_dir: Path) -> None:
+def write_tables(
+    result: BenchmarkResult, groundtruth_statistics: pd.DataFrame, subset_table: pd.DataFrame, output_dir: Path
+) -> None:
     """The tidy tables and the rankings of a run (see `evaluate`)."""
     for ranking in result.rankings:
         arrays = {"indices": ranking.indices, "scores": ranking.scores, "kind": np.asarray(ranking.kind)}
@@ -212,5 +266,10 @@ def export_ltvl(scene: Scene, result: BenchmarkResult, folder: Path) -> int:
             missing = write_ltvl(path, scene.queries.names, e.qvec[n], e.tvec[n], name_style=scene.ltvl_name_style)
             log.debug("%s: %d queries without an estimate are not in the file", path, missing)
             written, skipped = written + 1, skipped + missing
-    log.info("%d LTVL files in %s; queries without an estimate (%d in all, see query_errors.csv.gz) are left out", written, folder, skipped)
+    log.info(
+        "%d LTVL files in %s; queries without an estimate (%d in all, see query_errors.csv.gz) are left out",
+        written,
+        folder,
+        skipped,
+    )
     return written

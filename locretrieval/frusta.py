@@ -55,7 +55,9 @@ class TruncatedFrusta:
         return len(self.A)
 
     def __getitem__(self, index: np.ndarray) -> "TruncatedFrusta":
-        return TruncatedFrusta(self.A[index], self.b[index], self.corners[index], self.centers[index], self.radii[index])
+        return TruncatedFrusta(
+            self.A[index], self.b[index], self.corners[index], self.centers[index], self.radii[index]
+        )
 
 
 def may_overlap(first: TruncatedFrusta, second: TruncatedFrusta) -> np.ndarray:

@@ -94,9 +94,7 @@ def quaternion_conjugate(q: np.ndarray) -> np.ndarray:
     return np.asarray(q, dtype=np.float64) * np.array([1.0, -1.0, -1.0, -1.0])
 
 
-def compose_poses(
-    q_a: np.ndarray, t_a: np.ndarray, q_b: np.ndarray, t_b: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def compose_poses(q_a: np.ndarray, t_a: np.ndarray, q_b: np.ndarray, t_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``a o b``: the transform applying ``b`` then ``a`` (e.g. cam_from_rig o rig_from_world)."""
     q = quaternion_multiply(q_a, q_b)
     t = np.einsum("...ij,...j->...i", quaternion_to_matrix(q_a), t_b) + t_a
@@ -284,9 +282,7 @@ def frustum_halfspaces(
     return A, b
 
 
-def frustum_corners(
-    q: np.ndarray, t: np.ndarray, intrinsics: np.ndarray, near: float, far: float
-) -> np.ndarray:
+def frustum_corners(q: np.ndarray, t: np.ndarray, intrinsics: np.ndarray, near: float, far: float) -> np.ndarray:
     """The 8 world-space corners ``[..., 8, 3]`` of truncated frusta (near corners first)."""
     fx, fy, cx, cy, width, height = np.moveaxis(np.asarray(intrinsics, dtype=np.float64), -1, 0)
     corners = []

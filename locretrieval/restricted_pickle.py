@@ -17,12 +17,49 @@ from typing import Any
 #: ``numpy.core``, numpy 2.x through ``numpy._core`` (``_reconstruct`` up to protocol 4,
 #: ``_frombuffer`` from protocol 5); protocols 0-2 write bytes as ``_codecs.encode(text, 'latin1')``.
 ALLOWED_GLOBALS: frozenset[tuple[str, str]] = frozenset(
-    [("builtins", name) for name in ("dict", "list", "tuple", "set", "frozenset", "int", "float", "complex",
-                                     "bool", "str", "bytes", "bytearray", "slice", "range")]
-    + [("__builtin__", name) for name in ("dict", "list", "tuple", "set", "frozenset", "int", "float", "long",
-                                          "complex", "bool", "str", "unicode", "bytes", "bytearray")]
-    + [(module, name) for module in ("numpy.core.multiarray", "numpy._core.multiarray")
-       for name in ("_reconstruct", "scalar")]
+    [
+        ("builtins", name)
+        for name in (
+            "dict",
+            "list",
+            "tuple",
+            "set",
+            "frozenset",
+            "int",
+            "float",
+            "complex",
+            "bool",
+            "str",
+            "bytes",
+            "bytearray",
+            "slice",
+            "range",
+        )
+    ]
+    + [
+        ("__builtin__", name)
+        for name in (
+            "dict",
+            "list",
+            "tuple",
+            "set",
+            "frozenset",
+            "int",
+            "float",
+            "long",
+            "complex",
+            "bool",
+            "str",
+            "unicode",
+            "bytes",
+            "bytearray",
+        )
+    ]
+    + [
+        (module, name)
+        for module in ("numpy.core.multiarray", "numpy._core.multiarray")
+        for name in ("_reconstruct", "scalar")
+    ]
     + [(module, "_frombuffer") for module in ("numpy.core.numeric", "numpy._core.numeric")]
     + [("numpy", "ndarray"), ("numpy", "dtype"), ("_codecs", "encode")]
 )

@@ -35,7 +35,9 @@ def main() -> None:
     delg.add_argument("source")
     delg.add_argument("destination")
     delg.add_argument("--gem-power", type=float, default=3.0)
-    delg.add_argument("--whitening-scope", default=None, help="TF scope of the whitening layer (default: found by shape)")
+    delg.add_argument(
+        "--whitening-scope", default=None, help="TF scope of the whitening layer (default: found by shape)"
+    )
     variables = commands.add_parser("delg-variables", help="list (and optionally dump) a TF model's variables")
     variables.add_argument("source")
     variables.add_argument("--npz", default=None, help="also write the variables to this .npz")

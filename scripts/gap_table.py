@@ -4,7 +4,8 @@ truth (% localized), and over all runs the means and the share of the mean gap c
 ``(trained - baseline) / (groundtruth - baseline)``.
 
     python scripts/gap_table.py outputs/train/... [more runs]     # prints Markdown
-    python scripts/gap_table.py --wide ...   # one row per run, a cell "DenseVLAD / untrained / trained / GT (gap %)" per paradigm
+    python scripts/gap_table.py --wide ...   # one row per run, a cell
+                                             # "DenseVLAD / untrained / trained / GT (gap %)" per paradigm
 """
 
 import argparse
@@ -23,10 +24,14 @@ def load(runs: list[Path]) -> pd.DataFrame:
 
 
 def values(table: pd.DataFrame) -> list[str]:
-    """The values of a gap row, % localized: the baseline's (the column not in `COLUMNS`), untrained, trained, ground truth."""
+    """The values of a gap row, % localized: the baseline's (the column not in `COLUMNS`), untrained,
+    trained, ground truth."""
     baseline = [column for column in table.columns if column not in COLUMNS]
     if len(baseline) != 1:
-        raise ValueError(f"gap.csv: expected one baseline column beside {list(COLUMNS)}, found {baseline} (runs of one report.baseline)")
+        raise ValueError(
+            f"gap.csv: expected one baseline column beside {list(COLUMNS)}, "
+            f"found {baseline} (runs of one report.baseline)"
+        )
     return [baseline[0], "untrained", "trained", "groundtruth_value"]
 
 
@@ -35,9 +40,13 @@ def with_means(table: pd.DataFrame) -> pd.DataFrame:
     shown_values = values(table)
     baseline = shown_values[0]
     means = table.groupby("metric", sort=False)[shown_values].mean().reset_index().assign(run="mean")
-    means["gap_closed_pct"] = 100 * (means["trained"] - means[baseline]) / (means["groundtruth_value"] - means[baseline])
+    means["gap_closed_pct"] = (
+        100 * (means["trained"] - means[baseline]) / (means["groundtruth_value"] - means[baseline])
+    )
     means["groundtruth"] = table.groupby("metric", sort=False)["groundtruth"].first().values
-    shown = pd.concat([table, means], ignore_index=True)[["metric", "run", *shown_values, "groundtruth", "gap_closed_pct"]]
+    shown = pd.concat([table, means], ignore_index=True)[
+        ["metric", "run", *shown_values, "groundtruth", "gap_closed_pct"]
+    ]
     return shown.sort_values(["metric", "run"], key=lambda column: column.map(lambda value: (value == "mean", value)))
 
 
@@ -50,7 +59,10 @@ def wide_markdown(table: pd.DataFrame) -> str:
     """One row per run (then the mean), one column per metric: ``densevlad / untrained / trained /
     ground truth (gap closed %)``."""
     shown = with_means(table)
-    cells = shown.apply(lambda row: " / ".join(f"{row[value]:.1f}" for value in values(table)) + f" ({row['gap_closed_pct']:.0f} %)", axis=1)
+    cells = shown.apply(
+        lambda row: " / ".join(f"{row[value]:.1f}" for value in values(table)) + f" ({row['gap_closed_pct']:.0f} %)",
+        axis=1,
+    )
     wide = shown.assign(cell=cells).pivot(index="run", columns="metric", values="cell")
     wide = wide.loc[sorted(wide.index, key=lambda run: (run == "mean", run)), list(dict.fromkeys(shown["metric"]))]
     return wide.reset_index().to_markdown(index=False)

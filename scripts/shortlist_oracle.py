@@ -48,25 +48,47 @@ def ewb_localized(scene: Scene, ranking: Ranking, k: int, thresholds: list[list[
 
 def database_as_queries(scene: Scene) -> Scene:
     """``scene`` with its database images as the queries too (rank them with ``exclude_self``)."""
-    return Scene(f"{scene.name} database", scene.database, scene.database, ltvl_name_style=scene.ltvl_name_style,
-                 frustum_far=scene.frustum_far)
+    return Scene(
+        f"{scene.name} database",
+        scene.database,
+        scene.database,
+        ltvl_name_style=scene.ltvl_name_style,
+        frustum_far=scene.frustum_far,
+    )
 
 
-def shortlist_table(scene: Scene, ranking: Ranking, shortlists: list[int], k: int, position_threshold: float,
-                    rotation_threshold: float, thresholds: list[list[float]], inclusive: bool = True,
-                    exclude_self: bool = False) -> pd.DataFrame:
+def shortlist_table(
+    scene: Scene,
+    ranking: Ranking,
+    shortlists: list[int],
+    k: int,
+    position_threshold: float,
+    rotation_threshold: float,
+    thresholds: list[list[float]],
+    inclusive: bool = True,
+    exclude_self: bool = False,
+) -> pd.DataFrame:
     """EWB over the top ``k`` (% localized per threshold) of ``ranking`` as it is, with its top K
     re-ordered by relative pose for each K of ``shortlists``, and of the relative-pose ranking of
     the whole database (``tau_c = position_threshold`` m, ``tau_R = rotation_threshold`` degrees).
     ``exclude_self``: the queries are the database (`database_as_queries`), and query ``i`` is
     not ranked by pose against itself."""
-    scores, _, _ = relative_pose_scores(scene.queries.qvec, scene.queries.centers, scene.database.qvec,
-                                        scene.database.centers, position_threshold, rotation_threshold)
+    scores, _, _ = relative_pose_scores(
+        scene.queries.qvec,
+        scene.queries.centers,
+        scene.database.qvec,
+        scene.database.centers,
+        position_threshold,
+        rotation_threshold,
+    )
     if exclude_self:
         np.fill_diagonal(scores, np.inf)
-    whole = np.argsort(scores, axis=1, kind="stable")[:, :ranking.depth]
-    rankings = {"as ranked": ranking, **{f"top {K} by pose": reordered(ranking, scores, K) for K in shortlists},
-                "relative pose (whole database)": Ranking("pose", whole, np.zeros(whole.shape), "groundtruth")}
+    whole = np.argsort(scores, axis=1, kind="stable")[:, : ranking.depth]
+    rankings = {
+        "as ranked": ranking,
+        **{f"top {K} by pose": reordered(ranking, scores, K) for K in shortlists},
+        "relative pose (whole database)": Ranking("pose", whole, np.zeros(whole.shape), "groundtruth"),
+    }
     rows = {name: ewb_localized(scene, ranked, k, thresholds, inclusive) for name, ranked in rankings.items()}
     return pd.DataFrame.from_dict(rows, orient="index", columns=[f"{x:g} m, {y:g} deg" for x, y in thresholds])
 
@@ -79,9 +101,13 @@ def main() -> None:
     from locretrieval.retrieval.index import search
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--shortlists", type=int, nargs="+", default=[3, 5, 10, 20, 50], help="the K re-ordered by pose")
+    parser.add_argument(
+        "--shortlists", type=int, nargs="+", default=[3, 5, 10, 20, 50], help="the K re-ordered by pose"
+    )
     parser.add_argument("--k", type=int, default=3, help="images EWB averages")
-    parser.add_argument("--database", action="store_true", help="the database images as queries, each against the others")
+    parser.add_argument(
+        "--database", action="store_true", help="the database images as queries, each against the others"
+    )
     parser.add_argument("overrides", nargs="*", help="evaluate.py overrides")
     arguments = parser.parse_args()
     overrides = list(arguments.overrides)
@@ -99,8 +125,17 @@ def main() -> None:
     else:
         ranking = search(described.queries, described.database, depth, model.name)
     pose = cfg.groundtruth.definitions.relative_pose
-    table = shortlist_table(scene, ranking, arguments.shortlists, arguments.k, pose.position_threshold, pose.rotation_threshold,
-                            [list(t) for t in cfg.metrics.thresholds], cfg.metrics.inclusive, exclude_self=arguments.database)
+    table = shortlist_table(
+        scene,
+        ranking,
+        arguments.shortlists,
+        arguments.k,
+        pose.position_threshold,
+        pose.rotation_threshold,
+        [list(t) for t in cfg.metrics.thresholds],
+        cfg.metrics.inclusive,
+        exclude_self=arguments.database,
+    )
     print(f"{scene.name}, {model.name}: % localized by EWB over the top {arguments.k}")
     print(table.to_markdown(floatfmt=".1f"))
 

@@ -49,8 +49,12 @@ def sfm_settings(*overrides: Mapping, choices: Sequence[str] = ()) -> SfmSetting
     """The ``sfm`` group as ``evaluate.yaml`` composes it (``configs/sfm/default.yaml``, with the
     group ``choices``, e.g. ``sfm/features=kapture``), run in this process (``workers: 1``) on
     the CPU, ``overrides`` merged in order."""
-    defaults = OmegaConf.to_container(compose_config("evaluate", *choices).sfm, resolve=True)  # plain: overrides may add keys
-    return validated(SfmSettings, OmegaConf.merge(defaults, {"workers": 1, "matching": {"device": "cpu"}}, *overrides), "sfm")
+    defaults = OmegaConf.to_container(
+        compose_config("evaluate", *choices).sfm, resolve=True
+    )  # plain: overrides may add keys
+    return validated(
+        SfmSettings, OmegaConf.merge(defaults, {"workers": 1, "matching": {"device": "cpu"}}, *overrides), "sfm"
+    )
 
 
 class StopAfterEpoch(L.Callback):

@@ -50,7 +50,9 @@ def two_images():
 
 def test_k1_returns_the_top_pose_exactly_for_every_method(two_images):
     db_desc = unit(np.eye(2, 8))
-    ranking = descriptor_ranking([[1, 0], [0, 1]], unit([[0.2, 1, 0, 0, 0, 0, 0, 0], [1, 0.1, 0, 0, 0, 0, 0, 0]]), db_desc)
+    ranking = descriptor_ranking(
+        [[1, 0], [0, 1]], unit([[0.2, 1, 0, 0, 0, 0, 0, 0], [1, 0.1, 0, 0, 0, 0, 0, 0]]), db_desc
+    )
     estimates = approximate(two_images, ranking, [1])
     assert sorted(e.method for e in estimates) == ["bdi", "csi", "ewb"]
     for e in estimates:
@@ -75,7 +77,9 @@ def test_negated_quaternions_give_the_same_result(two_images):
     a = approximate(two_images, ranking, [2])[0]
     b = approximate(flipped, ranking, [2])[0]
     assert geometry.rotation_errors_deg(a.qvec, b.qvec)[0, 0] == pytest.approx(0.0, abs=1e-6)
-    np.testing.assert_allclose(geometry.camera_centers(a.qvec, a.tvec), geometry.camera_centers(b.qvec, b.tvec), atol=1e-9)
+    np.testing.assert_allclose(
+        geometry.camera_centers(a.qvec, a.tvec), geometry.camera_centers(b.qvec, b.tvec), atol=1e-9
+    )
 
 
 def test_weights_against_independent_solutions():
@@ -101,7 +105,9 @@ def test_weights_against_independent_solutions():
     csi /= csi.sum()
     for method, weights in (("bdi", bdi), ("csi", csi), ("ewb", np.full(k, 1 / k))):
         e = estimates[method]
-        np.testing.assert_allclose(geometry.camera_centers(e.qvec, e.tvec)[0, 0], weights @ centers[top], atol=1e-6, err_msg=method)
+        np.testing.assert_allclose(
+            geometry.camera_centers(e.qvec, e.tvec)[0, 0], weights @ centers[top], atol=1e-6, err_msg=method
+        )
         expected_q = geometry.average_quaternions(rotations[top], weights)
         assert geometry.rotation_errors_deg(e.qvec[0, 0], expected_q) < 1e-5, method
 
@@ -215,7 +221,10 @@ def test_bdi_from_float32_products_equals_the_float64_solution(monkeypatch, tabl
     rng = np.random.default_rng(5)
     n, dim, k = 60, 256, 10
     places = unit(rng.normal(size=(6, dim)))
-    for db_desc in (unit(rng.normal(size=(n, dim))), unit(places[rng.integers(6, size=n)] + 0.05 * rng.normal(size=(n, dim)))):
+    for db_desc in (
+        unit(rng.normal(size=(n, dim))),
+        unit(places[rng.integers(6, size=n)] + 0.05 * rng.normal(size=(n, dim))),
+    ):
         queries = unit(db_desc[:20] + 0.3 * rng.normal(size=(20, dim)))
         ranking = search(queries, db_desc, depth=k)
         for axis in range(3):  # interpolated centres are the weights applied to random centres
@@ -224,7 +233,10 @@ def test_bdi_from_float32_products_equals_the_float64_solution(monkeypatch, tabl
             database = image_set(np.tile([1.0, 0, 0, 0], (n, 1)), centers)
             (bdi,) = approximate(database, ranking, [k], methods=["bdi"])
             estimated = geometry.camera_centers(bdi.qvec[0], bdi.tvec[0])[:, axis]
-            expected = [_float64_bdi_weights(db_desc, queries[q], ranking.indices[q]) @ centers[ranking.indices[q], axis] for q in range(20)]
+            expected = [
+                _float64_bdi_weights(db_desc, queries[q], ranking.indices[q]) @ centers[ranking.indices[q], axis]
+                for q in range(20)
+            ]
             np.testing.assert_allclose(estimated, expected, atol=1e-6 * np.abs(centers).max())
 
 
@@ -240,13 +252,17 @@ def test_only_ill_conditioned_queries_take_the_float64_path(monkeypatch):
     stay on float32 products and match the float64 solution; near-duplicates go to float64."""
     exact = []
     real = approximation._exact_grams
-    monkeypatch.setattr(approximation, "_exact_grams", lambda ranked, queries: exact.append(len(queries)) or real(ranked, queries))
+    monkeypatch.setattr(
+        approximation, "_exact_grams", lambda ranked, queries: exact.append(len(queries)) or real(ranked, queries)
+    )
     rng = np.random.default_rng(2)
     n, dim, k = 200, 1024, 20
     frequencies, phases = rng.normal(size=(dim, 1)) / 3.0, rng.uniform(0, 2 * np.pi, dim)
 
     def along_route(positions, noise):
-        return unit(np.cos(positions[:, None] @ frequencies.T + phases) + noise * rng.normal(size=(len(positions), dim)))
+        return unit(
+            np.cos(positions[:, None] @ frequencies.T + phases) + noise * rng.normal(size=(len(positions), dim))
+        )
 
     route = along_route(np.arange(n, dtype=float), 0.5)
     duplicates = unit(np.repeat(route[::20], 20, axis=0) + 0.01 * rng.normal(size=(n, dim)))
@@ -254,12 +270,21 @@ def test_only_ill_conditioned_queries_take_the_float64_path(monkeypatch):
     database = image_set(np.tile([1.0, 0, 0, 0], (n, 1)), centers)
     for db_desc, takes_float64 in ((route, False), (duplicates, True)):
         exact.clear()
-        queries = along_route(rng.uniform(0, n, 30), 0.5) if not takes_float64 else unit(db_desc[::7] + 0.01 * rng.normal(size=(29, dim)))
+        queries = (
+            along_route(rng.uniform(0, n, 30), 0.5)
+            if not takes_float64
+            else unit(db_desc[::7] + 0.01 * rng.normal(size=(29, dim)))
+        )
         ranking = search(queries, db_desc, depth=k)
         (bdi,) = approximate(database, ranking, [k], methods=["bdi"])
         assert (sum(exact) > 0) == takes_float64
-        expected = [_float64_bdi_weights(db_desc, q, ranking.indices[i]) @ centers[ranking.indices[i], 0] for i, q in enumerate(queries)]
-        np.testing.assert_allclose(geometry.camera_centers(bdi.qvec[0], bdi.tvec[0])[:, 0], expected, atol=1e-6 * np.abs(centers).max())
+        expected = [
+            _float64_bdi_weights(db_desc, q, ranking.indices[i]) @ centers[ranking.indices[i], 0]
+            for i, q in enumerate(queries)
+        ]
+        np.testing.assert_allclose(
+            geometry.camera_centers(bdi.qvec[0], bdi.tvec[0])[:, 0], expected, atol=1e-6 * np.abs(centers).max()
+        )
     residuals = route[:5].astype(np.float64) - route[7].astype(np.float64)
     np.testing.assert_allclose(real(route[None, :5], route[7][None]), (residuals @ residuals.T)[None], atol=1e-12)
 

@@ -8,10 +8,10 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from helpers import evaluate_config
 from PIL import Image
 from torch import nn
 
-from helpers import evaluate_config
 from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
 from locretrieval.config import ConfigError
 from locretrieval.evaluation import export_ltvl
@@ -28,7 +28,9 @@ SCENE = {"width": 96, "height": 72, "num_database": 24, "num_queries": 6, "textu
          "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
          "hard_query_fraction": 0.0, "workers": 1, "seed": 4}  # fmt: skip
 PREPROCESSING = Preprocessing(max_side=None, scales=(1.0,))
-EXTRACTION = ExtractionSettings(device="cpu", batch_size=8, num_workers=0, mixed_precision=False, progress=False, memmap_dir=None)
+EXTRACTION = ExtractionSettings(
+    device="cpu", batch_size=8, num_workers=0, mixed_precision=False, progress=False, memmap_dir=None
+)
 
 
 @pytest.fixture(scope="module")
@@ -62,10 +64,16 @@ def by_hand(network: RetrievalNet, paths) -> np.ndarray:
 def test_the_core_benchmarks_a_network_in_memory_twice_without_disk_caches(scene, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("LOCRETRIEVAL_CACHE", str(tmp_path / "cache"))
-    cfg = evaluate_config("paradigms.local_sfm.enabled=false", "paradigms.global_sfm.enabled=false",
-                          "paradigms.approximation.k=[1,3]", "paths.root_dir=/nonexistent")
+    cfg = evaluate_config(
+        "paradigms.local_sfm.enabled=false",
+        "paradigms.global_sfm.enabled=false",
+        "paradigms.approximation.k=[1,3]",
+        "paths.root_dir=/nonexistent",
+    )
     settings = BenchmarkSettings.from_config(cfg)
-    groundtruths = compute_groundtruths(scene, {"depth": 50, "definitions": {"relative_pose": cfg.groundtruth.definitions.relative_pose}})
+    groundtruths = compute_groundtruths(
+        scene, {"depth": 50, "definitions": {"relative_pose": cfg.groundtruth.definitions.relative_pose}}
+    )
     network = tiny_network(0)
     everyone = {"all": np.ones(len(scene.queries), dtype=bool)}
     top = []
@@ -80,7 +88,9 @@ def test_the_core_benchmarks_a_network_in_memory_twice_without_disk_caches(scene
         best_first = -np.sort(-similarity, axis=1)
         np.testing.assert_allclose(np.take_along_axis(similarity, ranking.indices, 1), best_first, atol=1e-5)
         ewb = next(e for e in result.estimates if e.ranking == "tiny" and e.method == "ewb")
-        np.testing.assert_allclose(ewb.tvec[0], scene.database.tvec[ranking.indices[:, 0]], atol=1e-9)  # k=1: the top image's pose
+        np.testing.assert_allclose(
+            ewb.tvec[0], scene.database.tvec[ranking.indices[:, 0]], atol=1e-9
+        )  # k=1: the top image's pose
         assert set(result.localization["ranking"]) == {"tiny", "gt_relative_pose"}
         assert set(result.retrieval["ranking"]) == {"tiny", "gt_relative_pose"}
         top.append(ranking.indices)
@@ -89,11 +99,21 @@ def test_the_core_benchmarks_a_network_in_memory_twice_without_disk_caches(scene
 
 
 def test_a_k_beyond_the_ranking_depth_keeps_its_label_in_every_paradigm(scene, tmp_path, caplog):
-    cfg = evaluate_config("retrieval.depth=3", "paradigms.approximation.k=[1,5,8]", "paradigms.local_sfm.k=[2,5]",
-                          "paradigms.global_sfm.k=[1,5,8]", "sfm.workers=1", "paths.root_dir=/nonexistent")
+    cfg = evaluate_config(
+        "retrieval.depth=3",
+        "paradigms.approximation.k=[1,5,8]",
+        "paradigms.local_sfm.k=[2,5]",
+        "paradigms.global_sfm.k=[1,5,8]",
+        "sfm.workers=1",
+        "paths.root_dir=/nonexistent",
+    )
     settings = BenchmarkSettings.from_config(cfg)
-    groundtruths = compute_groundtruths(scene, {"depth": 3, "definitions": {"relative_pose": cfg.groundtruth.definitions.relative_pose}})
-    described = describe_scene(NetworkDescriptor("tiny", tiny_network(0), PREPROCESSING, EXTRACTION), scene, cache_dir=None)
+    groundtruths = compute_groundtruths(
+        scene, {"depth": 3, "definitions": {"relative_pose": cfg.groundtruth.definitions.relative_pose}}
+    )
+    described = describe_scene(
+        NetworkDescriptor("tiny", tiny_network(0), PREPROCESSING, EXTRACTION), scene, cache_dir=None
+    )
     rankings = build_rankings(scene, {"tiny": described}, groundtruths, settings.retrieval, random_seed=0)
     assert {r.depth for r in rankings} == {3}
     everyone = {"all": np.ones(len(scene.queries), dtype=bool)}
@@ -111,7 +131,12 @@ def test_a_k_beyond_the_ranking_depth_keeps_its_label_in_every_paradigm(scene, t
     assert set(result.query_retrieval["k"]) == {1, 2, 5, 8}
     export_ltvl(scene, result, tmp_path / "ltvl")
     written = {path.name for path in (tmp_path / "ltvl" / "tiny").iterdir()}
-    assert {"approximation_ewb_k8.txt", "approximation_csi_k5.txt", "local_sfm_pnp_k5.txt", "global_sfm_pnp_k8.txt"} <= written
+    assert {
+        "approximation_ewb_k8.txt",
+        "approximation_csi_k5.txt",
+        "local_sfm_pnp_k5.txt",
+        "global_sfm_pnp_k8.txt",
+    } <= written
     assert not any("_k3." in name for name in written)
 
 
@@ -136,15 +161,23 @@ def test_extraction_runs_on_the_networks_device_and_restores_train_mode(scene):
     network = tiny_network(0).train()
     batch_norm = network.backbone[1]
     before = {name: tensor.clone() for name, tensor in network.state_dict().items()}
-    settings = ExtractionSettings(device="cuda", batch_size=4, num_workers=0, mixed_precision=True, progress=False, memmap_dir=None)
+    settings = ExtractionSettings(
+        device="cuda", batch_size=4, num_workers=0, mixed_precision=True, progress=False, memmap_dir=None
+    )
     paths, sizes = scene.queries.paths, [(c.width, c.height) for c in scene.queries.cameras]
-    descriptors, _ = extract_descriptors(network, paths, PREPROCESSING, settings, sizes)  # device is the network's (CPU)
+    descriptors, _ = extract_descriptors(
+        network, paths, PREPROCESSING, settings, sizes
+    )  # device is the network's (CPU)
     assert network.training and batch_norm.training
-    assert all(torch.equal(before[name], tensor) for name, tensor in network.state_dict().items())  # statistics untouched
+    assert all(
+        torch.equal(before[name], tensor) for name, tensor in network.state_dict().items()
+    )  # statistics untouched
     assert next(network.parameters()).device.type == "cpu" and network.backbone[0].weight.is_contiguous()
     np.testing.assert_allclose(descriptors, by_hand(network, paths), atol=1e-5)  # eval-mode batch norm
     images = torch.randint(0, 256, (2, 3, 5, 7), dtype=torch.uint8)
-    expected = (images.float() / 255 - torch.tensor(PREPROCESSING.mean).view(1, 3, 1, 1)) / torch.tensor(PREPROCESSING.std).view(1, 3, 1, 1)
+    expected = (images.float() / 255 - torch.tensor(PREPROCESSING.mean).view(1, 3, 1, 1)) / torch.tensor(
+        PREPROCESSING.std
+    ).view(1, 3, 1, 1)
     torch.testing.assert_close(PREPROCESSING.normalize(images), expected)
 
 
@@ -173,8 +206,10 @@ def imported_parts(tree: ast.AST) -> set[str]:
     for node in ast.walk(tree):
         names = [alias.name for alias in node.names] if isinstance(node, ast.Import) else []
         if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            names = [node.module] + ([f"{node.module}.{a.name}" for a in node.names] if node.module == "locretrieval" else [])
-        parts.update(name.split(".")[1] for name in names if name.startswith("locretrieval.") )
+            names = [node.module] + (
+                [f"{node.module}.{a.name}" for a in node.names] if node.module == "locretrieval" else []
+            )
+        parts.update(name.split(".")[1] for name in names if name.startswith("locretrieval."))
     return parts
 
 
@@ -189,18 +224,33 @@ def test_no_module_imports_from_a_layer_above_it():
             if layer_of(imported) > layer_of(part):
                 violations.append(f"{relative} imports locretrieval.{imported}")
     assert violations == []
-    assert imported_parts(ast.parse("from locretrieval.metrics import x\ndef f():\n    import locretrieval.report.plots")) == {"metrics", "report"}
+    assert imported_parts(
+        ast.parse("from locretrieval.metrics import x\ndef f():\n    import locretrieval.report.plots")
+    ) == {"metrics", "report"}
 
 
 @pytest.mark.parametrize(
     "override, message",
     [
-        ("paradigms.approximation.k=[1.5]", r"paradigms.approximation.k\[0\]: Value '1.5' of type 'float' could not be converted to Integer; expected int"),
+        (
+            "paradigms.approximation.k=[1.5]",
+            r"paradigms.approximation.k\[0\]: Value '1.5' of type "
+            r"'float' could not be converted to Integer; expected int",
+        ),
         ("paradigms.approximation.k=[]", r"paradigms.approximation.k: must list at least one value"),
-        ("paradigms.approximation.k=5", r"paradigms.approximation.k: .* not a ListConfig, list or tuple.; expected list\[int\]"),
-        ("paradigms.approximation.k=[abc]", r"paradigms.approximation.k\[0\]: Value 'abc' .* could not be converted to Integer"),
+        (
+            "paradigms.approximation.k=5",
+            r"paradigms.approximation.k: .* not a ListConfig, list or tuple.; expected list\[int\]",
+        ),
+        (
+            "paradigms.approximation.k=[abc]",
+            r"paradigms.approximation.k\[0\]: Value 'abc' .* could not be converted to Integer",
+        ),
         ("metrics.thresholds=[[0.25]]", r"metrics.thresholds: must be a non-empty list of \[metres, degrees\] pairs"),
-        ("+paradigms.local_sfm.kk=3", r"paradigms.local_sfm.kk: unknown key; expected one of \['enabled', 'k', 'map_matches'\]"),
+        (
+            "+paradigms.local_sfm.kk=3",
+            r"paradigms.local_sfm.kk: unknown key; expected one of \['enabled', 'k', 'map_matches'\]",
+        ),
         ("sfm.pnp.max_error=-1", r"sfm.pnp.max_error: must be"),
         ("retrieval.depth=0", r"retrieval.depth: must be >= 1"),
     ],
@@ -228,22 +278,42 @@ def test_a_new_paradigm_is_its_module_and_one_registry_entry(scene, monkeypatch)
         database, estimates = scene.database, []
         for ranking in rankings:
             top = ranking.indices[:, 0]
-            qvec, tvec = database.qvec[top][None].repeat(len(settings.k), 0), database.tvec[top][None].repeat(len(settings.k), 0)
+            qvec, tvec = (
+                database.qvec[top][None].repeat(len(settings.k), 0),
+                database.tvec[top][None].repeat(len(settings.k), 0),
+            )
             failures = np.full((len(settings.k), len(top)), "", dtype=object)
-            estimates.append(PoseEstimates(ranking.name, ranking.kind, "top_image", "top_image", list(settings.k), qvec, tvec, failures))
+            estimates.append(
+                PoseEstimates(
+                    ranking.name, ranking.kind, "top_image", "top_image", list(settings.k), qvec, tvec, failures
+                )
+            )
         return estimates
 
     monkeypatch.setitem(PARADIGMS, "top_image", Paradigm(TopImageSettings, top_image))
-    cfg = evaluate_config("paradigms.local_sfm.enabled=false", "paradigms.global_sfm.enabled=false", "paradigms.approximation.k=[1]",
-                          "+paradigms.top_image={enabled: true, k: [1]}", "paths.root_dir=/nonexistent")
+    cfg = evaluate_config(
+        "paradigms.local_sfm.enabled=false",
+        "paradigms.global_sfm.enabled=false",
+        "paradigms.approximation.k=[1]",
+        "+paradigms.top_image={enabled: true, k: [1]}",
+        "paths.root_dir=/nonexistent",
+    )
     settings = BenchmarkSettings.from_config(cfg)
     assert settings.paradigms.enabled() == ["approximation", "top_image"]
-    groundtruths = compute_groundtruths(scene, {"depth": 50, "definitions": {"relative_pose": cfg.groundtruth.definitions.relative_pose}})
+    groundtruths = compute_groundtruths(
+        scene, {"depth": 50, "definitions": {"relative_pose": cfg.groundtruth.definitions.relative_pose}}
+    )
     rankings = build_rankings(scene, {}, groundtruths, settings.retrieval, random_seed=0)
-    table = benchmark(scene, rankings, settings, {"all": np.ones(len(scene.queries), dtype=bool)}, None, relevances(groundtruths)).localization
+    table = benchmark(
+        scene, rankings, settings, {"all": np.ones(len(scene.queries), dtype=bool)}, None, relevances(groundtruths)
+    ).localization
     columns = ["ranking", "k", "position_threshold_m", "localized_pct"]
     mine = table[table["paradigm"] == "top_image"][columns].sort_values(columns[:3]).reset_index(drop=True)
-    ewb = table[(table["paradigm"] == "approximation") & (table["method"] == "ewb")][columns].sort_values(columns[:3]).reset_index(drop=True)
+    ewb = (
+        table[(table["paradigm"] == "approximation") & (table["method"] == "ewb")][columns]
+        .sort_values(columns[:3])
+        .reset_index(drop=True)
+    )
     assert len(mine) == 2 * len(settings.metrics.thresholds)  # random and the ground truth, each threshold
     pd.testing.assert_frame_equal(mine, ewb)
     with pytest.raises(ConfigError, match=r"paradigms.top_image: missing; every paradigm needs its section"):

@@ -19,8 +19,11 @@ TINY_RUNS = {
     ),
     "bench_matching.py": (
         ["--keypoints", "300", "--repeats", "1", "--pipeline-images", "3"],
-        [r"\s+300 \|\s+float32 \|\s+[\d.]+ \|\s+[\d.]+ \|\s+[\d.]+ \|\s+[\d.]+ \| matcher: [\d.]+x the bare product's time",
-         r"float16 at 300 keypoints: \d+\.\d\d % of float32's matches"],
+        [
+            r"\s+300 \|\s+float32 \|\s+[\d.]+ \|\s+[\d.]+ \|\s+[\d.]+ "
+            r"\|\s+[\d.]+ \| matcher: [\d.]+x the bare product's time",
+            r"float16 at 300 keypoints: \d+\.\d\d % of float32's matches",
+        ],
     ),
     "bench_groundtruth.py": (
         ["--queries", "40", "--database", "30", "--length", "30", "--width", "10"],
@@ -32,7 +35,9 @@ TINY_RUNS = {
 @pytest.mark.parametrize("script", sorted(TINY_RUNS))
 def test_benchmark_runs_at_a_tiny_size(script):
     arguments, patterns = TINY_RUNS[script]
-    result = subprocess.run([sys.executable, str(BENCHMARKS / script), *arguments], capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [sys.executable, str(BENCHMARKS / script), *arguments], capture_output=True, text=True, timeout=300
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     for pattern in patterns:
         assert re.search(pattern, result.stdout), f"{script}: no {pattern!r} in\n{result.stdout}"

@@ -1,18 +1,18 @@
 """Co-observation ground truth: shared 3D points of a joint map, checked against rendered depth."""
 
+import helpers
 import kapture.io.records as kapture_records
 import numpy as np
 import pytest
 from scipy import sparse
 from scipy.stats import spearmanr
 
-import helpers
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
 from locretrieval.config import ConfigError
+from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.groundtruth import DefinitionContext, compute_groundtruths, frustum_groundtruth
 from locretrieval.groundtruth.co_observation import co_observation_groundtruth, database_co_observations, shared_points
-from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.localization import matching
 from locretrieval.localization import pairs as pairs_module
 from locretrieval.localization.features import extract_features
@@ -23,9 +23,19 @@ from locretrieval.retrieval import EMPTY
 from locretrieval.scene import ImageSet, Scene
 from locretrieval.training.relevance import NegativeSettings, TrainingRelevanceSettings, training_pairs
 
-SCENE = {"width": 256, "height": 192, "num_database": 40, "num_queries": 8, "texture_size": 128, "length": 20.0,
-         "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
-         "hard_query_fraction": 0.0, "workers": 1, "seed": 2}
+SCENE = {
+    "width": 256,
+    "height": 192,
+    "num_database": 40,
+    "num_queries": 8,
+    "texture_size": 128,
+    "length": 20.0,
+    "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0},
+    "database_dynamic": 0.0,
+    "hard_query_fraction": 0.0,
+    "workers": 1,
+    "seed": 2,
+}
 PAIRS = {"near": 0.1, "far": 25.0, "min_radius": 0.0, "max_per_image": 10}  # the scene has no frustum_far
 SFM = helpers.sfm_settings({"map_pairs": PAIRS})
 COOBS = {"min_shared": 1, "query_pairs": 10, "sfm": SFM}
@@ -65,7 +75,9 @@ def covisible_keypoints(scene, cache) -> np.ndarray:
     for q, name in enumerate(queries.names):
         pixels = keypoints[name]
         z = depth_map(queries, q)[pixels[:, 1].astype(int), pixels[:, 0].astype(int)]
-        rays = np.column_stack([pixels, np.ones(len(pixels))]) @ np.linalg.inv(queries.cameras[q].calibration_matrix()).T
+        rays = (
+            np.column_stack([pixels, np.ones(len(pixels))]) @ np.linalg.inv(queries.cameras[q].calibration_matrix()).T
+        )
         world = (rays * z[:, None] - queries.tvec[q]) @ geometry.quaternion_to_matrix(queries.qvec[q])
         for t, depth in enumerate(depths):
             camera = database.cameras[t]
@@ -120,8 +132,12 @@ def test_groundtruth_ranks_by_shared_points_through_the_registry(scene, cache, s
     np.testing.assert_array_equal(recomputed.toarray(), shared)
     assert not calls
     with pytest.raises(ConfigError, match=r"groundtruth.definitions.co_observation.min_shard: unknown key"):
-        compute_groundtruths(scene, {"depth": 10, "definitions": {"co_observation": {"min_shard": 1, "query_pairs": 10}}}, SFM)
-    with pytest.raises(ConfigError, match=r"groundtruth.definitions.co_observation: the co_observation ground truth needs the sfm"):
+        compute_groundtruths(
+            scene, {"depth": 10, "definitions": {"co_observation": {"min_shard": 1, "query_pairs": 10}}}, SFM
+        )
+    with pytest.raises(
+        ConfigError, match=r"groundtruth.definitions.co_observation: the co_observation ground truth needs the sfm"
+    ):
         compute_groundtruths(scene, config | {"definitions": {"co_observation": {"min_shared": 1, "query_pairs": 10}}})
 
 
@@ -129,7 +145,9 @@ def test_queries_without_a_pose_get_no_ranking_and_share_the_caches(scene, tmp_p
     database, queries = scene.database, scene.queries
     qvec = queries.qvec.copy()
     qvec[0] = np.nan
-    unposed = ImageSet(queries.names, queries.image_root, queries.cameras, qvec, queries.tvec, queries.tags, queries.depth_paths)
+    unposed = ImageSet(
+        queries.names, queries.image_root, queries.cameras, qvec, queries.tvec, queries.tags, queries.depth_paths
+    )
     groundtruth = co_observation_groundtruth(database, unposed, depth=5, cache_dir=tmp_path, **COOBS)
     assert (groundtruth.ranking.indices[0] == EMPTY).all() and not groundtruth.query_has_pose[0]
     assert (groundtruth.ranking.indices[1:, 0] != EMPTY).all()
@@ -137,7 +155,11 @@ def test_queries_without_a_pose_get_no_ranking_and_share_the_caches(scene, tmp_p
     query_features = extract_features(queries, SFM.features, tmp_path, 1).folder
     database_features = extract_features(database, SFM.features, tmp_path, 1).folder
     assert sorted((tmp_path / "features").iterdir()) == sorted([query_features, database_features])
-    raw_query_matches = [p for p in (tmp_path / "matches").iterdir() if p.name.startswith(query_features.name) and "--poses-" not in p.name]
+    raw_query_matches = [
+        p
+        for p in (tmp_path / "matches").iterdir()
+        if p.name.startswith(query_features.name) and "--poses-" not in p.name
+    ]
     assert len(raw_query_matches) == 1
     # without cache_dir: a temporary one, the same ground truth
     temporary = co_observation_groundtruth(database, unposed, depth=5, **COOBS)
@@ -159,17 +181,23 @@ def test_frustum_pairs_are_the_same_chunk_by_chunk(scene, monkeypatch):
 
 def test_frustum_pairs_keep_radii_above_min_radius_like_the_frustum_groundtruth(scene):
     database, queries = scene.database, scene.queries
-    frusta = [TruncatedFrusta.of_images(images, np.arange(len(images)), 0.1, PAIRS["far"]) for images in (queries, database)]
+    frusta = [
+        TruncatedFrusta.of_images(images, np.arange(len(images)), 0.1, PAIRS["far"]) for images in (queries, database)
+    ]
     radii = pairwise_overlap_radii(*frusta)
     positive = np.sort(radii[radii > 0])
     threshold = float(positive[len(positive) // 2])  # the radius of one pair: kept by >=, not by >
-    selected = overlapping_pairs(queries, database, selection(max_per_image=None, min_radius=threshold), exclude_self=False)
+    selected = overlapping_pairs(
+        queries, database, selection(max_per_image=None, min_radius=threshold), exclude_self=False
+    )
     np.testing.assert_array_equal(selected, np.argwhere(radii > threshold))
     groundtruth = frustum_groundtruth(database, queries, depth=50, near=0.1, far=PAIRS["far"], min_radius=threshold)
     np.testing.assert_array_equal(selected, np.argwhere(groundtruth.relevance.toarray()))
     # at most max_per_image per query, the largest radii (ties: lower database index first)
     best = overlapping_pairs(queries, database, selection(max_per_image=2), exclude_self=False)
-    expected = sorted((q, int(t)) for q, row in enumerate(radii) for t in np.argsort(-row, kind="stable")[:2] if row[t] > 0)
+    expected = sorted(
+        (q, int(t)) for q, row in enumerate(radii) for t in np.argsort(-row, kind="stable")[:2] if row[t] > 0
+    )
     assert [tuple(p) for p in best.tolist()] == expected
     with pytest.raises(ValueError, match="min_radius: must be >= 0"):
         selection(min_radius=-1.0)
@@ -185,8 +213,12 @@ def test_database_co_observations_train_by_the_share_of_points_of_the_global_map
     expected = np.array([[len(a & b) for b in points] for a in points])
     np.testing.assert_array_equal(counts, expected)
     assert (expected[~np.eye(len(points), dtype=bool)] >= 5).sum() > len(points)  # many pairs share points
-    settings = TrainingRelevanceSettings({"type": "co_observation", "min_shared": 5, "query_pairs": 50}, NegativeSettings("unrelated", 0.1, None, None))
-    graded = training_pairs(scene.database, settings, DefinitionContext(far=25.0, shared_points=sparse.csr_matrix(counts))).graded.toarray()
+    settings = TrainingRelevanceSettings(
+        {"type": "co_observation", "min_shared": 5, "query_pairs": 50}, NegativeSettings("unrelated", 0.1, None, None)
+    )
+    graded = training_pairs(
+        scene.database, settings, DefinitionContext(far=25.0, shared_points=sparse.csr_matrix(counts))
+    ).graded.toarray()
     share = np.where(expected >= 5, expected / np.diag(expected)[:, None], 0.0)
     np.fill_diagonal(share, 0.0)
     np.testing.assert_allclose(graded, share)

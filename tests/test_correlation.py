@@ -39,7 +39,13 @@ def test_undefined_cases_are_nan_with_a_reason():
     x = np.array([[1.0, 2.0, 3.0], [1.0, 1.0, 1.0], [1.0, np.nan, np.nan], [np.nan] * 3, [1.0, 2.0, 3.0]])
     y = np.array([[2.0, 2.0, 2.0], [1.0, 2.0, 3.0], [1.0, 2.0, 3.0], [1.0, 2.0, 3.0], [3.0, 2.0, 1.0]])
     result = pearson_rows(x, y, "precision", "accuracy")
-    assert result["undefined_reason"].tolist() == ["constant accuracy", "constant precision", "fewer than 2 points", "fewer than 2 points", ""]
+    assert result["undefined_reason"].tolist() == [
+        "constant accuracy",
+        "constant precision",
+        "fewer than 2 points",
+        "fewer than 2 points",
+        "",
+    ]
     assert result["coefficient"][:4].isna().all() and result["p_value"][:4].isna().all()
     assert result["coefficient"][4] == pytest.approx(-1.0)
     assert result["num_points"].tolist() == [3, 3, 1, 0, 3]
@@ -77,7 +83,10 @@ def test_dataset_pearson_per_descriptor_over_k():
         expected = stats.pearsonr(RETRIEVAL[ranking], LOCALIZED[ranking])
         assert table.loc[ranking, "coefficient"] == pytest.approx(expected.statistic)
         assert table.loc[ranking, "num_points"] == len(KS)
-    assert np.isnan(table.loc["flat", "coefficient"]) and table.loc["flat", "undefined_reason"] == "constant retrieval metric"
+    assert (
+        np.isnan(table.loc["flat", "coefficient"])
+        and table.loc["flat", "undefined_reason"] == "constant retrieval metric"
+    )
 
 
 def test_dataset_spearman_per_k_over_descriptors():
@@ -94,17 +103,41 @@ def test_dataset_spearman_per_k_over_descriptors():
 
 def test_query_pearson_scores_failures_and_rotation_with_a_capped_error():
     ks, queries = [1, 2, 3, 5], ["q0", "q1", "q2", "q3"]
-    precision = {"q0": [1.0, 0.5, 1 / 3, 0.2], "q1": [0.0, 0.5, 2 / 3, 0.6], "q2": [0.0, 0.0, 0.0, 0.0], "q3": [1.0, 0.5, 0.2, 0.1]}
-    position = {"q0": [0.1, 0.5, np.nan, 2.0], "q1": [3.0, 2.0, 1.0, 0.5], "q2": [1.0, 2.0, 3.0, 4.0], "q3": [1.0, 1.0, 1.0, 1.0]}
+    precision = {
+        "q0": [1.0, 0.5, 1 / 3, 0.2],
+        "q1": [0.0, 0.5, 2 / 3, 0.6],
+        "q2": [0.0, 0.0, 0.0, 0.0],
+        "q3": [1.0, 0.5, 0.2, 0.1],
+    }
+    position = {
+        "q0": [0.1, 0.5, np.nan, 2.0],
+        "q1": [3.0, 2.0, 1.0, 0.5],
+        "q2": [1.0, 2.0, 3.0, 4.0],
+        "q3": [1.0, 1.0, 1.0, 1.0],
+    }
     rotation = {"q0": [1.0, 1.0, np.nan, 1.0], "q1": [1.0, 1.0, 1.0, 1.0], "q2": [1.0] * 4, "q3": [1.0, 2.0, 30.0, 8.0]}
     retrieval = pd.DataFrame(
-        [("toy", "a", "descriptor", "gt", "precision", k, q, precision[q][n]) for q in queries for n, k in enumerate(ks)],
+        [
+            ("toy", "a", "descriptor", "gt", "precision", k, q, precision[q][n])
+            for q in queries
+            for n, k in enumerate(ks)
+        ],
         columns=QUERY_RETRIEVAL_COLUMNS,
     )
     errors = pd.DataFrame(
         [
-            ("toy", "a", "descriptor", "approximation", "ewb", k, q, position[q][n], rotation[q][n],
-             "" if np.isfinite(position[q][n]) else "failed")
+            (
+                "toy",
+                "a",
+                "descriptor",
+                "approximation",
+                "ewb",
+                k,
+                q,
+                position[q][n],
+                rotation[q][n],
+                "" if np.isfinite(position[q][n]) else "failed",
+            )
             for q in queries
             for n, k in enumerate(ks)
         ],
@@ -116,13 +149,21 @@ def test_query_pearson_scores_failures_and_rotation_with_a_capped_error():
     assert table.loc["q0", "coefficient"] == pytest.approx(stats.pearsonr(precision["q0"], q0).statistic)
     assert table.loc["q0", "num_points"] == 4
     q1 = [-max(p / 5, 0.1) for p in position["q1"]]
-    assert table.loc["q1", "coefficient"] == pytest.approx(stats.pearsonr(precision["q1"], q1).statistic) and table.loc["q1", "coefficient"] > 0
+    assert (
+        table.loc["q1", "coefficient"] == pytest.approx(stats.pearsonr(precision["q1"], q1).statistic)
+        and table.loc["q1", "coefficient"] > 0
+    )
     assert table.loc["q2", "undefined_reason"] == "constant retrieval metric"
     # the same position at every k: rotation alone (0.1, 0.2, capped 1, 0.8) carries the correlation
     q3 = [-0.2, -0.2, -1.0, -0.8]
-    assert table.loc["q3", "coefficient"] == pytest.approx(stats.pearsonr(precision["q3"], q3).statistic) and table.loc["q3", "coefficient"] > 0
+    assert (
+        table.loc["q3", "coefficient"] == pytest.approx(stats.pearsonr(precision["q3"], q3).statistic)
+        and table.loc["q3", "coefficient"] > 0
+    )
     short = errors[errors["k"] <= 2]
-    assert (query_pearson(retrieval[retrieval["k"] <= 2], short, (5.0, 10.0))["undefined_reason"] == "fewer than 3 points").all()
+    assert (
+        query_pearson(retrieval[retrieval["k"] <= 2], short, (5.0, 10.0))["undefined_reason"] == "fewer than 3 points"
+    ).all()
 
 
 def test_duplicate_rows_are_an_error_not_a_silent_choice():

@@ -34,14 +34,18 @@ def no_data_env(monkeypatch):
 def kapture_folder(root: Path, names: list[str], posed: bool) -> Path:
     """A one-camera kapture folder; images posed at distinct positions when ``posed``."""
     records = {(i, "phone"): name for i, name in enumerate(names)}
-    trajectories = {(i, "phone"): pose("z", 10.0 * i, [float(i), 0.0, 1.0])[0] for i in range(len(names))} if posed else None
+    trajectories = (
+        {(i, "phone"): pose("z", 10.0 * i, [float(i), 0.0, 1.0])[0] for i in range(len(names))} if posed else None
+    )
     return write_kapture(root, {"phone": PINHOLE}, records, trajectories)
 
 
 def test_every_data_config_has_the_same_keys():
     configs = {dataset: compose_data(dataset, "paths.data_dir=/d").data for dataset in [*DATASETS, "kapture"]}
     assert len({frozenset(cfg) for cfg in configs.values()}) == 1
-    assert {"_target_", "name", "root", "mapping", "queries", "ltvl_name_style", "frustum_far"} <= set(configs["aachen"])
+    assert {"_target_", "name", "root", "mapping", "queries", "ltvl_name_style", "frustum_far"} <= set(
+        configs["aachen"]
+    )
     for dataset in DATASETS:
         cfg = configs[dataset]
         assert cfg.name == dataset
@@ -50,8 +54,16 @@ def test_every_data_config_has_the_same_keys():
         assert cfg.root == "/d"
 
 
-@pytest.mark.parametrize(("dataset", "min_radius", "max_per_image"),
-                         [("aachen", 10.0, None), ("baidu", 10.0, None), ("robotcar", 0.0, 50), ("robotcar_v2", 0.0, 50), ("gangnam", 0.0, 50)])
+@pytest.mark.parametrize(
+    ("dataset", "min_radius", "max_per_image"),
+    [
+        ("aachen", 10.0, None),
+        ("baidu", 10.0, None),
+        ("robotcar", 0.0, 50),
+        ("robotcar_v2", 0.0, 50),
+        ("gangnam", 0.0, 50),
+    ],
+)
 def test_data_configs_set_the_papers_settings(dataset, min_radius, max_per_image):
     cfg = compose_data(dataset)
     assert (cfg.sfm.map_pairs.min_radius, cfg.sfm.map_pairs.max_per_image) == (min_radius, max_per_image)
@@ -60,12 +72,18 @@ def test_data_configs_set_the_papers_settings(dataset, min_radius, max_per_image
     assert (cfg.sfm.pnp.max_error, cfg.sfm.pnp.min_num_inliers, cfg.sfm.pnp.min_inlier_ratio) == (12.0, 30, 0.25)
     assert cfg.sfm.query_verification._target_.endswith("TwoViewVerification")
     assert cfg.sfm.triangulation == compose_data("synthetic").sfm.triangulation  # the rest: the defaults
-    assert compose_data(dataset, "sfm.map_pairs.max_per_image=7").sfm.map_pairs.max_per_image == 7  # the command line wins
+    assert (
+        compose_data(dataset, "sfm.map_pairs.max_per_image=7").sfm.map_pairs.max_per_image == 7
+    )  # the command line wins
     own = compose_data(dataset, "sfm=default").sfm
     assert own.pnp.min_num_inliers == 12 and own.map_pairs.min_radius == min_radius  # the paper's pairs stay
     assert own.features._target_.endswith("SiftFeatures") and own.query_verification._target_.endswith("NoVerification")
     synthetic = compose_data("synthetic").sfm
-    assert synthetic.features._target_.endswith("SiftFeatures") and synthetic.pnp.min_num_inliers == 12 and synthetic.map_pairs.max_per_image == 20
+    assert (
+        synthetic.features._target_.endswith("SiftFeatures")
+        and synthetic.pnp.min_num_inliers == 12
+        and synthetic.map_pairs.max_per_image == 20
+    )
 
 
 @pytest.mark.parametrize("dataset", DATASETS)
@@ -101,7 +119,9 @@ def test_aachen_layout_loads_with_day_night_tags_from_env_root(tmp_path, monkeyp
 
 def test_robotcar_v2_locations_and_conditions(tmp_path):
     base = tmp_path / "RobotCar_Seasons-v2"
-    kapture_folder(base / "01" / "mapping", ["overcast-reference/rear/1.jpg", "overcast-reference/rear/2.jpg"], posed=True)
+    kapture_folder(
+        base / "01" / "mapping", ["overcast-reference/rear/1.jpg", "overcast-reference/rear/2.jpg"], posed=True
+    )
     kapture_folder(base / "02" / "mapping", ["overcast-reference/rear/3.jpg", "snow/rear/4.jpg"], posed=True)
     kapture_folder(base / "01" / "query", ["night-rain/rear/5.jpg", "dawn/rear/6.jpg"], posed=False)
     kapture_folder(base / "02" / "query", ["night/rear/7.jpg"], posed=False)
@@ -113,7 +133,11 @@ def test_robotcar_v2_locations_and_conditions(tmp_path):
     assert scene.queries.tag_mask("day").tolist() == [False, True, False]
     assert all("query" in tags for tags in scene.queries.tags)
     assert scene.queries.paths[2] == base / "02/query/sensors/records_data/night/rear/7.jpg"
-    assert [ltvl_name(n, cfg.data.ltvl_name_style) for n in scene.queries.names] == ["rear/5.jpg", "rear/6.jpg", "rear/7.jpg"]
+    assert [ltvl_name(n, cfg.data.ltvl_name_style) for n in scene.queries.names] == [
+        "rear/5.jpg",
+        "rear/6.jpg",
+        "rear/7.jpg",
+    ]
 
 
 def test_robotcar_v1_is_the_default_with_posed_queries_and_v2s_images(tmp_path):
@@ -140,7 +164,12 @@ def test_robotcar_v1_is_the_default_with_posed_queries_and_v2s_images(tmp_path):
     ("dataset", "mapping", "queries", "tags"),
     [
         ("baidu", "baidu-mall/mapping", ["baidu-mall/query"], [{"query"}]),
-        ("gangnam", "GangnamStation/B2/release/mapping", ["GangnamStation/B2/release/validation", "GangnamStation/B2/release/test"], [{"validation"}, {"test"}]),
+        (
+            "gangnam",
+            "GangnamStation/B2/release/mapping",
+            ["GangnamStation/B2/release/validation", "GangnamStation/B2/release/test"],
+            [{"validation"}, {"test"}],
+        ),
         ("inloc", "InLoc/mapping", ["InLoc/query"], [{"query"}]),
     ],
 )
@@ -164,7 +193,13 @@ def test_generic_kapture_config(tmp_path):
     assert scene.name == "kapture"
     assert scene.queries.tags == [frozenset({"late_queries"})]
     assert scene.queries.has_pose.all()
-    relative = compose_data("kapture", f"paths.data_dir={tmp_path}", "data.mapping=map", "data.queries=[late_queries]", "data.query_tags=[late]")
+    relative = compose_data(
+        "kapture",
+        f"paths.data_dir={tmp_path}",
+        "data.mapping=map",
+        "data.queries=[late_queries]",
+        "data.query_tags=[late]",
+    )
     assert instantiate(relative.data).queries.tags == [frozenset({"late"})]
     with pytest.raises(Exception, match="Missing mandatory value: data.mapping"):
         instantiate(compose_data("kapture", "paths.data_dir=/unused").data)
@@ -198,7 +233,8 @@ def test_synthetic_street_is_rendered_once_whatever_the_workers_and_auto_device(
     from locretrieval.scene.datasets import load_synthetic_dataset
 
     render = {"environment": "street", "width": 64, "height": 48, "num_database": 8, "num_queries": 4,
-              "texture_size": 32, "length": 20.0, "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 1.0, "noise": 0.0},
+              "texture_size": 32, "length": 20.0,
+              "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 1.0, "noise": 0.0},
               "workers": 1, "device": "cpu", "seed": 2}  # fmt: skip
     facts = {"ltvl_name_style": "full", "frustum_far": 25.0}
     first = load_synthetic_dataset("street", tmp_path, render, **facts)
@@ -207,5 +243,8 @@ def test_synthetic_street_is_rendered_once_whatever_the_workers_and_auto_device(
     assert (again.ltvl_name_style, again.frustum_far) == ("full", 25.0)  # dataset facts kept on the scene
     assert "synthetic scene cached" in caplog.text and again.database.paths == first.database.paths
     assert len([path for path in (tmp_path / "synthetic").iterdir() if path.is_dir()]) == 1  # and its render lock
-    masks = [np.load(p) if p.suffix == ".npy" else np.asarray(__import__("PIL.Image").Image.open(p)) for p in first.queries.mask_paths]
+    masks = [
+        np.load(p) if p.suffix == ".npy" else np.asarray(__import__("PIL.Image").Image.open(p))
+        for p in first.queries.mask_paths
+    ]
     assert any(mask.any() for mask in masks)  # every query has people/vehicles (dynamic: 1.0)

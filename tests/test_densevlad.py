@@ -2,18 +2,16 @@ import logging
 import math
 from pathlib import Path
 
+import helpers
 import kornia
 import numpy as np
 import pytest
 import torch
-from PIL import Image
 from omegaconf import OmegaConf
+from PIL import Image
 from scipy.ndimage import gaussian_filter
 
-import helpers
-
-from locretrieval.models import DenseVLAD
-from locretrieval.models import densevlad
+from locretrieval.models import DenseVLAD, densevlad
 from locretrieval.models.densevlad import (
     cpu_lattice,
     cpu_rootsift,
@@ -150,10 +148,12 @@ def test_cpu_kernels_build_the_same_rootsift(bin_size, step, max_bin_size):
 
 
 def test_dense_rootsift_is_nonnegative_unit_norm_and_zero_on_flat_images():
-    images = torch.stack([
-        torch.from_numpy(texture(3, 96).astype(np.float32) / 255.0)[None],
-        torch.full((1, 96, 96), 0.5),
-    ])
+    images = torch.stack(
+        [
+            torch.from_numpy(texture(3, 96).astype(np.float32) / 255.0)[None],
+            torch.full((1, 96, 96), 0.5),
+        ]
+    )
     descriptors, contrast = dense_rootsift(images, 8, step=2, max_bin_size=10)
     first, count = grid_layout(96, 10, 2)
     assert (first, count) == (15, 33)
@@ -349,10 +349,13 @@ def test_whitening_regularisation_bounds_the_gain_of_small_components(textures_s
 
 def test_resizing_makes_the_descriptor_resolution_independent(tmp_path, fitted):
     pixels = texture(11, 256)[:192, :256]
-    images = image_set(tmp_path, {
-        "full.png": pixels,
-        "half.png": np.asarray(Image.fromarray(pixels).resize((128, 96), Image.BILINEAR)),
-    })
+    images = image_set(
+        tmp_path,
+        {
+            "full.png": pixels,
+            "half.png": np.asarray(Image.fromarray(pixels).resize((128, 96), Image.BILINEAR)),
+        },
+    )
     full, half = fitted.describe(images)
     assert float(full @ half) > 0.9
 

@@ -39,11 +39,30 @@ def config_keys() -> set[tuple[str, ...]]:
     return keys
 
 
-GROUPS = sorted({path.name for path in CONFIGS.iterdir() if path.is_dir()} | {"training", "report", "retrieval", "metrics", "baselines", "output"})
+GROUPS = sorted(
+    {path.name for path in CONFIGS.iterdir() if path.is_dir()}
+    | {"training", "report", "retrieval", "metrics", "baselines", "output"}
+)
 #: `group.key[.key...]` in a command (an override, possibly `~`-prefixed; `+` adds a key, so it may
 #: be new) or in backticks; not a file name (`report.py`).
 KEY = re.compile(r"(?<![\w./$+-])~?((?:%s)(?:\.[A-Za-z_][A-Za-z0-9_]*)+)(?![\w/])" % "|".join(GROUPS))
-FILE_SUFFIXES = {"py", "md", "yaml", "csv", "txt", "json", "npz", "npy", "html", "png", "jpg", "gz", "ckpt", "pth", "sh"}
+FILE_SUFFIXES = {
+    "py",
+    "md",
+    "yaml",
+    "csv",
+    "txt",
+    "json",
+    "npz",
+    "npy",
+    "html",
+    "png",
+    "jpg",
+    "gz",
+    "ckpt",
+    "pth",
+    "sh",
+}
 
 
 def named_keys(text: str) -> set[str]:

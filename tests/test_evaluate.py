@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from helpers import evaluate_config
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 import locretrieval  # noqa: F401
-from helpers import evaluate_config
 from locretrieval.benchmark import ParadigmsSettings, check_unique_names
 from locretrieval.config import ConfigError, validated
 from locretrieval.evaluation import evaluate
@@ -46,7 +46,11 @@ def run(tmp_path_factory):
 
 
 RANKINGS = ("densevlad", "gt_relative_pose", "gt_frustum", "gt_co_observation", "random")
-K_PER_PARADIGM = {"approximation": set(KS), "local_sfm": {5, 10, 20}, "global_sfm": {1, 5, 10, 20, 50}}  # 50 > 32 images: labelled 50
+K_PER_PARADIGM = {
+    "approximation": set(KS),
+    "local_sfm": {5, 10, 20},
+    "global_sfm": {1, 5, 10, 20, 50},
+}  # 50 > 32 images: labelled 50
 
 
 def expected_methods():
@@ -81,7 +85,14 @@ def test_ground_truth_beats_random(run):
 
 def test_run_writes_every_output(run):
     _, output = run
-    for name in ("report.md", "query_errors.csv.gz", "retrieval.csv", "groundtruth_statistics.csv", "summary.json", "config.yaml"):
+    for name in (
+        "report.md",
+        "query_errors.csv.gz",
+        "retrieval.csv",
+        "groundtruth_statistics.csv",
+        "summary.json",
+        "config.yaml",
+    ):
         assert (output / name).is_file(), name
     errors = pd.read_csv(output / "query_errors.csv.gz", keep_default_na=False)
     assert len(errors) == sum(len(K_PER_PARADIGM[p]) for p, _, _ in expected_methods()) * 16
@@ -90,38 +101,79 @@ def test_run_writes_every_output(run):
     ltvl = output / "ltvl" / "densevlad" / "approximation_csi_k5.txt"
     lines = ltvl.read_text().splitlines()
     assert len(lines) == 16 and all(len(line.split()) == 8 for line in lines)
-    assert "![synthetic_mall_approximation_ewb](figures/synthetic_mall_approximation_ewb.png)" in (output / "report.md").read_text()
+    assert (
+        "![synthetic_mall_approximation_ewb](figures/synthetic_mall_approximation_ewb.png)"
+        in (output / "report.md").read_text()
+    )
     # median errors: one row per ranking x paradigm x method x k, each the median of that slice of the per-query errors
     medians = pd.read_csv(output / "median_errors.csv")
     assert len(medians) == sum(len(K_PER_PARADIGM[p]) for p, _, _ in expected_methods())
     estimated = pd.read_csv(output / "query_errors.csv.gz")
-    slice_ = estimated[(estimated["ranking"] == "gt_relative_pose") & (estimated["paradigm"] == "global_sfm") & (estimated["k"] == 5)]
-    row = medians[(medians["ranking"] == "gt_relative_pose") & (medians["paradigm"] == "global_sfm") & (medians["k"] == 5)].iloc[0]
+    slice_ = estimated[
+        (estimated["ranking"] == "gt_relative_pose") & (estimated["paradigm"] == "global_sfm") & (estimated["k"] == 5)
+    ]
+    row = medians[
+        (medians["ranking"] == "gt_relative_pose") & (medians["paradigm"] == "global_sfm") & (medians["k"] == 5)
+    ].iloc[0]
     assert row["median_position_error_m"] == pytest.approx(np.nanmedian(slice_["position_error_m"]))
     assert row["estimated_pct"] == pytest.approx(100 * slice_["failure"].isna().mean())
 
 
 def test_multirun_from_the_command_line(run):
     root, _ = run  # the scene and the descriptors are cached under root/.cache by the first run
-    command = [sys.executable, str(ROOT / "evaluate.py"), "-m", f"paths.root_dir={root}", "paradigms.approximation.alpha=4,8",
-               f"hydra.sweep.dir={root}/multirun", "baselines.random=false", "output.ltvl=false", *TINY_SCENE]
+    command = [
+        sys.executable,
+        str(ROOT / "evaluate.py"),
+        "-m",
+        f"paths.root_dir={root}",
+        "paradigms.approximation.alpha=4,8",
+        f"hydra.sweep.dir={root}/multirun",
+        "baselines.random=false",
+        "output.ltvl=false",
+        *TINY_SCENE,
+    ]
     completed = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert completed.returncode == 0, completed.stderr[-3000:]
     runs = sorted((root / "multirun").glob("*/results.csv"))
     assert len(runs) == 2
-    csi = [pd.read_csv(path.parent / "query_errors.csv.gz").query("method == 'csi' and k == 10")["position_error_m"] for path in runs]
+    csi = [
+        pd.read_csv(path.parent / "query_errors.csv.gz").query("method == 'csi' and k == 10")["position_error_m"]
+        for path in runs
+    ]
     assert len(csi[0]) == len(csi[1]) == 16 and not np.allclose(csi[0], csi[1], equal_nan=True)  # alpha changes CSI
     assert "descriptor cache hit for 'densevlad'" in completed.stderr + completed.stdout  # not described again
-    report = subprocess.run([sys.executable, str(ROOT / "report.py"), str(root / "multirun"), "--output", str(root / "report"),
-                             "--formats", "png"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    report = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "report.py"),
+            str(root / "multirun"),
+            "--output",
+            str(root / "report"),
+            "--formats",
+            "png",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert report.returncode == 0, report.stderr[-3000:]
     text = (root / "report" / "report.md").read_text()
     # CSI's interpolated poses change with alpha: densevlad is reported once per setting
-    assert "densevlad [paradigms.approximation.alpha=4]" in text and "densevlad [paradigms.approximation.alpha=8]" in text
+    assert (
+        "densevlad [paradigms.approximation.alpha=4]" in text and "densevlad [paradigms.approximation.alpha=8]" in text
+    )
 
 
-SMALL_SCENE = ["data.render.width=96", "data.render.height=72", "data.render.num_database=8", "data.render.num_queries=2",
-               "data.render.texture_size=64", "data.render.length=20.0", "data.render.workers=1"]
+SMALL_SCENE = [
+    "data.render.width=96",
+    "data.render.height=72",
+    "data.render.num_database=8",
+    "data.render.num_queries=2",
+    "data.render.texture_size=64",
+    "data.render.length=20.0",
+    "data.render.workers=1",
+]
 
 
 def test_every_missing_input_is_named_in_one_error_before_any_work(tmp_path):
@@ -133,7 +185,9 @@ def test_every_missing_input_is_named_in_one_error_before_any_work(tmp_path):
     with pytest.raises(FileNotFoundError) as error:
         evaluate(evaluate_config(*paths, *overrides), tmp_path / "run")
     message = str(error.value)
-    scene = next(path for path in (cache / "synthetic").iterdir() if path.is_dir())  # the rendered kapture folders: no local features
+    scene = next(
+        path for path in (cache / "synthetic").iterdir() if path.is_dir()
+    )  # the rendered kapture folders: no local features
     expected = [f"{missing}/AP-GeM-LM18/global_features.txt", f"{missing}/sfm not found", f"{missing}/maskrcnn.pth",
                 *(f"{scene / part}/reconstruction/{kind}/r2d2/{kind}.txt" for part in ("mapping", "query")
                   for kind in ("keypoints", "descriptors"))]  # fmt: skip
@@ -147,11 +201,18 @@ def test_every_missing_input_is_named_in_one_error_before_any_work(tmp_path):
 
 def test_paradigm_sections_are_checked():
     paradigms = OmegaConf.load(ROOT / "configs" / "paradigms" / "default.yaml")
-    assert validated(ParadigmsSettings, paradigms, "paradigms").enabled() == ["approximation", "local_sfm", "global_sfm"]
+    assert validated(ParadigmsSettings, paradigms, "paradigms").enabled() == [
+        "approximation",
+        "local_sfm",
+        "global_sfm",
+    ]
     paradigms.local_sfm.enabled = False
     assert validated(ParadigmsSettings, paradigms, "paradigms").enabled() == ["approximation", "global_sfm"]
     paradigms.globl_sfm = {"enabled": True}
-    with pytest.raises(ConfigError, match=r"paradigms.globl_sfm: unknown key; expected one of \['approximation', 'local_sfm', 'global_sfm'\]"):
+    with pytest.raises(
+        ConfigError,
+        match=r"paradigms.globl_sfm: unknown key; expected one of \['approximation', 'local_sfm', 'global_sfm'\]",
+    ):
         validated(ParadigmsSettings, paradigms, "paradigms")
 
 

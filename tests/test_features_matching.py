@@ -3,6 +3,7 @@
 from dataclasses import dataclass
 from pathlib import Path
 
+import helpers
 import kapture
 import kapture.io.csv as kapture_csv
 import kapture.io.features as kapture_features
@@ -12,28 +13,42 @@ import torch
 from omegaconf import OmegaConf
 from scipy.spatial.transform import Rotation
 
-import helpers
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
 from locretrieval.config import ConfigError, validated
 from locretrieval.localization import features as features_module
-from locretrieval.localization import matching
-from locretrieval.localization.features import LocalFeatures, extract_features
-from locretrieval.localization.sfm import SfmSettings
-from locretrieval.localization import nearest_neighbours
+from locretrieval.localization import matching, nearest_neighbours
+from locretrieval.localization.features import FeatureStore, LocalFeatures, extract_features
 from locretrieval.localization.matching import PairMatcher
 from locretrieval.localization.nearest_neighbours import BatchedMatcher, NearestNeighbourMatcher
-from locretrieval.localization.verification import (
-    NoVerification, PoseVerification, TwoViewVerification, epipolar_inliers, essential_matrices, sampson_errors, two_view_inliers,
-)
+from locretrieval.localization.sfm import SfmSettings
 from locretrieval.localization.store import ShardedStore
+from locretrieval.localization.verification import (
+    NoVerification,
+    PoseVerification,
+    TwoViewVerification,
+    epipolar_inliers,
+    essential_matrices,
+    sampson_errors,
+    two_view_inliers,
+)
 from locretrieval.scene import Camera, ImageSet
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 
-SCENE = {"width": 256, "height": 192, "num_database": 40, "num_queries": 6, "texture_size": 128, "length": 20.0,
-         "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
-         "hard_query_fraction": 0.0, "workers": 1, "seed": 1}
+SCENE = {
+    "width": 256,
+    "height": 192,
+    "num_database": 40,
+    "num_queries": 6,
+    "texture_size": 128,
+    "length": 20.0,
+    "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0},
+    "database_dynamic": 0.0,
+    "hard_query_fraction": 0.0,
+    "workers": 1,
+    "seed": 1,
+}
 
 
 SFM = helpers.sfm_settings()
@@ -58,8 +73,12 @@ def scene(tmp_path_factory):
 def test_sharded_store_round_trip_and_missing_keys(tmp_path, monkeypatch):
     store = ShardedStore(tmp_path / "store")
     assert store.missing(["a", "b/c", "a"]) == ["a", "b/c"]
-    first = store.write({"a": {"x": np.arange(6).reshape(3, 2), "y": np.zeros((3, 128), dtype=np.uint8)},
-                         "b/c": {"x": np.empty((0, 2), dtype=np.int64), "y": np.empty((0, 128), dtype=np.uint8)}})
+    first = store.write(
+        {
+            "a": {"x": np.arange(6).reshape(3, 2), "y": np.zeros((3, 128), dtype=np.uint8)},
+            "b/c": {"x": np.empty((0, 2), dtype=np.int64), "y": np.empty((0, 128), dtype=np.uint8)},
+        }
+    )
     second = store.write({"d\ne": {"x": np.ones((1, 2), dtype=np.int64), "y": np.ones((1, 128), dtype=np.uint8)}})
     reread = ShardedStore(tmp_path / "store")
     assert len(reread) == 3 and reread.missing(["a", "z", "d\ne"]) == ["z"]
@@ -101,7 +120,9 @@ def test_sift_features_are_cached_and_in_full_resolution_pixels(scene, tmp_path)
         assert len(keypoints) > 10 and descriptors.shape == (len(keypoints), 128) and descriptors.dtype == np.uint8
         small = half.keypoints([name])[name]
         # scaled back to the 256 x 192 image: spans it, stays inside it
-        assert small[:, 0].max() > 200 and (small >= 0).all() and (small[:, 0] <= 256).all() and (small[:, 1] <= 192).all()
+        assert (
+            small[:, 0].max() > 200 and (small >= 0).all() and (small[:, 0] <= 256).all() and (small[:, 1] <= 192).all()
+        )
         # half-resolution keypoints land on full-resolution ones (same structures, coarser)
         distance = np.linalg.norm(small[:, None] - keypoints[None], axis=-1).min(axis=1)
         assert np.median(distance) < 1.5
@@ -118,19 +139,26 @@ def test_feature_extraction_in_worker_processes_matches_in_process(scene, tmp_pa
             np.testing.assert_array_equal(a, b)
 
 
-def write_kapture_features(root: Path, names: list[str], keypoints: list[np.ndarray], descriptors: list[np.ndarray]) -> None:
+def write_kapture_features(
+    root: Path, names: list[str], keypoints: list[np.ndarray], descriptors: list[np.ndarray]
+) -> None:
     """Keypoints and descriptors files as the published kapture features (e.g. R2D2) are laid out."""
     kapture_dir = str(root)
     kapture_csv.keypoints_to_file(
-        kapture_csv.get_feature_csv_fullpath(kapture.Keypoints, "r2d2", kapture_dir), kapture.Keypoints("r2d2", np.float32, 3)
+        kapture_csv.get_feature_csv_fullpath(kapture.Keypoints, "r2d2", kapture_dir),
+        kapture.Keypoints("r2d2", np.float32, 3),
     )
     kapture_csv.descriptors_to_file(
         kapture_csv.get_feature_csv_fullpath(kapture.Descriptors, "r2d2", kapture_dir),
         kapture.Descriptors("r2d2", np.float32, 128, "r2d2", "L2"),
     )
     for name, points, values in zip(names, keypoints, descriptors):
-        kapture_features.image_keypoints_to_file(kapture_features.get_keypoints_fullpath("r2d2", kapture_dir, name), points)
-        kapture_features.image_descriptors_to_file(kapture_features.get_descriptors_fullpath("r2d2", kapture_dir, name), values)
+        kapture_features.image_keypoints_to_file(
+            kapture_features.get_keypoints_fullpath("r2d2", kapture_dir, name), points
+        )
+        kapture_features.image_descriptors_to_file(
+            kapture_features.get_descriptors_fullpath("r2d2", kapture_dir, name), values
+        )
 
 
 def kapture_folder_with_features(root: Path, names: list[str], counts: tuple[int, ...], seed: int):
@@ -138,7 +166,9 @@ def kapture_folder_with_features(root: Path, names: list[str], counts: tuple[int
     (x, y, scale) and descriptors: the image set, keypoints and descriptors."""
     rng = np.random.default_rng(seed)
     camera = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
-    images = ImageSet(names, root / "sensors" / "records_data", [camera] * 2, np.tile([1.0, 0, 0, 0], (2, 1)), np.zeros((2, 3)))
+    images = ImageSet(
+        names, root / "sensors" / "records_data", [camera] * 2, np.tile([1.0, 0, 0, 0], (2, 1)), np.zeros((2, 3))
+    )
     keypoints = [rng.uniform(0, 40, (n, 3)).astype(np.float32) for n in counts]
     descriptors = [rng.normal(size=(n, 128)).astype(np.float32) for n in counts]
     write_kapture_features(root, names, keypoints, descriptors)
@@ -156,14 +186,22 @@ def test_kapture_features_are_read_with_the_pixel_offset(tmp_path):
         np.testing.assert_allclose(read_points, points[:, :2] + 0.5)
         np.testing.assert_array_equal(read_values, values)
     (root / "reconstruction" / "descriptors" / "r2d2" / "db" / "sub" / "b.jpg.desc").unlink()
-    with pytest.raises(FileNotFoundError, match=r"descriptors 'r2d2' of image 'db/sub/b.jpg' not found: .*b\.jpg\.desc"):
+    with pytest.raises(
+        FileNotFoundError, match=r"descriptors 'r2d2' of image 'db/sub/b.jpg' not found: .*b\.jpg\.desc"
+    ):
         extract_features(images, features({**config, "pixel_offset": 0.0}, "kapture"), tmp_path / "cache", workers=1)
-    with pytest.raises(ConfigError, match=r"sfm.features.nmae: unknown key; expected one of \['max_keypoints', 'name', 'pixel_offset', 'score_order'\]"):
+    with pytest.raises(
+        ConfigError,
+        match=r"sfm.features.nmae: unknown key; expected one of "
+        r"\['max_keypoints', 'name', 'pixel_offset', 'score_order'\]",
+    ):
         features({"nmae": "r2d2"}, "kapture")
 
 
 def test_a_keypoint_budget_keeps_the_best_rows_of_kapture_features_by_their_score_order(tmp_path):
-    images, keypoints, descriptors = kapture_folder_with_features(tmp_path / "mapping", ["db/a.jpg", "db/b.jpg"], (9, 4), 5)
+    images, keypoints, descriptors = kapture_folder_with_features(
+        tmp_path / "mapping", ["db/a.jpg", "db/b.jpg"], (9, 4), 5
+    )
     for order, rows in [("ascending", slice(4, 9)), ("descending", slice(0, 5))]:  # R2D2 writes the best last
         config = {"max_keypoints": 5, "name": "r2d2", "pixel_offset": 0.0, "score_order": order}
         store = extract_features(images, features(config, "kapture"), tmp_path / "cache", workers=1)
@@ -171,7 +209,9 @@ def test_a_keypoint_budget_keeps_the_best_rows_of_kapture_features_by_their_scor
         np.testing.assert_array_equal(read_points, keypoints[0][rows, :2])
         np.testing.assert_array_equal(read_values, descriptors[0][rows])
         assert len(store.keypoints(["db/b.jpg"])["db/b.jpg"]) == 4  # fewer than the budget: all
-    with pytest.raises(ConfigError, match=r"sfm.features.max_keypoints: needs the score order of the kapture features 'r2d2'"):
+    with pytest.raises(
+        ConfigError, match=r"sfm.features.max_keypoints: needs the score order of the kapture features 'r2d2'"
+    ):
         features({"max_keypoints": 5, "score_order": None}, "kapture")
 
 
@@ -219,8 +259,14 @@ def direct_matches(first: np.ndarray, second: np.ndarray, ratio: float) -> np.nd
     b = second / np.linalg.norm(second, axis=1, keepdims=True)
     similarity = a @ b.T
     nearest, back = similarity.argmax(1), similarity.argmax(0)
-    two_best = np.sort(np.column_stack([similarity, np.full(len(a), -1.0)]), axis=1)[:, -2:]  # -1: a lone column's runner-up
-    passes = 2 - 2 * two_best[:, 1] <= ratio**2 * (2 - 2 * two_best[:, 0]) if similarity.shape[1] >= 2 else np.ones(len(a), bool)
+    two_best = np.sort(np.column_stack([similarity, np.full(len(a), -1.0)]), axis=1)[
+        :, -2:
+    ]  # -1: a lone column's runner-up
+    passes = (
+        2 - 2 * two_best[:, 1] <= ratio**2 * (2 - 2 * two_best[:, 0])
+        if similarity.shape[1] >= 2
+        else np.ones(len(a), bool)
+    )
     keep = passes & (back[nearest] == np.arange(len(a)))
     return np.column_stack([np.flatnonzero(keep), nearest[keep]])
 
@@ -245,7 +291,9 @@ def test_matcher_equals_the_direct_computation_with_ties(block_bytes, precision)
         for ratio in (1.0, 0.9, 0.7):
             matcher = NearestNeighbourMatcher(ratio, precision, block_bytes)
             expected = direct_matches(first, second, ratio)
-            np.testing.assert_array_equal(matcher(first, [second])[0], expected, err_msg=f"{rows}x{columns}, ratio {ratio}")
+            np.testing.assert_array_equal(
+                matcher(first, [second])[0], expected, err_msg=f"{rows}x{columns}, ratio {ratio}"
+            )
 
 
 def test_matcher_equals_an_explicit_computation_on_real_valued_descriptors():
@@ -255,7 +303,11 @@ def test_matcher_equals_an_explicit_computation_on_real_valued_descriptors():
     others = []
     for size in (40, 75, 0, 1):
         rows = rng.permutation(60)[: min(size, 30)]
-        others.append(np.concatenate([first[rows] + 0.3 * rng.normal(size=(len(rows), 16)), rng.normal(size=(size - len(rows), 16))]))
+        others.append(
+            np.concatenate(
+                [first[rows] + 0.3 * rng.normal(size=(len(rows), 16)), rng.normal(size=(size - len(rows), 16))]
+            )
+        )
     matches = NearestNeighbourMatcher(0.8, block_bytes=4 * 128 * 128)(first, others)
     for other, found in zip(others, matches):
         assert found.dtype == np.int32 and found.shape[1] == 2
@@ -269,18 +321,27 @@ def test_matcher_block_shape_bounds_the_similarity_memory():
     matcher = NearestNeighbourMatcher(0.8, block_bytes=8 << 20)
     # about square, equal blocks: 20,000 columns = 157 tiles of 128 in 15 blocks of 11 tiles; rows in 15 blocks of 1,408
     assert matcher.block_shape(20_000, 20_000, 4) == (1408, 1408)
-    assert matcher.block_shape(20_000, 300, 4) == (5120, 384)  # at most 5,376 rows fit: 4 blocks of 5,000 rounded up to 128
+    assert matcher.block_shape(20_000, 300, 4) == (
+        5120,
+        384,
+    )  # at most 5,376 rows fit: 4 blocks of 5,000 rounded up to 128
     assert matcher.block_shape(2_000, 2_000, 4) == (2000, 1024)  # 2 x 8 tiles; 2,048 rows fit
     assert matcher.block_shape(50, 20_000, 2) == (50, 2048)  # float16: 16 tiles (a side of 2,048) in 10 blocks of 16
     for rows, columns, size in [(20_000, 20_000, 4), (3, 5, 4), (20_000, 300, 2), (1_000, 70_000, 4), (129, 64, 4)]:
         height, width = matcher.block_shape(rows, columns, size)
-        assert height * width * size <= 8 << 20 and width % nearest_neighbours.TILE == 0 and (height == rows or height % nearest_neighbours.TILE == 0)
+        assert (
+            height * width * size <= 8 << 20
+            and width % nearest_neighbours.TILE == 0
+            and (height == rows or height % nearest_neighbours.TILE == 0)
+        )
 
 
 PARTNER_SIZES = (500, 131, 1, 0, 257, 300)
 
 
-def ternary_partners(rng: np.random.Generator, rows: int = 260, dimension: int = 32) -> tuple[np.ndarray, list[np.ndarray]]:
+def ternary_partners(
+    rng: np.random.Generator, rows: int = 260, dimension: int = 32
+) -> tuple[np.ndarray, list[np.ndarray]]:
     """A first image and partners of several sizes (one of one row, one empty) with exact ties
     and exact matches between them."""
     first = ternary(rows, dimension, 4, rng)
@@ -319,8 +380,10 @@ def test_batched_matcher_splits_its_work_within_the_memory_it_is_given():
 def test_batched_matcher_equals_an_explicit_computation_on_real_valued_descriptors():
     rng = np.random.default_rng(1)
     first = rng.normal(size=(60, 16))
-    others = [np.concatenate([first[rng.permutation(60)[:30]] + 0.3 * rng.normal(size=(30, 16)), rng.normal(size=(size, 16))])
-              for size in (10, 45, 200)]
+    others = [
+        np.concatenate([first[rng.permutation(60)[:30]] + 0.3 * rng.normal(size=(30, 16)), rng.normal(size=(size, 16))])
+        for size in (10, 45, 200)
+    ]
     for other, found in zip(others, BatchedMatcher(0.8, "cpu", "float32", 4 * 128 * 300)(first, others)):
         assert len(found) > 10 and {tuple(m) for m in found.tolist()} == reference_matches(first, other, 0.8)
 
@@ -332,7 +395,9 @@ def test_batched_matcher_on_the_gpu_equals_the_cpu_with_ties(precision, batch_mi
     rng = np.random.default_rng(4)
     first, partners = ternary_partners(rng, rows=3000, dimension=64)
     partners += [ternary(2500, 64, 16, rng), ternary(20_000, 64, 16, rng)]
-    settings = helpers.sfm_settings({"matching": {"device": "cuda", "precision": precision, "block_mib": batch_mib}}).matching
+    settings = helpers.sfm_settings(
+        {"matching": {"device": "cuda", "precision": precision, "block_mib": batch_mib}}
+    ).matching
     gpu = settings.matcher()
     assert isinstance(gpu, BatchedMatcher) and gpu.device.startswith("cuda")
     for found, expected in zip(gpu(first, partners), NearestNeighbourMatcher(0.8, precision)(first, partners)):
@@ -342,10 +407,19 @@ def test_batched_matcher_on_the_gpu_equals_the_cpu_with_ties(precision, batch_mi
 def test_matching_settings_resolve_the_device_and_the_block():
     settings = helpers.sfm_settings({"matching": {"block_mib": 2.5, "precision": "float16"}}).matching
     matcher = settings.matcher()
-    assert (matcher.device, matcher.precision, matcher.block_bytes, matcher.ratio) == ("cpu", "float16", int(2.5 * 2**20), 0.8)
+    assert (matcher.device, matcher.precision, matcher.block_bytes, matcher.ratio) == (
+        "cpu",
+        "float16",
+        int(2.5 * 2**20),
+        0.8,
+    )
     assert helpers.sfm_settings().matching.matcher().block_bytes == nearest_neighbours.CPU_BLOCK_BYTES
     # where and in which blocks matches are computed is not what determines them
-    assert "device" not in settings.identity() and "block_mib" not in settings.identity() and settings.identity()["precision"] == "float16"
+    assert (
+        "device" not in settings.identity()
+        and "block_mib" not in settings.identity()
+        and settings.identity()["precision"] == "float16"
+    )
     with pytest.raises(ConfigError, match="sfm.matching.precision"):
         helpers.sfm_settings({"matching": {"precision": "int8"}})
 
@@ -384,7 +458,9 @@ def test_sampson_error_approximates_the_geometric_error_and_bounds_matches_in_pi
     normal = line[:, :2] / np.linalg.norm(line[:, :2], axis=1, keepdims=True)
     moved = np.where((np.arange(50) < 25)[:, None], x1, x1 + 0.02 * normal)
     matches = np.column_stack([np.arange(50), np.arange(50)])
-    inliers = epipolar_inliers(x0 * 500 + [320, 240], moved * 500 + [320, 240], matches, camera, (q0, t0), camera, (q1, t1), max_error=2.0)
+    inliers = epipolar_inliers(
+        x0 * 500 + [320, 240], moved * 500 + [320, 240], matches, camera, (q0, t0), camera, (q1, t1), max_error=2.0
+    )
     np.testing.assert_array_equal(inliers, np.arange(50) < 25)
 
 
@@ -394,7 +470,11 @@ def test_matches_are_cached_per_pair_and_reused_for_larger_sets(scene, tmp_path,
     matcher = PairMatcher(database, store, database, store, SFM.matching, tmp_path)
     calls = []
     real = NearestNeighbourMatcher.__call__
-    monkeypatch.setattr(NearestNeighbourMatcher, "__call__", lambda self, first, others: calls.append(len(others)) or real(self, first, others))
+    monkeypatch.setattr(
+        NearestNeighbourMatcher,
+        "__call__",
+        lambda self, first, others: calls.append(len(others)) or real(self, first, others),
+    )
     names = database.names
     # same heading at neighbouring stations (8 cameras per station)
     small = [(names[0], names[8]), (names[9], names[1]), (names[8], names[16])]
@@ -408,7 +488,12 @@ def test_matches_are_cached_per_pair_and_reused_for_larger_sets(scene, tmp_path,
         assert {tuple(m) for m in verified_small[pair].tolist()} <= {tuple(m) for m in raw_small[pair].tolist()}
     assert sum(map(len, verified_small.values())) > 0
     # the same pairs, reversed or repeated, are not matched again; a larger set matches only its new pairs
-    assert matcher.ensure([(names[8], names[0]), (names[1], names[9]), (names[0], names[0])], workers=1, verification=POSES) == 0
+    assert (
+        matcher.ensure(
+            [(names[8], names[0]), (names[1], names[9]), (names[0], names[0])], workers=1, verification=POSES
+        )
+        == 0
+    )
     larger = small + [(names[0], names[16]), (names[17], names[1])]
     assert matcher.ensure(larger, workers=1, verification=POSES) == 2
     assert sum(calls) == 5
@@ -416,7 +501,9 @@ def test_matches_are_cached_per_pair_and_reused_for_larger_sets(scene, tmp_path,
     backward = matcher.load([(names[9], names[1])], POSES)[(names[9], names[1])]
     np.testing.assert_array_equal(backward, forward[:, ::-1])
     # verification keeps a subset of the raw matches, and a new matcher reads the cache
-    raw = PairMatcher(database, store, database, store, SFM.matching, tmp_path).load([(names[1], names[9])], NoVerification())[(names[1], names[9])]
+    raw = PairMatcher(database, store, database, store, SFM.matching, tmp_path).load(
+        [(names[1], names[9])], NoVerification()
+    )[(names[1], names[9])]
     assert len(forward) and {tuple(m) for m in forward.tolist()} <= {tuple(m) for m in raw.tolist()}
     with pytest.raises(KeyError, match="no record"):
         matcher.load([(names[5], names[6])], NoVerification())
@@ -464,14 +551,28 @@ def test_two_view_verification_keeps_raw_matches_consistent_with_the_poses(scene
     assert len(verified) >= 15 and {tuple(m) for m in verified.tolist()} <= {tuple(m) for m in raw.tolist()}
     keypoints = store.keypoints(list(pair))
     consistent = epipolar_inliers(
-        keypoints[pair[0]], keypoints[pair[1]], verified,
-        database.cameras[first], (database.qvec[first], database.tvec[first]),
-        database.cameras[second], (database.qvec[second], database.tvec[second]), max_error=4.0,
+        keypoints[pair[0]],
+        keypoints[pair[1]],
+        verified,
+        database.cameras[first],
+        (database.qvec[first], database.tvec[first]),
+        database.cameras[second],
+        (database.qvec[second], database.tvec[second]),
+        max_error=4.0,
     )
     assert consistent.mean() > 0.9
 
 
-@pytest.mark.parametrize("configuration, kept", [("CALIBRATED", True), ("PLANAR_OR_PANORAMIC", True), ("WATERMARK", False), ("MULTIPLE", False), ("DEGENERATE", False)])
+@pytest.mark.parametrize(
+    "configuration, kept",
+    [
+        ("CALIBRATED", True),
+        ("PLANAR_OR_PANORAMIC", True),
+        ("WATERMARK", False),
+        ("MULTIPLE", False),
+        ("DEGENERATE", False),
+    ],
+)
 def test_two_view_inliers_only_of_scene_geometries(configuration, kept, monkeypatch):
     import pycolmap
 
@@ -483,7 +584,9 @@ def test_two_view_inliers_only_of_scene_geometries(configuration, kept, monkeypa
     camera = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
     keypoints = np.zeros((10, 2))
     matches = np.array([[3, 1], [0, 2]] + [[i, i] for i in range(4, 10)])
-    inliers = two_view_inliers(keypoints, keypoints, matches, camera, camera, TwoViewVerification(max_error=4.0, min_num_inliers=5))
+    inliers = two_view_inliers(
+        keypoints, keypoints, matches, camera, camera, TwoViewVerification(max_error=4.0, min_num_inliers=5)
+    )
     np.testing.assert_array_equal(inliers, [0, 1] if kept else [])
 
 
@@ -493,12 +596,26 @@ def ternary_feature_scene(cache: Path, count: int = 12, keypoints: int = 300) ->
     rng = np.random.default_rng(9)
     camera = Camera("PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0))
     qvec = geometry.normalize_quaternions(np.column_stack([np.ones(count), 0.05 * rng.normal(size=(count, 3))]))
-    images = ImageSet([f"db/{i:02d}.jpg" for i in range(count)], Path("/nonexistent"), [camera] * count, qvec, rng.normal(size=(count, 3)))
+    images = ImageSet(
+        [f"db/{i:02d}.jpg" for i in range(count)],
+        Path("/nonexistent"),
+        [camera] * count,
+        qvec,
+        rng.normal(size=(count, 3)),
+    )
     store = features_module.feature_store(images, SFM.features, cache)
     shared = ternary(keypoints // 2, 32, 4, rng)  # rows every image holds: mutual matches across pairs
-    store.store.write({name: {"keypoints": rng.uniform(0, 480, (keypoints, 2)).astype(np.float32),
-                              "descriptors": np.concatenate([shared, ternary(keypoints - len(shared), 32, 4, rng)])[rng.permutation(keypoints)]}
-                       for name in images.names})
+    store.store.write(
+        {
+            name: {
+                "keypoints": rng.uniform(0, 480, (keypoints, 2)).astype(np.float32),
+                "descriptors": np.concatenate([shared, ternary(keypoints - len(shared), 32, 4, rng)])[
+                    rng.permutation(keypoints)
+                ],
+            }
+            for name in images.names
+        }
+    )
     return images, store
 
 
@@ -524,12 +641,20 @@ def test_matching_on_a_device_stores_what_the_cpu_workers_store(tmp_path, monkey
     monkeypatch.setattr(matching.MatchingSettings, "matcher", lambda self: batched)
     reads = []
     real = matching.partial_descriptors
-    monkeypatch.setattr(matching, "partial_descriptors", lambda features: lambda names: reads.append(len(names)) or real(features)(names))
+    monkeypatch.setattr(
+        matching,
+        "partial_descriptors",
+        lambda features: lambda names: reads.append(len(names)) or real(features)(names),
+    )
     assert on_device.ensure(pairs, workers, POSES) == len(pairs)
     assert stored(on_device, pairs, NoVerification()) == stored(on_cpu, pairs, NoVerification())
     assert stored(on_device, pairs, POSES) == stored(on_cpu, pairs, POSES)
     assert sum(map(len, stored(on_device, pairs, NoVerification()).values())) > len(pairs) * 100
-    assert 0 < sum(map(len, stored(on_device, pairs, POSES).values())) < sum(map(len, stored(on_device, pairs, NoVerification()).values()))
+    assert (
+        0
+        < sum(map(len, stored(on_device, pairs, POSES).values()))
+        < sum(map(len, stored(on_device, pairs, NoVerification()).values()))
+    )
     # evicted images are read again, but no image twice for one shard
     assert len(images) < sum(reads) <= len(pairs) * 2
 
@@ -578,20 +703,36 @@ class GridFeatures(LocalFeatures):
 
 
 def test_local_features_and_a_verification_from_outside_the_package_are_chosen_by_target(tmp_path):
-    nodes = {"features": {"_target_": f"{__name__}.GridFeatures", "max_keypoints": 50, "step": 16},
-             "query_verification": {"_target_": "locretrieval.localization.verification.PoseVerification", "max_epipolar_error": 2.0}}
+    nodes = {
+        "features": {"_target_": f"{__name__}.GridFeatures", "max_keypoints": 50, "step": 16},
+        "query_verification": {
+            "_target_": "locretrieval.localization.verification.PoseVerification",
+            "max_epipolar_error": 2.0,
+        },
+    }
     plain = OmegaConf.to_container(helpers.compose_config("evaluate").sfm, resolve=True)
-    settings = validated(SfmSettings, {**plain, **nodes, "workers": 1, "matching": {**plain["matching"], "device": "cpu"}}, "sfm")
+    settings = validated(
+        SfmSettings, {**plain, **nodes, "workers": 1, "matching": {**plain["matching"], "device": "cpu"}}, "sfm"
+    )
     assert isinstance(settings.features, GridFeatures) and settings.query_verification == PoseVerification(2.0)
     camera = Camera("PINHOLE", 200, 150, (150.0, 150.0, 100.0, 75.0))
-    images = ImageSet(["a.jpg", "b.jpg"], Path("/nonexistent"), [camera] * 2, np.tile([1.0, 0, 0, 0], (2, 1)), np.zeros((2, 3)))
+    images = ImageSet(
+        ["a.jpg", "b.jpg"], Path("/nonexistent"), [camera] * 2, np.tile([1.0, 0, 0, 0], (2, 1)), np.zeros((2, 3))
+    )
     store = extract_features(images, settings.features, tmp_path, workers=1)
     assert len(store.keypoints(["a.jpg"])["a.jpg"]) == 50  # its budget, its keypoint order
     matcher = PairMatcher(images, store, images, store, settings.matching, tmp_path)
     matcher.ensure([("a.jpg", "b.jpg")], 1, settings.query_verification)
-    np.testing.assert_array_equal(matcher.load([("a.jpg", "b.jpg")], settings.query_verification)[("a.jpg", "b.jpg")], np.tile(np.arange(50), (2, 1)).T)
+    np.testing.assert_array_equal(
+        matcher.load([("a.jpg", "b.jpg")], settings.query_verification)[("a.jpg", "b.jpg")],
+        np.tile(np.arange(50), (2, 1)).T,
+    )
     wrong = {**plain, "features": {"_target_": "locretrieval.localization.verification.NoVerification"}}
-    with pytest.raises(ConfigError, match=r"sfm.features._target_: locretrieval.localization.verification.NoVerification does not build a LocalFeatures"):
+    with pytest.raises(
+        ConfigError,
+        match=r"sfm.features._target_: locretrieval.localization.verification.NoVerification "
+        r"does not build a LocalFeatures",
+    ):
         validated(SfmSettings, wrong, "sfm")
     with pytest.raises(ConfigError, match=r"sfm.query_verification.max_eror: unknown key"):
         validated(SfmSettings, {**plain, "query_verification": {**nodes["query_verification"], "max_eror": 1}}, "sfm")

@@ -9,26 +9,39 @@ import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 from PIL import Image
+from test_report import GROUNDTRUTH, KS, NUM_DATABASE, NUM_QUERIES, ranking, relevance, write_run
 
 import locretrieval.report.gallery as gallery
 from locretrieval.cache import save_arrays
 from locretrieval.config import ConfigError, validated
 from locretrieval.report import build_report
 from locretrieval.report.gallery import (
-    BORDER, NOT_RELEVANT, QUERY, QUERY_GAP, RELEVANT, SPACING, GallerySettings, Thumbnails, gallery_image,
-    representative_k, run_gallery_settings, select_queries, write_gallery_inputs,
+    BORDER,
+    NOT_RELEVANT,
+    QUERY,
+    QUERY_GAP,
+    RELEVANT,
+    SPACING,
+    GallerySettings,
+    Thumbnails,
+    gallery_image,
+    representative_k,
+    run_gallery_settings,
+    select_queries,
+    write_gallery_inputs,
 )
 from locretrieval.report.html import write_html
 from locretrieval.retrieval import EMPTY
 from locretrieval.scene import Camera, ImageSet, Scene
-from test_report import GROUNDTRUTH, KS, NUM_DATABASE, NUM_QUERIES, ranking, relevance, write_run
 
 WIDTH, HEIGHT = 40, 30  # pixels of the test images (4:3, below any thumbnail size used here)
 
 
 def palette(count: int, offset: int = 0) -> list[tuple[int, int, int]]:
     """``count`` solid colours; the first 16 are at least 73 apart (sum over channels)."""
-    return [((37 * i + 50) % 256, (91 * i + 20) % 200 + 30, (151 * i + 90) % 256) for i in range(offset, offset + count)]
+    return [
+        ((37 * i + 50) % 256, (91 * i + 20) % 200 + 30, (151 * i + 90) % 256) for i in range(offset, offset + count)
+    ]
 
 
 def solid_images(folder: Path, colours: list[tuple[int, int, int]], names: list[str]) -> list[Path]:
@@ -59,7 +72,11 @@ def test_gallery_image_shows_each_query_then_its_ranked_images_framed_by_relevan
     relevant = np.array([[True, False, True], [False, True, False]])
     image = gallery_image(queries, database, indices, relevant, Thumbnails(20))
     tile = (15 + 2 * BORDER, 20 + 2 * BORDER)  # 40x30 shrunk to 20x15, framed
-    assert image.dtype == np.uint8 and image.shape == (2 * tile[0] + SPACING, tile[1] + QUERY_GAP + 3 * tile[1] + 2 * SPACING, 3)
+    assert image.dtype == np.uint8 and image.shape == (
+        2 * tile[0] + SPACING,
+        tile[1] + QUERY_GAP + 3 * tile[1] + 2 * SPACING,
+        3,
+    )
     for row in range(2):
         top, left = tile_origin(row, -1, tile)
         assert tuple(image[top, left]) == QUERY
@@ -120,7 +137,11 @@ def expected_worst(errors: pd.DataFrame, k: int, count: int) -> list[str]:
 
 def test_worst_queries_are_the_largest_mean_capped_errors_and_random_ones_are_seeded(tmp_path):
     run = write_run(tmp_path / "run", ["netvlad"])
-    errors = pd.read_csv(run / "query_errors.csv.gz", keep_default_na=False, na_values={"position_error_m": [""], "rotation_error_deg": [""]})
+    errors = pd.read_csv(
+        run / "query_errors.csv.gz",
+        keep_default_na=False,
+        na_values={"position_error_m": [""], "rotation_error_deg": [""]},
+    )
     errors = errors[errors["ranking"] == "netvlad"]
     names = [f"q{i}.png" for i in range(NUM_QUERIES)]
     scores = gallery.query_scores(gallery.at_representative_k(errors, 3), (5.0, 10.0))
@@ -131,7 +152,9 @@ def test_worst_queries_are_the_largest_mean_capped_errors_and_random_ones_are_se
     drawn = [q for q, why in chosen if why == "random"]
     assert not set(drawn) & {names.index(n) for n in worst} and drawn == sorted(drawn)
     assert select_queries(names, scores, settings(worst=3, random=2)) == chosen
-    other_seeds = {tuple(q for q, why in select_queries(names, scores, settings(worst=0, random=2, seed=s))) for s in range(8)}
+    other_seeds = {
+        tuple(q for q, why in select_queries(names, scores, settings(worst=0, random=2, seed=s))) for s in range(8)
+    }
     assert len(other_seeds) > 1
     assert select_queries(names, scores, settings(queries="all")) == [(q, "") for q in range(NUM_QUERIES)]
 
@@ -145,12 +168,22 @@ def gallery_run(tmp_path: Path) -> tuple[Path, list, list]:
     camera = Camera("SIMPLE_PINHOLE", WIDTH, HEIGHT, (40.0, 20.0, 15.0))
 
     def images(names: list[str]) -> ImageSet:
-        return ImageSet(names, tmp_path / "images", [camera] * len(names), np.tile([1.0, 0, 0, 0], (len(names), 1)), np.zeros((len(names), 3)))
+        return ImageSet(
+            names,
+            tmp_path / "images",
+            [camera] * len(names),
+            np.tile([1.0, 0, 0, 0], (len(names), 1)),
+            np.zeros((len(names), 3)),
+        )
 
-    scene = Scene("toy", images([f"db{i}.png" for i in range(NUM_DATABASE)]), images([f"q{i}.png" for i in range(NUM_QUERIES)]))
+    scene = Scene(
+        "toy", images([f"db{i}.png" for i in range(NUM_DATABASE)]), images([f"q{i}.png" for i in range(NUM_QUERIES)])
+    )
     write_gallery_inputs(scene, {GROUNDTRUTH: relevance()}, run)
     for name, kind in (("netvlad", "descriptor"), (GROUNDTRUTH, "groundtruth")):
-        save_arrays(run / "rankings" / f"{name}.npz", {"indices": ranking(name, kind).indices, "kind": np.asarray(kind)})
+        save_arrays(
+            run / "rankings" / f"{name}.npz", {"indices": ranking(name, kind).indices, "kind": np.asarray(kind)}
+        )
     return run, database_colours, query_colours
 
 
@@ -162,9 +195,15 @@ def gallery_rows(report: str) -> list[list[str]]:
 def test_report_gallery_marks_the_ground_truth_relevance_and_shows_each_outcome(tmp_path):
     run, database_colours, query_colours = gallery_run(tmp_path)
     output = tmp_path / "report"
-    report = build_report([run], output, figure_formats=[], gallery=settings(worst=2, random=2), thumbnail_cache=tmp_path / "thumbs")
+    report = build_report(
+        [run], output, figure_formats=[], gallery=settings(worst=2, random=2), thumbnail_cache=tmp_path / "thumbs"
+    )
     rows = gallery_rows(report.read_text())
-    errors = pd.read_csv(run / "query_errors.csv.gz", keep_default_na=False, na_values={"position_error_m": [""], "rotation_error_deg": [""]})
+    errors = pd.read_csv(
+        run / "query_errors.csv.gz",
+        keep_default_na=False,
+        na_values={"position_error_m": [""], "rotation_error_deg": [""]},
+    )
     netvlad = errors[errors["ranking"] == "netvlad"]
     assert [row[0].strip("`") for row in rows[:2]] == expected_worst(netvlad, 2, 2)
     assert [row[1] for row in rows] == ["worst 1", "worst 2", "random", "random"]
@@ -182,8 +221,11 @@ def test_report_gallery_marks_the_ground_truth_relevance_and_shows_each_outcome(
             assert (green > red + 80) if relevant[q, indices[q, slot]] else (red > green + 80), (q, slot)
         assert row[3] == f"{relevant[q, indices[q, :3]].sum()}/3"
         first = netvlad[(netvlad["query"] == f"q{q}.png") & (netvlad["k"] == 2)].iloc[0]
-        outcome = (f"failed ({first['failure']})" if first["failure"] else
-                   f"{first['position_error_m']:.2f} m, {first['rotation_error_deg']:.1f}°")
+        outcome = (
+            f"failed ({first['failure']})"
+            if first["failure"]
+            else f"{first['position_error_m']:.2f} m, {first['rotation_error_deg']:.1f}°"
+        )
         assert row[4].startswith(f"{first['paradigm']} {first['method']} k=2: {outcome}")
         assert row[4].count("<br>") == len(netvlad[(netvlad["query"] == f"q{q}.png") & (netvlad["k"] == 2)]) - 1
     html = (output / "report.html").read_text()
@@ -219,9 +261,13 @@ def test_html_report_links_its_files_relatively_and_the_3d_view_when_present(tmp
 
 def test_report_py_reads_a_runs_gallery_settings_with_overrides(tmp_path):
     section = {"queries": "selected", "k": 5, "worst": 10, "random": 5, "seed": 0, "thumbnail_size": 160}
-    OmegaConf.save({"paths": {"cache_dir": str(tmp_path / "cache")}, "report": {"gallery": section}}, tmp_path / "config.yaml")
+    OmegaConf.save(
+        {"paths": {"cache_dir": str(tmp_path / "cache")}, "report": {"gallery": section}}, tmp_path / "config.yaml"
+    )
     chosen, thumbnails = run_gallery_settings(tmp_path, ["queries=all", "k=10"])
-    assert chosen == settings(**{**section, "queries": "all", "k": 10}) and thumbnails == tmp_path / "cache" / "thumbnails"
+    assert (
+        chosen == settings(**{**section, "queries": "all", "k": 10}) and thumbnails == tmp_path / "cache" / "thumbnails"
+    )
     with pytest.raises(ConfigError, match="report.gallery.k: must be >= 1"):
         run_gallery_settings(tmp_path, ["k=0"])
     OmegaConf.save({"report": {"figure_formats": ["png"]}}, tmp_path / "config.yaml")  # a run of an earlier version

@@ -49,7 +49,10 @@ def test_pairwise_errors_equal_the_hand_computed_angles_and_distances_of_every_p
     expected = np.abs(angles[:, None] - angles[None])
     np.testing.assert_allclose(rotation[:, :7], expected, rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(rotation[:, 7:14], expected, rtol=1e-6, atol=1e-9)  # -q is the same rotation
-    relative = [[(Rotation.from_quat(a[[1, 2, 3, 0]]).inv() * Rotation.from_quat(b[[1, 2, 3, 0]])).magnitude() for b in others] for a in about_z]
+    relative = [
+        [(Rotation.from_quat(a[[1, 2, 3, 0]]).inv() * Rotation.from_quat(b[[1, 2, 3, 0]])).magnitude() for b in others]
+        for a in about_z
+    ]
     np.testing.assert_allclose(rotation, np.degrees(relative), atol=1e-9)
     np.testing.assert_allclose(rotation, geometry.rotation_errors_deg(about_z[:, None], others[None]), atol=1e-9)
     centers = np.random.default_rng(0).normal(size=(9, 3))

@@ -4,19 +4,18 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
+from helpers import evaluate_config
 from omegaconf import OmegaConf
 from scipy.optimize import linprog
 from scipy.spatial.transform import Rotation
 
 from locretrieval import chebyshev, geometry
 from locretrieval.chebyshev import chebyshev_radius
-from helpers import evaluate_config
 from locretrieval.config import ConfigError, validated
 from locretrieval.frusta import INITIAL_BASIS, TruncatedFrusta, may_overlap, overlap_radii
-from locretrieval.groundtruth import GroundTruth, compute_groundtruths
+from locretrieval.groundtruth import GroundTruth, base, compute, compute_groundtruths
 from locretrieval.groundtruth import frustum_groundtruth as build_frustum
 from locretrieval.groundtruth import relative_pose_groundtruth as build_relative_pose
-from locretrieval.groundtruth import base, compute
 from locretrieval.retrieval import EMPTY
 from locretrieval.scene import Camera, ImageSet, Scene
 
@@ -28,10 +27,16 @@ NEAR = 0.1
 FRUSTUM = {"near": NEAR, "min_radius": 0.0}
 
 
-def relative_pose_groundtruth(database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0, ranked="all"):
+def relative_pose_groundtruth(
+    database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0, ranked="all"
+):
     """The relative-pose ground truth with the paper's thresholds unless given, every image ranked."""
     return build_relative_pose(
-        database, queries, depth=depth, position_threshold=position_threshold, rotation_threshold=rotation_threshold,
+        database,
+        queries,
+        depth=depth,
+        position_threshold=position_threshold,
+        rotation_threshold=rotation_threshold,
         ranked=ranked,
     )
 
@@ -77,7 +82,9 @@ def random_cameras(rng: np.random.Generator, count: int, spread: float) -> Image
     """Random orientations, centres in a cube of side ``spread`` and varied intrinsics."""
     x, y, z, w = Rotation.random(count, random_state=rng.integers(1 << 31)).as_quat().T
     cameras = [
-        Camera("PINHOLE", 640, 480, (f, f * rng.uniform(0.9, 1.1), 320 + rng.uniform(-40, 40), 240 + rng.uniform(-30, 30)))
+        Camera(
+            "PINHOLE", 640, 480, (f, f * rng.uniform(0.9, 1.1), 320 + rng.uniform(-40, 40), 240 + rng.uniform(-30, 30))
+        )
         for f in rng.uniform(250.0, 900.0, count)
     ]
     return image_set(np.stack([w, x, y, z], 1), rng.uniform(0, spread, (count, 3)), cameras)
@@ -112,7 +119,9 @@ def pose_scene():
         [[10, 0, 0], [0, 0, 0], [20, 0, 0], [0, 30, 0], [3, 4, 0]],
         prefix="db",
     )
-    queries = image_set([about("x", 0), [np.nan] * 4, about("z", 10)], [[0, 0, 0], [np.nan] * 3, [500, 0, 0]], prefix="q")
+    queries = image_set(
+        [about("x", 0), [np.nan] * 4, about("z", 10)], [[0, 0, 0], [np.nan] * 3, [500, 0, 0]], prefix="q"
+    )
     return database, queries
 
 
@@ -138,7 +147,9 @@ def test_relative_pose_ranks_only_images_within_the_thresholds_by_default(pose_s
     assert gt.ranking.lengths.tolist() == [3, 0, 0]  # the far query: nothing within 25 m and 45 deg
     assert (gt.relevance != relative_pose_groundtruth(database, queries).relevance).nnz == 0  # relevance unchanged
     with pytest.raises(ValueError, match="ranked: must be one of"):
-        build_relative_pose(database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0, ranked="some")
+        build_relative_pose(
+            database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0, ranked="some"
+        )
 
 
 def test_relative_pose_thresholds_and_depth(pose_scene):
@@ -208,7 +219,9 @@ def test_groundtruth_rejects_rankings_for_queries_without_pose(pose_scene):
 def test_identical_frusta_give_the_inscribed_radius_of_one():
     images = image_set([about("y", 0), about("y", 0)], [[0, 0, 0], [0, 0, 0]], [WIDE, NARROW])
     radii = overlap_radii(frusta(images, 10.0), frusta(images, 10.0))
-    np.testing.assert_allclose(radii, [inscribed_radius_symmetric(1.0, 10.0), inscribed_radius_symmetric(0.5, 10.0)], rtol=1e-9)
+    np.testing.assert_allclose(
+        radii, [inscribed_radius_symmetric(1.0, 10.0), inscribed_radius_symmetric(0.5, 10.0)], rtol=1e-9
+    )
     # A non-square, off-centre camera against scipy linprog on its own 6 half-spaces.
     odd = image_set(about("x", 30), [1, 2, 3], [Camera("PINHOLE", 640, 360, (400.0, 420.0, 300.0, 200.0))])
     single = frusta(odd, 10.0)
@@ -339,7 +352,9 @@ def test_ground_truths_are_switched_off_and_picked_through_hydra(pose_scene):
     assert list(compute_groundtruths(scene, picked)) == ["frustum", "relative_pose"]
     variant = "+groundtruth.definitions.frustum_25m={type: frustum, near: 0.1, far: 25.0, min_radius: 0.0}"
     assert list(compute_groundtruths(scene, settings(variant, "groundtruth.enabled=[frustum_25m]"))) == ["frustum_25m"]
-    with pytest.raises(ConfigError, match=r"groundtruth.enabled: \['frustun'\] have no entry in groundtruth.definitions"):
+    with pytest.raises(
+        ConfigError, match=r"groundtruth.enabled: \['frustun'\] have no entry in groundtruth.definitions"
+    ):
         settings("groundtruth.enabled=[frustum,frustun]")
 
 
@@ -351,9 +366,14 @@ def test_definition_types_and_errors(pose_scene):
     assert gt.name == "gt_frustum_25m" and gt.ranking.depth == 3
     with pytest.raises(ConfigError, match=r"groundtruth.definitions.coobs.type: unknown definition type 'coobs'"):
         compute_groundtruths(scene, {"depth": 3, "definitions": {"coobs": {}}})
-    with pytest.raises(ConfigError, match=r"groundtruth.definitions.frustum.farr: unknown key; expected one of \['near', 'far', 'min_radius'\]"):
+    with pytest.raises(
+        ConfigError,
+        match=r"groundtruth.definitions.frustum.farr: unknown key; expected one of \['near', 'far', 'min_radius'\]",
+    ):
         compute_groundtruths(scene, {"depth": 3, "definitions": {"frustum": {"farr": 3, **FRUSTUM}}})
-    with pytest.raises(ConfigError, match=r"groundtruth.definitions.frustum.far is null .* scene 'poses' has no frustum_far"):
+    with pytest.raises(
+        ConfigError, match=r"groundtruth.definitions.frustum.far is null .* scene 'poses' has no frustum_far"
+    ):
         compute_groundtruths(scene, {"depth": 3, "definitions": {"frustum": {"far": None, **FRUSTUM}}})
     with pytest.raises(ConfigError, match=r"groundtruth.depth: must be >= 1, got 0"):
         compute_groundtruths(scene, {"depth": 0, "definitions": {}})
@@ -424,27 +444,47 @@ OUTSIDE = f"{__name__}.CameraDistance"
 
 
 def test_a_definition_from_outside_the_package_is_chosen_by_target_for_ranking_relevance_and_training(pose_scene):
-    """A definition chosen by its ``_target_`` (no registry entry) ranks the benchmark's queries and grades training pairs."""
+    """A definition chosen by its ``_target_`` (no registry entry) ranks the benchmark's queries and
+    grades training pairs."""
     from locretrieval.groundtruth import DefinitionContext, definition_type
     from locretrieval.training.relevance import NegativeSettings, TrainingRelevanceSettings, training_pairs
 
     database, queries = pose_scene
-    found = compute_groundtruths(Scene("poses", database, queries), {"depth": 50, "definitions": {"near": {"_target_": OUTSIDE, "radius": 12.0}}})
-    distance = np.linalg.norm(queries.centers[:, None] - database.centers[None], axis=2)  # d0 10 m, d1 0, d2 20, d3 30, d4 5
+    found = compute_groundtruths(
+        Scene("poses", database, queries), {"depth": 50, "definitions": {"near": {"_target_": OUTSIDE, "radius": 12.0}}}
+    )
+    distance = np.linalg.norm(
+        queries.centers[:, None] - database.centers[None], axis=2
+    )  # d0 10 m, d1 0, d2 20, d3 30, d4 5
     posed = queries.has_pose
     np.testing.assert_array_equal(found["near"].relevance.toarray()[posed], distance[posed] < 12.0)
     assert found["near"].ranking.indices[0, :3].tolist() == [1, 4, 0]
 
-    settings = TrainingRelevanceSettings({"_target_": OUTSIDE, "radius": 12.0}, NegativeSettings("not_relevant", 0.1, None, None))
+    settings = TrainingRelevanceSettings(
+        {"_target_": OUTSIDE, "radius": 12.0}, NegativeSettings("not_relevant", 0.1, None, None)
+    )
     assert definition_type(settings.definition) == OUTSIDE
     graded = training_pairs(database, settings, DefinitionContext(far=25.0)).graded.toarray()
     between = np.linalg.norm(database.centers[:, None] - database.centers[None], axis=2)
     expected = np.where(between < 12.0, 1.0 - between / 12.0, 0.0)
     np.fill_diagonal(expected, 0.0)
     np.testing.assert_allclose(graded, expected)
-    with pytest.raises(ConfigError, match=r"train_relevance.definition.radius: Value 'far' of type 'str' could not be converted"):
-        validated(TrainingRelevanceSettings, {"definition": {"_target_": OUTSIDE, "radius": "far"},
-                                              "negatives": {"rule": "unrelated", "near": 0.1, "far": None, "max_rotation": None}}, "train_relevance")
-    for target, message in ((f"{__name__}.Missing", r"cannot import"), ("locretrieval.scene.Camera", r"is not a ground-truth definition")):
+    with pytest.raises(
+        ConfigError, match=r"train_relevance.definition.radius: Value 'far' of type 'str' could not be converted"
+    ):
+        validated(
+            TrainingRelevanceSettings,
+            {
+                "definition": {"_target_": OUTSIDE, "radius": "far"},
+                "negatives": {"rule": "unrelated", "near": 0.1, "far": None, "max_rotation": None},
+            },
+            "train_relevance",
+        )
+    for target, message in (
+        (f"{__name__}.Missing", r"cannot import"),
+        ("locretrieval.scene.Camera", r"is not a ground-truth definition"),
+    ):
         with pytest.raises(ConfigError, match=rf"groundtruth.definitions.near._target_: .*{message}"):
-            compute_groundtruths(Scene("poses", database, queries), {"depth": 50, "definitions": {"near": {"_target_": target}}})
+            compute_groundtruths(
+                Scene("poses", database, queries), {"depth": 50, "definitions": {"near": {"_target_": target}}}
+            )

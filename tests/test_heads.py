@@ -3,16 +3,16 @@ that defines each, their registry entries, and training through train.py."""
 
 import math
 
+import helpers
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from test_training import train_config
 
-import helpers
 from locretrieval.models.heads import BoQHead, MixVPRHead, SALADHead
 from locretrieval.models.networks import GeMPooling, build_pooling, build_retrieval_net, l2_normalize
 from locretrieval.training.run import train
-from test_training import train_config
 
 
 def test_mixvpr_mixes_a_fixed_grid_into_out_channels_times_out_rows():
@@ -45,12 +45,20 @@ def test_salad_transport_plan_rows_and_columns_sum_to_their_marginals():
     torch.testing.assert_close(assignment, torch.ones(2, n), atol=1e-5, rtol=0)
     descriptors = head(torch.randn(2, 16, 6, 5))
     assert descriptors.shape == (2, m * 4 + 6) and head.output_dim == m * 4 + 6
-    with pytest.raises(ValueError, match=r"SALAD needs more local features \(6 = H x W of the feature map\) than clusters \(8\)"):
+    with pytest.raises(
+        ValueError, match=r"SALAD needs more local features \(6 = H x W of the feature map\) than clusters \(8\)"
+    ):
         head(torch.randn(1, 16, 3, 2))
 
 
-@pytest.mark.parametrize("head", [SALADHead(16, clusters=4, cluster_dim=4, token_dim=6, hidden=32),
-                                  BoQHead(16, dim=16, queries=4, blocks=2, heads=2, rows=3)], ids=["salad", "boq"])
+@pytest.mark.parametrize(
+    "head",
+    [
+        SALADHead(16, clusters=4, cluster_dim=4, token_dim=6, hidden=32),
+        BoQHead(16, dim=16, queries=4, blocks=2, heads=2, rows=3),
+    ],
+    ids=["salad", "boq"],
+)
 def test_salad_and_boq_are_invariant_to_the_order_of_the_local_features(head):
     torch.manual_seed(2)
     head.eval()
@@ -68,12 +76,16 @@ def test_boq_output_is_rows_times_dim_of_its_learned_queries():
 def test_gem_pyramid_is_gem_of_each_grid_cell_with_every_level_weighing_the_same():
     torch.manual_seed(3)
     features = torch.rand(2, 3, 4, 6) * 2.0
-    pooling, dimension = build_pooling(3, {"type": "gem_pyramid", "p": 3.0, "trainable": True, "levels": [[1, 1], [2, 3]]})
+    pooling, dimension = build_pooling(
+        3, {"type": "gem_pyramid", "p": 3.0, "trainable": True, "levels": [[1, 1], [2, 3]]}
+    )
     descriptors = pooling(features)
     assert dimension == 3 * (1 + 6) and descriptors.shape == (2, 21)
     power = features.numpy().astype("float64") ** 3
     whole = power.mean(axis=(2, 3)) ** (1 / 3)  # [B, C]
-    cells = power.reshape(2, 3, 2, 2, 3, 2).mean(axis=(3, 5)) ** (1 / 3)  # 2 x 3 blocks of 2 x 2 pixels: [B, C, rows, cols]
+    cells = power.reshape(2, 3, 2, 2, 3, 2).mean(axis=(3, 5)) ** (
+        1 / 3
+    )  # 2 x 3 blocks of 2 x 2 pixels: [B, C, rows, cols]
     cells = cells.reshape(2, 3 * 6)  # cells fastest within a channel
     expected = [block / np.linalg.norm(block, axis=1, keepdims=True) for block in (whole, cells)]
     torch.testing.assert_close(descriptors.double(), torch.tensor(np.concatenate(expected, axis=1)))
@@ -81,7 +93,9 @@ def test_gem_pyramid_is_gem_of_each_grid_cell_with_every_level_weighing_the_same
     single, _ = build_pooling(3, {"type": "gem_pyramid", "p": 3.0, "trainable": True, "levels": [[1, 1]]})
     torch.testing.assert_close(single(features), l2_normalize(GeMPooling(3.0)(features)))
     torch.testing.assert_close(descriptors.norm(dim=1), torch.full((2,), 2**0.5))
-    default, dimension = build_pooling(3, {"type": "gem_pyramid", "p": 3.0, "trainable": True})  # model.pooling.type=gem_pyramid
+    default, dimension = build_pooling(
+        3, {"type": "gem_pyramid", "p": 3.0, "trainable": True}
+    )  # model.pooling.type=gem_pyramid
     assert default.levels == ((1, 1), (1, 3)) and dimension == 3 * 4
     with pytest.raises(ValueError, match=r"gem_pyramid levels must be \(rows, cols\) grids of at least 1 x 1"):
         build_pooling(3, {"type": "gem_pyramid", "p": 3.0, "trainable": True, "levels": [[0, 2]]})
@@ -92,13 +106,20 @@ def test_gem_pyramid_starts_from_the_pretrained_trunk_and_gems_initial_power():
     model = helpers.zoo_model("lite0_gem_pyramid")
     assert model.identity()["weights"]["random_parameters"] == []
     assert model.network.pooling.p.item() == 3.0 and model.network.output_dim == 1280 * 4
-    assert model.architecture["pooling"] == {"type": "gem_pyramid", "p": 3.0, "trainable": True, "levels": [[1, 1], [1, 3]]}
+    assert model.architecture["pooling"] == {
+        "type": "gem_pyramid",
+        "p": 3.0,
+        "trainable": True,
+        "levels": [[1, 1], [1, 3]],
+    }
     descriptors = model.network.eval()(torch.rand(2, 3, 96, 128))
     assert descriptors.shape == (2, 5120)
 
 
 def test_a_head_ignores_another_types_options_and_refuses_unknown_ones():
-    module, dimension = build_pooling(64, {"type": "mixvpr", "p": 3.0, "trainable": True, "out_rows": 2})  # GeM's p, trainable
+    module, dimension = build_pooling(
+        64, {"type": "mixvpr", "p": 3.0, "trainable": True, "out_rows": 2}
+    )  # GeM's p, trainable
     assert isinstance(module, MixVPRHead) and dimension == 256 * 2
     with pytest.raises(ValueError, match=r"boq pooling: .*'bogus'"):
         build_pooling(64, {"type": "boq", "bogus": 1})
@@ -109,7 +130,11 @@ def test_a_head_ignores_another_types_options_and_refuses_unknown_ones():
 @pytest.mark.parametrize("head", ["mixvpr", "salad", "boq", "gem_pyramid"])
 def test_train_py_trains_each_head(head, tmp_path):
     # a head starts from random weights (the trunk from ImageNet): model.random_init says so
-    model = ["model=lite0_gem_pyramid"] if head == "gem_pyramid" else [f"model.pooling.type={head}", "model.random_init=true"]
+    model = (
+        ["model=lite0_gem_pyramid"]
+        if head == "gem_pyramid"
+        else [f"model.pooling.type={head}", "model.random_init=true"]
+    )
     overrides = [*model, "+trainer.fast_dev_run=true", "paradigms.approximation.k=[1,3]"]
     if head == "salad":
         overrides.append("+model.pooling.clusters=4")  # 96 x 72 images: 3 x 2 local features of EfficientNet-Lite0

@@ -3,10 +3,10 @@ what was wrong, no code runs from a data file, nothing is silently wrong. Tiny f
 
 from pathlib import Path
 
+import helpers
 import numpy as np
 import pytest
 
-import helpers
 from locretrieval.localization.features import extract_features
 from locretrieval.models import PrecomputedDescriptor
 from locretrieval.scene import Camera, ImageSet
@@ -18,14 +18,18 @@ NAMES = ["cam/a.jpg", "cam/b.jpg"]
 
 def image_set(root: Path, names: list[str] = NAMES) -> ImageSet:
     camera = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
-    return ImageSet(names, root, [camera] * len(names), np.tile([1.0, 0, 0, 0], (len(names), 1)), np.zeros((len(names), 3)))
+    return ImageSet(
+        names, root, [camera] * len(names), np.tile([1.0, 0, 0, 0], (len(names), 1)), np.zeros((len(names), 3))
+    )
 
 
 def write_global_features(kapture_dir: Path, dtype_field: str, vectors: np.ndarray, dsize: int) -> Path:
     """A global-features folder whose header says ``dtype_field`` (raw bytes of ``vectors``)."""
     folder = kapture_dir / "reconstruction" / "global_features" / "feats"
     folder.mkdir(parents=True)
-    (folder / "global_features.txt").write_text(f"# name, dtype, dsize, metric_type\nfeats, {dtype_field}, {dsize}, L2\n")
+    (folder / "global_features.txt").write_text(
+        f"# name, dtype, dsize, metric_type\nfeats, {dtype_field}, {dsize}, L2\n"
+    )
     for name, vector in zip(NAMES, vectors):
         path = folder / f"{name}.gfeat"
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -98,7 +102,9 @@ def test_dtype_spellings_kapture_writes_are_accepted(tmp_path, field):
 def test_integer_global_features_are_refused_unless_allowed(tmp_path):
     vectors = np.array([[3.0, 4.0], [1.0, 0.0]], dtype=np.float32)
     folder = write_global_features(tmp_path / "mapping", "int32", vectors, 2)  # same width as the float32 data
-    with pytest.raises(ValueError, match=r"global_features\.txt: dtype int32 is not floating point.*allow_integer=true"):
+    with pytest.raises(
+        ValueError, match=r"global_features\.txt: dtype int32 is not floating point.*allow_integer=true"
+    ):
         PrecomputedDescriptor(path=folder)
     model = PrecomputedDescriptor(path=folder, allow_integer=True)
     assert model.describe(image_set(tmp_path / "mapping" / "sensors" / "records_data")).dtype == np.float32
@@ -110,7 +116,9 @@ def test_local_feature_file_of_the_wrong_size_names_file_and_row_size(tmp_path):
     descriptors = root / "reconstruction" / "descriptors" / "r2d2" / "cam" / "b.jpg.desc"
     descriptors.write_bytes(descriptors.read_bytes()[:-4])
     config = helpers.sfm_settings({"features": {"name": "r2d2"}}, choices=["sfm/features=kapture"]).features
-    with pytest.raises(ValueError, match=r"b\.jpg\.desc: 156 bytes is not a whole number of descriptors rows of 8 x float32"):
+    with pytest.raises(
+        ValueError, match=r"b\.jpg\.desc: 156 bytes is not a whole number of descriptors rows of 8 x float32"
+    ):
         extract_features(image_set(root / "sensors" / "records_data"), config, tmp_path / "cache", workers=1)
 
 
@@ -133,7 +141,10 @@ def test_an_image_resized_behind_its_camera_names_both_sizes(tmp_path):
     image = root / "sensors" / "records_data" / "b.png"
     width, height = Image.open(image).size
     Image.new("RGB", (2 * width, 2 * height)).save(image)
-    with pytest.raises(ValueError, match=rf"b\.png: image is {2 * width}x{2 * height} pixels but its camera 'phone' .* is {width}x{height}"):
+    with pytest.raises(
+        ValueError,
+        match=rf"b\.png: image is {2 * width}x{2 * height} pixels but its camera 'phone' .* is {width}x{height}",
+    ):
         load_image_set(root)
 
 
@@ -146,7 +157,10 @@ def test_a_timestamp_written_twice_in_two_spellings_names_both_lines(tmp_path):
     root = phone_folder(tmp_path, {(2, "phone"): "a.png"})
     with (root / "sensors" / "trajectories.txt").open("a") as stream:
         stream.write("02, phone, 1, 0, 0, 0, 5, 5, 5\n")
-    with pytest.raises(KaptureFormatError, match=r"trajectories\.txt:\d+: duplicate \(timestamp, device\) \(2, 'phone'\): also on line \d+"):
+    with pytest.raises(
+        KaptureFormatError,
+        match=r"trajectories\.txt:\d+: duplicate \(timestamp, device\) \(2, 'phone'\): also on line \d+",
+    ):
         load_image_set(root)
 
 
@@ -168,7 +182,9 @@ def test_image_names_with_whitespace_are_refused_when_the_scene_loads(tmp_path):
 def test_a_netvlad_file_that_is_not_a_mat_struct_names_the_file(tmp_path, content):
     path = tmp_path / "Pitts30K_struct.mat"
     path.write_bytes(content)
-    with pytest.raises(ValueError, match=r"Pitts30K_struct\.mat: not a MATLAB \.mat file holding NetVLAD's struct 'net'"):
+    with pytest.raises(
+        ValueError, match=r"Pitts30K_struct\.mat: not a MATLAB \.mat file holding NetVLAD's struct 'net'"
+    ):
         helpers.zoo_model("netvlad", weights=path)
 
 
@@ -227,11 +243,14 @@ def test_workers_exit_when_their_parent_dies_while_they_start(tmp_path):
 
 def test_a_negative_focal_length_names_the_sensor_line(tmp_path):
     import kapture
+    from test_kapture_io import write_kapture
 
     from locretrieval.scene.kapture_io import load_image_set
-    from test_kapture_io import write_kapture
 
     camera = kapture.Camera(kapture.CameraType.PINHOLE, [64, 48, -50.0, 50.0, 32.0, 24.0])
     root = write_kapture(tmp_path / "query", {"phone": camera}, {(1, "phone"): "a.png"})
-    with pytest.raises(KaptureFormatError, match=r"sensors\.txt:\d+: camera 'phone': focal length\(s\) \[-50\.0, 50\.0\] must be positive"):
+    with pytest.raises(
+        KaptureFormatError,
+        match=r"sensors\.txt:\d+: camera 'phone': focal length\(s\) \[-50\.0, 50\.0\] must be positive",
+    ):
         load_image_set(root)

@@ -102,7 +102,9 @@ def mapping(tmp_path):
             "cam0": PINHOLE,
             "cam1": SIMPLE_RADIAL,
             "phone": PINHOLE,
-            "cam0_depth": kapture.Camera(kapture.CameraType.PINHOLE, [40, 30, 35.0, 36.0, 20.0, 15.0], sensor_type="depth"),
+            "cam0_depth": kapture.Camera(
+                kapture.CameraType.PINHOLE, [40, 30, 35.0, 36.0, 20.0, 15.0], sensor_type="depth"
+            ),
         },
         records={
             (0, "cam0"): "rig/cam0/000.png",
@@ -143,7 +145,13 @@ def assert_poses(image_set, expected: dict[str, np.ndarray]) -> None:
 def test_mapping_folder_round_trip(mapping):
     root, expected = mapping
     images = load_image_set(root, tag="mapping")
-    assert images.names == ["rig/cam0/000.png", "rig/cam1/000.png", "rig/cam0/001.png", "rig/cam1/001.png", "phone/005.png"]
+    assert images.names == [
+        "rig/cam0/000.png",
+        "rig/cam1/000.png",
+        "rig/cam0/001.png",
+        "rig/cam1/001.png",
+        "phone/005.png",
+    ]
     assert images.image_root == root / "sensors" / "records_data"
     assert all(path.is_file() for path in images.paths)
     assert images.cameras[0] == Camera("PINHOLE", 40, 30, (35.0, 36.0, 20.0, 15.0))
@@ -186,7 +194,9 @@ def test_folder_without_trajectories_has_nan_poses_and_no_side_files(tmp_path):
 def test_scene_from_mapping_and_two_query_folders(tmp_path, mapping):
     mapping_root, expected = mapping
     day_pose, T_day = pose("z", -10.0, [1.0, 1.0, 1.0])
-    day = query_folder(tmp_path, "query_day", {(1, "phone"): "day/a.png", (2, "phone"): "day/b.png"}, {(2, "phone"): day_pose})
+    day = query_folder(
+        tmp_path, "query_day", {(1, "phone"): "day/a.png", (2, "phone"): "day/b.png"}, {(2, "phone"): day_pose}
+    )
     night = query_folder(tmp_path, "query_night", {(1, "phone"): "night/a.png"})
     scene = load_kapture_scene("toy", mapping_root, [day, night])
     assert scene.database.names == list(expected)
@@ -194,7 +204,11 @@ def test_scene_from_mapping_and_two_query_folders(tmp_path, mapping):
     assert scene.queries.tags == [frozenset({"query_day"})] * 2 + [frozenset({"query_night"})]
     assert scene.queries.has_pose.tolist() == [False, True, False]
     assert_poses(scene.queries.subset(np.array([1])), {"day/b.png": T_day})
-    assert scene.queries.paths == [day / "sensors/records_data/day/a.png", day / "sensors/records_data/day/b.png", night / "sensors/records_data/night/a.png"]
+    assert scene.queries.paths == [
+        day / "sensors/records_data/day/a.png",
+        day / "sensors/records_data/day/b.png",
+        night / "sensors/records_data/night/a.png",
+    ]
     assert scene.queries.image_root == tmp_path
     assert scene.sources == [mapping_root, day, night]
     tagged = load_kapture_scene("toy", mapping_root, [day, night], ["day", "night"], name_tags={"cam0": "/cam0/"})
@@ -211,7 +225,9 @@ def test_duplicate_names_across_query_folders_are_an_error(tmp_path, mapping):
 
 def test_unposed_mapping_images_are_left_out_of_the_database(tmp_path, mapping, caplog):
     posed, _ = pose("z", 5.0, [0.0, 0.0, 1.0])
-    root = write_kapture(tmp_path / "map", {"phone": PINHOLE}, {(1, "phone"): "a.png", (2, "phone"): "b.png"}, {(1, "phone"): posed})
+    root = write_kapture(
+        tmp_path / "map", {"phone": PINHOLE}, {(1, "phone"): "a.png", (2, "phone"): "b.png"}, {(1, "phone"): posed}
+    )
     scene = load_kapture_scene("toy", root, [mapping[0]])
     assert scene.database.names == ["a.png"]
     assert "1 of 2 mapping images" in caplog.text and "b.png" in caplog.text
@@ -231,14 +247,26 @@ BAD_LINES = [
     ("sensors/trajectories.txt", "9, phone, 0.9, 0, 0, 0, 1, 2, 3", "not a finite unit quaternion (norm 0.9"),
     ("sensors/trajectories.txt", "9, ghost, 1, 0, 0, 0, 1, 2, 3", "trajectory for unknown sensor or rig 'ghost'"),
     ("sensors/trajectories.txt", "1.5, phone, 1, 0, 0, 0, 1, 2, 3", "timestamp '1.5' is not an integer"),
-    ("sensors/trajectories.txt", "1, phone, 1, 0, 0, 0, 1, 2, 3", "duplicate (timestamp, device) (1, 'phone'): also on line"),
+    (
+        "sensors/trajectories.txt",
+        "1, phone, 1, 0, 0, 0, 1, 2, 3",
+        "duplicate (timestamp, device) (1, 'phone'): also on line",
+    ),
     # kapture parses 01 as 1: the same pose line twice, not two poses (defect 3 of the hostile-input issue)
-    ("sensors/trajectories.txt", "01, phone, 1, 0, 0, 0, 1, 2, 3", "duplicate (timestamp, device) (1, 'phone'): also on line"),
+    (
+        "sensors/trajectories.txt",
+        "01, phone, 1, 0, 0, 0, 1, 2, 3",
+        "duplicate (timestamp, device) (1, 'phone'): also on line",
+    ),
     ("sensors/records_camera.txt", "001, phone, b.png", "duplicate (timestamp, sensor) (1, 'phone'): also on line"),
     ("sensors/records_camera.txt", "9, phone", "expected 3 comma-separated fields, got 2"),
     ("sensors/records_camera.txt", "x9, phone, x.png", "timestamp 'x9' is not an integer"),
     ("sensors/records_camera.txt", "9, ghost, x.png", "record of unknown sensor 'ghost'"),
-    ("sensors/sensors.txt", "fish, , camera, FISHEYE_9, 4, 3, 1, 2, 2", "sensor 'fish': unknown camera model 'FISHEYE_9'"),
+    (
+        "sensors/sensors.txt",
+        "fish, , camera, FISHEYE_9, 4, 3, 1, 2, 2",
+        "sensor 'fish': unknown camera model 'FISHEYE_9'",
+    ),
     ("sensors/sensors.txt", "cam, , camera, PINHOLE, 4, 3, 1, 1, 2", "camera model PINHOLE takes 6 values"),
     ("sensors/sensors.txt", "cam, , camera, PINHOLE, 4, 3, f, 1, 2, 2", "non-numeric camera parameters"),
     ("tags.txt", "ghost.png, day", "image 'ghost.png' is not in sensors/records_camera.txt"),
@@ -264,15 +292,25 @@ def test_unusable_camera_models_name_file_line_and_sensor(tmp_path):
     root = query_folder(tmp_path, "folder", {(1, "phone"): "a.png"})
     text = (root / "sensors/sensors.txt").read_text()
     (root / "sensors/sensors.txt").write_text(text.replace("PINHOLE, 40, 30, 35, 36, 20, 15", "UNKNOWN_CAMERA, 40, 30"))
-    number = next(i for i, line in enumerate((root / "sensors/sensors.txt").read_text().splitlines(), 1) if "UNKNOWN_CAMERA" in line)
-    with pytest.raises(KaptureFormatError, match=rf"sensors.txt:{number}: camera 'phone' has model UNKNOWN_CAMERA, which locretrieval cannot use"):
+    number = next(
+        i
+        for i, line in enumerate((root / "sensors/sensors.txt").read_text().splitlines(), 1)
+        if "UNKNOWN_CAMERA" in line
+    )
+    with pytest.raises(
+        KaptureFormatError,
+        match=rf"sensors.txt:{number}: camera 'phone' has model UNKNOWN_CAMERA, which locretrieval cannot use",
+    ):
         load_image_set(root)
 
 
 def test_missing_image_names_file_and_folder(tmp_path):
     root = query_folder(tmp_path, "folder", {(1, "phone"): "a.png", (2, "phone"): "sub/b.png"})
     (root / "sensors/records_data/sub/b.png").unlink()
-    with pytest.raises(FileNotFoundError, match=r"1 image file\(s\) .* missing from .*folder/sensors/records_data, e.g. \['sub/b.png'\]"):
+    with pytest.raises(
+        FileNotFoundError,
+        match=r"1 image file\(s\) .* missing from .*folder/sensors/records_data, e.g. \['sub/b.png'\]",
+    ):
         load_image_set(root)
 
 
@@ -284,7 +322,9 @@ def test_not_a_kapture_folder(tmp_path):
 def test_rig_with_non_unit_quaternion_names_line(tmp_path, mapping):
     root, _ = mapping
     number = append_line(root / "sensors/rigs.txt", "rig, phone, 2, 0, 0, 0, 0, 0, 0")
-    with pytest.raises(KaptureFormatError, match=rf"rigs.txt:{number}: quaternion .* not a finite unit quaternion \(norm 2"):
+    with pytest.raises(
+        KaptureFormatError, match=rf"rigs.txt:{number}: quaternion .* not a finite unit quaternion \(norm 2"
+    ):
         load_image_set(root)
 
 
@@ -299,7 +339,11 @@ def test_ltvl_export(tmp_path):
     assert path.read_text().splitlines()[1].startswith("query/night/nexus5x/IMG_2.jpg 0.5 ")
     assert write_ltvl(path, names[1:2], qvec[[0]], tvec[[0]], name_style="strip_prefix") == 0
     assert path.read_text() == "rear/1417.jpg 1.0 0.0 0.0 0.0 1.5 -2.0 3.25\n"
-    assert [ltvl_name("a/b/c.jpg", style) for style in ("full", "basename", "strip_prefix")] == ["a/b/c.jpg", "c.jpg", "b/c.jpg"]
+    assert [ltvl_name("a/b/c.jpg", style) for style in ("full", "basename", "strip_prefix")] == [
+        "a/b/c.jpg",
+        "c.jpg",
+        "b/c.jpg",
+    ]
 
 
 def test_ltvl_export_rejects_ambiguous_or_unwritable_names(tmp_path):
@@ -338,25 +382,36 @@ def test_published_layout_with_sensorless_rig_members_and_unused_records_loads_w
     rig_from_world, T_rig_world = pose("z", 30.0, [1.0, 2.0, 3.0])
     q, t = cam_from_rig.r_raw, cam_from_rig.t_raw
     rq, rt = rig_from_world.r_raw, rig_from_world.t_raw
-    mapping = write_text_folder(tmp_path / "mapping", {
-        "sensors/sensors.txt": HEADER + "# sensor_device_id, name, sensor_type, [sensor_params]+\n"
-        "cam_left, left, camera, SIMPLE_RADIAL, 32, 24, 30.0, 16.0, 12.0, 0.01\n"
-        "gps0, , gnss, EPSG:4326\nvelodyne, , lidar\nthermo, , thermometer\n",
-        "sensors/rigs.txt": HEADER + "# rig_device_id, sensor_device_id, qw, qx, qy, qz, tx, ty, tz\n"
-        f"car, cam_left, {', '.join(map(str, q))}, {', '.join(map(str, t))}\n"
-        "car, cam_right, 1, 0, 0, 0, -0.5, 0, 0\ncar, velodyne, 1, 0, 0, 0, 0, 0, 1.2\n",
-        "sensors/trajectories.txt": HEADER + "# timestamp, device_id, qw, qx, qy, qz, tx, ty, tz\n"
-        f"100, car, {', '.join(map(str, rq))}, {', '.join(map(str, rt))}\n",
-        "sensors/records_camera.txt": HEADER + "# timestamp, device_id, image_path\n100, cam_left, left/100.jpg\n",
-        "sensors/records_gnss.txt": HEADER + "# timestamp, device_id, x, y, z, utc, dop\n100, gps0, 2.3, 48.8, 35.0, 0, 1.0\n",
-        "sensors/records_lidar.txt": HEADER + "# timestamp, device_id, point_cloud_path\n100, velodyne, velodyne/100.pcd\n",
-        "sensors/records_depth.txt": HEADER + "# timestamp, device_id, depth_map_path\n100, cam_left_depth, left/100.depth\n",
-    }, {"left/100.jpg": (32, 24)})
-    query = write_text_folder(tmp_path / "query", {
-        "sensors/sensors.txt": HEADER + "q_left, , camera, SIMPLE_RADIAL, 32, 24, 30.0, 16.0, 12.0, 0.01\n",
-        "sensors/rigs.txt": HEADER + "q_car, q_left, 1, 0, 0, 0, 0, 0, 0\nq_car, q_right, 1, 0, 0, 0, -0.5, 0, 0\n",
-        "sensors/records_camera.txt": HEADER + "7, q_left, query/7.jpg\n",
-    }, {"query/7.jpg": (32, 24)})
+    mapping = write_text_folder(
+        tmp_path / "mapping",
+        {
+            "sensors/sensors.txt": HEADER + "# sensor_device_id, name, sensor_type, [sensor_params]+\n"
+            "cam_left, left, camera, SIMPLE_RADIAL, 32, 24, 30.0, 16.0, 12.0, 0.01\n"
+            "gps0, , gnss, EPSG:4326\nvelodyne, , lidar\nthermo, , thermometer\n",
+            "sensors/rigs.txt": HEADER + "# rig_device_id, sensor_device_id, qw, qx, qy, qz, tx, ty, tz\n"
+            f"car, cam_left, {', '.join(map(str, q))}, {', '.join(map(str, t))}\n"
+            "car, cam_right, 1, 0, 0, 0, -0.5, 0, 0\ncar, velodyne, 1, 0, 0, 0, 0, 0, 1.2\n",
+            "sensors/trajectories.txt": HEADER + "# timestamp, device_id, qw, qx, qy, qz, tx, ty, tz\n"
+            f"100, car, {', '.join(map(str, rq))}, {', '.join(map(str, rt))}\n",
+            "sensors/records_camera.txt": HEADER + "# timestamp, device_id, image_path\n100, cam_left, left/100.jpg\n",
+            "sensors/records_gnss.txt": HEADER
+            + "# timestamp, device_id, x, y, z, utc, dop\n100, gps0, 2.3, 48.8, 35.0, 0, 1.0\n",
+            "sensors/records_lidar.txt": HEADER
+            + "# timestamp, device_id, point_cloud_path\n100, velodyne, velodyne/100.pcd\n",
+            "sensors/records_depth.txt": HEADER
+            + "# timestamp, device_id, depth_map_path\n100, cam_left_depth, left/100.depth\n",
+        },
+        {"left/100.jpg": (32, 24)},
+    )
+    query = write_text_folder(
+        tmp_path / "query",
+        {
+            "sensors/sensors.txt": HEADER + "q_left, , camera, SIMPLE_RADIAL, 32, 24, 30.0, 16.0, 12.0, 0.01\n",
+            "sensors/rigs.txt": HEADER + "q_car, q_left, 1, 0, 0, 0, 0, 0, 0\nq_car, q_right, 1, 0, 0, 0, -0.5, 0, 0\n",
+            "sensors/records_camera.txt": HEADER + "7, q_left, query/7.jpg\n",
+        },
+        {"query/7.jpg": (32, 24)},
+    )
     scene = load_kapture_scene("published", [mapping], [query])
     assert scene.database.names == ["left/100.jpg"] and scene.queries.names == ["query/7.jpg"]
     assert_poses(scene.database, {"left/100.jpg": T_cam_rig @ T_rig_world})

@@ -10,7 +10,8 @@ from locretrieval.training.losses import APLoss, ContrastiveLoss, ListwiseLoss, 
 
 LOSSES = {"ap": APLoss, "triplet": TripletLoss, "contrastive": ContrastiveLoss, "listwise": ListwiseLoss}
 
-SETTINGS = [("ap", {"bins": 20}), ("triplet", {"margin": 0.1}), ("triplet", {"margin": 0.1, "max_triplets_per_anchor": 2}),
+SETTINGS = [("ap", {"bins": 20}), ("triplet", {"margin": 0.1}),
+            ("triplet", {"margin": 0.1, "max_triplets_per_anchor": 2}),
             ("contrastive", {"pos_margin": 0.8, "neg_margin": 0.3}),
             ("listwise", {"temperature": 0.05, "target_temperature": 0.5})]  # fmt: skip
 IDS = ["ap", "triplet", "triplet-hardest", "contrastive", "listwise"]
@@ -64,7 +65,9 @@ def test_triplet_is_the_mean_hinge_per_anchor_then_over_anchors():
     expected = np.mean([np.mean(h) for h in hinges.values()])
     assert TripletLoss(0.1)(descriptors, relevance, negatives).item() == pytest.approx(expected, abs=1e-6)
     hardest = np.mean([max(h) for h in hinges.values()])  # one triplet per anchor: its largest hinge
-    assert TripletLoss(0.1, max_triplets_per_anchor=1)(descriptors, relevance, negatives).item() == pytest.approx(hardest, abs=1e-6)
+    assert TripletLoss(0.1, max_triplets_per_anchor=1)(descriptors, relevance, negatives).item() == pytest.approx(
+        hardest, abs=1e-6
+    )
 
 
 def test_contrastive_is_the_mean_positive_plus_negative_term_per_anchor():
@@ -196,9 +199,13 @@ def test_a_pytorch_metric_learning_loss_is_given_the_relevant_and_surely_unrelat
     labels, (a1, p, a2, n) = given[0]
     assert labels is None  # never class labels
     assert sorted(zip(a1, p)) == [(0, 1), (1, 0), (2, 3)]
-    expected_negatives = {(a, b) for a in (0, 1, 2) for b in range(5) if a != b and relevance[a, b] == 0 and negatives[a, b]}
+    expected_negatives = {
+        (a, b) for a in (0, 1, 2) for b in range(5) if a != b and relevance[a, b] == 0 and negatives[a, b]
+    }
     assert set(zip(a2, n)) == expected_negatives  # anchors 3 and 4 have no relevant partner: not anchors
     assert descriptors.grad is not None and torch.isfinite(loss)
     # the same pairs through PML's own loss give the same value: the adapter adds nothing else
-    direct = MultiSimilarityLoss(alpha=1.0, beta=50.0, base=0.0)(descriptors, None, (torch.tensor(a1), torch.tensor(p), torch.tensor(a2), torch.tensor(n)))
+    direct = MultiSimilarityLoss(alpha=1.0, beta=50.0, base=0.0)(
+        descriptors, None, (torch.tensor(a1), torch.tensor(p), torch.tensor(a2), torch.tensor(n))
+    )
     assert float(direct) == pytest.approx(float(loss))

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 from scipy import sparse
+from test_training import train_config
 
 from locretrieval.models.extraction import Preprocessing
 from locretrieval.models.networks import GeMPooling, RetrievalNet
@@ -14,7 +15,6 @@ from locretrieval.training.losses import ListwiseLoss
 from locretrieval.training.memory import DescriptorMemory
 from locretrieval.training.module import RetrievalTraining
 from locretrieval.training.relevance import TrainingPairs
-from test_training import train_config
 from locretrieval.training.run import train
 
 
@@ -56,7 +56,8 @@ def test_a_batch_gains_the_remembered_images_outside_it_as_candidates_that_are_n
     batch = np.array([4, 5, 6, 7])
     relevance, negatives = (torch.from_numpy(block) for block in pairs.batch(batch))
     candidates, extended_relevance, extended_negatives = memory.extend(
-        descriptors[batch], relevance, negatives, torch.from_numpy(batch), pairs)
+        descriptors[batch], relevance, negatives, torch.from_numpy(batch), pairs
+    )
     everyone = np.array([4, 5, 6, 7, 0, 1, 2, 3])  # the batch, then what it does not hold of the memory
     torch.testing.assert_close(candidates, descriptors[everyone])
     graded, related = pairs.graded.toarray(), pairs.related.toarray()
@@ -79,7 +80,9 @@ def test_the_listwise_loss_with_a_memory_ranks_each_anchor_against_every_remembe
     batch = np.arange(6)
     relevance, negatives = (torch.from_numpy(block) for block in pairs.batch(batch))
     loss = ListwiseLoss(temperature=0.1, target_temperature=0.2)
-    extended = memory.extend(descriptors[:6].clone().requires_grad_(True), relevance, negatives, torch.from_numpy(batch), pairs)
+    extended = memory.extend(
+        descriptors[:6].clone().requires_grad_(True), relevance, negatives, torch.from_numpy(batch), pairs
+    )
     value = loss(*extended)
 
     graded, related = pairs.graded.toarray(), pairs.related.toarray()
@@ -103,7 +106,9 @@ def test_the_listwise_loss_with_a_memory_ranks_each_anchor_against_every_remembe
 
 def test_training_steps_fill_the_memory_and_rank_against_it():
     torch.manual_seed(0)
-    network = RetrievalNet(torch.nn.Sequential(torch.nn.Conv2d(3, 4, 3), torch.nn.ReLU()), GeMPooling(3.0, trainable=False), 4)
+    network = RetrievalNet(
+        torch.nn.Sequential(torch.nn.Conv2d(3, 4, 3), torch.nn.ReLU()), GeMPooling(3.0, trainable=False), 4
+    )
     pairs = random_pairs(8, 4)
     calls = []
 
@@ -111,8 +116,17 @@ def test_training_steps_fill_the_memory_and_rank_against_it():
         calls.append((len(descriptors), descriptors.requires_grad))
         return descriptors.sum() * 0
 
-    module = RetrievalTraining(network, Preprocessing(max_side=None, scales=(1.0,)), recording_loss,
-                               partial(torch.optim.Adam, lr=1e-3), None, "gem", {}, memory_size=5, pairs=pairs)
+    module = RetrievalTraining(
+        network,
+        Preprocessing(max_side=None, scales=(1.0,)),
+        recording_loss,
+        partial(torch.optim.Adam, lr=1e-3),
+        None,
+        "gem",
+        {},
+        memory_size=5,
+        pairs=pairs,
+    )
     images = torch.randint(0, 255, (4, 3, 12, 12), dtype=torch.uint8)
     for batch in (np.array([0, 1, 2, 3]), np.array([3, 4, 5, 6])):
         relevance, negatives = (torch.from_numpy(block) for block in pairs.batch(batch))
@@ -120,7 +134,9 @@ def test_training_steps_fill_the_memory_and_rank_against_it():
     assert calls == [(4, True), (4 + 3, True)]  # the second batch sees images 0, 1, 2 remembered (3 is in it)
     assert module.memory.indices.tolist() == [2, 3, 4, 5, 6]  # the newest 5
     with pytest.raises(ValueError, match="module.memory_size needs the training pairs"):
-        RetrievalTraining(network, Preprocessing(max_side=None, scales=(1.0,)), recording_loss, None, None, "gem", {}, memory_size=5)
+        RetrievalTraining(
+            network, Preprocessing(max_side=None, scales=(1.0,)), recording_loss, None, None, "gem", {}, memory_size=5
+        )
 
 
 def test_train_py_trains_with_a_memory(tmp_path):

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 import torchvision
+from helpers import zoo_model
 from PIL import Image
 
-from helpers import zoo_model
 from locretrieval.models.apgem import convert_apgem
 from locretrieval.models.weights import HASH_CACHE_ENV, MissingWeightsError, save_checkpoint
 from locretrieval.scene import Camera, ImageSet
@@ -29,7 +29,11 @@ class FakeSklearnPCA:
     """Pickles as ``sklearn.decomposition.pca.PCA``, as in checkpoints saved with scikit-learn 0.20."""
 
 
-FakeSklearnPCA.__module__, FakeSklearnPCA.__qualname__, FakeSklearnPCA.__name__ = "sklearn.decomposition.pca", "PCA", "PCA"
+FakeSklearnPCA.__module__, FakeSklearnPCA.__qualname__, FakeSklearnPCA.__name__ = (
+    "sklearn.decomposition.pca",
+    "PCA",
+    "PCA",
+)
 
 
 @pytest.fixture
@@ -45,11 +49,23 @@ def fabricated_pca(rng: np.random.Generator, dim: int) -> FakeSklearnPCA:
     components = np.linalg.qr(rng.normal(size=(dim, dim)))[0]
     variance = np.sort(rng.uniform(0.01, 1.0, size=dim))[::-1]
     pca.__dict__.update(
-        n_components=None, copy=True, whiten=True, svd_solver="full", tol=0.0, iterated_power="auto",
-        random_state=None, mean_=rng.normal(size=dim) * 0.05, n_samples_=np.int64(1000), n_features_=dim,
-        n_components_=dim, components_=components, explained_variance_=variance,
-        explained_variance_ratio_=variance / variance.sum(), singular_values_=np.sqrt(variance * 999),
-        noise_variance_=np.float64(0.0), _sklearn_version="0.20.2",
+        n_components=None,
+        copy=True,
+        whiten=True,
+        svd_solver="full",
+        tol=0.0,
+        iterated_power="auto",
+        random_state=None,
+        mean_=rng.normal(size=dim) * 0.05,
+        n_samples_=np.int64(1000),
+        n_features_=dim,
+        n_components_=dim,
+        components_=components,
+        explained_variance_=variance,
+        explained_variance_ratio_=variance / variance.sum(),
+        singular_values_=np.sqrt(variance * 999),
+        noise_variance_=np.float64(0.0),
+        _sklearn_version="0.20.2",
     )
     return pca
 
@@ -77,7 +93,13 @@ def checkpoint(tmp_path, sklearn_modules):
     torch.save(
         {
             "state_dict": {f"module.{k}": v for k, v in state.items()},
-            "model_options": {"arch": "resnet18_rmac", "out_dim": OUT_DIM, "pooling": "gem", "gemp": 3, "dropout_p": None},
+            "model_options": {
+                "arch": "resnet18_rmac",
+                "out_dim": OUT_DIM,
+                "pooling": "gem",
+                "gemp": 3,
+                "dropout_p": None,
+            },
             "preprocess": {"mean": MEAN, "std": STD, "input_size": 224},
             "pca": {"Landmarks_clean": pca},
             "epoch": 7,
@@ -118,7 +140,10 @@ def image_set(folder: Path, images: list[np.ndarray]) -> ImageSet:
 @pytest.fixture
 def images(tmp_path):
     rng = np.random.default_rng(3)
-    rgbs = [rng.integers(0, 256, size=(40, 56, 3), dtype=np.uint8), rng.integers(0, 256, size=(56, 40, 3), dtype=np.uint8)]
+    rgbs = [
+        rng.integers(0, 256, size=(40, 56, 3), dtype=np.uint8),
+        rng.integers(0, 256, size=(56, 40, 3), dtype=np.uint8),
+    ]
     return rgbs, image_set(tmp_path, rgbs)
 
 
@@ -132,7 +157,13 @@ def test_dirtorch_checkpoint_matches_dirtorch_computation(checkpoint, images):
     assert model.preprocessing.mean == tuple(MEAN) and model.identity()["architecture"]["pca"] is None
 
     whitened_model = zoo_model(
-        "apgem", weights=path, backbone="resnet18", out_dim=OUT_DIM, pca="Landmarks_clean", pca_power=0.25, pca_dims=16,
+        "apgem",
+        weights=path,
+        backbone="resnet18",
+        out_dim=OUT_DIM,
+        pca="Landmarks_clean",
+        pca_power=0.25,
+        pca_dims=16,
     )
     whitened = whitened_model.describe(image_set_)
     assert whitened.shape == (2, 16)
@@ -160,7 +191,9 @@ def test_file_must_hold_the_configured_architecture(checkpoint, tmp_path):
     converted = tmp_path / "apgem.pt"
     convert_apgem(path, converted)
     for weights in (path, converted):
-        with pytest.raises(ValueError, match=r"differs from the configuration \(backbone: file 'resnet18' vs config 'resnet50'\)"):
+        with pytest.raises(
+            ValueError, match=r"differs from the configuration \(backbone: file 'resnet18' vs config 'resnet50'\)"
+        ):
             zoo_model("apgem", weights=weights, backbone="resnet50", out_dim=OUT_DIM)
         with pytest.raises(ValueError, match=rf"out_dim: file {OUT_DIM} vs config 64"):
             zoo_model("apgem", weights=weights, backbone="resnet18", out_dim=64)
@@ -186,12 +219,22 @@ def test_resnet101_checkpoint_layout_loads(tmp_path):
     with torch.device("meta"):
         shapes = torchvision.models.resnet101(weights=None).state_dict()
     state = {f"module.{k}": torch.zeros(v.shape, dtype=v.dtype) for k, v in shapes.items() if not k.startswith("fc.")}
-    state.update({"module.adpool.p": torch.tensor([3.0]), "module.fc.weight": torch.zeros(2048, 2048), "module.fc.bias": torch.zeros(2048)})
+    state.update(
+        {
+            "module.adpool.p": torch.tensor([3.0]),
+            "module.fc.weight": torch.zeros(2048, 2048),
+            "module.fc.bias": torch.zeros(2048),
+        }
+    )
     path = tmp_path / "Resnet101-AP-GeM-LM18.pt"
-    torch.save({"state_dict": state, "model_options": {"arch": "resnet101_rmac", "out_dim": 2048, "pooling": "gem"}}, path)
+    torch.save(
+        {"state_dict": state, "model_options": {"arch": "resnet101_rmac", "out_dim": 2048, "pooling": "gem"}}, path
+    )
     model = zoo_model("apgem", weights=path)
     assert model.network.output_dim == 2048
-    assert sum(p.numel() for p in model.network.parameters()) == sum(v.numel() for k, v in state.items() if "num_batches" not in k and "running" not in k)
+    assert sum(p.numel() for p in model.network.parameters()) == sum(
+        v.numel() for k, v in state.items() if "num_batches" not in k and "running" not in k
+    )
 
 
 def test_missing_file_names_the_expected_file_and_its_publisher(tmp_path):

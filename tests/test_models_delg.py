@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from helpers import zoo_model
 from PIL import Image
 
-from helpers import zoo_model
 from locretrieval.models.delg import convert_delg, delg_state_dict_from_tf, read_tf_variables
 from locretrieval.models.weights import HASH_CACHE_ENV, MissingWeightsError
 from locretrieval.scene import Camera, ImageSet
@@ -31,7 +31,9 @@ def slim_variables(rng: np.random.Generator, units: tuple[int, ...], prefix: str
     variables: dict[str, np.ndarray] = {}
 
     def conv(name: str, k: int, cin: int, cout: int, gamma: float = 1.0) -> None:
-        variables[f"{prefix}{name}/weights:0"] = (rng.normal(size=(k, k, cin, cout)) * np.sqrt(2 / (k * k * cin))).astype(np.float32)
+        variables[f"{prefix}{name}/weights:0"] = (
+            rng.normal(size=(k, k, cin, cout)) * np.sqrt(2 / (k * k * cin))
+        ).astype(np.float32)
         variables[f"{prefix}{name}/BatchNorm/gamma:0"] = (gamma * rng.uniform(0.5, 1.0, cout)).astype(np.float32)
         variables[f"{prefix}{name}/BatchNorm/beta:0"] = rng.normal(0, 0.1, cout).astype(np.float32)
         variables[f"{prefix}{name}/BatchNorm/moving_mean:0"] = rng.normal(0, 0.1, cout).astype(np.float32)
@@ -77,7 +79,9 @@ def tf_conv(x: torch.Tensor, kernel: np.ndarray, stride: int) -> torch.Tensor:
     return torch.einsum("ncl,co->nol", patches, matrix).reshape(x.shape[0], -1, height, width)
 
 
-def reference_delg(rgb: np.ndarray, variables: dict[str, np.ndarray], units: tuple[int, ...], prefix: str = "DELG/") -> np.ndarray:
+def reference_delg(
+    rgb: np.ndarray, variables: dict[str, np.ndarray], units: tuple[int, ...], prefix: str = "DELG/"
+) -> np.ndarray:
     """DELG's global branch written from TensorFlow's semantics (float64)."""
     v = {name.removesuffix(":0").removeprefix(prefix): value.astype(np.float64) for name, value in variables.items()}
 

@@ -11,18 +11,17 @@ import pytest
 import torch
 import torch.nn.functional as F
 import torchvision
+from helpers import evaluate_config
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from PIL import Image
 
-from helpers import evaluate_config
-
 from locretrieval.cache import tree_signature
-from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
 from locretrieval.config import ConfigError
+from locretrieval.models import TrainableDescriptor
+from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
 from locretrieval.models.networks import l2_normalize
 from locretrieval.models.torch_descriptor import RANDOM_INIT_SUFFIX
-from locretrieval.models import TrainableDescriptor
 from locretrieval.models.weights import HASH_CACHE_ENV, MissingWeightsError, content_sha256
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.scene import Camera, ImageSet, Scene
@@ -48,18 +47,36 @@ def write_images(folder: Path, sizes, seed: int = 0, prefix: str = "img") -> Ima
         names.append(f"{prefix}{i}.png")
         Image.fromarray(rng.integers(0, 256, size=(height, width, 3), dtype=np.uint8)).save(folder / names[-1])
     n = len(names)
-    return ImageSet(names, folder, [camera(*size) for size in sizes], [[1.0, 0, 0, 0]] * n, [[0.0, 0, float(i)] for i in range(n)])
+    return ImageSet(
+        names, folder, [camera(*size) for size in sizes], [[1.0, 0, 0, 0]] * n, [[0.0, 0, float(i)] for i in range(n)]
+    )
 
 
 NETVLAD = {"type": "netvlad", "clusters": 8}
 GEM = {"type": "gem", "p": 3.0, "trainable": True}
-EXTRACTION = {"device": "cpu", "batch_size": 4, "num_workers": 0, "mixed_precision": False, "progress": False, "memmap_dir": None}
+EXTRACTION = {
+    "device": "cpu",
+    "batch_size": 4,
+    "num_workers": 0,
+    "mixed_precision": False,
+    "progress": False,
+    "memmap_dir": None,
+}
 
 
 def trainable(extraction=(), **options) -> TrainableDescriptor:
     """A ResNet-18 model as configs/model/gem.yaml builds it, with ``options`` and ``extraction`` overrides."""
-    settings = dict(name="gem", backbone="resnet18", pooling=GEM, whiten_dim=None, weights=None, random_init=False,
-                    seed=0, max_side=None, scales=[1.0])
+    settings = dict(
+        name="gem",
+        backbone="resnet18",
+        pooling=GEM,
+        whiten_dim=None,
+        weights=None,
+        random_init=False,
+        seed=0,
+        max_side=None,
+        scales=[1.0],
+    )
     return TrainableDescriptor(**{**settings, **options}, extraction={**EXTRACTION, **dict(extraction)})
 
 
@@ -164,7 +181,9 @@ def test_random_initialisation_is_explicit_and_stated(tmp_path):
     model = gem()
     assert model.name == f"gem{RANDOM_INIT_SUFFIX}"
     weights = model.identity()["weights"]
-    assert weights["sha256"] is None and weights["seed"] == 0 and "backbone.conv1.weight" in weights["random_parameters"]
+    assert (
+        weights["sha256"] is None and weights["seed"] == 0 and "backbone.conv1.weight" in weights["random_parameters"]
+    )
     assert "pooling.p" not in weights["random_parameters"]  # set by the configuration
 
 
@@ -208,7 +227,9 @@ def test_cuda_without_a_gpu_is_an_error():
 
 def test_extraction_settings_are_checked_and_misspelt_ones_are_errors():
     assert gem(batch_size=3).settings.batch_size == 3
-    with pytest.raises(ConfigError, match=r"model.extraction.batchsize: unknown key; expected one of \['device', 'batch_size'"):
+    with pytest.raises(
+        ConfigError, match=r"model.extraction.batchsize: unknown key; expected one of \['device', 'batch_size'"
+    ):
         trainable({"batchsize": 3}, random_init=True)
     with pytest.raises(ConfigError, match=r"model.extraction.batch_size: must be >= 1, got 0"):
         gem(batch_size=0)
@@ -233,8 +254,15 @@ def test_model_configs_name_the_missing_weights(model, expected, tmp_path):
 
 
 def test_gem_config_instantiates_with_random_weights_when_asked(images):
-    config = evaluate_config("model=gem", "device=cpu", "model.backbone=resnet18", "model.random_init=true",
-                             "model.scales=[0.5,1.0]", "model.extraction.num_workers=0", "model.extraction.progress=false")
+    config = evaluate_config(
+        "model=gem",
+        "device=cpu",
+        "model.backbone=resnet18",
+        "model.random_init=true",
+        "model.scales=[0.5,1.0]",
+        "model.extraction.num_workers=0",
+        "model.extraction.progress=false",
+    )
     model = instantiate(config.model)
     assert isinstance(model, TrainableDescriptor) and model.name == f"gem{RANDOM_INIT_SUFFIX}"
     assert model.preprocessing.scales == (0.5, 1.0) and model.describe(images).shape == (5, 512)

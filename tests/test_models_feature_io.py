@@ -27,8 +27,12 @@ def test_exported_features_read_back_with_kapture_and_the_precomputed_model(tmp_
     features = kapture.io.csv.global_features_from_dir("Resnet101-AP-GeM-LM18", str(tmp_path / "kapture"), None)
     assert set(features) == set(NAMES) and features.dsize == 24 and features.metric_type == "L2"
     for name, row in zip(NAMES, descriptors):
-        path = kapture.io.features.get_global_features_fullpath("Resnet101-AP-GeM-LM18", str(tmp_path / "kapture"), name)
-        np.testing.assert_array_equal(kapture.io.features.image_global_features_from_file(path, features.dtype, 24).reshape(-1), row)
+        path = kapture.io.features.get_global_features_fullpath(
+            "Resnet101-AP-GeM-LM18", str(tmp_path / "kapture"), name
+        )
+        np.testing.assert_array_equal(
+            kapture.io.features.image_global_features_from_file(path, features.dtype, 24).reshape(-1), row
+        )
 
     camera = Camera("PINHOLE", 8, 8, (4.0, 4.0, 4.0, 4.0))
     images = ImageSet(NAMES, tmp_path, [camera] * 3, [[1.0, 0, 0, 0]] * 3, [[0.0, 0, 0]] * 3)

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import scipy.io
 import torch
+from helpers import zoo_model
 from PIL import Image
 
-from helpers import zoo_model
-from locretrieval.models.networks import NetVLADPooling
 from locretrieval.models.netvlad import convert_netvlad
+from locretrieval.models.networks import NetVLADPooling
 from locretrieval.models.weights import HASH_CACHE_ENV, MissingWeightsError
 from locretrieval.scene import Camera, ImageSet
 
@@ -169,7 +169,9 @@ def test_vlad_flattening_is_matlab_column_major_of_the_cluster_by_dimension_matr
 
 def test_configuration_must_match_the_file(struct_file):
     path, _ = struct_file
-    with pytest.raises(ValueError, match=r"struct\.mat: architecture in the file differs from the configuration \(clusters: file"):
+    with pytest.raises(
+        ValueError, match=r"struct\.mat: architecture in the file differs from the configuration \(clusters: file"
+    ):
         zoo_model("netvlad", weights=path, clusters=64, whiten_dim=4096)
 
 

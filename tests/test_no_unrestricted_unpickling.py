@@ -6,15 +6,28 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SOURCES = sorted([*ROOT.glob("locretrieval/**/*.py"), *ROOT.glob("scripts/*.py"), *ROOT.glob("benchmarks/*.py"), *ROOT.glob("*.py")])
+SOURCES = sorted(
+    [*ROOT.glob("locretrieval/**/*.py"), *ROOT.glob("scripts/*.py"), *ROOT.glob("benchmarks/*.py"), *ROOT.glob("*.py")]
+)
 
 #: (file, enclosing function) of the unrestricted loads of files the project wrote itself: the SfM
 #: workers' shared state, pickled by `parallel_map` into its own temporary folder.
 OWN_TEMPORARY_FILES = {("locretrieval/localization/workers.py", "_call")}
 
-UNRESTRICTED = {("pickle", "load"), ("pickle", "loads"), ("pickle", "Unpickler"), ("_pickle", "load"), ("_pickle", "loads"),
-                ("dill", "load"), ("dill", "loads"), ("joblib", "load"), ("pd", "read_pickle"), ("pandas", "read_pickle"),
-                ("cloudpickle", "load"), ("cloudpickle", "loads")}
+UNRESTRICTED = {
+    ("pickle", "load"),
+    ("pickle", "loads"),
+    ("pickle", "Unpickler"),
+    ("_pickle", "load"),
+    ("_pickle", "loads"),
+    ("dill", "load"),
+    ("dill", "loads"),
+    ("joblib", "load"),
+    ("pd", "read_pickle"),
+    ("pandas", "read_pickle"),
+    ("cloudpickle", "load"),
+    ("cloudpickle", "loads"),
+}
 
 
 def _keyword(call: ast.Call, name: str):
@@ -35,14 +48,24 @@ def unsafe_loads(source: str) -> list[tuple[str, int, str]]:
             if isinstance(child, ast.ImportFrom) and child.module in {"pickle", "_pickle", "dill", "cloudpickle"}:
                 names = {alias.name for alias in child.names} & {"load", "loads", "Unpickler"}
                 found.extend((function, child.lineno, f"from {child.module} import {name}") for name in names)
-            if isinstance(child, ast.Call) and isinstance(child.func, ast.Attribute) and isinstance(child.func.value, ast.Name):
+            if (
+                isinstance(child, ast.Call)
+                and isinstance(child.func, ast.Attribute)
+                and isinstance(child.func.value, ast.Name)
+            ):
                 owner, name = child.func.value.id, child.func.attr
                 if (owner, name) in UNRESTRICTED:
                     found.append((function, child.lineno, f"{owner}.{name}"))
                 elif (owner, name) == ("torch", "load") and not _is_true(_keyword(child, "weights_only")):
                     found.append((function, child.lineno, "torch.load without weights_only=True"))
-                elif (owner, name) in {("np", "load"), ("numpy", "load")} and _keyword(child, "allow_pickle") is not None \
-                        and not (isinstance(_keyword(child, "allow_pickle"), ast.Constant) and _keyword(child, "allow_pickle").value is False):
+                elif (
+                    (owner, name) in {("np", "load"), ("numpy", "load")}
+                    and _keyword(child, "allow_pickle") is not None
+                    and not (
+                        isinstance(_keyword(child, "allow_pickle"), ast.Constant)
+                        and _keyword(child, "allow_pickle").value is False
+                    )
+                ):
                     found.append((function, child.lineno, "np.load with allow_pickle"))
             visit(child, scope)
 
@@ -56,7 +79,10 @@ def unsafe_loads(source: str) -> list[tuple[str, int, str]]:
         ("import pickle\ndef read(f):\n    return pickle.load(open(f, 'rb'))", "pickle.load"),
         ("import pickle\ncontent = pickle.loads(b'')", "pickle.loads"),
         ("from pickle import load", "from pickle import load"),
-        ("import torch\ndef read(f):\n    return torch.load(f, map_location='cpu')", "torch.load without weights_only=True"),
+        (
+            "import torch\ndef read(f):\n    return torch.load(f, map_location='cpu')",
+            "torch.load without weights_only=True",
+        ),
         ("import torch\ntorch.load('x', weights_only=False)", "torch.load without weights_only=True"),
         ("import numpy as np\nnp.load('x.npy', allow_pickle=True)", "np.load with allow_pickle"),
         ("import pandas as pd\npd.read_pickle('x')", "pd.read_pickle"),
@@ -67,8 +93,13 @@ def test_the_scan_finds_each_kind_of_unrestricted_load(snippet, what):
 
 
 def test_restricted_loads_pass_the_scan():
-    assert unsafe_loads("import torch, numpy as np\ntorch.load('x', map_location='cpu', weights_only=True)\n"
-                        "np.load('x.npy', allow_pickle=False)\nnp.load('y.npz')") == []
+    assert (
+        unsafe_loads(
+            "import torch, numpy as np\ntorch.load('x', map_location='cpu', weights_only=True)\n"
+            "np.load('x.npy', allow_pickle=False)\nnp.load('y.npz')"
+        )
+        == []
+    )
 
 
 def test_no_module_unpickles_anything_but_its_own_temporary_files():

@@ -169,11 +169,16 @@ def precomputed_config(tmp_path, *overrides):
 
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(Path(__file__).parents[1] / "configs"), version_base="1.3"):
-        return compose(config_name="evaluate", overrides=["model=precomputed", f"paths.root_dir={tmp_path}", *overrides],
-                       return_hydra_config=True)
+        return compose(
+            config_name="evaluate",
+            overrides=["model=precomputed", f"paths.root_dir={tmp_path}", *overrides],
+            return_hydra_config=True,
+        )
 
 
-@pytest.mark.parametrize(("overrides", "name"), [([], "precomputed"), (["model.feature_name=AP-GeM-LM18"], "AP-GeM-LM18")])
+@pytest.mark.parametrize(
+    ("overrides", "name"), [([], "precomputed"), (["model.feature_name=AP-GeM-LM18"], "AP-GeM-LM18")]
+)
 def test_config_names_the_ranking_and_output_folder(overrides, name, tmp_path):
     cfg = precomputed_config(tmp_path, *overrides)
     assert cfg.model.name == name

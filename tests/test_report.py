@@ -33,7 +33,9 @@ def seeded(name: str) -> np.random.Generator:
 def queries() -> ImageSet:
     camera = Camera("SIMPLE_PINHOLE", 64, 48, (50.0, 32.0, 24.0))
     names = [f"q{i}.png" for i in range(NUM_QUERIES)]
-    return ImageSet(names, "/x", [camera] * NUM_QUERIES, np.tile([1.0, 0, 0, 0], (NUM_QUERIES, 1)), np.zeros((NUM_QUERIES, 3)))
+    return ImageSet(
+        names, "/x", [camera] * NUM_QUERIES, np.tile([1.0, 0, 0, 0], (NUM_QUERIES, 1)), np.zeros((NUM_QUERIES, 3))
+    )
 
 
 def relevance() -> sparse.csr_matrix:
@@ -71,7 +73,9 @@ def write_run(directory: Path, descriptors: list[str]) -> Path:
     rankings = [ranking(name, "descriptor") for name in descriptors]
     rankings += [ranking(GROUNDTRUTH, "groundtruth"), ranking("random", "baseline")]
     subsets = {"all": np.ones(NUM_QUERIES, bool), "blurry": np.arange(NUM_QUERIES) < 3}
-    retrieval, per_query = retrieval_tables("toy", rankings, {GROUNDTRUTH: relevance()}, queries(), subsets, range(1, 11), KS)
+    retrieval, per_query = retrieval_tables(
+        "toy", rankings, {GROUNDTRUTH: relevance()}, queries(), subsets, range(1, 11), KS
+    )
     tables = [localization(r.name, r.kind) for r in rankings]
     pd.concat([t[0] for t in tables]).to_csv(directory / "results.csv", index=False)
     pd.concat([t[1] for t in tables]).to_csv(directory / "query_errors.csv.gz", index=False)
@@ -158,13 +162,20 @@ def test_report_of_a_multirun_produces_every_figure_and_table(tmp_path):
     text = report.read_text()
     for stem in figures:
         assert f"(figures/{stem}.png)" in text
-    tables = ("table1_groundtruth_statistics", "table2_revisited", f"pearson_recall_{GROUNDTRUTH}", f"spearman_precision_{GROUNDTRUTH}",
-              "median_errors")
+    tables = (
+        "table1_groundtruth_statistics",
+        "table2_revisited",
+        f"pearson_recall_{GROUNDTRUTH}",
+        f"spearman_precision_{GROUNDTRUTH}",
+        "median_errors",
+    )
     for stem in tables:
         assert (output / "tables" / f"{stem}.tex").read_text().startswith("\\begin{table}")
         assert (output / "tables" / f"{stem}.md").is_file()
     assert "gt\\_relative\\_pose" in (output / "tables" / "table1_groundtruth_statistics.tex").read_text()
-    assert "## Median errors" in text and "median_position_error_m" in (output / "tables" / "median_errors.md").read_text()
+    assert (
+        "## Median errors" in text and "median_position_error_m" in (output / "tables" / "median_errors.md").read_text()
+    )
     pearson = pd.read_csv(output / "correlation_dataset_pearson.csv")
     assert set(pearson["ranking"]) == {"apgem", "netvlad"}  # descriptors only, from both runs
     assert len(pd.read_csv(output / "correlation_query_pearson.csv.gz")) > 0
@@ -176,7 +187,10 @@ def test_figures_drawn_by_worker_processes_are_those_drawn_in_process(tmp_path):
     in_process = build_report([run], tmp_path / "here", figure_formats=["png"], figure_workers=1)
     by_workers = build_report([run], tmp_path / "workers", figure_formats=["png"], figure_workers=2)
     assert by_workers.read_text().replace("workers", "here") == in_process.read_text()
-    sizes = {folder: {f.name: f.stat().st_size for f in (tmp_path / folder / "figures").glob("*.png")} for folder in ("here", "workers")}
+    sizes = {
+        folder: {f.name: f.stat().st_size for f in (tmp_path / folder / "figures").glob("*.png")}
+        for folder in ("here", "workers")
+    }
     assert len(sizes["here"]) == 13 and sizes["workers"] == sizes["here"]  # the same figures, pixel for pixel in size
 
 
@@ -213,26 +227,40 @@ def test_every_report_figure_keeps_its_text_inside_the_figure_and_its_own_panel(
         for left, right in zip(boxes, boxes[1:]):
             assert left.x1 < right.x0, stem  # no panel's text reaches into the next
         for axis in figure.axes:  # nor one tick label into the next
-            labels = sorted((label.get_window_extent(renderer) for label in axis.get_xticklabels() if label.get_text()), key=lambda box: box.x0)
+            labels = sorted(
+                (label.get_window_extent(renderer) for label in axis.get_xticklabels() if label.get_text()),
+                key=lambda box: box.x0,
+            )
             assert all(left.x1 < right.x0 for left, right in zip(labels, labels[1:])), stem
-        assert [text.get_window_extent(renderer).y0 > max(box.y1 for box in boxes) for text in figure.texts] == [True], stem
+        assert [text.get_window_extent(renderer).y0 > max(box.y1 for box in boxes) for text in figure.texts] == [
+            True
+        ], stem
         checked.append(stem)
         return original_save(folder, figure, stem)
 
     monkeypatch.setattr(FigureFolder, "save", check_then_save)
     long_names = ["netvlad_pitts30k_vgg16_whitened", "apgem_resnet101_gldv1", "densevlad_multiscale"]  # violin labels
-    build_report([write_run(tmp_path / "run", long_names)], tmp_path / "report", figure_formats=["png"], figure_workers=1)
+    build_report(
+        [write_run(tmp_path / "run", long_names)], tmp_path / "report", figure_formats=["png"], figure_workers=1
+    )
     assert len(checked) == 13 and any("violin" in stem for stem in checked)
 
 
 def test_a_violin_panel_without_a_defined_coefficient_labels_its_rankings_inside_the_frame(tmp_path, monkeypatch):
     panels = []
     original_save = FigureFolder.save
-    monkeypatch.setattr(FigureFolder, "save", lambda folder, figure, stem: panels.extend(figure.axes) or original_save(folder, figure, stem))
+    monkeypatch.setattr(
+        FigureFolder,
+        "save",
+        lambda folder, figure, stem: panels.extend(figure.axes) or original_save(folder, figure, stem),
+    )
     rows = pd.DataFrame(
-        [("toy", GROUNDTRUTH, "precision", paradigm, "pnp", ranking, value)
-         for paradigm, values in (("global_sfm", [0.5, -0.2, 0.9]), ("local_sfm", [np.nan] * 3))
-         for ranking in ("apgem", "netvlad") for value in values],
+        [
+            ("toy", GROUNDTRUTH, "precision", paradigm, "pnp", ranking, value)
+            for paradigm, values in (("global_sfm", [0.5, -0.2, 0.9]), ("local_sfm", [np.nan] * 3))
+            for ranking in ("apgem", "netvlad")
+            for value in values
+        ],
         columns=["dataset", "groundtruth", "retrieval_metric", "paradigm", "method", "ranking", "coefficient"],
     )
     plot_query_violins(rows, FigureFolder(tmp_path, ("png",)), {"apgem": "#123456", "netvlad": "#abcdef"})
@@ -241,7 +269,11 @@ def test_a_violin_panel_without_a_defined_coefficient_labels_its_rankings_inside
     from matplotlib.collections import LineCollection
     from matplotlib.colors import to_hex
 
-    lines = [to_hex(collection.get_color()[0]) for collection in panels[0].collections if isinstance(collection, LineCollection)]
+    lines = [
+        to_hex(collection.get_color()[0])
+        for collection in panels[0].collections
+        if isinstance(collection, LineCollection)
+    ]
     assert len(lines) == 8 and set(lines) == {"#123456", "#abcdef"}  # bars, ends and median in the ranking's colour
     assert [label.get_text() for label in panels[1].get_xticklabels()] == ["apgem\n0/3 def.", "netvlad\n0/3 def."]
 
@@ -278,7 +310,9 @@ def test_one_descriptor_under_several_settings_is_labelled_by_its_overrides(tmp_
     single = load_runs([runs[0]]).results
     first = combined.results[combined.results["ranking"] == variants[0]]
     assert len(first) == len(single[single["ranking"] == "netvlad"])
-    assert len(combined.results[combined.results["ranking"] == GROUNDTRUTH]) == len(single[single["ranking"] == GROUNDTRUTH])
+    assert len(combined.results[combined.results["ranking"] == GROUNDTRUTH]) == len(
+        single[single["ranking"] == GROUNDTRUTH]
+    )
 
 
 def test_runs_without_overrides_are_labelled_by_directory_and_indistinguishable_runs_are_an_error(tmp_path):
@@ -299,7 +333,11 @@ def test_command_line_entry_point_with_only_a_localization_table(tmp_path):
     run.mkdir()
     localization("netvlad", "descriptor")[0].to_csv(run / "results.csv", index=False)
     completed = subprocess.run(
-        [sys.executable, "report.py", str(run)], cwd=Path(__file__).parents[1], capture_output=True, text=True, timeout=300
+        [sys.executable, "report.py", str(run)],
+        cwd=Path(__file__).parents[1],
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert completed.returncode == 0, completed.stderr
     stems = ("approximation_csi", "approximation_ewb", "global_sfm_pnp", "subset_blurry")
@@ -318,7 +356,9 @@ def test_headline_thresholds_and_retrieval_summary_values(tmp_path):
     assert headline_threshold(tables.results, "global_sfm") == (0.25, 2.0)  # tightest, as Figs. 5-6
     summary = retrieval_summary(tables.retrieval)
     row = tables.retrieval.query("subset == 'all' and ranking == 'netvlad' and metric == 'recall' and k == 5").iloc[0]
-    assert summary.loc[(row["dataset"], row["groundtruth"], "netvlad"), ("recall", 5)] == pytest.approx(100 * row["value"])
+    assert summary.loc[(row["dataset"], row["groundtruth"], "netvlad"), ("recall", 5)] == pytest.approx(
+        100 * row["value"]
+    )
 
 
 def test_runs_written_before_k_effective_existed_read_it_as_k(tmp_path):

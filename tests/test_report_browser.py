@@ -9,8 +9,8 @@ import shutil
 from pathlib import Path
 
 import pytest
-
 from helpers import evaluate_config
+
 from locretrieval.evaluation import evaluate
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -49,7 +49,13 @@ def run(tmp_path_factory) -> Path:
 def browser():
     options = webdriver.ChromeOptions()
     options.binary_location = CHROMIUM
-    for argument in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--window-size=1400,1000"):
+    for argument in (
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-dev-shm-usage",
+        "--window-size=1400,1000",
+    ):
         options.add_argument(argument)
     options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
     driver = webdriver.Chrome(options=options, service=webdriver.ChromeService(executable_path=CHROMEDRIVER))
@@ -59,7 +65,8 @@ def browser():
 
 
 def open_page(browser, page: Path) -> tuple[list, list]:
-    """Load ``page`` from file://; returns ``[src, complete, naturalWidth]`` per image and the console's SEVERE entries."""
+    """Load ``page`` from file://; returns ``[src, complete, naturalWidth]`` per image and the
+    console's SEVERE entries."""
     browser.get_log("browser")  # drop what earlier pages logged
     browser.get(page.resolve().as_uri())
     images = browser.execute_async_script(IMAGES)
@@ -71,7 +78,11 @@ def test_report_html_shows_every_figure_and_gallery_image_without_console_errors
     assert errors == []
     sources = [src for src, _, _ in images]
     assert any(src.startswith("figures/") for src in sources) and any(src.startswith("galleries/") for src in sources)
-    assert len([src for src in sources if src.startswith("galleries/")]) == len(list((run / "galleries").rglob("*.jpg"))) == 15
+    assert (
+        len([src for src in sources if src.startswith("galleries/")])
+        == len(list((run / "galleries").rglob("*.jpg")))
+        == 15
+    )
     broken = [src for src, complete, width in images if not (complete and width > 0)]
     assert broken == []
     assert browser.title.startswith("locretrieval report")

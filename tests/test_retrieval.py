@@ -268,7 +268,9 @@ def test_top_k_takes_the_best_entries_ties_by_lower_index_also_when_a_tie_stradd
     for depth in (1, 7, 50, 300):  # the partial selection below N / 4, the full sort above
         indices, top = top_k(scores, depth, valid)
         for row in range(len(scores)):
-            ranked = sorted((-scores[row, n], n) for n in range(scores.shape[1]) if valid[row, n] and np.isfinite(scores[row, n]))
+            ranked = sorted(
+                (-scores[row, n], n) for n in range(scores.shape[1]) if valid[row, n] and np.isfinite(scores[row, n])
+            )
             expected = [n for _, n in ranked[:depth]]
             assert indices[row].tolist() == expected + [EMPTY] * (depth - len(expected))
             np.testing.assert_array_equal(top[row, : len(expected)], scores[row, expected].astype(np.float32))

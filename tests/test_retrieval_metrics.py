@@ -101,4 +101,6 @@ def test_inconsistent_shapes_are_errors_naming_the_ground_truth():
     with pytest.raises(ValueError, match="gt_rows"):
         retrieval_tables("toy", [ranking], {"gt_rows": RELEVANCE[:3]}, queries(), {"all": np.ones(4, bool)}, KS, KS)
     with pytest.raises(ValueError, match=r"subset masks \{'night': 3\}"):
-        retrieval_tables("toy", [ranking], {"gt": RELEVANCE}, queries(), {"all": np.ones(4, bool), "night": np.ones(3, bool)}, KS, KS)
+        retrieval_tables(
+            "toy", [ranking], {"gt": RELEVANCE}, queries(), {"all": np.ones(4, bool), "night": np.ones(3, bool)}, KS, KS
+        )

@@ -29,7 +29,9 @@ def groundtruth(tmp_path):
 
 
 def test_protocols_match_hand_computed_values(groundtruth):
-    table = evaluate_revisited(Ranking("toy", RANKING, np.zeros(RANKING.shape), "descriptor"), groundtruth, "toy", kappas=(1, 5, 10))
+    table = evaluate_revisited(
+        Ranking("toy", RANKING, np.zeros(RANKING.shape), "descriptor"), groundtruth, "toy", kappas=(1, 5, 10)
+    )
     assert list(table.columns) == REVISITED_COLUMNS
     value = table.set_index(["protocol", "metric", "k"])["value"]
     count = table.set_index(["protocol", "metric", "k"])["num_queries"]
@@ -79,7 +81,12 @@ def _published_structure() -> dict:
         "imlist": [f"db{i}" for i in range(8)],
         "qimlist": ["q0", "q1"],
         "gnd": [
-            {"easy": np.array([0, 3]), "hard": np.array([5]), "junk": np.array([1]), "bbx": np.array([1.5, 2.0, 40.0, 30.5])},
+            {
+                "easy": np.array([0, 3]),
+                "hard": np.array([5]),
+                "junk": np.array([1]),
+                "bbx": np.array([1.5, 2.0, 40.0, 30.5]),
+            },
             {"easy": np.array([], dtype=np.int64), "hard": [2], "junk": [], "bbx": [np.float64(0.5), 0.0, 10.0, 10.0]},
         ],
     }
@@ -124,6 +131,8 @@ def test_a_pickle_that_would_run_code_is_refused_naming_file_and_global(tmp_path
 
 def test_other_callables_than_numpy_reconstruction_are_refused(tmp_path):
     path = tmp_path / "gnd.pkl"
-    path.write_bytes(pickle.dumps({"imlist": [], "qimlist": [], "gnd": [], "when": __import__("datetime").date(2020, 1, 1)}))
+    path.write_bytes(
+        pickle.dumps({"imlist": [], "qimlist": [], "gnd": [], "when": __import__("datetime").date(2020, 1, 1)})
+    )
     with pytest.raises(RefusedGlobalError, match=r"gnd\.pkl: refused to unpickle the global datetime\.date"):
         load_revisited_groundtruth(path)

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from helpers import evaluate_config
 from hydra.utils import instantiate
 from scipy.spatial.transform import Rotation
 
-from helpers import evaluate_config
 from locretrieval.evaluation import evaluate
 from locretrieval.localization.estimates import ESTIMATED_POSE_COLUMNS, PoseEstimates, estimated_pose_table
 from locretrieval.report.scene_view import SceneViewSettings, scene_figure, write_scene_view
@@ -64,7 +64,9 @@ def test_estimated_pose_table_has_a_row_per_estimate():
     for row in table.itertuples():
         e = by_key[(row.ranking, row.paradigm, row.method)]
         n, query = e.ks.index(row.k), scene.queries.names.index(row.query)
-        assert [row.qw, row.qx, row.qy, row.qz, row.tx, row.ty, row.tz] == pytest.approx([*e.qvec[n, query], *e.tvec[n, query]])
+        assert [row.qw, row.qx, row.qy, row.qz, row.tx, row.ty, row.tz] == pytest.approx(
+            [*e.qvec[n, query], *e.tvec[n, query]]
+        )
         assert (row.dataset, row.ranking_kind) == ("toy", e.ranking_kind)
 
 
@@ -121,10 +123,16 @@ def test_drawn_cameras_queries_and_map_points_are_bounded():
     points = np.concatenate([np.random.default_rng(0).normal(size=(1000, 3)), [[1e6, 0.0, 0.0]]])  # one stray point
     settings = SceneViewSettings(max_cameras=4, max_queries=2, max_map_points=100, frustum_depth_m=1.0)
     data = [trace.to_plotly_json() for trace in scene_figure(scene, poses, points, settings).data]
-    assert len(data[0]["x"]) == 4 * 11 and data[1]["name"] == "map points (100 of 1001, 1 far away left out)" and len(data[1]["x"]) == 100
+    assert (
+        len(data[0]["x"]) == 4 * 11
+        and data[1]["name"] == "map points (100 of 1001, 1 far away left out)"
+        and len(data[1]["x"]) == 100
+    )
     kept = {"q0.png", "q4.png"}  # queries 0 and 4, evenly spaced
     for key, trace in selection_traces(data).items():
-        expected = poses[(poses[["ranking", "paradigm", "method", "k"]].apply(tuple, axis=1) == key) & poses["query"].isin(kept)]
+        expected = poses[
+            (poses[["ranking", "paradigm", "method", "k"]].apply(tuple, axis=1) == key) & poses["query"].isin(kept)
+        ]
         assert len(trace["x"]) == len(expected), key
     with pytest.raises(ValueError, match="'elsewhere.png'"):
         scene_figure(scene, poses.assign(query="elsewhere.png"), None, settings)

@@ -3,39 +3,48 @@
 import dataclasses
 import shutil
 
+import helpers
 import kapture.io.records as kapture_records
 import numpy as np
+import pycolmap
 import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-import helpers
-
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
-import pycolmap
 from locretrieval import geometry
-from locretrieval.groundtruth import relative_pose_groundtruth
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
+from locretrieval.groundtruth import relative_pose_groundtruth
 from locretrieval.localization import global_sfm, local_sfm, matching, pipeline
-from locretrieval.localization.pipeline import run_sfm
+from locretrieval.localization import triangulation as triangulation_module
 from locretrieval.localization.colmap_model import read_colmap_map, to_pycolmap_camera, to_rigid3d
 from locretrieval.localization.features import FeatureStore, extract_features
 from locretrieval.localization.global_sfm import GlobalSfmSettings, global_map, map_cache_path
 from locretrieval.localization.local_sfm import LocalSfmSettings, local_map_pairs
 from locretrieval.localization.pairs import PairSelection, database_pairs
+from locretrieval.localization.pipeline import run_sfm
 from locretrieval.localization.plan import Work
 from locretrieval.localization.pnp import NO_KEYPOINTS, TOO_FEW_IMAGES, TOO_FEW_MATCHES, estimate_absolute_pose
 from locretrieval.localization.sfm import QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set
-from locretrieval.localization import triangulation as triangulation_module
-from locretrieval.localization.triangulation import BatchedTriangulation, MapInput, triangulate_known_poses
+from locretrieval.localization.triangulation import BatchedTriangulation, MapInput
 from locretrieval.retrieval import Ranking, random_ranking
 from locretrieval.scene import Camera
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 
-SCENE = {"width": 256, "height": 192, "num_database": 40, "num_queries": 8, "texture_size": 128, "length": 20.0,
-         "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
-         "hard_query_fraction": 0.0, "workers": 1, "seed": 1}
+SCENE = {
+    "width": 256,
+    "height": 192,
+    "num_database": 40,
+    "num_queries": 8,
+    "texture_size": 128,
+    "length": 20.0,
+    "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0},
+    "database_dynamic": 0.0,
+    "hard_query_fraction": 0.0,
+    "workers": 1,
+    "seed": 1,
+}
 BLANK = 7  # this query's image is replaced by a uniform one
 PAIRS = {"far": 25.0, "max_per_image": 10}  # global-map pairs (the scene has no frustum_far)
 
@@ -110,7 +119,9 @@ def test_triangulation_with_known_poses_recovers_the_rendered_points(scene, cach
     sparse_map = global_map(inputs, None, cache)
     assert sparse_map.num_points > 500
     keypoints = inputs.database_features.keypoints(database.names)
-    track_lengths = np.bincount(np.concatenate([ids[ids >= 0] for ids in sparse_map.observations]), minlength=sparse_map.num_points)
+    track_lengths = np.bincount(
+        np.concatenate([ids[ids >= 0] for ids in sparse_map.observations]), minlength=sparse_map.num_points
+    )
     errors, lengths = [], []
     for index, name in enumerate(database.names):
         observed = np.flatnonzero(sparse_map.observations[index] >= 0)
@@ -136,8 +147,16 @@ def test_the_global_map_cache_key_follows_what_the_map_depends_on(scene, cache):
         return map_cache_path(inputs, cache)
 
     base = path()
-    assert path(query_verification={"_target_": "locretrieval.localization.verification.TwoViewVerification", "max_error": 3.0,
-                                    "min_num_inliers": 15}) == base  # query pairs only
+    assert (
+        path(
+            query_verification={
+                "_target_": "locretrieval.localization.verification.TwoViewVerification",
+                "max_error": 3.0,
+                "min_num_inliers": 15,
+            }
+        )
+        == base
+    )  # query pairs only
     assert path(triangulation={"min_angle": 3.0}) != base
     assert path(matching={"ratio": 0.9}) != base
     assert path(matching={"max_epipolar_error": 8.0}) != base
@@ -178,7 +197,9 @@ def test_paradigms_localise_with_the_ground_truth_ranking_and_count_failures(sce
     local = run_local(scene, rankings, [1, 3, 5], cache)
     globl = run_global(scene, rankings, [1, 3], cache)
     by_name = {(e.paradigm, e.ranking): e for e in local + globl}
-    assert sorted(by_name) == sorted((p, r) for p in ("local_sfm", "global_sfm") for r in ("gt_relative_pose", "random"))
+    assert sorted(by_name) == sorted(
+        (p, r) for p in ("local_sfm", "global_sfm") for r in ("gt_relative_pose", "random")
+    )
     for estimates in by_name.values():
         assert estimates.method == "pnp"
         # the blank image has no keypoint, whatever k; k=1 cannot build a local map
@@ -351,18 +372,27 @@ def test_results_do_not_depend_on_worker_processes_and_reruns_reuse_the_caches(s
 def test_queries_streamed_in_chunks_give_the_results_of_one_pass(scene, cache, rankings, monkeypatch, tmp_path):
     """Chunks of 3 of the 8 queries: each chunk's pairs matched while the last chunk is triangulated
     and registered (a thread and 2 workers), then the outcomes gathered: those of one pass."""
-    paradigms = {"local_sfm": (local_sfm.STAGES, LocalSfmSettings(True, [2, 4], "database")),
-                 "global_sfm": (global_sfm.STAGES, GlobalSfmSettings(True, [1, 3], None))}
+    paradigms = {
+        "local_sfm": (local_sfm.STAGES, LocalSfmSettings(True, [2, 4], "database")),
+        "global_sfm": (global_sfm.STAGES, GlobalSfmSettings(True, [1, 3], None)),
+    }
     one_pass = run_sfm(scene, rankings, paradigms, sfm_settings(), cache)
     shutil.copytree(cache / "features", tmp_path / "streamed" / "features")
     monkeypatch.setattr(pipeline, "QUERIES_PER_CHUNK", 3)
     chunks = []
-    recording = dataclasses.replace(local_sfm.STAGES, localize=lambda *args: chunks.append(args[-1]) or local_sfm.localize(*args))
+    recording = dataclasses.replace(
+        local_sfm.STAGES, localize=lambda *args: chunks.append(args[-1]) or local_sfm.localize(*args)
+    )
     paradigms["local_sfm"] = (recording, paradigms["local_sfm"][1])
     timings = {}
     streamed = run_sfm(scene, rankings, paradigms, sfm_settings(workers=2), tmp_path / "streamed", timings)
     assert chunks == [[0, 1, 2], [3, 4, 5], [6, 7], None]  # three chunks, then every outcome gathered from the cache
-    assert set(timings) == {"features", "match + verify", "local_sfm: triangulate + register", "global_sfm: triangulate + register"}
+    assert set(timings) == {
+        "features",
+        "match + verify",
+        "local_sfm: triangulate + register",
+        "global_sfm: triangulate + register",
+    }
     for name in paradigms:
         for a, b in zip(one_pass[name], streamed[name]):
             np.testing.assert_array_equal(a.qvec, b.qvec)
@@ -376,7 +406,9 @@ def write_colmap_model(folder, database, keypoints, sparse_map):
     model = pycolmap.Reconstruction()
     for index, name in enumerate(database.names):
         model.add_camera_with_trivial_rig(to_pycolmap_camera(database.cameras[index], index + 1))
-        image = pycolmap.Image(name=name, keypoints=keypoints[name].astype(np.float64), camera_id=index + 1, image_id=index + 1)
+        image = pycolmap.Image(
+            name=name, keypoints=keypoints[name].astype(np.float64), camera_id=index + 1, image_id=index + 1
+        )
         model.add_image_with_trivial_frame(image, to_rigid3d(database.qvec[index], database.tvec[index]))
     for row, xyz in enumerate(sparse_map.points):
         track = pycolmap.Track()
@@ -414,7 +446,9 @@ def test_triangulating_pairs_without_matches_gives_an_empty_map(scene, kind):
     database = scene.database.subset(np.arange(3))
     keypoints = [np.zeros((4, 2)), np.zeros((0, 2)), np.ones((2, 2))]
     no_matches = {(0, 2): np.empty((0, 2), np.int32)}
-    sparse_map = sfm_settings(kind).triangulation.triangulate(database.cameras, database.qvec, database.tvec, keypoints, no_matches)
+    sparse_map = sfm_settings(kind).triangulation.triangulate(
+        database.cameras, database.qvec, database.tvec, keypoints, no_matches
+    )
     assert sparse_map.num_points == 0 and [len(o) for o in sparse_map.observations] == [4, 0, 2]
 
 
@@ -446,7 +480,9 @@ def test_batched_triangulation_solves_exact_tracks_and_drops_an_outlier_observat
     sparse_map = batched.triangulate(cameras, qvec, tvec, keypoints, matches)
     assert sparse_map.num_points == 50
     order = sparse_map.observations[0]  # image 0 sees every point
-    np.testing.assert_allclose(sparse_map.points[order], points, atol=1e-6)  # 1,000 m from the origin: solved near the cameras
+    np.testing.assert_allclose(
+        sparse_map.points[order], points, atol=1e-6
+    )  # 1,000 m from the origin: solved near the cameras
     assert sparse_map.observations[2][7] == -1 and (sparse_map.observations[2][np.arange(50) != 7] >= 0).all()
     # two views: points whose two rays meet at less than min_angle are dropped
     centers = geometry.camera_centers(qvec[:2], tvec[:2])
@@ -477,7 +513,9 @@ def test_global_map_pairs_are_the_most_overlapping_frusta(scene):
         best = [int(j) for j in np.argsort(-row, kind="stable")[:3] if row[j] > 0]
         assert all((min(image, j), max(image, j)) in chosen for j in best)
     # every chosen pair is among the best three of one of its images
-    assert all(b in np.argsort(-radii[a], kind="stable")[:3] or a in np.argsort(-radii[b], kind="stable")[:3] for a, b in pairs)
+    assert all(
+        b in np.argsort(-radii[a], kind="stable")[:3] or a in np.argsort(-radii[b], kind="stable")[:3] for a, b in pairs
+    )
     assert len(database_pairs(database, PairSelection(near=0.1, far=25.0, min_radius=1e6, max_per_image=None))) == 0
 
 
@@ -502,13 +540,17 @@ def test_the_plan_counts_the_work_that_the_paradigms_then_do(scene, cache, ranki
     local, global_ = LocalSfmSettings(True, [3, 5], "database"), GlobalSfmSettings(True, [1, 5], None)
 
     def plans():
-        return local_sfm.plan(scene, rankings, local, sfm, cache, 0), global_sfm.plan(scene, rankings, global_, sfm, cache, 0)
+        return local_sfm.plan(scene, rankings, local, sfm, cache, 0), global_sfm.plan(
+            scene, rankings, global_, sfm, cache, 0
+        )
 
     local_work, global_work = plans()
     query_pairs, pairs_within, local_registrations, maps = distinct_work(rankings, [3, 5])
     assert local_work.query_pairs == global_work.query_pairs == Work(len(query_pairs), len(query_pairs))
     assert local_work.database_pairs == Work(len(pairs_within), len(pairs_within))
-    assert local_work.maps == Work(len(maps), len(maps)) and local_work.registrations == Work(len(local_registrations), len(local_registrations))
+    assert local_work.maps == Work(len(maps), len(maps)) and local_work.registrations == Work(
+        len(local_registrations), len(local_registrations)
+    )
     map_pairs = len(database_pairs(scene.database, sfm.map_pairs.for_scene(scene)))
     assert global_work.database_pairs == Work(map_pairs, map_pairs) and global_work.maps == Work(1, 1)
     global_registrations = len(distinct_work(rankings, [1, 5])[2])
@@ -519,10 +561,19 @@ def test_the_plan_counts_the_work_that_the_paradigms_then_do(scene, cache, ranki
     assert sum(calls) == len(query_pairs) + len(pairs_within)
     calls.clear()
     global_sfm.run(scene, rankings, global_, sfm, cache)
-    already = len({(min(a, b), max(a, b)) for a, b in database_pairs(scene.database, sfm.map_pairs.for_scene(scene))} & pairs_within)
+    already = len(
+        {(min(a, b), max(a, b)) for a, b in database_pairs(scene.database, sfm.map_pairs.for_scene(scene))}
+        & pairs_within
+    )
     assert sum(calls) == map_pairs - already
     # afterwards nothing is new
     local_after, global_after = plans()
-    assert local_after.query_pairs.new == local_after.database_pairs.new == local_after.maps.new == local_after.registrations.new == 0
+    assert (
+        local_after.query_pairs.new
+        == local_after.database_pairs.new
+        == local_after.maps.new
+        == local_after.registrations.new
+        == 0
+    )
     assert global_after.query_pairs.new == global_after.maps.new == global_after.registrations.new == 0
     assert (local_after.maps.total, global_after.registrations.total) == (len(maps), global_registrations)

@@ -2,19 +2,21 @@
 
 import importlib.util
 
+import helpers
 import numpy as np
 import pytest
+from test_training import SCENE
 
-import helpers
 from locretrieval.groundtruth.relative_pose import relative_pose_groundtruth
 from locretrieval.localization.approximation import approximate_poses
 from locretrieval.metrics.localization import localized
 from locretrieval.retrieval.ranking import EMPTY, Ranking, random_ranking
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
-from test_training import SCENE
 
-spec = importlib.util.spec_from_file_location("shortlist_oracle", helpers.CONFIGS.parent / "scripts" / "shortlist_oracle.py")
+spec = importlib.util.spec_from_file_location(
+    "shortlist_oracle", helpers.CONFIGS.parent / "scripts" / "shortlist_oracle.py"
+)
 script = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(script)
 THRESHOLDS = [[0.5, 5.0], [5.0, 10.0]]
@@ -40,8 +42,9 @@ def test_reordering_the_whole_database_by_pose_is_the_relative_pose_ground_truth
     size = len(scene.database)
     ranking = random_ranking(len(scene.queries), size, size, seed=3)
     table = script.shortlist_table(scene, ranking, [3, size], 3, 25.0, 45.0, THRESHOLDS)
-    truth = relative_pose_groundtruth(scene.database, scene.queries, depth=size, position_threshold=25.0,
-                                      rotation_threshold=45.0, ranked="all").ranking
+    truth = relative_pose_groundtruth(
+        scene.database, scene.queries, depth=size, position_threshold=25.0, rotation_threshold=45.0, ranked="all"
+    ).ranking
     estimate = approximate_poses(scene.database, truth, [3], ["ewb"], alpha=1.0)[0]
     expected = 100 * localized(*estimate.errors(scene.queries.qvec, scene.queries.tvec), THRESHOLDS)[:, 0].mean(axis=1)
     np.testing.assert_allclose(table.loc["relative pose (whole database)"], expected)
@@ -61,9 +64,10 @@ def test_the_database_against_itself_leaves_each_image_out(scene):
     angle = np.degrees(2 * np.arccos(np.clip(np.abs(qvec @ qvec.T), 0.0, 1.0)))
     score = distance / 25.0 + angle / 45.0
     np.fill_diagonal(score, np.inf)
-    nearest = np.argsort(score, axis=1, kind="stable")[:, :size - 1]
-    estimate = approximate_poses(scene.database, Ranking("n", nearest, np.zeros(nearest.shape), "groundtruth"), [3], ["ewb"],
-                                 alpha=1.0)[0]
+    nearest = np.argsort(score, axis=1, kind="stable")[:, : size - 1]
+    estimate = approximate_poses(
+        scene.database, Ranking("n", nearest, np.zeros(nearest.shape), "groundtruth"), [3], ["ewb"], alpha=1.0
+    )[0]
     expected = 100 * localized(*estimate.errors(qvec, scene.database.tvec), THRESHOLDS)[:, 0].mean(axis=1)
     rng = np.random.default_rng(4)
     others = np.array([[j for j in rng.permutation(size) if j != i] for i in range(size)])

@@ -16,7 +16,11 @@ def loaded_after(code: str) -> set[str]:
 
 def test_the_benchmark_and_a_precomputed_model_import_no_heavy_library():
     loaded = loaded_after("import locretrieval.evaluation\nfrom locretrieval.models import PrecomputedDescriptor")
-    assert {"locretrieval.evaluation", "locretrieval.models.precomputed", "locretrieval.localization.matching"} <= loaded
+    assert {
+        "locretrieval.evaluation",
+        "locretrieval.models.precomputed",
+        "locretrieval.localization.matching",
+    } <= loaded
     assert not loaded & {*HEAVY, "torch"}  # precomputed descriptors and features are matched without torch
 
 
@@ -27,10 +31,19 @@ from locretrieval.localization import colmap_model, pnp, store, triangulation
 from locretrieval.scene.synthetic import DEFAULT_CONFIG, resolve_config
 """
     loaded = loaded_after(code)
-    assert {"locretrieval.report.plots", "locretrieval.report.painters", "locretrieval.localization.triangulation", "locretrieval.scene.synthetic.config"} <= loaded
+    assert {
+        "locretrieval.report.plots",
+        "locretrieval.report.painters",
+        "locretrieval.localization.triangulation",
+        "locretrieval.scene.synthetic.config",
+    } <= loaded
     assert not loaded & {*HEAVY, "locretrieval.scene.synthetic.dataset"}  # the renderer: only to render a scene
-    assert "pycolmap" in loaded_after("from locretrieval.localization.colmap_model import to_rigid3d\nto_rigid3d([1, 0, 0, 0], [0, 0, 0])")
-    assert "locretrieval.scene.synthetic.dataset" in loaded_after("from locretrieval.scene.synthetic import render_synthetic_dataset")
+    assert "pycolmap" in loaded_after(
+        "from locretrieval.localization.colmap_model import to_rigid3d\nto_rigid3d([1, 0, 0, 0], [0, 0, 0])"
+    )
+    assert "locretrieval.scene.synthetic.dataset" in loaded_after(
+        "from locretrieval.scene.synthetic import render_synthetic_dataset"
+    )
     figure_worker = loaded_after("import locretrieval.report.plots")  # what a figure worker imports
     assert "locretrieval.report.build" not in figure_worker and "scipy.stats" not in figure_worker
 
@@ -44,7 +57,8 @@ from test_report import write_run
 from locretrieval.report import build_report
 if __name__ == "__main__":
     run = write_run(Path({str(tmp_path)!r}) / "run_{len(formats)}_{workers}", ["netvlad"])
-    assert "## Localization" in build_report([run], run, figure_formats={formats!r}, figure_workers={workers}).read_text()
+    assert "## Localization" in build_report([run], run, figure_formats={formats!r},
+                                             figure_workers={workers}).read_text()
     assert bool(list(run.glob("figures/*.png"))) == {bool(formats)!r}
 """)
 
@@ -73,17 +87,30 @@ del garbage
 {}
 print("end")
 """
-    outputs = [subprocess.run([sys.executable, "-c", code.format(call)], capture_output=True, text=True, check=True).stdout.split()
-               for call in ("", "locretrieval.exit_without_final_collection()")]
+    outputs = [
+        subprocess.run(
+            [sys.executable, "-c", code.format(call)], capture_output=True, text=True, check=True
+        ).stdout.split()
+        for call in ("", "locretrieval.exit_without_final_collection()")
+    ]
     assert outputs == [["end", "collected"], ["end"]]
 
 
 def test_the_entry_points_resolve_every_config_resolver_before_importing_the_models():
     """``${package_weights:...}`` resolves in evaluate.py's config although models load on first use."""
     repository = Path(__file__).resolve().parents[1]
-    overrides = ["model=gem", "model.backbone=efficientnet_lite0", "model.weights=${package_weights:efficientnet_lite0}"]
+    overrides = [
+        "model=gem",
+        "model.backbone=efficientnet_lite0",
+        "model.weights=${package_weights:efficientnet_lite0}",
+    ]
     for entry_point in ("evaluate.py", "train.py"):
-        result = subprocess.run([sys.executable, entry_point, *overrides, "--cfg", "job", "--resolve"], cwd=repository,
-                                capture_output=True, text=True, check=True)
+        result = subprocess.run(
+            [sys.executable, entry_point, *overrides, "--cfg", "job", "--resolve"],
+            cwd=repository,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
         weights = next(line for line in result.stdout.splitlines() if line.strip().startswith("weights:"))
         assert weights.strip().endswith(".pth") and Path(weights.split(":", 1)[1].strip()).is_file()

@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 from PIL import Image, ImageFilter
 
+from locretrieval.config import ConfigError, validated
 from locretrieval.metrics.subsets import (
     BLURRY,
     DYNAMIC_SCENE,
@@ -18,7 +19,6 @@ from locretrieval.metrics.subsets import (
     subset_scores,
 )
 from locretrieval.scene import Camera, ImageSet
-from locretrieval.config import ConfigError, validated
 
 SETTINGS = {
     "enabled": True,
@@ -42,7 +42,9 @@ def settings(**overrides) -> SubsetSettings:
 def textured(height: int = 300, width: int = 500) -> np.ndarray:
     """A sharp RGB image: random blocks of several sizes (edges at every scale)."""
     rng = np.random.default_rng(0)
-    layers = [np.kron(rng.random((-(-height // s), -(-width // s))), np.ones((s, s)))[:height, :width] for s in (1, 4, 20)]
+    layers = [
+        np.kron(rng.random((-(-height // s), -(-width // s))), np.ones((s, s)))[:height, :width] for s in (1, 4, 20)
+    ]
     gray = (255 * sum(layers) / len(layers)).astype(np.uint8)
     return np.repeat(gray[..., None], 3, axis=2)
 
@@ -105,9 +107,13 @@ def test_mask_source_resolution(tmp_path):
     assert resolve_mask_source(with_masks, CONFIG) == "masks"
     assert resolve_mask_source(without, CONFIG) == "none"
     assert resolve_mask_source(without, settings(maskrcnn_weights="w.pth")) == "maskrcnn"
-    with pytest.raises(ConfigError, match=r"subsets.mask_source: must be one of \['auto', 'masks', 'maskrcnn', 'none'\], got 'sam'"):
+    with pytest.raises(
+        ConfigError, match=r"subsets.mask_source: must be one of \['auto', 'masks', 'maskrcnn', 'none'\], got 'sam'"
+    ):
         settings(mask_source="sam")
-    with pytest.raises(ConfigError, match=f"subsets.maskrcnn_weights: mask_source=maskrcnn needs .*{MASKRCNN_WEIGHTS_FILE}"):
+    with pytest.raises(
+        ConfigError, match=f"subsets.maskrcnn_weights: mask_source=maskrcnn needs .*{MASKRCNN_WEIGHTS_FILE}"
+    ):
         settings(mask_source="maskrcnn")
     scores = subset_scores(without, CONFIG)
     assert scores["dynamic_fraction"].isna().all()
@@ -141,7 +147,9 @@ def test_maskrcnn_weights_are_loaded_from_a_local_torchvision_state_dict(tmp_pat
         load_maskrcnn(tmp_path / MASKRCNN_WEIGHTS_FILE)
     torch.manual_seed(0)
     # the layout of the published file: torchvision builds pretrained models with frozen batch norm
-    backbone = resnet_fpn_backbone(backbone_name="resnet50", weights=None, norm_layer=FrozenBatchNorm2d, trainable_layers=3)
+    backbone = resnet_fpn_backbone(
+        backbone_name="resnet50", weights=None, norm_layer=FrozenBatchNorm2d, trainable_layers=3
+    )
     state = MaskRCNN(backbone, num_classes=91).state_dict()
     weights = tmp_path / MASKRCNN_WEIGHTS_FILE
     torch.save(state, weights)
@@ -165,12 +173,20 @@ def test_a_moved_dataset_and_cache_reuse_the_cached_mask_fractions(tmp_path, mon
 
     first = tmp_path / "first"
     first.mkdir()
-    queries = image_set(first, [textured(), textured()], [np.zeros((10, 10), np.uint8), np.full((10, 10), 255, np.uint8)])
+    queries = image_set(
+        first, [textured(), textured()], [np.zeros((10, 10), np.uint8), np.full((10, 10), 255, np.uint8)]
+    )
     _, table = image_subsets("toy", queries, CONFIG, cache_dir=first / "cache")
     moved = tmp_path / "moved"
     shutil.move(first, moved)  # images, masks and cache together, file times kept
-    again = ImageSet(queries.names, moved, queries.cameras, queries.qvec, queries.tvec,
-                     mask_paths=[moved / p.name for p in queries.mask_paths])
+    again = ImageSet(
+        queries.names,
+        moved,
+        queries.cameras,
+        queries.qvec,
+        queries.tvec,
+        mask_paths=[moved / p.name for p in queries.mask_paths],
+    )
     monkeypatch.setattr(subsets_module, "mask_fractions", lambda images: pytest.fail("recomputed after a move"))
     monkeypatch.setattr(subsets_module, "blur_scores", lambda *args: pytest.fail("recomputed after a move"))
     _, moved_table = image_subsets("toy", again, CONFIG, cache_dir=moved / "cache")

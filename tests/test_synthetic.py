@@ -8,6 +8,7 @@ import kapture
 import kapture.io.csv as kapture_csv
 import kapture.io.records as kapture_records
 import numpy as np
+import pycolmap  # noqa: E402  (after locretrieval)
 import pytest
 from omegaconf import OmegaConf
 from PIL import Image
@@ -22,14 +23,32 @@ from locretrieval.scene.synthetic.dynamic import place_dynamic_objects
 from locretrieval.scene.synthetic.render import Renderer
 from locretrieval.scene.synthetic.trajectories import Viewpoint
 
-import pycolmap  # noqa: E402  (after locretrieval)
-
 HALF = {"night": 0.5, "blur": 0.5, "dynamic": 0.5, "noise": 0.5}
-TINY = {"width": 96, "height": 72, "num_database": 8, "num_queries": 6, "texture_size": 64, "length": 20.0,
-        "conditions": HALF, "database_dynamic": 0.5, "workers": 1, "seed": 5}
+TINY = {
+    "width": 96,
+    "height": 72,
+    "num_database": 8,
+    "num_queries": 6,
+    "texture_size": 64,
+    "length": 20.0,
+    "conditions": HALF,
+    "database_dynamic": 0.5,
+    "workers": 1,
+    "seed": 5,
+}
 # 5 mapping stations 4 m apart (8 cameras each) in a 20 m corridor.
-MEDIUM = {"width": 256, "height": 192, "num_database": 40, "num_queries": 12, "texture_size": 128, "length": 20.0,
-          "conditions": HALF, "database_dynamic": 0.2, "workers": 1, "seed": 1}
+MEDIUM = {
+    "width": 256,
+    "height": 192,
+    "num_database": 40,
+    "num_queries": 12,
+    "texture_size": 128,
+    "length": 20.0,
+    "conditions": HALF,
+    "database_dynamic": 0.2,
+    "workers": 1,
+    "seed": 1,
+}
 CAMERAS_PER_STATION = 8
 
 
@@ -197,7 +216,10 @@ def test_depth_matches_the_analytic_floor_in_colmap_pixel_convention(medium_sets
         expected = -center[2] / rays_world[..., 2]  # ray parameter = depth (camera-frame z = 1)
         relative = np.abs(view["depth"][floor] - expected[floor]) / expected[floor]
         assert np.median(relative) < 1e-6 and np.percentile(relative, 99) < 1e-4  # float32 at grazing angles
-        shifted = -center[2] / ((np.stack([u - 0.5, v - 0.5, np.ones_like(u)], -1) @ np.linalg.inv(view["K"]).T) @ view["R"])[..., 2]
+        shifted = (
+            -center[2]
+            / ((np.stack([u - 0.5, v - 0.5, np.ones_like(u)], -1) @ np.linalg.inv(view["K"]).T) @ view["R"])[..., 2]
+        )
         assert np.median(np.abs(view["depth"][floor] - shifted[floor]) / shifted[floor]) > 1e-3
         checked += floor.sum()
     assert checked > 5000, "too few pixels back-project onto the floor plane z = 0"
@@ -310,8 +332,9 @@ def test_night_blur_and_noise_change_the_image(scene):
 
 def test_masks_cover_the_dynamic_objects(scene):
     config, environment, renderer, camera, viewpoint = scene
-    objects = place_dynamic_objects(environment, renderer, camera, viewpoint.rotation, viewpoint.center, 3,
-                                    np.random.default_rng(0))
+    objects = place_dynamic_objects(
+        environment, renderer, camera, viewpoint.rotation, viewpoint.center, 3, np.random.default_rng(0)
+    )
     assert len(objects) >= 3  # at least one person (three boxes)
     clean, clean_depth, clean_mask = rendered(scene, {"day"})
     busy, busy_depth, busy_mask = rendered(scene, {"day", "dynamic"}, objects)
@@ -326,7 +349,10 @@ def test_textures_are_area_filtered_like_a_supersampled_reference(scene):
     """One sample per pixel with mipmapping has about the high-frequency energy of a 3x3
     supersampled render; point-sampled textures would alias (2-3x more energy here)."""
     config, environment, renderer, camera, _ = scene
-    for viewpoint in (Viewpoint(np.array([3.0, -1.0, 1.6]), 5.0, -3.0, 0.0), Viewpoint(np.array([3.0, 1.0, 1.6]), 30.0, -10.0, 0.0)):
+    for viewpoint in (
+        Viewpoint(np.array([3.0, -1.0, 1.6]), 5.0, -3.0, 0.0),
+        Viewpoint(np.array([3.0, 1.0, 1.6]), 30.0, -10.0, 0.0),
+    ):
         single = renderer.render(camera, viewpoint.rotation, viewpoint.center, environment.day, supersampling=1)
         reference = renderer.render(camera, viewpoint.rotation, viewpoint.center, environment.day, supersampling=3)
         np.testing.assert_array_equal(single.depth, reference.depth)

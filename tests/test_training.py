@@ -5,37 +5,45 @@ import dataclasses
 import re
 from pathlib import Path
 
+import helpers
 import numpy as np
 import pandas as pd
 import pytest
 import torch
-from torchvision.transforms import v2
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
+from torchvision.transforms import v2
 
-import helpers
 from locretrieval import geometry
+from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
+from locretrieval.config import ConfigError, validated
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
+from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, compute_groundtruths
+from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
+from locretrieval.training.callbacks import TRAINED, every_validation_metrics, metric_rows
 from locretrieval.training.data import RelevanceBatchSampler, TrainingAugmentation
 from locretrieval.training.relevance import NegativeSettings, TrainingRelevanceSettings, combined_pairs, training_pairs
 from locretrieval.training.run import ValidationScope, train
-from locretrieval.training.callbacks import TRAINED, every_validation_metrics, metric_rows
-from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
-from locretrieval.config import ConfigError, validated
-from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, compute_groundtruths
-from locretrieval.retrieval.descriptors import describe_scene
 
 SCENE = {"width": 96, "height": 72, "num_database": 24, "num_queries": 6, "texture_size": 64, "length": 20.0,
          "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
          "hard_query_fraction": 0.0, "workers": 1, "seed": 5}  # fmt: skip
-RELATIVE_POSE = TrainingRelevanceSettings({"type": "relative_pose", "position_threshold": 10.0, "rotation_threshold": 30.0},
-                                          NegativeSettings("unrelated", 0.1, None, None))
+RELATIVE_POSE = TrainingRelevanceSettings(
+    {"type": "relative_pose", "position_threshold": 10.0, "rotation_threshold": 30.0},
+    NegativeSettings("unrelated", 0.1, None, None),
+)
 AT_25M = DefinitionContext(far=25.0)
 #: A short training of the tiny scene: small batches, no SfM validation.
-TINY_TRAINING = ("datamodule.image_size=[96,72]", "datamodule.num_workers=0", "sampler.batches_per_epoch=2", "sampler.anchors=3",
-                 "sampler.negatives=2", "callbacks.localization_validation.sfm_every_n_epochs=null")
+TINY_TRAINING = (
+    "datamodule.image_size=[96,72]",
+    "datamodule.num_workers=0",
+    "sampler.batches_per_epoch=2",
+    "sampler.anchors=3",
+    "sampler.negatives=2",
+    "callbacks.localization_validation.sfm_every_n_epochs=null",
+)
 
 
 def negatives(**changes):
@@ -88,7 +96,10 @@ def test_batches_hold_anchors_with_positives_and_only_surely_unrelated_negatives
     assert list(sampler) == batches  # the same epoch draws the same batches
     sampler.set_epoch(1)
     assert list(sampler) != batches
-    hard = {int(a): np.array([n for n in range(pairs.num_images) if not related[a, n] and n != a][:2]) for a in sampler.anchors}
+    hard = {
+        int(a): np.array([n for n in range(pairs.num_images) if not related[a, n] and n != a][:2])
+        for a in sampler.anchors
+    }
     sampler.set_hard_negatives(hard)
     for batch in sampler:
         assert all(any(n in hard[a] for a in batch[:4]) for n in batch[8:])
@@ -109,9 +120,20 @@ def test_several_positives_per_anchor_are_distinct_relevant_images_in_anchor_ord
 
 
 #: `TrainingAugmentation` settings that change nothing (each test switches one transform on).
-NO_AUGMENTATION = dict(zoom_probability=0.0, zoom=[1.0, 1.0], brightness=0.0, contrast=0.0, saturation=0.0, hue=0.0,
-                       low_light_probability=0.0, low_light_brightness=[0.25, 0.25], blur_probability=0.0, blur_sigma=[1.0, 1.0],
-                       noise_probability=0.0, noise_sigma=0.1)
+NO_AUGMENTATION = dict(
+    zoom_probability=0.0,
+    zoom=[1.0, 1.0],
+    brightness=0.0,
+    contrast=0.0,
+    saturation=0.0,
+    hue=0.0,
+    low_light_probability=0.0,
+    low_light_brightness=[0.25, 0.25],
+    blur_probability=0.0,
+    blur_sigma=[1.0, 1.0],
+    noise_probability=0.0,
+    noise_sigma=0.1,
+)
 
 
 def augmented(settings: dict, image: torch.Tensor) -> torch.Tensor:
@@ -122,15 +144,27 @@ def augmented(settings: dict, image: torch.Tensor) -> torch.Tensor:
 def per_image_reference(settings: TrainingAugmentation) -> v2.Transform:
     """The same augmentations as torchvision's per-image transforms (how 0.10 applied them, each
     image in a DataLoader worker): the reference distributions."""
-    return v2.Compose([
-        v2.RandomApply([v2.RandomAffine(degrees=0.0, scale=tuple(settings.zoom), interpolation=v2.InterpolationMode.BILINEAR)],
-                       p=settings.zoom_probability),
-        v2.ColorJitter(settings.brightness, settings.contrast, settings.saturation, settings.hue),
-        v2.RandomApply([v2.ColorJitter(brightness=tuple(settings.low_light_brightness))], p=settings.low_light_probability),
-        v2.RandomApply([v2.GaussianBlur(9, tuple(settings.blur_sigma))], p=settings.blur_probability),
-        v2.RandomApply([v2.ToDtype(torch.float32, scale=True), v2.GaussianNoise(sigma=settings.noise_sigma),
-                        v2.ToDtype(torch.uint8, scale=True)], p=settings.noise_probability),
-    ])
+    return v2.Compose(
+        [
+            v2.RandomApply(
+                [v2.RandomAffine(degrees=0.0, scale=tuple(settings.zoom), interpolation=v2.InterpolationMode.BILINEAR)],
+                p=settings.zoom_probability,
+            ),
+            v2.ColorJitter(settings.brightness, settings.contrast, settings.saturation, settings.hue),
+            v2.RandomApply(
+                [v2.ColorJitter(brightness=tuple(settings.low_light_brightness))], p=settings.low_light_probability
+            ),
+            v2.RandomApply([v2.GaussianBlur(9, tuple(settings.blur_sigma))], p=settings.blur_probability),
+            v2.RandomApply(
+                [
+                    v2.ToDtype(torch.float32, scale=True),
+                    v2.GaussianNoise(sigma=settings.noise_sigma),
+                    v2.ToDtype(torch.uint8, scale=True),
+                ],
+                p=settings.noise_probability,
+            ),
+        ]
+    )
 
 
 def image_statistics(images: torch.Tensor) -> dict[str, np.ndarray]:
@@ -153,10 +187,23 @@ def test_batch_augmentation_draws_the_distributions_of_the_per_image_transforms(
     distributions of brightness, contrast, saturation, sharpness and zoom (two-sample KS tests)."""
     from scipy.stats import ks_2samp
 
-    settings = TrainingAugmentation(**{**NO_AUGMENTATION, "zoom_probability": 0.5, "zoom": [1.0, 1.35], "brightness": 0.3,
-                                       "contrast": 0.3, "saturation": 0.2, "hue": 0.02, "low_light_probability": 0.3,
-                                       "low_light_brightness": [0.15, 0.5], "blur_probability": 0.3, "blur_sigma": [0.5, 2.0],
-                                       "noise_probability": 0.3, "noise_sigma": 0.03})
+    settings = TrainingAugmentation(
+        **{
+            **NO_AUGMENTATION,
+            "zoom_probability": 0.5,
+            "zoom": [1.0, 1.35],
+            "brightness": 0.3,
+            "contrast": 0.3,
+            "saturation": 0.2,
+            "hue": 0.02,
+            "low_light_probability": 0.3,
+            "low_light_brightness": [0.15, 0.5],
+            "blur_probability": 0.3,
+            "blur_sigma": [0.5, 2.0],
+            "noise_probability": 0.3,
+            "noise_sigma": 0.03,
+        }
+    )
     rng = np.random.default_rng(0)
     image = torch.from_numpy(rng.integers(40, 120, (3, 48, 64), dtype=np.uint8))
     image[1] += 40
@@ -189,15 +236,15 @@ def test_low_light_and_noise_augmentations_scale_the_brightness_and_add_noise_of
 
 def test_zoom_augmentation_scales_offsets_from_the_image_centre_by_its_factor():
     plain = {**NO_AUGMENTATION, "zoom_probability": 1.0, "zoom": [1.25, 1.25]}
-    width, height, offset = 320, 240, 48                          # an edge 48 px right of the centre column
+    width, height, offset = 320, 240, 48  # an edge 48 px right of the centre column
     image = torch.zeros((3, height, width), dtype=torch.uint8)
-    image[:, :, width // 2 + offset:] = 200
-    image[:, height // 2 - 2:height // 2 + 2, width // 2 - 2:width // 2 + 2] = 255  # a centre mark
+    image[:, :, width // 2 + offset :] = 200
+    image[:, height // 2 - 2 : height // 2 + 2, width // 2 - 2 : width // 2 + 2] = 255  # a centre mark
     zoomed = augmented(plain, image)
     assert zoomed.shape == image.shape
     first_bright = int((zoomed[0].float().mean(0) > 100).nonzero()[0])
-    assert abs(first_bright - (width // 2 + 1.25 * offset)) <= 1     # a longer focal length: offsets x 1.25 (208 -> 220)
-    assert zoomed[0, height // 2, width // 2] == 255                  # the centre stays (same optical axis, same pose)
+    assert abs(first_bright - (width // 2 + 1.25 * offset)) <= 1  # a longer focal length: offsets x 1.25 (208 -> 220)
+    assert zoomed[0, height // 2, width // 2] == 255  # the centre stays (same optical axis, same pose)
     assert torch.equal(augmented({**plain, "zoom_probability": 0.0}, image), image)
     with pytest.raises(ValueError, match="zoom: must be"):
         TrainingAugmentation(**{**plain, "zoom": [0.8, 1.2]})
@@ -219,9 +266,16 @@ def train_config(root, *overrides, image_side="model.max_side=96"):
     tiny = [f"data.render.{key}={value}" for key, value in SCENE.items() if key != "conditions"]
     tiny += [f"data.render.conditions.{key}={value}" for key, value in SCENE["conditions"].items()]
     return helpers.compose_config(
-        "train", f"paths.root_dir={root}", f"output_dir={root}/run", "device=cpu", *tiny,
-        image_side, *TINY_TRAINING,
-        "trainer.max_epochs=1", "trainer.enable_progress_bar=false", *overrides,
+        "train",
+        f"paths.root_dir={root}",
+        f"output_dir={root}/run",
+        "device=cpu",
+        *tiny,
+        image_side,
+        *TINY_TRAINING,
+        "trainer.max_epochs=1",
+        "trainer.enable_progress_bar=false",
+        *overrides,
     )
 
 
@@ -232,7 +286,12 @@ def test_fast_dev_run_of_train_py_through_hydra_compose(tmp_path):
     assert epochs == [-1, 0]  # before training, and after the one batch
     assert "val/approximation/ewb/k3/5m_10deg" in validator.history[0]
     assert (tmp_path / "run" / "validation.csv").exists() and (tmp_path / "run" / "report.md").exists()
-    assert set(validator.reference) == {"densevlad", "gt_relative_pose", "gt_frustum", "random"}  # the reference rankings
+    assert set(validator.reference) == {
+        "densevlad",
+        "gt_relative_pose",
+        "gt_frustum",
+        "random",
+    }  # the reference rankings
     expected = every_validation_metrics(BenchmarkSettings.from_config(cfg), ["relative_pose", "frustum"])
     assert set(validator.history[1]) - {"epoch"} == set(expected)  # what checkpoints may monitor is what is logged
 
@@ -251,14 +310,19 @@ def test_the_gallery_of_fixed_validation_queries_is_logged_to_tensorboard_and_th
     assert len(logged) == 2  # before training and after the batch
     last = np.asarray(Image.open(BytesIO(logged[-1].encoded_image_string)).convert("RGB"))
     np.testing.assert_array_equal(last, validator.galleries["last"])
-    assert len(validator.gallery_rows) == 6 and (tmp_path / "run" / "gallery_before.jpg").exists()  # the 6 queries of the tiny scene
+    assert (
+        len(validator.gallery_rows) == 6 and (tmp_path / "run" / "gallery_before.jpg").exists()
+    )  # the 6 queries of the tiny scene
     assert "![gallery at the last validation](gallery_last.jpg)" in (tmp_path / "run" / "report.md").read_text()
 
 
 def test_a_checkpoint_monitoring_a_metric_never_logged_fails_at_start_up_naming_those_logged(tmp_path):
     cfg = train_config(tmp_path, "callbacks.best_checkpoint.monitor=val/approximation/ewb/k4/5m_10deg")
-    with pytest.raises(ConfigError, match=r"callbacks.best_checkpoint.monitor: 'val/approximation/ewb/k4/5m_10deg' is not logged at "
-                                          r"every validation; .* the metrics are: .*val/approximation/ewb/k3/5m_10deg"):
+    with pytest.raises(
+        ConfigError,
+        match=r"callbacks.best_checkpoint.monitor: 'val/approximation/ewb/k4/5m_10deg' is not logged at "
+        r"every validation; .* the metrics are: .*val/approximation/ewb/k3/5m_10deg",
+    ):
         train(cfg, tmp_path / "run")
     assert not (Path(cfg.paths.cache_dir) / "synthetic").exists()  # before the scene is rendered
     sfm_only = train_config(tmp_path, "callbacks.best_checkpoint.monitor=val/global_sfm/pnp/k5/0.25m_2deg")
@@ -267,7 +331,9 @@ def test_a_checkpoint_monitoring_a_metric_never_logged_fails_at_start_up_naming_
 
 
 def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkpoint(tmp_path):
-    cfg = train_config(tmp_path, "callbacks.localization_validation.sfm_every_n_epochs=1", "paradigms.global_sfm.k=[1,3]")
+    cfg = train_config(
+        tmp_path, "callbacks.localization_validation.sfm_every_n_epochs=1", "paradigms.global_sfm.k=[1,3]"
+    )
     validator = train(cfg, tmp_path / "run")
     logged = validator.history[-1]
     checkpoint = tmp_path / "run" / "checkpoints" / "last.ckpt"
@@ -277,10 +343,19 @@ def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkp
     model = instantiate(model_cfg)
     settings = BenchmarkSettings.from_config(cfg)
     scene = instantiate(cfg.data)
-    groundtruths = compute_groundtruths(scene, validated(GroundTruthSettings, cfg.groundtruth, "groundtruth"), settings.sfm, cfg.paths.cache_dir)
+    groundtruths = compute_groundtruths(
+        scene, validated(GroundTruthSettings, cfg.groundtruth, "groundtruth"), settings.sfm, cfg.paths.cache_dir
+    )
     descriptors = describe_scene(model, scene, cache_dir=None)
     rankings = build_rankings(scene, {TRAINED: descriptors}, groundtruths, settings.retrieval, random_seed=None)
-    result = benchmark(scene, rankings, settings, {"all": np.ones(len(scene.queries), bool)}, cfg.paths.cache_dir, relevances(groundtruths))
+    result = benchmark(
+        scene,
+        rankings,
+        settings,
+        {"all": np.ones(len(scene.queries), bool)},
+        cfg.paths.cache_dir,
+        relevances(groundtruths),
+    )
     direct = metric_rows(result, TRAINED, settings.paradigms.ks())
     assert direct.keys() == {k for k in logged if k != "epoch"}
     for key, value in direct.items():
@@ -293,16 +368,24 @@ def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkp
 
 def test_resuming_from_the_last_checkpoint_continues_the_same_curve(tmp_path):
     common = ("~augmentation", "trainer.deterministic=true")
-    straight = train(train_config(tmp_path / "straight", *common, "trainer.max_epochs=2"), tmp_path / "straight" / "run")
+    straight = train(
+        train_config(tmp_path / "straight", *common, "trainer.max_epochs=2"), tmp_path / "straight" / "run"
+    )
     checkpoints = tmp_path / "straight" / "run" / "checkpoints"
     assert torch.load(checkpoints / "last.ckpt", weights_only=False)["epoch"] == 1  # the last epoch, whichever was best
     # Interrupted after its first epoch: the same run (max_epochs, hence the cosine schedule) as the straight one.
-    first = train_config(tmp_path / "resumed", *common, "trainer.max_epochs=2",
-                         "+callbacks.interrupt={_target_: helpers.StopAfterEpoch, epoch: 0}")
+    first = train_config(
+        tmp_path / "resumed",
+        *common,
+        "trainer.max_epochs=2",
+        "+callbacks.interrupt={_target_: helpers.StopAfterEpoch, epoch: 0}",
+    )
     assert [entry["epoch"] for entry in train(first, tmp_path / "resumed" / "run").history] == [-1, 0]
     last = tmp_path / "resumed" / "run" / "checkpoints" / "last.ckpt"
-    resumed = train(train_config(tmp_path / "resumed", *common, "trainer.max_epochs=2", f"ckpt_path={last}"),
-                    tmp_path / "resumed" / "run")
+    resumed = train(
+        train_config(tmp_path / "resumed", *common, "trainer.max_epochs=2", f"ckpt_path={last}"),
+        tmp_path / "resumed" / "run",
+    )
     assert [entry["epoch"] for entry in resumed.history] == [-1, 0, 1]  # the callback's history came back
     for expected, found in zip(straight.history, resumed.history):
         assert found.keys() == expected.keys()
@@ -317,10 +400,23 @@ def test_two_process_cpu_ddp_smoke_run(tmp_path):
     tiny = [f"data.render.{key}={value}" for key, value in SCENE.items() if key != "conditions"]
     tiny += [f"data.render.conditions.{key}={value}" for key, value in SCENE["conditions"].items()]
     command = [
-        sys.executable, str(helpers.CONFIGS.parent / "train.py"), "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2",
-        f"paths.root_dir={tmp_path}", f"hydra.run.dir={tmp_path}/run", "device=cpu", *tiny, "model.max_side=96",
-        *TINY_TRAINING, "trainer.max_epochs=1", "trainer.enable_progress_bar=false",
-        "model.backbone=resnet18", "model.weights=null", "model.random_init=true", "logger={}",
+        sys.executable,
+        str(helpers.CONFIGS.parent / "train.py"),
+        "trainer=ddp",
+        "trainer.accelerator=cpu",
+        "trainer.devices=2",
+        f"paths.root_dir={tmp_path}",
+        f"hydra.run.dir={tmp_path}/run",
+        "device=cpu",
+        *tiny,
+        "model.max_side=96",
+        *TINY_TRAINING,
+        "trainer.max_epochs=1",
+        "trainer.enable_progress_bar=false",
+        "model.backbone=resnet18",
+        "model.weights=null",
+        "model.random_init=true",
+        "logger={}",
     ]
     done = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -352,8 +448,10 @@ def test_extra_rendered_scenes_are_trained_on_with_their_queries_and_never_the_v
 def test_hard_negatives_set_during_an_epoch_apply_to_its_later_batches(scene):
     pairs = training_pairs(scene.database, RELATIVE_POSE, AT_25M)
     sampler = RelevanceBatchSampler(pairs, anchors=4, negatives=4, batches_per_epoch=6, seed=0)
-    hard_image = {int(a): np.array([i for i in range(pairs.num_images) if i != a and not pairs.related[a, i]][:1])
-                  for a in sampler.anchors}
+    hard_image = {
+        int(a): np.array([i for i in range(pairs.num_images) if i != a and not pairs.related[a, i]][:1])
+        for a in sampler.anchors
+    }
     batches = iter(sampler)
     first = next(batches)
     sampler.set_hard_negatives(hard_image)
@@ -372,12 +470,16 @@ def test_hard_negatives_are_the_highest_ranked_unrelated_images_by_the_current_n
     from locretrieval.training.callbacks import HardNegativeMining
 
     torch.manual_seed(0)
-    network = RetrievalNet(torch.nn.Sequential(torch.nn.Conv2d(3, 16, 5, stride=2), torch.nn.ReLU()), GeMPooling(3.0), 16)
+    network = RetrievalNet(
+        torch.nn.Sequential(torch.nn.Conv2d(3, 16, 5, stride=2), torch.nn.ReLU()), GeMPooling(3.0), 16
+    )
     pairs = training_pairs(scene.database, RELATIVE_POSE, AT_25M)
     sampler = RelevanceBatchSampler(pairs, anchors=4, negatives=4, batches_per_epoch=1, seed=0)
     preprocessing = Preprocessing(max_side=None, scales=(1.0,))
     extraction = ExtractionSettings("cpu", 8, 0, False, False, None)
-    mining = HardNegativeMining([scene.database], pairs, sampler, preprocessing, extraction, every_n_steps=5, per_anchor=3)
+    mining = HardNegativeMining(
+        [scene.database], pairs, sampler, preprocessing, extraction, every_n_steps=5, per_anchor=3
+    )
     module = SimpleNamespace(network=network)
     for step in (0, 3, 4):  # not a multiple of 5 (or the first step): nothing mined
         mining.on_train_batch_start(SimpleNamespace(global_step=step), module, None, step)
@@ -397,7 +499,9 @@ def test_frozen_batch_norm_keeps_the_pretrained_statistics_while_the_weights_lea
 
     cfg = train_config(tmp_path, f"module.freeze_batch_norm={frozen}")
     train(cfg, tmp_path / "run")
-    trained = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", weights_only=False)[EMBEDDED_CHECKPOINT_KEY]["state_dict"]
+    trained = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", weights_only=False)[EMBEDDED_CHECKPOINT_KEY][
+        "state_dict"
+    ]
     initial = instantiate(cfg.model).network.state_dict()
     statistics = [key for key in initial if key.endswith(("running_mean", "running_var"))]
     affine = [key.replace("running_mean", "weight") for key in statistics if key.endswith("running_mean")]
@@ -412,13 +516,20 @@ def test_frozen_parameters_keep_their_pretrained_values(tmp_path):
     patterns = "module.frozen=['backbone.timm.conv_stem.*','backbone.timm.blocks.[0-3].*']"
     cfg = train_config(tmp_path, patterns)
     train(cfg, tmp_path / "run")
-    trained = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", weights_only=False)[EMBEDDED_CHECKPOINT_KEY]["state_dict"]
+    trained = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", weights_only=False)[EMBEDDED_CHECKPOINT_KEY][
+        "state_dict"
+    ]
     network = instantiate(cfg.model).network
     initial = dict(network.named_parameters())
-    frozen = [name for name in initial if re.fullmatch(r"backbone\.timm\.(conv_stem|blocks\.[0-3])\..*", name)]  # stages 0-3
+    frozen = [
+        name for name in initial if re.fullmatch(r"backbone\.timm\.(conv_stem|blocks\.[0-3])\..*", name)
+    ]  # stages 0-3
     assert len(frozen) > 20
     assert all(torch.equal(trained[name], initial[name]) for name in frozen)
-    assert not any(torch.equal(trained[name], initial[name]) for name in ("backbone.timm.conv_head.weight", "backbone.timm.blocks.6.0.conv_pwl.weight"))
+    assert not any(
+        torch.equal(trained[name], initial[name])
+        for name in ("backbone.timm.conv_head.weight", "backbone.timm.blocks.6.0.conv_pwl.weight")
+    )
     with pytest.raises(ConfigError, match=r"module.frozen: 'backbone.trunk.\*' matches no parameter"):
         train(train_config(tmp_path / "bad", "module.frozen=['backbone.trunk.*']"), tmp_path / "bad" / "run")
 
@@ -437,10 +548,15 @@ def test_a_diverging_run_stops_at_the_step_naming_the_loss_and_the_learning_rate
     from locretrieval.training.module import TrainingDiverged
 
     cfg = train_config(tmp_path, "optimizer.lr=1e6", "trainer.max_epochs=3", "sampler.batches_per_epoch=3")
-    with pytest.raises(TrainingDiverged, match=r"training diverged at step \d+ \(epoch \d\): (the loss is nan|the loss is inf|the gradient "
-                                               r"of .* is not finite), learning rate \[.*\] \(optimizer.lr\); lower optimizer.lr"):
+    with pytest.raises(
+        TrainingDiverged,
+        match=r"training diverged at step \d+ \(epoch \d\): (the loss is nan|the loss is inf|the gradient "
+        r"of .* is not finite), learning rate \[.*\] \(optimizer.lr\); lower optimizer.lr",
+    ):
         train(cfg, tmp_path / "run")
-    for checkpoint in (tmp_path / "run" / "checkpoints").glob("*.ckpt"):  # what was saved before holds finite weights only
+    for checkpoint in (tmp_path / "run" / "checkpoints").glob(
+        "*.ckpt"
+    ):  # what was saved before holds finite weights only
         state = torch.load(checkpoint, weights_only=False)["state_dict"]
         assert all(torch.isfinite(value).all() for value in state.values() if value.is_floating_point())
 
@@ -467,7 +583,9 @@ def test_resuming_from_a_file_that_is_not_a_checkpoint_of_this_project_is_refuse
     descriptor = instantiate(first.model)
     checkpoint = tmp_path / "first" / "run" / "checkpoints" / "last.ckpt"
     check_resume_checkpoint(checkpoint, descriptor.model, descriptor.architecture)
-    with pytest.raises(ValueError, match=r"ckpt_path: .*last.ckpt.*resume with the model settings of the run that wrote it"):
+    with pytest.raises(
+        ValueError, match=r"ckpt_path: .*last.ckpt.*resume with the model settings of the run that wrote it"
+    ):
         check_resume_checkpoint(checkpoint, descriptor.model, {**descriptor.architecture, "whiten_dim": 64})
 
 
@@ -483,7 +601,10 @@ def test_a_run_killed_while_writing_last_ckpt_keeps_the_previous_checkpoint_whol
     from locretrieval.training.checkpoints import check_resume_checkpoint
 
     common = ("~augmentation", "trainer.max_epochs=2")
-    train(train_config(tmp_path, *common, "+callbacks.interrupt={_target_: helpers.StopAfterEpoch, epoch: 0}"), tmp_path / "run")
+    train(
+        train_config(tmp_path, *common, "+callbacks.interrupt={_target_: helpers.StopAfterEpoch, epoch: 0}"),
+        tmp_path / "run",
+    )
     last = tmp_path / "run" / "checkpoints" / "last.ckpt"
     before = last.read_bytes()
     assert torch.load(last, weights_only=False)["epoch"] == 0
@@ -507,7 +628,12 @@ def test_a_run_killed_while_writing_last_ckpt_keeps_the_previous_checkpoint_whol
     original_save = torch.save
 
     def save_killed_half_way(content, target, *args, **kwargs):  # our writer: dies half-way through its temporary file
-        if isinstance(content, dict) and "epoch" in content and str(target).endswith(".ckpt") and ".last.ckpt." in str(target):
+        if (
+            isinstance(content, dict)
+            and "epoch" in content
+            and str(target).endswith(".ckpt")
+            and ".last.ckpt." in str(target)
+        ):
             original_save(content, target, *args, **kwargs)
             Path(target).write_bytes(Path(target).read_bytes()[:1000])
             raise Killed
@@ -532,19 +658,49 @@ def test_two_trainings_of_a_joblib_multirun_share_one_cache_without_corrupting_i
 
     tiny = [f"data.render.{key}={value}" for key, value in SCENE.items() if key != "conditions"]
     tiny += [f"data.render.conditions.{key}={value}" for key, value in SCENE["conditions"].items()]
-    common = [f"paths.root_dir={tmp_path}", f"paths.cache_dir={tmp_path}/cache", "device=cpu", *tiny, "model.max_side=96",
-              *TINY_TRAINING, "callbacks.localization_validation.sfm_every_n_epochs=1", "paradigms.global_sfm.k=[1,3]",
-              "paradigms.local_sfm.k=[3]", "trainer.max_epochs=1", "trainer.enable_progress_bar=false", "~logger"]
-    command = [sys.executable, str(helpers.CONFIGS.parent / "train.py"), "-m", "hydra/launcher=joblib_local",
-               f"hydra.sweep.dir={tmp_path}/multirun", "hydra.sweep.subdir=${hydra.job.num}", *common, "sampler.batches_per_epoch=2,3"]
+    common = [
+        f"paths.root_dir={tmp_path}",
+        f"paths.cache_dir={tmp_path}/cache",
+        "device=cpu",
+        *tiny,
+        "model.max_side=96",
+        *TINY_TRAINING,
+        "callbacks.localization_validation.sfm_every_n_epochs=1",
+        "paradigms.global_sfm.k=[1,3]",
+        "paradigms.local_sfm.k=[3]",
+        "trainer.max_epochs=1",
+        "trainer.enable_progress_bar=false",
+        "~logger",
+    ]
+    command = [
+        sys.executable,
+        str(helpers.CONFIGS.parent / "train.py"),
+        "-m",
+        "hydra/launcher=joblib_local",
+        f"hydra.sweep.dir={tmp_path}/multirun",
+        "hydra.sweep.subdir=${hydra.job.num}",
+        *common,
+        "sampler.batches_per_epoch=2,3",
+    ]
     done = subprocess.run(command, capture_output=True, text=True, timeout=900, cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-3000:]
     logs = [(tmp_path / "multirun" / job / "train.log").read_text() for job in ("0", "1")]
     assert sum(log.count("rendering the synthetic scene") for log in logs) == 1  # one job rendered, the other read it
-    alone = train(train_config(tmp_path / "alone", f"paths.cache_dir={tmp_path}/cache", "callbacks.localization_validation.sfm_every_n_epochs=1",
-                               "paradigms.global_sfm.k=[1,3]", "paradigms.local_sfm.k=[3]", "~logger"), tmp_path / "alone" / "run")
+    alone = train(
+        train_config(
+            tmp_path / "alone",
+            f"paths.cache_dir={tmp_path}/cache",
+            "callbacks.localization_validation.sfm_every_n_epochs=1",
+            "paradigms.global_sfm.k=[1,3]",
+            "paradigms.local_sfm.k=[3]",
+            "~logger",
+        ),
+        tmp_path / "alone" / "run",
+    )
     before_training = {key: value for key, value in alone.history[0].items()}
-    assert any(key.startswith("val/global_sfm/") for key in before_training) and any(key.startswith("val/local_sfm/") for key in before_training)
+    assert any(key.startswith("val/global_sfm/") for key in before_training) and any(
+        key.startswith("val/local_sfm/") for key in before_training
+    )
     for job in ("0", "1"):
         history = pd.read_csv(tmp_path / "multirun" / job / "validation.csv")
         first = history[history["epoch"] == -1].set_index("metric")["value"]
@@ -558,28 +714,56 @@ def test_the_gap_table_gives_the_share_of_the_gap_to_the_ground_truth_that_train
 
     from locretrieval.training.report import TrainingReportSettings, gap_table
 
-    history = pd.DataFrame({"epoch": [-1, 0, 1, -1, 1, -1], "metric": ["val/approximation/ewb/k3/5m_10deg"] * 3
-                            + ["val/local_sfm/pnp/k10/0.25m_2deg"] * 2 + ["val/global_sfm/pnp/k5/0.25m_2deg"],
-                            "value": [10.0, 20.0, 40.0, 50.0, 60.0, 70.0]})
-    reference = {"densevlad": {"val/approximation/ewb/k3/5m_10deg": 20.0, "val/local_sfm/pnp/k10/0.25m_2deg": 40.0},
-                 "gt_relative_pose": {"val/approximation/ewb/k3/5m_10deg": 60.0, "val/local_sfm/pnp/k10/0.25m_2deg": 100.0},
-                 "gt_co_observation": {"val/local_sfm/pnp/k10/0.25m_2deg": 80.0}}
+    history = pd.DataFrame(
+        {
+            "epoch": [-1, 0, 1, -1, 1, -1],
+            "metric": ["val/approximation/ewb/k3/5m_10deg"] * 3
+            + ["val/local_sfm/pnp/k10/0.25m_2deg"] * 2
+            + ["val/global_sfm/pnp/k5/0.25m_2deg"],
+            "value": [10.0, 20.0, 40.0, 50.0, 60.0, 70.0],
+        }
+    )
+    reference = {
+        "densevlad": {"val/approximation/ewb/k3/5m_10deg": 20.0, "val/local_sfm/pnp/k10/0.25m_2deg": 40.0},
+        "gt_relative_pose": {"val/approximation/ewb/k3/5m_10deg": 60.0, "val/local_sfm/pnp/k10/0.25m_2deg": 100.0},
+        "gt_co_observation": {"val/local_sfm/pnp/k10/0.25m_2deg": 80.0},
+    }
     report = validated(TrainingReportSettings, helpers.compose_config("train").report, "report")  # the default rows
     table = gap_table(SimpleNamespace(history_table=lambda: history, reference=reference), report).set_index("metric")
-    assert list(table.index) == ["approximation/ewb/k3/5m_10deg", "local_sfm/pnp/k10/0.25m_2deg"]  # global SfM: validated once
-    assert table.loc["approximation/ewb/k3/5m_10deg", ["untrained", "trained", "densevlad", "groundtruth_value"]].tolist() == [10, 40, 20, 60]
+    assert list(table.index) == [
+        "approximation/ewb/k3/5m_10deg",
+        "local_sfm/pnp/k10/0.25m_2deg",
+    ]  # global SfM: validated once
+    assert table.loc[
+        "approximation/ewb/k3/5m_10deg", ["untrained", "trained", "densevlad", "groundtruth_value"]
+    ].tolist() == [10, 40, 20, 60]
     assert table.loc["approximation/ewb/k3/5m_10deg", "gap_closed_pct"] == pytest.approx(100 * (40 - 20) / (60 - 20))
-    assert table.loc["local_sfm/pnp/k10/0.25m_2deg", "groundtruth"] == "gt_co_observation"  # 2a: the co-observation upper bound
+    assert (
+        table.loc["local_sfm/pnp/k10/0.25m_2deg", "groundtruth"] == "gt_co_observation"
+    )  # 2a: the co-observation upper bound
     assert table.loc["local_sfm/pnp/k10/0.25m_2deg", "gap_closed_pct"] == pytest.approx(100 * (60 - 40) / (80 - 40))
 
 
-@pytest.mark.parametrize(("override", "message"), [
-    ("sampler.anchors=abc", r"sampler.anchors: Value 'abc' of type 'str' could not be converted to Integer"),
-    ("+sampler.anchor=3", r"sampler.anchor: unknown key; expected one of \['pairs', 'anchors', 'negatives', 'batches_per_epoch', 'seed', 'positives'\]"),
-    ("augmentation.brightness=abc", r"augmentation.brightness: Value 'abc' of type 'str' could not be converted to Float"),
-    ("callbacks.localization_validation.every_n_epochs=often", r"callbacks.localization_validation.every_n_epochs: Value 'often'"),
-    ("train_relevance.definition=relative_pose", r"train_relevance.definition: must be a mapping with a type of"),
-])
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("sampler.anchors=abc", r"sampler.anchors: Value 'abc' of type 'str' could not be converted to Integer"),
+        (
+            "+sampler.anchor=3",
+            r"sampler.anchor: unknown key; expected one of \['pairs', "
+            r"'anchors', 'negatives', 'batches_per_epoch', 'seed', 'positives'\]",
+        ),
+        (
+            "augmentation.brightness=abc",
+            r"augmentation.brightness: Value 'abc' of type 'str' could not be converted to Float",
+        ),
+        (
+            "callbacks.localization_validation.every_n_epochs=often",
+            r"callbacks.localization_validation.every_n_epochs: Value 'often'",
+        ),
+        ("train_relevance.definition=relative_pose", r"train_relevance.definition: must be a mapping with a type of"),
+    ],
+)
 def test_every_object_node_is_checked_by_its_full_key_before_the_scene_is_prepared(tmp_path, override, message):
     cfg = train_config(tmp_path, override)
     with pytest.raises(ConfigError, match=message):
@@ -595,12 +779,24 @@ def test_the_gap_table_of_several_runs_closes_the_gap_of_the_means(tmp_path):
     spec.loader.exec_module(script)
     for run, (trained, densevlad, truth) in {"a": (40.0, 20.0, 60.0), "b": (20.0, 20.0, 30.0)}.items():
         (tmp_path / run).mkdir()
-        pd.DataFrame([{"metric": "approximation/ewb/k3/5m_10deg", "untrained": 10.0, "trained": trained, "densevlad": densevlad,
-                       "groundtruth": "gt_relative_pose", "groundtruth_value": truth,
-                       "gap_closed_pct": 100 * (trained - densevlad) / (truth - densevlad)}]).to_csv(tmp_path / run / "gap.csv", index=False)
+        pd.DataFrame(
+            [
+                {
+                    "metric": "approximation/ewb/k3/5m_10deg",
+                    "untrained": 10.0,
+                    "trained": trained,
+                    "densevlad": densevlad,
+                    "groundtruth": "gt_relative_pose",
+                    "groundtruth_value": truth,
+                    "gap_closed_pct": 100 * (trained - densevlad) / (truth - densevlad),
+                }
+            ]
+        ).to_csv(tmp_path / run / "gap.csv", index=False)
     text = script.markdown(script.load([tmp_path / "a", tmp_path / "b"]))
     mean = next(line for line in text.splitlines() if "| mean" in line)
-    assert f"{100 * (30.0 - 20.0) / (45.0 - 20.0):.1f}" in mean  # the gap of the means: 40 %, not the mean of 50 % and 0 %
+    assert (
+        f"{100 * (30.0 - 20.0) / (45.0 - 20.0):.1f}" in mean
+    )  # the gap of the means: 40 %, not the mean of 50 % and 0 %
     wide = script.wide_markdown(script.load([tmp_path / "a", tmp_path / "b"]))
     assert "| mean  | 20.0 / 10.0 / 30.0 / 45.0 (40 %)" in wide and "| a     | 20.0 / 10.0 / 40.0 / 60.0 (50 %)" in wide
 
@@ -617,9 +813,17 @@ def test_head_lr_scale_moves_the_head_that_much_faster_than_the_backbone(frozen_
     torch.manual_seed(0)
     trunk = torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, stride=2), torch.nn.ReLU())
     network = RetrievalNet(trunk, GeMPooling(3.0, trainable=False), 8, whitening=torch.nn.Linear(8, 4))
-    module = RetrievalTraining(network, Preprocessing(max_side=None, scales=(1.0,)), None, partial(torch.optim.Adam, lr=1e-3),
-                               partial(torch.optim.lr_scheduler.CosineAnnealingLR, T_max=4), "gem", {},
-                               frozen=["backbone.*"] if frozen_backbone else [], head_lr_scale=10.0)
+    module = RetrievalTraining(
+        network,
+        Preprocessing(max_side=None, scales=(1.0,)),
+        None,
+        partial(torch.optim.Adam, lr=1e-3),
+        partial(torch.optim.lr_scheduler.CosineAnnealingLR, T_max=4),
+        "gem",
+        {},
+        frozen=["backbone.*"] if frozen_backbone else [],
+        head_lr_scale=10.0,
+    )
     optimizers = module.configure_optimizers()
     optimizer = optimizers["optimizer"]
     before = {name: p.detach().clone() for name, p in network.named_parameters()}
@@ -629,39 +833,62 @@ def test_head_lr_scale_moves_the_head_that_much_faster_than_the_backbone(frozen_
     torch.testing.assert_close(steps["whitening.weight"], torch.full((4, 8), 1e-2), atol=1e-5, rtol=0)
     trunk_step = 0.0 if frozen_backbone else 1e-3
     torch.testing.assert_close(steps["backbone.0.weight"], torch.full((8, 3, 3, 3), trunk_step), atol=1e-6, rtol=0)
-    assert [group["name"] for group in optimizer.param_groups] == (["head"] if frozen_backbone else ["backbone", "head"])
+    assert [group["name"] for group in optimizer.param_groups] == (
+        ["head"] if frozen_backbone else ["backbone", "head"]
+    )
     optimizers["lr_scheduler"].step()  # the schedule keeps the ratio
     rates = {group["name"]: group["lr"] for group in optimizer.param_groups}
     assert rates["head"] == pytest.approx(1e-2 * (1 + np.cos(np.pi / 4)) / 2)
     if not frozen_backbone:
         assert rates["head"] == pytest.approx(10 * rates["backbone"])
-    plain = RetrievalTraining(network, Preprocessing(max_side=None, scales=(1.0,)), None, partial(torch.optim.Adam, lr=1e-3),
-                              None, "gem", {}).configure_optimizers()
+    plain = RetrievalTraining(
+        network, Preprocessing(max_side=None, scales=(1.0,)), None, partial(torch.optim.Adam, lr=1e-3), None, "gem", {}
+    ).configure_optimizers()
     assert len(plain.param_groups) == 1 and plain.param_groups[0]["lr"] == 1e-3  # scale 1: one group, as before 0.9.0
     with pytest.raises(ValueError, match="module.head_lr_scale must be positive"):
-        RetrievalTraining(network, Preprocessing(max_side=None, scales=(1.0,)), None, None, None, "gem", {}, head_lr_scale=0)
-    with pytest.raises(ValueError, match="module.head_lr_scale=10.0 needs a network with a backbone .* Sequential has no 'backbone'"):
-        RetrievalTraining(trunk, Preprocessing(max_side=None, scales=(1.0,)), None, None, None, "gem", {}, head_lr_scale=10.0)
+        RetrievalTraining(
+            network, Preprocessing(max_side=None, scales=(1.0,)), None, None, None, "gem", {}, head_lr_scale=0
+        )
+    with pytest.raises(
+        ValueError, match="module.head_lr_scale=10.0 needs a network with a backbone .* Sequential has no 'backbone'"
+    ):
+        RetrievalTraining(
+            trunk, Preprocessing(max_side=None, scales=(1.0,)), None, None, None, "gem", {}, head_lr_scale=10.0
+        )
 
 
 def test_validation_on_a_seeded_subset_of_the_queries_with_capped_sfm_features(tmp_path):
     scope = ValidationScope(max_queries=4, seed=3, sfm_max_keypoints=200, budget_minutes=None)
-    cfg = train_config(tmp_path, "training.validation.max_queries=4", "training.validation.seed=3",
-                       "training.validation.sfm_max_keypoints=200", "+trainer.fast_dev_run=true")
+    cfg = train_config(
+        tmp_path,
+        "training.validation.max_queries=4",
+        "training.validation.seed=3",
+        "training.validation.sfm_max_keypoints=200",
+        "+trainer.fast_dev_run=true",
+    )
     validator = train(cfg, tmp_path / "run")
     full = instantiate(cfg.data)
     expected = np.sort(np.random.default_rng(3).choice(len(full.queries), size=4, replace=False))
-    assert validator.scene.queries.names == [full.queries.names[q] for q in expected]  # the same queries at every validation
+    assert validator.scene.queries.names == [
+        full.queries.names[q] for q in expected
+    ]  # the same queries at every validation
     assert validator.settings.sfm.features.max_keypoints == 200
     settings = scope.settings(BenchmarkSettings.from_config(cfg))
-    assert settings.sfm.features.max_keypoints == 200 and scope.scene(full).queries.names == validator.scene.queries.names
+    assert (
+        settings.sfm.features.max_keypoints == 200 and scope.scene(full).queries.names == validator.scene.queries.names
+    )
     assert ValidationScope(None, 0, None, None).scene(full) is full
 
 
 def test_a_validation_forecast_above_its_budget_is_refused_before_training(tmp_path):
-    cfg = train_config(tmp_path, "callbacks.localization_validation.sfm_every_n_epochs=1", "training.validation.budget_minutes=0.001")
-    with pytest.raises(ConfigError, match=r"training.validation.budget_minutes: one validation's SfM work is forecast at [\d.]+ min, "
-                                          r"above the budget of 0.001 min \(6 queries, [\d,]+ pairs to match .*training.validation.max_queries"):
+    cfg = train_config(
+        tmp_path, "callbacks.localization_validation.sfm_every_n_epochs=1", "training.validation.budget_minutes=0.001"
+    )
+    with pytest.raises(
+        ConfigError,
+        match=r"training.validation.budget_minutes: one validation's SfM work is forecast at [\d.]+ min, "
+        r"above the budget of 0.001 min \(6 queries, [\d,]+ pairs to match .*training.validation.max_queries",
+    ):
         train(cfg, tmp_path / "run")
     assert not (tmp_path / "run" / "checkpoints").exists()  # refused before any step
 
@@ -691,37 +918,69 @@ def test_the_parameters_of_a_loss_are_optimized(tmp_path, head_lr_scale):
     from locretrieval.training.module import RetrievalTraining
 
     torch.manual_seed(0)
-    network = RetrievalNet(torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, stride=2), torch.nn.ReLU()), GeMPooling(3.0, trainable=False), 8)
+    network = RetrievalNet(
+        torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, stride=2), torch.nn.ReLU()), GeMPooling(3.0, trainable=False), 8
+    )
     loss = TemperatureLoss()
-    module = RetrievalTraining(network, Preprocessing(max_side=None, scales=(1.0,)), loss, partial(torch.optim.Adam, lr=1e-2), None,
-                               "gem", {}, head_lr_scale=head_lr_scale)
+    module = RetrievalTraining(
+        network,
+        Preprocessing(max_side=None, scales=(1.0,)),
+        loss,
+        partial(torch.optim.Adam, lr=1e-2),
+        None,
+        "gem",
+        {},
+        head_lr_scale=head_lr_scale,
+    )
     optimizer = module.configure_optimizers()
     assert any(parameter is loss.log_temperature for group in optimizer.param_groups for parameter in group["params"])
     before = loss.log_temperature.item()
     relevance = torch.tensor([[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, 0, 1], [0, 0, 1, 0]], dtype=torch.float32)
-    module.batch_loss((torch.randint(0, 255, (4, 3, 16, 16), dtype=torch.uint8), relevance, relevance == 0, torch.arange(4))).backward()
+    module.batch_loss(
+        (torch.randint(0, 255, (4, 3, 16, 16), dtype=torch.uint8), relevance, relevance == 0, torch.arange(4))
+    ).backward()
     optimizer.step()
     assert loss.log_temperature.item() != before  # the loss learned (Adam: by the learning rate)
     assert abs(abs(loss.log_temperature.item() - before) - 1e-2) < 1e-4
 
 
-
 def test_the_report_says_which_requested_gap_row_it_cannot_fill(tmp_path, caplog):
-    cfg = train_config(tmp_path, "paradigms.approximation.k=[1,5]", "callbacks.localization_validation.sfm_every_n_epochs=null",
-                       "callbacks.best_checkpoint.monitor=val/approximation/ewb/k5/5m_10deg", "+trainer.fast_dev_run=true")
+    cfg = train_config(
+        tmp_path,
+        "paradigms.approximation.k=[1,5]",
+        "callbacks.localization_validation.sfm_every_n_epochs=null",
+        "callbacks.best_checkpoint.monitor=val/approximation/ewb/k5/5m_10deg",
+        "+trainer.fast_dev_run=true",
+    )
     with caplog.at_level("WARNING"):
         train(cfg, tmp_path / "run")
     text = (tmp_path / "run" / "report.md").read_text()
-    assert "Requested row approximation/ewb/k3/5m_10deg (report.gap) is not filled: k=3 is not in paradigms.approximation.k [1, 5]." in text
-    assert "Requested row local_sfm/pnp/k10/0.25m_2deg (report.gap) is not filled: the SfM paradigms are not validated" in text
+    assert (
+        "Requested row approximation/ewb/k3/5m_10deg (report.gap) "
+        "is not filled: k=3 is not in paradigms.approximation.k [1, 5]." in text
+    )
+    assert (
+        "Requested row local_sfm/pnp/k10/0.25m_2deg (report.gap) is not filled: the SfM paradigms are not validated"
+        in text
+    )
     assert "report.gap row approximation/ewb/k3/5m_10deg cannot be filled" in caplog.text
-    moved = train_config(tmp_path / "moved", "+trainer.fast_dev_run=true", "callbacks.localization_validation.sfm_every_n_epochs=null",
-                         "report.gap=[{paradigm: approximation, method: ewb, k: 1, threshold: [5.0, 10.0], groundtruths: [relative_pose]}]")
+    moved = train_config(
+        tmp_path / "moved",
+        "+trainer.fast_dev_run=true",
+        "callbacks.localization_validation.sfm_every_n_epochs=null",
+        "report.gap=[{paradigm: approximation, method: ewb, k: 1, "
+        "threshold: [5.0, 10.0], groundtruths: [relative_pose]}]",
+    )
     train(moved, tmp_path / "moved" / "run")
     gaps = pd.read_csv(tmp_path / "moved" / "run" / "gap.csv")
-    assert list(gaps["metric"]) == ["approximation/ewb/k1/5m_10deg"] and list(gaps["groundtruth"]) == ["gt_relative_pose"]
+    assert list(gaps["metric"]) == ["approximation/ewb/k1/5m_10deg"] and list(gaps["groundtruth"]) == [
+        "gt_relative_pose"
+    ]
     wrong = train_config(tmp_path / "wrong", "report.baseline=netvlad")
-    with pytest.raises(ConfigError, match=r"report.baseline: 'netvlad' is not a validation reference \(validation_references: \['densevlad'\]\)"):
+    with pytest.raises(
+        ConfigError,
+        match=r"report.baseline: 'netvlad' is not a validation reference \(validation_references: \['densevlad'\]\)",
+    ):
         train(wrong, tmp_path / "wrong" / "run")
 
 

@@ -4,13 +4,12 @@ train.py picks, the DataLoader's processes."""
 import multiprocessing
 import os
 
+import helpers
 import numpy as np
-import pytest
 import torch
 from omegaconf import OmegaConf
 from PIL import Image
 
-import helpers
 from locretrieval.config import trainer_accelerator, trainer_precision
 from locretrieval.training import data as data_module
 from locretrieval.training.decoded import decode, decoded_images
@@ -32,7 +31,9 @@ def test_the_cache_holds_each_image_as_a_step_decodes_it_and_a_changed_image_is_
     cached = decoded_images(paths, (40, 30), tmp_path / "cache", workers=2)
     assert cached.shape == (6, 30, 40, 3) and cached.dtype == np.uint8 and isinstance(cached, np.memmap)
     for path, row in zip(paths, cached):
-        np.testing.assert_array_equal(row, np.asarray(Image.open(path).convert("RGB").resize((40, 30), Image.Resampling.BILINEAR)))
+        np.testing.assert_array_equal(
+            row, np.asarray(Image.open(path).convert("RGB").resize((40, 30), Image.Resampling.BILINEAR))
+        )
     assert len(list((tmp_path / "cache" / "decoded").glob("*.npy"))) == 1
     assert decoded_images(paths, (40, 30), tmp_path / "cache") is not None  # read back, not decoded again
     assert len(list((tmp_path / "cache" / "decoded").glob("*.npy"))) == 1
@@ -77,7 +78,10 @@ def test_train_py_picks_the_gpu_with_mixed_precision_when_there_is_one(monkeypat
     assert (trainer_accelerator("auto"), trainer_precision("auto")) == ("gpu", "16-mixed")
     trainer = helpers.compose_config("train").trainer
     assert (trainer.accelerator, trainer.precision) == ("gpu", "16-mixed")
-    assert (trainer_accelerator("cpu"), trainer_precision("cpu")) == ("cpu", "32-true")  # device=cpu: the CPU even with a GPU
+    assert (trainer_accelerator("cpu"), trainer_precision("cpu")) == (
+        "cpu",
+        "32-true",
+    )  # device=cpu: the CPU even with a GPU
     assert helpers.compose_config("train", "trainer=cpu").trainer.accelerator == "cpu"
 
 

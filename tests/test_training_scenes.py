@@ -3,11 +3,13 @@ images, relevance within each scene, batches drawn across them, validation on an
 
 from pathlib import Path
 
+import helpers
 import numpy as np
 import pytest
 from hydra.utils import instantiate
+from test_published_layouts import LAYOUTS, SCENE, install, write_kapture_folder
+from test_training import train_config
 
-import helpers
 from locretrieval.benchmark import BenchmarkSettings
 from locretrieval.config import ConfigError, validated
 from locretrieval.localization.features import extract_features
@@ -15,8 +17,6 @@ from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 from locretrieval.training.relevance import TrainingRelevanceSettings
 from locretrieval.training.run import TrainingSettings, train, training_parts
-from test_published_layouts import LAYOUTS, SCENE, install, write_kapture_folder
-from test_training import train_config
 
 
 @pytest.fixture(scope="module")
@@ -25,12 +25,20 @@ def data_dir(tmp_path_factory):
     root = tmp_path_factory.mktemp("training_scenes")
     render_synthetic_dataset({**SCENE, "seed": 9}, root / "source")
     scene = load_kapture_scene("source", [root / "source" / "mapping"], [root / "source" / "query"])
-    local = {**extract_features(scene.database, helpers.sfm_settings().features, root / "cache", 1).load(scene.database.names),
-             **extract_features(scene.queries, helpers.sfm_settings().features, root / "cache", 1).load(scene.queries.names)}
+    local = {
+        **extract_features(scene.database, helpers.sfm_settings().features, root / "cache", 1).load(
+            scene.database.names
+        ),
+        **extract_features(scene.queries, helpers.sfm_settings().features, root / "cache", 1).load(scene.queries.names),
+    }
     for name in ("aachen", "baidu"):
         install(LAYOUTS[name], (scene, local), root / "data")
-    write_kapture_folder(root / "data" / "photos" / "mapping", scene.database, np.arange(8), "street/{i:03d}.jpg", posed=True)
-    write_kapture_folder(root / "data" / "photos" / "query", scene.queries, np.arange(2), "phone/{i:03d}.jpg", posed=True)
+    write_kapture_folder(
+        root / "data" / "photos" / "mapping", scene.database, np.arange(8), "street/{i:03d}.jpg", posed=True
+    )
+    write_kapture_folder(
+        root / "data" / "photos" / "query", scene.queries, np.arange(2), "phone/{i:03d}.jpg", posed=True
+    )
     return root / "data"
 
 
@@ -38,12 +46,19 @@ SCENES = "training.scenes=[aachen,baidu,{config:kapture,mapping:photos/mapping,q
 
 
 def test_several_scenes_are_trained_on_and_never_related_across(tmp_path, data_dir):
-    cfg = train_config(tmp_path, f"paths.data_dir={data_dir}", SCENES, "sampler.anchors=6", "+trainer.fast_dev_run=true")
+    cfg = train_config(
+        tmp_path, f"paths.data_dir={data_dir}", SCENES, "sampler.anchors=6", "+trainer.fast_dev_run=true"
+    )
     settings = BenchmarkSettings.from_config(cfg)
     scene = instantiate(cfg.data)
-    parts = training_parts(cfg, scene, instantiate(cfg.model).preprocessing, settings,
-                           validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance"),
-                           validated(TrainingSettings, cfg.training, "training"))
+    parts = training_parts(
+        cfg,
+        scene,
+        instantiate(cfg.model).preprocessing,
+        settings,
+        validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance"),
+        validated(TrainingSettings, cfg.training, "training"),
+    )
     sizes = [len(images) for images in parts.sets]
     assert sizes == [len(scene.database), 12, 12, 8]  # the validation scene's database, Aachen's, Baidu's, the photos'
     assert parts.sets[1].names[0].startswith("db/") and parts.sets[3].names[0].startswith("street/")
@@ -66,6 +81,8 @@ def test_several_scenes_are_trained_on_and_never_related_across(tmp_path, data_d
 
 def test_a_listed_scene_that_is_no_data_config_is_named_before_any_work(tmp_path):
     cfg = train_config(tmp_path, "training.scenes=[aachen,atlantis]")
-    with pytest.raises(ConfigError, match=r"training.scenes\[1\]: no data config 'atlantis'; expected one of \[.*'baidu'"):
+    with pytest.raises(
+        ConfigError, match=r"training.scenes\[1\]: no data config 'atlantis'; expected one of \[.*'baidu'"
+    ):
         train(cfg, tmp_path / "run")
     assert not (Path(cfg.paths.cache_dir) / "synthetic").exists()  # the validation scene was not rendered

@@ -1,10 +1,26 @@
 """Ground-truth rankings and relevance (paper Sec. 3.6.3) and their statistics (Table 1)."""
 
-from locretrieval.groundtruth.base import Definition, DefinitionContext, GroundTruth, groundtruth_from_scores, statistics_table
+from locretrieval.groundtruth.base import (
+    Definition,
+    DefinitionContext,
+    GroundTruth,
+    groundtruth_from_scores,
+    statistics_table,
+)
 from locretrieval.groundtruth.co_observation import CoObservationDefinition, co_observation_groundtruth
-from locretrieval.groundtruth.compute import DEFINITIONS, GroundTruthSettings, compute_groundtruths, definition_type, parse_definition
+from locretrieval.groundtruth.compute import (
+    DEFINITIONS,
+    GroundTruthSettings,
+    compute_groundtruths,
+    definition_type,
+    parse_definition,
+)
 from locretrieval.groundtruth.frustum import FrustumDefinition, frustum_groundtruth
-from locretrieval.groundtruth.relative_pose import RelativePoseDefinition, relative_pose_groundtruth, relative_pose_scores
+from locretrieval.groundtruth.relative_pose import (
+    RelativePoseDefinition,
+    relative_pose_groundtruth,
+    relative_pose_scores,
+)
 
 __all__ = [
     "DEFINITIONS",

@@ -50,7 +50,9 @@ class DefinitionContext:
         if far is not None:
             return float(far)
         if self.far is None:
-            raise ConfigError(f"{self.key}.far is null (the dataset's frustum far plane) but scene {self.scene!r} has no frustum_far")
+            raise ConfigError(
+                f"{self.key}.far is null (the dataset's frustum far plane) but scene {self.scene!r} has no frustum_far"
+            )
         return float(self.far)
 
 
@@ -63,7 +65,9 @@ class Definition(Protocol):
 
     uses_sfm: ClassVar[bool]
 
-    def groundtruth(self, database: ImageSet, queries: ImageSet, depth: int, name: str, context: DefinitionContext) -> "GroundTruth":
+    def groundtruth(
+        self, database: ImageSet, queries: ImageSet, depth: int, name: str, context: DefinitionContext
+    ) -> "GroundTruth":
         """The ranking (top ``depth``) and relevance of ``queries`` against ``database``."""
 
     def graded(self, images: ImageSet, rows: np.ndarray, context: DefinitionContext) -> np.ndarray:
@@ -171,12 +175,12 @@ def groundtruth_from_scores(
         relevant_rows.append(rows[block_rows])
         relevant_columns.append(block_columns)
     rows, columns = np.concatenate(relevant_rows), np.concatenate(relevant_columns)
-    relevance = sparse.csr_matrix(
-        (np.ones(len(rows), dtype=bool), (rows, columns)), shape=(num_queries, num_database)
-    )
+    relevance = sparse.csr_matrix((np.ones(len(rows), dtype=bool), (rows, columns)), shape=(num_queries, num_database))
     return GroundTruth(Ranking(name, indices, scores, "groundtruth"), relevance, query_has_pose)
 
 
 def statistics_table(dataset: str, groundtruths: Mapping[str, GroundTruth]) -> pd.DataFrame:
     """Table 1 (``groundtruth_statistics.csv``): one row of `GroundTruth.statistics` per definition."""
-    return pd.DataFrame([{"dataset": dataset, "groundtruth": name, **gt.statistics()} for name, gt in groundtruths.items()])
+    return pd.DataFrame(
+        [{"dataset": dataset, "groundtruth": name, **gt.statistics()} for name, gt in groundtruths.items()]
+    )

@@ -47,19 +47,30 @@ class CoObservationDefinition:
         require(self.min_shared >= 1, "min_shared", f"must be >= 1 shared 3D point, got {self.min_shared}")
         require(self.query_pairs >= 1, "query_pairs", f"must be >= 1 database image per query, got {self.query_pairs}")
 
-    def groundtruth(self, database: ImageSet, queries: ImageSet, depth: int, name: str, context: DefinitionContext) -> GroundTruth:
+    def groundtruth(
+        self, database: ImageSet, queries: ImageSet, depth: int, name: str, context: DefinitionContext
+    ) -> GroundTruth:
         """`co_observation_groundtruth` with these parameters and ``context``'s SfM settings and cache."""
         if context.sfm is None:
             raise ValueError(f"ground truth {name!r}: co-observation needs the sfm settings")
-        return co_observation_groundtruth(database, queries, depth=depth, name=name, sfm=context.sfm, cache_dir=context.cache_dir,
-                                          **dataclasses.asdict(self))
+        return co_observation_groundtruth(
+            database,
+            queries,
+            depth=depth,
+            name=name,
+            sfm=context.sfm,
+            cache_dir=context.cache_dir,
+            **dataclasses.asdict(self),
+        )
 
     def graded(self, images: ImageSet, rows: np.ndarray, context: DefinitionContext) -> np.ndarray:
         """The share of each row image's 3D points (``context.shared_points``, the diagonal: its own)
         that the other image observes too, where they share at least ``min_shared``; else 0."""
         shared_points = context.shared_points
         if shared_points is None or shared_points.shape != (len(images), len(images)):
-            raise ValueError(f"co-observation training relevance needs the shared 3D points of the {len(images)} images")
+            raise ValueError(
+                f"co-observation training relevance needs the shared 3D points of the {len(images)} images"
+            )
         shared = shared_points[rows].toarray().astype(np.float64)
         own = np.maximum(shared[np.arange(len(rows)), rows], 1.0)[:, None]
         return np.where(shared >= self.min_shared, shared / own, 0.0)
@@ -87,8 +98,14 @@ def co_observation_groundtruth(
     if cache_dir is None:
         with tempfile.TemporaryDirectory(prefix="co_observation-") as folder:
             return co_observation_groundtruth(
-                database, queries, depth=depth, min_shared=min_shared, query_pairs=query_pairs, sfm=sfm,
-                cache_dir=folder, name=name,
+                database,
+                queries,
+                depth=depth,
+                min_shared=min_shared,
+                query_pairs=query_pairs,
+                sfm=sfm,
+                cache_dir=folder,
+                name=name,
             )
     shared = shared_points(database, queries, Path(cache_dir), sfm, query_pairs)
 
@@ -99,7 +116,9 @@ def co_observation_groundtruth(
     return groundtruth_from_scores(name, database, queries, depth, score_block)
 
 
-def shared_points(database: ImageSet, queries: ImageSet, cache_dir: Path, sfm: SfmSettings, query_pairs: int) -> sparse.csr_matrix:
+def shared_points(
+    database: ImageSet, queries: ImageSet, cache_dir: Path, sfm: SfmSettings, query_pairs: int
+) -> sparse.csr_matrix:
     """``[Q, N]`` number of joint-map points observed by query q and database image t
     (zero rows for queries without a pose)."""
     posed = np.flatnonzero(queries.has_pose)
@@ -125,7 +144,12 @@ def shared_points(database: ImageSet, queries: ImageSet, cache_dir: Path, sfm: S
     offset = len(database)
     joint_query = offset + np.searchsorted(posed, query_pair_rows[:, 0])
     matches = {(int(a), int(b)): database_matches[pair] for (a, b), pair in zip(database_pair_rows, named_database)}
-    matches.update({(int(t), int(j)): query_matches[pair][:, ::-1] for j, t, pair in zip(joint_query, query_pair_rows[:, 1], named_queries)})
+    matches.update(
+        {
+            (int(t), int(j)): query_matches[pair][:, ::-1]
+            for j, t, pair in zip(joint_query, query_pair_rows[:, 1], named_queries)
+        }
+    )
     posed_names = [queries.names[q] for q in posed]
     keypoints = database_features.keypoints(database.names)
     query_keypoints = query_features.keypoints(posed_names)
@@ -153,4 +177,6 @@ def _incidence(points_per_image: list[np.ndarray], num_points: int) -> sparse.cs
     """Binary ``[images, points]`` matrix: image i observes point p."""
     rows = np.repeat(np.arange(len(points_per_image)), [len(p) for p in points_per_image])
     columns = np.concatenate(points_per_image) if points_per_image else np.empty(0, dtype=np.int64)
-    return sparse.csr_matrix((np.ones(len(rows), dtype=np.int64), (rows, columns)), shape=(len(points_per_image), num_points))
+    return sparse.csr_matrix(
+        (np.ones(len(rows), dtype=np.int64), (rows, columns)), shape=(len(points_per_image), num_points)
+    )

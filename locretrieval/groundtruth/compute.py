@@ -40,8 +40,10 @@ def parse_definition(parameters: Mapping[str, Any], key: str, default_type: str 
     package), else its ``type`` (default ``default_type``) picks the `DEFINITIONS` entry; the rest
     are its schema's fields. Errors name ``key``."""
     if not isinstance(parameters, Mapping):
-        raise ConfigError(f"{key}: must be a mapping with a type of {sorted(DEFINITIONS)} (or a _target_) and its parameters, "
-                          f"got {parameters!r}")
+        raise ConfigError(
+            f"{key}: must be a mapping with a type of {sorted(DEFINITIONS)} (or a _target_) and its parameters, "
+            f"got {parameters!r}"
+        )
     parameters = dict(parameters)
     if "_target_" in parameters:
         return validated(definition_class(str(parameters.pop("_target_")), key), parameters, key)
@@ -76,7 +78,11 @@ class GroundTruthSettings:
         definitions = self.definitions if self.definitions is not None else {}  # null: none
         enabled = list(definitions) if self.enabled is None or self.definitions is None else self.enabled
         unknown = [name for name in enabled if name not in definitions]
-        require(not unknown, "enabled", f"{unknown} have no entry in groundtruth.definitions (defined: {sorted(definitions)})")
+        require(
+            not unknown,
+            "enabled",
+            f"{unknown} have no entry in groundtruth.definitions (defined: {sorted(definitions)})",
+        )
         # a definition set to null is switched off (e.g. groundtruth.definitions.co_observation=null)
         self.definitions = {name: definitions[name] for name in enabled if definitions[name] is not None}
         for name, parameters in self.definitions.items():  # each checked now, by its type's schema
@@ -84,7 +90,10 @@ class GroundTruthSettings:
 
     def parsed(self) -> dict[str, Definition]:
         """``name -> checked definition`` of every enabled one, in ``enabled`` order."""
-        return {name: parse_definition(parameters, f"groundtruth.definitions.{name}", name) for name, parameters in self.definitions.items()}
+        return {
+            name: parse_definition(parameters, f"groundtruth.definitions.{name}", name)
+            for name, parameters in self.definitions.items()
+        }
 
 
 def compute_groundtruths(
@@ -103,23 +112,40 @@ def compute_groundtruths(
     fingerprints = (database.fingerprint(), queries.fingerprint()) if cache_dir is not None else ()
     groundtruths = {}
     for name, definition in settings.parsed().items():
-        produced_by: dict[str, Any] = {**dataclasses.asdict(definition), "scene_far": scene.frustum_far}  # far: null is the scene's
-        context = DefinitionContext(scene.frustum_far, cache_dir=Path(cache_dir) if cache_dir is not None else None,
-                                    key=f"groundtruth.definitions.{name}", scene=scene.name)
+        produced_by: dict[str, Any] = {
+            **dataclasses.asdict(definition),
+            "scene_far": scene.frustum_far,
+        }  # far: null is the scene's
+        context = DefinitionContext(
+            scene.frustum_far,
+            cache_dir=Path(cache_dir) if cache_dir is not None else None,
+            key=f"groundtruth.definitions.{name}",
+            scene=scene.name,
+        )
         if definition.uses_sfm:
             if sfm is None:
-                raise ConfigError(f"groundtruth.definitions.{name}: the {definition_type(definition)} ground truth needs the sfm settings")
-            context = dataclasses.replace(context, sfm=dataclasses.replace(sfm, map_pairs=sfm.map_pairs.for_scene(scene)))
+                raise ConfigError(
+                    f"groundtruth.definitions.{name}: "
+                    f"the {definition_type(definition)} ground truth needs the sfm settings"
+                )
+            context = dataclasses.replace(
+                context, sfm=dataclasses.replace(sfm, map_pairs=sfm.map_pairs.for_scene(scene))
+            )
             sfm = context.sfm
-            produced_by["sfm"] = {"features": sfm.features.identity(), "triangulation": sfm.triangulation.identity(),
-                                  "map_pairs": dataclasses.asdict(sfm.map_pairs)}
+            produced_by["sfm"] = {
+                "features": sfm.features.identity(),
+                "triangulation": sfm.triangulation.identity(),
+                "map_pairs": dataclasses.asdict(sfm.map_pairs),
+            }
             produced_by["sfm"]["matching"] = context.sfm.matching.identity()
         path = None
         if cache_dir is not None:
             key = config_key(CACHE_VERSION, definition_type(definition), produced_by, settings.depth, *fingerprints)
             path = Path(cache_dir) / "groundtruth" / f"{name}-{key}.npz"
 
-        def build(definition: Definition = definition, context: DefinitionContext = context, name: str = name) -> dict[str, np.ndarray]:
+        def build(
+            definition: Definition = definition, context: DefinitionContext = context, name: str = name
+        ) -> dict[str, np.ndarray]:
             return _to_arrays(definition.groundtruth(database, queries, settings.depth, f"gt_{name}", context))
 
         arrays, hit = cached_arrays(path, build)
@@ -137,15 +163,22 @@ def definition_class(target: str, key: str) -> type[Definition]:
         kind = get_class(target)
     except Exception as error:  # Hydra wraps the import error
         raise ConfigError(f"{key}._target_: cannot import {target!r} ({error})") from None
-    if not dataclasses.is_dataclass(kind) or not all(hasattr(kind, name) for name in ("uses_sfm", "groundtruth", "graded")):
-        raise ConfigError(f"{key}._target_: {target} is not a ground-truth definition (a dataclass with uses_sfm, groundtruth and graded)")
+    if not dataclasses.is_dataclass(kind) or not all(
+        hasattr(kind, name) for name in ("uses_sfm", "groundtruth", "graded")
+    ):
+        raise ConfigError(
+            f"{key}._target_: {target} is not a ground-truth definition "
+            f"(a dataclass with uses_sfm, groundtruth and graded)"
+        )
     return kind
 
 
 def definition_type(definition: Definition) -> str:
     """The `DEFINITIONS` name of ``definition``'s type, or its class's import path (part of its cache key)."""
     kind = type(definition)
-    return next((name for name, known in DEFINITIONS.items() if kind is known), f"{kind.__module__}.{kind.__qualname__}")
+    return next(
+        (name for name, known in DEFINITIONS.items() if kind is known), f"{kind.__module__}.{kind.__qualname__}"
+    )
 
 
 def _to_arrays(groundtruth: GroundTruth) -> dict[str, np.ndarray]:
@@ -162,7 +195,11 @@ def _to_arrays(groundtruth: GroundTruth) -> dict[str, np.ndarray]:
 
 def _from_arrays(arrays: dict[str, np.ndarray], name: str) -> GroundTruth:
     relevance = sparse.csr_matrix(
-        (np.ones(len(arrays["relevance_indices"]), dtype=bool), arrays["relevance_indices"], arrays["relevance_indptr"]),
+        (
+            np.ones(len(arrays["relevance_indices"]), dtype=bool),
+            arrays["relevance_indices"],
+            arrays["relevance_indptr"],
+        ),
         shape=tuple(arrays["relevance_shape"]),
     )
     ranking = Ranking(name, arrays["indices"], arrays["scores"], "groundtruth")

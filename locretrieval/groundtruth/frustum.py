@@ -37,14 +37,18 @@ class FrustumDefinition:
         """The frusta of images ``rows``, truncated at ``near`` and ``far`` (``None``: the scene's)."""
         return TruncatedFrusta.of_images(images, rows, self.near, context.far_plane(self.far))
 
-    def groundtruth(self, database: ImageSet, queries: ImageSet, depth: int, name: str, context: DefinitionContext) -> GroundTruth:
+    def groundtruth(
+        self, database: ImageSet, queries: ImageSet, depth: int, name: str, context: DefinitionContext
+    ) -> GroundTruth:
         """`frustum_groundtruth` with these parameters (``far`` ``None``: the scene's)."""
         parameters = {**dataclasses.asdict(self), "far": context.far_plane(self.far)}
         return frustum_groundtruth(database, queries, depth=depth, name=name, **parameters)
 
     def graded(self, images: ImageSet, rows: np.ndarray, context: DefinitionContext) -> np.ndarray:
         """The overlap radius (metres) where it exceeds ``min_radius``, else 0."""
-        radii = pairwise_overlap_radii(self.frusta(images, rows, context), self.frusta(images, np.arange(len(images)), context))
+        radii = pairwise_overlap_radii(
+            self.frusta(images, rows, context), self.frusta(images, np.arange(len(images)), context)
+        )
         return np.where(radii > self.min_radius, radii, 0.0)
 
 

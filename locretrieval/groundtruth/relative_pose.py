@@ -13,7 +13,6 @@ from locretrieval.config import require
 from locretrieval.groundtruth.base import DefinitionContext, GroundTruth, groundtruth_from_scores
 from locretrieval.scene import ImageSet
 
-
 #: Which database images a relative-pose ranking holds: only those within both thresholds (as
 #: the reference pairing tool, kapture-localization's pose-based pairs) or every one.
 RANKED = ("within_thresholds", "all")
@@ -30,8 +29,14 @@ class RelativePoseDefinition:
     uses_sfm: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
-        require(self.position_threshold > 0, "position_threshold", f"must be positive metres, got {self.position_threshold}")
-        require(self.rotation_threshold > 0, "rotation_threshold", f"must be positive degrees, got {self.rotation_threshold}")
+        require(
+            self.position_threshold > 0, "position_threshold", f"must be positive metres, got {self.position_threshold}"
+        )
+        require(
+            self.rotation_threshold > 0,
+            "rotation_threshold",
+            f"must be positive degrees, got {self.rotation_threshold}",
+        )
         require(self.ranked in RANKED, "ranked", f"must be one of {list(RANKED)}, got {self.ranked!r}")
 
     def scores(self, images: ImageSet, rows: np.ndarray, others: ImageSet) -> tuple[np.ndarray, np.ndarray]:
@@ -39,11 +44,18 @@ class RelativePoseDefinition:
         against every image of ``others`` (`relative_pose_scores`) and whether the pair is within
         both thresholds (strictly)."""
         score, position, rotation = relative_pose_scores(
-            images.qvec[rows], images.centers[rows], others.qvec, others.centers, self.position_threshold, self.rotation_threshold
+            images.qvec[rows],
+            images.centers[rows],
+            others.qvec,
+            others.centers,
+            self.position_threshold,
+            self.rotation_threshold,
         )
         return score, (position < self.position_threshold) & (rotation < self.rotation_threshold)
 
-    def groundtruth(self, database: ImageSet, queries: ImageSet, depth: int, name: str, context: DefinitionContext) -> GroundTruth:
+    def groundtruth(
+        self, database: ImageSet, queries: ImageSet, depth: int, name: str, context: DefinitionContext
+    ) -> GroundTruth:
         """`relative_pose_groundtruth` with these parameters."""
         return relative_pose_groundtruth(database, queries, depth=depth, name=name, **dataclasses.asdict(self))
 

@@ -72,7 +72,11 @@ class ApproximationSettings(ParadigmSettings):
     def __post_init__(self) -> None:
         super().__post_init__()
         unknown = sorted(set(self.methods) - set(METHODS))
-        require(bool(self.methods) and not unknown, "methods", f"must be a non-empty list of {list(METHODS)}, got {self.methods}")
+        require(
+            bool(self.methods) and not unknown,
+            "methods",
+            f"must be a non-empty list of {list(METHODS)}, got {self.methods}",
+        )
         require(self.alpha > 0, "alpha", f"must be positive, got {self.alpha}")
 
     def method_names(self) -> list[str]:
@@ -80,7 +84,11 @@ class ApproximationSettings(ParadigmSettings):
 
 
 def run(
-    scene: Scene, rankings: Sequence[Ranking], settings: ApproximationSettings, sfm: Any = None, cache_dir: Path | None = None
+    scene: Scene,
+    rankings: Sequence[Ranking],
+    settings: ApproximationSettings,
+    sfm: Any = None,
+    cache_dir: Path | None = None,
 ) -> list[PoseEstimates]:
     """Paradigm entry point: every method for every ranking and every ``settings.k`` (``sfm`` and
     ``cache_dir`` are unused: pose approximation needs no local features)."""
@@ -116,7 +124,9 @@ def approximate_poses(
     results = []
     with ThreadPoolExecutor(max(1, min(resolve_workers(None), len(chunks)))) as pool:
         for method in applicable:
-            chunk_estimates = partial(_approximate_chunk, method, top, ks=ks, poses=poses, alpha=alpha, products=products)
+            chunk_estimates = partial(
+                _approximate_chunk, method, top, ks=ks, poses=poses, alpha=alpha, products=products
+            )
             parts = list(pool.map(chunk_estimates, chunks))
             qvec, tvec, failures = (np.concatenate(arrays, axis=1) for arrays in zip(*parts))
             results.append(PoseEstimates(ranking.name, ranking.kind, "approximation", method, ks, qvec, tvec, failures))
@@ -165,7 +175,9 @@ def _prefix_weights(method: str, scores: np.ndarray, valid: np.ndarray, alpha: f
     largest = similarity.max(axis=1, keepdims=True)
     dead = valid[:, 0] & (largest[:, 0] == 0)
     if dead.any():
-        log.warning("csi: %d queries with no positive similarity among their ranked images use equal weights", dead.sum())
+        log.warning(
+            "csi: %d queries with no positive similarity among their ranked images use equal weights", dead.sum()
+        )
     with np.errstate(invalid="ignore", divide="ignore"):
         raw = (similarity / largest) ** alpha
     return np.where(dead[:, None], valid, np.where(valid, raw, 0.0))
@@ -273,7 +285,12 @@ def _exact_grams(ranked: np.ndarray, queries: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore", over="ignore"):
         products = vectors @ vectors.transpose(0, 2, 1)
         scores = products[:, :depth, depth]
-        return products[:, :depth, :depth] - scores[:, :, None] - scores[:, None, :] + products[:, depth, depth][:, None, None]
+        return (
+            products[:, :depth, :depth]
+            - scores[:, :, None]
+            - scores[:, None, :]
+            + products[:, depth, depth][:, None, None]
+        )
 
 
 def _with_ridge(grams: np.ndarray) -> np.ndarray:
@@ -311,9 +328,7 @@ def check_scores(name: str, first: np.ndarray, queries: np.ndarray, scores: np.n
         )
 
 
-def _interpolate(
-    weights: np.ndarray, centers: np.ndarray, rotations: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def _interpolate(weights: np.ndarray, centers: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World-to-camera poses ``([len(ks), Q, 4], [len(ks), Q, 3])`` from per-k weights ``[len(ks), Q, K]``."""
     center = (weights[..., None, :] @ centers)[..., 0, :]  # [len(ks), Q, 1, K] @ [Q, K, 3]
     qvec = geometry.average_quaternions(rotations, weights)

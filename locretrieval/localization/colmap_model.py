@@ -29,7 +29,9 @@ def to_pycolmap_camera(camera: Camera, camera_id: int | None = None) -> pycolmap
     """The same camera as a ``pycolmap.Camera`` (model, size and parameters copied)."""
     import pycolmap
 
-    converted = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=list(camera.params))
+    converted = pycolmap.Camera(
+        model=camera.model, width=camera.width, height=camera.height, params=list(camera.params)
+    )
     if camera_id is not None:
         converted.camera_id = camera_id
     return converted
@@ -46,7 +48,9 @@ def to_rigid3d(qvec: np.ndarray, tvec: np.ndarray) -> pycolmap.Rigid3d:
 def from_rigid3d(cam_from_world: pycolmap.Rigid3d) -> tuple[np.ndarray, np.ndarray]:
     """World-to-camera ``(q wxyz with w >= 0, t)`` of a pycolmap ``cam_from_world``."""
     x, y, z, w = cam_from_world.rotation.quat
-    return geometry.normalize_quaternions(np.array([w, x, y, z])), np.asarray(cam_from_world.translation, dtype=np.float64)
+    return geometry.normalize_quaternions(np.array([w, x, y, z])), np.asarray(
+        cam_from_world.translation, dtype=np.float64
+    )
 
 
 #: The files of a COLMAP model folder, each ``<name>.bin`` or ``<name>.txt``.
@@ -92,9 +96,7 @@ def read_colmap_map(path: str | Path, names: Sequence[str], keypoints: Sequence[
         image = by_name.get(name)
         if image is not None:
             xy = np.array([p.xy for p in image.points2D], dtype=np.float64).reshape(-1, 2)
-            if len(xy) != len(image_keypoints) or (
-                len(xy) and np.abs(xy - image_keypoints).max() > KEYPOINT_TOLERANCE
-            ):
+            if len(xy) != len(image_keypoints) or (len(xy) and np.abs(xy - image_keypoints).max() > KEYPOINT_TOLERANCE):
                 raise ValueError(
                     f"COLMAP model {path}, image {name!r}: its {len(xy)} 2D points are not the "
                     f"{len(image_keypoints)} feature keypoints; use the features the model was built from"

@@ -37,7 +37,9 @@ class PoseEstimates:
     def __post_init__(self) -> None:
         self.k_effective = list(self.ks) if self.k_effective is None else self.k_effective
         if len(self.k_effective) != len(self.ks):
-            raise ValueError(f"{self.ranking}/{self.paradigm}/{self.method}: k_effective {self.k_effective} for ks {self.ks}")
+            raise ValueError(
+                f"{self.ranking}/{self.paradigm}/{self.method}: k_effective {self.k_effective} for ks {self.ks}"
+            )
         shape = (len(self.ks), self.qvec.shape[1])
         if self.qvec.shape != (*shape, 4) or self.tvec.shape != (*shape, 3) or self.failures.shape != shape:
             raise ValueError(
@@ -86,8 +88,17 @@ def estimated_pose_table(dataset: str, estimates: Sequence[PoseEstimates], query
     for e in estimates:
         found = np.isfinite(e.qvec).all(-1) & np.isfinite(e.tvec).all(-1)  # [len(ks), Q]
         k_rows, query_rows = np.nonzero(found)
-        labels = {"dataset": dataset, "ranking": e.ranking, "ranking_kind": e.ranking_kind, "paradigm": e.paradigm,
-                  "method": e.method, "k": np.asarray(e.ks)[k_rows], "query": np.asarray(query_names, dtype=object)[query_rows]}
+        labels = {
+            "dataset": dataset,
+            "ranking": e.ranking,
+            "ranking_kind": e.ranking_kind,
+            "paradigm": e.paradigm,
+            "method": e.method,
+            "k": np.asarray(e.ks)[k_rows],
+            "query": np.asarray(query_names, dtype=object)[query_rows],
+        }
         poses = np.concatenate([e.qvec[found], e.tvec[found]], axis=1)
-        frames.append(pd.DataFrame({**labels, **dict(zip(ESTIMATED_POSE_COLUMNS[-7:], poses.T))}, columns=ESTIMATED_POSE_COLUMNS))
+        frames.append(
+            pd.DataFrame({**labels, **dict(zip(ESTIMATED_POSE_COLUMNS[-7:], poses.T))}, columns=ESTIMATED_POSE_COLUMNS)
+        )
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=ESTIMATED_POSE_COLUMNS)

@@ -47,7 +47,11 @@ from locretrieval.localization.store import ShardedStore
 from locretrieval.localization.workers import parallel_map
 from locretrieval.scene import ImageSet
 from locretrieval.scene.feature_files import (
-    feature_file, feature_folder_candidates, find_feature_folder, read_feature_array, read_feature_header,
+    feature_file,
+    feature_folder_candidates,
+    find_feature_folder,
+    read_feature_array,
+    read_feature_header,
 )
 from locretrieval.scene.images import read_image
 
@@ -87,7 +91,11 @@ class LocalFeatures(abc.ABC):
         return config_key(CACHE_VERSION, self.identity())
 
     def _check_budget(self) -> None:
-        require(self.max_keypoints is None or self.max_keypoints > 0, "max_keypoints", f"must be positive or null, got {self.max_keypoints}")
+        require(
+            self.max_keypoints is None or self.max_keypoints > 0,
+            "max_keypoints",
+            f"must be positive or null, got {self.max_keypoints}",
+        )
 
 
 @dataclass
@@ -109,7 +117,9 @@ class SiftFeatures(LocalFeatures):
         require(self.peak_threshold > 0, "peak_threshold", f"must be positive, got {self.peak_threshold}")
 
     def identity(self) -> dict[str, Any]:
-        options = {key: getattr(self, key) for key in ("max_side", "first_octave", "max_num_features", "peak_threshold")}
+        options = {
+            key: getattr(self, key) for key in ("max_side", "first_octave", "max_num_features", "peak_threshold")
+        }
         return {"type": "sift", "max_keypoints": self.max_keypoints, "sift": options}
 
     def records(self) -> Callable[[str, Path], dict[str, np.ndarray]]:
@@ -140,11 +150,17 @@ class KaptureFeatures(LocalFeatures):
 
     def __post_init__(self) -> None:
         self._check_budget()
-        require(self.score_order is None or self.score_order in SCORE_ORDERS, "score_order",
-                f"must be one of {list(SCORE_ORDERS)} or null, got {self.score_order!r}")
-        require(self.max_keypoints is None or self.score_order is not None, "max_keypoints",
-                f"needs the score order of the kapture features {self.name!r} (sfm.features.score_order: "
-                f"{' or '.join(SCORE_ORDERS)}), which is not set")
+        require(
+            self.score_order is None or self.score_order in SCORE_ORDERS,
+            "score_order",
+            f"must be one of {list(SCORE_ORDERS)} or null, got {self.score_order!r}",
+        )
+        require(
+            self.max_keypoints is None or self.score_order is not None,
+            "max_keypoints",
+            f"needs the score order of the kapture features {self.name!r} (sfm.features.score_order: "
+            f"{' or '.join(SCORE_ORDERS)}), which is not set",
+        )
 
     def identity(self) -> dict[str, Any]:
         options = {"name": self.name, "pixel_offset": self.pixel_offset, "score_order": self.score_order}
@@ -271,7 +287,10 @@ def _sift_extractor(settings: SiftFeatures, budget: int | None) -> Callable[[Pat
         xy = pycolmap.keypoints_to_matrix(keypoints)[:, :2].astype(np.float64)
         # COLMAP coordinates start at the image corner, so resizing is a pure scale per axis.
         xy *= np.array([width / image.shape[1], height / image.shape[0]])
-        return {"keypoints": xy.astype(np.float32), "descriptors": np.asarray(descriptors.data, dtype=np.uint8).reshape(len(xy), SIFT_DIMENSION)}
+        return {
+            "keypoints": xy.astype(np.float32),
+            "descriptors": np.asarray(descriptors.data, dtype=np.uint8).reshape(len(xy), SIFT_DIMENSION),
+        }
 
     return extract
 
@@ -314,7 +333,10 @@ def missing_kapture_features(images: ImageSet, settings: KaptureFeatures) -> lis
                 continue
             absent = [path for path in (feature_file(folder, kind, n) for n in names) if not path.is_file()]
             if absent:
-                problems.append(f"kapture {kind} {settings.name!r}: {len(absent)} of {len(names)} images lack their file, e.g. {absent[0]}")
+                problems.append(
+                    f"kapture {kind} {settings.name!r}: {len(absent)} of "
+                    f"{len(names)} images lack their file, e.g. {absent[0]}"
+                )
     return problems
 
 
@@ -332,6 +354,8 @@ def _read_kapture_features(image_name: str, image_path: Path, settings: KaptureF
         arrays[kind] = read_feature_array(path, config)
     keypoints, descriptors = arrays["keypoints"], arrays["descriptors"]
     if len(keypoints) != len(descriptors):
-        raise ValueError(f"image {image_name!r} in {root}: {len(keypoints)} keypoints but {len(descriptors)} descriptors")
+        raise ValueError(
+            f"image {image_name!r} in {root}: {len(keypoints)} keypoints but {len(descriptors)} descriptors"
+        )
     xy = keypoints[:, :2].astype(np.float64) + settings.pixel_offset
     return {"keypoints": xy.astype(np.float32), "descriptors": descriptors}

@@ -35,12 +35,20 @@ from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.features import extract_features
 from locretrieval.localization.pairs import database_pairs
 from locretrieval.localization.paradigm import ParadigmSettings
+from locretrieval.localization.pipeline import SfmStages, run_sfm
 from locretrieval.localization.plan import ParadigmWork, Work, database_pair_work, query_pair_work, registration_work
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS
 from locretrieval.localization.pose_cache import PoseCache
-from locretrieval.localization.pipeline import SfmStages, run_sfm
 from locretrieval.localization.sfm import (
-    SFM_METHOD, Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, query_tasks, register_query, run_queries,
+    SFM_METHOD,
+    Outcome,
+    QueryTask,
+    SfmInputs,
+    SfmSettings,
+    outcomes_per_image_set,
+    query_tasks,
+    register_query,
+    run_queries,
 )
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.retrieval import Ranking
@@ -88,19 +96,27 @@ def shared_map_pairs(inputs: SfmInputs, settings: GlobalSfmSettings) -> list[tup
     return [(database.names[a], database.names[b]) for a, b in database_pairs(database, inputs.map_pairs)]
 
 
-def query_map_pairs(inputs: SfmInputs, rankings: Sequence[Ranking], ks, settings: GlobalSfmSettings, queries) -> list[tuple[str, str]]:
+def query_map_pairs(
+    inputs: SfmInputs, rankings: Sequence[Ranking], ks, settings: GlobalSfmSettings, queries
+) -> list[tuple[str, str]]:
     """None: the global map is every query's."""
     return []
 
 
 def localize(
-    inputs: SfmInputs, rankings: Sequence[Ranking], ks: Sequence[list[int]], settings: GlobalSfmSettings, cache_dir: Path,
+    inputs: SfmInputs,
+    rankings: Sequence[Ranking],
+    ks: Sequence[list[int]],
+    settings: GlobalSfmSettings,
+    cache_dir: Path,
     queries: Sequence[int] | None,
 ) -> list[PoseEstimates] | None:
     """Triangulate (the global map, once) and register every query in it (in worker processes)."""
     sparse_map = global_map(inputs, settings.colmap_model, cache_dir)
     cache = _pose_cache(inputs, settings, cache_dir)
-    return run_queries("global_sfm", rankings, ks, localize_query, (inputs, sparse_map), inputs.settings.processes, cache, queries)
+    return run_queries(
+        "global_sfm", rankings, ks, localize_query, (inputs, sparse_map), inputs.settings.processes, cache, queries
+    )
 
 
 #: This paradigm's stages of the SfM pipeline.
@@ -108,7 +124,12 @@ STAGES = SfmStages(shared_map_pairs, query_map_pairs, localize)
 
 
 def plan(
-    scene: Scene, rankings: Sequence[Ranking] | None, settings: GlobalSfmSettings, sfm: SfmSettings, cache_dir: Path, num_rankings: int
+    scene: Scene,
+    rankings: Sequence[Ranking] | None,
+    settings: GlobalSfmSettings,
+    sfm: SfmSettings,
+    cache_dir: Path,
+    num_rankings: int,
 ) -> ParadigmWork:
     """The work of `run` (`ParadigmWork`), without doing any: exact for ``rankings``, upper
     bounds for ``num_rankings`` rankings not computed yet (``None``). The map's database pairs
@@ -123,9 +144,21 @@ def plan(
         maps = Work(1, 1)
     if rankings is None:
         registrations = num_rankings * len(scene.queries) * len(settings.k)
-        return ParadigmWork("global_sfm", query_pairs, map_pairs, maps, map_pairs.total, Work(registrations, registrations), parallel_maps=False)
-    tasks = query_tasks(rankings, [ranking.clamp_ks(settings.k) for ranking in rankings], _pose_cache(inputs, settings, cache_dir))
-    return ParadigmWork("global_sfm", query_pairs, map_pairs, maps, map_pairs.total, registration_work(tasks), parallel_maps=False)
+        return ParadigmWork(
+            "global_sfm",
+            query_pairs,
+            map_pairs,
+            maps,
+            map_pairs.total,
+            Work(registrations, registrations),
+            parallel_maps=False,
+        )
+    tasks = query_tasks(
+        rankings, [ranking.clamp_ks(settings.k) for ranking in rankings], _pose_cache(inputs, settings, cache_dir)
+    )
+    return ParadigmWork(
+        "global_sfm", query_pairs, map_pairs, maps, map_pairs.total, registration_work(tasks), parallel_maps=False
+    )
 
 
 def _pose_cache(inputs: SfmInputs, settings: GlobalSfmSettings, cache_dir: Path) -> PoseCache:
@@ -156,11 +189,20 @@ def global_map(inputs: SfmInputs, colmap_model: str | None, cache_dir: Path) -> 
         matches = inputs.database_pairs.load(named, inputs.database_verification)
         keypoints = inputs.database_features.keypoints(database.names)
         sparse_map = inputs.settings.triangulation.triangulate(
-            database.cameras, database.qvec, database.tvec, [keypoints[n] for n in database.names],
+            database.cameras,
+            database.qvec,
+            database.tvec,
+            [keypoints[n] for n in database.names],
             {(int(a), int(b)): matches[pair] for (a, b), pair in zip(pairs, named)},
         )
         sparse_map.save(path)
-    log.info("global map: %d points from %d database images (%d pairs), saved to %s", sparse_map.num_points, len(database), len(pairs), path)
+    log.info(
+        "global map: %d points from %d database images (%d pairs), saved to %s",
+        sparse_map.num_points,
+        len(database),
+        len(pairs),
+        path,
+    )
     return sparse_map
 
 
@@ -199,6 +241,8 @@ def localize_query(shared: tuple[SfmInputs, SparseMap], task: QueryTask) -> list
             return EMPTY_RETRIEVAL
         if not any((sparse_map.observations[i] >= 0).any() for i in selected):
             return NO_3D_POINTS
-        return register_query(inputs, task.query, query_keypoints, {i: query_matches[i] for i in selected}, sparse_map, slots)
+        return register_query(
+            inputs, task.query, query_keypoints, {i: query_matches[i] for i in selected}, sparse_map, slots
+        )
 
     return outcomes_per_image_set(task, localize)

@@ -30,7 +30,7 @@ available ("too few images"), the map has no point, or PnP fails.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from math import comb
 from pathlib import Path
 
@@ -40,12 +40,20 @@ from locretrieval.cache import config_key
 from locretrieval.config import require
 from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.paradigm import ParadigmSettings
+from locretrieval.localization.pipeline import SfmStages, run_sfm
 from locretrieval.localization.plan import ParadigmWork, Work, database_pair_work, query_pair_work, registration_work
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
 from locretrieval.localization.pose_cache import PoseCache
-from locretrieval.localization.pipeline import SfmStages, run_sfm
 from locretrieval.localization.sfm import (
-    SFM_METHOD, Outcome, QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set, query_tasks, register_query, run_queries,
+    SFM_METHOD,
+    Outcome,
+    QueryTask,
+    SfmInputs,
+    SfmSettings,
+    outcomes_per_image_set,
+    query_tasks,
+    register_query,
+    run_queries,
 )
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.localization.triangulation import MapInput
@@ -67,7 +75,11 @@ class LocalSfmSettings(ParadigmSettings):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        require(self.map_matches in MAP_MATCHES, "map_matches", f"must be one of {list(MAP_MATCHES)}, got {self.map_matches!r}")
+        require(
+            self.map_matches in MAP_MATCHES,
+            "map_matches",
+            f"must be one of {list(MAP_MATCHES)}, got {self.map_matches!r}",
+        )
 
     def method_names(self) -> list[str]:
         return [SFM_METHOD]
@@ -88,7 +100,11 @@ def shared_map_pairs(inputs: SfmInputs, settings: LocalSfmSettings) -> list[tupl
 
 
 def query_map_pairs(
-    inputs: SfmInputs, rankings: Sequence[Ranking], ks: Sequence[Sequence[int]], settings: LocalSfmSettings, queries: Sequence[int] | None
+    inputs: SfmInputs,
+    rankings: Sequence[Ranking],
+    ks: Sequence[Sequence[int]],
+    settings: LocalSfmSettings,
+    queries: Sequence[int] | None,
 ) -> list[tuple[str, str]]:
     """The database pairs (names) of every local map of ``queries`` (None: all) with ``database``
     map matches (`local_map_pairs`); none with ``query`` map matches."""
@@ -99,7 +115,11 @@ def query_map_pairs(
 
 
 def localize(
-    inputs: SfmInputs, rankings: Sequence[Ranking], ks: Sequence[list[int]], settings: LocalSfmSettings, cache_dir: Path,
+    inputs: SfmInputs,
+    rankings: Sequence[Ranking],
+    ks: Sequence[list[int]],
+    settings: LocalSfmSettings,
+    cache_dir: Path,
     queries: Sequence[int] | None,
 ) -> list[PoseEstimates] | None:
     """Triangulate and register: each query's local maps built and the query registered in each
@@ -114,7 +134,12 @@ STAGES = SfmStages(shared_map_pairs, query_map_pairs, localize)
 
 
 def plan(
-    scene: Scene, rankings: Sequence[Ranking] | None, settings: LocalSfmSettings, sfm: SfmSettings, cache_dir: Path, num_rankings: int
+    scene: Scene,
+    rankings: Sequence[Ranking] | None,
+    settings: LocalSfmSettings,
+    sfm: SfmSettings,
+    cache_dir: Path,
+    num_rankings: int,
 ) -> ParadigmWork:
     """The work of `run` (`ParadigmWork`), without doing any: exact for ``rankings``, upper
     bounds for ``num_rankings`` rankings not computed yet (``None``)."""
@@ -123,16 +148,39 @@ def plan(
     pairs_per_map = float(np.mean([comb(min(k, len(scene.database)), 2) for k in settings.k if k >= 2] or [0]))
     if rankings is None:
         queries, depth = len(scene.queries), min(max(settings.k), len(scene.database))
-        bound = min(num_rankings * queries * comb(depth, 2), comb(len(scene.database), 2)) if settings.map_matches == "database" else 0
+        bound = (
+            min(num_rankings * queries * comb(depth, 2), comb(len(scene.database), 2))
+            if settings.map_matches == "database"
+            else 0
+        )
         maps = num_rankings * queries * sum(1 for k in settings.k if k >= 2)
         registrations = num_rankings * queries * len(settings.k)
-        return ParadigmWork("local_sfm", query_pairs, Work(bound, bound), Work(maps, maps), pairs_per_map, Work(registrations, registrations))
+        return ParadigmWork(
+            "local_sfm",
+            query_pairs,
+            Work(bound, bound),
+            Work(maps, maps),
+            pairs_per_map,
+            Work(registrations, registrations),
+        )
     ks = [ranking.clamp_ks(settings.k) for ranking in rankings]
     database_pairs = database_pair_work(inputs, query_map_pairs(inputs, rankings, ks, settings, None))
     tasks = query_tasks(rankings, ks, _pose_cache(inputs, settings, cache_dir))
-    maps = {_map_key(inputs, settings.map_matches, task.query, images) for task in tasks for images in task.image_sets() if len(images) >= 2}
+    maps = {
+        _map_key(inputs, settings.map_matches, task.query, images)
+        for task in tasks
+        for images in task.image_sets()
+        if len(images) >= 2
+    }
     new_maps = {key for key in maps if not (cache_dir / "local_maps" / f"{key}.npz").is_file()}
-    return ParadigmWork("local_sfm", query_pairs, database_pairs, Work(len(maps), len(new_maps)), pairs_per_map, registration_work(tasks))
+    return ParadigmWork(
+        "local_sfm",
+        query_pairs,
+        database_pairs,
+        Work(len(maps), len(new_maps)),
+        pairs_per_map,
+        registration_work(tasks),
+    )
 
 
 def _pose_cache(inputs: SfmInputs, settings: LocalSfmSettings, cache_dir: Path) -> PoseCache:
@@ -146,7 +194,9 @@ def _database_matches(inputs: SfmInputs) -> str:
     return inputs.database_pairs.store(inputs.database_verification).folder.name
 
 
-def local_map_pairs(rankings: Sequence[Ranking], ks: Sequence[Sequence[int]], queries: Sequence[int] | None = None) -> np.ndarray:
+def local_map_pairs(
+    rankings: Sequence[Ranking], ks: Sequence[Sequence[int]], queries: Sequence[int] | None = None
+) -> np.ndarray:
     """Distinct database pairs ``[P, 2]`` (a < b) of any local map: both among one query's top
     ``max(k)`` (of ``queries``, or every query)."""
     pairs = [np.empty((0, 2), dtype=np.int64)]
@@ -172,14 +222,34 @@ def localize_query(shared: tuple[SfmInputs, str, Path], task: QueryTask) -> list
     query_keypoints, query_matches = inputs.query_matches(task.query, images)
     keypoints = inputs.database_features.keypoints([database.names[i] for i in images])
     map_pairs = _map_matches(inputs, pending, map_matches, query_matches, len(query_keypoints), keypoints)
-    paths = {selected: maps / f"{_map_key(inputs, map_matches, task.query, selected)}.npz" for selected in sorted(pending) if len(selected) >= 2}
+    paths = {
+        selected: maps / f"{_map_key(inputs, map_matches, task.query, selected)}.npz"
+        for selected in sorted(pending)
+        if len(selected) >= 2
+    }
     built = [selected for selected, path in paths.items() if not path.is_file()]
-    sparse_maps = dict(zip(built, inputs.settings.triangulation.triangulate_many([
-        MapInput([database.cameras[i] for i in selected], database.qvec[list(selected)], database.tvec[list(selected)],
-                 [keypoints[database.names[i]] for i in selected],
-                 {(s, t): map_pairs[(a, b)] for s, a in enumerate(selected) for t, b in enumerate(selected) if a < b})
-        for selected in built
-    ])))
+    sparse_maps = dict(
+        zip(
+            built,
+            inputs.settings.triangulation.triangulate_many(
+                [
+                    MapInput(
+                        [database.cameras[i] for i in selected],
+                        database.qvec[list(selected)],
+                        database.tvec[list(selected)],
+                        [keypoints[database.names[i]] for i in selected],
+                        {
+                            (s, t): map_pairs[(a, b)]
+                            for s, a in enumerate(selected)
+                            for t, b in enumerate(selected)
+                            if a < b
+                        },
+                    )
+                    for selected in built
+                ]
+            ),
+        )
+    )
     for selected in built:
         sparse_maps[selected].save(paths[selected])
 
@@ -192,7 +262,9 @@ def localize_query(shared: tuple[SfmInputs, str, Path], task: QueryTask) -> list
         if not sparse_map.num_points:
             return NO_3D_POINTS
         slots = {i: s for s, i in enumerate(selected)}
-        return register_query(inputs, task.query, query_keypoints, {i: query_matches[i] for i in selected}, sparse_map, slots)
+        return register_query(
+            inputs, task.query, query_keypoints, {i: query_matches[i] for i in selected}, sparse_map, slots
+        )
 
     return outcomes_per_image_set(task, localize)
 
@@ -209,15 +281,21 @@ def _map_key(inputs: SfmInputs, map_matches: str, query: int, selected: tuple[in
 
 
 def _map_matches(
-    inputs: SfmInputs, image_sets: Iterable[tuple[int, ...]], map_matches: str, query_matches: Mapping[int, np.ndarray],
-    num_query_keypoints: int, keypoints: Mapping[str, np.ndarray],
+    inputs: SfmInputs,
+    image_sets: Iterable[tuple[int, ...]],
+    map_matches: str,
+    query_matches: Mapping[int, np.ndarray],
+    num_query_keypoints: int,
+    keypoints: Mapping[str, np.ndarray],
 ) -> dict[tuple[int, int], np.ndarray]:
     """Pose-verified matches of every database pair ``(a, b)``, a < b, within one of the image
     sets (sorted tuples); ``keypoints``: those of the database images by name."""
     database = inputs.scene.database
     pairs = sorted({(a, b) for images in image_sets for a in images for b in images if a < b})
     if map_matches == "database":
-        loaded = inputs.database_pairs.load([(database.names[a], database.names[b]) for a, b in pairs], inputs.database_verification)
+        loaded = inputs.database_pairs.load(
+            [(database.names[a], database.names[b]) for a, b in pairs], inputs.database_verification
+        )
         return {(a, b): loaded[(database.names[a], database.names[b])] for a, b in pairs}
     partner = {}
     for image, matches in query_matches.items():
@@ -228,9 +306,13 @@ def _map_matches(
         both = (partner[a] >= 0) & (partner[b] >= 0)
         matches = np.column_stack([partner[a][both], partner[b][both]]).astype(np.int32)
         keep = epipolar_inliers(
-            keypoints[database.names[a]], keypoints[database.names[b]], matches,
-            database.cameras[a], (database.qvec[a], database.tvec[a]),
-            database.cameras[b], (database.qvec[b], database.tvec[b]),
+            keypoints[database.names[a]],
+            keypoints[database.names[b]],
+            matches,
+            database.cameras[a],
+            (database.qvec[a], database.tvec[a]),
+            database.cameras[b],
+            (database.qvec[b], database.tvec[b]),
             inputs.settings.matching.max_epipolar_error,
         )
         derived[(a, b)] = matches[keep]

@@ -39,13 +39,22 @@ from locretrieval.cache import config_key
 from locretrieval.config import require
 from locretrieval.localization.features import FeatureStore
 from locretrieval.localization.nearest_neighbours import (
-    CPU_BLOCK_BYTES, PRECISIONS, BatchedMatcher, DeviceDescriptors, NearestNeighbourMatcher,
+    CPU_BLOCK_BYTES,
+    PRECISIONS,
+    BatchedMatcher,
+    DeviceDescriptors,
+    NearestNeighbourMatcher,
 )
 from locretrieval.localization.store import ShardedStore
 from locretrieval.localization.verification import (
-    NoVerification, PairVerification, PoseVerification, VerificationBatch, pair_indices, verify_pairs,
+    NoVerification,
+    PairVerification,
+    PoseVerification,
+    VerificationBatch,
+    pair_indices,
+    verify_pairs,
 )
-from locretrieval.localization.workers import parallel_map, resolve_workers, task_stream
+from locretrieval.localization.workers import parallel_map, task_stream
 from locretrieval.scene import ImageSet
 
 log = logging.getLogger(__name__)
@@ -65,7 +74,8 @@ Pair = tuple[str, str]
 @dataclass
 class MatchingSettings:
     """Mutual nearest neighbours with Lowe's ``ratio`` test (1: off); database pairs verified
-    against their known poses (Sampson error below ``max_epipolar_error`` px). Matching runs on ``device`` (``auto``: CUDA when there is a GPU) with ``precision``
+    against their known poses (Sampson error below ``max_epipolar_error`` px). Matching runs on
+    ``device`` (``auto``: CUDA when there is a GPU) with ``precision``
     similarities; ``block_mib`` MiB of them at once (null: `CPU_BLOCK_BYTES` on a CPU, a quarter
     of the free memory on a GPU)."""
 
@@ -77,11 +87,22 @@ class MatchingSettings:
 
     def __post_init__(self) -> None:
         require(0 < self.ratio <= 1, "ratio", f"must be in (0, 1], got {self.ratio}")
-        require(self.device == "auto" or self.device.split(":")[0] in ("cpu", "cuda"), "device",
-                f"must be auto, cpu or cuda[:N], got {self.device!r}")
+        require(
+            self.device == "auto" or self.device.split(":")[0] in ("cpu", "cuda"),
+            "device",
+            f"must be auto, cpu or cuda[:N], got {self.device!r}",
+        )
         require(self.precision in PRECISIONS, "precision", f"must be one of {list(PRECISIONS)}, got {self.precision!r}")
-        require(self.block_mib is None or self.block_mib > 0, "block_mib", f"must be a positive number of MiB or null, got {self.block_mib}")
-        require(self.max_epipolar_error > 0, "max_epipolar_error", f"must be a positive number of pixels, got {self.max_epipolar_error}")
+        require(
+            self.block_mib is None or self.block_mib > 0,
+            "block_mib",
+            f"must be a positive number of MiB or null, got {self.block_mib}",
+        )
+        require(
+            self.max_epipolar_error > 0,
+            "max_epipolar_error",
+            f"must be a positive number of pixels, got {self.max_epipolar_error}",
+        )
 
     @cached_property
     def database_verification(self) -> PoseVerification:
@@ -101,7 +122,12 @@ class MatchingSettings:
         device = resolve_device(self.device)
         block_bytes = None if self.block_mib is None else int(self.block_mib * 2**20)
         if device.type == "cuda":
-            return BatchedMatcher(self.ratio, str(device), self.precision, block_bytes or int(GPU_BATCH_SHARE * free_device_memory(device)))
+            return BatchedMatcher(
+                self.ratio,
+                str(device),
+                self.precision,
+                block_bytes or int(GPU_BATCH_SHARE * free_device_memory(device)),
+            )
         return NearestNeighbourMatcher(self.ratio, self.precision, block_bytes or CPU_BLOCK_BYTES)
 
 
@@ -125,15 +151,23 @@ class PairMatcher:
     """
 
     def __init__(
-        self, images0: ImageSet, features0: FeatureStore, images1: ImageSet, features1: FeatureStore,
-        settings: MatchingSettings, cache_dir: str | Path,
+        self,
+        images0: ImageSet,
+        features0: FeatureStore,
+        images1: ImageSet,
+        features1: FeatureStore,
+        settings: MatchingSettings,
+        cache_dir: str | Path,
     ) -> None:
         self.settings = settings
         self.images = (images0, images1)
         self.features = (features0, features1)
         self.same_set = features0.folder == features1.folder
         self.index = tuple({name: i for i, name in enumerate(images.names)} for images in self.images)
-        self.root = f"{Path(cache_dir) / 'matches' / f'{features0.folder.name}--{features1.folder.name}'}--{config_key(CACHE_VERSION, settings.ratio, settings.precision)}"
+        self.root = (
+            f"{Path(cache_dir) / 'matches' / f'{features0.folder.name}--{features1.folder.name}'}"
+            f"--{config_key(CACHE_VERSION, settings.ratio, settings.precision)}"
+        )
         self.raw = ShardedStore(self.root)
         self._verified: dict[PairVerification, ShardedStore] = {}
 
@@ -169,11 +203,24 @@ class PairMatcher:
         if not todo:
             return 0
         matcher = self.settings.matcher()
-        log.info("matching %d image pairs on %s, verifying %d (%s), into %s", len(missing_raw), matcher.device,
-                 len(missing_verified), type(verification).__name__, self.raw.folder)
+        log.info(
+            "matching %d image pairs on %s, verifying %d (%s), into %s",
+            len(missing_raw),
+            matcher.device,
+            len(missing_verified),
+            type(verification).__name__,
+            self.raw.folder,
+        )
         shards = [todo[start : start + PAIRS_PER_SHARD] for start in range(0, len(todo), PAIRS_PER_SHARD)]
-        tasks = [ShardTask(shard, missing_raw & set(map(pair_key, shard)), missing_verified & set(map(pair_key, shard)), verification)
-                 for shard in shards]
+        tasks = [
+            ShardTask(
+                shard,
+                missing_raw & set(map(pair_key, shard)),
+                missing_verified & set(map(pair_key, shard)),
+                verification,
+            )
+            for shard in shards
+        ]
         if isinstance(matcher, BatchedMatcher):
             self._ensure_on_device(matcher, tasks, workers)
         else:
@@ -190,16 +237,26 @@ class PairMatcher:
 
         on_gpu = matcher.device.startswith("cuda")
         capacity = int(GPU_DESCRIPTOR_SHARE * free_device_memory(matcher.device)) if on_gpu else HOST_RESIDENT_BYTES
-        resident = [DeviceDescriptors(partial_descriptors(store), matcher.device, matcher.dtype, capacity) for store in self.features]
+        resident = [
+            DeviceDescriptors(partial_descriptors(store), matcher.device, matcher.dtype, capacity)
+            for store in self.features
+        ]
         if self.same_set:
             resident[1] = resident[0]
 
         def read(task: ShardTask) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
             pairs = task.to_match
-            return tuple(partial_descriptors(store)([name for name in names if name not in held])  # type: ignore[return-value]
-                         for store, held, names in zip(self.features, resident, (sorted({a for a, _ in pairs}), sorted({b for _, b in pairs}))))
+            return tuple(
+                partial_descriptors(store)([name for name in names if name not in held])  # type: ignore[return-value]
+                for store, held, names in zip(
+                    self.features, resident, (sorted({a for a, _ in pairs}), sorted({b for _, b in pairs}))
+                )
+            )
 
-        with ThreadPoolExecutor(1) as reader, task_stream(_store_shard, len(tasks), workers, "verifying", shared=self) as submit:
+        with (
+            ThreadPoolExecutor(1) as reader,
+            task_stream(_store_shard, len(tasks), workers, "verifying", shared=self) as submit,
+        ):
             upcoming = reader.submit(read, tasks[0])
             for number, task in enumerate(tasks):
                 loaded = upcoming.result()
@@ -232,12 +289,17 @@ class PairMatcher:
         if not task.missing_verified:
             return
         pairs = [pair for pair in task.pairs if pair_key(pair) in task.missing_verified]
-        cached = {key: record["matches"] for key, record in self.raw.read(pair_key(pair) for pair in pairs if pair_key(pair) not in matches).items()}
+        cached = {
+            key: record["matches"]
+            for key, record in self.raw.read(pair_key(pair) for pair in pairs if pair_key(pair) not in matches).items()
+        }
         raw = [matches.get(pair_key(pair), cached.get(pair_key(pair))) for pair in pairs]
         verification = task.verification
         keypoints = [{}, {}]
         if verification.needs_keypoints:
-            keypoints = [store.keypoints(sorted({pair[side] for pair in pairs})) for side, store in enumerate(self.features)]
+            keypoints = [
+                store.keypoints(sorted({pair[side] for pair in pairs})) for side, store in enumerate(self.features)
+            ]
         batch = VerificationBatch(*self.images, pair_indices(*self.images, pairs), raw, *keypoints)
         kept = verify_pairs(verification, batch)
         self.store(verification).write({pair_key(pair): {"matches": rows} for pair, rows in zip(pairs, kept)})
@@ -263,7 +325,9 @@ def partial_descriptors(store: FeatureStore):
     """``names -> {name: descriptors}`` of a feature store, without the keypoints."""
 
     def load(names: Sequence[str]) -> dict[str, np.ndarray]:
-        return {name: record["descriptors"] for name, record in store.store.read(names, arrays=("descriptors",)).items()}
+        return {
+            name: record["descriptors"] for name, record in store.store.read(names, arrays=("descriptors",)).items()
+        }
 
     return load
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -89,7 +88,11 @@ class NearestNeighbourMatcher:
     def __post_init__(self) -> None:
         require(0 < self.ratio <= 1, "ratio", f"must be in (0, 1], got {self.ratio}")
         require(self.precision in PRECISIONS, "precision", f"must be one of {list(PRECISIONS)}, got {self.precision!r}")
-        require(self.block_bytes >= 4 * TILE**2, "block_bytes", f"must hold {TILE} x {TILE} float32 similarities, got {self.block_bytes}")
+        require(
+            self.block_bytes >= 4 * TILE**2,
+            "block_bytes",
+            f"must hold {TILE} x {TILE} float32 similarities, got {self.block_bytes}",
+        )
 
     @property
     def device(self) -> str:
@@ -146,7 +149,11 @@ class _BestValues:
         def full(shape: tuple[int, ...], value: float, dtype: torch.dtype = like.dtype) -> torch.Tensor:
             return torch.full(shape, value, device=like.device, dtype=dtype)
 
-        self.row_best, self.row_second, self.row_argmax = full((rows,), -torch.inf), full((rows,), -torch.inf), full((rows,), 0, torch.int64)
+        self.row_best, self.row_second, self.row_argmax = (
+            full((rows,), -torch.inf),
+            full((rows,), -torch.inf),
+            full((rows,), 0, torch.int64),
+        )
         self.column_best = full((-(-rows // TILE), columns), -torch.inf)  # [group of rows, column]
 
     def update(self, similarity: torch.Tensor, first_row: int, first_column: int, valid: int) -> None:
@@ -157,13 +164,17 @@ class _BestValues:
 
         group, columns, whole = first_row // TILE, slice(first_column, first_column + valid), len(similarity) // TILE
         if whole:
-            self.column_best[group : group + whole, columns] = similarity[: whole * TILE].view(whole, TILE, -1).amax(1)[:, :valid]
+            self.column_best[group : group + whole, columns] = (
+                similarity[: whole * TILE].view(whole, TILE, -1).amax(1)[:, :valid]
+            )
         if whole * TILE < len(similarity):
             self.column_best[group + whole, columns] = similarity[whole * TILE :].amax(0)[:valid]
         rows = slice(first_row, first_row + len(similarity))
         best, second, argmax = row_best_two(similarity)
         old_best = self.row_best[rows]
-        self.row_second[rows] = torch.maximum(torch.maximum(self.row_second[rows], second), torch.minimum(old_best, best))
+        self.row_second[rows] = torch.maximum(
+            torch.maximum(self.row_second[rows], second), torch.minimum(old_best, best)
+        )
         self.row_argmax[rows] = torch.where(best > old_best, argmax + first_column, self.row_argmax[rows])
         self.row_best[rows] = torch.maximum(old_best, best)
 
@@ -241,7 +252,11 @@ class BatchedMatcher:
     def __post_init__(self) -> None:
         require(0 < self.ratio <= 1, "ratio", f"must be in (0, 1], got {self.ratio}")
         require(self.precision in PRECISIONS, "precision", f"must be one of {list(PRECISIONS)}, got {self.precision!r}")
-        require(self.batch_bytes >= 4 * TILE**2, "batch_bytes", f"must hold {TILE} x {TILE} float32 similarities, got {self.batch_bytes}")
+        require(
+            self.batch_bytes >= 4 * TILE**2,
+            "batch_bytes",
+            f"must hold {TILE} x {TILE} float32 similarities, got {self.batch_bytes}",
+        )
 
     @property
     def dtype(self) -> torch.dtype:
@@ -251,8 +266,10 @@ class BatchedMatcher:
 
     def __call__(self, first: np.ndarray, others: Sequence[np.ndarray]) -> list[np.ndarray]:
         """Matches ``int32 [m, 2]`` of ``first`` with each of ``others`` (numpy in, numpy out)."""
-        return self.match(normalized_on_device(first, self.device, self.dtype),
-                          [normalized_on_device(other, self.device, self.dtype) for other in others])
+        return self.match(
+            normalized_on_device(first, self.device, self.dtype),
+            [normalized_on_device(other, self.device, self.dtype) for other in others],
+        )
 
     def match(self, first: torch.Tensor, partners: Sequence[torch.Tensor]) -> list[np.ndarray]:
         """Matches of ``first`` with each of ``partners``: unit-norm descriptors on the device (`DeviceDescriptors`)."""
@@ -309,7 +326,9 @@ class BatchedMatcher:
             for collected, values in zip((row_best, row_second, row_argmax), block_best):
                 collected.append(values.view(-1, count))
         best, second, argmax = (torch.cat(values) for values in (row_best, row_second, row_argmax))  # [rows, count]
-        back = column_argmax.view(count, width).gather(1, argmax.T)  # [count, rows]: the best row of each row's best column
+        back = column_argmax.view(count, width).gather(
+            1, argmax.T
+        )  # [count, rows]: the best row of each row's best column
         keep = (back == torch.arange(rows, device=first.device)) & ratio_passes(best, second, self.ratio).T
         partner, row = torch.nonzero(keep, as_tuple=True)  # sorted by partner, then row
         found = torch.stack([row, argmax.T[partner, row]], 1).to(torch.int32).cpu().numpy()
@@ -321,9 +340,13 @@ class DeviceDescriptors:
     """Unit-norm descriptors of images kept on a device, least recently used dropped first beyond
     ``capacity_bytes``; ``load(names) -> {name: descriptors [n, D]}`` reads those not resident."""
 
-    def __init__(self, load: Callable[[Sequence[str]], dict[str, np.ndarray]], device: str, dtype: torch.dtype,
-                 capacity_bytes: int) -> None:
-        import torch
+    def __init__(
+        self,
+        load: Callable[[Sequence[str]], dict[str, np.ndarray]],
+        device: str,
+        dtype: torch.dtype,
+        capacity_bytes: int,
+    ) -> None:
 
         self._load, self.device, self.dtype, self.capacity_bytes = load, device, dtype, capacity_bytes
         self._resident: OrderedDict[str, torch.Tensor] = OrderedDict()

@@ -31,8 +31,11 @@ class PairSelection:
         require(self.near > 0, "near", f"must be a positive depth in metres, got {self.near}")
         require(self.far is None or self.far > self.near, "far", f"must exceed near ({self.near} m), got {self.far}")
         require(self.min_radius >= 0, "min_radius", f"must be >= 0 metres, got {self.min_radius}")
-        require(self.max_per_image is None or self.max_per_image >= 1, "max_per_image",
-                f"must be >= 1 or null (all), got {self.max_per_image}")
+        require(
+            self.max_per_image is None or self.max_per_image >= 1,
+            "max_per_image",
+            f"must be >= 1 or null (all), got {self.max_per_image}",
+        )
 
     def for_scene(self, scene: Scene) -> "PairSelection":
         """This selection with ``far`` set to the scene's frustum far plane where it is ``None``."""

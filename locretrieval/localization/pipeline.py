@@ -31,8 +31,8 @@ import contextlib
 import logging
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -70,8 +70,12 @@ class SfmStages:
 
 
 def run_sfm(
-    scene: Scene, rankings: Sequence[Ranking], paradigms: Mapping[str, tuple[SfmStages, ParadigmSettings]],
-    sfm: SfmSettings, cache_dir: str | Path | None, timings: dict[str, float] | None = None,
+    scene: Scene,
+    rankings: Sequence[Ranking],
+    paradigms: Mapping[str, tuple[SfmStages, ParadigmSettings]],
+    sfm: SfmSettings,
+    cache_dir: str | Path | None,
+    timings: dict[str, float] | None = None,
 ) -> dict[str, list[PoseEstimates]] | None:
     """Every SfM paradigm of ``paradigms`` (name -> its stages and settings) on every ranking:
     the pose estimates by paradigm, or None for a job of ``sfm.shard`` (its share cached only).
@@ -90,17 +94,35 @@ def run_sfm(
     queries = list(range(len(scene.queries))) if shard is None else shard.take(range(len(scene.queries)))
 
     def query_map_pairs(chunk: Sequence[int] | None) -> list[Pair]:
-        return [pair for name, (stages, settings) in paradigms.items() for pair in stages.query_map_pairs(inputs, rankings, ks[name], settings, chunk)]
+        return [
+            pair
+            for name, (stages, settings) in paradigms.items()
+            for pair in stages.query_map_pairs(inputs, rankings, ks[name], settings, chunk)
+        ]
 
-    shared_pairs = [pair for stages, settings in paradigms.values() for pair in stages.shared_map_pairs(inputs, settings)]
+    shared_pairs = [
+        pair for stages, settings in paradigms.values() for pair in stages.shared_map_pairs(inputs, settings)
+    ]
     if shard is not None:  # every database pair of any map, split among the jobs
         all_pairs = inputs.database_pairs.canonical([*shared_pairs, *query_map_pairs(None)])
-        log.info("SfM shard %s: %d of %d queries, %d of %d database pairs", shard, len(queries), len(scene.queries),
-                 len(shard.take(all_pairs)), len(all_pairs))
+        log.info(
+            "SfM shard %s: %d of %d queries, %d of %d database pairs",
+            shard,
+            len(queries),
+            len(scene.queries),
+            len(shard.take(all_pairs)),
+            len(all_pairs),
+        )
         shared_pairs = shard.take(all_pairs)
     clock = StageClock(timings)
     with clock("features"):
-        extract_stage(inputs, cache_dir, shard, inputs.ranked_pairs(rankings, deepest, queries), [*shared_pairs, *query_map_pairs(queries)])
+        extract_stage(
+            inputs,
+            cache_dir,
+            shard,
+            inputs.ranked_pairs(rankings, deepest, queries),
+            [*shared_pairs, *query_map_pairs(queries)],
+        )
     with clock("match + verify"):
         match_stage(inputs, [], shared_pairs)
 
@@ -146,18 +168,28 @@ class StageClock:
 
 
 def extract_stage(
-    inputs: SfmInputs, cache_dir: Path, shard: Any, query_pairs: Sequence[Pair], database_pairs: Sequence[Pair], whole_sets: bool = True
+    inputs: SfmInputs,
+    cache_dir: Path,
+    shard: Any,
+    query_pairs: Sequence[Pair],
+    database_pairs: Sequence[Pair],
+    whole_sets: bool = True,
 ) -> None:
     """Local features of every image of both sets (``whole_sets``; a shard's share of each), then
     of the images of the (query, database) and (database, database) pairs still missing."""
     scene, settings, workers = inputs.scene, inputs.settings, inputs.settings.processes
     needed = (
-        (scene.database, sorted({name for _, name in query_pairs} | {name for pair in database_pairs for name in pair})),
+        (
+            scene.database,
+            sorted({name for _, name in query_pairs} | {name for pair in database_pairs for name in pair}),
+        ),
         (scene.queries, sorted({query for query, _ in query_pairs})),
     )
     for images, names in needed:
         if whole_sets:
-            extract_features(images, settings.features, cache_dir, workers, None if shard is None else shard.take(images.names))
+            extract_features(
+                images, settings.features, cache_dir, workers, None if shard is None else shard.take(images.names)
+            )
         extract_features(images, settings.features, cache_dir, workers, names)
 
 

@@ -106,8 +106,13 @@ class SfmPlan:
         process's); on a GPU matching is one process's, fed by the others."""
         costs = self.costs
         assert costs is not None, "forecast needs measured unit costs"
-        triangulated = sum(p.maps.new * p.pairs_per_map / (self.processes if p.parallel_maps else 1) for p in self.paradigms)
-        verified = sum(p.database_pairs.new for p in self.paradigms) * costs.pose_verification + self.new_query_pairs() * costs.query_verification
+        triangulated = sum(
+            p.maps.new * p.pairs_per_map / (self.processes if p.parallel_maps else 1) for p in self.paradigms
+        )
+        verified = (
+            sum(p.database_pairs.new for p in self.paradigms) * costs.pose_verification
+            + self.new_query_pairs() * costs.query_verification
+        )
         return {
             "features": self.features.new * costs.features / self.processes,
             "matching": self.new_pairs() * costs.matching / (self.processes if costs.device == "cpu" else 1),
@@ -121,17 +126,28 @@ class SfmPlan:
         kind = "exact" if self.exact else "upper bounds: the rankings are not computed yet, each taken as disjoint"
         lines = [f"SfM plan ({kind}); local features of {self.features} images"]
         for p in self.paradigms:
-            lines.append(f"  {p.paradigm}: query pairs {p.query_pairs}, database pairs {p.database_pairs}, "
-                         f"maps {p.maps} (~{p.pairs_per_map:,.0f} pairs each), registrations {p.registrations}")
+            lines.append(
+                f"  {p.paradigm}: query pairs {p.query_pairs}, database pairs {p.database_pairs}, "
+                f"maps {p.maps} (~{p.pairs_per_map:,.0f} pairs each), registrations {p.registrations}"
+            )
         if self.costs is not None:
             c = self.costs
-            lines.append(f"  measured on {c.sample_images + 1} images of the scene ({c.keypoints:.0f} keypoints each, matching on {c.device}): "
-                         f"features {c.features:.3f} s/image, matching {c.matching:.4f} s/pair, verification {c.pose_verification:.4f} "
-                         f"s/database pair and {c.query_verification:.4f} s/query pair, triangulation {c.triangulation:.4f} s/pair, "
-                         f"registration {c.registration:.4f} s/query; {self.processes} worker process(es)")
+            lines.append(
+                f"  measured on {c.sample_images + 1} images of the scene "
+                f"({c.keypoints:.0f} keypoints each, matching on {c.device}): "
+                f"features {c.features:.3f} s/image, matching {c.matching:.4f} "
+                f"s/pair, verification {c.pose_verification:.4f} "
+                f"s/database pair and {c.query_verification:.4f} s/query "
+                f"pair, triangulation {c.triangulation:.4f} s/pair, "
+                f"registration {c.registration:.4f} s/query; {self.processes} worker process(es)"
+            )
             stages = self.forecast()
-            lines.append("  forecast: " + ", ".join(f"{stage} {_duration(seconds)}" for stage, seconds in stages.items())
-                         + f"; total {_duration(sum(stages.values()))}" + ("" if self.exact else " at most"))
+            lines.append(
+                "  forecast: "
+                + ", ".join(f"{stage} {_duration(seconds)}" for stage, seconds in stages.items())
+                + f"; total {_duration(sum(stages.values()))}"
+                + ("" if self.exact else " at most")
+            )
         return "\n".join(lines)
 
 
@@ -146,16 +162,23 @@ def _duration(seconds: float) -> str:
 def feature_work(inputs: SfmInputs) -> Work:
     """Images of both sets, and those whose features are not cached."""
     scene = inputs.scene
-    new = len(inputs.database_features.store.missing(scene.database.names)) + len(inputs.query_features.store.missing(scene.queries.names))
+    new = len(inputs.database_features.store.missing(scene.database.names)) + len(
+        inputs.query_features.store.missing(scene.queries.names)
+    )
     return Work(len(scene.database) + len(scene.queries), new)
 
 
-def query_pair_work(inputs: SfmInputs, rankings: Sequence[Ranking] | None, ks: Sequence[int], num_rankings: int) -> Work:
+def query_pair_work(
+    inputs: SfmInputs, rankings: Sequence[Ranking] | None, ks: Sequence[int], num_rankings: int
+) -> Work:
     """Query-database pairs of every query's top ``max(ks)`` of each ranking (``None``: upper
     bounds for ``num_rankings`` rankings), and those not matched yet."""
     scene = inputs.scene
     if rankings is None:
-        bound = min(num_rankings * len(scene.queries) * min(max(ks), len(scene.database)), len(scene.queries) * len(scene.database))
+        bound = min(
+            num_rankings * len(scene.queries) * min(max(ks), len(scene.database)),
+            len(scene.queries) * len(scene.database),
+        )
         return Work(bound, bound)
     pairs = inputs.query_pairs.canonical(inputs.ranked_pairs(rankings, [r.clamp_ks(ks) for r in rankings]))
     return Work(len(pairs), len(inputs.query_pairs.raw.missing(map(pair_key, pairs))))
@@ -183,7 +206,9 @@ def measure_unit_costs(scene: Scene, settings: SfmSettings, sample_images: int =
     database = scene.database
     posed = np.flatnonzero(database.has_pose)
     if len(posed) < 2:
-        raise ValueError(f"scene {scene.name!r}: fewer than 2 database images with a pose; the SfM paradigms cannot run")
+        raise ValueError(
+            f"scene {scene.name!r}: fewer than 2 database images with a pose; the SfM paradigms cannot run"
+        )
     distances = np.linalg.norm(database.centers[posed] - database.centers[posed[0]], axis=1)
     sample = posed[np.argsort(distances, kind="stable")[:sample_images]].tolist()
     features = read_or_extract(settings.features)
@@ -200,31 +225,65 @@ def measure_unit_costs(scene: Scene, settings: SfmSettings, sample_images: int =
         matches = {}
         for a in range(len(sample) - 1):
             partners = list(range(a + 1, len(sample)))
-            matches.update(zip([(a, b) for b in partners], matcher(records[a]["descriptors"], [records[b]["descriptors"] for b in partners])))
+            matches.update(
+                zip(
+                    [(a, b) for b in partners],
+                    matcher(records[a]["descriptors"], [records[b]["descriptors"] for b in partners]),
+                )
+            )
         query_matches = dict(enumerate(matcher(query["descriptors"], [r["descriptors"] for r in records])))
         matching_seconds = (time.perf_counter() - started) / (len(pairs) + len(sample))
 
     keypoints = {database.names[i]: r["keypoints"] for i, r in zip(sample, records)}
-    pose_seconds, kept = verification_seconds(settings.matching.database_verification, database, database, [(sample[a], sample[b]) for a, b in pairs],
-                                              list(matches.values()), keypoints, keypoints)
+    pose_seconds, kept = verification_seconds(
+        settings.matching.database_verification,
+        database,
+        database,
+        [(sample[a], sample[b]) for a, b in pairs],
+        list(matches.values()),
+        keypoints,
+        keypoints,
+    )
     verified = dict(zip(pairs, kept))
-    query_seconds, _ = verification_seconds(settings.query_verification, scene.queries, database, [(0, i) for i in sample],
-                                            list(query_matches.values()), {scene.queries.names[0]: query["keypoints"]}, keypoints)
+    query_seconds, _ = verification_seconds(
+        settings.query_verification,
+        scene.queries,
+        database,
+        [(0, i) for i in sample],
+        list(query_matches.values()),
+        {scene.queries.names[0]: query["keypoints"]},
+        keypoints,
+    )
 
     started = time.perf_counter()
     sparse_map = settings.triangulation.triangulate(
-        [database.cameras[i] for i in sample], database.qvec[sample], database.tvec[sample], [r["keypoints"] for r in records], verified,
+        [database.cameras[i] for i in sample],
+        database.qvec[sample],
+        database.tvec[sample],
+        [r["keypoints"] for r in records],
+        verified,
     )
     triangulation_seconds = (time.perf_counter() - started) / len(pairs)
 
     started = time.perf_counter()
-    points2D, points3D = correspondences(query["keypoints"], query_matches, sparse_map, {s: s for s in range(len(sample))})
+    points2D, points3D = correspondences(
+        query["keypoints"], query_matches, sparse_map, {s: s for s in range(len(sample))}
+    )
     if len(points2D):
         estimate_absolute_pose(points2D, points3D, scene.queries.cameras[0], settings.pnp)
     registration_seconds = time.perf_counter() - started
     mean_keypoints = float(np.mean([len(r["keypoints"]) for r in [*records, query]]))
-    return UnitCosts(feature_seconds, matching_seconds, pose_seconds, query_seconds, triangulation_seconds, registration_seconds,
-                     mean_keypoints, matcher.device, len(sample))
+    return UnitCosts(
+        feature_seconds,
+        matching_seconds,
+        pose_seconds,
+        query_seconds,
+        triangulation_seconds,
+        registration_seconds,
+        mean_keypoints,
+        matcher.device,
+        len(sample),
+    )
 
 
 @contextlib.contextmanager
@@ -243,10 +302,17 @@ def matching_threads(matcher: Any, processes: int) -> Iterator[None]:
 
 
 def verification_seconds(
-    verification: PairVerification, images0: ImageSet, images1: ImageSet, pairs: Sequence[tuple[int, int]], matches: Sequence[np.ndarray],
-    keypoints0: dict[str, np.ndarray], keypoints1: dict[str, np.ndarray],
+    verification: PairVerification,
+    images0: ImageSet,
+    images1: ImageSet,
+    pairs: Sequence[tuple[int, int]],
+    matches: Sequence[np.ndarray],
+    keypoints0: dict[str, np.ndarray],
+    keypoints1: dict[str, np.ndarray],
 ) -> tuple[float, list[np.ndarray]]:
     """Seconds per pair of ``verification`` on a batch of pairs (indices) and what it keeps."""
     started = time.perf_counter()
-    kept = verify_pairs(verification, VerificationBatch(images0, images1, list(pairs), list(matches), keypoints0, keypoints1))
+    kept = verify_pairs(
+        verification, VerificationBatch(images0, images1, list(pairs), list(matches), keypoints0, keypoints1)
+    )
     return (time.perf_counter() - started) / max(1, len(pairs)), kept

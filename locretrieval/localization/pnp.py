@@ -28,7 +28,9 @@ class PnPSettings:
 
     def __post_init__(self) -> None:
         require(self.max_error > 0, "max_error", f"must be a positive number of pixels, got {self.max_error}")
-        require(self.min_num_inliers >= 4, "min_num_inliers", f"must be >= 4 (P3P and a check), got {self.min_num_inliers}")
+        require(
+            self.min_num_inliers >= 4, "min_num_inliers", f"must be >= 4 (P3P and a check), got {self.min_num_inliers}"
+        )
         require(0 < self.min_inlier_ratio <= 1, "min_inlier_ratio", f"must be in (0, 1], got {self.min_inlier_ratio}")
         require(self.max_num_trials >= 1, "max_num_trials", f"must be >= 1, got {self.max_num_trials}")
         require(0 < self.confidence < 1, "confidence", f"must be in (0, 1), got {self.confidence}")
@@ -62,8 +64,11 @@ def estimate_absolute_pose(
     estimation.ransac.confidence = settings.confidence
     estimation.ransac.random_seed = settings.random_seed
     result = pycolmap.estimate_and_refine_absolute_pose(
-        np.asarray(points2D, dtype=np.float64), np.asarray(points3D, dtype=np.float64),
-        to_pycolmap_camera(camera), estimation, pycolmap.AbsolutePoseRefinementOptions(),
+        np.asarray(points2D, dtype=np.float64),
+        np.asarray(points3D, dtype=np.float64),
+        to_pycolmap_camera(camera),
+        estimation,
+        pycolmap.AbsolutePoseRefinementOptions(),
     )
     if result is None:
         return PNP_FAILED

@@ -98,8 +98,12 @@ class PoseCache:
             for part in self._parts_read:
                 part.unlink(missing_ok=True)
             self._parts_read = []
-        log.info("%d new registration outcomes saved to %s%s", len(self._new), self.path,
-                 f" (merged with {len(self.outcomes) - len(self._new)} read)" if merge else "")
+        log.info(
+            "%d new registration outcomes saved to %s%s",
+            len(self._new),
+            self.path,
+            f" (merged with {len(self.outcomes) - len(self._new)} read)" if merge else "",
+        )
         self._new = {}
 
 
@@ -117,8 +121,13 @@ def _write_part(folder: Path, entries: dict[bytes, Outcome]) -> Path:
             qvec[row], tvec[row] = outcome
             reasons.append(LOCALIZED)
     path = folder / f"{config_key(b''.join(keys).hex())}.npz"
-    save_arrays(path, {
-        "keys": np.frombuffer(b"".join(keys), np.uint8).reshape(-1, KEY_BYTES),
-        "qvec": qvec, "tvec": tvec, "reason": np.array(reasons, dtype=str),
-    })
+    save_arrays(
+        path,
+        {
+            "keys": np.frombuffer(b"".join(keys), np.uint8).reshape(-1, KEY_BYTES),
+            "qvec": qvec,
+            "tvec": tvec,
+            "reason": np.array(reasons, dtype=str),
+        },
+    )
     return path

@@ -45,8 +45,9 @@ SFM_METHOD = "pnp"
 class SfmSettings:
     """The ``sfm`` config group, shared by local SfM (2a), global SfM (2b) and the
     co-observation ground truth so that they share their cached features and matches:
-    local ``features`` (a `LocalFeatures` chosen by ``_target_``), ``matching``, the ``query_verification`` of query-database matches (a
-    `PairVerification` chosen by ``_target_``), ``triangulation`` with known poses (a `Triangulation` chosen by ``_target_``), ``pnp``
+    local ``features`` (a `LocalFeatures` chosen by ``_target_``), ``matching``, the
+    ``query_verification`` of query-database matches (a `PairVerification` chosen by
+    ``_target_``), ``triangulation`` with known poses (a `Triangulation` chosen by ``_target_``), ``pnp``
     registration, the database pairs of global maps (``map_pairs``, by frustum overlap), the
     worker processes (``workers``: ``null`` or 0, one per core; 1, in this process) and this job's
     ``shard`` of the work (``i/n``: the i-th of n jobs sharing the cache; null: all of it)."""
@@ -62,8 +63,11 @@ class SfmSettings:
 
     def __post_init__(self) -> None:
         require(self.workers is None or self.workers >= 0, "workers", f"must be >= 0 or null, got {self.workers}")
-        require(self.shard is None or Shard.parse(self.shard) is not None, "shard",
-                f"must be 'i/n' with 0 <= i < n (this job's share of the SfM work), or null, got {self.shard!r}")
+        require(
+            self.shard is None or Shard.parse(self.shard) is not None,
+            "shard",
+            f"must be 'i/n' with 0 <= i < n (this job's share of the SfM work), or null, got {self.shard!r}",
+        )
 
     @property
     def job_shard(self) -> "Shard | None":
@@ -118,17 +122,23 @@ class SfmInputs:
         """Extract (or reuse) the local features of both image sets (``extract=False``: only
         name their caches, as far as they are filled, to plan the work)."""
         if extract:
-            database_features, query_features = (extract_features(images, settings.features, cache_dir, settings.processes)
-                                                 for images in (scene.database, scene.queries))
+            database_features, query_features = (
+                extract_features(images, settings.features, cache_dir, settings.processes)
+                for images in (scene.database, scene.queries)
+            )
         else:
-            database_features, query_features = (feature_store(images, settings.features, cache_dir) for images in (scene.database, scene.queries))
+            database_features, query_features = (
+                feature_store(images, settings.features, cache_dir) for images in (scene.database, scene.queries)
+            )
         return cls(
             scene,
             settings,
             Path(cache_dir),
             database_features,
             query_features,
-            PairMatcher(scene.database, database_features, scene.database, database_features, settings.matching, cache_dir),
+            PairMatcher(
+                scene.database, database_features, scene.database, database_features, settings.matching, cache_dir
+            ),
             PairMatcher(scene.queries, query_features, scene.database, database_features, settings.matching, cache_dir),
         )
 
@@ -177,7 +187,10 @@ class SfmInputs:
 
 
 def correspondences(
-    query_keypoints: np.ndarray, query_matches: Mapping[int, np.ndarray], sparse_map: SparseMap, slots: Mapping[int, int]
+    query_keypoints: np.ndarray,
+    query_matches: Mapping[int, np.ndarray],
+    sparse_map: SparseMap,
+    slots: Mapping[int, int],
 ) -> tuple[np.ndarray, np.ndarray]:
     """2D-3D correspondences ``(points2D [m, 2], points3D [m, 3])`` of a query through the map
     points its matched database keypoints observe; ``slots`` maps database index -> image
@@ -194,8 +207,12 @@ def correspondences(
 
 
 def register_query(
-    inputs: SfmInputs, query: int, query_keypoints: np.ndarray, query_matches: Mapping[int, np.ndarray],
-    sparse_map: SparseMap, slots: Mapping[int, int],
+    inputs: SfmInputs,
+    query: int,
+    query_keypoints: np.ndarray,
+    query_matches: Mapping[int, np.ndarray],
+    sparse_map: SparseMap,
+    slots: Mapping[int, int],
 ) -> Outcome:
     """The query's pose from its correspondences with ``sparse_map``, or the failure reason."""
     if not len(query_keypoints):
@@ -264,8 +281,13 @@ def _never(images: tuple[int, ...]) -> Outcome:
 
 
 def run_queries(
-    paradigm: str, rankings: Sequence[Ranking], ks: Sequence[list[int]],
-    localize: Callable[[Any, QueryTask], list[list[Outcome]]], shared: Any, workers: int, cache: PoseCache,
+    paradigm: str,
+    rankings: Sequence[Ranking],
+    ks: Sequence[list[int]],
+    localize: Callable[[Any, QueryTask], list[list[Outcome]]],
+    shared: Any,
+    workers: int,
+    cache: PoseCache,
     queries: Sequence[int] | None = None,
 ) -> list[PoseEstimates] | None:
     """Run ``localize(shared, task)`` (outcomes ``[ranking][k]`` of one query) in worker processes
@@ -275,7 +297,12 @@ def run_queries(
     tasks = query_tasks(rankings, ks, cache, queries)
     pending = [task for task in tasks if not task.complete]
     if len(pending) < len(tasks):
-        log.info("%s: %d of %d queries fully read from the registration cache", paradigm, len(tasks) - len(pending), len(tasks))
+        log.info(
+            "%s: %d of %d queries fully read from the registration cache",
+            paradigm,
+            len(tasks) - len(pending),
+            len(tasks),
+        )
     computed = iter(parallel_map(localize, pending, workers, paradigm, shared))
     outcomes = [outcomes_per_image_set(task, _never) if task.complete else next(computed) for task in tasks]
     for task, per_query in zip(tasks, outcomes):
@@ -285,8 +312,10 @@ def run_queries(
     cache.save()
     if queries is not None:
         return None
-    return [_estimates(paradigm, ranking, ranking_ks, [per_query[r] for per_query in outcomes])
-            for r, (ranking, ranking_ks) in enumerate(zip(rankings, ks))]
+    return [
+        _estimates(paradigm, ranking, ranking_ks, [per_query[r] for per_query in outcomes])
+        for r, (ranking, ranking_ks) in enumerate(zip(rankings, ks))
+    ]
 
 
 def _estimates(paradigm: str, ranking: Ranking, ks: list[int], outcomes: Sequence[Sequence[Outcome]]) -> PoseEstimates:
@@ -302,5 +331,12 @@ def _estimates(paradigm: str, ranking: Ranking, ks: list[int], outcomes: Sequenc
                 qvec[n, q], tvec[n, q] = outcome
     reasons = Counter(reason for reason in failures.ravel() if reason != LOCALIZED)
     if reasons:
-        log.info("%s / %s: not localised %s (over %d queries x k=%s)", paradigm, ranking.name, dict(reasons), ranking.num_queries, ks)
+        log.info(
+            "%s / %s: not localised %s (over %d queries x k=%s)",
+            paradigm,
+            ranking.name,
+            dict(reasons),
+            ranking.num_queries,
+            ks,
+        )
     return PoseEstimates(ranking.name, ranking.kind, paradigm, SFM_METHOD, ks, qvec, tvec, failures.astype(str))

@@ -13,7 +13,8 @@ poses and keypoints, and the verified matches of their pairs) into `SparseMap`s,
   keypoints of the match graph (an image seen twice in a track leaves it), each track's point is
   the linear (DLT) solution of its observations; twice, each track's worst observation is dropped
   when it is beyond the reprojection error and the points solved again; then every observation
-  beyond it is dropped, and points under the triangulation angle or seen by fewer than 2 images. No RANSAC, merging or completion: several times faster than COLMAP,
+  beyond it is dropped, and points under the triangulation angle or seen by fewer than 2 images.
+  No RANSAC, merging or completion: several times faster than COLMAP,
   with maps of the same kind (docs/performance.md measures both).
 
 Poses are never changed.
@@ -64,8 +65,14 @@ class Triangulation(abc.ABC):
     def triangulate_many(self, maps: Sequence[MapInput]) -> list[SparseMap]:
         """The map of each input, in order."""
 
-    def triangulate(self, cameras: Sequence[Camera], qvec: np.ndarray, tvec: np.ndarray, keypoints: Sequence[np.ndarray],
-                    matches: Mapping[tuple[int, int], np.ndarray]) -> SparseMap:
+    def triangulate(
+        self,
+        cameras: Sequence[Camera],
+        qvec: np.ndarray,
+        tvec: np.ndarray,
+        keypoints: Sequence[np.ndarray],
+        matches: Mapping[tuple[int, int], np.ndarray],
+    ) -> SparseMap:
         """One map (`MapInput`'s arguments)."""
         return self.triangulate_many([MapInput(cameras, qvec, tvec, keypoints, matches)])[0]
 
@@ -75,8 +82,11 @@ class Triangulation(abc.ABC):
 
     def _check(self) -> None:
         require(self.min_angle >= 0, "min_angle", f"must be >= 0 degrees, got {self.min_angle}")
-        require(self.max_reprojection_error > 0, "max_reprojection_error",
-                f"must be a positive number of pixels, got {self.max_reprojection_error}")
+        require(
+            self.max_reprojection_error > 0,
+            "max_reprojection_error",
+            f"must be a positive number of pixels, got {self.max_reprojection_error}",
+        )
 
 
 @dataclass
@@ -148,8 +158,10 @@ def triangulate_known_poses(
         image_id = index + 1
         reconstruction.add_camera_with_trivial_rig(to_pycolmap_camera(camera, image_id))
         image = pycolmap.Image(
-            name=str(index), keypoints=np.asarray(image_keypoints, dtype=np.float64).reshape(-1, 2),
-            camera_id=image_id, image_id=image_id,
+            name=str(index),
+            keypoints=np.asarray(image_keypoints, dtype=np.float64).reshape(-1, 2),
+            camera_id=image_id,
+            image_id=image_id,
         )
         reconstruction.add_image_with_trivial_frame(image, to_rigid3d(qvec[index], tvec[index]))
         graph.add_image(image_id, len(image_keypoints))
@@ -187,7 +199,9 @@ def _sparse_map(reconstruction: pycolmap.Reconstruction, num_keypoints: Sequence
         image = reconstruction.images[index + 1]
         observed = np.asarray(image.get_observation_point2D_idxs(), dtype=np.int64)
         if len(observed):
-            observed_ids = np.fromiter((p.point3D_id for p in image.get_observation_points2D()), dtype=np.int64, count=len(observed))
+            observed_ids = np.fromiter(
+                (p.point3D_id for p in image.get_observation_points2D()), dtype=np.int64, count=len(observed)
+            )
             ids[observed] = np.searchsorted(point_ids, observed_ids)
         observations.append(ids)
     return SparseMap(points, observations)
@@ -204,14 +218,29 @@ def batched_triangulation(maps: Sequence[MapInput], min_angle: float, max_error:
     views = [(m, i) for m, map_input in enumerate(maps) for i in range(len(map_input.cameras))]
     first_node = np.concatenate([[0], np.cumsum([len(maps[m].keypoints[i]) for m, i in views])]).astype(np.int64)
     view_of = {view: v for v, view in enumerate(views)}
-    ends = [(first_node[view_of[(m, a)]] + np.asarray(matches[:, 0], dtype=np.int64), first_node[view_of[(m, b)]] + np.asarray(matches[:, 1], dtype=np.int64))
-            for m, map_input in enumerate(maps) for (a, b), matches in map_input.matches.items() if len(matches)]
-    empty = [SparseMap(np.empty((0, 3)), [np.full(len(k), -1, dtype=np.int64) for k in map_input.keypoints]) for map_input in maps]
+    ends = [
+        (
+            first_node[view_of[(m, a)]] + np.asarray(matches[:, 0], dtype=np.int64),
+            first_node[view_of[(m, b)]] + np.asarray(matches[:, 1], dtype=np.int64),
+        )
+        for m, map_input in enumerate(maps)
+        for (a, b), matches in map_input.matches.items()
+        if len(matches)
+    ]
+    empty = [
+        SparseMap(np.empty((0, 3)), [np.full(len(k), -1, dtype=np.int64) for k in map_input.keypoints])
+        for map_input in maps
+    ]
     if not ends:
         return empty
-    nodes, index = np.unique(np.concatenate([np.concatenate([e[0] for e in ends]), np.concatenate([e[1] for e in ends])]), return_inverse=True)
+    nodes, index = np.unique(
+        np.concatenate([np.concatenate([e[0] for e in ends]), np.concatenate([e[1] for e in ends])]),
+        return_inverse=True,
+    )
     half = len(index) // 2
-    _, track = connected_components(coo_matrix((np.ones(half), (index[:half], index[half:])), shape=(len(nodes), len(nodes))), directed=False)
+    _, track = connected_components(
+        coo_matrix((np.ones(half), (index[:half], index[half:])), shape=(len(nodes), len(nodes))), directed=False
+    )
     view = np.searchsorted(first_node, nodes, side="right") - 1
     # observations sorted by track (segments); an image seen twice in one track leaves it
     order = np.lexsort((view, track))
@@ -232,9 +261,19 @@ def batched_triangulation(maps: Sequence[MapInput], min_angle: float, max_error:
         track, view, keypoint = track[inlier], view[inlier], keypoint[inlier]
         geometry_ = geometry_.subset(inlier)
     points = geometry_.points(track)
-    kept = (_segment_counts(track, len(points)) >= 2) & (_max_angles(track, view, points, geometry_.centers, len(points)) >= min_angle)
+    kept = (_segment_counts(track, len(points)) >= 2) & (
+        _max_angles(track, view, points, geometry_.centers, len(points)) >= min_angle
+    )
     inlier = kept[track]
-    return _sparse_maps(maps, views, points + geometry_.track_origins(track, len(points)), track[inlier], view[inlier], keypoint[inlier], empty)
+    return _sparse_maps(
+        maps,
+        views,
+        points + geometry_.track_origins(track, len(points)),
+        track[inlier],
+        view[inlier],
+        keypoint[inlier],
+        empty,
+    )
 
 
 class _ViewGeometry:
@@ -262,7 +301,9 @@ class _ViewGeometry:
             m, i = views[v]
             rows = np.flatnonzero(view == v)
             camera = to_pycolmap_camera(maps[m].cameras[i])
-            self.rays[rows] = camera.cam_from_img(np.asarray(maps[m].keypoints[i], dtype=np.float64)[keypoint[rows]]).reshape(-1, 2)
+            self.rays[rows] = camera.cam_from_img(
+                np.asarray(maps[m].keypoints[i], dtype=np.float64)[keypoint[rows]]
+            ).reshape(-1, 2)
             self.focal[rows] = camera.mean_focal_length()
 
     def subset(self, rows: np.ndarray) -> "_ViewGeometry":
@@ -286,13 +327,21 @@ class _ViewGeometry:
         normal = np.empty((len(starts), 3, 3))
         target = np.empty((len(starts), 3))
         for a in range(3):
-            target[:, a] = np.add.reduceat(rows[0][:, a] * sides[0] + rows[1][:, a] * sides[1], starts) if len(starts) else 0
+            target[:, a] = (
+                np.add.reduceat(rows[0][:, a] * sides[0] + rows[1][:, a] * sides[1], starts) if len(starts) else 0
+            )
             for b in range(a, 3):
-                normal[:, a, b] = normal[:, b, a] = np.add.reduceat(rows[0][:, a] * rows[0][:, b] + rows[1][:, a] * rows[1][:, b], starts) if len(starts) else 0
+                normal[:, a, b] = normal[:, b, a] = (
+                    np.add.reduceat(rows[0][:, a] * rows[0][:, b] + rows[1][:, a] * rows[1][:, b], starts)
+                    if len(starts)
+                    else 0
+                )
         solved = np.full((count, 3), np.nan)
         if len(starts):
             with np.errstate(divide="ignore", invalid="ignore"):
-                adjugate = np.cross(normal[:, [1, 2, 0]], normal[:, [2, 0, 1]], axis=2)  # rows: cofactors of a symmetric matrix
+                adjugate = np.cross(
+                    normal[:, [1, 2, 0]], normal[:, [2, 0, 1]], axis=2
+                )  # rows: cofactors of a symmetric matrix
                 determinant = np.einsum("ti,ti->t", normal[:, 0], adjugate[:, 0])
                 values = np.einsum("tij,tj->ti", adjugate, target) / determinant[:, None]
             values[np.abs(determinant) < 1e-12 * np.abs(normal).max(axis=(1, 2)) ** 3] = np.nan

@@ -92,7 +92,11 @@ class PoseVerification(PairVerification):
     max_epipolar_error: float
 
     def __post_init__(self) -> None:
-        require(self.max_epipolar_error > 0, "max_epipolar_error", f"must be a positive number of pixels, got {self.max_epipolar_error}")
+        require(
+            self.max_epipolar_error > 0,
+            "max_epipolar_error",
+            f"must be a positive number of pixels, got {self.max_epipolar_error}",
+        )
 
     def store_name(self, images0: ImageSet, images1: ImageSet) -> str:
         return f"poses-{config_key(self.max_epipolar_error, images0.fingerprint(), images1.fingerprint())}"
@@ -103,8 +107,13 @@ class PoseVerification(PairVerification):
         second = sorted({j for _, j in batch.pairs})
         undistorted0 = {i: undistorted(images0.cameras[i], batch.keypoints0[images0.names[i]]) for i in first}
         undistorted1 = {j: undistorted(images1.cameras[j], batch.keypoints1[images1.names[j]]) for j in second}
-        rows, columns = np.array([i for i, _ in batch.pairs], dtype=np.int64), np.array([j for _, j in batch.pairs], dtype=np.int64)
-        essentials = essential_matrices(images0.qvec[rows], images0.tvec[rows], images1.qvec[columns], images1.tvec[columns])
+        rows, columns = (
+            np.array([i for i, _ in batch.pairs], dtype=np.int64),
+            np.array([j for _, j in batch.pairs], dtype=np.int64),
+        )
+        essentials = essential_matrices(
+            images0.qvec[rows], images0.tvec[rows], images1.qvec[columns], images1.tvec[columns]
+        )
         kept = []
         for (i, j), matches, essential in zip(batch.pairs, batch.matches, essentials):
             points0, focal0 = undistorted0[i]
@@ -123,16 +132,28 @@ class TwoViewVerification(PairVerification):
 
     def __post_init__(self) -> None:
         require(self.max_error > 0, "max_error", f"must be a positive number of pixels, got {self.max_error}")
-        require(self.min_num_inliers >= 5, "min_num_inliers", f"must be >= 5 (a minimal sample), got {self.min_num_inliers}")
+        require(
+            self.min_num_inliers >= 5, "min_num_inliers", f"must be >= 5 (a minimal sample), got {self.min_num_inliers}"
+        )
 
     def store_name(self, images0: ImageSet, images1: ImageSet) -> str:
         return f"two-view-{config_key(dataclasses.asdict(self))}"
 
     def verify(self, batch: VerificationBatch) -> list[np.ndarray]:
         images0, images1 = batch.images0, batch.images1
-        return [matches[two_view_inliers(batch.keypoints0[images0.names[i]], batch.keypoints1[images1.names[j]], matches,
-                                         images0.cameras[i], images1.cameras[j], self)]
-                for (i, j), matches in zip(batch.pairs, batch.matches)]
+        return [
+            matches[
+                two_view_inliers(
+                    batch.keypoints0[images0.names[i]],
+                    batch.keypoints1[images1.names[j]],
+                    matches,
+                    images0.cameras[i],
+                    images1.cameras[j],
+                    self,
+                )
+            ]
+            for (i, j), matches in zip(batch.pairs, batch.matches)
+        ]
 
 
 def undistorted(camera: Camera, keypoints: np.ndarray) -> tuple[np.ndarray, float]:
@@ -151,8 +172,14 @@ def essential_matrices(q0: np.ndarray, t0: np.ndarray, q1: np.ndarray, t1: np.nd
     rotation = r1 @ np.swapaxes(r0, -1, -2)
     t = np.asarray(t1) - np.einsum("...ij,...j->...i", rotation, np.asarray(t0))
     zero = np.zeros(t.shape[:-1])
-    skew = np.stack([np.stack([zero, -t[..., 2], t[..., 1]], -1), np.stack([t[..., 2], zero, -t[..., 0]], -1),
-                     np.stack([-t[..., 1], t[..., 0], zero], -1)], -2)
+    skew = np.stack(
+        [
+            np.stack([zero, -t[..., 2], t[..., 1]], -1),
+            np.stack([t[..., 2], zero, -t[..., 0]], -1),
+            np.stack([-t[..., 1], t[..., 0], zero], -1),
+        ],
+        -2,
+    )
     return skew @ rotation
 
 
@@ -168,8 +195,13 @@ def sampson_errors(points0: np.ndarray, points1: np.ndarray, essential: np.ndarr
 
 
 def epipolar_inliers(
-    keypoints0: np.ndarray, keypoints1: np.ndarray, matches: np.ndarray,
-    camera0: Camera, pose0: tuple[np.ndarray, np.ndarray], camera1: Camera, pose1: tuple[np.ndarray, np.ndarray],
+    keypoints0: np.ndarray,
+    keypoints1: np.ndarray,
+    matches: np.ndarray,
+    camera0: Camera,
+    pose0: tuple[np.ndarray, np.ndarray],
+    camera1: Camera,
+    pose1: tuple[np.ndarray, np.ndarray],
     max_error: float,
 ) -> np.ndarray:
     """Boolean ``[m]``: matches within ``max_error`` pixels of the epipolar geometry of two
@@ -177,13 +209,20 @@ def epipolar_inliers(
     `PoseVerification`'s computation."""
     if not len(matches):
         return np.zeros(0, dtype=bool)
-    (points0, focal0), (points1, focal1) = undistorted(camera0, keypoints0[matches[:, 0]]), undistorted(camera1, keypoints1[matches[:, 1]])
+    (points0, focal0), (points1, focal1) = (
+        undistorted(camera0, keypoints0[matches[:, 0]]),
+        undistorted(camera1, keypoints1[matches[:, 1]]),
+    )
     errors = sampson_errors(points0, points1, essential_matrices(*pose0, *pose1))
     return np.isfinite(errors) & (errors * 0.5 * (focal0 + focal1) <= max_error)
 
 
 def two_view_inliers(
-    keypoints0: np.ndarray, keypoints1: np.ndarray, matches: np.ndarray, camera0: Camera, camera1: Camera,
+    keypoints0: np.ndarray,
+    keypoints1: np.ndarray,
+    matches: np.ndarray,
+    camera0: Camera,
+    camera1: Camera,
     settings: TwoViewVerification,
 ) -> np.ndarray:
     """Indices ``int32 [i]`` into ``matches`` of pycolmap's two-view geometry inliers (none
@@ -199,9 +238,12 @@ def two_view_inliers(
     options.ransac.max_error = settings.max_error
     options.ransac.random_seed = 0
     result = pycolmap.estimate_two_view_geometry(
-        to_pycolmap_camera(camera0), keypoints0.astype(np.float64),
-        to_pycolmap_camera(camera1), keypoints1.astype(np.float64),
-        np.asarray(matches, dtype=np.uint32), options,
+        to_pycolmap_camera(camera0),
+        keypoints0.astype(np.float64),
+        to_pycolmap_camera(camera1),
+        keypoints1.astype(np.float64),
+        np.asarray(matches, dtype=np.uint32),
+        options,
     )
     inliers = np.asarray(result.inlier_matches, dtype=np.int64).reshape(-1, 2)
     configuration = pycolmap.TwoViewGeometryConfiguration(int(result.config)).name  # an int in the result
@@ -217,7 +259,9 @@ def verify_pairs(verification: PairVerification, batch: VerificationBatch) -> li
     busy = [n for n, matches in enumerate(batch.matches) if len(matches)]
     kept = [matches[:0] for matches in batch.matches]
     if busy:
-        subset = dataclasses.replace(batch, pairs=[batch.pairs[n] for n in busy], matches=[batch.matches[n] for n in busy])
+        subset = dataclasses.replace(
+            batch, pairs=[batch.pairs[n] for n in busy], matches=[batch.matches[n] for n in busy]
+        )
         for n, rows in zip(busy, verification.verify(subset)):
             kept[n] = rows
     return kept

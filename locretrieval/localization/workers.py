@@ -51,7 +51,9 @@ def _initialize_worker(parent: int) -> None:
     while its workers start is noticed); one BLAS/OpenMP thread per worker (the processes
     already use every core)."""
     threading.Thread(target=exit_with_parent, args=(parent,), daemon=True).start()
-    os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = "1"  # torch reads them when it is imported (matching)
+    os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = (
+        "1"  # torch reads them when it is imported (matching)
+    )
     import threadpoolctl
 
     import locretrieval  # (imports zlib before pycolmap)
@@ -97,7 +99,9 @@ class SpawnedPools:
         with self._lock:
             if workers not in self.pools:
                 context = multiprocessing.get_context("spawn")
-                self.pools[workers] = ProcessPoolExecutor(workers, mp_context=context, initializer=self.initializer, initargs=(os.getpid(),))
+                self.pools[workers] = ProcessPoolExecutor(
+                    workers, mp_context=context, initializer=self.initializer, initargs=(os.getpid(),)
+                )
             return self.pools[workers]
 
     def discard(self, workers: int) -> None:
@@ -123,7 +127,11 @@ def parallel_map(
     workers = resolve_workers(workers)
     progress: Any = tqdm(total=len(tasks), desc=description, unit="task", disable=None, leave=False)
     with progress:
-        if workers == 1 or len(tasks) <= 1 or (not _pools.started(workers) and len(tasks) < MIN_TASKS_PER_WORKER * workers):
+        if (
+            workers == 1
+            or len(tasks) <= 1
+            or (not _pools.started(workers) and len(tasks) < MIN_TASKS_PER_WORKER * workers)
+        ):
             for task in tasks:
                 yield function(task) if shared is None else function(shared, task)
                 progress.update()
@@ -152,6 +160,7 @@ def task_stream(
     progress: Any = tqdm(total=tasks, desc=description, unit="task", disable=None, leave=False)
     with progress:
         if workers == 1 or tasks <= 1 or (not _pools.started(workers) and tasks < MIN_TASKS_PER_WORKER * workers):
+
             def run_here(task: Any) -> None:
                 function(task) if shared is None else function(shared, task)
                 progress.update()
@@ -160,6 +169,7 @@ def task_stream(
             return
         pool, pending = _pools.get(workers), collections.deque()
         with _shared_file(shared) as shared_file:
+
             def submit(task: Any) -> None:
                 while len(pending) >= 2 * workers:
                     pending.popleft().result()

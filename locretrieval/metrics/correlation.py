@@ -29,7 +29,6 @@ are `scipy.stats.pearsonr`'s; Spearman's rho is Pearson's r of the average ranks
 
 from __future__ import annotations
 
-
 import numpy as np
 import pandas as pd
 from scipy import stats
@@ -51,17 +50,23 @@ def pearson_rows(
     Returns one row per input row with `STATISTIC_COLUMNS`. Rows sharing a pattern of
     missing values go to `scipy.stats.pearsonr` together, so the work is vectorised.
     """
-    return _correlate_rows(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), x_name, y_name, False, min_points)
+    return _correlate_rows(
+        np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), x_name, y_name, False, min_points
+    )
 
 
 def spearman_rows(
     x: np.ndarray, y: np.ndarray, x_name: str = "x", y_name: str = "y", min_points: int = 2
 ) -> pd.DataFrame:
     """Spearman's rho between the rows of ``x`` and ``y``; see `pearson_rows`."""
-    return _correlate_rows(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), x_name, y_name, True, min_points)
+    return _correlate_rows(
+        np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64), x_name, y_name, True, min_points
+    )
 
 
-def _correlate_rows(x: np.ndarray, y: np.ndarray, x_name: str, y_name: str, rank: bool, min_points: int) -> pd.DataFrame:
+def _correlate_rows(
+    x: np.ndarray, y: np.ndarray, x_name: str, y_name: str, rank: bool, min_points: int
+) -> pd.DataFrame:
     if x.shape != y.shape or x.ndim != 2:
         raise ValueError(f"x and y must both be [G, n], got {x.shape} and {y.shape}")
     if min_points < 2:
@@ -154,7 +159,9 @@ def dataset_spearman(paired: pd.DataFrame) -> pd.DataFrame:
     return _correlate_paired(paired, keys, "ranking", rank=True)
 
 
-def query_pearson(query_retrieval: pd.DataFrame, query_errors: pd.DataFrame, scale: tuple[float, float]) -> pd.DataFrame:
+def query_pearson(
+    query_retrieval: pd.DataFrame, query_errors: pd.DataFrame, scale: tuple[float, float]
+) -> pd.DataFrame:
     """Per-query Pearson's r over k between a retrieval metric and the negated capped pose error
     (Figs. 8 and 11), for descriptor rankings; ``scale``: the loosest accuracy threshold
     ``(metres, degrees)`` (see the module docstring).
@@ -172,8 +179,10 @@ def query_pearson(query_retrieval: pd.DataFrame, query_errors: pd.DataFrame, sca
     x = _wide(retrieval, ["dataset", "ranking", "groundtruth", "retrieval_metric", "query"], "k", ["value"])["value"]
     y = _wide(errors, ["dataset", "ranking", "paradigm", "method", "query"], "k", ["accuracy"])["accuracy"]
     ks = sorted(set(x.columns) | set(y.columns))
-    rows = x.index.to_frame(index=False).reset_index(names="x_row").merge(
-        y.index.to_frame(index=False).reset_index(names="y_row"), on=shared
+    rows = (
+        x.index.to_frame(index=False)
+        .reset_index(names="x_row")
+        .merge(y.index.to_frame(index=False).reset_index(names="y_row"), on=shared)
     )
     x_values = x.reindex(columns=ks).to_numpy()[rows["x_row"]]
     y_values = y.reindex(columns=ks).to_numpy()[rows["y_row"]]

@@ -58,13 +58,19 @@ class MetricsSettings:
     def __post_init__(self) -> None:
         pairs = [t for t in self.thresholds if isinstance(t, (list, tuple)) and len(t) == 2]
         numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for t in pairs for v in t)
-        require(bool(self.thresholds) and len(pairs) == len(self.thresholds) and numbers, "thresholds",
-                f"must be a non-empty list of [metres, degrees] pairs of positive numbers, got {self.thresholds}")
+        require(
+            bool(self.thresholds) and len(pairs) == len(self.thresholds) and numbers,
+            "thresholds",
+            f"must be a non-empty list of [metres, degrees] pairs of positive numbers, got {self.thresholds}",
+        )
         self.thresholds = [[float(x), float(y)] for x, y in self.thresholds]
 
 
 def localized(
-    position_errors: np.ndarray, rotation_errors: np.ndarray, thresholds: Sequence[Sequence[float]], inclusive: bool = True
+    position_errors: np.ndarray,
+    rotation_errors: np.ndarray,
+    thresholds: Sequence[Sequence[float]],
+    inclusive: bool = True,
 ) -> np.ndarray:
     """Boolean ``[T, ...]``: both errors within ``(X m, Y deg)``, for each threshold: ``<=``
     when ``inclusive`` (the reference evaluation's convention), else ``<``.
@@ -103,7 +109,20 @@ def localization_table(
             for (X, Y), per_k in zip(thresholds, percentages):
                 for k, used, value in zip(e.ks, e.k_effective, per_k):
                     rows.append(
-                        (dataset, subset, e.ranking, e.ranking_kind, e.paradigm, e.method, k, used, X, Y, value, int(members.sum()))
+                        (
+                            dataset,
+                            subset,
+                            e.ranking,
+                            e.ranking_kind,
+                            e.paradigm,
+                            e.method,
+                            k,
+                            used,
+                            X,
+                            Y,
+                            value,
+                            int(members.sum()),
+                        )
                     )
     return pd.DataFrame(rows, columns=RESULT_COLUMNS)
 
@@ -135,8 +154,16 @@ def query_error_table(dataset: str, estimates: Sequence[PoseEstimates], queries:
 
 #: Columns of the median-error table (`median_errors`), one row per dataset x ranking x paradigm x method x k.
 MEDIAN_ERROR_COLUMNS = [
-    "dataset", "ranking", "ranking_kind", "paradigm", "method", "k",
-    "median_position_error_m", "median_rotation_error_deg", "estimated_pct", "num_queries",
+    "dataset",
+    "ranking",
+    "ranking_kind",
+    "paradigm",
+    "method",
+    "k",
+    "median_position_error_m",
+    "median_rotation_error_deg",
+    "estimated_pct",
+    "num_queries",
 ]
 
 
@@ -148,12 +175,16 @@ def median_errors(query_errors: pd.DataFrame) -> pd.DataFrame:
         return pd.DataFrame(columns=MEDIAN_ERROR_COLUMNS)
     keys = ["dataset", "ranking", "ranking_kind", "paradigm", "method", "k"]
     rows = query_errors.assign(estimated=query_errors["failure"].fillna("") == LOCALIZED)
-    table = rows.groupby(keys, sort=False).agg(
-        median_position_error_m=("position_error_m", "median"),
-        median_rotation_error_deg=("rotation_error_deg", "median"),
-        estimated_pct=("estimated", "mean"),
-        num_queries=("query", "size"),
-    ).reset_index()
+    table = (
+        rows.groupby(keys, sort=False)
+        .agg(
+            median_position_error_m=("position_error_m", "median"),
+            median_rotation_error_deg=("rotation_error_deg", "median"),
+            estimated_pct=("estimated", "mean"),
+            num_queries=("query", "size"),
+        )
+        .reset_index()
+    )
     table["estimated_pct"] *= 100.0
     return table[MEDIAN_ERROR_COLUMNS]
 

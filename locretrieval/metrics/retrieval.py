@@ -58,9 +58,7 @@ QUERY_RETRIEVAL_COLUMNS = ["dataset", "ranking", "ranking_kind", "groundtruth", 
 METRICS = {"precision": "precision", "recall": "recall", "map": "average_precision"}
 
 
-def retrieval_metrics(
-    indices: np.ndarray, relevance: sparse.csr_matrix, ks: Sequence[int]
-) -> dict[str, np.ndarray]:
+def retrieval_metrics(indices: np.ndarray, relevance: sparse.csr_matrix, ks: Sequence[int]) -> dict[str, np.ndarray]:
     """Per-query ``precision``, ``recall`` and ``average_precision``, each ``[Q, len(ks)]``.
 
     ``indices [Q, K]`` are ranked database indices (``Ranking.indices``); ``k`` may exceed
@@ -118,7 +116,12 @@ def retrieval_tables(
             _check_shapes(ranking, groundtruth, relevance, len(queries))
             per_query = retrieval_metrics(ranking.indices, relevance, all_ks)
             has_relevant = ~np.isnan(per_query["average_precision"][:, 0])  # AP is NaN without a relevant image
-            labels = {"dataset": dataset, "ranking": ranking.name, "ranking_kind": ranking.kind, "groundtruth": groundtruth}
+            labels = {
+                "dataset": dataset,
+                "ranking": ranking.name,
+                "ranking_kind": ranking.kind,
+                "groundtruth": groundtruth,
+            }
             for subset, mask in subsets.items():
                 members = np.asarray(mask, dtype=bool) & evaluable
                 for metric, quantity in METRICS.items():
@@ -126,7 +129,13 @@ def retrieval_tables(
                     if averaged.any():
                         values = per_query[quantity][averaged][:, table_columns].mean(axis=0)
                         count = int(averaged.sum())
-                        rows = {"subset": subset, "metric": metric, "k": table_ks, "value": values, "num_queries": count}
+                        rows = {
+                            "subset": subset,
+                            "metric": metric,
+                            "k": table_ks,
+                            "value": values,
+                            "num_queries": count,
+                        }
                         frames.append(pd.DataFrame({**labels, **rows}))
             for quantity in METRICS.values():
                 values = per_query[quantity][evaluable][:, query_columns]  # [Q', len(query_ks)]

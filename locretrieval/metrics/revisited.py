@@ -145,7 +145,9 @@ def evaluate_revisited(
     """
     name, indices = ranking.name, ranking.indices
     if len(indices) != len(groundtruth.qimlist):
-        raise ValueError(f"{dataset}: ranking {name!r} has {len(indices)} rows, qimlist {len(groundtruth.qimlist)} queries")
+        raise ValueError(
+            f"{dataset}: ranking {name!r} has {len(indices)} rows, qimlist {len(groundtruth.qimlist)} queries"
+        )
     if indices.max(initial=EMPTY) >= len(groundtruth.imlist):
         raise ValueError(f"{dataset}: ranking {name!r} indices must lie in 0..{len(groundtruth.imlist) - 1}")
     rows = []

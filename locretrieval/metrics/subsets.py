@@ -94,13 +94,25 @@ class SubsetSettings:
 
     def __post_init__(self) -> None:
         require(self.blur_radius >= 1, "blur_radius", f"must be >= 1 frequency bin, got {self.blur_radius}")
-        require(self.blur_width > 2 * self.blur_radius, "blur_width",
-                f"must exceed twice blur_radius ({2 * self.blur_radius}), got {self.blur_width}")
+        require(
+            self.blur_width > 2 * self.blur_radius,
+            "blur_width",
+            f"must exceed twice blur_radius ({2 * self.blur_radius}), got {self.blur_width}",
+        )
         require(0 <= self.dynamic_fraction <= 1, "dynamic_fraction", f"must be in [0, 1], got {self.dynamic_fraction}")
-        require(self.mask_source in MASK_SOURCES, "mask_source", f"must be one of {list(MASK_SOURCES)}, got {self.mask_source!r}")
-        require(self.mask_source != "maskrcnn" or bool(self.maskrcnn_weights), "maskrcnn_weights",
-                f"mask_source=maskrcnn needs the path of torchvision's {MASKRCNN_WEIGHTS_FILE}")
-        require(self.maskrcnn_min_size >= 32, "maskrcnn_min_size", f"must be >= 32 pixels, got {self.maskrcnn_min_size}")
+        require(
+            self.mask_source in MASK_SOURCES,
+            "mask_source",
+            f"must be one of {list(MASK_SOURCES)}, got {self.mask_source!r}",
+        )
+        require(
+            self.mask_source != "maskrcnn" or bool(self.maskrcnn_weights),
+            "maskrcnn_weights",
+            f"mask_source=maskrcnn needs the path of torchvision's {MASKRCNN_WEIGHTS_FILE}",
+        )
+        require(
+            self.maskrcnn_min_size >= 32, "maskrcnn_min_size", f"must be >= 32 pixels, got {self.maskrcnn_min_size}"
+        )
         for name in ("maskrcnn_score_threshold", "maskrcnn_mask_threshold"):
             require(0 <= getattr(self, name) <= 1, name, f"must be in [0, 1], got {getattr(self, name)}")
 
@@ -108,7 +120,9 @@ class SubsetSettings:
 def blur_score(image: np.ndarray, radius: int = 60, width: int = 500) -> float:
     """FFT blur score of an RGB ``uint8 [H, W, 3]`` image (module docstring); higher is sharper."""
     height = int(image.shape[0] * width / image.shape[1])
-    gray = np.asarray(Image.fromarray(image).resize((width, height), Image.Resampling.BOX).convert("L"), dtype=np.float64)
+    gray = np.asarray(
+        Image.fromarray(image).resize((width, height), Image.Resampling.BOX).convert("L"), dtype=np.float64
+    )
     spectrum = np.fft.fftshift(np.fft.fft2(gray))
     cy, cx = height // 2, width // 2
     spectrum[max(cy - radius, 0) : cy + radius, max(cx - radius, 0) : cx + radius] = 0
@@ -120,7 +134,10 @@ def blur_score(image: np.ndarray, radius: int = 60, width: int = 500) -> float:
 def blur_scores(images: ImageSet, radius: int = 60, width: int = 500) -> np.ndarray:
     """`blur_score` of every image ``[N]``."""
     return np.array(
-        [blur_score(read_image(path), radius, width) for path in tqdm(images.paths, desc="blur", unit="image", disable=None)]
+        [
+            blur_score(read_image(path), radius, width)
+            for path in tqdm(images.paths, desc="blur", unit="image", disable=None)
+        ]
     )
 
 
@@ -236,7 +253,9 @@ def missing_mask_inputs(images: ImageSet, settings: SubsetSettings) -> list[str]
         return [f"subsets.mask_source=masks: {len(absent)} of {len(images)} queries have no mask file "
                 f"(<kapture>/masks/<name>), e.g. {absent[0]!r}"] if absent else []  # fmt: skip
     if source == "maskrcnn" and not Path(settings.maskrcnn_weights).is_file():
-        return [f"subsets.maskrcnn_weights: {settings.maskrcnn_weights} not found (torchvision's {MASKRCNN_WEIGHTS_FILE})"]
+        return [
+            f"subsets.maskrcnn_weights: {settings.maskrcnn_weights} not found (torchvision's {MASKRCNN_WEIGHTS_FILE})"
+        ]
     return []
 
 

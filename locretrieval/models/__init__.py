@@ -63,8 +63,8 @@ if TYPE_CHECKING:
     from locretrieval.models.apgem import APGeMDescriptor
     from locretrieval.models.base import GlobalDescriptor
     from locretrieval.models.delg import DELGDescriptor
-    from locretrieval.models.external import CallableDescriptor, HubDescriptor
     from locretrieval.models.densevlad import DenseVLAD
+    from locretrieval.models.external import CallableDescriptor, HubDescriptor
     from locretrieval.models.feature_io import export_global_features, read_hloc_global_descriptors
     from locretrieval.models.netvlad import NetVLADDescriptor
     from locretrieval.models.precomputed import PrecomputedDescriptor

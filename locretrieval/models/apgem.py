@@ -96,9 +96,13 @@ class PCAWhitening:
 
     @classmethod
     def from_tensors(cls, tensors: Mapping[str, torch.Tensor]) -> "PCAWhitening":
-        return cls(*(tensors[key].numpy() for key in ("mean", "components", "explained_variance")), bool(tensors["whiten"]))
+        return cls(
+            *(tensors[key].numpy() for key in ("mean", "components", "explained_variance")), bool(tensors["whiten"])
+        )
 
-    def affine(self, power: float = 0.5, dims: int | None = None, multiplier: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    def affine(
+        self, power: float = 0.5, dims: int | None = None, multiplier: float = 1.0
+    ) -> tuple[np.ndarray, np.ndarray]:
         """``(W [dims, D], b [dims])`` with ``W x + b`` = dirtorch's ``whiten_features`` before its L2:
         ``(x - mean) @ components[:dims].T``, divided by ``multiplier * variance[:dims] ** power``
         when the PCA whitens."""
@@ -155,14 +159,20 @@ def _read_dirtorch(path: Path, content: Any) -> Weights:
     arch = options.get("arch")
     if arch not in DIRTORCH_BACKBONES:
         raise ValueError(f"{path}: model_options arch {arch!r} is not one of {sorted(DIRTORCH_BACKBONES)}")
-    if not str(options.get("pooling", "gem")).startswith("gem") or options.get("without_fc") or options.get("norm_features"):
+    if (
+        not str(options.get("pooling", "gem")).startswith("gem")
+        or options.get("without_fc")
+        or options.get("norm_features")
+    ):
         raise ValueError(f"{path}: only GeM pooling followed by the FC layer is supported; model_options {options}")
     state = {_network_name(key.removeprefix("module.")): value for key, value in content["state_dict"].items()}
     if "whitening.weight" not in state:
         raise ValueError(f"{path}: state_dict has no 'fc.weight' (the 2048-D FC layer)")
     preprocess = content.get("preprocess") or {}
     pcas = {
-        str(name): PCAWhitening.from_attributes(vars(pca) if isinstance(pca, PicklePCA) else pca, f"{path} pca[{name!r}]")
+        str(name): PCAWhitening.from_attributes(
+            vars(pca) if isinstance(pca, PicklePCA) else pca, f"{path} pca[{name!r}]"
+        )
         for name, pca in (content.get("pca") or {}).items()
     }
     architecture = {"backbone": DIRTORCH_BACKBONES[arch], "out_dim": int(state["whitening.weight"].shape[0])}
@@ -179,11 +189,16 @@ def convert_apgem(source: str | os.PathLike, destination: str | os.PathLike) -> 
         {"backbone": weights.backbone, "out_dim": weights.out_dim},
         {"mean": weights.mean, "std": weights.std},
         weights.state_dict,
-        {"pca": {name: pca.to_tensors() for name, pca in weights.pcas.items()}, "source_sha256": content_sha256(source)},
+        {
+            "pca": {name: pca.to_tensors() for name, pca in weights.pcas.items()},
+            "source_sha256": content_sha256(source),
+        },
     )
 
 
-def build_apgem_network(backbone: str = "resnet101", out_dim: int = 2048, projection_dim: int | None = None) -> RetrievalNet:
+def build_apgem_network(
+    backbone: str = "resnet101", out_dim: int = 2048, projection_dim: int | None = None
+) -> RetrievalNet:
     """GeM (learned ``p``) -> FC ``out_dim`` as the whitening -> optional PCA as the projection."""
     return build_retrieval_net(backbone, {"type": "gem", "p": 3.0, "trainable": True}, out_dim, projection_dim)
 
@@ -224,7 +239,9 @@ class APGeMDescriptor(TorchGlobalDescriptor):
             state["projection.weight"] = torch.from_numpy(weight.astype(np.float32))
             state["projection.bias"] = torch.from_numpy(bias.astype(np.float32))
             projection_dim = weight.shape[0]
-        network, info = load_weights(lambda: build_apgem_network(loaded.backbone, loaded.out_dim, projection_dim), state, path)
+        network, info = load_weights(
+            lambda: build_apgem_network(loaded.backbone, loaded.out_dim, projection_dim), state, path
+        )
         architecture = {
             **declared,
             "pca": pca,

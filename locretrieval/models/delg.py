@@ -96,7 +96,9 @@ def slim_resnet_v1(units: Sequence[int] = RESNET_V1_101_UNITS, bn_eps: float = 1
         for unit in range(count):
             unit_stride = stride if unit == count - 1 else 1
             if channels != depth * 4:
-                shortcut = nn.Sequential(nn.Conv2d(channels, depth * 4, 1, stride=unit_stride, bias=False), norm(depth * 4))
+                shortcut = nn.Sequential(
+                    nn.Conv2d(channels, depth * 4, 1, stride=unit_stride, bias=False), norm(depth * 4)
+                )
             else:
                 shortcut = nn.MaxPool2d(kernel_size=1, stride=unit_stride) if unit_stride != 1 else None
             unit_modules.append(Bottleneck(channels, depth, stride=unit_stride, downsample=shortcut, norm_layer=norm))
@@ -139,10 +141,14 @@ def _backbone_name(match: re.Match) -> str:
 def _whitening_variables(variables: Mapping[str, np.ndarray], scope: str | None) -> tuple[str, str]:
     """Names of the whitening kernel and bias: under ``scope``, or the only kernel with 2048 inputs."""
     kernels = [
-        name for name, value in variables.items()
-        if name.endswith(_KERNEL_SUFFIXES) and not _BACKBONE_VARIABLE.search(name)
+        name
+        for name, value in variables.items()
+        if name.endswith(_KERNEL_SUFFIXES)
+        and not _BACKBONE_VARIABLE.search(name)
         and (scope is None or name.rsplit("/", 1)[0].endswith(scope))
-        and np.ndim(value) in (2, 4) and np.shape(value)[-2] == 2048 and np.prod(np.shape(value)[:-2]) == 1
+        and np.ndim(value) in (2, 4)
+        and np.shape(value)[-2] == 2048
+        and np.prod(np.shape(value)[:-2]) == 1
     ]
     if len(kernels) != 1:
         where = f"under scope {scope!r}" if scope else "outside the ResNet with 2048 inputs"
@@ -219,13 +225,26 @@ def read_tf_variables(path: str | os.PathLike) -> dict[str, np.ndarray]:
 
 
 def convert_delg(
-    source: str | os.PathLike, destination: str | os.PathLike, gem_power: float = 3.0, whitening_scope: str | None = None
+    source: str | os.PathLike,
+    destination: str | os.PathLike,
+    gem_power: float = 3.0,
+    whitening_scope: str | None = None,
 ) -> None:
     """Write DELG's TensorFlow weights (SavedModel or ``.npz``) as a locretrieval checkpoint."""
     state = delg_state_dict_from_tf(read_tf_variables(source), gem_power, whitening_scope)
-    architecture = {"units": units_of(state), "whiten_dim": int(state["whitening.weight"].shape[0]), "gem_power": gem_power}
-    save_checkpoint(destination, "delg", architecture, {"mean": DELG_MEAN, "std": DELG_STD}, state,
-                    {"source_sha256": content_sha256(source)})
+    architecture = {
+        "units": units_of(state),
+        "whiten_dim": int(state["whitening.weight"].shape[0]),
+        "gem_power": gem_power,
+    }
+    save_checkpoint(
+        destination,
+        "delg",
+        architecture,
+        {"mean": DELG_MEAN, "std": DELG_STD},
+        state,
+        {"source_sha256": content_sha256(source)},
+    )
 
 
 class DELGDescriptor(TorchGlobalDescriptor):
@@ -251,16 +270,29 @@ class DELGDescriptor(TorchGlobalDescriptor):
         extraction: ExtractionSettings | Mapping[str, Any],
     ) -> None:
         path = require_weights(weights, WEIGHT_SOURCES["delg"], name)
-        architecture = {"units": tuple(int(u) for u in units), "whiten_dim": int(whiten_dim), "gem_power": float(gem_power)}
+        architecture = {
+            "units": tuple(int(u) for u in units),
+            "whiten_dim": int(whiten_dim),
+            "gem_power": float(gem_power),
+        }
+
         def read_tensorflow(file: Path, content: Any) -> Weights:
             """DELG's TensorFlow variables (a SavedModel folder or an ``.npz``), as `AuthorsReader`."""
             if content is not None:
                 raise ValueError(f"{file}: neither a TensorFlow model nor a locretrieval DELG checkpoint")
             return Weights(delg_state_dict_from_tf(read_tf_variables(file), float(gem_power), whitening_scope))
 
-        weights = read_weights(path, self.model, architecture, read_tensorflow, authors_file=lambda file: file.is_dir() or file.suffix == ".npz")
+        weights = read_weights(
+            path,
+            self.model,
+            architecture,
+            read_tensorflow,
+            authors_file=lambda file: file.is_dir() or file.suffix == ".npz",
+        )
         network, info = load_weights(
-            lambda: build_delg_network(architecture["units"], architecture["whiten_dim"], architecture["gem_power"], float(bn_eps)),
+            lambda: build_delg_network(
+                architecture["units"], architecture["whiten_dim"], architecture["gem_power"], float(bn_eps)
+            ),
             weights.state_dict,
             path,
         )

@@ -52,9 +52,9 @@ from tqdm import tqdm
 
 from locretrieval.device import resolve_device
 from locretrieval.models import densevlad_kernels as kernels
+from locretrieval.models.base import GlobalDescriptor
 from locretrieval.models.densevlad_kernels import ANGLE_BINS, SIFT_CLIP
 from locretrieval.models.densevlad_kernels import EPS as _EPS
-from locretrieval.models.base import GlobalDescriptor
 from locretrieval.scene import ImageSet
 from locretrieval.scene.images import read_image
 
@@ -123,7 +123,9 @@ def lattice_geometry(height: int, width: int, bin_size: int, step: int, max_bin_
         raise ValueError(f"image of {width}x{height} px is too small for SIFT bins of {max_bin_size} px")
     stride = math.gcd(step, bin_size)
     first_cell = (3 * bin_size) // 2
-    return LatticeGeometry(rows, cols, first_y - first_cell, first_x - first_cell, stride, bin_size // stride, step // stride)
+    return LatticeGeometry(
+        rows, cols, first_y - first_cell, first_x - first_cell, stride, bin_size // stride, step // stride
+    )
 
 
 def _triangle_kernel(bin_size: int, device: torch.device) -> torch.Tensor:
@@ -241,10 +243,12 @@ def sift_lattice(
     reach = bin_size - 1
     padded = F.pad(histograms, (reach, reach, reach, reach))[:, :, geometry.origin_y :, geometry.origin_x :]
     triangle = _triangle_kernel(bin_size, images.device)
-    pooled = F.conv2d(padded, triangle.view(1, 1, -1, 1).expand(ANGLE_BINS, 1, -1, 1),
-                      stride=(geometry.stride, 1), groups=ANGLE_BINS)
-    pooled = F.conv2d(pooled, triangle.view(1, 1, 1, -1).expand(ANGLE_BINS, 1, 1, -1),
-                      stride=(1, geometry.stride), groups=ANGLE_BINS)
+    pooled = F.conv2d(
+        padded, triangle.view(1, 1, -1, 1).expand(ANGLE_BINS, 1, -1, 1), stride=(geometry.stride, 1), groups=ANGLE_BINS
+    )
+    pooled = F.conv2d(
+        pooled, triangle.view(1, 1, 1, -1).expand(ANGLE_BINS, 1, 1, -1), stride=(1, geometry.stride), groups=ANGLE_BINS
+    )
     pooled = pooled[:, :, : geometry.lattice_rows, : geometry.lattice_cols].permute(0, 2, 3, 1)  # [B, Y, X, angle]
     return SiftLattice(pooled, geometry, _window_weights(window_size, images.device))
 
@@ -278,21 +282,38 @@ def cpu_lattice(
     magnitude, position = gradient_orientations(smoothed(image[None], bin_size, magnification))
     histograms = kernels.orientation_histograms(magnitude[0].numpy(), position[0].numpy())
     triangle = _triangle_kernel(bin_size, image.device).numpy()
-    pooled = kernels.pooled_lattice(histograms, triangle, geometry.origin_y, geometry.origin_x, geometry.stride,
-                                    geometry.lattice_rows, geometry.lattice_cols)
+    pooled = kernels.pooled_lattice(
+        histograms,
+        triangle,
+        geometry.origin_y,
+        geometry.origin_x,
+        geometry.stride,
+        geometry.lattice_rows,
+        geometry.lattice_cols,
+    )
     return pooled, geometry
 
 
-def cpu_rootsift(pooled: np.ndarray, geometry: LatticeGeometry, rows: slice, window: np.ndarray,
-                 out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def cpu_rootsift(
+    pooled: np.ndarray, geometry: LatticeGeometry, rows: slice, window: np.ndarray, out: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """RootSIFT of the grid ``rows`` of a `cpu_lattice` (all columns, row-major) and their
     contrast: ``(descriptors [M, 128], contrast [M])``, as `SiftLattice.rootsift` computes them;
     ``out``: a buffer of at least ``M`` rows to write them into."""
     count = (rows.stop - rows.start) * geometry.cols
     descriptors = np.empty((count, SIFT_DIM), np.float32) if out is None else out[:count]
     contrast = np.empty(count, np.float32)
-    kernels.rootsift_rows(pooled, window, rows.start, rows.stop, geometry.cols, geometry.cell_step,
-                          geometry.grid_step, descriptors, contrast)
+    kernels.rootsift_rows(
+        pooled,
+        window,
+        rows.start,
+        rows.stop,
+        geometry.cols,
+        geometry.cell_step,
+        geometry.grid_step,
+        descriptors,
+        contrast,
+    )
     return descriptors, contrast
 
 
@@ -325,13 +346,25 @@ class VladAccumulator:
             if len(self._scores) < descriptors.shape[1]:
                 self._scores = descriptors.new_empty(descriptors.shape[1], num_words)
             for image in range(self.batch):
-                scores = torch.addmm(self._neg_half_norms, descriptors[image], self._centroids_t,
-                                     out=self._scores[: descriptors.shape[1]])
-                kernels.add_to_words(descriptors[image].numpy(), scores.numpy().argmax(1), valid[image].numpy(),
-                                     sums[image], counts[image])
+                scores = torch.addmm(
+                    self._neg_half_norms,
+                    descriptors[image],
+                    self._centroids_t,
+                    out=self._scores[: descriptors.shape[1]],
+                )
+                kernels.add_to_words(
+                    descriptors[image].numpy(),
+                    scores.numpy().argmax(1),
+                    valid[image].numpy(),
+                    sums[image],
+                    counts[image],
+                )
             return
         scores = torch.addmm(self._neg_half_norms, descriptors.flatten(0, 1), self._centroids_t)
-        slots = scores.argmax(1).view(valid.shape) + num_words * torch.arange(self.batch, device=descriptors.device)[:, None]
+        slots = (
+            scores.argmax(1).view(valid.shape)
+            + num_words * torch.arange(self.batch, device=descriptors.device)[:, None]
+        )
         slots = torch.where(valid, slots, self.batch * num_words).flatten()
         self._sums.index_add_(0, slots, descriptors.flatten(0, 1))
         self._counts += torch.bincount(slots, minlength=len(self._counts))
@@ -343,8 +376,9 @@ class VladAccumulator:
         return residuals.view(self.batch, len(self.centroids), -1)
 
 
-def vlad_residuals(descriptors: torch.Tensor, valid: torch.Tensor, centroids: torch.Tensor,
-                   cpu_kernels: bool | None = None) -> torch.Tensor:
+def vlad_residuals(
+    descriptors: torch.Tensor, valid: torch.Tensor, centroids: torch.Tensor, cpu_kernels: bool | None = None
+) -> torch.Tensor:
     """`VladAccumulator` over one set of ``descriptors [B, M, D]``: residual sums ``[B, K, D]``."""
     accumulator = VladAccumulator(centroids, descriptors.shape[0], cpu_kernels)
     accumulator.add(descriptors, valid)
@@ -497,8 +531,9 @@ class DenseVLAD(GlobalDescriptor):
         if tensors:
             yield pending, torch.stack(tensors)
 
-    def _for_each_batch(self, images: ImageSet, indices: Sequence[int], label: str,
-                        work: Callable[[list[int], torch.Tensor], None]) -> None:
+    def _for_each_batch(
+        self, images: ImageSet, indices: Sequence[int], label: str, work: Callable[[list[int], torch.Tensor], None]
+    ) -> None:
         """``work(indices, batch [b, 1, h, w])`` for every image: on CPU one image per task, a
         thread per torch thread, each with single-threaded torch; elsewhere `_batches` in turn."""
         if self.device.type != "cpu":
@@ -520,8 +555,9 @@ class DenseVLAD(GlobalDescriptor):
                     future.cancel()
                 raise
 
-    def _scale_descriptors(self, batch: torch.Tensor, max_points: int | None
-                           ) -> Iterator[tuple[int, torch.Tensor, torch.Tensor]]:
+    def _scale_descriptors(
+        self, batch: torch.Tensor, max_points: int | None
+    ) -> Iterator[tuple[int, torch.Tensor, torch.Tensor]]:
         """``(scale, descriptors [B, n, 128], contrast [B, n])`` of the batch's grid points, a few
         grid rows at a time (at most ``max_points`` descriptors, ``None``: a whole scale at
         once); on CPU (one image) by the numba kernels, which reuse one buffer: a chunk is
@@ -530,7 +566,9 @@ class DenseVLAD(GlobalDescriptor):
         if self.device.type != "cpu":
             for scale, bin_size in enumerate(self.bin_sizes):
                 lattice = sift_lattice(batch, bin_size, self.step, max_bin_size, self.magnification, self.window_size)
-                for rows in lattice.geometry.row_chunks(max_points or lattice.geometry.rows * lattice.geometry.cols, len(batch)):
+                for rows in lattice.geometry.row_chunks(
+                    max_points or lattice.geometry.rows * lattice.geometry.cols, len(batch)
+                ):
                     descriptors, contrast = lattice.rootsift(lattice.cells[:, rows])
                     yield scale, descriptors.flatten(1, 2), contrast.flatten(1)
             return

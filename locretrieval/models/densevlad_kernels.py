@@ -81,7 +81,12 @@ def pooled_lattice(histograms, triangle, origin_y, origin_x, stride, rows, cols)
                 s7 += weight * source[k + np.uint64(7)]
             k = np.uint64(i * ANGLE_BINS)
             target[k], target[k + np.uint64(1)], target[k + np.uint64(2)], target[k + np.uint64(3)] = s0, s1, s2, s3
-            target[k + np.uint64(4)], target[k + np.uint64(5)], target[k + np.uint64(6)], target[k + np.uint64(7)] = s4, s5, s6, s7
+            target[k + np.uint64(4)], target[k + np.uint64(5)], target[k + np.uint64(6)], target[k + np.uint64(7)] = (
+                s4,
+                s5,
+                s6,
+                s7,
+            )
     return pooled
 
 

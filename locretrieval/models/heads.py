@@ -36,8 +36,15 @@ class MixVPRHead(nn.Module):
     positions of each channel (hidden size ``mlp_ratio`` x positions), then
     ``out_channels x out_rows`` projections."""
 
-    def __init__(self, channels: int, grid: tuple[int, int] = (7, 7), blocks: int = 4, mlp_ratio: int = 1,
-                 out_channels: int = 256, out_rows: int = 4) -> None:
+    def __init__(
+        self,
+        channels: int,
+        grid: tuple[int, int] = (7, 7),
+        blocks: int = 4,
+        mlp_ratio: int = 1,
+        out_channels: int = 256,
+        out_rows: int = 4,
+    ) -> None:
         super().__init__()
         self.grid = tuple(int(side) for side in grid)
         positions = self.grid[0] * self.grid[1]
@@ -62,8 +69,16 @@ class SALADHead(nn.Module):
     ``(n - m) / (n + m)`` for the dustbin, column marginals ``1 / (n + m)`` per feature
     (`transport_plan`: ``iterations`` of log-domain Sinkhorn at temperature ``regularization``)."""
 
-    def __init__(self, channels: int, clusters: int = 16, cluster_dim: int = 32, token_dim: int = 64, hidden: int = 256,
-                 iterations: int = 3, regularization: float = 1.0) -> None:
+    def __init__(
+        self,
+        channels: int,
+        clusters: int = 16,
+        cluster_dim: int = 32,
+        token_dim: int = 64,
+        hidden: int = 256,
+        iterations: int = 3,
+        regularization: float = 1.0,
+    ) -> None:
         super().__init__()
         self.clusters, self.iterations, self.regularization = clusters, iterations, regularization
         self.scores = _mlp(channels, hidden, clusters)
@@ -77,8 +92,10 @@ class SALADHead(nn.Module):
         local = features.flatten(2).transpose(1, 2)  # [B, n, C]
         n, m = local.shape[1], self.clusters
         if n <= m:
-            raise ValueError(f"SALAD needs more local features ({n} = H x W of the feature map) than clusters ({m}): "
-                             f"use larger images or fewer model.pooling.clusters")
+            raise ValueError(
+                f"SALAD needs more local features ({n} = H x W of the feature map) than clusters ({m}): "
+                f"use larger images or fewer model.pooling.clusters"
+            )
         scores = self.scores(local).transpose(1, 2)  # [B, m, n]
         scores = torch.cat([scores, self.dustbin.expand(len(scores), 1, n)], dim=1) / self.regularization
         log_rows = torch.full((m + 1,), -math.log(n + m), device=scores.device, dtype=scores.dtype)
@@ -94,7 +111,9 @@ class SALADHead(nn.Module):
         with torch.autocast(features.device.type, enabled=False):
             features = features.float()
             n = features.shape[2] * features.shape[3]
-            assignment = self.transport_plan(features)[:, : self.clusters] * (n + self.clusters)  # each feature's mass: 1
+            assignment = self.transport_plan(features)[:, : self.clusters] * (
+                n + self.clusters
+            )  # each feature's mass: 1
             reduced = self.features(features.flatten(2).transpose(1, 2))  # [B, n, cluster_dim]
             aggregated = F.normalize(assignment @ reduced, dim=2).flatten(1)  # intra-normalised
             token = F.normalize(self.token(features.mean(dim=(2, 3))), dim=1)
@@ -106,12 +125,16 @@ class BoQHead(nn.Module):
     local features; ``queries`` learned queries with self-attention, then cross-attention to
     the features; every block's query outputs ``[blocks x queries, dim]`` projected to ``rows``."""
 
-    def __init__(self, channels: int, dim: int = 128, queries: int = 16, blocks: int = 2, heads: int = 4, rows: int = 8) -> None:
+    def __init__(
+        self, channels: int, dim: int = 128, queries: int = 16, blocks: int = 2, heads: int = 4, rows: int = 8
+    ) -> None:
         super().__init__()
         self.input_projection = nn.Linear(channels, dim)
         self.input_norm = nn.LayerNorm(dim)
         self.encoders = nn.ModuleList(
-            nn.TransformerEncoderLayer(dim, heads, dim_feedforward=4 * dim, dropout=0.0, batch_first=True, norm_first=False)
+            nn.TransformerEncoderLayer(
+                dim, heads, dim_feedforward=4 * dim, dropout=0.0, batch_first=True, norm_first=False
+            )
             for _ in range(blocks)
         )
         self.queries = nn.ParameterList(nn.Parameter(torch.randn(1, queries, dim) * dim**-0.5) for _ in range(blocks))

@@ -75,11 +75,14 @@ def read_netvlad_struct(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor
     except NotImplementedError as error:  # MATLAB v7.3 (HDF5) files
         raise ValueError(f"{path}: a MATLAB v7.3 file; re-save it with save(..., '-v7'): {error}") from error
     except (ValueError, TypeError, IndexError, OSError) as error:  # not a MATLAB file at all
-        raise ValueError(f"{path}: not a MATLAB .mat file holding NetVLAD's struct 'net' ({type(error).__name__}: {error})") from None
+        raise ValueError(
+            f"{path}: not a MATLAB .mat file holding NetVLAD's struct 'net' ({type(error).__name__}: {error})"
+        ) from None
     net = mat.get("net")
     if net is None or not hasattr(net, "layers"):
         raise ValueError(
-            f"{path}: no struct variable 'net' with 'layers' (found {sorted(k for k in mat if not k.startswith('__'))}); "
+            f"{path}: no struct variable 'net' with 'layers' (found "
+            f"{sorted(k for k in mat if not k.startswith('__'))}); "
             "a MatConvNet object file must first be converted with net_class2struct.m"
         )
     layers = list(np.atleast_1d(net.layers))
@@ -113,7 +116,11 @@ def read_netvlad_struct(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor
     state["pooling.centers"] = torch.from_numpy(-vlad[1].T.copy())
     if len(weighted) > 1:
         whitening = _layer_weights(layers[weighted[1]])
-        matrix = whitening[0].reshape(dim * clusters, -1) if whitening and whitening[0].size % (dim * clusters) == 0 else None
+        matrix = (
+            whitening[0].reshape(dim * clusters, -1)
+            if whitening and whitening[0].size % (dim * clusters) == 0
+            else None
+        )
         if len(whitening) != 2 or matrix is None or whitening[1].size != matrix.shape[1]:
             raise ValueError(
                 f"{path}: {_layer_label(layers, weighted[1])} should be the whitening, 1 x 1 x {dim * clusters} x OUT "
@@ -145,8 +152,9 @@ def convert_netvlad(source: str | os.PathLike, destination: str | os.PathLike) -
     """Write the struct ``.mat`` as a plain locretrieval checkpoint (no scipy/MATLAB layout needed)."""
     state, average = read_netvlad_struct(source)
     preprocessing = {"mean": (average / 255.0).tolist(), "std": [1 / 255.0] * 3}
-    save_checkpoint(destination, "netvlad", architecture_of(state), preprocessing, state,
-                    {"source_sha256": content_sha256(source)})
+    save_checkpoint(
+        destination, "netvlad", architecture_of(state), preprocessing, state, {"source_sha256": content_sha256(source)}
+    )
 
 
 class NetVLADDescriptor(TorchGlobalDescriptor):
@@ -170,7 +178,9 @@ class NetVLADDescriptor(TorchGlobalDescriptor):
     ) -> None:
         path = require_weights(weights, WEIGHT_SOURCES["netvlad"], name)
         architecture = {"clusters": int(clusters), "whiten_dim": None if whiten_dim is None else int(whiten_dim)}
-        weights = read_weights(path, self.model, architecture, _read_struct, authors_file=lambda file: file.suffix.lower() == ".mat")
+        weights = read_weights(
+            path, self.model, architecture, _read_struct, authors_file=lambda file: file.suffix.lower() == ".mat"
+        )
         network, info = load_weights(lambda: build_netvlad_network(**architecture), weights.state_dict, path)
         mean, std = weights.preprocessing["mean"], weights.preprocessing["std"]
         preprocessing = Preprocessing(max_side=max_side, scales=tuple(scales), mean=tuple(mean), std=tuple(std))

@@ -68,7 +68,12 @@ class SpatialPyramidGeM(GeMPooling):
     """
 
     def __init__(
-        self, channels: int, levels: tuple[tuple[int, int], ...], p: float = 3.0, trainable: bool = True, eps: float = 1e-6
+        self,
+        channels: int,
+        levels: tuple[tuple[int, int], ...],
+        p: float = 3.0,
+        trainable: bool = True,
+        eps: float = 1e-6,
     ) -> None:
         super().__init__(p, trainable, eps)
         self.levels = tuple((int(rows), int(cols)) for rows, cols in levels)
@@ -79,10 +84,7 @@ class SpatialPyramidGeM(GeMPooling):
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         with torch.autocast(features.device.type, enabled=False):
             x = features.float().clamp(min=self.eps).pow(self.p)
-            blocks = [
-                l2_normalize(F.adaptive_avg_pool2d(x, grid).pow(1.0 / self.p).flatten(1))
-                for grid in self.levels
-            ]
+            blocks = [l2_normalize(F.adaptive_avg_pool2d(x, grid).pow(1.0 / self.p).flatten(1)) for grid in self.levels]
             return torch.cat(blocks, dim=1)
 
 
@@ -326,8 +328,10 @@ def _load(network: RetrievalNet, state_dict: Mapping[str, torch.Tensor], source:
     except RuntimeError as error:
         raise ValueError(f"{source}: does not fit the network: {error}") from error
     if result.unexpected_keys:
-        raise ValueError(f"{source}: holds {len(result.unexpected_keys)} values the network has no place for, "
-                         f"e.g. {result.unexpected_keys[:6]}")
+        raise ValueError(
+            f"{source}: holds {len(result.unexpected_keys)} values the network has no place for, "
+            f"e.g. {result.unexpected_keys[:6]}"
+        )
     return [name for name in result.missing_keys if not name.endswith("num_batches_tracked")]
 
 

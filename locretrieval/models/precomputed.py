@@ -21,7 +21,12 @@ from locretrieval.config import folder_label
 from locretrieval.models.base import NORM_TOLERANCE, GlobalDescriptor
 from locretrieval.scene import ImageSet, Scene
 from locretrieval.scene.feature_files import (
-    FeatureHeader, feature_file, feature_folder_candidates, feature_names, find_feature_folder, read_feature_array,
+    FeatureHeader,
+    feature_file,
+    feature_folder_candidates,
+    feature_names,
+    find_feature_folder,
+    read_feature_array,
     read_feature_header,
 )
 
@@ -180,7 +185,9 @@ class PrecomputedDescriptor(GlobalDescriptor):
             path = self._feature_path(image_name, folders)
             actual_bytes, expected_bytes = path.stat().st_size, header.dsize * header.dtype.itemsize
             if actual_bytes != expected_bytes:
-                raise ValueError(f"{path}: {actual_bytes} bytes, expected {expected_bytes} ({header.dsize} x {header.dtype})")
+                raise ValueError(
+                    f"{path}: {actual_bytes} bytes, expected {expected_bytes} ({header.dsize} x {header.dtype})"
+                )
             vector = read_feature_array(path, header)
             if not np.isfinite(vector).all():
                 raise ValueError(f"{path}: global feature holds non-finite values")
@@ -193,6 +200,10 @@ class PrecomputedDescriptor(GlobalDescriptor):
         if off.any():
             log.info(
                 "%s: %d of %d global features were not L2-normalised (norms %.4g..%.4g); normalising",
-                self.name, int(off.sum()), len(norms), norms.min(), norms.max(),
+                self.name,
+                int(off.sum()),
+                len(norms),
+                norms.min(),
+                norms.max(),
             )
         return descriptors / norms[:, None]

@@ -21,7 +21,9 @@ class TimmTrunk(nn.Module):
         import timm
 
         try:  # a ViT takes any size, padded to its patch grid
-            self.timm = timm.create_model(name, pretrained=False, num_classes=0, global_pool="", dynamic_img_size=True, dynamic_img_pad=True)
+            self.timm = timm.create_model(
+                name, pretrained=False, num_classes=0, global_pool="", dynamic_img_size=True, dynamic_img_pad=True
+            )
         except TypeError:  # not a ViT: no dynamic image size to set
             self.timm = timm.create_model(name, pretrained=False, num_classes=0, global_pool="")
         except RuntimeError as error:
@@ -32,7 +34,11 @@ class TimmTrunk(nn.Module):
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         features = self.timm.forward_features(images)
         if features.ndim == 4:  # channels last for some (Swin: output_fmt NHWC)
-            return features.permute(0, 3, 1, 2) if str(getattr(self.timm, "output_fmt", "NCHW")).endswith("NHWC") else features
+            return (
+                features.permute(0, 3, 1, 2)
+                if str(getattr(self.timm, "output_fmt", "NCHW")).endswith("NHWC")
+                else features
+            )
         tokens = features[:, self.timm.num_prefix_tokens :]
         height, width = -(-images.shape[2] // self.patch[0]), -(-images.shape[3] // self.patch[1])  # the padded grid
         return tokens.transpose(1, 2).reshape(len(tokens), self.channels, height, width)

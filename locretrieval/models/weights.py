@@ -65,7 +65,9 @@ def torchvision_source(backbone: str) -> WeightSource:
     import torchvision  # here: importing it costs more than a second
 
     url = torchvision.models.get_model_weights(backbone).DEFAULT.url
-    return WeightSource(f"{url.rsplit('/', 1)[-1]} (torchvision's ImageNet weights for {backbone})", f"torchvision: {url}")
+    return WeightSource(
+        f"{url.rsplit('/', 1)[-1]} (torchvision's ImageNet weights for {backbone})", f"torchvision: {url}"
+    )
 
 
 class MissingWeightsError(FileNotFoundError):
@@ -245,7 +247,9 @@ def read_weights(
         content = embedded_checkpoint(load_torch_file(path, allowed))
     if is_checkpoint(content):
         check_checkpoint(content, path, model, architecture)
-        return Weights(content["state_dict"], content["architecture"], content["preprocessing"], content["extra"], checkpoint=True)
+        return Weights(
+            content["state_dict"], content["architecture"], content["preprocessing"], content["extra"], checkpoint=True
+        )
     if authors is None:
         raise ValueError(f"{path}: not a locretrieval checkpoint of model {model!r}")
     return _checked(authors(path, content), path, architecture)

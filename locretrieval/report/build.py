@@ -87,7 +87,9 @@ def build_report(
     subset_section(writer, tables, groundtruth, painters, colors)
     failure_section(writer, tables)
     if gallery is not None:
-        gallery_section(writer, tables.run_dirs, groundtruth, gallery, loosest_threshold(tables.results), thumbnail_cache)
+        gallery_section(
+            writer, tables.run_dirs, groundtruth, gallery, loosest_threshold(tables.results), thumbnail_cache
+        )
     path = writer.write(output_dir / "report.md")
     log.info("report written to %s and %s", path, write_html(path))
     return path
@@ -214,19 +216,24 @@ def correlation_section(
     )
     for metric in [m for m in METRIC_TITLES if m in set(correlations.pearson["retrieval_metric"])]:
         pearson, spearman, pairs = (
-            _selected(frame, groundtruth, metric) for frame in (correlations.pearson, correlations.spearman, correlations.paired)
+            _selected(frame, groundtruth, metric)
+            for frame in (correlations.pearson, correlations.spearman, correlations.paired)
         )
         query = _selected(correlations.query, groundtruth, METRICS[metric])
         writer.heading(METRIC_TITLES[metric], 3)
         writer.figures(painters.draw(plots.plot_correlation_scatter, pairs, pearson, painters.figures, colors))
         stem = f"{metric}_{groundtruth}"
-        writer.table(markdown.correlation_matrix(pearson, "ranking"), f"pearson_{stem}", "Pearson r over k, per descriptor.")
+        writer.table(
+            markdown.correlation_matrix(pearson, "ranking"), f"pearson_{stem}", "Pearson r over k, per descriptor."
+        )
         caption = "Spearman rho over the descriptors, per k."
         writer.table(markdown.correlation_matrix(spearman, "k"), f"spearman_{stem}", caption)
         if len(query):
             writer.figures(painters.draw(plots.plot_query_violins, query, painters.figures, colors))
         analyses = {"pearson": pearson, "spearman": spearman, "per query": query}
-        undefined = pd.concat([markdown.undefined_summary(frame).assign(analysis=name) for name, frame in analyses.items()])
+        undefined = pd.concat(
+            [markdown.undefined_summary(frame).assign(analysis=name) for name, frame in analyses.items()]
+        )
         if len(undefined):
             table = undefined[["analysis", "undefined_reason", "count"]].to_markdown(index=False)
             writer.text("Undefined coefficients:", table)
@@ -268,9 +275,15 @@ def failure_section(writer: markdown.ReportWriter, tables: RunTables) -> None:
     if tables.query_errors.empty:
         return
     writer.heading("Median errors")
-    medians = median_errors(tables.query_errors).drop(columns=["ranking_kind"]).set_index(["dataset", "paradigm", "method", "ranking", "k"])
-    caption = ("Median position (m) and rotation (deg) errors over the queries with an estimate and a reference pose, "
-               "and the % of queries with an estimate.")
+    medians = (
+        median_errors(tables.query_errors)
+        .drop(columns=["ranking_kind"])
+        .set_index(["dataset", "paradigm", "method", "ranking", "k"])
+    )
+    caption = (
+        "Median position (m) and rotation (deg) errors over the queries with an estimate and a reference pose, "
+        "and the % of queries with an estimate."
+    )
     writer.table(medians, "median_errors", caption, ".2f")
     writer.heading("Failures")
     failures = markdown.failure_summary(tables.query_errors)

@@ -79,7 +79,11 @@ class GallerySettings:
     def __post_init__(self) -> None:
         require(self.queries in ("selected", "all"), "queries", f"must be 'selected' or 'all', got {self.queries!r}")
         require(self.k >= 1, "k", f"must be >= 1, got {self.k}")
-        require(self.worst >= 0 and self.random >= 0, "worst", f"worst and random must be >= 0, got {self.worst}, {self.random}")
+        require(
+            self.worst >= 0 and self.random >= 0,
+            "worst",
+            f"worst and random must be >= 0, got {self.worst}, {self.random}",
+        )
         require(self.thumbnail_size >= 8, "thumbnail_size", f"must be >= 8 pixels, got {self.thumbnail_size}")
 
 
@@ -123,8 +127,10 @@ def gallery_image(
     160 pixels, not cached on disk)."""
     indices = np.asarray(indices)
     if indices.shape[0] != len(query_paths) or (relevant is not None and np.shape(relevant) != indices.shape):
-        raise ValueError(f"gallery of {len(query_paths)} queries: indices {indices.shape} and relevant "
-                         f"{np.shape(relevant) if relevant is not None else None} must both be [{len(query_paths)}, K]")
+        raise ValueError(
+            f"gallery of {len(query_paths)} queries: indices {indices.shape} and relevant "
+            f"{np.shape(relevant) if relevant is not None else None} must both be [{len(query_paths)}, K]"
+        )
     thumbnails = thumbnails or Thumbnails(160)
     queries = [thumbnails(path) for path in query_paths]
     database = {int(i): thumbnails(database_paths[i]) for i in np.unique(indices[indices != EMPTY])}
@@ -228,7 +234,9 @@ def run_gallery_settings(run: Path, overrides: Sequence[str] = ()) -> tuple[Gall
     section = OmegaConf.select(config, "report.gallery")
     if section is None:
         return None, None
-    settings = validated(GallerySettings, OmegaConf.merge(section, OmegaConf.from_dotlist(list(overrides))), "report.gallery")
+    settings = validated(
+        GallerySettings, OmegaConf.merge(section, OmegaConf.from_dotlist(list(overrides))), "report.gallery"
+    )
     cache_dir = OmegaConf.select(config, "paths.cache_dir")
     return settings, Path(cache_dir) / "thumbnails" if cache_dir else None
 
@@ -282,9 +290,14 @@ def outcome_texts(errors: pd.DataFrame) -> pd.Series:
         return pd.Series(dtype=str)
     label = errors["paradigm"] + " " + errors["method"] + " k=" + errors["k"].astype(int).astype(str) + ": "
     failure = errors["failure"].fillna("")
-    errors_text = errors["position_error_m"].map("{:.2f} m".format) + ", " + errors["rotation_error_deg"].map("{:.1f}°".format)
-    outcome = np.where(failure != "", "failed (" + failure.str.replace("|", "/") + ")",
-                       np.where(errors["position_error_m"].isna(), "no reference pose", errors_text))
+    errors_text = (
+        errors["position_error_m"].map("{:.2f} m".format) + ", " + errors["rotation_error_deg"].map("{:.1f}°".format)
+    )
+    outcome = np.where(
+        failure != "",
+        "failed (" + failure.str.replace("|", "/") + ")",
+        np.where(errors["position_error_m"].isna(), "no reference pose", errors_text),
+    )
     text = label + outcome
     return text.groupby(errors["query"]).agg("<br>".join)
 
@@ -293,8 +306,12 @@ def outcome_texts(errors: pd.DataFrame) -> pd.Series:
 
 
 def gallery_section(
-    writer: ReportWriter, run_dirs: Sequence[Path], groundtruth: str | None, settings: GallerySettings,
-    scale: tuple[float, float], thumbnail_cache: str | os.PathLike | None,
+    writer: ReportWriter,
+    run_dirs: Sequence[Path],
+    groundtruth: str | None,
+    settings: GallerySettings,
+    scale: tuple[float, float],
+    thumbnail_cache: str | os.PathLike | None,
 ) -> None:
     """The report's ``Galleries`` section: one table per run and descriptor ranking, its rows
     drawn into ``galleries/``; ``scale``: the loosest threshold ``(metres, degrees)``;
@@ -306,9 +323,13 @@ def gallery_section(
         f"Per query: the query (blue frame), then its top {settings.k} database images, rank 1 first, framed green "
         f"when relevant and red when not ({relevance}); the outcome is each paradigm's at the largest k <= "
         f"{settings.k} (else its smallest). "
-        + ("Every query." if settings.queries == "all" else
-           f"The {settings.worst} worst queries (largest mean capped error at the loosest threshold, "
-           f"{scale[0]:g} m / {scale[1]:g}°, failures counting 1), then {settings.random} drawn at random (seed {settings.seed}).")
+        + (
+            "Every query."
+            if settings.queries == "all"
+            else f"The {settings.worst} worst queries (largest mean capped error at the loosest threshold, "
+            f"{scale[0]:g} m / {scale[1]:g}°, failures counting 1), "
+            f"then {settings.random} drawn at random (seed {settings.seed})."
+        )
         + " `relevant`: relevant images among those shown."
     )
     folder = writer.directory / GALLERY_FOLDER
@@ -322,8 +343,13 @@ def gallery_section(
 
 
 def run_galleries(
-    writer: ReportWriter, run: Path, prefix: str, groundtruth: str | None, settings: GallerySettings,
-    scale: tuple[float, float], thumbnails: Thumbnails,
+    writer: ReportWriter,
+    run: Path,
+    prefix: str,
+    groundtruth: str | None,
+    settings: GallerySettings,
+    scale: tuple[float, float],
+    thumbnails: Thumbnails,
 ) -> int:
     """The galleries of one run's descriptor rankings; returns how many rows were drawn."""
     inputs = GalleryInputs.read(run, groundtruth)
@@ -338,8 +364,17 @@ def run_galleries(
     for name, indices in inputs.rankings.items():
         title = f"{name}" + (f" (`{run}`)" if prefix else "")
         try:
-            rows += ranking_gallery(writer, title, Path(GALLERY_FOLDER) / f"{prefix}{safe_name(name)}", indices, inputs,
-                                    errors[errors["ranking"] == name], settings, scale, thumbnails)
+            rows += ranking_gallery(
+                writer,
+                title,
+                Path(GALLERY_FOLDER) / f"{prefix}{safe_name(name)}",
+                indices,
+                inputs,
+                errors[errors["ranking"] == name],
+                settings,
+                scale,
+                thumbnails,
+            )
         except FileNotFoundError as error:  # the dataset moved since the run: the report is still written
             log.warning("gallery of %s in %s not drawn: %s", name, run, error)
             writer.text(f"Gallery of {name} not drawn: {error} (listed in `{run / IMAGES_FILE}`).")
@@ -347,8 +382,15 @@ def run_galleries(
 
 
 def ranking_gallery(
-    writer: ReportWriter, title: str, folder: Path, indices: np.ndarray, inputs: GalleryInputs, errors: pd.DataFrame,
-    settings: GallerySettings, scale: tuple[float, float], thumbnails: Thumbnails,
+    writer: ReportWriter,
+    title: str,
+    folder: Path,
+    indices: np.ndarray,
+    inputs: GalleryInputs,
+    errors: pd.DataFrame,
+    settings: GallerySettings,
+    scale: tuple[float, float],
+    thumbnails: Thumbnails,
 ) -> int:
     """One ranking's gallery table; its row images are ``<folder>/<row>.jpg`` below the report."""
     at_k = at_representative_k(errors, settings.k)
@@ -366,7 +408,10 @@ def ranking_gallery(
         Image.fromarray(image).save(writer.directory / file, quality=JPEG_QUALITY)
         name = inputs.query_names[q]
         hits = f"{int(marks.sum())}/{int((top[row] != EMPTY).sum())}" if marks is not None else "–"
-        lines.append(f"| `{_cell(name)}` | {why} | ![{_cell(name)}]({file.as_posix()}) | {hits} | {_cell(outcomes.get(name, '–'))} |")
+        lines.append(
+            f"| `{_cell(name)}` | {why} | ![{_cell(name)}]({file.as_posix()}) "
+            f"| {hits} | {_cell(outcomes.get(name, '–'))} |"
+        )
     writer.heading(f"Gallery: {title}", 3)
     writer.text("\n".join(lines) if chosen else "No query to show.")
     return len(chosen)
@@ -375,5 +420,3 @@ def ranking_gallery(
 def _cell(text: str) -> str:
     """``text`` safe inside a Markdown table cell."""
     return str(text).replace("|", "\\|")
-
-

@@ -36,7 +36,9 @@ class ReportWriter:
 
     def _figure_links(self, paths: Sequence[Path] | Future) -> list[str]:
         paths = paths.result() if isinstance(paths, Future) else paths
-        return [line for path in paths for line in (f"![{path.stem}]({path.relative_to(self.directory).as_posix()})", "")]
+        return [
+            line for path in paths for line in (f"![{path.stem}]({path.relative_to(self.directory).as_posix()})", "")
+        ]
 
     def table(self, frame: pd.DataFrame, stem: str, caption: str, floatfmt: str = ".2f") -> None:
         """Embed ``frame`` and write it as ``tables/<stem>.md`` and ``tables/<stem>.tex``."""
@@ -129,7 +131,9 @@ def undefined_summary(correlations: pd.DataFrame) -> pd.DataFrame:
 def retrieval_summary(retrieval: pd.DataFrame, ks: Sequence[int] = (1, 5, 10, 20, 50)) -> pd.DataFrame:
     """P@k, R@k and mAP@k in % for a few k: ``(dataset, ground truth, ranking) x (metric, k)``."""
     rows = retrieval[(retrieval["subset"] == "all") & retrieval["k"].isin(list(ks))]
-    return rows.pivot_table(index=["dataset", "groundtruth", "ranking"], columns=["metric", "k"], values="value").mul(100)
+    return rows.pivot_table(index=["dataset", "groundtruth", "ranking"], columns=["metric", "k"], values="value").mul(
+        100
+    )
 
 
 def revisited_summary(revisited: pd.DataFrame) -> pd.DataFrame:

@@ -20,7 +20,6 @@ from locretrieval.localization.workers import SpawnedPools, exit_with_parent, re
 from locretrieval.report.plots import FigureFolder, pyplot
 
 
-
 class Painters:
     """Runs ``plot(*args, **kwargs)`` calls that write figures into ``figures``: in ``workers``
     processes (``None`` or 0: one per core; 1: in this process). Without a figure format nothing

@@ -24,7 +24,18 @@ if TYPE_CHECKING:
 
 #: Colours of the rankings: matplotlib's default cycle ("tab10"), named here so that the process
 #: writing the report assigns them without importing matplotlib (its workers draw).
-RANKING_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf")
+RANKING_COLORS = (
+    "#1f77b4",
+    "#ff7f0e",
+    "#2ca02c",
+    "#d62728",
+    "#9467bd",
+    "#8c564b",
+    "#e377c2",
+    "#7f7f7f",
+    "#bcbd22",
+    "#17becf",
+)
 #: Line style per ranking kind: descriptors solid, ground truth dashed (paper Fig. 4).
 LINE_STYLES = {"descriptor": "-", "groundtruth": "--", "baseline": ":"}
 REFERENCE_METHOD = "ewb"
@@ -160,7 +171,9 @@ def _line(
     """One curve; markers only on short curves, where they do not hide the dashes."""
     rows = rows.sort_values(x)
     marker = "o" if len(rows) <= 15 else None
-    axis.plot(rows[x], rows[y], style or LINE_STYLES.get(kind, "-"), color=color, marker=marker, markersize=3, label=label)
+    axis.plot(
+        rows[x], rows[y], style or LINE_STYLES.get(kind, "-"), color=color, marker=marker, markersize=3, label=label
+    )
 
 
 def plot_localization_vs_k(
@@ -177,7 +190,9 @@ def plot_localization_vs_k(
             thresholds = curves[THRESHOLD_COLUMNS].drop_duplicates().sort_values(THRESHOLD_COLUMNS)
             figure, axes = _panels(len(thresholds))
             for axis, (position, rotation) in zip(axes, thresholds.itertuples(index=False)):
-                at = curves[(curves["position_threshold_m"] == position) & (curves["rotation_threshold_deg"] == rotation)]
+                at = curves[
+                    (curves["position_threshold_m"] == position) & (curves["rotation_threshold_deg"] == rotation)
+                ]
                 for (ranking, kind, used), line in at.groupby(["ranking", "ranking_kind", "method"], sort=True):
                     _line(axis, line, "k", "localized_pct", f"{ranking} ({used})", kind, colors[ranking])
                 _log_k_axis(axis, at["k"])
@@ -236,7 +251,9 @@ def plot_correlation_scatter(
             position, rotation = panel[THRESHOLD_COLUMNS].iloc[0]
             for ranking, points in panel.groupby("ranking", sort=True):
                 x, y = 100 * points["retrieval_value"].to_numpy(), points["localized_pct"].to_numpy()
-                r = coefficients.get((dataset, groundtruth, metric, paradigm, method, position, rotation, ranking), np.nan)
+                r = coefficients.get(
+                    (dataset, groundtruth, metric, paradigm, method, position, rotation, ranking), np.nan
+                )
                 axis.scatter(x, y, s=14, color=colors[ranking], label=f"{ranking} (r={r:.2f})")
                 if np.ptp(x) > 0:
                     slope, intercept = np.polyfit(x, y, 1)
@@ -281,7 +298,12 @@ def plot_query_violins(query_pearson: pd.DataFrame, figures: FigureFolder, color
                 elif len(defined):
                     axis.scatter(np.full(len(defined), position), defined, color=colors[ranking], s=10)
             axis.set_xticks(range(1, len(rankings) + 1), labels, fontsize=7)
-            axis.set(xlim=(0.5, len(rankings) + 0.5), ylim=(-1.05, 1.05), ylabel="per-query Pearson r", title=f"{paradigm}, {method}")
+            axis.set(
+                xlim=(0.5, len(rankings) + 0.5),
+                ylim=(-1.05, 1.05),
+                ylabel="per-query Pearson r",
+                title=f"{paradigm}, {method}",
+            )
             axis.grid(True, axis="y", alpha=0.3)
         figure.suptitle(f"{dataset}: per-query {METRIC_LABELS.get(metric, metric)} ({groundtruth}) vs -pose error")
         written.append(figures.save(figure, f"{dataset}_violin_{metric}_{groundtruth}"))
@@ -327,7 +349,16 @@ def plot_subset_comparison(
                         part = line[line["subset"] == members]
                         if len(part):
                             count = int(part["num_queries"].iloc[0])
-                            _line(axis, part, "k", y, f"{ranking} {members} ({count})", "descriptor", colors[ranking], style)
+                            _line(
+                                axis,
+                                part,
+                                "k",
+                                y,
+                                f"{ranking} {members} ({count})",
+                                "descriptor",
+                                colors[ranking],
+                                style,
+                            )
                 _log_k_axis(axis, rows["k"])
                 axis.set(ylabel=ylabel, ylim=PERCENT_LIMITS, title=title)
                 axis.grid(True, alpha=0.3)

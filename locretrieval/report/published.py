@@ -93,7 +93,9 @@ def parse_adoc(text: str, dataset: str, source: str) -> pd.DataFrame:
             table = [(n + 1, lines[n]) for n in range(number + 2, end) if lines[n].strip()]
             where = f"{source}, table at line {number + 1}"
             if local_feature is None or paradigm not in PARADIGMS:
-                raise ValueError(f"{where}: outside a '== <local feature> Results' / '=== <paradigm>' section ({paradigm!r})")
+                raise ValueError(
+                    f"{where}: outside a '== <local feature> Results' / '=== <paradigm>' section ({paradigm!r})"
+                )
             separator = ";" if "format=csv" in line else "|"
             for record in _table_rows(table, separator, where):
                 rows.append({"dataset": dataset, "local_feature": local_feature, **_paradigm(paradigm), **record})
@@ -169,8 +171,12 @@ def _records(feature: str, k: int, columns: list, values: list[str], where: str)
             medians.setdefault(condition, {})[label] = value
     return [
         {
-            "global_feature": feature, "k": k, "condition": condition,
-            "position_threshold_m": label[0], "rotation_threshold_deg": label[1], "localized_pct": value,
+            "global_feature": feature,
+            "k": k,
+            "condition": condition,
+            "position_threshold_m": label[0],
+            "rotation_threshold_deg": label[1],
+            "localized_pct": value,
             **medians.get(condition, {}),
         }  # fmt: skip
         for (condition, label), value in zip(columns, parsed)
@@ -207,7 +213,9 @@ def local_feature(run_dir: Path) -> tuple[str, str | None]:
     features = OmegaConf.load(path).get("sfm", {}).get("features", {})
     target = str(features.get("_target_", ""))
     # the kind: SiftFeatures -> sift; runs before sfm.features had a _target_ wrote `type` and `kapture.name`
-    kind = target.rsplit(".", 1)[-1].removesuffix("Features").lower() if target else str(features.get("type", "unknown"))
+    kind = (
+        target.rsplit(".", 1)[-1].removesuffix("Features").lower() if target else str(features.get("type", "unknown"))
+    )
     if kind != "kapture":
         return kind, None
     name, kept = str(features.get("name") or features.get("kapture", {}).get("name")), features.get("max_keypoints")
@@ -227,7 +235,9 @@ def compare(results: pd.DataFrame, published: pd.DataFrame, local: str | None) -
     percentage points), with the published medians."""
     if local is None or results.empty or published.empty:
         return pd.DataFrame()
-    ours = results.assign(global_feature=results["ranking"].map(published_name), local_feature=local, condition=results["subset"])
+    ours = results.assign(
+        global_feature=results["ranking"].map(published_name), local_feature=local, condition=results["subset"]
+    )
     merged = _rounded(ours).merge(_rounded(published), on=MATCH_KEYS, suffixes=("", "_published"))
     return merged.assign(difference=merged["localized_pct"] - merged["localized_pct_published"])
 
@@ -246,8 +256,10 @@ def looked_for(results: pd.DataFrame, described: str, local: str | None) -> str:
     rankings = sorted(set(results["ranking"]))
     features = ", ".join(r if published_name(r) == r else f"{r} (as {published_name(r)})" for r in rankings) or "none"
     paradigms = ", ".join(sorted({f"{p}/{m}" for p, m in zip(results["paradigm"], results["method"])})) or "none"
-    return (f"dataset {', '.join(sorted(set(results['dataset']))) or 'none'}; global features {features}; local features "
-            f"{described}{f' (as {local})' if local and local != described else ''}; paradigms {paradigms}")
+    return (
+        f"dataset {', '.join(sorted(set(results['dataset']))) or 'none'}; global features {features}; local features "
+        f"{described}{f' (as {local})' if local and local != described else ''}; paradigms {paradigms}"
+    )
 
 
 def published_section(writer: ReportWriter, run_dirs: Sequence[Path], folder: Path | None = None) -> None:
@@ -267,9 +279,13 @@ def published_section(writer: ReportWriter, run_dirs: Sequence[Path], folder: Pa
     if matched.empty:
         writer.text(f"No published result matches this run: looked for {' | '.join(searched)} (published: {datasets}).")
         return
-    caption = ("% of queries localized by this run and as published by kapture-localization (source and commit: "
-               "locretrieval/report/published/SOURCES.md), difference = ours - published in percentage points. Published medians count a "
-               "query without an estimate as an infinite error (inf: fewer than half localized); this run's are under Median errors.")
+    caption = (
+        "% of queries localized by this run and as published by kapture-localization (source and commit: "
+        "locretrieval/report/published/SOURCES.md), difference = ours - published in percentage points. "
+        "Published medians count a "
+        "query without an estimate as an infinite error (inf: "
+        "fewer than half localized); this run's are under Median errors."
+    )
     writer.table(comparison_table(matched), "published_comparison", caption, ".1f")
 
 

@@ -65,7 +65,9 @@ class SceneViewSettings:
             if int(getattr(self, key)) < 0:
                 raise ValueError(f"report.scene_view.{key} must be >= 0, got {getattr(self, key)}")
         if self.frustum_depth_m is not None and not float(self.frustum_depth_m) > 0:
-            raise ValueError(f"report.scene_view.frustum_depth_m must be a positive distance or null, got {self.frustum_depth_m}")
+            raise ValueError(
+                f"report.scene_view.frustum_depth_m must be a positive distance or null, got {self.frustum_depth_m}"
+            )
 
 
 def write_scene_view(
@@ -107,7 +109,7 @@ def scene_figure(
     figure = go.Figure(fixed + [trace for pair in selections for trace in pair])
     figure.update_layout(
         title=f"{scene.name}: {len(cameras)} of {len(scene.database)} database cameras, {len(queries)} of "
-              f"{len(scene.queries)} queries (frusta {depth:.2g} m deep)",
+        f"{len(scene.queries)} queries (frusta {depth:.2g} m deep)",
         scene={"aspectmode": "data", "xaxis_title": "x (m)", "yaxis_title": "y (m)", "zaxis_title": "z (m)"},
         legend={"itemsizing": "constant"},
         margin={"l": 0, "r": 0, "t": 40, "b": 0},
@@ -162,15 +164,21 @@ def frusta_lines(qvec: np.ndarray, tvec: np.ndarray, intrinsics: np.ndarray, dep
     return np.concatenate([strokes, gaps], axis=1).reshape(-1, 3)
 
 
-def frusta_trace(images: ImageSet, depth: float, name: str, color: str, legendgroup: str | None = None) -> "go.Scatter3d":
+def frusta_trace(
+    images: ImageSet, depth: float, name: str, color: str, legendgroup: str | None = None
+) -> "go.Scatter3d":
     """The wireframes of ``images`` (every one with a pose) as one line trace."""
     import plotly.graph_objects as go
 
     posed = images.has_pose
     lines = frusta_lines(images.qvec[posed], images.tvec[posed], images.intrinsics[posed], depth)
     return go.Scatter3d(
-        **xyz(lines), mode="lines", name=f"{name} ({int(posed.sum())})",
-        line={"color": color, "width": 1}, hoverinfo="skip", legendgroup=legendgroup or name,
+        **xyz(lines),
+        mode="lines",
+        name=f"{name} ({int(posed.sum())})",
+        line={"color": color, "width": 1},
+        hoverinfo="skip",
+        legendgroup=legendgroup or name,
     )
 
 
@@ -181,11 +189,18 @@ def map_trace(points: np.ndarray, limit: int, box: tuple[np.ndarray, np.ndarray]
 
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     inside = points[((points >= box[0]) & (points <= box[1])).all(axis=1)]
-    shown = inside if len(inside) <= limit else inside[np.sort(np.random.default_rng(0).choice(len(inside), limit, replace=False))]
+    shown = (
+        inside
+        if len(inside) <= limit
+        else inside[np.sort(np.random.default_rng(0).choice(len(inside), limit, replace=False))]
+    )
     far = f", {len(points) - len(inside)} far away left out" if len(inside) < len(points) else ""
     return go.Scatter3d(
-        **xyz(shown), mode="markers", name=f"map points ({len(shown)} of {len(points)}{far})",
-        marker={"size": 1.5, "color": COLORS["map"], "opacity": 0.6}, hoverinfo="skip",
+        **xyz(shown),
+        mode="markers",
+        name=f"map points ({len(shown)} of {len(points)}{far})",
+        marker={"size": 1.5, "color": COLORS["map"], "opacity": 0.6},
+        hoverinfo="skip",
     )
 
 
@@ -201,8 +216,13 @@ def reference_traces(queries: ImageSet, drawn: np.ndarray, depth: float) -> list
     return [
         frusta_trace(queries.subset(chosen), depth, "query reference poses", COLORS["reference"], "reference"),
         go.Scatter3d(
-            **xyz(centers), mode="markers", name="reference centres",
-            marker={"size": 2.5, "color": COLORS["reference"]}, hovertext=names, hoverinfo="text", legendgroup="reference",
+            **xyz(centers),
+            mode="markers",
+            name="reference centres",
+            marker={"size": 2.5, "color": COLORS["reference"]},
+            hovertext=names,
+            hoverinfo="text",
+            legendgroup="reference",
             showlegend=False,
         ),
     ]
@@ -231,7 +251,9 @@ def _is_baseline(rows: pd.DataFrame) -> bool:
     return "ranking_kind" in rows and rows["ranking_kind"].iloc[0] != "descriptor"
 
 
-def selection_traces(queries: ImageSet, rows: pd.DataFrame, selection: dict, depth: float) -> tuple["go.Scatter3d", "go.Scatter3d"]:
+def selection_traces(
+    queries: ImageSet, rows: pd.DataFrame, selection: dict, depth: float
+) -> tuple["go.Scatter3d", "go.Scatter3d"]:
     """One selection's estimated centres (hover: query index, position and rotation errors) and,
     per query, its optical axis (``depth`` long) and the segment to its reference centre."""
     import plotly.graph_objects as go
@@ -243,20 +265,40 @@ def selection_traces(queries: ImageSet, rows: pd.DataFrame, selection: dict, dep
     reference = queries.centers[members]
     position = geometry.position_errors(centers, reference)
     rotation = geometry.rotation_errors_deg(qvec, queries.qvec[members])
-    segments = np.stack([centers, centers + depth * axes, np.full_like(centers, np.nan), reference, centers,
-                         np.full_like(centers, np.nan)], axis=1).reshape(-1, 3)
+    segments = np.stack(
+        [
+            centers,
+            centers + depth * axes,
+            np.full_like(centers, np.nan),
+            reference,
+            centers,
+            np.full_like(centers, np.nan),
+        ],
+        axis=1,
+    ).reshape(-1, 3)
     label = f"{selection['ranking']} / {selection['paradigm']} {selection['method']} / k={selection['k']}"
     meta = {**selection, "k": int(selection["k"])}
     markers = go.Scatter3d(
-        **xyz(centers), mode="markers", name=f"{label} ({len(rows)} estimated)",
-        marker={"size": 3, "color": COLORS["estimate"]}, legendgroup=label, meta=meta, visible=False,
+        **xyz(centers),
+        mode="markers",
+        name=f"{label} ({len(rows)} estimated)",
+        marker={"size": 3, "color": COLORS["estimate"]},
+        legendgroup=label,
+        meta=meta,
+        visible=False,
         customdata=np.stack([members, position, rotation], axis=1).astype(np.float32),
         hovertemplate="query #%{customdata[0]}<br>%{customdata[1]:.2f} m, %{customdata[2]:.1f}°<extra>estimate</extra>",
     )
     lines = go.Scatter3d(
-        **xyz(segments), mode="lines", name=f"{label}: axes, errors",
-        line={"color": COLORS["estimate"], "width": 2}, legendgroup=label, showlegend=False, hoverinfo="skip",
-        visible=False, meta=meta,
+        **xyz(segments),
+        mode="lines",
+        name=f"{label}: axes, errors",
+        line={"color": COLORS["estimate"], "width": 2},
+        legendgroup=label,
+        showlegend=False,
+        hoverinfo="skip",
+        visible=False,
+        meta=meta,
     )
     return markers, lines
 
@@ -270,9 +312,22 @@ def selection_menu(num_fixed: int, selections: Sequence[tuple]) -> dict:
         visible = [True] * num_fixed + [False] * (num_traces - num_fixed)
         visible[num_fixed + 2 * n] = visible[num_fixed + 2 * n + 1] = True
         buttons.append({"label": markers.legendgroup, "method": "restyle", "args": [{"visible": visible}]})
-    buttons.append({"label": "no estimate", "method": "restyle",
-                    "args": [{"visible": [True] * num_fixed + [False] * (num_traces - num_fixed)}]})
-    return {"buttons": buttons, "active": 0, "direction": "down", "x": 0.0, "xanchor": "left", "y": 1.0, "yanchor": "top"}
+    buttons.append(
+        {
+            "label": "no estimate",
+            "method": "restyle",
+            "args": [{"visible": [True] * num_fixed + [False] * (num_traces - num_fixed)}],
+        }
+    )
+    return {
+        "buttons": buttons,
+        "active": 0,
+        "direction": "down",
+        "x": 0.0,
+        "xanchor": "left",
+        "y": 1.0,
+        "yanchor": "top",
+    }
 
 
 def link(run_dirs: Sequence[Path], output_dir: Path) -> str | None:

@@ -37,7 +37,9 @@ def _spec(file: str, columns: list[str], values: Sequence[str], derived: dict[st
 #: Tables of a run directory; only ``results`` is required.
 TABLES: dict[str, TableSpec] = {
     "results": _spec("results.csv", RESULT_COLUMNS, ["localized_pct", "num_queries"], {"k_effective": "k"}),
-    "query_errors": _spec("query_errors.csv.gz", QUERY_ERROR_COLUMNS, ["position_error_m", "rotation_error_deg", "failure"]),
+    "query_errors": _spec(
+        "query_errors.csv.gz", QUERY_ERROR_COLUMNS, ["position_error_m", "rotation_error_deg", "failure"]
+    ),
     "retrieval": _spec("retrieval.csv", RETRIEVAL_COLUMNS, ["value", "num_queries"]),
     "query_retrieval": _spec("query_retrieval.csv.gz", QUERY_RETRIEVAL_COLUMNS, ["value"]),
     "groundtruth_statistics": TableSpec(

@@ -63,7 +63,11 @@ def describe_scene(model: GlobalDescriptor, scene: Scene, cache_dir: Path | None
     always describes.
     """
     model.bind_scene(scene)
-    key = config_key(model.identity(), scene.database.fingerprint(include_poses=False), scene.queries.fingerprint(include_poses=False))
+    key = config_key(
+        model.identity(),
+        scene.database.fingerprint(include_poses=False),
+        scene.queries.fingerprint(include_poses=False),
+    )
     path = None if cache_dir is None else Path(cache_dir) / "descriptors" / f"{key}.npz"
     arrays, hit = cached_arrays(path, lambda: _describe_scene(model, scene))
     if hit:

@@ -71,7 +71,9 @@ def read_pairs(path: Path) -> Iterator[PairLine]:
                 continue
             fields = [field.strip() for field in text.split(",")] if "," in text else text.split()
             if len(fields) not in (2, 3) or not all(fields):
-                raise ValueError(f"{path}:{number}: expected 'query database' or 'query, database, score', got {text!r}")
+                raise ValueError(
+                    f"{path}:{number}: expected 'query database' or 'query, database, score', got {text!r}"
+                )
             try:
                 score = float(fields[2]) if len(fields) == 3 else None
             except ValueError:
@@ -91,18 +93,27 @@ def ranking_from_pairs(name: str, pairs: list[PairLine], scene: Scene, depth: in
     seen: dict[tuple[str, str], int] = {}
     for pair in pairs:
         if pair.query not in queries:
-            where = "a database image, not a query (a mapping pairs file?)" if pair.query in database else "not a query of the scene"
+            where = (
+                "a database image, not a query (a mapping pairs file?)"
+                if pair.query in database
+                else "not a query of the scene"
+            )
             raise ValueError(f"{path}:{pair.line}: {pair.query!r} is {where}")
         if pair.database not in database:
             raise ValueError(f"{path}:{pair.line}: {pair.database!r} is not a database image of the scene")
         if (pair.query, pair.database) in seen:
-            raise ValueError(f"{path}:{pair.line}: pair ({pair.query}, {pair.database}) repeats line {seen[(pair.query, pair.database)]}")
+            raise ValueError(
+                f"{path}:{pair.line}: pair ({pair.query}, {pair.database}) "
+                f"repeats line {seen[(pair.query, pair.database)]}"
+            )
         seen[(pair.query, pair.database)] = pair.line
         rows.setdefault(queries[pair.query], []).append(pair)
     if order == "score":
         unscored = next((p for p in pairs if p.score is None), None)
         if unscored is not None:
-            raise ConfigError(f"model.order=score: {path}:{unscored.line} has no score (order: file keeps the file's order)")
+            raise ConfigError(
+                f"model.order=score: {path}:{unscored.line} has no score (order: file keeps the file's order)"
+            )
         rows = {q: sorted(ranked, key=lambda p: -p.score) for q, ranked in rows.items()}  # stable: ties in file order
     depth = min(depth, len(database))  # as `search` clamps it
     indices = np.full((len(queries), depth), EMPTY, dtype=np.int64)
@@ -110,11 +121,26 @@ def ranking_from_pairs(name: str, pairs: list[PairLine], scene: Scene, depth: in
     for q, ranked in rows.items():
         kept = ranked[:depth]
         indices[q, : len(kept)] = [database[p.database] for p in kept]
-        scores[q, : len(kept)] = [p.score if p.score is not None else -float(position) for position, p in enumerate(kept)]
+        scores[q, : len(kept)] = [
+            p.score if p.score is not None else -float(position) for position, p in enumerate(kept)
+        ]
     deeper = sum(len(ranked) > depth for ranked in rows.values())
     if deeper:
-        log.warning("%s: %d queries have more than %d pairs; the first %d are kept (retrieval.depth)", path, deeper, depth, depth)
+        log.warning(
+            "%s: %d queries have more than %d pairs; the first %d are kept (retrieval.depth)",
+            path,
+            deeper,
+            depth,
+            depth,
+        )
     missing = len(queries) - len(rows)
-    log.info("ranking %r from %s: %d pairs, %d of %d queries ranked%s", name, path, len(pairs), len(rows), len(queries),
-             f" ({missing} without a pair: empty retrieval)" if missing else "")
+    log.info(
+        "ranking %r from %s: %d pairs, %d of %d queries ranked%s",
+        name,
+        path,
+        len(pairs),
+        len(rows),
+        len(queries),
+        f" ({missing} without a pair: empty retrieval)" if missing else "",
+    )
     return Ranking(name, indices, scores, "descriptor")

@@ -102,9 +102,7 @@ def relevant_hits(indices: np.ndarray, relevance: sparse.csr_matrix) -> np.ndarr
     return hits
 
 
-def top_k(
-    scores: np.ndarray, depth: int, valid: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
+def top_k(scores: np.ndarray, depth: int, valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Best ``depth`` entries of each row of a ``[Q, N]`` similarity block (higher is better).
 
     Entries where ``valid`` is false (or scores that are not finite) are never ranked and

@@ -87,7 +87,10 @@ def load_dataset(
     root = Path(root).expanduser()
     mapping_entries, query_entries = _as_list(mapping), _as_list(queries)
     if query_tags is not None and len(query_tags) != len(query_entries):
-        raise ValueError(f"dataset {name!r}: {len(query_tags)} query_tags {list(query_tags)} for {len(query_entries)} query entries {query_entries}")
+        raise ValueError(
+            f"dataset {name!r}: {len(query_tags)} query_tags {list(query_tags)} "
+            f"for {len(query_entries)} query entries {query_entries}"
+        )
     message = _missing_message(name, root, mapping_entries, query_entries, install)
     try:
         mapping_matches = resolve_folders(root, mapping_entries, message)
@@ -125,7 +128,9 @@ def load_synthetic_dataset(
 
     config = resolve_config(render)
     keyed = {k: v for k, v in config.items() if k not in RENDER_ONLY_KEYS}
-    keyed["device"] = resolve_device(str(config["device"])).type  # "auto" keys what it resolves to: float results may differ
+    keyed["device"] = resolve_device(
+        str(config["device"])
+    ).type  # "auto" keys what it resolves to: float results may differ
     folder = Path(cache_dir) / "synthetic" / config_key(keyed)
     folder.parent.mkdir(parents=True, exist_ok=True)
     # one process renders, the others (a multirun's jobs on one cache) wait and read its scene:
@@ -139,7 +144,13 @@ def load_synthetic_dataset(
         else:
             log.info("synthetic scene cached in %s", folder)
     return load_dataset(
-        name, folder, "mapping", ["query"], ltvl_name_style=ltvl_name_style, frustum_far=frustum_far, query_tags=["query"]
+        name,
+        folder,
+        "mapping",
+        ["query"],
+        ltvl_name_style=ltvl_name_style,
+        frustum_far=frustum_far,
+        query_tags=["query"],
     )
 
 

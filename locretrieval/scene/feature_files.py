@@ -26,7 +26,19 @@ from locretrieval.scene.kapture_io import KaptureFormatError, read_csv_rows
 #: The numpy dtypes a feature header may name (anything else is refused, never evaluated).
 FEATURE_DTYPES: dict[str, np.dtype] = {
     name: np.dtype(name)
-    for name in ("uint8", "int8", "uint16", "int16", "uint32", "int32", "uint64", "int64", "float16", "float32", "float64")
+    for name in (
+        "uint8",
+        "int8",
+        "uint16",
+        "int16",
+        "uint32",
+        "int32",
+        "uint64",
+        "int64",
+        "float16",
+        "float32",
+        "float64",
+    )
 }
 #: Feature kind -> (its file suffix, the downloader's family folder).
 FEATURE_KINDS: dict[str, tuple[str, str]] = {
@@ -135,8 +147,13 @@ def feature_names(kapture_root: str | Path, kind: str) -> set[str]:
     root = Path(kapture_root)
     family = FEATURE_KINDS[kind][1]
     parents = [root / "reconstruction" / kind, *(a / family for a in root.parents[:DOWNLOADER_DEPTH])]
-    return {child.name for parent in parents if parent.is_dir() for child in parent.iterdir()
-            if find_feature_folder(root, kind, child.name) is not None}
+    return {
+        child.name
+        for parent in parents
+        if parent.is_dir()
+        for child in parent.iterdir()
+        if find_feature_folder(root, kind, child.name) is not None
+    }
 
 
 def feature_file(folder: Path, kind: str, image_name: str) -> Path:

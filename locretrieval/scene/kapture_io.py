@@ -50,7 +50,6 @@ MASKS_DIR = Path("masks")
 DEPTH_SENSOR_SUFFIX = "_depth"
 
 
-
 class KaptureFormatError(ValueError):
     """A line of a kapture text file that cannot be used."""
 
@@ -91,7 +90,9 @@ def read_csv_rows(path: Path, min_fields: int, max_fields: int | None) -> list[C
             fields = [value.strip() for value in text.split(",")]
             if len(fields) < min_fields or (max_fields is not None and len(fields) > max_fields):
                 expected = str(min_fields) if min_fields == max_fields else f"at least {min_fields}"
-                raise KaptureFormatError(path, number, text, f"expected {expected} comma-separated fields, got {len(fields)}")
+                raise KaptureFormatError(
+                    path, number, text, f"expected {expected} comma-separated fields, got {len(fields)}"
+                )
             rows.append(CsvRow(path, number, text, fields))
     return rows
 
@@ -113,7 +114,10 @@ def _check_unique_timestamps(rows: list[CsvRow], what: str) -> None:
         key = (row.timestamp(), row.fields[1])
         if key in seen:
             first = seen[key]
-            raise row.error(f"duplicate {what} {key}: also on line {first.line} ({first.text.strip()!r}); kapture would keep only one")
+            raise row.error(
+                f"duplicate {what} {key}: also on line {first.line} "
+                f"({first.text.strip()!r}); kapture would keep only one"
+            )
         seen[key] = row
 
 
@@ -138,7 +142,8 @@ def _check_poses(rows: list[CsvRow], start: int) -> None:
     if bad.size:
         norm = np.linalg.norm(rotations[bad[0]])
         raise rotation_rows[bad[0]].error(
-            f"quaternion (qw, qx, qy, qz) is not a finite unit quaternion (norm {norm:.6g}, tolerance {geometry.UNIT_NORM_TOLERANCE})"
+            f"quaternion (qw, qx, qy, qz) is not a finite unit quaternion "
+            f"(norm {norm:.6g}, tolerance {geometry.UNIT_NORM_TOLERANCE})"
         )
     infinite = np.flatnonzero(~np.isfinite(np.array(translations).reshape(-1, 3)).all(axis=1))
     if infinite.size:
@@ -163,7 +168,10 @@ def _check_sensors(path: Path) -> dict[str, CsvRow]:
             )
         expected = kapture.CAMERA_TYPE_PARAMS_COUNT[kapture.CameraType[row.fields[3]]]
         if len(row.fields) - 4 != expected:
-            raise row.error(f"sensor {row.fields[0]!r}: camera model {row.fields[3]} takes {expected} values (width, height, parameters), got {len(row.fields) - 4}")
+            raise row.error(
+                f"sensor {row.fields[0]!r}: camera model {row.fields[3]} takes "
+                f"{expected} values (width, height, parameters), got {len(row.fields) - 4}"
+            )
         row.floats(4, len(row.fields), "camera parameters")
     return {row.fields[0]: row for row in rows}
 
@@ -185,7 +193,9 @@ def _check_rigs(path: Path, sensors: dict[str, CsvRow]) -> None:
     _check_poses(rows, 2)
     absent = sorted({f"{row.fields[0]}/{row.fields[1]}" for row in rows if row.fields[1] not in sensors})
     if absent:
-        log.warning("%s: %d rig member(s) without a line in %s, unused: %s", path, len(absent), SENSORS_FILE, absent[:10])
+        log.warning(
+            "%s: %d rig member(s) without a line in %s, unused: %s", path, len(absent), SENSORS_FILE, absent[:10]
+        )
 
 
 def _check_trajectories(path: Path, devices: set[str]) -> None:
@@ -194,7 +204,9 @@ def _check_trajectories(path: Path, devices: set[str]) -> None:
     for row in rows:
         row.timestamp()
         if row.fields[1] not in devices:
-            raise row.error(f"trajectory for unknown sensor or rig {row.fields[1]!r} (not in {SENSORS_FILE} or {RIGS_FILE})")
+            raise row.error(
+                f"trajectory for unknown sensor or rig {row.fields[1]!r} (not in {SENSORS_FILE} or {RIGS_FILE})"
+            )
     _check_poses(rows, 2)
 
 
@@ -207,7 +219,9 @@ def _check_records(path: Path, sensors: dict[str, CsvRow], sensor_types: tuple[s
         if sensor is None:
             raise row.error(f"record of unknown sensor {row.fields[1]!r} (not in {SENSORS_FILE})")
         if sensor.fields[2] not in sensor_types:
-            raise row.error(f"sensor {row.fields[1]!r} is of type {sensor.fields[2]!r}, expected {' or '.join(sensor_types)}")
+            raise row.error(
+                f"sensor {row.fields[1]!r} is of type {sensor.fields[2]!r}, expected {' or '.join(sensor_types)}"
+            )
         if not row.fields[2]:
             raise row.error("empty file name")
     return rows
@@ -284,7 +298,9 @@ def _image_poses(
                 anchor_from_world.append(poses_at_ts[anchor])
                 break
     if rows:
-        rig_from_world = geometry.compose_poses(*_inverse_poses(*_pose_arrays(anchor_from_rig)), *_pose_arrays(anchor_from_world))
+        rig_from_world = geometry.compose_poses(
+            *_inverse_poses(*_pose_arrays(anchor_from_rig)), *_pose_arrays(anchor_from_world)
+        )
         q[rows], t[rows] = geometry.compose_poses(*_pose_arrays(cam_from_rig), *rig_from_world)
     return q, t
 
@@ -310,12 +326,13 @@ def _check_files_exist(folder: Path, names: Sequence[str], what: str) -> None:
     missing = [name for name in names if not os.path.isfile(os.path.join(folder, name))]
     if missing:
         raise FileNotFoundError(
-            f"{len(missing)} {what} file(s) listed in the kapture folder are missing from {folder}, "
-            f"e.g. {missing[:3]}"
+            f"{len(missing)} {what} file(s) listed in the kapture folder are missing from {folder}, e.g. {missing[:3]}"
         )
 
 
-def _check_image_sizes(folder: Path, names: Sequence[str], cameras: Sequence[Camera], camera_ids: Sequence[str]) -> None:
+def _check_image_sizes(
+    folder: Path, names: Sequence[str], cameras: Sequence[Camera], camera_ids: Sequence[str]
+) -> None:
     """Raise unless every image file (its header only) has its camera's width and height:
     keypoints of a resized image would be read in the wrong pixel frame."""
     for name, camera, camera_id in zip(names, cameras, camera_ids):
@@ -350,13 +367,22 @@ def _depth_paths(root: Path, keys: Sequence[tuple[int, str]], sensors: dict[str,
     usable, skipped = {}, []
     for row in read_csv_rows(path, 3, 3):
         sensor = sensors.get(row.fields[1])
-        if sensor is None or sensor.fields[2] not in kapture.ALL_CAMERA_SENSOR_TYPES or not (root / RECORDS_DATA_DIR / row.fields[2]).is_file():
+        if (
+            sensor is None
+            or sensor.fields[2] not in kapture.ALL_CAMERA_SENSOR_TYPES
+            or not (root / RECORDS_DATA_DIR / row.fields[2]).is_file()
+        ):
             skipped.append(row)
             continue
         usable[(row.timestamp(), row.fields[1])] = root / RECORDS_DATA_DIR / row.fields[2]
     if skipped:
-        log.warning("%s: %d depth record(s) left out (unknown sensor or missing file), e.g. line %d: %r",
-                    path, len(skipped), skipped[0].line, skipped[0].text)
+        log.warning(
+            "%s: %d depth record(s) left out (unknown sensor or missing file), e.g. line %d: %r",
+            path,
+            len(skipped),
+            skipped[0].line,
+            skipped[0].text,
+        )
     paths = [usable.get((ts, camera + DEPTH_SENSOR_SUFFIX)) for ts, camera in keys]
     return paths if any(paths) else None
 
@@ -394,7 +420,11 @@ def load_image_set(kapture_root: str | Path, tag: str | None = None) -> ImageSet
 
     kapture_sensors = kapture_csv.sensors_from_file(str(root / SENSORS_FILE))
     records_camera = kapture_csv.records_camera_from_file(str(root / RECORDS_CAMERA_FILE))
-    trajectories = kapture_csv.trajectories_from_file(str(root / TRAJECTORIES_FILE)) if has_trajectories else kapture.Trajectories()
+    trajectories = (
+        kapture_csv.trajectories_from_file(str(root / TRAJECTORIES_FILE))
+        if has_trajectories
+        else kapture.Trajectories()
+    )
 
     entries = list(kapture.flatten(records_camera, is_sorted=True))
     keys = [(ts, camera) for ts, camera, _ in entries]
@@ -463,7 +493,11 @@ def concatenate_image_sets(image_sets: Sequence[ImageSet]) -> ImageSet:
         tags=[tags for image_set in image_sets for tags in image_set.tags],
         depth_paths=joined("depth_paths"),
         mask_paths=joined("mask_paths"),
-        image_roots=[root for image_set in image_sets for root in (image_set.image_roots or [image_set.image_root] * len(image_set))],
+        image_roots=[
+            root
+            for image_set in image_sets
+            for root in (image_set.image_roots or [image_set.image_root] * len(image_set))
+        ],
     )
 
 
@@ -490,7 +524,10 @@ def _posed_database(image_set: ImageSet, folders: Sequence[Path]) -> ImageSet:
         unposed = [name for name, ok in zip(image_set.names, posed) if not ok]
         log.warning(
             "%d of %d mapping images in %s have no pose and are left out of the database, e.g. %s",
-            len(unposed), len(image_set), ", ".join(map(str, folders)), unposed[:3],
+            len(unposed),
+            len(image_set),
+            ", ".join(map(str, folders)),
+            unposed[:3],
         )
     return image_set.subset(posed)
 
@@ -516,11 +553,15 @@ def load_kapture_scene(
     mapping_folders = [Path(mapping)] if isinstance(mapping, (str, Path)) else [Path(folder) for folder in mapping]
     query_folders = [Path(folder) for folder in queries]
     if not mapping_folders or not query_folders:
-        raise ValueError(f"scene {name!r} needs at least one mapping and one query folder, got {mapping_folders} and {query_folders}")
+        raise ValueError(
+            f"scene {name!r} needs at least one mapping and one query folder, got {mapping_folders} and {query_folders}"
+        )
     tags = [folder.name for folder in query_folders] if query_tags is None else list(query_tags)
     if len(tags) != len(query_folders):
         raise ValueError(f"scene {name!r}: {len(tags)} query tags {tags} for {len(query_folders)} query folders")
-    database = _posed_database(concatenate_image_sets([load_image_set(folder) for folder in mapping_folders]), mapping_folders)
+    database = _posed_database(
+        concatenate_image_sets([load_image_set(folder) for folder in mapping_folders]), mapping_folders
+    )
     query_set = concatenate_image_sets([load_image_set(folder, tag) for folder, tag in zip(query_folders, tags)])
     if name_tags:
         database, query_set = add_name_tags(database, name_tags), add_name_tags(query_set, name_tags)
@@ -554,15 +595,21 @@ def write_ltvl(
     qvec = np.asarray(qvec, dtype=np.float64)
     tvec = np.asarray(tvec, dtype=np.float64)
     if qvec.shape != (len(names), 4) or tvec.shape != (len(names), 3):
-        raise ValueError(f"write_ltvl: {len(names)} names need qvec [N, 4] and tvec [N, 3], got {qvec.shape} and {tvec.shape}")
+        raise ValueError(
+            f"write_ltvl: {len(names)} names need qvec [N, 4] and tvec [N, 3], got {qvec.shape} and {tvec.shape}"
+        )
     known = np.isfinite(qvec).all(axis=1) & np.isfinite(tvec).all(axis=1)
     written = [ltvl_name(name, name_style) for name, ok in zip(names, known) if ok]
     clashes = sorted(n for n, count in Counter(written).items() if count > 1)
     if clashes:
-        raise ValueError(f"write_ltvl: name style {name_style!r} maps several images to the same name, e.g. {clashes[:3]}")
+        raise ValueError(
+            f"write_ltvl: name style {name_style!r} maps several images to the same name, e.g. {clashes[:3]}"
+        )
     spaced = [n for n in written if any(c.isspace() for c in n)]
     if spaced:
-        raise ValueError(f"write_ltvl: LTVL lines are space-separated, image names must not contain whitespace: {spaced[:3]}")
+        raise ValueError(
+            f"write_ltvl: LTVL lines are space-separated, image names must not contain whitespace: {spaced[:3]}"
+        )
     values = np.concatenate([qvec, tvec], axis=1)[known]
     lines = [f"{name} {' '.join(repr(float(v)) for v in row)}\n" for name, row in zip(written, values)]
     with atomic_path(path) as temporary:

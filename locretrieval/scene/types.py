@@ -60,9 +60,7 @@ class Camera:
 
     def __post_init__(self) -> None:
         if self.model not in CAMERA_MODELS:
-            raise ValueError(
-                f"unknown camera model {self.model!r}; expected one of {sorted(CAMERA_MODELS)}"
-            )
+            raise ValueError(f"unknown camera model {self.model!r}; expected one of {sorted(CAMERA_MODELS)}")
         expected = CAMERA_MODEL_PARAMS[self.model]
         if len(self.params) != expected:
             raise ValueError(
@@ -127,7 +125,9 @@ class ImageSet:
         bad = geometry.invalid_quaternion_rows(self.qvec[known])
         if bad.size:
             name = self.names[np.flatnonzero(known)[bad[0]]]
-            raise ValueError(f"image {name!r}: pose quaternion {self.qvec[known][bad[0]]} is not a finite unit quaternion")
+            raise ValueError(
+                f"image {name!r}: pose quaternion {self.qvec[known][bad[0]]} is not a finite unit quaternion"
+            )
         if not np.isfinite(self.tvec[known]).all():
             raise ValueError(f"non-finite translation in ImageSet rooted at {self.image_root}")
         self.qvec[known] = geometry.normalize_quaternions(self.qvec[known])
@@ -192,7 +192,9 @@ class ImageSet:
         digest = hashlib.sha256()
         for name, camera, path in zip(self.names, self.cameras, self.paths):
             signature = file_signature(path)
-            digest.update(f"{name}|{camera.model}|{camera.width}|{camera.height}|{camera.params}|{signature}\n".encode())
+            digest.update(
+                f"{name}|{camera.model}|{camera.width}|{camera.height}|{camera.params}|{signature}\n".encode()
+            )
         if include_poses:
             digest.update(np.nan_to_num(self.qvec, nan=7.0).round(9).tobytes())
             digest.update(np.nan_to_num(self.tvec, nan=7.0).round(9).tobytes())
@@ -240,7 +242,9 @@ class Scene:
         if far is not None:
             return float(far)
         if self.frustum_far is None:
-            raise ConfigError(f"{key} is null (the dataset's frustum far plane) but scene {self.name!r} has no frustum_far")
+            raise ConfigError(
+                f"{key} is null (the dataset's frustum far plane) but scene {self.name!r} has no frustum_far"
+            )
         return float(self.frustum_far)
 
     @staticmethod
@@ -248,7 +252,8 @@ class Scene:
         """Raise unless ``ltvl_name_style`` is one of `LTVL_NAME_STYLES` and ``frustum_far`` is
         ``None`` or a positive number of metres."""
         if ltvl_name_style not in LTVL_NAME_STYLES:
-            raise ValueError(f"dataset {name!r}: unknown ltvl_name_style {ltvl_name_style!r}; expected one of {LTVL_NAME_STYLES}")
+            raise ValueError(
+                f"dataset {name!r}: unknown ltvl_name_style {ltvl_name_style!r}; expected one of {LTVL_NAME_STYLES}"
+            )
         if frustum_far is not None and not float(frustum_far) > 0:
             raise ValueError(f"dataset {name!r}: frustum_far must be a positive distance in metres, got {frustum_far}")
-

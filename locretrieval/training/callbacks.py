@@ -22,9 +22,9 @@ from locretrieval.models.extraction import ExtractionSettings, Preprocessing
 from locretrieval.retrieval import EMPTY, Ranking, relevant_hits
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.retrieval.index import search
+from locretrieval.scene import ImageSet, Scene
 from locretrieval.training.data import RelevanceBatchSampler
 from locretrieval.training.relevance import TrainingPairs
-from locretrieval.scene import ImageSet, Scene
 
 log = logging.getLogger(__name__)
 
@@ -60,10 +60,17 @@ def every_validation_metrics(settings: BenchmarkSettings, groundtruths: Collecti
     metrics against each ground truth in ``groundtruths`` at every k within the ranking depth."""
     paradigms = every_validation_settings(settings).paradigms
     thresholds = [f"{position:g}m_{rotation:g}deg" for position, rotation in settings.metrics.thresholds]
-    keys = [f"val/{name}/{method}/k{k}/{threshold}" for name in paradigms.enabled()
-            for method in getattr(paradigms, name).method_names() for k in getattr(paradigms, name).k for threshold in thresholds]
+    keys = [
+        f"val/{name}/{method}/k{k}/{threshold}"
+        for name in paradigms.enabled()
+        for method in getattr(paradigms, name).method_names()
+        for k in getattr(paradigms, name).k
+        for threshold in thresholds
+    ]
     ks = [k for k in settings.paradigms.ks() if k <= settings.retrieval.depth]
-    return keys + [f"val/retrieval/{groundtruth}/{metric}@{k}" for groundtruth in groundtruths for metric in METRICS for k in ks]
+    return keys + [
+        f"val/retrieval/{groundtruth}/{metric}@{k}" for groundtruth in groundtruths for metric in METRICS for k in ks
+    ]
 
 
 class LocalizationValidation(L.Callback):
@@ -98,8 +105,16 @@ class LocalizationValidation(L.Callback):
         headline: Sequence[str] = (),
     ) -> None:
         require(every_n_epochs >= 1, "every_n_epochs", f"must be >= 1, got {every_n_epochs}")
-        require(sfm_every_n_epochs is None or sfm_every_n_epochs >= 1, "sfm_every_n_epochs", f"must be >= 1 or null, got {sfm_every_n_epochs}")
-        require(gallery_queries >= 0 and gallery_k >= 1, "gallery_queries", f"must be >= 0 queries of gallery_k >= 1 images, got {gallery_queries}, {gallery_k}")
+        require(
+            sfm_every_n_epochs is None or sfm_every_n_epochs >= 1,
+            "sfm_every_n_epochs",
+            f"must be >= 1 or null, got {sfm_every_n_epochs}",
+        )
+        require(
+            gallery_queries >= 0 and gallery_k >= 1,
+            "gallery_queries",
+            f"must be >= 0 queries of gallery_k >= 1 images, got {gallery_queries}, {gallery_k}",
+        )
         self.scene, self.groundtruths, self.settings = scene, dict(groundtruths), settings
         self.relevance = relevances(self.groundtruths, relevance_scope)
         self.preprocessing, self.extraction = preprocessing, extraction
@@ -109,10 +124,14 @@ class LocalizationValidation(L.Callback):
         self.history: list[dict[str, float]] = []
         self.reference: dict[str, dict[str, float]] = {}
         posed = np.flatnonzero(scene.queries.has_pose)  # a fixed set: the same queries at every validation
-        self.gallery_rows = np.sort(np.random.default_rng(0).choice(posed, size=min(gallery_queries, len(posed)), replace=False))
+        self.gallery_rows = np.sort(
+            np.random.default_rng(0).choice(posed, size=min(gallery_queries, len(posed)), replace=False)
+        )
         self.gallery_k, self.gallery_size = gallery_k, gallery_size
         # relevance marks by relative pose, else the first ground truth there is
-        self.gallery_groundtruth = "relative_pose" if "relative_pose" in self.relevance else next(iter(self.relevance), None)
+        self.gallery_groundtruth = (
+            "relative_pose" if "relative_pose" in self.relevance else next(iter(self.relevance), None)
+        )
         self.galleries: dict[str, np.ndarray] = {}  # "before" training and the "last" validation
         self.reference_models = dict(reference_models or {})
         self.headline = list(headline)
@@ -132,7 +151,9 @@ class LocalizationValidation(L.Callback):
     def _references(self) -> list[Ranking]:
         """The rankings the trained network is compared with: the reference models' (descriptors
         cached in ``cache_dir``), the ground truths' and the random one."""
-        described = {name: describe_scene(model, self.scene, self.cache_dir) for name, model in self.reference_models.items()}
+        described = {
+            name: describe_scene(model, self.scene, self.cache_dir) for name, model in self.reference_models.items()
+        }
         return build_rankings(self.scene, described, self.groundtruths, self.settings.retrieval, self.random_seed)
 
     def _wants_sfm(self, epoch: int) -> bool:
@@ -144,13 +165,21 @@ class LocalizationValidation(L.Callback):
             return
         rankings = self._references()
         if rankings:
-            result = benchmark(self.scene, rankings, self._settings(self.sfm_every_n_epochs is not None),
-                               self.subsets, self.cache_dir, self.relevance)
+            result = benchmark(
+                self.scene,
+                rankings,
+                self._settings(self.sfm_every_n_epochs is not None),
+                self.subsets,
+                self.cache_dir,
+                self.relevance,
+            )
             self.reference = {r.name: metric_rows(result, r.name, self.settings.paradigms.ks()) for r in rankings}
             for name, metrics in self.reference.items():
                 log.info("reference %s: %s", name, headline_line(metrics, self.headline))
                 if trainer.logger is not None:
-                    trainer.logger.log_metrics({k.replace("val/", f"reference/{name}/"): v for k, v in metrics.items()}, step=0)
+                    trainer.logger.log_metrics(
+                        {k.replace("val/", f"reference/{name}/"): v for k, v in metrics.items()}, step=0
+                    )
         metrics = self._record(trainer, pl_module, epoch=-1)
         if trainer.logger is not None:  # before training: no pl_module.log outside the loop
             trainer.logger.log_metrics(metrics, step=trainer.global_step)
@@ -170,7 +199,9 @@ class LocalizationValidation(L.Callback):
         result = self.validate(pl_module.network, self._wants_sfm(epoch))
         metrics = metric_rows(result, TRAINED, self.settings.paradigms.ks())
         self.history.append({"epoch": epoch, **metrics})
-        log.info("validation after epoch %d:\n%s", epoch, headline_table({TRAINED: metrics, **self.reference}, self.headline))
+        log.info(
+            "validation after epoch %d:\n%s", epoch, headline_table({TRAINED: metrics, **self.reference}, self.headline)
+        )
         if len(self.gallery_rows):
             self._log_gallery(trainer, next(r for r in result.rankings if r.name == TRAINED), epoch)
         return metrics
@@ -183,10 +214,14 @@ class LocalizationValidation(L.Callback):
         from locretrieval.report.gallery import Thumbnails, gallery_image
 
         if self._thumbnails is None:
-            self._thumbnails = Thumbnails(self.gallery_size, Path(self.cache_dir) / "thumbnails" if self.cache_dir is not None else None)
+            self._thumbnails = Thumbnails(
+                self.gallery_size, Path(self.cache_dir) / "thumbnails" if self.cache_dir is not None else None
+            )
         indices = ranking.indices[self.gallery_rows, : self.gallery_k]
         groundtruth = self.gallery_groundtruth
-        relevant = relevant_hits(indices, self.relevance[groundtruth][self.gallery_rows]) if groundtruth is not None else None
+        relevant = (
+            relevant_hits(indices, self.relevance[groundtruth][self.gallery_rows]) if groundtruth is not None else None
+        )
         queries, database = self.scene.queries.paths, self.scene.database.paths
         image = gallery_image([queries[q] for q in self.gallery_rows], database, indices, relevant, self._thumbnails)
         self.galleries["before" if epoch < 0 else "last"] = image
@@ -196,11 +231,15 @@ class LocalizationValidation(L.Callback):
 
     def history_table(self) -> pd.DataFrame:
         """Tidy ``epoch, metric, value`` of every validation."""
-        rows = [(entry["epoch"], key, value) for entry in self.history for key, value in entry.items() if key != "epoch"]
+        rows = [
+            (entry["epoch"], key, value) for entry in self.history for key, value in entry.items() if key != "epoch"
+        ]
         return pd.DataFrame(rows, columns=["epoch", "metric", "value"])
 
     def state_dict(self) -> dict:
-        galleries = {key: torch.from_numpy(image) for key, image in self.galleries.items()}  # tensors: a safe load reads them
+        galleries = {
+            key: torch.from_numpy(image) for key, image in self.galleries.items()
+        }  # tensors: a safe load reads them
         return {"history": self.history, "reference": self.reference, "galleries": galleries}
 
     def load_state_dict(self, state_dict: dict) -> None:
@@ -216,7 +255,9 @@ def headline_line(metrics: Mapping[str, float], keys: Sequence[str]) -> str:
 
 def headline_table(rankings: Mapping[str, Mapping[str, float]], keys: Sequence[str]) -> str:
     """The metrics ``keys`` of several rankings as a console table (rankings as rows; none: their count)."""
-    table = pd.DataFrame({name: {key.removeprefix("val/"): metrics.get(key) for key in keys} for name, metrics in rankings.items()}).T
+    table = pd.DataFrame(
+        {name: {key.removeprefix("val/"): metrics.get(key) for key in keys} for name, metrics in rankings.items()}
+    ).T
     table = table.dropna(axis=1, how="all")
     if not len(table.columns):
         return f"{len(next(iter(rankings.values()), {}))} metrics (no headline configured)"
@@ -229,9 +270,21 @@ class HardNegativeMining(L.Callback):
     pushed from. The sampler builds batches lazily, so they apply from the next batches it builds
     (a DataLoader prefetches a few)."""
 
-    def __init__(self, sets: Sequence[ImageSet], pairs: TrainingPairs, sampler: RelevanceBatchSampler,
-                 preprocessing: Preprocessing, extraction: ExtractionSettings, every_n_steps: int, per_anchor: int) -> None:
-        require(every_n_steps >= 1, "every_n_steps", f"must be >= 1 (~miner on the command line: no mining), got {every_n_steps}")
+    def __init__(
+        self,
+        sets: Sequence[ImageSet],
+        pairs: TrainingPairs,
+        sampler: RelevanceBatchSampler,
+        preprocessing: Preprocessing,
+        extraction: ExtractionSettings,
+        every_n_steps: int,
+        per_anchor: int,
+    ) -> None:
+        require(
+            every_n_steps >= 1,
+            "every_n_steps",
+            f"must be >= 1 (~miner on the command line: no mining), got {every_n_steps}",
+        )
         require(per_anchor >= 1, "per_anchor", f"must be >= 1, got {per_anchor}")
         self.sets, self.pairs, self.sampler = list(sets), pairs, sampler
         self.every, self.per_anchor = every_n_steps, per_anchor
@@ -254,7 +307,9 @@ class HardNegativeMining(L.Callback):
         top = search(descriptors[anchors], descriptors, depth, "mining", 4096).indices
         valid = top != EMPTY
         safe = np.where(valid, top, anchors[:, None])
-        negative = valid & (safe != anchors[:, None]) & ~self.pairs.related[anchors[:, None], safe].toarray().astype(bool)
+        negative = (
+            valid & (safe != anchors[:, None]) & ~self.pairs.related[anchors[:, None], safe].toarray().astype(bool)
+        )
         rank = np.cumsum(negative, axis=1)  # keep the first per_anchor negatives of each row
         keep = negative & (rank <= self.per_anchor)
         self.sampler.set_hard_negatives({int(a): top[row][keep[row]] for row, a in enumerate(anchors)})

@@ -21,7 +21,9 @@ class AtomicCheckpointIO(TorchCheckpointIO):
     the system temporary folder and moves it into place, which is a non-atomic copy whenever that
     folder is on another file system than the run's.)"""
 
-    def save_checkpoint(self, checkpoint: dict[str, Any], path: str | os.PathLike, storage_options: Any | None = None) -> None:
+    def save_checkpoint(
+        self, checkpoint: dict[str, Any], path: str | os.PathLike, storage_options: Any | None = None
+    ) -> None:
         if storage_options is not None or "://" in str(path):  # remote storage: Lightning's own writer
             return super().save_checkpoint(checkpoint, path, storage_options)
         with atomic_path(path) as temporary:
@@ -34,14 +36,20 @@ def check_resume_checkpoint(path: str | os.PathLike, model: str, architecture: M
     checkpoint is never unpickled by anything else."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"ckpt_path: {path} not found (a checkpoint of train.py, e.g. <run>/checkpoints/last.ckpt)")
+        raise FileNotFoundError(
+            f"ckpt_path: {path} not found (a checkpoint of train.py, e.g. <run>/checkpoints/last.ckpt)"
+        )
     try:
         content = load_torch_file(path)
     except ValueError as error:
-        raise ValueError(f"ckpt_path: {path} is not a Lightning checkpoint of locretrieval's train.py ({error})") from None
+        raise ValueError(
+            f"ckpt_path: {path} is not a Lightning checkpoint of locretrieval's train.py ({error})"
+        ) from None
     if not isinstance(content, Mapping) or EMBEDDED_CHECKPOINT_KEY not in content or "state_dict" not in content:
-        raise ValueError(f"ckpt_path: {path} is a PyTorch file but not a Lightning checkpoint of locretrieval's train.py "
-                         f"(it has no {EMBEDDED_CHECKPOINT_KEY!r} and 'state_dict' entries)")
+        raise ValueError(
+            f"ckpt_path: {path} is a PyTorch file but not a Lightning checkpoint of locretrieval's train.py "
+            f"(it has no {EMBEDDED_CHECKPOINT_KEY!r} and 'state_dict' entries)"
+        )
     try:
         check_checkpoint(content[EMBEDDED_CHECKPOINT_KEY], path, model, architecture)
     except ValueError as error:

@@ -50,12 +50,23 @@ class TrainingAugmentation:
     def __post_init__(self) -> None:
         for name in ("zoom_probability", "low_light_probability", "blur_probability", "noise_probability"):
             require(0 <= getattr(self, name) <= 1, name, f"must be in [0, 1], got {getattr(self, name)}")
-        require(len(self.zoom) == 2 and 1 <= self.zoom[0] <= self.zoom[1], "zoom",
-                f"must be [min, max] focal-length factors, 1 <= min <= max (a zoom in keeps the image filled), got {self.zoom}")
-        require(len(self.low_light_brightness) == 2 and 0 < self.low_light_brightness[0] <= self.low_light_brightness[1] <= 1,
-                "low_light_brightness", f"must be [min, max] factors, 0 < min <= max <= 1, got {self.low_light_brightness}")
-        require(len(self.blur_sigma) == 2 and 0 < self.blur_sigma[0] <= self.blur_sigma[1], "blur_sigma",
-                f"must be [min, max] pixels, 0 < min <= max, got {self.blur_sigma}")
+        require(
+            len(self.zoom) == 2 and 1 <= self.zoom[0] <= self.zoom[1],
+            "zoom",
+            f"must be [min, max] focal-length factors, 1 <= min <= max "
+            f"(a zoom in keeps the image filled), got {self.zoom}",
+        )
+        require(
+            len(self.low_light_brightness) == 2
+            and 0 < self.low_light_brightness[0] <= self.low_light_brightness[1] <= 1,
+            "low_light_brightness",
+            f"must be [min, max] factors, 0 < min <= max <= 1, got {self.low_light_brightness}",
+        )
+        require(
+            len(self.blur_sigma) == 2 and 0 < self.blur_sigma[0] <= self.blur_sigma[1],
+            "blur_sigma",
+            f"must be [min, max] pixels, 0 < min <= max, got {self.blur_sigma}",
+        )
         require(self.noise_sigma >= 0, "noise_sigma", f"must be >= 0, got {self.noise_sigma}")
 
     def augment(self, images: torch.Tensor) -> torch.Tensor:
@@ -99,8 +110,9 @@ class RelevanceBatchSampler(Sampler[list[int]]):
     some, random ones otherwise. Each epoch draws new batches from ``seed`` and the epoch
     number (`set_epoch`)."""
 
-    def __init__(self, pairs: TrainingPairs, anchors: int, negatives: int, batches_per_epoch: int, seed: int,
-                 positives: int = 1) -> None:
+    def __init__(
+        self, pairs: TrainingPairs, anchors: int, negatives: int, batches_per_epoch: int, seed: int, positives: int = 1
+    ) -> None:
         require(anchors >= 1, "anchors", f"must be >= 1, got {anchors}")
         require(positives >= 1, "positives", f"must be >= 1, got {positives}")
         require(negatives >= 0, "negatives", f"must be >= 0, got {negatives}")
@@ -186,9 +198,21 @@ class TrainingData(L.LightningDataModule):
     batch is augmented by ``augmentation`` (when given) on the training device, after its transfer
     (validation is the `LocalizationValidation` callback's)."""
 
-    def __init__(self, paths: Sequence[Path], pairs: TrainingPairs, sampler: RelevanceBatchSampler,
-                 augmentation: TrainingAugmentation | None, image_size: Sequence[int], num_workers: int | None, cache_dir: str | Path) -> None:
-        require(len(image_size) == 2 and min(image_size) >= 32, "image_size", f"must be [width, height] >= 32 px, got {list(image_size)}")
+    def __init__(
+        self,
+        paths: Sequence[Path],
+        pairs: TrainingPairs,
+        sampler: RelevanceBatchSampler,
+        augmentation: TrainingAugmentation | None,
+        image_size: Sequence[int],
+        num_workers: int | None,
+        cache_dir: str | Path,
+    ) -> None:
+        require(
+            len(image_size) == 2 and min(image_size) >= 32,
+            "image_size",
+            f"must be [width, height] >= 32 px, got {list(image_size)}",
+        )
         require(num_workers is None or num_workers >= 0, "num_workers", f"must be >= 0 or null, got {num_workers}")
         super().__init__()
         self.paths, self.pairs, self.sampler, self.augmentation = list(paths), pairs, sampler, augmentation
@@ -200,8 +224,14 @@ class TrainingData(L.LightningDataModule):
         if self.trainer is not None:
             self.sampler.shard(self.trainer.global_rank, self.trainer.world_size)
             on_gpu = self.trainer.strategy.root_device.type == "cuda"
-        return DataLoader(self.dataset, batch_sampler=self.sampler, collate_fn=collate(self.pairs), num_workers=self.num_workers,
-                          persistent_workers=self.num_workers > 0, pin_memory=on_gpu)
+        return DataLoader(
+            self.dataset,
+            batch_sampler=self.sampler,
+            collate_fn=collate(self.pairs),
+            num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0,
+            pin_memory=on_gpu,
+        )
 
     def on_after_batch_transfer(self, batch: tuple[torch.Tensor, ...], dataloader_idx: int) -> tuple[torch.Tensor, ...]:
         """Training batches augmented on their device (`TrainingAugmentation.augment`)."""

@@ -38,7 +38,9 @@ def decode(path: str | Path, size: Sequence[int]) -> np.ndarray:
     return np.asarray(Image.fromarray(read_image(path)).resize((int(size[0]), int(size[1])), Image.Resampling.BILINEAR))
 
 
-def decoded_images(paths: Sequence[str | Path], size: Sequence[int], cache_dir: str | Path, workers: int | None = None) -> np.ndarray:
+def decoded_images(
+    paths: Sequence[str | Path], size: Sequence[int], cache_dir: str | Path, workers: int | None = None
+) -> np.ndarray:
     """The images of ``paths`` decoded at ``size`` ``(width, height)``: a read-only memory map
     ``uint8 [N, height, width, 3]`` of the cache file, decoded first (``workers`` threads, null:
     one per core) unless another run already did."""
@@ -50,7 +52,9 @@ def decoded_images(paths: Sequence[str | Path], size: Sequence[int], cache_dir: 
         if not target.is_file():
             log.info("decoding %d training images at %d x %d into %s", len(paths), width, height, target)
             with atomic_path(target) as temporary:
-                out = np.lib.format.open_memmap(temporary, mode="w+", dtype=np.uint8, shape=(len(paths), height, width, 3))
+                out = np.lib.format.open_memmap(
+                    temporary, mode="w+", dtype=np.uint8, shape=(len(paths), height, width, 3)
+                )
 
                 def fill(index: int) -> None:
                     out[index] = decode(paths[index], (width, height))

@@ -15,11 +15,14 @@ from pytorch_metric_learning import distances, losses, reducers
 from torch import nn
 
 
-def _masks(descriptors: torch.Tensor, relevance: torch.Tensor, negatives: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _masks(
+    descriptors: torch.Tensor, relevance: torch.Tensor, negatives: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """``(positive, negative)`` boolean ``[B, B]`` masks, the diagonal and anchors lacking either cleared."""
     size = len(descriptors)
     if descriptors.ndim != 2 or relevance.shape != (size, size) or negatives.shape != (size, size):
-        raise ValueError(f"descriptors [B, D], relevance and negatives [B, B] expected; got {tuple(descriptors.shape)}, "
+        raise ValueError(f"descriptors [B, D], relevance and negatives [B, B] expected; "
+                         f"got {tuple(descriptors.shape)}, "
                          f"{tuple(relevance.shape)} and {tuple(negatives.shape)}")  # fmt: skip
     off_diagonal = ~torch.eye(size, dtype=torch.bool, device=descriptors.device)
     positive = (relevance > 0) & off_diagonal
@@ -184,4 +187,3 @@ class ListwiseLoss(nn.Module):
         target = torch.softmax((graded / self.target_temperature).masked_fill(excluded, float("-inf")), dim=1)
         log_predicted = torch.log_softmax((similarity / self.temperature).masked_fill(excluded, float("-inf")), dim=1)
         return -(target * log_predicted.masked_fill(excluded, 0.0)).sum(1).mean()
-

@@ -27,8 +27,14 @@ class DescriptorMemory:
     def __len__(self) -> int:
         return len(self.indices)
 
-    def extend(self, descriptors: torch.Tensor, relevance: torch.Tensor, negatives: torch.Tensor, indices: torch.Tensor,
-               pairs: TrainingPairs) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def extend(
+        self,
+        descriptors: torch.Tensor,
+        relevance: torch.Tensor,
+        negatives: torch.Tensor,
+        indices: torch.Tensor,
+        pairs: TrainingPairs,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The batch (``descriptors [B, D]``, ``relevance`` and ``negatives [B, B]``, the images'
         ``indices`` in ``pairs``) with the remembered images that are not in it appended: descriptors
         ``[B + M, D]``, relevance and negatives ``[B + M, B + M]``. The batch's rows gain its pairs to
@@ -62,4 +68,4 @@ class DescriptorMemory:
             older = ~torch.isin(self.indices, new_indices)
             self.indices = torch.cat([self.indices[older], new_indices])
             self.descriptors = torch.cat([self.descriptors[older.to(self.descriptors.device)], new_descriptors])
-        self.indices, self.descriptors = self.indices[-self.size:], self.descriptors[-self.size:]
+        self.indices, self.descriptors = self.indices[-self.size :], self.descriptors[-self.size :]

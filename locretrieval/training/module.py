@@ -28,8 +28,11 @@ def freeze_parameters(network: torch.nn.Module, patterns: Sequence[str]) -> list
     names = [name for name, _ in network.named_parameters()]
     for pattern in patterns:
         if not any(fnmatch.fnmatchcase(name, pattern) for name in names):
-            raise SettingError("frozen", f"{pattern!r} matches no parameter of the network "
-                               f"(names are like {names[0]!r}, {names[len(names) // 2]!r}, {names[-1]!r})")
+            raise SettingError(
+                "frozen",
+                f"{pattern!r} matches no parameter of the network "
+                f"(names are like {names[0]!r}, {names[len(names) // 2]!r}, {names[-1]!r})",
+            )
     frozen = []
     for name, parameter in network.named_parameters():
         if any(fnmatch.fnmatchcase(name, pattern) for pattern in patterns):
@@ -93,8 +96,10 @@ class RetrievalTraining(L.LightningModule):
         if not head_lr_scale > 0:
             raise ValueError(f"module.head_lr_scale must be positive, got {head_lr_scale}")
         if head_lr_scale != 1 and not hasattr(network, "backbone"):
-            raise ValueError(f"module.head_lr_scale={head_lr_scale} needs a network with a backbone and a head "
-                             f"(a zoo model's RetrievalNet); {type(network).__name__} has no 'backbone'")
+            raise ValueError(
+                f"module.head_lr_scale={head_lr_scale} needs a network with a backbone and a head "
+                f"(a zoo model's RetrievalNet); {type(network).__name__} has no 'backbone'"
+            )
         self.head_lr_scale = float(head_lr_scale)
         if memory_size and pairs is None:
             raise ValueError("module.memory_size needs the training pairs (train.py gives them)")
@@ -155,8 +160,10 @@ class RetrievalTraining(L.LightningModule):
 
     def _divergence(self, what: str) -> str:
         rates = sorted({group["lr"] for optimizer in self.trainer.optimizers for group in optimizer.param_groups})
-        return (f"training diverged at step {self.global_step} (epoch {self.current_epoch}): {what}, learning rate {rates} "
-                f"(optimizer.lr); lower optimizer.lr. The checkpoints in checkpoints/ are from before it.")
+        return (
+            f"training diverged at step {self.global_step} (epoch {self.current_epoch}): {what}, learning rate {rates} "
+            f"(optimizer.lr); lower optimizer.lr. The checkpoints in checkpoints/ are from before it."
+        )
 
     def configure_optimizers(self):
         optimizer = self.optimizer_factory(params=self._parameter_groups())
@@ -173,12 +180,17 @@ class RetrievalTraining(L.LightningModule):
         resumes), else named groups ``backbone``, ``head`` (the rest of the network) and ``loss``,
         each where it has any."""
         trainable = [p for p in self.network.parameters() if p.requires_grad]
-        learned_loss = [p for p in self.loss.parameters() if p.requires_grad] if isinstance(self.loss, torch.nn.Module) else []
+        learned_loss = (
+            [p for p in self.loss.parameters() if p.requires_grad] if isinstance(self.loss, torch.nn.Module) else []
+        )
         if self.head_lr_scale == 1:
             return trainable + learned_loss
         trunk = {id(p) for p in self.network.backbone.parameters()}
-        groups = {"backbone": [p for p in trainable if id(p) in trunk], "head": [p for p in trainable if id(p) not in trunk],
-                  "loss": learned_loss}
+        groups = {
+            "backbone": [p for p in trainable if id(p) in trunk],
+            "head": [p for p in trainable if id(p) not in trunk],
+            "loss": learned_loss,
+        }
         return [{"params": params, "name": name} for name, params in groups.items() if params]
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:

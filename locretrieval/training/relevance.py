@@ -52,9 +52,16 @@ class NegativeSettings:
     def __post_init__(self) -> None:
         require(self.rule in NEGATIVE_RULES, "rule", f"must be one of {list(NEGATIVE_RULES)}, got {self.rule!r}")
         require(self.near > 0, "near", f"must be a positive depth in metres, got {self.near}")
-        require(self.far is None or self.far > self.near, "far", f"must exceed near ({self.near} m) or be null, got {self.far}")
-        require(self.max_rotation is None or 0 <= self.max_rotation <= 180, "max_rotation",
-                f"must be degrees in [0, 180] or null, got {self.max_rotation}")
+        require(
+            self.far is None or self.far > self.near,
+            "far",
+            f"must exceed near ({self.near} m) or be null, got {self.far}",
+        )
+        require(
+            self.max_rotation is None or 0 <= self.max_rotation <= 180,
+            "max_rotation",
+            f"must be degrees in [0, 180] or null, got {self.max_rotation}",
+        )
 
 
 @dataclass
@@ -123,7 +130,10 @@ def training_pairs(images: ImageSet, settings: TrainingRelevanceSettings, contex
     if negatives.rule == "unrelated":
         far = negatives.far if negatives.far is not None else context.far
         if far is None:
-            raise ConfigError(f"train_relevance.negatives.far is null (the dataset's frustum far plane) but scene {context.scene!r} has no frustum_far")
+            raise ConfigError(
+                f"train_relevance.negatives.far is null (the dataset's frustum "
+                f"far plane) but scene {context.scene!r} has no frustum_far"
+            )
         frusta = TruncatedFrusta.of_images(images, np.arange(count), negatives.near, far)
     graded_blocks, related_blocks = [], []
     rows_per_chunk = max(1, PAIRS_PER_CHUNK // count)
@@ -147,9 +157,13 @@ def _covisible(images: ImageSet, rows: np.ndarray, frusta: TruncatedFrusta, nega
     return overlap & (rotation <= negatives.max_rotation)
 
 
-def combined_pairs(sets: Sequence[ImageSet], settings: TrainingRelevanceSettings, contexts: Sequence[DefinitionContext]) -> TrainingPairs:
+def combined_pairs(
+    sets: Sequence[ImageSet], settings: TrainingRelevanceSettings, contexts: Sequence[DefinitionContext]
+) -> TrainingPairs:
     """Training pairs of several image sets, in order (``contexts``: each set's); images of
     different sets (other worlds, e.g. separately rendered scenes) are unrelated."""
     pairs = [training_pairs(images, settings, context) for images, context in zip(sets, contexts, strict=True)]
-    return TrainingPairs(sparse.block_diag([p.graded for p in pairs], format="csr"),
-                         sparse.block_diag([p.related for p in pairs], format="csr"))
+    return TrainingPairs(
+        sparse.block_diag([p.graded for p in pairs], format="csr"),
+        sparse.block_diag([p.related for p in pairs], format="csr"),
+    )

@@ -48,7 +48,9 @@ class GapRow:
             return f"{self.paradigm} has no method {self.method!r} (methods: {section.method_names()})"
         if self.k not in section.k:
             return f"k={self.k} is not in paradigms.{self.paradigm}.k {section.k}"
-        if [float(value) for value in self.threshold] not in [[float(p), float(r)] for p, r in settings.metrics.thresholds]:
+        if [float(value) for value in self.threshold] not in [
+            [float(p), float(r)] for p, r in settings.metrics.thresholds
+        ]:
             return f"the threshold {self.threshold} is not in metrics.thresholds {settings.metrics.thresholds}"
         if not set(self.groundtruths) & set(groundtruths):
             return f"none of its ground truths {self.groundtruths} is validated (groundtruth: {sorted(groundtruths)})"
@@ -80,18 +82,36 @@ def gap_table(validation: LocalizationValidation, settings: TrainingReportSettin
         values = history[history["metric"] == row.metric].sort_values("epoch")
         if len(values) < 2:
             continue
-        groundtruth = next((f"gt_{name}" for name in row.groundtruths if row.metric in validation.reference.get(f"gt_{name}", {})), None)
+        groundtruth = next(
+            (f"gt_{name}" for name in row.groundtruths if row.metric in validation.reference.get(f"gt_{name}", {})),
+            None,
+        )
         truth = validation.reference[groundtruth][row.metric] if groundtruth else float("nan")
         reference = validation.reference.get(baseline, {}).get(row.metric, float("nan"))
         trained = float(values["value"].iloc[-1])
-        rows.append({"metric": row.metric.removeprefix("val/"), "untrained": float(values["value"].iloc[0]), "trained": trained,
-                     baseline: reference, "groundtruth": groundtruth, "groundtruth_value": truth,
-                     "gap_closed_pct": 100.0 * (trained - reference) / (truth - reference) if truth != reference else float("nan")})
-    return pd.DataFrame(rows, columns=["metric", "untrained", "trained", baseline, "groundtruth", "groundtruth_value", "gap_closed_pct"])
+        rows.append(
+            {
+                "metric": row.metric.removeprefix("val/"),
+                "untrained": float(values["value"].iloc[0]),
+                "trained": trained,
+                baseline: reference,
+                "groundtruth": groundtruth,
+                "groundtruth_value": truth,
+                "gap_closed_pct": 100.0 * (trained - reference) / (truth - reference)
+                if truth != reference
+                else float("nan"),
+            }
+        )
+    return pd.DataFrame(
+        rows, columns=["metric", "untrained", "trained", baseline, "groundtruth", "groundtruth_value", "gap_closed_pct"]
+    )
 
 
 #: The galleries of the training report: ``(key in LocalizationValidation.galleries, file, caption)``.
-GALLERIES = (("before", "gallery_before.jpg", "before training"), ("last", "gallery_last.jpg", "at the last validation"))
+GALLERIES = (
+    ("before", "gallery_before.jpg", "before training"),
+    ("last", "gallery_last.jpg", "at the last validation"),
+)
 
 
 def gallery_lines(validation: LocalizationValidation, output_dir: Path) -> list[str]:
@@ -102,13 +122,19 @@ def gallery_lines(validation: LocalizationValidation, output_dir: Path) -> list[
     for key, file, caption in GALLERIES:
         if key in validation.galleries:
             Image.fromarray(validation.galleries[key]).save(output_dir / file, quality=85)
-            lines += [f"Top {validation.gallery_k} of validation queries {caption} (query first; green: relevant, red: not, "
-                      f"by the {validation.gallery_groundtruth} ground truth):", "", f"![gallery {caption}]({file})", ""]
+            lines += [
+                f"Top {validation.gallery_k} of validation queries {caption} (query first; green: relevant, red: not, "
+                f"by the {validation.gallery_groundtruth} ground truth):",
+                "",
+                f"![gallery {caption}]({file})",
+                "",
+            ]
     return lines
 
 
-def write_training_report(validation: LocalizationValidation, output_dir: Path, settings: TrainingReportSettings,
-                          unfilled: Mapping[str, str]) -> pd.DataFrame:
+def write_training_report(
+    validation: LocalizationValidation, output_dir: Path, settings: TrainingReportSettings, unfilled: Mapping[str, str]
+) -> pd.DataFrame:
     """Write ``validation.csv`` (epoch, metric, value; epoch -1 is before training) and
     ``report.md`` (the gap rows' metrics per epoch against the reference rankings, a figure, the
     gap table of `gap_table` (also ``gap.csv``), a line per requested row it cannot fill
@@ -142,11 +168,22 @@ def write_training_report(validation: LocalizationValidation, output_dir: Path, 
     gaps = gap_table(validation, settings)
     gaps.to_csv(output_dir / "gap.csv", index=False)
     if len(gaps):
-        lines += [f"What training bought, per paradigm (% localized; the share of the gap between {settings.baseline} and the "
-                  "ground truth that training closed):", "", gaps.to_markdown(index=False, floatfmt=".3g"), ""]
-    lines += [f"Requested row {metric.removeprefix('val/')} (report.gap) is not filled: {why}." for metric, why in unfilled.items()]
+        lines += [
+            f"What training bought, per paradigm (% localized; "
+            f"the share of the gap between {settings.baseline} and the "
+            "ground truth that training closed):",
+            "",
+            gaps.to_markdown(index=False, floatfmt=".3g"),
+            "",
+        ]
+    lines += [
+        f"Requested row {metric.removeprefix('val/')} (report.gap) is not filled: {why}."
+        for metric, why in unfilled.items()
+    ]
     lines += [""] if unfilled else []
-    references = {name: {m: v for m, v in metrics.items() if m in shown} for name, metrics in validation.reference.items()}
+    references = {
+        name: {m: v for m, v in metrics.items() if m in shown} for name, metrics in validation.reference.items()
+    }
     if references:
         lines += ["Reference rankings:", "", pd.DataFrame(references).T.to_markdown(floatfmt=".3g"), ""]
     lines += gallery_lines(validation, output_dir)

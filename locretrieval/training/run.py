@@ -49,24 +49,41 @@ class ValidationScope:
     budget_minutes: float | None
 
     def __post_init__(self) -> None:
-        require(self.max_queries is None or self.max_queries >= 1, "max_queries", f"must be >= 1 or null, got {self.max_queries}")
-        require(self.sfm_max_keypoints is None or self.sfm_max_keypoints >= 1, "sfm_max_keypoints",
-                f"must be >= 1 or null, got {self.sfm_max_keypoints}")
-        require(self.budget_minutes is None or self.budget_minutes > 0, "budget_minutes", f"must be positive or null, got {self.budget_minutes}")
+        require(
+            self.max_queries is None or self.max_queries >= 1,
+            "max_queries",
+            f"must be >= 1 or null, got {self.max_queries}",
+        )
+        require(
+            self.sfm_max_keypoints is None or self.sfm_max_keypoints >= 1,
+            "sfm_max_keypoints",
+            f"must be >= 1 or null, got {self.sfm_max_keypoints}",
+        )
+        require(
+            self.budget_minutes is None or self.budget_minutes > 0,
+            "budget_minutes",
+            f"must be positive or null, got {self.budget_minutes}",
+        )
 
     def scene(self, scene: Scene) -> Scene:
         """``scene`` with its ``max_queries`` validation queries (all when there are fewer), in their order."""
         if self.max_queries is None or self.max_queries >= len(scene.queries):
             return scene
-        rows = np.sort(np.random.default_rng(self.seed).choice(len(scene.queries), size=self.max_queries, replace=False))
+        rows = np.sort(
+            np.random.default_rng(self.seed).choice(len(scene.queries), size=self.max_queries, replace=False)
+        )
         return dataclasses.replace(scene, queries=scene.queries.subset(rows))
 
     def settings(self, settings: BenchmarkSettings) -> BenchmarkSettings:
         """The benchmark settings of a validation: the local features capped at ``sfm_max_keypoints``."""
         features = settings.sfm.features
-        if self.sfm_max_keypoints is None or (features.max_keypoints is not None and features.max_keypoints <= self.sfm_max_keypoints):
+        if self.sfm_max_keypoints is None or (
+            features.max_keypoints is not None and features.max_keypoints <= self.sfm_max_keypoints
+        ):
             return settings
-        sfm = dataclasses.replace(settings.sfm, features=dataclasses.replace(features, max_keypoints=self.sfm_max_keypoints))
+        sfm = dataclasses.replace(
+            settings.sfm, features=dataclasses.replace(features, max_keypoints=self.sfm_max_keypoints)
+        )
         return dataclasses.replace(settings, sfm=sfm)
 
 
@@ -85,12 +102,18 @@ class TrainingSettings:
     validation: ValidationScope
 
     def __post_init__(self) -> None:
-        require(self.validation_database or bool(self.extra_renders) or bool(self.scenes), "validation_database",
-                "no training images: set validation_database=true or give scenes or extra_renders")
+        require(
+            self.validation_database or bool(self.extra_renders) or bool(self.scenes),
+            "validation_database",
+            "no training images: set validation_database=true or give scenes or extra_renders",
+        )
         known = sorted(path.stem for path in DATA_CONFIGS.glob("*.yaml"))
         for index, entry in enumerate(self.scenes):
-            require(isinstance(entry, str) or (isinstance(entry, dict) and isinstance(entry.get("config"), str)), f"scenes[{index}]",
-                    f"must be a data config's name or {{config: <name>, ...its keys}}, got {entry!r}")
+            require(
+                isinstance(entry, str) or (isinstance(entry, dict) and isinstance(entry.get("config"), str)),
+                f"scenes[{index}]",
+                f"must be a data config's name or {{config: <name>, ...its keys}}, got {entry!r}",
+            )
             name = entry if isinstance(entry, str) else entry["config"]
             require(name in known, f"scenes[{index}]", f"no data config {name!r}; expected one of {known}")
 
@@ -102,15 +125,23 @@ def training_worlds(cfg: DictConfig, scene: Scene, settings: TrainingSettings) -
     for index, entry in enumerate(settings.scenes):
         listed = listed_scene(cfg, entry)
         if listed.database.fingerprint() == scene.database.fingerprint():
-            raise ValueError(f"training.scenes[{index}] ({entry!r}) is the validation scene's database: training.validation_database trains on it")
+            raise ValueError(
+                f"training.scenes[{index}] ({entry!r}) is the validation "
+                f"scene's database: training.validation_database trains on it"
+            )
         worlds.append(_without_queries(f"{listed.name}_{index}", listed.database, listed))
     if settings.extra_renders:
         if "render" not in cfg.data:
             raise ValueError("training.extra_renders needs the synthetic data config (data=synthetic)")
         for override in settings.extra_renders:
             render = OmegaConf.merge(cfg.data.render, override)
-            extra = load_synthetic_dataset(f"train_{render.environment}_{render.seed}", cfg.paths.cache_dir, render,
-                                           ltvl_name_style="full", frustum_far=scene.frustum_far)
+            extra = load_synthetic_dataset(
+                f"train_{render.environment}_{render.seed}",
+                cfg.paths.cache_dir,
+                render,
+                ltvl_name_style="full",
+                frustum_far=scene.frustum_far,
+            )
             if extra.database.fingerprint() == scene.database.fingerprint():
                 raise ValueError(f"training.extra_renders {dict(override)} renders the validation scene itself")
             images = concatenate_image_sets([extra.database, extra.queries])  # one world: paired together
@@ -121,7 +152,9 @@ def training_worlds(cfg: DictConfig, scene: Scene, settings: TrainingSettings) -
 def listed_scene(cfg: DictConfig, entry: Any) -> Scene:
     """The scene of a ``training.scenes`` entry: the data node of ``configs/data/<name>.yaml`` (its
     keys overridden by the entry's), instantiated with the run's config (paths)."""
-    name, overrides = (entry, {}) if isinstance(entry, str) else (entry["config"], {k: v for k, v in entry.items() if k != "config"})
+    name, overrides = (
+        (entry, {}) if isinstance(entry, str) else (entry["config"], {k: v for k, v in entry.items() if k != "config"})
+    )
     loaded = OmegaConf.load(DATA_CONFIGS / f"{name}.yaml")
     node = loaded if "_target_" in loaded else loaded.data  # the published datasets' configs are `@package _global_`
     run = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))  # the run's config, its data node replaced
@@ -131,7 +164,9 @@ def listed_scene(cfg: DictConfig, entry: Any) -> Scene:
 
 def _without_queries(name: str, images: ImageSet, scene: Scene) -> Scene:
     """A scene of ``images`` as its database, no queries, ``scene``'s dataset facts."""
-    return Scene(name, images, images.subset(np.arange(0)), ltvl_name_style=scene.ltvl_name_style, frustum_far=scene.frustum_far)
+    return Scene(
+        name, images, images.subset(np.arange(0)), ltvl_name_style=scene.ltvl_name_style, frustum_far=scene.frustum_far
+    )
 
 
 #: The config nodes of the objects train.py builds (besides callbacks and loggers), checked first.
@@ -171,20 +206,36 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
         check_resume_checkpoint(cfg.ckpt_path, descriptor.model, descriptor.architecture)
     scene: Scene = instantiate(cfg.data)
     validation_scene, validation_settings = training.validation.scene(scene), training.validation.settings(settings)
-    check_validation_budget(cfg, validation_scene, validation_settings, groundtruth_settings, training.validation, cache_dir)
+    check_validation_budget(
+        cfg, validation_scene, validation_settings, groundtruth_settings, training.validation, cache_dir
+    )
     parts = training_parts(cfg, scene, descriptor.preprocessing, settings, relevance, training)
     groundtruths = compute_groundtruths(validation_scene, groundtruth_settings, validation_settings.sfm, cache_dir)
     validator = built(
-        cfg.callbacks.localization_validation, "callbacks.localization_validation", scene=validation_scene, groundtruths=groundtruths,
-        settings=validation_settings, preprocessing=descriptor.preprocessing, extraction=descriptor.settings, cache_dir=cache_dir,
-        random_seed=int(cfg.seed) if cfg.baselines.random else None, relevance_scope=groundtruth_settings.relevance,
+        cfg.callbacks.localization_validation,
+        "callbacks.localization_validation",
+        scene=validation_scene,
+        groundtruths=groundtruths,
+        settings=validation_settings,
+        preprocessing=descriptor.preprocessing,
+        extraction=descriptor.settings,
+        cache_dir=cache_dir,
+        random_seed=int(cfg.seed) if cfg.baselines.random else None,
+        relevance_scope=groundtruth_settings.relevance,
         reference_models={name: instantiate(node) for name, node in (cfg.get("validation_references") or {}).items()},
         headline=report.metrics(),
     )
     callbacks = {"localization_validation": validator, **callbacks}  # first: early stopping reads what it logged
     if cfg.get("miner"):
-        callbacks["miner"] = built(cfg.miner, "miner", sets=parts.sets, pairs=parts.pairs, sampler=parts.sampler,
-                                   preprocessing=descriptor.preprocessing, extraction=descriptor.settings)
+        callbacks["miner"] = built(
+            cfg.miner,
+            "miner",
+            sets=parts.sets,
+            pairs=parts.pairs,
+            sampler=parts.sampler,
+            preprocessing=descriptor.preprocessing,
+            extraction=descriptor.settings,
+        )
     module = training_module(cfg, descriptor, parts.pairs)
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values()]
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=list(callbacks.values()), logger=loggers or False)
@@ -196,48 +247,73 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     return validator
 
 
-def unfilled_report_rows(cfg: DictConfig, report: TrainingReportSettings, settings: BenchmarkSettings,
-                         groundtruths: GroundTruthSettings) -> dict[str, str]:
+def unfilled_report_rows(
+    cfg: DictConfig, report: TrainingReportSettings, settings: BenchmarkSettings, groundtruths: GroundTruthSettings
+) -> dict[str, str]:
     """The gap rows (``report.gap``) that validation cannot fill with these settings: metric ->
     why, each logged as a warning; a ``report.baseline`` that is no validation reference is an error."""
     references = list(cfg.get("validation_references") or {})
     if report.baseline not in references:
-        raise ConfigError(f"report.baseline: {report.baseline!r} is not a validation reference (validation_references: {references})")
+        raise ConfigError(
+            f"report.baseline: {report.baseline!r} is not a validation reference (validation_references: {references})"
+        )
     sfm_validated = cfg.callbacks.localization_validation.get("sfm_every_n_epochs") is not None
-    unfilled = {row.metric: why for row in report.gap if (why := row.unfilled(settings, groundtruths.parsed(), sfm_validated))}
+    unfilled = {
+        row.metric: why for row in report.gap if (why := row.unfilled(settings, groundtruths.parsed(), sfm_validated))
+    }
     for metric, why in unfilled.items():
         log.warning("report.gap row %s cannot be filled: %s", metric.removeprefix("val/"), why)
     return unfilled
 
 
-def check_validation_budget(cfg: DictConfig, scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings,
-                            scope: ValidationScope, cache_dir: Path) -> None:
+def check_validation_budget(
+    cfg: DictConfig,
+    scene: Scene,
+    settings: BenchmarkSettings,
+    groundtruths: GroundTruthSettings,
+    scope: ValidationScope,
+    cache_dir: Path,
+) -> None:
     """Log the SfM work of the first (largest) validation with its forecast (`sfm_plan`: upper
     bounds for the trained ranking, the reference models', the ground truths' and random's), and
     raise `ConfigError` naming the keys to change when it exceeds ``scope.budget_minutes``."""
     every = cfg.callbacks.localization_validation.get("sfm_every_n_epochs")
     if every is None or not scene.queries.has_pose.any():
         return
-    rankings = 1 + len(cfg.get("validation_references") or {}) + len(groundtruths.parsed()) + int(bool(cfg.baselines.random))
+    rankings = (
+        1 + len(cfg.get("validation_references") or {}) + len(groundtruths.parsed()) + int(bool(cfg.baselines.random))
+    )
     plan = sfm_plan(scene, None, settings, cache_dir, rankings)
     if plan is None:
         return
-    log.info("SfM work of the first validation (%d queries, %d rankings; later ones: the trained ranking's new pairs only):\n%s",
-             len(scene.queries), rankings, plan.describe())
+    log.info(
+        "SfM work of the first validation (%d queries, %d rankings; "
+        "later ones: the trained ranking's new pairs only):\n%s",
+        len(scene.queries),
+        rankings,
+        plan.describe(),
+    )
     if scope.budget_minutes is None or plan.costs is None:
         return
     minutes = sum(plan.forecast().values()) / 60
     if minutes > scope.budget_minutes:
         keypoints = settings.sfm.features.max_keypoints or f"{plan.costs.keypoints:.0f} (measured)"
         raise ConfigError(
-            f"training.validation.budget_minutes: one validation's SfM work is forecast at {minutes:.1f} min, above the budget of "
-            f"{scope.budget_minutes:g} min ({len(scene.queries)} queries, {plan.new_pairs():,} pairs to match at {keypoints} keypoints per "
-            f"image, {sum(w.registrations.total for w in plan.paradigms):,} registrations; the forecast is logged above). Lower "
+            f"training.validation.budget_minutes: one validation's SfM "
+            f"work is forecast at {minutes:.1f} min, above the budget of "
+            f"{scope.budget_minutes:g} min ({len(scene.queries)} queries, "
+            f"{plan.new_pairs():,} pairs to match at {keypoints} keypoints per "
+            f"image, {sum(w.registrations.total for w in plan.paradigms):,} "
+            f"registrations; the forecast is logged above). Lower "
             "training.validation.max_queries or training.validation.sfm_max_keypoints, lower paradigms.local_sfm.k / "
-            "paradigms.global_sfm.k, or validate without the SfM paradigms (callbacks.localization_validation.sfm_every_n_epochs=null)")
+            "paradigms.global_sfm.k, or validate without the SfM paradigms "
+            "(callbacks.localization_validation.sfm_every_n_epochs=null)"
+        )
 
 
-def checked_callbacks(cfg: DictConfig, settings: BenchmarkSettings, groundtruths: GroundTruthSettings) -> dict[str, L.Callback]:
+def checked_callbacks(
+    cfg: DictConfig, settings: BenchmarkSettings, groundtruths: GroundTruthSettings
+) -> dict[str, L.Callback]:
     """Check every object node (`check_node`: keys and types) and build the callbacks that need
     nothing from the run (checkpoints, ...), their monitors checked (`check_monitors`); the
     validation callback is built once the scene is there."""
@@ -248,28 +324,51 @@ def checked_callbacks(cfg: DictConfig, settings: BenchmarkSettings, groundtruths
     for key, node in nodes.items():
         check_node(node, key)
     if "callbacks.localization_validation" not in nodes:
-        raise ConfigError("callbacks.localization_validation: missing; training is validated by localization (callbacks=default)")
-    callbacks = {name: built(node, f"callbacks.{name}") for name, node in cfg.callbacks.items()
-                 if node is not None and name != "localization_validation"}
+        raise ConfigError(
+            "callbacks.localization_validation: missing; training is validated by localization (callbacks=default)"
+        )
+    callbacks = {
+        name: built(node, f"callbacks.{name}")
+        for name, node in cfg.callbacks.items()
+        if node is not None and name != "localization_validation"
+    }
     check_monitors(callbacks, every_validation_metrics(settings, list(groundtruths.parsed())))
     return callbacks
 
 
-def training_parts(cfg: DictConfig, scene: Scene, preprocessing: Any, settings: BenchmarkSettings,
-                   relevance: TrainingRelevanceSettings, training: TrainingSettings) -> TrainingParts:
+def training_parts(
+    cfg: DictConfig,
+    scene: Scene,
+    preprocessing: Any,
+    settings: BenchmarkSettings,
+    relevance: TrainingRelevanceSettings,
+    training: TrainingSettings,
+) -> TrainingParts:
     """The training images of ``scene`` (and the extra renders), their relevance pairs, the sampler
     and the datamodule, from their config nodes."""
     worlds = training_worlds(cfg, scene, training)
     sets = [world.database for world in worlds]
     cache_dir = Path(cfg.paths.cache_dir)
     pairs = combined_pairs(sets, relevance, [pair_context(world, relevance, settings, cache_dir) for world in worlds])
-    log.info("training on %d images (%d with a relevant partner), validating on %d queries of %s",
-             pairs.num_images, int((np.diff(pairs.graded.indptr) > 0).sum()), len(scene.queries), scene.name)
+    log.info(
+        "training on %d images (%d with a relevant partner), validating on %d queries of %s",
+        pairs.num_images,
+        int((np.diff(pairs.graded.indptr) > 0).sum()),
+        len(scene.queries),
+        scene.name,
+    )
     sampler = built(cfg.sampler, "sampler", pairs=pairs)
     augmentation = built(cfg.augmentation, "augmentation") if cfg.get("augmentation") else None
     paths = [path for images in sets for path in images.paths]
-    datamodule = built(cfg.datamodule, "datamodule", paths=paths, pairs=pairs, sampler=sampler, augmentation=augmentation,
-                       cache_dir=cache_dir)
+    datamodule = built(
+        cfg.datamodule,
+        "datamodule",
+        paths=paths,
+        pairs=pairs,
+        sampler=sampler,
+        augmentation=augmentation,
+        cache_dir=cache_dir,
+    )
     return TrainingParts(sets, pairs, sampler, datamodule)
 
 
@@ -277,19 +376,30 @@ def training_module(cfg: DictConfig, descriptor: Any, pairs: TrainingPairs) -> A
     """The LightningModule of ``cfg.module`` training the model's network with ``loss``,
     ``optimizer`` and ``scheduler`` (none when the group is removed) on the training ``pairs``."""
     return built(
-        cfg.module, "module", network=descriptor.network.train(), preprocessing=descriptor.preprocessing, loss=instantiate(cfg.loss),
-        optimizer=instantiate(cfg.optimizer), scheduler=instantiate(cfg.scheduler) if cfg.get("scheduler") else None,
-        model=descriptor.model, architecture=descriptor.architecture, pairs=pairs,
+        cfg.module,
+        "module",
+        network=descriptor.network.train(),
+        preprocessing=descriptor.preprocessing,
+        loss=instantiate(cfg.loss),
+        optimizer=instantiate(cfg.optimizer),
+        scheduler=instantiate(cfg.scheduler) if cfg.get("scheduler") else None,
+        model=descriptor.model,
+        architecture=descriptor.architecture,
+        pairs=pairs,
     )
 
 
-def pair_context(world: Scene, relevance: TrainingRelevanceSettings, settings: BenchmarkSettings, cache_dir: Path) -> DefinitionContext:
+def pair_context(
+    world: Scene, relevance: TrainingRelevanceSettings, settings: BenchmarkSettings, cache_dir: Path
+) -> DefinitionContext:
     """What the training definition needs on ``world``: its far plane (the validation scene's for
     its database and the extra renders, a listed scene's own), and for a definition that matches
     features (``uses_sfm``), the 3D points each pair of the world's images shares in its
     known-pose map."""
     shared = database_co_observations(world, settings.sfm, cache_dir) if relevance.definition.uses_sfm else None
-    return DefinitionContext(far=world.frustum_far, shared_points=shared, key="train_relevance.definition", scene=world.name)
+    return DefinitionContext(
+        far=world.frustum_far, shared_points=shared, key="train_relevance.definition", scene=world.name
+    )
 
 
 def check_monitors(callbacks: Mapping[str, Any], metrics: Sequence[str]) -> None:
@@ -298,5 +408,7 @@ def check_monitors(callbacks: Mapping[str, Any], metrics: Sequence[str]) -> None
     for name, callback in callbacks.items():
         monitor = getattr(callback, "monitor", None)
         if monitor is not None and monitor not in metrics:
-            raise ConfigError(f"callbacks.{name}.monitor: {monitor!r} is not logged at every validation; with these paradigms, "
-                              f"k and thresholds the metrics are: {', '.join(metrics)}")
+            raise ConfigError(
+                f"callbacks.{name}.monitor: {monitor!r} is not logged at every validation; with these paradigms, "
+                f"k and thresholds the metrics are: {', '.join(metrics)}"
+            )

@@ -45,8 +45,9 @@ class PinholeCamera:
     def scaled(self, width: int, height: int) -> "PinholeCamera":
         """The same field of view at another resolution (used for cheap depth probes)."""
         sx, sy = width / self.width, height / self.height
-        return PinholeCamera(self.sensor_id, self.model, width, height,
-                             self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy)
+        return PinholeCamera(
+            self.sensor_id, self.model, width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy
+        )
 
     def ray_directions(self, samples_per_axis: int, device: torch.device) -> torch.Tensor:
         """Camera-frame ray directions ``[H * s, W * s, 3]`` with ``z = 1``.

@@ -24,8 +24,9 @@ def sample_conditions(probabilities: Mapping[str, float], rng: np.random.Generat
     return tags
 
 
-def exposure_path(rotation: np.ndarray, center: np.ndarray, subframes: int,
-                  rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
+def exposure_path(
+    rotation: np.ndarray, center: np.ndarray, subframes: int, rng: np.random.Generator
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """World-to-camera rotations and centres of ``subframes`` instants of one exposure.
 
     The camera shakes by a random rotation of 0.5-1.5 degrees (camera frame) and moves

@@ -86,8 +86,15 @@ def plan_database(config, environment: Environment, renderer: Renderer, camera: 
     for index, viewpoint in enumerate(mapping_viewpoints(environment, int(config["num_database"]), rng)):
         tags, objects = {"day"}, None
         if rng.random() < float(config["database_dynamic"]):
-            objects = place_dynamic_objects(environment, renderer, camera, viewpoint.rotation, viewpoint.center,
-                                            int(rng.integers(1, MAX_OBJECTS + 1)), rng)
+            objects = place_dynamic_objects(
+                environment,
+                renderer,
+                camera,
+                viewpoint.rotation,
+                viewpoint.center,
+                int(rng.integers(1, MAX_OBJECTS + 1)),
+                rng,
+            )
             if len(objects):
                 tags.add("dynamic")
             else:
@@ -96,8 +103,9 @@ def plan_database(config, environment: Environment, renderer: Renderer, camera: 
     return plans
 
 
-def plan_queries(config, environment: Environment, renderer: Renderer, query_cameras: list[PinholeCamera],
-                 mapping: list[Viewpoint]) -> list[ImagePlan]:
+def plan_queries(
+    config, environment: Environment, renderer: Renderer, query_cameras: list[PinholeCamera], mapping: list[Viewpoint]
+) -> list[ImagePlan]:
     """Query viewpoints (validated with depth probes) with their sampled conditions."""
     rng = np.random.default_rng([int(config["seed"]), QUERIES])
     plans = []
@@ -112,8 +120,15 @@ def plan_queries(config, environment: Environment, renderer: Renderer, query_cam
                 continue
             objects = None
             if "dynamic" in tags:
-                objects = place_dynamic_objects(environment, renderer, camera, viewpoint.rotation, viewpoint.center,
-                                                int(rng.integers(1, MAX_OBJECTS + 1)), rng)
+                objects = place_dynamic_objects(
+                    environment,
+                    renderer,
+                    camera,
+                    viewpoint.rotation,
+                    viewpoint.center,
+                    int(rng.integers(1, MAX_OBJECTS + 1)),
+                    rng,
+                )
                 if not len(objects):
                     continue
             plans.append(ImagePlan("query", index, camera, viewpoint, tags, objects))
@@ -126,7 +141,9 @@ def plan_queries(config, environment: Environment, renderer: Renderer, query_cam
     return plans
 
 
-def render_plan(renderer: Renderer, environment: Environment, plan: ImagePlan, config) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def render_plan(
+    renderer: Renderer, environment: Environment, plan: ImagePlan, config
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """uint8 RGB ``[H, W, 3]``, float32 depth ``[H, W]`` and bool dynamic mask of one plan.
 
     Motion blur averages ``blur_subframes`` sub-frames along the exposure path, rendered at
@@ -145,7 +162,12 @@ def render_plan(renderer: Renderer, environment: Environment, plan: ImagePlan, c
         frames = [renderer.render(low, R, c, lighting, plan.objects, supersampling) for R, c in path]
         rgb = _resize(np.mean([frame.rgb for frame in frames], axis=0), camera, "bilinear")
         depth, mask = renderer.geometry(camera, rotation, center, plan.objects)
-        mask |= _resize(np.any([frame.dynamic for frame in frames], axis=0)[..., None].astype(np.float32), camera, "nearest")[..., 0] > 0
+        mask |= (
+            _resize(
+                np.any([frame.dynamic for frame in frames], axis=0)[..., None].astype(np.float32), camera, "nearest"
+            )[..., 0]
+            > 0
+        )
     else:
         result = renderer.render(plan.camera, rotation, center, lighting, plan.objects, supersampling)
         rgb, depth, mask = result.rgb, result.depth, result.dynamic
@@ -238,7 +260,9 @@ def _render(config: dict[str, Any], output_dir: Path) -> None:
                 context(plan)
         else:
             spawn = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(workers, mp_context=spawn, initializer=_start_worker, initargs=(config, staging)) as pool:
+            with ProcessPoolExecutor(
+                workers, mp_context=spawn, initializer=_start_worker, initargs=(config, staging)
+            ) as pool:
                 for _ in tqdm(pool.map(_render_in_worker, plans), **progress):
                     pass
         write_kapture_lists(staging / "mapping", [database_camera], _written(database))
@@ -277,8 +301,14 @@ def _process_alive(pid: int) -> bool:
 
 def _written(plans: list[ImagePlan]) -> list[WrittenImage]:
     return [
-        WrittenImage(plan.name, plan.index, plan.camera.sensor_id, plan.viewpoint.rotation, plan.viewpoint.center,
-                     tuple(sorted(plan.tags, key=_tag_order)))
+        WrittenImage(
+            plan.name,
+            plan.index,
+            plan.camera.sensor_id,
+            plan.viewpoint.rotation,
+            plan.viewpoint.center,
+            tuple(sorted(plan.tags, key=_tag_order)),
+        )
         for plan in plans
     ]
 

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import numpy as np
-
 from typing import TYPE_CHECKING
+
+import numpy as np
 
 from locretrieval.scene.synthetic.camera import PinholeCamera
 from locretrieval.scene.synthetic.world import BoxSet, BoxSetBuilder, Environment, Surface
@@ -31,8 +31,15 @@ def add_person(builder: BoxSetBuilder, environment: Environment, rng: np.random.
     legs, torso = rng.choice(environment.clothes_textures, size=2)
     head = int(rng.choice(environment.head_textures))
     cloth = (0.5, 0.5)
-    builder.add([x - 0.17, y - 0.11, 0.0], [x + 0.17, y + 0.11, 0.85 * scale], Surface(int(legs), period=cloth), dynamic=True)
-    builder.add([x - 0.25, y - 0.15, 0.85 * scale], [x + 0.25, y + 0.15, 1.45 * scale], Surface(int(torso), period=cloth), dynamic=True)
+    builder.add(
+        [x - 0.17, y - 0.11, 0.0], [x + 0.17, y + 0.11, 0.85 * scale], Surface(int(legs), period=cloth), dynamic=True
+    )
+    builder.add(
+        [x - 0.25, y - 0.15, 0.85 * scale],
+        [x + 0.25, y + 0.15, 1.45 * scale],
+        Surface(int(torso), period=cloth),
+        dynamic=True,
+    )
     builder.add([x - 0.1, y - 0.11, 1.45 * scale], [x + 0.1, y + 0.11, 1.7 * scale], Surface(head), dynamic=True)
 
 
@@ -45,9 +52,16 @@ def add_vehicle(builder: BoxSetBuilder, environment: Environment, rng: np.random
     builder.add([x - 1.1, y - 0.8, 1.2], [x + 0.9, y + 0.8, 1.7], glass, dynamic=True)
 
 
-def place_dynamic_objects(environment: Environment, renderer: "Renderer", camera: PinholeCamera,
-                          rotation: np.ndarray, center: np.ndarray, count: int, rng: np.random.Generator,
-                          attempts: int = 40) -> BoxSet:
+def place_dynamic_objects(
+    environment: Environment,
+    renderer: "Renderer",
+    camera: PinholeCamera,
+    rotation: np.ndarray,
+    center: np.ndarray,
+    count: int,
+    rng: np.random.Generator,
+    attempts: int = 40,
+) -> BoxSet:
     """Up to ``count`` people/vehicles standing in free space and visible from the camera.
 
     From a low-resolution depth probe of the view (:func:`probe_camera`), each object is put
@@ -86,12 +100,16 @@ def place_dynamic_objects(environment: Environment, renderer: "Renderer", camera
     return builder.build()
 
 
-def _free_spot(environment: Environment, x: float, y: float, half: float, vehicle: bool, placed: list[np.ndarray]) -> bool:
+def _free_spot(
+    environment: Environment, x: float, y: float, half: float, vehicle: bool, placed: list[np.ndarray]
+) -> bool:
     if vehicle:
         if environment.road_y is None or not environment.road_y[0] <= y <= environment.road_y[1]:
             return False
-    elif not (environment.walk_x[0] - 1.0 <= x <= environment.walk_x[1] + 1.0
-              and environment.walk_y[0] - 0.5 <= y <= environment.walk_y[1] + 0.5):
+    elif not (
+        environment.walk_x[0] - 1.0 <= x <= environment.walk_x[1] + 1.0
+        and environment.walk_y[0] - 0.5 <= y <= environment.walk_y[1] + 0.5
+    ):
         return False
     for other in placed:
         if np.hypot(x - other[0], y - other[1]) < half + other[2] + 0.2:

@@ -57,8 +57,9 @@ def write_image_files(root: Path, name: str, rgb: np.ndarray, depth: np.ndarray,
     image_path = Path(kapture_records.get_image_fullpath(str(root), name))
     image_path.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(rgb).save(image_path, compress_level=1)
-    kapture_records.depth_map_to_file(kapture_records.get_depth_map_fullpath(str(root), depth_name(name)),
-                                      depth.astype(kapture.RecordsDepth.dtype))
+    kapture_records.depth_map_to_file(
+        kapture_records.get_depth_map_fullpath(str(root), depth_name(name)), depth.astype(kapture.RecordsDepth.dtype)
+    )
     mask_path = root / MASKS_DIR / name
     mask_path.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.where(mask, 255, 0).astype(np.uint8)).save(mask_path, compress_level=1)
@@ -85,8 +86,9 @@ def write_kapture_lists(root: Path, cameras: list[PinholeCamera], images: list[W
         records_camera[image.timestamp, image.camera_id] = image.name
         records_depth[image.timestamp, depth_id] = depth_name(image.name)
     root.mkdir(parents=True, exist_ok=True)
-    data = kapture.Kapture(sensors=sensors, trajectories=trajectories, records_camera=records_camera,
-                           records_depth=records_depth)
+    data = kapture.Kapture(
+        sensors=sensors, trajectories=trajectories, records_camera=records_camera, records_depth=records_depth
+    )
     kapture_csv.kapture_to_dir(str(root), data)
     lines = [TAGS_HEADER] + [f"{image.name}, {' '.join(image.tags)}" for image in images]
     (root / TAGS_FILE).write_text("\n".join(lines) + "\n")

@@ -32,11 +32,14 @@ def build_mall(rng: np.random.Generator, length: float, size: int) -> Environmen
     frame = Surface(metal, period=(1.0, 1.0))
     builder = BoxSetBuilder()
     builder.add(
-        [0.0, -HALF_WIDTH, 0.0], [length, HALF_WIDTH, CEILING],
+        [0.0, -HALF_WIDTH, 0.0],
+        [length, HALF_WIDTH, CEILING],
         {
             "-z": Surface(bank.add(tx.tiles(rng, size, 4, stone, (0.35, 0.33, 0.3))), period=(2.0, 2.0)),
             "+z": Surface(bank.add(tx.perforated_panels(rng, size, 2, (0.9, 0.9, 0.87))), period=(1.2, 1.2)),
-            "all": Surface(bank.add(tx.plaster(rng, size, tx.random_colour(rng, (0.0, 0.2), (0.7, 0.95)), 2)), period=(3.0, 3.0)),
+            "all": Surface(
+                bank.add(tx.plaster(rng, size, tx.random_colour(rng, (0.0, 0.2), (0.7, 0.95)), 2)), period=(3.0, 3.0)
+            ),
             "-x": Surface(bank.add(tx.mural(rng, glyphs, size, 2 * HALF_WIDTH / CEILING))),
             "+x": Surface(bank.add(tx.mural(rng, glyphs, size, 2 * HALF_WIDTH / CEILING))),
         },
@@ -99,7 +102,13 @@ def _add_shops(builder, bank, rng, glyphs, size, length, side, frame) -> None:
 
 def _add_columns(builder, bank, rng, glyphs, size, length, frame) -> None:
     """Identical columns (repeated structure); a few carry a unique poster facing along x."""
-    column = Surface(bank.add(tx.marble_column(rng, size, 2 * COLUMN_HALF / CEILING, tx.random_colour(rng, (0.0, 0.2), (0.6, 0.9)), (0.7, 0.68, 0.6))))
+    column = Surface(
+        bank.add(
+            tx.marble_column(
+                rng, size, 2 * COLUMN_HALF / CEILING, tx.random_colour(rng, (0.0, 0.2), (0.6, 0.9)), (0.7, 0.68, 0.6)
+            )
+        )
+    )
     for x in np.arange(COLUMN_SPACING / 2, length - 1.0, COLUMN_SPACING):
         for y in (-COLUMN_Y, COLUMN_Y):
             builder.add([x - COLUMN_HALF, y - COLUMN_HALF, 0.0], [x + COLUMN_HALF, y + COLUMN_HALF, CEILING], column)
@@ -117,7 +126,9 @@ def _add_lamps(builder, bank, size, length, frame) -> tuple[float, int]:
     columns = np.arange(LAMP_SPACING / 2, length, LAMP_SPACING)
     for x in columns:
         for y in LAMP_ROWS:
-            builder.add([x - 0.6, y - 0.2, LAMP_HEIGHT], [x + 0.6, y + 0.2, LAMP_HEIGHT + 0.08], {"all": frame, "-z": lamp})
+            builder.add(
+                [x - 0.6, y - 0.2, LAMP_HEIGHT], [x + 0.6, y + 0.2, LAMP_HEIGHT + 0.08], {"all": frame, "-z": lamp}
+            )
     return float(columns[0]), len(columns)
 
 
@@ -139,11 +150,15 @@ def _lamp_grid(first: float, count: int, colours: np.ndarray, reach: float) -> L
 
 def _day(lamps: tuple[float, int]) -> Lighting:
     return Lighting(
-        ambient=(0.62, 0.61, 0.6), ambient_tilt=0.12,
-        sun_direction=(0.0, 0.0, 1.0), sun_colour=(0.0, 0.0, 0.0),
+        ambient=(0.62, 0.61, 0.6),
+        ambient_tilt=0.12,
+        sun_direction=(0.0, 0.0, 1.0),
+        sun_colour=(0.0, 0.0, 0.0),
         lamps=(_lamp_grid(*lamps, np.array([0.5, 0.48, 0.42]), reach=4.0),),
         emission_gain=0.3,
-        sky_horizon=(0.8, 0.8, 0.8), sky_zenith=(0.8, 0.8, 0.8), cloud_colour=(1.0, 1.0, 1.0),
+        sky_horizon=(0.8, 0.8, 0.8),
+        sky_zenith=(0.8, 0.8, 0.8),
+        cloud_colour=(1.0, 1.0, 1.0),
     )
 
 
@@ -154,9 +169,13 @@ def _night(rng: np.random.Generator, lamps: tuple[float, int]) -> Lighting:
     colours = 2.0 * tints[rng.integers(0, len(tints), (count, len(LAMP_ROWS)))]
     colours[np.arange(count) % 2 != 0] = 0.0
     return Lighting(
-        ambient=(0.08, 0.09, 0.14), ambient_tilt=0.0,
-        sun_direction=(0.0, 0.0, 1.0), sun_colour=(0.0, 0.0, 0.0),
+        ambient=(0.08, 0.09, 0.14),
+        ambient_tilt=0.0,
+        sun_direction=(0.0, 0.0, 1.0),
+        sun_colour=(0.0, 0.0, 0.0),
         lamps=(_lamp_grid(first, count, colours, reach=2.0),),
         emission_gain=0.9,
-        sky_horizon=(0.02, 0.02, 0.04), sky_zenith=(0.02, 0.02, 0.04), cloud_colour=(0.02, 0.02, 0.04),
+        sky_horizon=(0.02, 0.02, 0.04),
+        sky_zenith=(0.02, 0.02, 0.04),
+        cloud_colour=(0.02, 0.02, 0.04),
     )

@@ -70,8 +70,15 @@ class Renderer:
 
     # --- public API ----------------------------------------------------------------------------
 
-    def render(self, camera: PinholeCamera, rotation: np.ndarray, center: np.ndarray, lighting: Lighting,
-               extra: BoxSet | None = None, supersampling: int = 1) -> RenderResult:
+    def render(
+        self,
+        camera: PinholeCamera,
+        rotation: np.ndarray,
+        center: np.ndarray,
+        lighting: Lighting,
+        extra: BoxSet | None = None,
+        supersampling: int = 1,
+    ) -> RenderResult:
         """Colour, depth and dynamic mask of one view; ``supersampling`` s renders s x s
         samples per pixel for colour and the mask (a pixel is dynamic if any sample is);
         depth is always traced through pixel centres."""
@@ -94,8 +101,9 @@ class Renderer:
             depth, _ = self.geometry(camera, rotation, center, extra)
         return RenderResult(rgb.cpu().numpy(), depth, mask.cpu().numpy())
 
-    def geometry(self, camera: PinholeCamera, rotation: np.ndarray, center: np.ndarray,
-                 extra: BoxSet | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def geometry(
+        self, camera: PinholeCamera, rotation: np.ndarray, center: np.ndarray, extra: BoxSet | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Depth ``[H, W]`` (0 on the sky) and dynamic mask through pixel centres, without
         shading (also used as a cheap low-resolution probe to place cameras and objects)."""
         view = self._view(camera, rotation, center, extra, 1)
@@ -110,10 +118,16 @@ class Renderer:
     def _view(self, camera, rotation, center, extra, samples) -> _View:
         boxes = self.environment.boxes if extra is None else self.environment.boxes.concat(extra)
         arrays = {
-            "lo": boxes.lo, "hi": boxes.hi, "inside": boxes.inside, "dynamic": boxes.dynamic,
-            "texture": boxes.texture.reshape(-1), "u_origin": boxes.u_origin.reshape(-1),
-            "v_origin": boxes.v_origin.reshape(-1), "u_period": boxes.u_period.reshape(-1),
-            "v_period": boxes.v_period.reshape(-1), "lit_fraction": boxes.lit_fraction.reshape(-1),
+            "lo": boxes.lo,
+            "hi": boxes.hi,
+            "inside": boxes.inside,
+            "dynamic": boxes.dynamic,
+            "texture": boxes.texture.reshape(-1),
+            "u_origin": boxes.u_origin.reshape(-1),
+            "v_origin": boxes.v_origin.reshape(-1),
+            "u_period": boxes.u_period.reshape(-1),
+            "v_period": boxes.v_period.reshape(-1),
+            "lit_fraction": boxes.lit_fraction.reshape(-1),
         }
         tensors = {
             key: torch.from_numpy(value.astype(np.float32) if value.dtype == np.float64 else value).to(self.device)
@@ -271,7 +285,9 @@ class Renderer:
             return torch.tensor(values, dtype=torch.float32, device=self.device)
 
         irradiance = vector(lighting.ambient) * (1.0 + lighting.ambient_tilt * normal[:, 2:3])
-        irradiance = irradiance + vector(lighting.sun_colour) * (normal @ vector(lighting.sun_direction)).clamp(min=0.0)[:, None]
+        irradiance = (
+            irradiance + vector(lighting.sun_colour) * (normal @ vector(lighting.sun_direction)).clamp(min=0.0)[:, None]
+        )
         for grid in lighting.lamps:
             uniform = bool((grid.colours == grid.colours[0, 0]).all())
             colours = vector(grid.colours)  # [count, rows, 3]
@@ -286,7 +302,9 @@ class Renderer:
                 for row, (y, z) in enumerate(grid.rows):
                     dy, dz = y - point[:, 1], z - point[:, 2]
                     distance2 = dx * dx + dy * dy + dz * dz
-                    cosine = (facing_x + normal[:, 1] * dy + normal[:, 2] * dz).clamp(min=0.0) * torch.rsqrt(distance2 + 1e-6)
+                    cosine = (facing_x + normal[:, 1] * dy + normal[:, 2] * dz).clamp(min=0.0) * torch.rsqrt(
+                        distance2 + 1e-6
+                    )
                     window = (1.0 - distance2 / grid.radius**2).clamp(min=0.0)
                     weight = exists * cosine * window * window / (1.0 + distance2 / grid.reach**2)
                     total = total + (weight if uniform else weight[:, None] * colours[column, row])

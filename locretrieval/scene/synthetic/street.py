@@ -36,11 +36,20 @@ def build_street(rng: np.random.Generator, length: float, size: int) -> Environm
     builder = BoxSetBuilder()
     far = length + 2 * DEPTH
     builder.add(
-        [-DEPTH - 2.0, -FACADE_Y - DEPTH - 2.0, 0.0], [far, FACADE_Y + DEPTH + 2.0, 80.0],
-        {"all": Surface(SKY), "-z": Surface(bank.add(tx.asphalt_road(rng, size, 0.5)), period=(6.0, 2 * ROAD_HALF), anchor=(0.0, -ROAD_HALF))},
+        [-DEPTH - 2.0, -FACADE_Y - DEPTH - 2.0, 0.0],
+        [far, FACADE_Y + DEPTH + 2.0, 80.0],
+        {
+            "all": Surface(SKY),
+            "-z": Surface(
+                bank.add(tx.asphalt_road(rng, size, 0.5)), period=(6.0, 2 * ROAD_HALF), anchor=(0.0, -ROAD_HALF)
+            ),
+        },
         inside=True,
     )
-    paving = Surface(bank.add(tx.tiles(rng, size, 4, [(0.62, 0.6, 0.56), (0.55, 0.54, 0.52), (0.66, 0.62, 0.55)], (0.4, 0.4, 0.38))), period=(2.0, 2.0))
+    paving = Surface(
+        bank.add(tx.tiles(rng, size, 4, [(0.62, 0.6, 0.56), (0.55, 0.54, 0.52), (0.66, 0.62, 0.55)], (0.4, 0.4, 0.38))),
+        period=(2.0, 2.0),
+    )
     for side in (-1.0, 1.0):
         y0, y1 = sorted((side * ROAD_HALF, side * FACADE_Y))
         builder.add([0.0, y0, 0.0], [length, y1, KERB], {"all": concrete, "+z": paving})
@@ -90,7 +99,12 @@ def _add_buildings(builder, bank, rng, glyphs, size, length, side, styles, concr
         if length - (x + width) < 4.0:
             width = length - x
         height = GROUND_FLOOR + MODULE[1] * rng.integers(1, 6)
-        style = Surface(int(rng.choice(styles)), period=MODULE, anchor=(float(rng.uniform(0, MODULE[0])), -height), lit_fraction=LIT_WINDOWS)
+        style = Surface(
+            int(rng.choice(styles)),
+            period=MODULE,
+            anchor=(float(rng.uniform(0, MODULE[0])), -height),
+            lit_fraction=LIT_WINDOWS,
+        )
         builder.add(*_facade_box(side, x, x + width, 0.0, height, 0.0, out=DEPTH), {"all": style, "+z": concrete})
         _add_ground_floor(builder, bank, rng, glyphs, size, side, visible, x, width, concrete)
         x += width
@@ -117,7 +131,9 @@ def _add_ground_floor(builder, bank, rng, glyphs, size, side, visible, x, width,
         if rest[1] - rest[0] > 1.2 and rng.random() < 0.7:
             patch_width = min(rest[1] - rest[0], rng.uniform(1.2, 3.0))
             paint = Surface(bank.add(tx.graffiti(rng, glyphs, size, patch_width / 1.6)))
-            builder.add(*_facade_box(side, rest[0], rest[0] + patch_width, 0.5, 2.1, 0.02), {"all": concrete, visible: paint})
+            builder.add(
+                *_facade_box(side, rest[0], rest[0] + patch_width, 0.5, 2.1, 0.02), {"all": concrete, visible: paint}
+            )
 
 
 def _add_lamps(builder, bank, size, length, metal) -> tuple[float, int]:
@@ -129,7 +145,9 @@ def _add_lamps(builder, bank, size, length, metal) -> tuple[float, int]:
             y = side * LAMP_Y
             builder.add([x - 0.08, y - 0.08, KERB], [x + 0.08, y + 0.08, LAMP_HEIGHT + 0.2], metal)
             arm = sorted((y, y - side * 1.0))
-            builder.add([x - 0.15, arm[0], LAMP_HEIGHT], [x + 0.15, arm[1], LAMP_HEIGHT + 0.15], {"all": metal, "-z": head})
+            builder.add(
+                [x - 0.15, arm[0], LAMP_HEIGHT], [x + 0.15, arm[1], LAMP_HEIGHT + 0.15], {"all": metal, "-z": head}
+            )
     return float(columns[0]), len(columns)
 
 
@@ -142,20 +160,28 @@ def _lamp_grid(lamps: tuple[float, int], colour, reach: float) -> LampGrid:
 def _day() -> Lighting:
     sun = np.array([0.45, -0.55, 0.7])
     return Lighting(
-        ambient=(0.5, 0.52, 0.58), ambient_tilt=0.25,
-        sun_direction=tuple(sun / np.linalg.norm(sun)), sun_colour=(0.55, 0.52, 0.45),
+        ambient=(0.5, 0.52, 0.58),
+        ambient_tilt=0.25,
+        sun_direction=tuple(sun / np.linalg.norm(sun)),
+        sun_colour=(0.55, 0.52, 0.45),
         lamps=(),
         emission_gain=0.1,
-        sky_horizon=(0.78, 0.84, 0.92), sky_zenith=(0.32, 0.52, 0.85), cloud_colour=(0.96, 0.96, 0.97),
+        sky_horizon=(0.78, 0.84, 0.92),
+        sky_zenith=(0.32, 0.52, 0.85),
+        cloud_colour=(0.96, 0.96, 0.97),
     )
 
 
 def _night(lamps: tuple[float, int]) -> Lighting:
     """Sodium street lamps with a short reach, lit windows and signs, a dark sky."""
     return Lighting(
-        ambient=(0.03, 0.035, 0.06), ambient_tilt=0.0,
-        sun_direction=(0.0, 0.0, 1.0), sun_colour=(0.0, 0.0, 0.0),
+        ambient=(0.03, 0.035, 0.06),
+        ambient_tilt=0.0,
+        sun_direction=(0.0, 0.0, 1.0),
+        sun_colour=(0.0, 0.0, 0.0),
         lamps=(_lamp_grid(lamps, (3.2, 1.8, 0.7), reach=3.0),),
         emission_gain=1.0,
-        sky_horizon=(0.07, 0.07, 0.13), sky_zenith=(0.01, 0.01, 0.04), cloud_colour=(0.09, 0.08, 0.1),
+        sky_horizon=(0.07, 0.07, 0.13),
+        sky_zenith=(0.01, 0.01, 0.04),
+        cloud_colour=(0.09, 0.08, 0.1),
     )

@@ -97,7 +97,9 @@ class Canvas:
         self.w = scale if aspect >= 1 else max(8, int(round(scale * aspect)))
         self.h = scale if aspect < 1 else max(8, int(round(scale / aspect)))
         if isinstance(background, np.ndarray):
-            self.image = Image.fromarray(np.uint8(np.clip(background, 0, 1) * 255 + 0.5)).resize((self.w, self.h), Image.BILINEAR)
+            self.image = Image.fromarray(np.uint8(np.clip(background, 0, 1) * 255 + 0.5)).resize(
+                (self.w, self.h), Image.BILINEAR
+            )
         else:
             self.image = Image.new("RGB", (self.w, self.h), to_255(background))
         self.emission = Image.new("L", (self.w, self.h), int(round(255 * emission)))
@@ -108,7 +110,9 @@ class Canvas:
         """Canvas pixel of fractional coordinates ``(x, y)`` in ``[0, 1]``."""
         return x * self.w, y * self.h
 
-    def rect(self, box, colour: Colour, emission: float | None = None, outline: Colour | None = None, width: float = 0.0) -> None:
+    def rect(
+        self, box, colour: Colour, emission: float | None = None, outline: Colour | None = None, width: float = 0.0
+    ) -> None:
         x0, y0, x1, y1 = box
         corners = [*self.px(x0, y0), *self.px(x1, y1)]
         line = max(1, int(round(width * self.h))) if outline else 0
@@ -128,8 +132,12 @@ class Canvas:
 
     def line(self, points, colour: Colour, width: float) -> None:
         """Polyline through fractional points, ``width`` a fraction of the canvas height."""
-        self.draw.line([self.px(x, y) for x, y in points], fill=to_255(colour),
-                       width=max(1, int(round(width * self.h))), joint="curve")
+        self.draw.line(
+            [self.px(x, y) for x, y in points],
+            fill=to_255(colour),
+            width=max(1, int(round(width * self.h))),
+            joint="curve",
+        )
 
     def text(self, glyphs: Glyphs, word: list[int], box, colour: Colour, weight: float = 0.14) -> None:
         """Glyph string fitted into ``box`` (fractions), stroke width ``weight`` of a glyph's height."""
@@ -161,8 +169,10 @@ class Canvas:
                 radii = [1.0, 0.45] if kind == 2 else [1.0]
                 n = corners * len(radii)
                 points = [
-                    (cx + rx * scale * radii[k % len(radii)] * math.cos(phase + math.tau * k / n),
-                     cy + ry * scale * radii[k % len(radii)] * math.sin(phase + math.tau * k / n))
+                    (
+                        cx + rx * scale * radii[k % len(radii)] * math.cos(phase + math.tau * k / n),
+                        cy + ry * scale * radii[k % len(radii)] * math.sin(phase + math.tau * k / n),
+                    )
                     for k in range(n)
                 ]
                 self.polygon(points, colour)
@@ -275,7 +285,9 @@ def shop_front(rng: np.random.Generator, glyphs: Glyphs, size: int, aspect: floa
             (canvas.ellipse if rng.random() < 0.3 else canvas.rect)(box, colour)
             x += width + rng.uniform(0.005, 0.04)
     door = rng.uniform(0.1, 0.75)
-    canvas.rect((door, 0.15, door + 0.16, 0.97), tuple(c * 0.35 for c in interior), emission=0.2, outline=frame, width=0.02)
+    canvas.rect(
+        (door, 0.15, door + 0.16, 0.97), tuple(c * 0.35 for c in interior), emission=0.2, outline=frame, width=0.02
+    )
     canvas.rect((door + 0.12, 0.5, door + 0.135, 0.65), (0.85, 0.85, 0.8))
     for x in np.linspace(0.0, 1.0, rng.integers(3, 7)):
         canvas.rect((x - 0.006, 0.05, x + 0.006, 0.97), frame)
@@ -327,7 +339,9 @@ def mural(rng: np.random.Generator, glyphs: Glyphs, size: int, aspect: float) ->
     """A large wall mural: bands of colour, emblems and giant lettering."""
     colours = [random_colour(rng, (0.3, 0.9), (0.4, 1.0)) for _ in range(3)]
     y = np.linspace(0.0, 1.0, size)[:, None] * np.ones((1, size))
-    canvas = Canvas(size, aspect, mix(colours[0], colours[1], (np.sin(6 * y + 4 * fbm(rng, size, 2, 3)) > 0).astype(float)))
+    canvas = Canvas(
+        size, aspect, mix(colours[0], colours[1], (np.sin(6 * y + 4 * fbm(rng, size, 2, 3)) > 0).astype(float))
+    )
     for _ in range(rng.integers(3, 7)):
         x0, y0 = rng.uniform(0.0, 0.8), rng.uniform(0.0, 0.7)
         canvas.logo(rng, (x0, y0, x0 + 0.15, y0 + 0.15 * aspect), [random_colour(rng), colours[2], random_colour(rng)])
@@ -374,7 +388,9 @@ def door(rng: np.random.Generator, glyphs: Glyphs, size: int, aspect: float) -> 
     canvas.rect((0.12, 0.08, 0.88, 1.0), leaf)
     canvas.rect((0.2, 0.12, 0.8, 0.35), (0.25, 0.3, 0.35), emission=0.6)
     for top in (0.42, 0.7):
-        canvas.rect((0.2, top, 0.8, top + 0.22), tuple(c * 0.8 for c in leaf), outline=tuple(c * 0.5 for c in leaf), width=0.008)
+        canvas.rect(
+            (0.2, top, 0.8, top + 0.22), tuple(c * 0.8 for c in leaf), outline=tuple(c * 0.5 for c in leaf), width=0.008
+        )
     canvas.ellipse((0.72, 0.6, 0.8, 0.64), (0.85, 0.75, 0.3))
     canvas.rect((0.3, 0.015, 0.7, 0.065), (0.95, 0.95, 0.9))
     canvas.text(glyphs, glyphs.word(rng, 1, 3), (0.32, 0.02, 0.68, 0.06), (0.1, 0.1, 0.3))
@@ -391,7 +407,7 @@ def graffiti(rng: np.random.Generator, glyphs: Glyphs, size: int, aspect: float)
         points = [tuple(p) for p in np.clip(points, 0.02, 0.98)]
         canvas.line(points, (0.05, 0.05, 0.05), rng.uniform(0.08, 0.14))
         canvas.line(points, colour, rng.uniform(0.04, 0.07))
-        for x, y in points[:: 2]:
+        for x, y in points[::2]:
             canvas.line([(x, y), (x, min(1.0, y + rng.uniform(0.05, 0.2)))], colour, 0.01)
     ink = random_colour(rng, (0.8, 1.0), (0.8, 1.0))
     canvas.text(glyphs, glyphs.word(rng, 3, 6), (0.05, 0.3, 0.95, 0.75), ink, weight=0.22)

@@ -42,14 +42,22 @@ def mapping_viewpoints(environment: Environment, count: int, rng: np.random.Gene
     for x in xs:
         for lane in environment.mapping_lanes:
             for heading in MAPPING_HEADINGS:
-                center = np.array([x + rng.normal(0.0, 0.1), lane + rng.normal(0.0, 0.05),
-                                   environment.mapping_height + rng.normal(0.0, 0.02)])
-                viewpoints.append(Viewpoint(center, heading + rng.normal(0.0, 3.0), rng.normal(0.0, 2.0), rng.normal(0.0, 1.0)))
+                center = np.array(
+                    [
+                        x + rng.normal(0.0, 0.1),
+                        lane + rng.normal(0.0, 0.05),
+                        environment.mapping_height + rng.normal(0.0, 0.02),
+                    ]
+                )
+                viewpoints.append(
+                    Viewpoint(center, heading + rng.normal(0.0, 3.0), rng.normal(0.0, 2.0), rng.normal(0.0, 1.0))
+                )
     return viewpoints[:count]
 
 
-def sample_query_viewpoint(environment: Environment, mapping: list[Viewpoint], hard: bool,
-                           rng: np.random.Generator) -> Viewpoint:
+def sample_query_viewpoint(
+    environment: Environment, mapping: list[Viewpoint], hard: bool, rng: np.random.Generator
+) -> Viewpoint:
     """One candidate query viewpoint (validate it with :func:`acceptable_view`).
 
     Ordinary queries perturb a random database viewpoint (about 1 m, 12 degrees of heading,
@@ -58,13 +66,21 @@ def sample_query_viewpoint(environment: Environment, mapping: list[Viewpoint], h
     if hard:
         x = rng.uniform(*environment.walk_x)
         y = rng.uniform(*environment.walk_y)
-        return Viewpoint(np.array([x, y, rng.uniform(1.0, 2.2)]), rng.uniform(0.0, 360.0),
-                         rng.normal(0.0, 10.0), rng.normal(0.0, 6.0))
+        return Viewpoint(
+            np.array([x, y, rng.uniform(1.0, 2.2)]),
+            rng.uniform(0.0, 360.0),
+            rng.normal(0.0, 10.0),
+            rng.normal(0.0, 6.0),
+        )
     anchor = mapping[rng.integers(len(mapping))]
     x = np.clip(anchor.center[0] + rng.normal(0.0, 1.0), *environment.walk_x)
     y = np.clip(anchor.center[1] + rng.normal(0.0, 0.6), *environment.walk_y)
-    return Viewpoint(np.array([x, y, rng.uniform(1.3, 1.9)]), anchor.yaw + rng.normal(0.0, 12.0),
-                     rng.normal(0.0, 5.0), rng.normal(0.0, 3.0))
+    return Viewpoint(
+        np.array([x, y, rng.uniform(1.3, 1.9)]),
+        anchor.yaw + rng.normal(0.0, 12.0),
+        rng.normal(0.0, 5.0),
+        rng.normal(0.0, 3.0),
+    )
 
 
 def acceptable_view(environment: Environment, viewpoint: Viewpoint, probe_depth: np.ndarray) -> bool:

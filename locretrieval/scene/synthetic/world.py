@@ -140,8 +140,18 @@ class BoxSetBuilder:
 
 def empty_box_set() -> BoxSet:
     per_face = np.zeros((0, 6))
-    return BoxSet(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0, bool),
-                  per_face.astype(np.int64), per_face, per_face, per_face, per_face, per_face)
+    return BoxSet(
+        np.zeros((0, 3)),
+        np.zeros((0, 3)),
+        np.zeros(0, bool),
+        np.zeros(0, bool),
+        per_face.astype(np.int64),
+        per_face,
+        per_face,
+        per_face,
+        per_face,
+        per_face,
+    )
 
 
 class TextureBank:
