@@ -14,15 +14,19 @@ from omegaconf import OmegaConf
 #: Public name -> module of `locretrieval.models` defining it.
 _MODULES = {
     "APGeMDescriptor": "apgem",
+    "BoQDescriptor": "dinov2",
     "CallableDescriptor": "external",
     "DELGDescriptor": "delg",
     "DenseVLAD": "densevlad",
+    "DinoV2Descriptor": "dinov2",
     "GlobalDescriptor": "base",
     "HubDescriptor": "external",
+    "MegaLocDescriptor": "dinov2",
     "MissingWeightsError": "weights",
     "NetVLADDescriptor": "netvlad",
     "NetworkDescriptor": "torch_descriptor",
     "PrecomputedDescriptor": "precomputed",
+    "SALADDescriptor": "dinov2",
     "TorchGlobalDescriptor": "torch_descriptor",
     "TrainableDescriptor": "trainable",
     "export_global_features": "feature_io",
@@ -31,15 +35,19 @@ _MODULES = {
 
 __all__ = [
     "APGeMDescriptor",
+    "BoQDescriptor",
     "CallableDescriptor",
     "DELGDescriptor",
     "DenseVLAD",
+    "DinoV2Descriptor",
     "GlobalDescriptor",
     "HubDescriptor",
+    "MegaLocDescriptor",
     "MissingWeightsError",
     "NetVLADDescriptor",
     "NetworkDescriptor",
     "PrecomputedDescriptor",
+    "SALADDescriptor",
     "TorchGlobalDescriptor",
     "TrainableDescriptor",
     "export_global_features",
@@ -64,6 +72,7 @@ if TYPE_CHECKING:
     from locretrieval.models.base import GlobalDescriptor
     from locretrieval.models.delg import DELGDescriptor
     from locretrieval.models.densevlad import DenseVLAD
+    from locretrieval.models.dinov2 import BoQDescriptor, DinoV2Descriptor, MegaLocDescriptor, SALADDescriptor
     from locretrieval.models.external import CallableDescriptor, HubDescriptor
     from locretrieval.models.feature_io import export_global_features, read_hloc_global_descriptors
     from locretrieval.models.netvlad import NetVLADDescriptor

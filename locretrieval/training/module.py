@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import fnmatch
 import logging
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict
 from typing import Any
 
@@ -22,17 +22,23 @@ from locretrieval.training.relevance import TrainingPairs
 log = logging.getLogger(__name__)
 
 
-def freeze_parameters(network: torch.nn.Module, patterns: Sequence[str]) -> list[str]:
-    """Keep the parameters whose names match a shell-style ``pattern`` (``backbone.blocks.[0-9].*``)
-    fixed; returns their names. A pattern that matches no parameter is an error naming some."""
+def check_patterns(network: torch.nn.Module, patterns: Iterable[str], key: str) -> None:
+    """Raise unless every shell-style ``pattern`` matches a parameter name of ``network``; the
+    error names ``key`` (the setting) and some names."""
     names = [name for name, _ in network.named_parameters()]
     for pattern in patterns:
         if not any(fnmatch.fnmatchcase(name, pattern) for name in names):
             raise SettingError(
-                "frozen",
+                key,
                 f"{pattern!r} matches no parameter of the network "
                 f"(names are like {names[0]!r}, {names[len(names) // 2]!r}, {names[-1]!r})",
             )
+
+
+def freeze_parameters(network: torch.nn.Module, patterns: Sequence[str]) -> list[str]:
+    """Keep the parameters whose names match a shell-style ``pattern`` (``backbone.blocks.[0-9].*``)
+    fixed; returns their names. A pattern that matches no parameter is an error naming some."""
+    check_patterns(network, patterns, "frozen")
     frozen = []
     for name, parameter in network.named_parameters():
         if any(fnmatch.fnmatchcase(name, pattern) for pattern in patterns):
@@ -61,6 +67,9 @@ class RetrievalTraining(L.LightningModule):
     ``head_lr_scale``: the learning rate of the parameters outside the backbone (pooling or head,
     whitening, projection) is the optimizer's times this (and follows the same schedule): a head
     that starts random can learn faster than the pretrained trunk.
+    ``lr_scales``: a learning rate per part of any network: ``{shell pattern of parameter names:
+    factor}``, e.g. ``{'module.aggregation.*': 10}``; a parameter takes the factor of the first
+    pattern it matches (before ``head_lr_scale``), each part follows the same schedule.
     ``memory_size``: a cross-batch memory (`DescriptorMemory`) of the descriptors of the last this
     many training images, every batch's anchors ranked against them too, their relevance read from
     ``pairs``; 0: each anchor is ranked against its batch only.
@@ -79,6 +88,7 @@ class RetrievalTraining(L.LightningModule):
         freeze_batch_norm: bool = False,
         frozen: Sequence[str] = (),
         head_lr_scale: float = 1.0,
+        lr_scales: Mapping[str, float] | None = None,
         memory_size: int = 0,
         pairs: TrainingPairs | None = None,
     ) -> None:
@@ -101,6 +111,10 @@ class RetrievalTraining(L.LightningModule):
                 f"(a zoo model's RetrievalNet); {type(network).__name__} has no 'backbone'"
             )
         self.head_lr_scale = float(head_lr_scale)
+        self.lr_scales = {str(pattern): float(factor) for pattern, factor in (lr_scales or {}).items()}
+        check_patterns(network, self.lr_scales, "lr_scales")
+        if any(not factor > 0 for factor in self.lr_scales.values()):
+            raise ValueError(f"module.lr_scales factors must be positive, got {self.lr_scales}")
         if memory_size and pairs is None:
             raise ValueError("module.memory_size needs the training pairs (train.py gives them)")
         self.memory = DescriptorMemory(int(memory_size)) if memory_size else None
@@ -168,30 +182,37 @@ class RetrievalTraining(L.LightningModule):
     def configure_optimizers(self):
         optimizer = self.optimizer_factory(params=self._parameter_groups())
         for group in optimizer.param_groups:  # before the scheduler records each group's initial lr
-            if group.get("name") == "head":
-                group["lr"] *= self.head_lr_scale
+            group["lr"] *= group.get("lr_scale", 1.0)
         if self.scheduler_factory is None:
             return optimizer
         return {"optimizer": optimizer, "lr_scheduler": self.scheduler_factory(optimizer=optimizer)}
 
     def _parameter_groups(self) -> list[torch.nn.Parameter] | list[dict[str, Any]]:
         """The trainable parameters of the network and of the loss (a learned temperature or
-        margin): one group with ``head_lr_scale`` 1 (the optimizer state of earlier runs
-        resumes), else named groups ``backbone``, ``head`` (the rest of the network) and ``loss``,
-        each where it has any."""
-        trainable = [p for p in self.network.parameters() if p.requires_grad]
+        margin): one group without ``lr_scales`` and with ``head_lr_scale`` 1 (the optimizer state
+        of earlier runs resumes), else named groups with their ``lr_scale``: one per pattern of
+        ``lr_scales`` that takes parameters, then ``backbone`` and ``head`` (the rest of the
+        network; ``network`` when ``head_lr_scale`` is 1) and ``loss``, each where it has any."""
+        trainable = [(name, p) for name, p in self.network.named_parameters() if p.requires_grad]
         learned_loss = (
             [p for p in self.loss.parameters() if p.requires_grad] if isinstance(self.loss, torch.nn.Module) else []
         )
-        if self.head_lr_scale == 1:
-            return trainable + learned_loss
-        trunk = {id(p) for p in self.network.backbone.parameters()}
-        groups = {
-            "backbone": [p for p in trainable if id(p) in trunk],
-            "head": [p for p in trainable if id(p) not in trunk],
-            "loss": learned_loss,
-        }
-        return [{"params": params, "name": name} for name, params in groups.items() if params]
+        if self.head_lr_scale == 1 and not self.lr_scales:
+            return [p for _, p in trainable] + learned_loss
+        trunk = {id(p) for p in self.network.backbone.parameters()} if self.head_lr_scale != 1 else set()
+        groups: dict[str, dict[str, Any]] = {}
+        for name, parameter in trainable:
+            pattern = next((pattern for pattern in self.lr_scales if fnmatch.fnmatchcase(name, pattern)), None)
+            if pattern is not None:
+                part, scale = pattern, self.lr_scales[pattern]
+            elif self.head_lr_scale == 1:
+                part, scale = "network", 1.0
+            else:
+                part, scale = ("backbone", 1.0) if id(parameter) in trunk else ("head", self.head_lr_scale)
+            groups.setdefault(part, {"params": [], "name": part, "lr_scale": scale})["params"].append(parameter)
+        if learned_loss:
+            groups["loss"] = {"params": learned_loss, "name": "loss", "lr_scale": 1.0}
+        return list(groups.values())
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         checkpoint[EMBEDDED_CHECKPOINT_KEY] = {
