@@ -36,6 +36,7 @@ from locretrieval.report.scene_view import SCENE_VIEW_FILE, SceneViewSettings, w
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.retrieval.pairs_file import PairsFileRanking
 from locretrieval.scene import Scene
+from locretrieval.scene.datasets import instantiate_scene
 from locretrieval.scene.kapture_io import write_ltvl
 
 log = logging.getLogger(__name__)
@@ -61,7 +62,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     gallery_settings = validated(GallerySettings, cfg.report.gallery, "report.gallery")
     scene_view_settings = validated(SceneViewSettings, cfg.report.scene_view, "report.scene_view")
     cache_dir = Path(cfg.paths.cache_dir)
-    scene: Scene = instantiate(cfg.data)
+    scene: Scene = instantiate_scene(cfg.data)
     log.info("scene %s: %d database images, %d queries", scene.name, len(scene.database), len(scene.queries))
     check_inputs(cfg, scene, settings, groundtruth_settings, subset_settings)
     if cfg.dry_run:

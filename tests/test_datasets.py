@@ -248,3 +248,22 @@ def test_synthetic_street_is_rendered_once_whatever_the_workers_and_auto_device(
         for p in first.queries.mask_paths
     ]
     assert any(mask.any() for mask in masks)  # every query has people/vehicles (dynamic: 1.0)
+
+
+def test_a_missing_dataset_is_reported_once_with_its_lines_as_written(tmp_path):
+    """``python evaluate.py data=baidu`` without the dataset: its message (path expected, how to
+    get it) appears once in what the user sees, on its own lines, and the run fails."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    command = [sys.executable, str(root / "evaluate.py"), "data=baidu", f"paths.root_dir={tmp_path}",
+               f"paths.data_dir={tmp_path}/nowhere", f"hydra.run.dir={tmp_path}/run"]  # fmt: skip
+    completed = subprocess.run(command, cwd=root, capture_output=True, text=True, timeout=300)
+    shown = completed.stdout + completed.stderr
+    assert completed.returncode != 0
+    assert shown.count(f"kapture folder not found: {tmp_path}/nowhere/") == 1, shown[-3000:]
+    assert "kapture_download_dataset.py install" in shown.split(f"kapture folder not found: {tmp_path}")[1]
+    lines = [line.strip() for line in shown.splitlines()]
+    assert "kapture_download_dataset.py update" in lines  # its lines as lines, not inside a one-line repr
+    assert "InstantiationException" not in shown

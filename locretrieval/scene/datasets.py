@@ -12,6 +12,7 @@ import glob
 import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 from filelock import FileLock
 
@@ -92,12 +93,8 @@ def load_dataset(
             f"for {len(query_entries)} query entries {query_entries}"
         )
     message = _missing_message(name, root, mapping_entries, query_entries, install)
-    try:
-        mapping_matches = resolve_folders(root, mapping_entries, message)
-        query_matches = resolve_folders(root, query_entries, message)
-    except DatasetNotFoundError as error:
-        log.error("%s", error)  # hydra.utils.instantiate re-raises it on one line; the log keeps the layout
-        raise
+    mapping_matches = resolve_folders(root, mapping_entries, message)
+    query_matches = resolve_folders(root, query_entries, message)
     mapping_folders = [folder for matches in mapping_matches for folder in matches]
     query_folders = [folder for matches in query_matches for folder in matches]
     tags = None
@@ -156,3 +153,18 @@ def load_synthetic_dataset(
 
 #: Renderer keys that change how fast a scene renders, not what it contains.
 RENDER_ONLY_KEYS = ("workers",)
+
+
+def instantiate_scene(node: Any) -> Scene:
+    """The scene of a data config node (Hydra's `instantiate`); a missing dataset's error is raised
+    as itself, so that its several lines (the path expected, how to get the dataset) are printed
+    once and as written, not inside Hydra's one-line `InstantiationException`."""
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
+
+    try:
+        return instantiate(node)
+    except InstantiationException as error:
+        if isinstance(error.__cause__, DatasetNotFoundError):
+            raise error.__cause__ from None
+        raise

@@ -21,7 +21,7 @@ from locretrieval.config import ConfigError, built, check_node, require, validat
 from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, compute_groundtruths
 from locretrieval.groundtruth.co_observation import database_co_observations
 from locretrieval.scene import ImageSet, Scene
-from locretrieval.scene.datasets import load_synthetic_dataset
+from locretrieval.scene.datasets import instantiate_scene, load_synthetic_dataset
 from locretrieval.scene.kapture_io import concatenate_image_sets
 from locretrieval.training.callbacks import LocalizationValidation, every_validation_metrics
 from locretrieval.training.checkpoints import check_resume_checkpoint
@@ -159,7 +159,7 @@ def listed_scene(cfg: DictConfig, entry: Any) -> Scene:
     node = loaded if "_target_" in loaded else loaded.data  # the published datasets' configs are `@package _global_`
     run = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))  # the run's config, its data node replaced
     run.data = OmegaConf.merge(node, overrides)
-    return instantiate(run.data)
+    return instantiate_scene(run.data)
 
 
 def _without_queries(name: str, images: ImageSet, scene: Scene) -> Scene:
@@ -204,7 +204,7 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     descriptor = instantiate(cfg.model)  # the zoo model: network, preprocessing, weights checked
     if cfg.get("ckpt_path"):  # before the scene and ground truth are prepared
         check_resume_checkpoint(cfg.ckpt_path, descriptor.model, descriptor.architecture)
-    scene: Scene = instantiate(cfg.data)
+    scene: Scene = instantiate_scene(cfg.data)
     validation_scene, validation_settings = training.validation.scene(scene), training.validation.settings(settings)
     check_validation_budget(
         cfg, validation_scene, validation_settings, groundtruth_settings, training.validation, cache_dir
