@@ -38,9 +38,13 @@ def build(name: str):
 
         return build_delg_network(), "delg.yaml"
     if name == "gem":
+        from locretrieval.models.backbones import TorchvisionBackbone
         from locretrieval.models.networks import build_retrieval_net
 
-        return build_retrieval_net("resnet50", {"type": "gem", "p": 3.0, "trainable": True}), "gem.yaml"
+        return build_retrieval_net(
+            TorchvisionBackbone("resnet50"),
+            {"_target_": "locretrieval.models.networks.GeMPooling", "p": 3.0, "trainable": True},
+        ), "gem.yaml"
     raise ValueError(f"unknown model {name!r}")
 
 

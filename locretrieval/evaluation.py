@@ -37,7 +37,7 @@ from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.retrieval.pairs_file import PairsFileRanking
 from locretrieval.scene import Scene
 from locretrieval.scene.datasets import instantiate_scene
-from locretrieval.scene.kapture_io import write_ltvl
+from locretrieval.scene.ltvl import write_ltvl
 
 log = logging.getLogger(__name__)
 

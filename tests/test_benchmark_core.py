@@ -44,7 +44,7 @@ def tiny_network(seed: int) -> RetrievalNet:
     """A conv + batch-norm trunk with GeM pooling, seeded."""
     torch.manual_seed(seed)
     trunk = nn.Sequential(nn.Conv2d(3, 16, 5, stride=2), nn.BatchNorm2d(16), nn.ReLU(), nn.Conv2d(16, 32, 3))
-    return RetrievalNet(trunk, GeMPooling(p=3.0), 32)
+    return RetrievalNet(trunk, GeMPooling(32, p=3.0, trainable=True), 32)
 
 
 def by_hand(network: RetrievalNet, paths) -> np.ndarray:

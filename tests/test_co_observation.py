@@ -4,7 +4,6 @@ import helpers
 import kapture.io.records as kapture_records
 import numpy as np
 import pytest
-from scipy import sparse
 from scipy.stats import spearmanr
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
@@ -216,11 +215,12 @@ def test_database_co_observations_train_by_the_share_of_points_of_the_global_map
     settings = TrainingRelevanceSettings(
         {"type": "co_observation", "min_shared": 5, "query_pairs": 50}, NegativeSettings("unrelated", 0.1, None, None)
     )
-    graded = training_pairs(
-        scene.database, settings, DefinitionContext(far=25.0, shared_points=sparse.csr_matrix(counts))
-    ).graded.toarray()
+    context = DefinitionContext(far=25.0, sfm=SFM, cache_dir=cache, world=world)
+    graded = training_pairs(world.database, settings, context).graded.toarray()
     share = np.where(expected >= 5, expected / np.diag(expected)[:, None], 0.0)
     np.fill_diagonal(share, 0.0)
     np.testing.assert_allclose(graded, share)
-    with pytest.raises(ValueError, match="needs the shared 3D points of the 40 images"):
+    with pytest.raises(ValueError, match="co-observation training relevance needs the world's known-pose map"):
         training_pairs(scene.database, settings, DefinitionContext(far=25.0))
+    with pytest.raises(ValueError, match="the images graded are not the database of scene 'tiny'"):
+        training_pairs(scene.database.subset(np.arange(5)), settings, context)

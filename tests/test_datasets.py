@@ -15,7 +15,7 @@ from test_kapture_io import PINHOLE, pose, write_kapture
 
 from locretrieval.scene import Scene
 from locretrieval.scene.datasets import DatasetNotFoundError
-from locretrieval.scene.kapture_io import LTVL_NAME_STYLES, ltvl_name
+from locretrieval.scene.ltvl import LTVL_NAME_STYLES, ltvl_name
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 DATASETS = ["aachen", "baidu", "robotcar", "robotcar_v2", "gangnam", "inloc"]

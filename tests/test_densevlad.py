@@ -12,15 +12,15 @@ from PIL import Image
 from scipy.ndimage import gaussian_filter
 
 from locretrieval.models import DenseVLAD, densevlad
-from locretrieval.models.densevlad import (
+from locretrieval.models.dense_sift import (
     cpu_lattice,
     cpu_rootsift,
     dense_rootsift,
     gradient_histograms,
     grid_layout,
-    normalize_vlad,
-    vlad_residuals,
+    window_weights,
 )
+from locretrieval.models.vlad import normalize_vlad, vlad_residuals
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.retrieval.index import search
 from locretrieval.scene import Camera, ImageSet, Scene
@@ -135,7 +135,7 @@ def test_dense_rootsift_matches_explicit_loops(bin_size, step, max_bin_size):
 def test_cpu_kernels_build_the_same_rootsift(bin_size, step, max_bin_size):
     image = torch.from_numpy(texture(7, 64)[:44, :52].astype(np.float32) / 255.0)[None]
     pooled, geometry = cpu_lattice(image, bin_size, step, max_bin_size)
-    window = densevlad._window_weights(1.5, torch.device("cpu")).numpy()
+    window = window_weights(1.5, torch.device("cpu")).numpy()
     descriptors, contrast = cpu_rootsift(pooled, geometry, slice(0, geometry.rows), window)
     np.testing.assert_allclose(descriptors, explicit_rootsift(image[None], bin_size, step, max_bin_size), atol=2e-5)
     expected_descriptors, expected_contrast = dense_rootsift(image[None], bin_size, step, max_bin_size)

@@ -287,9 +287,7 @@ def test_a_file_of_another_layout_or_with_keys_missing_is_refused_naming_it(dino
 
 def test_dinovs_own_backbone_file_fills_the_trunk_and_a_new_head_is_random(dinov2_base, tmp_path):
     torch.save(dinov2_base, tmp_path / "dinov2_vitb14_pretrain.pth")
-    model = load_model(
-        "dinov2", tmp_path / "dinov2_vitb14_pretrain.pth", "model.random_init=true", "model.pooling.type=boq"
-    )
+    model = load_model("dinov2", tmp_path / "dinov2_vitb14_pretrain.pth", "model.random_init=true", "model/pooling=boq")
     trunk = dict(model.network.backbone.timm.state_dict())
     assert all(torch.equal(trunk[k], v) for k, v in dinov2_base.items() if k != "mask_token")
     assert model.weights.random_parameters and all(

@@ -5,6 +5,8 @@ import re
 from pathlib import Path
 
 import yaml
+from hydra.conf import HydraConf
+from omegaconf import OmegaConf
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -22,8 +24,8 @@ def _paths(node, prefix: tuple[str, ...]):
 
 def config_keys() -> set[tuple[str, ...]]:
     """Every key path any config file defines, under the package it lands in (its group's path,
-    or the root for ``@package _global_`` files and the primary configs)."""
-    keys = set()
+    or the root for ``@package _global_`` files and the primary configs), and Hydra's own."""
+    keys = set(_paths(OmegaConf.to_container(OmegaConf.structured(HydraConf)), ("hydra",)))
     for path in CONFIGS.rglob("*.yaml"):
         text = path.read_text()
         group = path.relative_to(CONFIGS).parent.parts
@@ -86,3 +88,4 @@ def test_the_scan_finds_a_removed_key():
     assert "sfm.features.type" in named_keys("run `python evaluate.py sfm.features.type=kapture` there")
     assert named_keys("`python report.py run`, `+model.pooling.out_channels=1024`") == set()  # a script; an added key
     assert ("sfm", "features", "type") not in config_keys() and ("sfm", "features", "name") in config_keys()
+    assert ("hydra", "searchpath") in config_keys() and ("hydra", "search_path") not in config_keys()

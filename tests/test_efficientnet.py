@@ -17,6 +17,7 @@ from PIL import Image
 
 from locretrieval.groundtruth import relative_pose_groundtruth
 from locretrieval.models import MissingWeightsError, TrainableDescriptor, efficientnet
+from locretrieval.models.backbones import EfficientNetLiteBackbone, TorchvisionBackbone
 from locretrieval.models.efficientnet import (
     VARIANTS,
     lite_trunk,
@@ -42,8 +43,8 @@ EXTRACTION = {
 }
 GEM = dict(
     name="gem",
-    backbone="efficientnet_lite0",
-    pooling={"type": "gem", "p": 3.0, "trainable": True},
+    backbone=EfficientNetLiteBackbone("efficientnet_lite0"),
+    pooling={"_target_": "locretrieval.models.networks.GeMPooling", "p": 3.0, "trainable": True},
     whiten_dim=None,
     max_side=None,
     scales=[1.0],
@@ -310,16 +311,16 @@ def test_checkpoints_of_the_hand_written_trunk_of_0_4_0_still_load(package_state
 def test_package_weights_for_another_backbone_are_refused_naming_the_file_and_backbone():
     from pathlib import Path
 
-    from locretrieval.models.trainable import read_trainable_weights
+    from locretrieval.models.trainable import imagenet_weights
 
     lite1 = Path(package_weights_path("efficientnet_lite1"))
     with pytest.raises(
         ValueError,
         match=r"efficientnet-lite1-77cc7160\.pth: an EfficientNet-Lite "
-        r"package's weights, but model\.backbone is 'resnet50'",
+        r"package's weights, but model\.backbone is torchvision's 'resnet50'",
     ):
-        read_trainable_weights(lite1, "trainable", {"backbone": "resnet50"})
+        imagenet_weights(TorchvisionBackbone("resnet50"), lite1)
     with pytest.raises(ValueError, match=r"efficientnet-lite1-77cc7160\.pth: not the layout of efficientnet_lite0"):
-        read_trainable_weights(lite1, "trainable", {"backbone": "efficientnet_lite0"})
-    state, _ = read_trainable_weights(lite1, "trainable", {})  # no backbone named: the layout says which
+        imagenet_weights(EfficientNetLiteBackbone("efficientnet_lite0"), lite1)
+    state = imagenet_weights(EfficientNetLiteBackbone("efficientnet_lite1"), lite1)
     assert len(state) == 384 and "backbone.timm.blocks.5.4.conv_dw.weight" in state

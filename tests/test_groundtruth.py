@@ -435,9 +435,12 @@ class CameraDistance:
 
         return groundtruth_from_scores(name, database, queries, depth, score_block)
 
-    def graded(self, images, rows, context):
-        distance = self.distances(images, rows, images)
-        return np.where(distance < self.radius, 1.0 - distance / self.radius, 0.0)
+    def graded(self, images, context):
+        def grade(rows):
+            distance = self.distances(images, rows, images)
+            return np.where(distance < self.radius, 1.0 - distance / self.radius, 0.0)
+
+        return grade
 
 
 OUTSIDE = f"{__name__}.CameraDistance"

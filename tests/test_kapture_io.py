@@ -11,14 +11,9 @@ import pytest
 from PIL import Image
 
 from locretrieval import geometry
-from locretrieval.scene import Camera
-from locretrieval.scene.kapture_io import (
-    KaptureFormatError,
-    load_image_set,
-    load_kapture_scene,
-    ltvl_name,
-    write_ltvl,
-)
+from locretrieval.scene import Camera, kapture_io
+from locretrieval.scene.kapture_io import KaptureFormatError, load_image_set, load_kapture_scene
+from locretrieval.scene.ltvl import ltvl_name, write_ltvl
 
 PINHOLE = kapture.Camera(kapture.CameraType.PINHOLE, [40, 30, 35.0, 36.0, 20.0, 15.0])
 SIMPLE_RADIAL = kapture.Camera(kapture.CameraType.SIMPLE_RADIAL, [32, 24, 30.0, 16.0, 12.0, 0.01])
@@ -165,6 +160,22 @@ def test_mapping_folder_round_trip(mapping):
     assert images.mask_paths == [None, None, root / "masks/rig/cam0/001.png", None, None]
 
 
+def test_each_file_is_parsed_once_by_the_checked_reader(mapping, monkeypatch):
+    """kapture's CSV readers (which skip or crash on bad lines) are not run after the checked pass;
+    every file the folder holds is read once, and the poses are the same."""
+    root, expected = mapping
+    reads = []
+    original = kapture_io.read_csv_rows
+    monkeypatch.setattr(kapture_io, "read_csv_rows", lambda path, *a: reads.append(path.name) or original(path, *a))
+    for reader in ("sensors_from_file", "rigs_from_file", "trajectories_from_file", "records_camera_from_file"):
+        monkeypatch.setattr(kapture.io.csv, reader, lambda *a, **k: pytest.fail("kapture's reader parsed a file again"))
+    images = load_image_set(root)
+    assert_poses(images, expected)
+    assert sorted(reads) == sorted(
+        ["sensors.txt", "rigs.txt", "records_camera.txt", "trajectories.txt", "records_depth.txt"]
+    )
+
+
 def test_pose_of_rig_camera_recovered_from_its_sibling(tmp_path):
     """RobotCar Seasons v2 gives only the rear camera's pose for its new training images."""
     rear_from_rig, T_rear_rig = pose("y", 180.0, [0.0, 0.2, -1.0])
@@ -211,7 +222,9 @@ def test_scene_from_mapping_and_two_query_folders(tmp_path, mapping):
     ]
     assert scene.queries.image_root == tmp_path
     assert scene.sources == [mapping_root, day, night]
-    tagged = load_kapture_scene("toy", mapping_root, [day, night], ["day", "night"], name_tags={"cam0": "/cam0/"})
+    tagged = load_kapture_scene(
+        "toy", mapping_root, [day, night], query_tags=["day", "night"], name_tags={"cam0": "/cam0/"}
+    )
     assert tagged.queries.tags == [frozenset({"day"})] * 2 + [frozenset({"night"})]
     assert tagged.database.tag_mask("cam0").tolist() == [True, False, True, False, False]
 

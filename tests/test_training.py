@@ -413,7 +413,8 @@ def test_two_process_cpu_ddp_smoke_run(tmp_path):
         *TINY_TRAINING,
         "trainer.max_epochs=1",
         "trainer.enable_progress_bar=false",
-        "model.backbone=resnet18",
+        "model/backbone=torchvision",
+        "model.backbone.name=resnet18",
         "model.weights=null",
         "model.random_init=true",
         "logger={}",
@@ -471,7 +472,9 @@ def test_hard_negatives_are_the_highest_ranked_unrelated_images_by_the_current_n
 
     torch.manual_seed(0)
     network = RetrievalNet(
-        torch.nn.Sequential(torch.nn.Conv2d(3, 16, 5, stride=2), torch.nn.ReLU()), GeMPooling(3.0), 16
+        torch.nn.Sequential(torch.nn.Conv2d(3, 16, 5, stride=2), torch.nn.ReLU()),
+        GeMPooling(16, 3.0, trainable=True),
+        16,
     )
     pairs = training_pairs(scene.database, RELATIVE_POSE, AT_25M)
     sampler = RelevanceBatchSampler(pairs, anchors=4, negatives=4, batches_per_epoch=1, seed=0)
@@ -812,7 +815,7 @@ def test_head_lr_scale_moves_the_head_that_much_faster_than_the_backbone(frozen_
 
     torch.manual_seed(0)
     trunk = torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, stride=2), torch.nn.ReLU())
-    network = RetrievalNet(trunk, GeMPooling(3.0, trainable=False), 8, whitening=torch.nn.Linear(8, 4))
+    network = RetrievalNet(trunk, GeMPooling(8, 3.0, trainable=False), 8, whitening=torch.nn.Linear(8, 4))
     module = RetrievalTraining(
         network,
         Preprocessing(max_side=None, scales=(1.0,)),
@@ -919,7 +922,7 @@ def test_the_parameters_of_a_loss_are_optimized(tmp_path, head_lr_scale):
 
     torch.manual_seed(0)
     network = RetrievalNet(
-        torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, stride=2), torch.nn.ReLU()), GeMPooling(3.0, trainable=False), 8
+        torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, stride=2), torch.nn.ReLU()), GeMPooling(8, 3.0, trainable=False), 8
     )
     loss = TemperatureLoss()
     module = RetrievalTraining(

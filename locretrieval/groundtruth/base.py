@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from locretrieval.config import ConfigError
 from locretrieval.retrieval import EMPTY, Ranking, relevant_hits, top_k
-from locretrieval.scene import ImageSet
+from locretrieval.scene import ImageSet, Scene
 
 if TYPE_CHECKING:
     from locretrieval.localization.sfm import SfmSettings
@@ -26,21 +26,23 @@ PAIRS_PER_CHUNK = 1 << 17
 #: the similarity of every pair (higher is better), which pairs may be ranked at all, and
 #: which are relevant.
 ScoreBlock = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+#: ``grade(rows) -> [len(rows), N]``: the graded relevance of images ``rows`` of a set to all of its images.
+GradedRows = Callable[[np.ndarray], np.ndarray]
 
 
 @dataclass(frozen=True)
 class DefinitionContext:
-    """What a definition may need besides the images' poses and cameras: ``far``, the far plane
-    (metres) of frusta whose definition leaves it ``None`` (the scene's); for definitions that
-    match local features (``uses_sfm``), the SfM paradigms' ``sfm`` settings and ``cache_dir``
-    (benchmark rankings), or the precomputed ``shared_points [N, N]`` of a training image set
-    (`locretrieval.groundtruth.co_observation.database_co_observations`); ``key``: the config key
-    of the definition and the ``scene``'s name, named in errors."""
+    """Where a definition is evaluated, for what it needs besides the images' poses and cameras
+    (each definition derives its own data from these): ``far``, the far plane (metres) of frusta
+    whose definition leaves it ``None`` (the scene's); the SfM paradigms' ``sfm`` settings and
+    ``cache_dir`` (for definitions that match local features, ``uses_sfm``); for training relevance,
+    the ``world`` whose database images are graded (co-observation reads its known-pose map);
+    ``key``: the config key of the definition and the ``scene``'s name, named in errors."""
 
     far: float | None = None
     sfm: "SfmSettings | None" = None
     cache_dir: Path | None = None
-    shared_points: sparse.csr_matrix | None = None
+    world: Scene | None = None
     key: str = "groundtruth.definitions"
     scene: str = ""
 
@@ -70,9 +72,11 @@ class Definition(Protocol):
     ) -> "GroundTruth":
         """The ranking (top ``depth``) and relevance of ``queries`` against ``database``."""
 
-    def graded(self, images: ImageSet, rows: np.ndarray, context: DefinitionContext) -> np.ndarray:
-        """``[len(rows), N]`` relevance of images ``rows`` to every image of ``images``: > 0 where
-        relevant, higher for more relevant pairs, 0 elsewhere (the diagonal is the caller's)."""
+    def graded(self, images: ImageSet, context: DefinitionContext) -> GradedRows:
+        """``grade(rows)``: the ``[len(rows), N]`` relevance of images ``rows`` to every image of
+        ``images``: > 0 where relevant, higher for more relevant pairs, 0 elsewhere (the diagonal
+        is the caller's). What every row needs is computed here, once; ``grade`` is called per
+        chunk of rows."""
 
 
 @dataclass(frozen=True)

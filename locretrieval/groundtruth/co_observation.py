@@ -24,7 +24,7 @@ import numpy as np
 from scipy import sparse
 
 from locretrieval.config import require
-from locretrieval.groundtruth.base import DefinitionContext, GroundTruth, groundtruth_from_scores
+from locretrieval.groundtruth.base import DefinitionContext, GradedRows, GroundTruth, groundtruth_from_scores
 from locretrieval.localization.features import extract_features
 from locretrieval.localization.global_sfm import global_map
 from locretrieval.localization.matching import PairMatcher
@@ -50,30 +50,46 @@ class CoObservationDefinition:
     def groundtruth(
         self, database: ImageSet, queries: ImageSet, depth: int, name: str, context: DefinitionContext
     ) -> GroundTruth:
-        """`co_observation_groundtruth` with these parameters and ``context``'s SfM settings and cache."""
+        """Database images ranked by the number of 3D points they share with each query.
+
+        ``context.sfm``: the SfM paradigms' settings; its ``map_pairs`` (whose ``far`` must be set)
+        select the database pairs, and each query is paired with its ``query_pairs`` most
+        overlapping database images with the same frusta. Features and matches are cached under
+        ``context.cache_dir`` (a temporary folder when None)."""
         if context.sfm is None:
             raise ValueError(f"ground truth {name!r}: co-observation needs the sfm settings")
-        return co_observation_groundtruth(
-            database,
-            queries,
-            depth=depth,
-            name=name,
-            sfm=context.sfm,
-            cache_dir=context.cache_dir,
-            **dataclasses.asdict(self),
-        )
+        if context.cache_dir is None:
+            with tempfile.TemporaryDirectory(prefix="co_observation-") as folder:
+                in_folder = dataclasses.replace(context, cache_dir=Path(folder))
+                return self.groundtruth(database, queries, depth, name, in_folder)
+        shared = shared_points(database, queries, Path(context.cache_dir), context.sfm, self.query_pairs)
 
-    def graded(self, images: ImageSet, rows: np.ndarray, context: DefinitionContext) -> np.ndarray:
-        """The share of each row image's 3D points (``context.shared_points``, the diagonal: its own)
-        that the other image observes too, where they share at least ``min_shared``; else 0."""
-        shared_points = context.shared_points
-        if shared_points is None or shared_points.shape != (len(images), len(images)):
+        def score_block(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            counts = shared[rows].toarray().astype(np.float64)
+            return counts, counts > 0, counts >= self.min_shared
+
+        return groundtruth_from_scores(name, database, queries, depth, score_block)
+
+    def graded(self, images: ImageSet, context: DefinitionContext) -> GradedRows:
+        """The share of each row image's 3D points that the other image observes too, where they
+        share at least ``min_shared``; else 0. The points are those of the known-pose map of
+        ``context.world`` (`database_co_observations`; ``images``: its database)."""
+        world = context.world
+        if world is None or context.sfm is None or context.cache_dir is None:
             raise ValueError(
-                f"co-observation training relevance needs the shared 3D points of the {len(images)} images"
+                f"{context.key}: co-observation training relevance needs the world's known-pose map "
+                "(DefinitionContext world, sfm and cache_dir)"
             )
-        shared = shared_points[rows].toarray().astype(np.float64)
-        own = np.maximum(shared[np.arange(len(rows)), rows], 1.0)[:, None]
-        return np.where(shared >= self.min_shared, shared / own, 0.0)
+        if list(world.database.names) != list(images.names):
+            raise ValueError(f"{context.key}: the images graded are not the database of scene {world.name!r}")
+        counts = database_co_observations(world, context.sfm, context.cache_dir)
+
+        def grade(rows: np.ndarray) -> np.ndarray:
+            shared = counts[rows].toarray().astype(np.float64)
+            own = np.maximum(shared[np.arange(len(rows)), rows], 1.0)[:, None]
+            return np.where(shared >= self.min_shared, shared / own, 0.0)
+
+        return grade
 
 
 def co_observation_groundtruth(
@@ -87,33 +103,9 @@ def co_observation_groundtruth(
     cache_dir: str | Path | None = None,
     name: str = "gt_co_observation",
 ) -> GroundTruth:
-    """Database images ranked by the number of 3D points they share with each query.
-
-    ``sfm``: the SfM paradigms' settings; its ``map_pairs`` (whose ``far`` must be set) select
-    the database pairs, and each query is paired with its ``query_pairs`` most overlapping
-    database images with the same frusta. Features and matches are cached under
-    ``cache_dir`` (a temporary folder when None).
-    """
-    CoObservationDefinition(min_shared, query_pairs)  # range checks
-    if cache_dir is None:
-        with tempfile.TemporaryDirectory(prefix="co_observation-") as folder:
-            return co_observation_groundtruth(
-                database,
-                queries,
-                depth=depth,
-                min_shared=min_shared,
-                query_pairs=query_pairs,
-                sfm=sfm,
-                cache_dir=folder,
-                name=name,
-            )
-    shared = shared_points(database, queries, Path(cache_dir), sfm, query_pairs)
-
-    def score_block(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        counts = shared[rows].toarray().astype(np.float64)
-        return counts, counts > 0, counts >= min_shared
-
-    return groundtruth_from_scores(name, database, queries, depth, score_block)
+    """`CoObservationDefinition.groundtruth` of these parameters, by keyword."""
+    context = DefinitionContext(sfm=sfm, cache_dir=Path(cache_dir) if cache_dir is not None else None)
+    return CoObservationDefinition(min_shared, query_pairs).groundtruth(database, queries, depth, name, context)
 
 
 def shared_points(

@@ -6,7 +6,6 @@ the two truncated viewing frusta (`locretrieval.frusta`, an exact linear program
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -14,7 +13,7 @@ import numpy as np
 
 from locretrieval.config import require
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
-from locretrieval.groundtruth.base import DefinitionContext, GroundTruth, groundtruth_from_scores
+from locretrieval.groundtruth.base import DefinitionContext, GradedRows, GroundTruth, groundtruth_from_scores
 from locretrieval.scene import ImageSet
 
 
@@ -40,16 +39,29 @@ class FrustumDefinition:
     def groundtruth(
         self, database: ImageSet, queries: ImageSet, depth: int, name: str, context: DefinitionContext
     ) -> GroundTruth:
-        """`frustum_groundtruth` with these parameters (``far`` ``None``: the scene's)."""
-        parameters = {**dataclasses.asdict(self), "far": context.far_plane(self.far)}
-        return frustum_groundtruth(database, queries, depth=depth, name=name, **parameters)
+        """Database images ranked by decreasing frustum-overlap radius (metres).
 
-    def graded(self, images: ImageSet, rows: np.ndarray, context: DefinitionContext) -> np.ndarray:
+        Frusta are the pinhole viewing pyramids (distortion ignored) truncated at depths ``near``
+        and ``far`` (``None``: the scene's) along the optical axis. Pairs whose frusta share no
+        interior (radius 0) are never ranked; a pair is relevant when its radius exceeds
+        ``min_radius``."""
+        database_frusta = self.frusta(database, np.arange(len(database)), context)
+
+        def score_block(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            radii = pairwise_overlap_radii(self.frusta(queries, rows, context), database_frusta)
+            return radii, radii > 0, radii > self.min_radius
+
+        return groundtruth_from_scores(name, database, queries, depth, score_block)
+
+    def graded(self, images: ImageSet, context: DefinitionContext) -> GradedRows:
         """The overlap radius (metres) where it exceeds ``min_radius``, else 0."""
-        radii = pairwise_overlap_radii(
-            self.frusta(images, rows, context), self.frusta(images, np.arange(len(images)), context)
-        )
-        return np.where(radii > self.min_radius, radii, 0.0)
+        frusta = self.frusta(images, np.arange(len(images)), context)
+
+        def grade(rows: np.ndarray) -> np.ndarray:
+            radii = pairwise_overlap_radii(frusta[rows], frusta)
+            return np.where(radii > self.min_radius, radii, 0.0)
+
+        return grade
 
 
 def frustum_groundtruth(
@@ -62,18 +74,5 @@ def frustum_groundtruth(
     min_radius: float,
     name: str = "gt_frustum",
 ) -> GroundTruth:
-    """Database images ranked by decreasing frustum-overlap radius (metres).
-
-    Frusta are the pinhole viewing pyramids (distortion ignored) truncated at depths
-    ``near`` and ``far`` along the optical axis. Pairs whose frusta share no interior
-    (radius 0) are never ranked; a pair is relevant when its radius exceeds ``min_radius``.
-    """
-    FrustumDefinition(near, far, min_radius)  # range checks
-    database_frusta = TruncatedFrusta.of_images(database, np.arange(len(database)), near, far)
-
-    def score_block(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        query_frusta = TruncatedFrusta.of_images(queries, rows, near, far)
-        radii = pairwise_overlap_radii(query_frusta, database_frusta)
-        return radii, radii > 0, radii > min_radius
-
-    return groundtruth_from_scores(name, database, queries, depth, score_block)
+    """`FrustumDefinition.groundtruth` of these parameters, by keyword."""
+    return FrustumDefinition(near, far, min_radius).groundtruth(database, queries, depth, name, DefinitionContext())

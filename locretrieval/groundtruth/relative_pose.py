@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -10,7 +9,7 @@ import numpy as np
 
 from locretrieval import geometry
 from locretrieval.config import require
-from locretrieval.groundtruth.base import DefinitionContext, GroundTruth, groundtruth_from_scores
+from locretrieval.groundtruth.base import DefinitionContext, GradedRows, GroundTruth, groundtruth_from_scores
 from locretrieval.scene import ImageSet
 
 #: Which database images a relative-pose ranking holds: only those within both thresholds (as
@@ -56,13 +55,32 @@ class RelativePoseDefinition:
     def groundtruth(
         self, database: ImageSet, queries: ImageSet, depth: int, name: str, context: DefinitionContext
     ) -> GroundTruth:
-        """`relative_pose_groundtruth` with these parameters."""
-        return relative_pose_groundtruth(database, queries, depth=depth, name=name, **dataclasses.asdict(self))
+        """Database images ranked by increasing ``s_rcp``, relevant within both thresholds.
 
-    def graded(self, images: ImageSet, rows: np.ndarray, context: DefinitionContext) -> np.ndarray:
+        The thresholds play both roles the paper gives 25 m and 45 degrees: the normalisers
+        ``tau_c`` and ``tau_R`` of the score, and the relevance criterion ``c_diff <
+        position_threshold and R_diff < rotation_threshold``. The ranking stores the
+        similarity ``-s_rcp`` (higher is better). ``ranked="within_thresholds"`` ranks only the
+        relevant images, as the reference pairing tool does (a query with 3 relevant images has
+        3, and paradigm 1 at larger k averages those 3); ``"all"`` ranks every database image, so
+        a query with fewer relevant images than ``k`` gets its ``k`` closest ones.
+        """
+
+        def score_block(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            score, relevant = self.scores(queries, rows, database)
+            rankable = relevant if self.ranked == "within_thresholds" else np.ones(score.shape, dtype=bool)
+            return -score, rankable, relevant
+
+        return groundtruth_from_scores(name, database, queries, depth, score_block)
+
+    def graded(self, images: ImageSet, context: DefinitionContext) -> GradedRows:
         """``1 - s_rcp / 2`` within both thresholds (there ``s_rcp < 2``: in (0, 1]), else 0."""
-        score, relevant = self.scores(images, rows, images)
-        return np.where(relevant, 1.0 - score / 2.0, 0.0)
+
+        def grade(rows: np.ndarray) -> np.ndarray:
+            score, relevant = self.scores(images, rows, images)
+            return np.where(relevant, 1.0 - score / 2.0, 0.0)
+
+        return grade
 
 
 def relative_pose_scores(
@@ -95,21 +113,6 @@ def relative_pose_groundtruth(
     ranked: str = "within_thresholds",
     name: str = "gt_relative_pose",
 ) -> GroundTruth:
-    """Database images ranked by increasing ``s_rcp``, relevant within both thresholds.
-
-    The thresholds play both roles the paper gives 25 m and 45 degrees: the normalisers
-    ``tau_c`` and ``tau_R`` of the score, and the relevance criterion ``c_diff <
-    position_threshold and R_diff < rotation_threshold``. The ranking stores the
-    similarity ``-s_rcp`` (higher is better). ``ranked="within_thresholds"`` ranks only the
-    relevant images, as the reference pairing tool does (a query with 3 relevant images has
-    3, and paradigm 1 at larger k averages those 3); ``"all"`` ranks every database image, so
-    a query with fewer relevant images than ``k`` gets its ``k`` closest ones.
-    """
-    definition = RelativePoseDefinition(position_threshold, rotation_threshold, ranked)  # range checks
-
-    def score_block(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        score, relevant = definition.scores(queries, rows, database)
-        rankable = relevant if ranked == "within_thresholds" else np.ones(score.shape, dtype=bool)
-        return -score, rankable, relevant
-
-    return groundtruth_from_scores(name, database, queries, depth, score_block)
+    """`RelativePoseDefinition.groundtruth` of these parameters, by keyword."""
+    definition = RelativePoseDefinition(position_threshold, rotation_threshold, ranked)
+    return definition.groundtruth(database, queries, depth, name, DefinitionContext())

@@ -19,14 +19,16 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from locretrieval.models.backbones import TorchvisionBackbone
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD, ExtractionSettings, Preprocessing
-from locretrieval.models.networks import RetrievalNet, build_retrieval_net, load_weights
+from locretrieval.models.networks import GeMPooling, RetrievalNet, build_retrieval_net, load_weights, pooling_settings
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 from locretrieval.models.weights import (
     WEIGHT_SOURCES,
@@ -199,8 +201,14 @@ def convert_apgem(source: str | os.PathLike, destination: str | os.PathLike) -> 
 def build_apgem_network(
     backbone: str = "resnet101", out_dim: int = 2048, projection_dim: int | None = None
 ) -> RetrievalNet:
-    """GeM (learned ``p``) -> FC ``out_dim`` as the whitening -> optional PCA as the projection."""
-    return build_retrieval_net(backbone, {"type": "gem", "p": 3.0, "trainable": True}, out_dim, projection_dim)
+    """GeM (learned ``p``) -> FC ``out_dim`` as the whitening -> optional PCA as the projection, on
+    torchvision's ``backbone``."""
+    return build_retrieval_net(
+        TorchvisionBackbone(backbone),
+        pooling_settings(partial(GeMPooling, p=3.0, trainable=True)),
+        out_dim,
+        projection_dim,
+    )
 
 
 class APGeMDescriptor(TorchGlobalDescriptor):

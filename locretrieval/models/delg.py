@@ -111,7 +111,7 @@ def build_delg_network(
     units: Sequence[int] = RESNET_V1_101_UNITS, whiten_dim: int = 2048, gem_power: float = 3.0, bn_eps: float = 1e-5
 ) -> RetrievalNet:
     trunk = slim_resnet_v1(units, bn_eps)
-    return RetrievalNet(trunk, GeMPooling(gem_power, trainable=False), 2048, nn.Linear(2048, whiten_dim))
+    return RetrievalNet(trunk, GeMPooling(2048, gem_power, trainable=False), 2048, nn.Linear(2048, whiten_dim))
 
 
 _BACKBONE_VARIABLE = re.compile(

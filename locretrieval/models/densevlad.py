@@ -19,18 +19,10 @@ word's residual); vocabulary and PCA are learned on each database (the authors s
 learned on their own data), and the PCA is centred (their projection is applied to
 uncentred VLADs).
 
-Dense SIFT: the gradient-orientation histograms are kornia's (computed here without its
-3 x 3 convolution, which dominated the run time); the spatial pooling is our own (a
-depthwise triangle filter evaluated only on the sampled lattice), because kornia's
-``DenseSIFTDescriptor`` pools each cell over ``bin_size`` px instead of VLFeat's bilinear
-``2 * bin_size - 1``, has no cell window, and normalises without exposing the contrast
-that ``vl_phow`` thresholds. Descriptors are built and assigned to their words a few grid
-rows at a time, so the working set stays bounded whatever the image size.
-
-Two implementations of the same maths: torch (`sift_lattice`, `SiftLattice.rootsift`, batches
-of images; the reference, and the GPU path) and, on CPU, one image per thread through the numba
-kernels of `locretrieval.models.densevlad_kernels` (`cpu_lattice`, `cpu_rootsift`) with a
-single-threaded matrix product for the word assignment; they agree within float32 rounding.
+The parts: dense RootSIFT in `locretrieval.models.dense_sift` (torch batches on a GPU, numba
+kernels one image per thread on CPU), the vocabulary, VLAD and whitening in
+`locretrieval.models.vlad`; this module loads and batches the images and learns and applies the
+model on a database.
 """
 
 from __future__ import annotations
@@ -40,21 +32,17 @@ import logging
 import math
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 from typing import Any
 
-import faiss
-import kornia
 import numpy as np
 import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
 from locretrieval.device import resolve_device
-from locretrieval.models import densevlad_kernels as kernels
 from locretrieval.models.base import GlobalDescriptor
-from locretrieval.models.densevlad_kernels import ANGLE_BINS, SIFT_CLIP
-from locretrieval.models.densevlad_kernels import EPS as _EPS
+from locretrieval.models.dense_sift import SIFT_DIM, cpu_lattice, cpu_rootsift, sift_lattice, window_weights
+from locretrieval.models.vlad import VladAccumulator, kmeans_vocabulary, normalize_vlad, pca_whitening
 from locretrieval.scene import ImageSet
 from locretrieval.scene.images import read_image
 
@@ -62,332 +50,12 @@ log = logging.getLogger(__name__)
 
 #: Bumped whenever a code change alters the descriptors (part of the cache key).
 IMPLEMENTATION_VERSION = 3
-SPATIAL_BINS = 4
-SIFT_DIM = SPATIAL_BINS * SPATIAL_BINS * ANGLE_BINS
-#: kornia's guard of the gradient magnitude and orientation.
-_GRADIENT_EPS = 1e-10
 #: Descriptors built and assigned at a time on a GPU (8 MB of them): fewer, larger chunks
 #: were faster (fewer tensor operations), and the working set stays bounded.
 CHUNK_POINTS = 16384
 #: The same on CPU, one image per thread: 2048 descriptors (1 MB) and their word scores stay
 #: in cache, where the single-threaded matrix product runs at ~70 GFLOP/s instead of ~50.
 CPU_CHUNK_POINTS = 2048
-
-
-def grid_layout(size: int, max_bin_size: int, step: int) -> tuple[int, int]:
-    """``(first, count)``: descriptor centres ``first + i * step`` along an axis of ``size`` px.
-
-    The grid is shared by every bin size up to ``max_bin_size``: the outermost cell centres
-    of the widest descriptor lie inside the image (pixel-centre coordinates, first pixel 0).
-    """
-    first = (3 * max_bin_size) // 2
-    last = size - 1 - (3 * max_bin_size + 1) // 2
-    return first, max(0, (last - first) // step + 1)
-
-
-@dataclass(frozen=True)
-class LatticeGeometry:
-    """Where the cells of one SIFT scale fall: ``rows x cols`` grid points; lattice entry
-    ``(j, i)`` is the pixel ``(origin_y + j * stride, origin_x + i * stride)``, the first grid
-    point's first cell centre is entry ``(0, 0)``, cells are ``cell_step`` entries apart and grid
-    points ``grid_step``; ``lattice_rows x lattice_cols`` entries hold every cell."""
-
-    rows: int
-    cols: int
-    origin_y: int
-    origin_x: int
-    stride: int
-    cell_step: int
-    grid_step: int
-
-    @property
-    def lattice_rows(self) -> int:
-        return (self.rows - 1) * self.grid_step + (SPATIAL_BINS - 1) * self.cell_step + 1
-
-    @property
-    def lattice_cols(self) -> int:
-        return (self.cols - 1) * self.grid_step + (SPATIAL_BINS - 1) * self.cell_step + 1
-
-    def row_chunks(self, max_points: int, images: int = 1) -> Iterator[slice]:
-        """Slices of grid rows holding at most ``max_points`` descriptors of ``images`` images (one row at least)."""
-        step = max(1, max_points // (images * self.cols))
-        for start in range(0, self.rows, step):
-            yield slice(start, min(start + step, self.rows))
-
-
-def lattice_geometry(height: int, width: int, bin_size: int, step: int, max_bin_size: int) -> LatticeGeometry:
-    """The `LatticeGeometry` of SIFT bins of ``bin_size`` px on the grid of `grid_layout`."""
-    first_y, rows = grid_layout(height, max_bin_size, step)
-    first_x, cols = grid_layout(width, max_bin_size, step)
-    if rows == 0 or cols == 0:
-        raise ValueError(f"image of {width}x{height} px is too small for SIFT bins of {max_bin_size} px")
-    stride = math.gcd(step, bin_size)
-    first_cell = (3 * bin_size) // 2
-    return LatticeGeometry(
-        rows, cols, first_y - first_cell, first_x - first_cell, stride, bin_size // stride, step // stride
-    )
-
-
-def _triangle_kernel(bin_size: int, device: torch.device) -> torch.Tensor:
-    """Bilinear spatial-binning weights ``1 - |d| / bin_size`` for ``|d| < bin_size``."""
-    offsets = torch.arange(1 - bin_size, bin_size, device=device, dtype=torch.float32)
-    return 1.0 - offsets.abs() / bin_size
-
-
-def _window_weights(window_size: float, device: torch.device) -> torch.Tensor:
-    """Gaussian weight ``[16]`` of each spatial cell (row-major), sigma ``window_size`` bins."""
-    offsets = torch.arange(SPATIAL_BINS, device=device, dtype=torch.float32) - (SPATIAL_BINS - 1) / 2
-    weights = torch.exp(-0.5 * (offsets / window_size) ** 2)
-    return torch.outer(weights, weights).flatten()
-
-
-def smoothed(images: torch.Tensor, bin_size: int, magnification: float) -> torch.Tensor:
-    """``images [B, 1, H, W]`` pre-smoothed for SIFT bins of ``bin_size`` px (``vl_phow``): a
-    Gaussian of sigma ``sqrt((bin_size / magnification)^2 - 0.25)`` px, none when that is not real."""
-    sigma_squared = (bin_size / magnification) ** 2 - 0.25
-    if sigma_squared <= 0:
-        return images
-    sigma = math.sqrt(sigma_squared)
-    kernel_size = 2 * math.ceil(3 * sigma) + 1
-    return kornia.filters.gaussian_blur2d(images, (kernel_size, kernel_size), (sigma, sigma))
-
-
-def gradient_orientations(images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(magnitude, position) [B, H, W]`` of the gradients of ``[B, 1, H, W]``, as kornia's
-    ``DenseSIFTDescriptor`` computes them: central differences ``(I[x + 1] - I[x - 1]) / 2`` with
-    replicated borders, magnitude ``sqrt(gx^2 + gy^2 + 1e-10)`` (zero where the gradient is),
-    ``position`` the orientation ``atan2(gy, gx)`` in bins (8 per turn, bin 0 centred on angle 0,
-    values in [4, 12])."""
-    padded = F.pad(images, (1, 1, 1, 1), mode="replicate")[:, 0]
-    gx = 0.5 * (padded[:, 1:-1, 2:] - padded[:, 1:-1, :-2])
-    gy = 0.5 * (padded[:, 2:, 1:-1] - padded[:, :-2, 1:-1])
-    squared = gx * gx + gy * gy
-    nonzero = squared > 0
-    magnitude = torch.where(nonzero, torch.sqrt(squared + _GRADIENT_EPS), 0.0)
-    angle = torch.where(nonzero, torch.atan2(gy, gx + _GRADIENT_EPS) + 2.0 * math.pi, 2.0 * math.pi)
-    return magnitude, angle * (ANGLE_BINS / (2.0 * math.pi))
-
-
-def gradient_histograms(images: torch.Tensor) -> torch.Tensor:
-    """Per-pixel orientation histograms ``[B, 8, H, W]`` (channels-last memory) of ``[B, 1, H, W]``:
-    each gradient (`gradient_orientations`) votes linearly into its two nearest of 8 bins
-    (kornia's ``DenseSIFTDescriptor.get_gradient_histograms`` without its 3 x 3 convolution)."""
-    magnitude, position = gradient_orientations(images)
-    lower = torch.floor(position)
-    upper_weight = position - lower
-    lower_bin = lower.long().remainder_(ANGLE_BINS)
-    histograms = images.new_zeros(*magnitude.shape, ANGLE_BINS)  # [B, H, W, 8]
-    histograms.scatter_add_(-1, lower_bin[..., None], ((1.0 - upper_weight) * magnitude)[..., None])
-    histograms.scatter_add_(-1, ((lower_bin + 1) % ANGLE_BINS)[..., None], (upper_weight * magnitude)[..., None])
-    return histograms.permute(0, 3, 1, 2)
-
-
-class SiftLattice:
-    """One SIFT scale of a batch (torch): pooled gradient histograms where descriptor cells fall.
-
-    ``pooled [B, Y, X, 8]`` holds the bilinearly pooled histograms on the lattice of
-    ``geometry``; ``cells`` views them as ``[B, rows, cols, 4, 4, 8]`` (grid point, cell row,
-    cell column, angle) without copying, so descriptors are built a few grid rows at a time.
-    """
-
-    def __init__(self, pooled: torch.Tensor, geometry: LatticeGeometry, window: torch.Tensor) -> None:
-        self.pooled = pooled
-        self.geometry = geometry
-        self.window = window.view(SPATIAL_BINS, SPATIAL_BINS, 1)
-        self.cells = self._cell_view(pooled)
-
-    def _cell_view(self, lattice: torch.Tensor) -> torch.Tensor:
-        """``[B, Y, X, ...] -> [B, rows, cols, 4, 4, ...]``: each grid point's 4 x 4 cells (a view)."""
-        geometry = self.geometry
-        span = (SPATIAL_BINS - 1) * geometry.cell_step + 1
-        windows = lattice.unfold(1, span, geometry.grid_step)[:, : geometry.rows]
-        windows = windows.unfold(2, span, geometry.grid_step)[:, :, : geometry.cols]  # [B, rows, cols, ..., span, span]
-        windows = windows[..., :: geometry.cell_step, :: geometry.cell_step]
-        return windows.movedim((-2, -1), (3, 4))
-
-    def rootsift(self, cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """RootSIFT ``[..., 128]`` of a selection ``[..., 4, 4, 8]`` of `cells`, and its contrast ``[...]``.
-
-        SIFT's L2 / clip 0.2 / L2 followed by RootSIFT's L1 and square root (the second L2
-        cancels in the L1 step); zero contrast gives a zero descriptor. The contrast is the
-        L2 norm of the window-weighted histogram before normalisation.
-        """
-        descriptors = torch.mul(cells, self.window, out=cells.new_empty(cells.shape)).flatten(-3)
-        contrast = torch.linalg.vector_norm(descriptors, dim=-1, keepdim=True)
-        descriptors = descriptors.div_(contrast.clamp_min(_EPS)).clamp_max_(SIFT_CLIP)
-        return descriptors.div_(descriptors.sum(-1, keepdim=True).clamp_min_(_EPS)).sqrt_(), contrast[..., 0]
-
-
-def sift_lattice(
-    images: torch.Tensor,
-    bin_size: int,
-    step: int,
-    max_bin_size: int,
-    magnification: float = 6.0,
-    window_size: float = 1.5,
-) -> SiftLattice:
-    """Upright SIFT cells on the grid of `grid_layout` at one scale (torch, any device).
-
-    ``images``: grey levels in [0, 1], ``float32 [B, 1, H, W]``. Gradient orientation
-    histograms as kornia computes them (central differences, 8 bins, linear angular
-    interpolation); cells are ``bin_size`` px apart and pool bilinearly (VLFeat
-    ``vl_dsift`` geometry: a triangle of ``2 * bin_size - 1`` px, pixels outside the image
-    count as zero), weighted by a Gaussian window of ``window_size`` bins.
-    """
-    _, _, height, width = images.shape
-    geometry = lattice_geometry(height, width, bin_size, step, max_bin_size)
-    histograms = gradient_histograms(smoothed(images, bin_size, magnification))
-    # Every sampled cell centre lies on the lattice, so the bilinear pooling (a depthwise
-    # separable triangle filter) is only evaluated there: zero-padded by the filter's reach,
-    # the window of lattice entry j starts at padded pixel origin + j * stride.
-    reach = bin_size - 1
-    padded = F.pad(histograms, (reach, reach, reach, reach))[:, :, geometry.origin_y :, geometry.origin_x :]
-    triangle = _triangle_kernel(bin_size, images.device)
-    pooled = F.conv2d(
-        padded, triangle.view(1, 1, -1, 1).expand(ANGLE_BINS, 1, -1, 1), stride=(geometry.stride, 1), groups=ANGLE_BINS
-    )
-    pooled = F.conv2d(
-        pooled, triangle.view(1, 1, 1, -1).expand(ANGLE_BINS, 1, 1, -1), stride=(1, geometry.stride), groups=ANGLE_BINS
-    )
-    pooled = pooled[:, :, : geometry.lattice_rows, : geometry.lattice_cols].permute(0, 2, 3, 1)  # [B, Y, X, angle]
-    return SiftLattice(pooled, geometry, _window_weights(window_size, images.device))
-
-
-def dense_rootsift(
-    images: torch.Tensor,
-    bin_size: int,
-    step: int,
-    max_bin_size: int,
-    magnification: float = 6.0,
-    window_size: float = 1.5,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Every RootSIFT of `sift_lattice` at once: ``(descriptors [B, G, 128], contrast [B, G])``.
-
-    ``G`` grid points in row-major order, entries ordered (cell row, cell column, angle);
-    descriptors are non-negative with unit L2 norm; ``contrast`` is the L2 norm of the
-    window-weighted histogram before normalisation.
-    """
-    lattice = sift_lattice(images, bin_size, step, max_bin_size, magnification, window_size)
-    descriptors, contrast = lattice.rootsift(lattice.cells)
-    return descriptors.flatten(1, 2), contrast.flatten(1)
-
-
-def cpu_lattice(
-    image: torch.Tensor, bin_size: int, step: int, max_bin_size: int, magnification: float = 6.0
-) -> tuple[np.ndarray, LatticeGeometry]:
-    """`sift_lattice`'s pooled histograms of one CPU image ``[1, H, W]`` by the numba kernels:
-    ``(pooled [Y, X * 8], geometry)``."""
-    _, height, width = image.shape
-    geometry = lattice_geometry(height, width, bin_size, step, max_bin_size)
-    magnitude, position = gradient_orientations(smoothed(image[None], bin_size, magnification))
-    histograms = kernels.orientation_histograms(magnitude[0].numpy(), position[0].numpy())
-    triangle = _triangle_kernel(bin_size, image.device).numpy()
-    pooled = kernels.pooled_lattice(
-        histograms,
-        triangle,
-        geometry.origin_y,
-        geometry.origin_x,
-        geometry.stride,
-        geometry.lattice_rows,
-        geometry.lattice_cols,
-    )
-    return pooled, geometry
-
-
-def cpu_rootsift(
-    pooled: np.ndarray, geometry: LatticeGeometry, rows: slice, window: np.ndarray, out: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """RootSIFT of the grid ``rows`` of a `cpu_lattice` (all columns, row-major) and their
-    contrast: ``(descriptors [M, 128], contrast [M])``, as `SiftLattice.rootsift` computes them;
-    ``out``: a buffer of at least ``M`` rows to write them into."""
-    count = (rows.stop - rows.start) * geometry.cols
-    descriptors = np.empty((count, SIFT_DIM), np.float32) if out is None else out[:count]
-    contrast = np.empty(count, np.float32)
-    kernels.rootsift_rows(
-        pooled,
-        window,
-        rows.start,
-        rows.stop,
-        geometry.cols,
-        geometry.cell_step,
-        geometry.grid_step,
-        descriptors,
-        contrast,
-    )
-    return descriptors, contrast
-
-
-class VladAccumulator:
-    """Sums of residuals ``x - c_k`` per visual word over descriptors added in chunks.
-
-    Hard assignment to the nearest centroid (largest ``x . c - |c|^2 / 2``, the first on ties);
-    ``centroids [K, D]``. With ``cpu_kernels`` (default: on CPU) the assignment is a matrix
-    product and numpy's row argmax per image, the sums the numba kernel
-    `densevlad_kernels.add_to_words`; otherwise torch, the whole batch at once.
-    """
-
-    def __init__(self, centroids: torch.Tensor, batch: int, cpu_kernels: bool | None = None) -> None:
-        self.centroids = centroids
-        self.batch = batch
-        self.cpu_kernels = centroids.device.type == "cpu" if cpu_kernels is None else cpu_kernels
-        self._centroids_t = centroids.T.contiguous()
-        self._neg_half_norms = -0.5 * (centroids * centroids).sum(1)
-        # One extra slot collects the invalid rows.
-        self._sums = centroids.new_zeros(batch * len(centroids) + 1, centroids.shape[1])
-        self._counts = torch.zeros(batch * len(centroids) + 1, dtype=torch.long, device=centroids.device)
-        self._scores = centroids.new_empty(0, len(centroids))  # CPU: the word scores of a chunk, reused
-
-    def add(self, descriptors: torch.Tensor, valid: torch.Tensor) -> None:
-        """``descriptors [B, M, D]`` of the batch's images; rows where ``valid [B, M]`` is false are ignored."""
-        num_words = len(self.centroids)
-        if self.cpu_kernels:
-            sums = self._sums[:-1].view(self.batch, num_words, -1).numpy()
-            counts = self._counts[:-1].view(self.batch, num_words).numpy()
-            if len(self._scores) < descriptors.shape[1]:
-                self._scores = descriptors.new_empty(descriptors.shape[1], num_words)
-            for image in range(self.batch):
-                scores = torch.addmm(
-                    self._neg_half_norms,
-                    descriptors[image],
-                    self._centroids_t,
-                    out=self._scores[: descriptors.shape[1]],
-                )
-                kernels.add_to_words(
-                    descriptors[image].numpy(),
-                    scores.numpy().argmax(1),
-                    valid[image].numpy(),
-                    sums[image],
-                    counts[image],
-                )
-            return
-        scores = torch.addmm(self._neg_half_norms, descriptors.flatten(0, 1), self._centroids_t)
-        slots = (
-            scores.argmax(1).view(valid.shape)
-            + num_words * torch.arange(self.batch, device=descriptors.device)[:, None]
-        )
-        slots = torch.where(valid, slots, self.batch * num_words).flatten()
-        self._sums.index_add_(0, slots, descriptors.flatten(0, 1))
-        self._counts += torch.bincount(slots, minlength=len(self._counts))
-
-    def residuals(self) -> torch.Tensor:
-        """``[B, K, D]`` (zeros for words without descriptors)."""
-        counts = self._counts[:-1, None].to(self._sums.dtype)
-        residuals = self._sums[:-1] - counts * self.centroids.repeat(self.batch, 1)
-        return residuals.view(self.batch, len(self.centroids), -1)
-
-
-def vlad_residuals(
-    descriptors: torch.Tensor, valid: torch.Tensor, centroids: torch.Tensor, cpu_kernels: bool | None = None
-) -> torch.Tensor:
-    """`VladAccumulator` over one set of ``descriptors [B, M, D]``: residual sums ``[B, K, D]``."""
-    accumulator = VladAccumulator(centroids, descriptors.shape[0], cpu_kernels)
-    accumulator.add(descriptors, valid)
-    return accumulator.residuals()
-
-
-def normalize_vlad(residuals: torch.Tensor) -> torch.Tensor:
-    """Intra-normalisation (L2 per word) then global L2: ``[B, K, D] -> [B, K * D]``."""
-    return F.normalize(F.normalize(residuals, dim=-1, eps=_EPS).flatten(1), dim=-1, eps=_EPS)
 
 
 @contextlib.contextmanager
@@ -572,7 +240,7 @@ class DenseVLAD(GlobalDescriptor):
                     descriptors, contrast = lattice.rootsift(lattice.cells[:, rows])
                     yield scale, descriptors.flatten(1, 2), contrast.flatten(1)
             return
-        window = _window_weights(self.window_size, self.device).numpy()
+        window = window_weights(self.window_size, self.device).numpy()
         buffer = None
         for scale, bin_size in enumerate(self.bin_sizes):
             pooled, geometry = cpu_lattice(batch[0], bin_size, self.step, max_bin_size, self.magnification)
@@ -612,22 +280,14 @@ class DenseVLAD(GlobalDescriptor):
                 f"DenseVLAD: only {len(points)} descriptors above contrast {self.contrast_threshold} in the "
                 f"database, fewer than the {self.num_words} visual words"
             )
-        kmeans = faiss.Kmeans(
-            SIFT_DIM,
-            self.num_words,
-            niter=self.kmeans_iterations,
-            seed=self.seed,
-            spherical=True,
-            max_points_per_centroid=math.ceil(len(points) / self.num_words),
-        )
-        kmeans.train(points)
-        self._centroids = torch.from_numpy(kmeans.centroids.copy()).to(self.device)
+        centroids = kmeans_vocabulary(points, self.num_words, self.kmeans_iterations, self.seed)
+        self._centroids = torch.from_numpy(centroids).to(self.device)
         log.info(
             "DenseVLAD: %d-word vocabulary from %d descriptors of %d images", self.num_words, len(points), len(chosen)
         )
 
     def _learn_whitening(self, vlads: np.ndarray) -> None:
-        """Centred PCA (faiss) to ``min(pca_dim, N - 1)`` dims with regularised whitening."""
+        """Centred PCA to ``min(pca_dim, N - 1)`` dims with regularised whitening (`pca_whitening`)."""
         if len(vlads) < 2:
             raise ValueError("DenseVLAD needs at least 2 database images to learn its PCA whitening")
         dim = min(self.pca_dim, len(vlads) - 1)
@@ -635,15 +295,9 @@ class DenseVLAD(GlobalDescriptor):
             log.info(
                 "DenseVLAD: %d database images support %d PCA dimensions (configured %d)", len(vlads), dim, self.pca_dim
             )
-        pca = faiss.PCAMatrix(vlads.shape[1], dim, 0.0, False)
-        pca.train(np.ascontiguousarray(vlads, dtype=np.float32))
-        eigenvalues = faiss.vector_to_array(pca.eigenvalues)[:dim].astype(np.float64)
-        if eigenvalues[0] <= 0:
-            raise ValueError("DenseVLAD: all database VLADs are identical; PCA whitening is undefined")
-        components = faiss.vector_to_array(pca.PCAMat).reshape(-1, vlads.shape[1])[:dim]
-        scale = 1.0 / np.sqrt(np.maximum(eigenvalues, 0.0) + self.whitening_regularization * eigenvalues[0])
-        self._pca_mean = torch.from_numpy(faiss.vector_to_array(pca.mean).copy()).to(self.device)
-        self._pca_projection = torch.from_numpy((components.T * scale).astype(np.float32)).to(self.device)
+        mean, projection = pca_whitening(vlads, dim, self.whitening_regularization)
+        self._pca_mean = torch.from_numpy(mean).to(self.device)
+        self._pca_projection = torch.from_numpy(projection).to(self.device)
 
     def fit(self, database: ImageSet) -> None:
         """Learn the vocabulary, then the PCA-whitening on the database VLADs."""

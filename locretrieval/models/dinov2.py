@@ -29,8 +29,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from locretrieval.models.extraction import ExtractionSettings
-from locretrieval.models.networks import RetrievalNet, build_pooling
+from locretrieval.models.backbones import Normalization
+from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD, ExtractionSettings
+from locretrieval.models.networks import RetrievalNet, build_pooling, upgrade_legacy_pooling
 from locretrieval.models.trainable import TrainableDescriptor
 from locretrieval.models.weights import Weights, WeightSource
 
@@ -208,7 +209,7 @@ class DinoV2Descriptor(TrainableDescriptor):
         name: str,
         backbone: str,
         final_norm: bool,
-        pooling: Mapping[str, Any],
+        pooling: Callable[..., nn.Module] | Mapping[str, Any],
         whiten_dim: int | None,
         weights: str | None,
         random_init: bool,
@@ -223,17 +224,27 @@ class DinoV2Descriptor(TrainableDescriptor):
             name, backbone, pooling, whiten_dim, weights, random_init, seed, max_side, scales, extraction, size
         )
 
-    def architecture_of(self, backbone: str, pooling: dict[str, Any], whiten_dim: int | None) -> dict[str, Any]:
-        return {**super().architecture_of(backbone, pooling, whiten_dim), "final_norm": self.final_norm}
+    def architecture_of(self, backbone: Any, pooling: dict[str, Any], whiten_dim: int | None) -> dict[str, Any]:
+        """The timm ViT's name as ``backbone`` (DINOv2's own trunk, `DinoV2Trunk`), and ``final_norm``."""
+        return {"backbone": str(backbone), "pooling": pooling, "whiten_dim": whiten_dim, "final_norm": self.final_norm}
+
+    def upgrade_architecture(self, stored: Mapping[str, Any]) -> dict[str, Any]:
+        return {**stored, "pooling": upgrade_legacy_pooling(stored["pooling"])}
+
+    def input_normalization(self, architecture: Mapping[str, Any]) -> Normalization:
+        """ImageNet's mean and std, as DINOv2 and the descriptors built on it."""
+        return IMAGENET_MEAN, IMAGENET_STD
 
     def build_network(self, architecture: Mapping[str, Any]) -> RetrievalNet:
         pooling = architecture["pooling"]
         trunk = DinoV2Trunk(
             architecture["backbone"], class_token=pooling.get("token") == "class", final_norm=architecture["final_norm"]
         )
-        head, pooled_dim = build_pooling(trunk.channels, pooling)
+        head = build_pooling(trunk.channels, pooling)
         whiten_dim = architecture["whiten_dim"]
-        return RetrievalNet(trunk, head, pooled_dim, nn.Linear(pooled_dim, whiten_dim) if whiten_dim else None)
+        return RetrievalNet(
+            trunk, head, head.output_dim, nn.Linear(head.output_dim, whiten_dim) if whiten_dim else None
+        )
 
     def weight_source(self, architecture: Mapping[str, Any]) -> WeightSource:
         return self.source

@@ -24,6 +24,7 @@ permutation of the local features, MixVPR to resampling the map onto its grid.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -50,11 +51,11 @@ class MixVPRHead(nn.Module):
     def __init__(
         self,
         channels: int,
-        grid: tuple[int, int] = (7, 7),
-        blocks: int = 4,
-        mlp_ratio: int = 1,
-        out_channels: int = 256,
-        out_rows: int = 4,
+        grid: Sequence[int],
+        blocks: int,
+        mlp_ratio: int,
+        out_channels: int,
+        out_rows: int,
     ) -> None:
         super().__init__()
         self.grid = tuple(int(side) for side in grid)
@@ -91,14 +92,14 @@ class SALADHead(nn.Module):
     def __init__(
         self,
         channels: int,
-        clusters: int = 16,
-        cluster_dim: int = 32,
-        token_dim: int = 64,
-        hidden: int = 256,
-        iterations: int = 3,
-        regularization: float = 1.0,
-        token: str = "mean",
-        dropout: float = 0.0,
+        clusters: int,
+        cluster_dim: int,
+        token_dim: int,
+        hidden: int,
+        iterations: int,
+        regularization: float,
+        token: str,
+        dropout: float,
     ) -> None:
         super().__init__()
         if token not in SALAD_TOKENS:
@@ -160,12 +161,12 @@ class BoQHead(nn.Module):
     def __init__(
         self,
         channels: int,
-        dim: int = 128,
-        queries: int = 16,
-        blocks: int = 2,
-        heads: int = 4,
-        rows: int = 8,
-        input_kernel: int = 1,
+        dim: int,
+        queries: int,
+        blocks: int,
+        heads: int,
+        rows: int,
+        input_kernel: int,
     ) -> None:
         super().__init__()
         if input_kernel < 1 or input_kernel % 2 == 0:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -31,8 +32,16 @@ import scipy.io
 import torch
 from torch import nn
 
+from locretrieval.models.backbones import TorchvisionBackbone
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
-from locretrieval.models.networks import RetrievalNet, build_retrieval_net, load_weights, torchvision_trunk
+from locretrieval.models.networks import (
+    NetVLADPooling,
+    RetrievalNet,
+    build_retrieval_net,
+    load_weights,
+    pooling_settings,
+    torchvision_trunk,
+)
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 from locretrieval.models.weights import (
     WEIGHT_SOURCES,
@@ -49,7 +58,9 @@ VGG16_TRUNK_LAYERS = 29
 
 def build_netvlad_network(clusters: int = 64, whiten_dim: int | None = 4096) -> RetrievalNet:
     """The authors' architecture: NetVLAD (``clusters`` centres) on VGG16, optional whitening."""
-    return build_retrieval_net("vgg16", {"type": "netvlad", "clusters": clusters}, whiten_dim)
+    return build_retrieval_net(
+        TorchvisionBackbone("vgg16"), pooling_settings(partial(NetVLADPooling, clusters=clusters)), whiten_dim
+    )
 
 
 def _layer_weights(layer: Any) -> list[np.ndarray]:

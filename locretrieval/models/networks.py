@@ -5,8 +5,11 @@ Tensors are ``[B, C, H, W]`` feature maps and ``[B, D]`` descriptors. Every mode
 trained by `locretrieval.training` is a `RetrievalNet`: ``backbone -> pooling (GeM, GeM over a
 spatial pyramid, NetVLAD, or a head of `locretrieval.models.heads`: MixVPR, SALAD, BoQ) -> optional
 whitening (affine) -> L2``, plus an optional projection applied after multi-scale
-aggregation (AP-GeM's PCA). `build_retrieval_net` builds one on a torchvision backbone and
-`load_weights` fills it from a state dict and records where the weights came from.
+aggregation (AP-GeM's PCA). A pooling is any module class built as ``cls(channels, **options)``
+that sets ``output_dim``, chosen by ``_target_`` in ``configs/model/pooling/`` (`pooling_settings`).
+`build_retrieval_net` builds one on a backbone (`locretrieval.models.backbones`, chosen the same way in
+``configs/model/backbone/``) and `load_weights` fills it from a state dict and records where the
+weights came from.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ from __future__ import annotations
 import hashlib
 import inspect
 from collections import OrderedDict
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -22,12 +25,10 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
+from hydra.utils import get_class
 from torch import nn
 
-from locretrieval.models import efficientnet
-from locretrieval.models.heads import BoQHead, MixVPRHead, SALADHead
-from locretrieval.models.timm_trunk import TIMM_PREFIX, TimmTrunk
-from locretrieval.models.weights import content_sha256
+from locretrieval.models.weights import content_sha256, plain
 
 #: Guards divisions by the norm of all-zero vectors.
 NORM_EPS = 1e-12
@@ -38,16 +39,20 @@ def l2_normalize(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
 
 
 class GeMPooling(nn.Module):
-    """Generalised mean pooling ``(mean(clamp(x, eps)^p))^(1/p)`` over the spatial axes.
+    """Generalised mean pooling ``(mean(clamp(x, eps)^p))^(1/p)`` over the spatial axes of a
+    ``channels``-channel map (``output_dim = channels``).
 
     ``p`` is a parameter (learned when ``trainable``; DELG keeps it fixed). Computed in
     float32 even under autocast: ``x^p`` overflows float16 for activations above ~40.
     """
 
-    def __init__(self, p: float = 3.0, trainable: bool = True, eps: float = 1e-6) -> None:
+    #: Floor of the activations before the power.
+    eps = 1e-6
+
+    def __init__(self, channels: int, p: float, trainable: bool) -> None:
         super().__init__()
-        self.p = nn.Parameter(torch.tensor([float(p)]), requires_grad=trainable)
-        self.eps = eps
+        self.p = nn.Parameter(torch.tensor([float(p)]), requires_grad=bool(trainable))
+        self.output_dim = int(channels)
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         with torch.autocast(features.device.type, enabled=False):
@@ -67,15 +72,8 @@ class SpatialPyramidGeM(GeMPooling):
     ``(1, 1)`` level alone is GeM up to a scale.
     """
 
-    def __init__(
-        self,
-        channels: int,
-        levels: tuple[tuple[int, int], ...],
-        p: float = 3.0,
-        trainable: bool = True,
-        eps: float = 1e-6,
-    ) -> None:
-        super().__init__(p, trainable, eps)
+    def __init__(self, channels: int, levels: Sequence[Sequence[int]], p: float, trainable: bool) -> None:
+        super().__init__(channels, p, trainable)
         self.levels = tuple((int(rows), int(cols)) for rows, cols in levels)
         if not self.levels or any(rows < 1 or cols < 1 for rows, cols in self.levels):
             raise ValueError(f"gem_pyramid levels must be (rows, cols) grids of at least 1 x 1, got {levels!r}")
@@ -98,12 +96,12 @@ class NetVLADPooling(nn.Module):
     authors' code, so the released whitening matrices apply unchanged.
     """
 
-    def __init__(self, dim: int, clusters: int) -> None:
+    def __init__(self, channels: int, clusters: int) -> None:
         super().__init__()
-        self.dim, self.clusters = dim, clusters
-        self.assignment = nn.Conv2d(dim, clusters, kernel_size=1, bias=False)
-        self.centers = nn.Parameter(torch.empty(clusters, dim))
-        nn.init.normal_(self.centers, std=dim**-0.5)
+        self.dim, self.clusters = int(channels), int(clusters)
+        self.assignment = nn.Conv2d(self.dim, self.clusters, kernel_size=1, bias=False)
+        self.centers = nn.Parameter(torch.empty(self.clusters, self.dim))
+        nn.init.normal_(self.centers, std=self.dim**-0.5)
 
     @property
     def output_dim(self) -> int:
@@ -163,15 +161,7 @@ def torchvision_trunk(name: str) -> tuple[nn.Module, int]:
     ResNets stop after ``layer4``; VGGs at conv5_3 without its ReLU and the last max-pool
     (NetVLAD's cut); other models at their ``features`` module. Built with torchvision's random
     initialisation on the default device (``with torch.device("meta")`` builds it empty).
-    ``efficientnet_lite0/1/2`` are timm's TF-Lite EfficientNet-Lite models (`efficientnet.lite_trunk`,
-    not in torchvision); ``timm:<name>`` any timm model (`TimmTrunk`).
     """
-    if name in efficientnet.VARIANTS:
-        trunk = efficientnet.lite_trunk(name)
-        return trunk, trunk.channels
-    if name.startswith(TIMM_PREFIX):
-        trunk = TimmTrunk(name.removeprefix(TIMM_PREFIX))
-        return trunk, trunk.channels
     import torchvision  # here: importing it costs more than a second, and only these backbones need it
 
     try:
@@ -199,59 +189,104 @@ def trunk_channels(trunk: nn.Module) -> int:
         return int(trunk.eval()(torch.zeros(1, 3, 64, 64, device=device)).shape[1])
 
 
-#: Today's aggregation heads (`locretrieval.models.heads`), built as ``head(channels, **options)``.
-HEADS: dict[str, type[nn.Module]] = {"mixvpr": MixVPRHead, "salad": SALADHead, "boq": BoQHead}
+def pooling_settings(pooling: Callable[..., nn.Module] | Mapping[str, Any]) -> dict[str, Any]:
+    """A pooling as an architecture records it: ``{"_target_": "<module>.<class>", option: value}``,
+    every option of the class's signature but ``channels``.
+
+    ``pooling`` is what Hydra builds from a ``model/pooling`` config (``_partial_: true``: the class
+    with its options, given the trunk's ``channels`` later), the class itself, or these settings.
+    A pooling is any ``nn.Module`` class built as ``cls(channels, **options)`` that sets
+    ``output_dim``; options it does not take, or lacks, are refused here, naming them."""
+    if isinstance(pooling, Mapping):
+        options = {key: value for key, value in pooling.items() if key != "_partial_"}
+        target = options.pop("_target_", None)
+        if target is None:
+            raise ValueError(f"model.pooling has no _target_ (choose one: model/pooling=gem): {options}")
+        cls = get_class(str(target))
+    else:
+        cls = pooling.func if isinstance(pooling, partial) else pooling
+        options = dict(pooling.keywords) if isinstance(pooling, partial) else {}
+        if not (isinstance(cls, type) and issubclass(cls, nn.Module)):
+            raise ValueError(f"model.pooling must name an nn.Module class, got {pooling!r}")
+        target = f"{cls.__module__}.{cls.__qualname__}"
+    try:
+        bound = inspect.signature(cls).bind(0, **options)
+    except TypeError as error:
+        raise ValueError(f"model.pooling ({target}): {error}; it takes {pooling_options(cls)}") from error
+    bound.apply_defaults()
+    arguments = dict(bound.arguments)
+    arguments.pop(next(iter(inspect.signature(cls).parameters)))  # channels: the trunk's
+    return {"_target_": str(target), **plain(arguments)}
 
 
-def _head(head: type[nn.Module], channels: int, **options: Any) -> tuple[nn.Module, int]:
-    module = head(channels, **options)
-    return module, module.output_dim
+def pooling_options(cls: type[nn.Module]) -> list[str]:
+    """The options a pooling class takes (all its parameters but the first, ``channels``)."""
+    return list(inspect.signature(cls).parameters)[1:]
 
 
-#: Pooling layers by ``type``, each built as ``builder(channels, **options) -> (module, output_dim)``.
-POOLINGS: dict[str, Callable[..., tuple[nn.Module, int]]] = {
-    "gem": lambda channels, p, trainable: (GeMPooling(float(p), trainable=bool(trainable)), channels),
-    "gem_pyramid": lambda channels, p, trainable, levels=((1, 1), (1, 3)): (
-        pooling := SpatialPyramidGeM(channels, levels, float(p), trainable=bool(trainable)),
-        pooling.output_dim,
+#: How 0.11.0 and earlier recorded a pooling: ``{type: <name>, options as configured}``, the heads'
+#: other options at these values (their defaults then). `upgrade_legacy_pooling` reads such records.
+LEGACY_POOLINGS: dict[str, tuple[str, dict[str, Any]]] = {
+    "gem": ("locretrieval.models.networks.GeMPooling", {}),
+    "gem_pyramid": ("locretrieval.models.networks.SpatialPyramidGeM", {"levels": [[1, 1], [1, 3]]}),
+    "netvlad": ("locretrieval.models.networks.NetVLADPooling", {}),
+    "mixvpr": (
+        "locretrieval.models.heads.MixVPRHead",
+        {"grid": [7, 7], "blocks": 4, "mlp_ratio": 1, "out_channels": 256, "out_rows": 4},
     ),
-    "netvlad": lambda channels, clusters: (pooling := NetVLADPooling(channels, int(clusters)), pooling.output_dim),
-    **{kind: partial(_head, head) for kind, head in HEADS.items()},
+    "salad": (
+        "locretrieval.models.heads.SALADHead",
+        {
+            "clusters": 16,
+            "cluster_dim": 32,
+            "token_dim": 64,
+            "hidden": 256,
+            "iterations": 3,
+            "regularization": 1.0,
+            "token": "mean",
+            "dropout": 0.0,
+        },
+    ),
+    "boq": (
+        "locretrieval.models.heads.BoQHead",
+        {"dim": 128, "queries": 16, "blocks": 2, "heads": 4, "rows": 8, "input_kernel": 1},
+    ),
 }
 
 
-def pooling_options(kind: str) -> set[str]:
-    """The options a pooling ``type`` takes (a head's have defaults)."""
-    return set(inspect.signature(HEADS.get(kind, POOLINGS[kind])).parameters) - {"channels"}
+def upgrade_legacy_pooling(settings: Mapping[str, Any]) -> dict[str, Any]:
+    """A pooling record of a checkpoint in today's form (`pooling_settings`): a ``{type: ...}`` record
+    of 0.11.0 or earlier becomes its class's settings (options of other types, which were ignored
+    then, left out); a record with ``_target_`` is returned as it is."""
+    if "_target_" in settings:
+        return dict(settings)
+    if settings.get("type") not in LEGACY_POOLINGS:
+        raise ValueError(f"a pooling record of unknown type {settings.get('type')!r}: {dict(settings)}")
+    target, defaults = LEGACY_POOLINGS[settings["type"]]
+    taken = pooling_options(get_class(target))
+    return {"_target_": target, **defaults, **{key: value for key, value in settings.items() if key in taken}}
 
 
-def build_pooling(channels: int, pooling: Mapping[str, Any]) -> tuple[nn.Module, int]:
-    """``(module, output dimension)`` of a pooling spec: ``{type: gem, p: 3.0, trainable: true}``,
-    ``{type: netvlad, clusters: 64}``, or a head of `HEADS` with its options (defaults
-    otherwise). Options of another type are left out, so that ``model.pooling.type=mixvpr``
-    works on a config written for GeM; an option no type takes is an error."""
-    options = dict(pooling)
-    kind = options.pop("type", None)
-    if kind not in POOLINGS:
-        raise ValueError(f"pooling type {kind!r} is not one of {sorted(POOLINGS)}")
-    others = set().union(*(pooling_options(other) for other in POOLINGS)) - pooling_options(kind)
-    options = {key: value for key, value in options.items() if key not in others}
-    try:
-        return POOLINGS[kind](channels, **options)
-    except TypeError as error:
-        raise ValueError(f"{kind} pooling: {error} (given {sorted(options)})") from error
+def build_pooling(channels: int, settings: Mapping[str, Any]) -> nn.Module:
+    """The pooling of ``settings`` (`pooling_settings`) on a ``channels``-channel map, randomly initialised."""
+    options = dict(settings)
+    module = get_class(options.pop("_target_"))(channels, **options)
+    if not isinstance(getattr(module, "output_dim", None), int):
+        raise ValueError(f"model.pooling ({settings['_target_']}) must set output_dim, its descriptor's size")
+    return module
 
 
 def build_retrieval_net(
-    backbone: str, pooling: Mapping[str, Any], whiten_dim: int | None = None, projection_dim: int | None = None
+    backbone: Any, pooling: Mapping[str, Any], whiten_dim: int | None = None, projection_dim: int | None = None
 ) -> RetrievalNet:
-    """``pooling`` (`build_pooling`) on a torchvision trunk, optional FC whitening to
-    ``whiten_dim`` and final projection to ``projection_dim`` (applied after multi-scale
-    aggregation), with torchvision's random initialisation."""
+    """The pooling of the settings ``pooling`` (`pooling_settings`) on the trunk ``backbone`` builds
+    (a `locretrieval.models.backbones.Backbone`), optional FC whitening to ``whiten_dim`` and final
+    projection to ``projection_dim`` (applied after multi-scale aggregation), randomly initialised."""
     if pooling.get("token") == "class":
         raise ValueError(f"pooling token: class needs a trunk with a class token (model=dinov2), not {backbone!r}")
-    trunk, channels = torchvision_trunk(backbone)
-    module, pooled_dim = build_pooling(channels, pooling)
+    trunk, channels = backbone.build()
+    module = build_pooling(channels, pooling)
+    pooled_dim = module.output_dim
     whitening = nn.Linear(pooled_dim, whiten_dim) if whiten_dim else None
     projection = nn.Linear(whiten_dim or pooled_dim, projection_dim) if projection_dim else None
     return RetrievalNet(trunk, module, pooled_dim, whitening, projection)

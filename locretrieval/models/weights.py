@@ -181,8 +181,15 @@ def save_checkpoint(
 
 
 def plain(value: Any) -> Any:
-    """``value`` as plain JSON types (tuples become lists), for storing and comparing settings."""
-    return json.loads(json.dumps(value))
+    """``value`` as plain JSON types (tuples and config nodes become lists and dicts), for storing and
+    comparing settings."""
+    return json.loads(json.dumps(value, default=_config_container))
+
+
+def _config_container(value: Any) -> Any:
+    if OmegaConf.is_config(value):
+        return OmegaConf.to_container(value, resolve=True)
+    raise TypeError(f"{type(value).__name__} is not a setting (JSON types or config nodes)")
 
 
 def settings_of(node: Any) -> dict[str, Any]:
@@ -228,6 +235,7 @@ def read_weights(
     authors: AuthorsReader | None = None,
     authors_file: Callable[[Path], bool] | None = None,
     allowed: Iterable[Any] = (),
+    upgrade: Callable[[Mapping[str, Any]], Mapping[str, Any]] | None = None,
 ) -> Weights:
     """The weights of ``model`` in ``path``, the one loader of every model: a locretrieval
     checkpoint (plain, or inside a Lightning checkpoint of train.py), checked to hold ``model``
@@ -235,7 +243,8 @@ def read_weights(
     that ``authors_file`` recognises (a MATLAB struct, a TensorFlow folder) go to ``authors``
     unopened; others are read as tensors only (``.safetensors``) or with the restricted unpickler
     (``allowed`` globals), and what is not our checkpoint goes to ``authors``, which raises when
-    the content is not its format; the architecture an authors' file holds is checked too."""
+    the content is not its format; the architecture an authors' file holds is checked too.
+    ``upgrade`` turns the architecture an older checkpoint recorded into today's form."""
     path = Path(path)
     if authors is not None and authors_file is not None and authors_file(path):
         return _checked(authors(path, None), path, architecture)
@@ -246,6 +255,8 @@ def read_weights(
     else:
         content = embedded_checkpoint(load_torch_file(path, allowed))
     if is_checkpoint(content):
+        if upgrade is not None:
+            content = {**content, "architecture": upgrade(content["architecture"])}
         check_checkpoint(content, path, model, architecture)
         return Weights(
             content["state_dict"], content["architecture"], content["preprocessing"], content["extra"], checkpoint=True

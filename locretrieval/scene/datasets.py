@@ -101,7 +101,13 @@ def load_dataset(
     if query_tags is not None:
         tags = [str(tag) for tag, matches in zip(query_tags, query_matches) for _ in matches]
     scene = load_kapture_scene(
-        name, mapping_folders, query_folders, tags, dict(name_tags) if name_tags else None, ltvl_name_style, frustum_far
+        name,
+        mapping_folders,
+        query_folders,
+        query_tags=tags,
+        name_tags=dict(name_tags) if name_tags else None,
+        ltvl_name_style=ltvl_name_style,
+        frustum_far=frustum_far,
     )
     scene.unsupported = dict(unsupported or {})
     return scene

@@ -1,12 +1,13 @@
-"""Kapture folders -> `ImageSet` / `Scene`, and poses -> LTVL submission files.
+"""Kapture folders -> `ImageSet` / `Scene` (LTVL submission files: `locretrieval.scene.ltvl`).
 
 Poses are world-to-camera ``(q, t)``, ``q`` wxyz, exactly as kapture stores them in
 ``sensors/trajectories.txt``. A trajectory may be given per camera or per rig; for a rig it
 is ``rig_from_world`` and ``sensors/rigs.txt`` holds ``cam_from_rig``, so
 ``cam_from_world = cam_from_rig o rig_from_world``.
 
-Parsing goes through ``kapture.io.csv``. Its readers skip or crash on bad lines without
-saying where, so each text file first gets a light pass here that reports ``file:line``.
+Each text file is read once (`read_csv_rows`, split as ``kapture.io.csv`` splits it), its rows
+validated (``_check_*``: errors name ``file:line``, which kapture's readers, which skip or crash on
+bad lines, do not), then turned into kapture's poses, rigs and trajectories and our cameras.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import re
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 
 import kapture
 import kapture.io.csv as kapture_csv
@@ -27,8 +28,7 @@ import quaternion
 from PIL import Image, UnidentifiedImageError
 
 from locretrieval import geometry
-from locretrieval.cache import atomic_path
-from locretrieval.scene.types import CAMERA_MODELS, LTVL_NAME_STYLES, Camera, ImageSet, Scene
+from locretrieval.scene.types import CAMERA_MODELS, Camera, ImageSet, Scene
 
 log = logging.getLogger(__name__)
 
@@ -176,7 +176,7 @@ def _check_sensors(path: Path) -> dict[str, CsvRow]:
     return {row.fields[0]: row for row in rows}
 
 
-def _check_rigs(path: Path, sensors: dict[str, CsvRow]) -> None:
+def _check_rigs(path: Path, sensors: dict[str, CsvRow]) -> list[CsvRow]:
     """Rig lines must be well formed; members without a line in ``sensors.txt`` are allowed (a
     rig may describe more cameras than a recording holds, as kapture allows) and warned about."""
     rows = read_csv_rows(path, 9, 9)
@@ -196,9 +196,10 @@ def _check_rigs(path: Path, sensors: dict[str, CsvRow]) -> None:
         log.warning(
             "%s: %d rig member(s) without a line in %s, unused: %s", path, len(absent), SENSORS_FILE, absent[:10]
         )
+    return rows
 
 
-def _check_trajectories(path: Path, devices: set[str]) -> None:
+def _check_trajectories(path: Path, devices: set[str]) -> list[CsvRow]:
     rows = read_csv_rows(path, 9, 9)
     _check_unique_timestamps(rows, "(timestamp, device)")
     for row in rows:
@@ -208,6 +209,7 @@ def _check_trajectories(path: Path, devices: set[str]) -> None:
                 f"trajectory for unknown sensor or rig {row.fields[1]!r} (not in {SENSORS_FILE} or {RIGS_FILE})"
             )
     _check_poses(rows, 2)
+    return rows
 
 
 def _check_records(path: Path, sensors: dict[str, CsvRow], sensor_types: tuple[str, ...]) -> list[CsvRow]:
@@ -243,9 +245,36 @@ def _check_camera_supported(sensor: CsvRow) -> None:
         raise sensor.error(f"camera {sensor.fields[0]!r}: focal length(s) {focal} must be positive pixels")
 
 
-def _to_camera(sensor: kapture.Camera) -> Camera:
-    width, height, *params = sensor.camera_params
-    return Camera(sensor.camera_type.name, int(width), int(height), tuple(params))
+def _camera(sensor: CsvRow) -> Camera:
+    """The camera of a checked ``sensors.txt`` row (`_check_camera_supported`)."""
+    width, height, *params = sensor.floats(4, len(sensor.fields), "camera parameters")
+    return Camera(sensor.fields[3], int(width), int(height), tuple(params))
+
+
+def _pose(row: CsvRow, start: int) -> kapture.PoseTransform:
+    """The pose in fields ``qw, qx, qy, qz, tx, ty, tz`` from ``start`` of a checked row (`_check_poses`);
+    an empty rotation or translation stays unknown (``None``), as kapture reads it."""
+    rotation, translation = row.fields[start : start + 4], row.fields[start + 4 : start + 7]
+    return kapture.PoseTransform(
+        row.floats(start, start + 4, "quaternion") if all(rotation) else None,
+        row.floats(start + 4, start + 7, "translation") if all(translation) else None,
+    )
+
+
+def _rigs(rows: Sequence[CsvRow]) -> kapture.Rigs:
+    """``rig_id -> sensor_id -> cam_from_rig`` of the checked rows of ``rigs.txt``."""
+    rigs = kapture.Rigs()
+    for row in rows:
+        rigs[row.fields[0], row.fields[1]] = _pose(row, 2)
+    return rigs
+
+
+def _trajectories(rows: Sequence[CsvRow]) -> kapture.Trajectories:
+    """``timestamp -> device_id -> device_from_world`` of the checked rows of ``trajectories.txt``."""
+    trajectories = kapture.Trajectories()
+    for row in rows:
+        trajectories.setdefault(row.timestamp(), {})[row.fields[1]] = _pose(row, 2)
+    return trajectories
 
 
 def _pose_arrays(poses: Sequence[kapture.PoseTransform | None]) -> tuple[np.ndarray, np.ndarray]:
@@ -402,31 +431,20 @@ def load_image_set(kapture_root: str | Path, tag: str | None = None) -> ImageSet
         if not (root / required).is_file():
             raise FileNotFoundError(f"not a kapture folder: {root / required} is missing")
     sensors = _check_sensors(root / SENSORS_FILE)
-    has_rigs = (root / RIGS_FILE).is_file()
-    if has_rigs:
-        _check_rigs(root / RIGS_FILE, sensors)
+    rigs = _rigs(_check_rigs(root / RIGS_FILE, sensors)) if (root / RIGS_FILE).is_file() else kapture.Rigs()
     records = _check_records(root / RECORDS_CAMERA_FILE, sensors, ("camera",))
     if not records:
         raise ValueError(f"{root / RECORDS_CAMERA_FILE} lists no image")
     for camera_id in {row.fields[1] for row in records}:
         _check_camera_supported(sensors[camera_id])
-    rigs = kapture_csv.rigs_from_file(str(root / RIGS_FILE)) if has_rigs else kapture.Rigs()
-    has_trajectories = (root / TRAJECTORIES_FILE).is_file()
-    if has_trajectories:
-        _check_trajectories(root / TRAJECTORIES_FILE, set(sensors) | set(rigs))
+    trajectories = kapture.Trajectories()
+    if (root / TRAJECTORIES_FILE).is_file():
+        trajectories = _trajectories(_check_trajectories(root / TRAJECTORIES_FILE, set(sensors) | set(rigs)))
     unused = sorted(path.name for path in (root / SENSORS_DIR).glob("records_*.txt") if path.name not in READ_RECORDS)
     if unused:
         log.warning("%s: records not used by the benchmark: %s", root / SENSORS_DIR, unused)
 
-    kapture_sensors = kapture_csv.sensors_from_file(str(root / SENSORS_FILE))
-    records_camera = kapture_csv.records_camera_from_file(str(root / RECORDS_CAMERA_FILE))
-    trajectories = (
-        kapture_csv.trajectories_from_file(str(root / TRAJECTORIES_FILE))
-        if has_trajectories
-        else kapture.Trajectories()
-    )
-
-    entries = list(kapture.flatten(records_camera, is_sorted=True))
+    entries = sorted((row.timestamp(), row.fields[1], row.fields[2]) for row in records)  # kapture's order
     keys = [(ts, camera) for ts, camera, _ in entries]
     names = [name for _, _, name in entries]
     duplicates = sorted(name for name, count in Counter(names).items() if count > 1)
@@ -435,7 +453,7 @@ def load_image_set(kapture_root: str | Path, tag: str | None = None) -> ImageSet
     _check_names(root / RECORDS_CAMERA_FILE, names)
     image_root = root / RECORDS_DATA_DIR
     _check_files_exist(image_root, names, "image")
-    cameras = {camera: _to_camera(kapture_sensors[camera]) for camera in {c for _, c in keys}}
+    cameras = {camera: _camera(sensors[camera]) for camera in {c for _, c in keys}}
     _check_image_sizes(image_root, names, [cameras[c] for _, c in keys], [c for _, c in keys])
     qvec, tvec = _image_poses(keys, trajectories, rigs)
 
@@ -536,6 +554,7 @@ def load_kapture_scene(
     name: str,
     mapping: str | Path | Sequence[str | Path],
     queries: Sequence[str | Path],
+    *,
     query_tags: Sequence[str] | None = None,
     name_tags: Mapping[str, str] | None = None,
     ltvl_name_style: str = "full",
@@ -566,52 +585,3 @@ def load_kapture_scene(
     if name_tags:
         database, query_set = add_name_tags(database, name_tags), add_name_tags(query_set, name_tags)
     return Scene(name, database, query_set, mapping_folders + query_folders, ltvl_name_style, frustum_far)
-
-
-def ltvl_name(name: str, style: str) -> str:
-    """The image name LTVL expects for ``name`` (a records_data path) under ``style``."""
-    if style == "full":
-        return name
-    if style == "basename":
-        return PurePosixPath(name).name
-    if style == "strip_prefix":
-        prefix, separator, rest = name.partition("/")
-        if not separator or not rest:
-            raise ValueError(f"LTVL name style 'strip_prefix': image name {name!r} has no leading folder to strip")
-        return rest
-    raise ValueError(f"unknown LTVL name style {style!r}; expected one of {LTVL_NAME_STYLES}")
-
-
-def write_ltvl(
-    path: str | Path, names: Sequence[str], qvec: np.ndarray, tvec: np.ndarray, name_style: str = "full"
-) -> int:
-    """Write a visuallocalization.net submission: ``name qw qx qy qz tx ty tz`` per line.
-
-    Poses are world-to-camera (wxyz quaternion, translation -- not the camera centre), as
-    kapture stores them. Rows with a NaN pose are not written; returns how many were skipped.
-    """
-    if name_style not in LTVL_NAME_STYLES:
-        raise ValueError(f"unknown LTVL name style {name_style!r}; expected one of {LTVL_NAME_STYLES}")
-    qvec = np.asarray(qvec, dtype=np.float64)
-    tvec = np.asarray(tvec, dtype=np.float64)
-    if qvec.shape != (len(names), 4) or tvec.shape != (len(names), 3):
-        raise ValueError(
-            f"write_ltvl: {len(names)} names need qvec [N, 4] and tvec [N, 3], got {qvec.shape} and {tvec.shape}"
-        )
-    known = np.isfinite(qvec).all(axis=1) & np.isfinite(tvec).all(axis=1)
-    written = [ltvl_name(name, name_style) for name, ok in zip(names, known) if ok]
-    clashes = sorted(n for n, count in Counter(written).items() if count > 1)
-    if clashes:
-        raise ValueError(
-            f"write_ltvl: name style {name_style!r} maps several images to the same name, e.g. {clashes[:3]}"
-        )
-    spaced = [n for n in written if any(c.isspace() for c in n)]
-    if spaced:
-        raise ValueError(
-            f"write_ltvl: LTVL lines are space-separated, image names must not contain whitespace: {spaced[:3]}"
-        )
-    values = np.concatenate([qvec, tvec], axis=1)[known]
-    lines = [f"{name} {' '.join(repr(float(v)) for v in row)}\n" for name, row in zip(written, values)]
-    with atomic_path(path) as temporary:
-        temporary.write_text("".join(lines))
-    return int((~known).sum())

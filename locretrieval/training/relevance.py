@@ -119,8 +119,8 @@ class TrainingPairs:
 
 def training_pairs(images: ImageSet, settings: TrainingRelevanceSettings, context: DefinitionContext) -> TrainingPairs:
     """Relevance among ``images`` (all posed) by ``settings``: graded by the definition
-    (`Definition.graded`, with ``context``: the scene's far plane, and the shared 3D points of
-    ``images`` for a definition that ``uses_sfm``), related pairs by ``settings.negatives``."""
+    (`Definition.graded`, with ``context``: the scene's far plane, SfM settings, cache and the
+    world whose database ``images`` are), related pairs by ``settings.negatives``."""
     if not images.has_pose.all():
         missing = [n for n, posed in zip(images.names, images.has_pose) if not posed][:5]
         raise ValueError(f"training images need poses; without: {missing}")
@@ -135,11 +135,12 @@ def training_pairs(images: ImageSet, settings: TrainingRelevanceSettings, contex
                 f"far plane) but scene {context.scene!r} has no frustum_far"
             )
         frusta = TruncatedFrusta.of_images(images, np.arange(count), negatives.near, far)
+    grade = settings.definition.graded(images, context)
     graded_blocks, related_blocks = [], []
     rows_per_chunk = max(1, PAIRS_PER_CHUNK // count)
     for start in range(0, count, rows_per_chunk):
         rows = np.arange(start, min(count, start + rows_per_chunk))
-        graded = settings.definition.graded(images, rows, context)
+        graded = grade(rows)
         graded[rows - start, rows] = 0.0
         graded_blocks.append(sparse.csr_matrix(graded))
         related = graded > 0 if frusta is None else (_covisible(images, rows, frusta, negatives) | (graded > 0))

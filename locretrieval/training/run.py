@@ -19,7 +19,6 @@ from omegaconf import DictConfig, OmegaConf
 from locretrieval.benchmark import BenchmarkSettings, sfm_plan
 from locretrieval.config import ConfigError, built, check_node, require, validated
 from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, compute_groundtruths
-from locretrieval.groundtruth.co_observation import database_co_observations
 from locretrieval.scene import ImageSet, Scene
 from locretrieval.scene.datasets import instantiate_scene, load_synthetic_dataset
 from locretrieval.scene.kapture_io import concatenate_image_sets
@@ -349,7 +348,7 @@ def training_parts(
     worlds = training_worlds(cfg, scene, training)
     sets = [world.database for world in worlds]
     cache_dir = Path(cfg.paths.cache_dir)
-    pairs = combined_pairs(sets, relevance, [pair_context(world, relevance, settings, cache_dir) for world in worlds])
+    pairs = combined_pairs(sets, relevance, [pair_context(world, settings, cache_dir) for world in worlds])
     log.info(
         "training on %d images (%d with a relevant partner), validating on %d queries of %s",
         pairs.num_images,
@@ -389,16 +388,17 @@ def training_module(cfg: DictConfig, descriptor: Any, pairs: TrainingPairs) -> A
     )
 
 
-def pair_context(
-    world: Scene, relevance: TrainingRelevanceSettings, settings: BenchmarkSettings, cache_dir: Path
-) -> DefinitionContext:
-    """What the training definition needs on ``world``: its far plane (the validation scene's for
-    its database and the extra renders, a listed scene's own), and for a definition that matches
-    features (``uses_sfm``), the 3D points each pair of the world's images shares in its
-    known-pose map."""
-    shared = database_co_observations(world, settings.sfm, cache_dir) if relevance.definition.uses_sfm else None
+def pair_context(world: Scene, settings: BenchmarkSettings, cache_dir: Path) -> DefinitionContext:
+    """Where the training definition grades ``world``'s database: its far plane (the validation
+    scene's for its database and the extra renders, a listed scene's own), the SfM settings and
+    cache (a definition that matches features reads the world's known-pose map from them)."""
     return DefinitionContext(
-        far=world.frustum_far, shared_points=shared, key="train_relevance.definition", scene=world.name
+        far=world.frustum_far,
+        sfm=settings.sfm,
+        cache_dir=cache_dir,
+        world=world,
+        key="train_relevance.definition",
+        scene=world.name,
     )
 
 
