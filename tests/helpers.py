@@ -31,6 +31,30 @@ def evaluate_config(*overrides: str) -> DictConfig:
     return compose_config("evaluate", *overrides)
 
 
+def training_module(network, loss=None, optimizer=None, scheduler=None, **options):
+    """`RetrievalTraining` of ``network`` with ``configs/module/retrieval.yaml``'s options (Adam at
+    1e-3 unless ``optimizer``), ``options`` overriding them."""
+    from functools import partial
+
+    import torch
+
+    from locretrieval.models.extraction import Preprocessing
+    from locretrieval.training.module import RetrievalTraining
+
+    settings = OmegaConf.to_container(OmegaConf.load(CONFIGS / "module" / "retrieval.yaml"))
+    settings = {key: value for key, value in settings.items() if not key.startswith("_")}
+    return RetrievalTraining(
+        network,
+        Preprocessing(max_side=None, scales=(1.0,)),
+        loss,
+        optimizer or partial(torch.optim.Adam, lr=1e-3),
+        scheduler,
+        "gem",
+        {},
+        **{**settings, **options},
+    )
+
+
 def zoo_model(model: str, **options):
     """The model of ``configs/model/<model>.yaml`` (on CPU, quiet), its keys overridden by ``options``."""
     config = evaluate_config(f"model={model}", "paths.root_dir=/nonexistent", *QUIET_EXTRACTION)

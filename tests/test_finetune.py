@@ -2,8 +2,6 @@
 own preprocessing, the parts they keep fixed, their optimizer), each taking training steps; and
 a learning rate per part of any network (module.lr_scales)."""
 
-from functools import partial
-
 import helpers
 import pytest
 import torch
@@ -11,10 +9,9 @@ from hydra.utils import instantiate
 from test_training import train_config
 
 from locretrieval.config import SettingError
-from locretrieval.models.extraction import Preprocessing
 from locretrieval.models.networks import GeMPooling, RetrievalNet
 from locretrieval.models.weights import embedded_checkpoint, load_torch_file
-from locretrieval.training.module import RetrievalTraining, freeze_parameters
+from locretrieval.training.module import freeze_parameters
 from locretrieval.training.run import train
 
 #: CosPlace's and EigenPlaces' hub module as their code lays it out (torchvision ResNet children as
@@ -133,25 +130,14 @@ def test_each_preset_builds_and_takes_training_steps_with_its_fixed_parts_unchan
     assert len(moved) > len(trainable) // 2  # the step reached the head and the unfrozen blocks
 
 
-def plain_module(network, **options) -> RetrievalTraining:
-    return RetrievalTraining(
-        network,
-        Preprocessing(max_side=None, scales=(1.0,)),
-        None,
-        partial(torch.optim.Adam, lr=1e-3),
-        None,
-        "m",
-        {},
-        **options,
-    )
-
-
 def test_a_learning_rate_per_part_of_any_network_first_pattern_first():
     """Adam's first step moves each parameter by its group's learning rate (m / sqrt(v) = +-1)."""
     torch.manual_seed(0)
     trunk = torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, stride=2), torch.nn.Conv2d(8, 8, 1), torch.nn.Sigmoid())
     network = RetrievalNet(trunk, GeMPooling(8, 3.0, trainable=False), 8, whitening=torch.nn.Linear(8, 4))
-    module = plain_module(network, lr_scales={"backbone.1.*": 0.1, "backbone.*": 0.5, "whitening.weight": 20.0})
+    module = helpers.training_module(
+        network, lr_scales={"backbone.1.*": 0.1, "backbone.*": 0.5, "whitening.weight": 20.0}
+    )
     optimizer = module.configure_optimizers()
     before = {name: p.detach().clone() for name, p in network.named_parameters()}
     network(torch.rand(2, 3, 16, 16)).pow(3).sum().backward()
@@ -167,13 +153,13 @@ def test_a_learning_rate_per_part_of_any_network_first_pattern_first():
         "network",
     ]
     # with head_lr_scale: the patterns first, then the head's scale outside the backbone
-    module = plain_module(network, lr_scales={"whitening.bias": 3.0}, head_lr_scale=10.0)
+    module = helpers.training_module(network, lr_scales={"whitening.bias": 3.0}, head_lr_scale=10.0)
     rates = {group["name"]: group["lr"] for group in module.configure_optimizers().param_groups}
     assert rates == pytest.approx({"backbone": 1e-3, "whitening.bias": 3e-3, "head": 1e-2})
     with pytest.raises(SettingError, match=r"lr_scales.*'projection.\*' matches no parameter of the network"):
-        plain_module(network, lr_scales={"projection.*": 2.0})
+        helpers.training_module(network, lr_scales={"projection.*": 2.0})
     with pytest.raises(ValueError, match="module.lr_scales factors must be positive"):
-        plain_module(network, lr_scales={"backbone.*": 0.0})
+        helpers.training_module(network, lr_scales={"backbone.*": 0.0})
 
 
 def test_lr_scales_from_the_command_line(tmp_path):

@@ -1,19 +1,16 @@
 """Cross-batch memory (`module.memory_size`): what it remembers, the candidates it adds to a batch,
 the listwise loss it gives against a direct computation, and train.py with it."""
 
-from functools import partial
-
+import helpers
 import numpy as np
 import pytest
 import torch
 from scipy import sparse
 from test_training import train_config
 
-from locretrieval.models.extraction import Preprocessing
 from locretrieval.models.networks import GeMPooling, RetrievalNet
 from locretrieval.training.losses import ListwiseLoss
 from locretrieval.training.memory import DescriptorMemory
-from locretrieval.training.module import RetrievalTraining
 from locretrieval.training.relevance import TrainingPairs
 from locretrieval.training.run import train
 
@@ -116,17 +113,7 @@ def test_training_steps_fill_the_memory_and_rank_against_it():
         calls.append((len(descriptors), descriptors.requires_grad))
         return descriptors.sum() * 0
 
-    module = RetrievalTraining(
-        network,
-        Preprocessing(max_side=None, scales=(1.0,)),
-        recording_loss,
-        partial(torch.optim.Adam, lr=1e-3),
-        None,
-        "gem",
-        {},
-        memory_size=5,
-        pairs=pairs,
-    )
+    module = helpers.training_module(network, recording_loss, memory_size=5, pairs=pairs)
     images = torch.randint(0, 255, (4, 3, 12, 12), dtype=torch.uint8)
     for batch in (np.array([0, 1, 2, 3]), np.array([3, 4, 5, 6])):
         relevance, negatives = (torch.from_numpy(block) for block in pairs.batch(batch))
@@ -134,9 +121,7 @@ def test_training_steps_fill_the_memory_and_rank_against_it():
     assert calls == [(4, True), (4 + 3, True)]  # the second batch sees images 0, 1, 2 remembered (3 is in it)
     assert module.memory.indices.tolist() == [2, 3, 4, 5, 6]  # the newest 5
     with pytest.raises(ValueError, match="module.memory_size needs the training pairs"):
-        RetrievalTraining(
-            network, Preprocessing(max_side=None, scales=(1.0,)), recording_loss, None, None, "gem", {}, memory_size=5
-        )
+        helpers.training_module(network, recording_loss, memory_size=5)
 
 
 def test_train_py_trains_with_a_memory(tmp_path):

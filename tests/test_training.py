@@ -82,7 +82,7 @@ def test_relative_pose_training_pairs_against_a_direct_computation(scene):
 
 def test_batches_hold_anchors_with_positives_and_only_surely_unrelated_negatives(scene):
     pairs = training_pairs(scene.database, RELATIVE_POSE, AT_25M)
-    sampler = RelevanceBatchSampler(pairs, anchors=4, negatives=4, batches_per_epoch=5, seed=0)
+    sampler = RelevanceBatchSampler(pairs, anchors=4, positives=1, negatives=4, batches_per_epoch=5, seed=0)
     batches = list(sampler)
     assert len(batches) == 5 and all(len(b) == 12 for b in batches)
     graded, related = pairs.graded.toarray(), pairs.related.toarray()
@@ -448,7 +448,7 @@ def test_extra_rendered_scenes_are_trained_on_with_their_queries_and_never_the_v
 
 def test_hard_negatives_set_during_an_epoch_apply_to_its_later_batches(scene):
     pairs = training_pairs(scene.database, RELATIVE_POSE, AT_25M)
-    sampler = RelevanceBatchSampler(pairs, anchors=4, negatives=4, batches_per_epoch=6, seed=0)
+    sampler = RelevanceBatchSampler(pairs, anchors=4, positives=1, negatives=4, batches_per_epoch=6, seed=0)
     hard_image = {
         int(a): np.array([i for i in range(pairs.num_images) if i != a and not pairs.related[a, i]][:1])
         for a in sampler.anchors
@@ -477,7 +477,7 @@ def test_hard_negatives_are_the_highest_ranked_unrelated_images_by_the_current_n
         16,
     )
     pairs = training_pairs(scene.database, RELATIVE_POSE, AT_25M)
-    sampler = RelevanceBatchSampler(pairs, anchors=4, negatives=4, batches_per_epoch=1, seed=0)
+    sampler = RelevanceBatchSampler(pairs, anchors=4, positives=1, negatives=4, batches_per_epoch=1, seed=0)
     preprocessing = Preprocessing(max_side=None, scales=(1.0,))
     extraction = ExtractionSettings("cpu", 8, 0, False, False, None)
     mining = HardNegativeMining(
@@ -809,21 +809,14 @@ def test_head_lr_scale_moves_the_head_that_much_faster_than_the_backbone(frozen_
     """Adam's first step moves every parameter by its group's learning rate (m / sqrt(v) = +-1)."""
     from functools import partial
 
-    from locretrieval.models.extraction import Preprocessing
     from locretrieval.models.networks import GeMPooling, RetrievalNet
-    from locretrieval.training.module import RetrievalTraining
 
     torch.manual_seed(0)
     trunk = torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, stride=2), torch.nn.ReLU())
     network = RetrievalNet(trunk, GeMPooling(8, 3.0, trainable=False), 8, whitening=torch.nn.Linear(8, 4))
-    module = RetrievalTraining(
+    module = helpers.training_module(
         network,
-        Preprocessing(max_side=None, scales=(1.0,)),
-        None,
-        partial(torch.optim.Adam, lr=1e-3),
-        partial(torch.optim.lr_scheduler.CosineAnnealingLR, T_max=4),
-        "gem",
-        {},
+        scheduler=partial(torch.optim.lr_scheduler.CosineAnnealingLR, T_max=4),
         frozen=["backbone.*"] if frozen_backbone else [],
         head_lr_scale=10.0,
     )
@@ -844,20 +837,14 @@ def test_head_lr_scale_moves_the_head_that_much_faster_than_the_backbone(frozen_
     assert rates["head"] == pytest.approx(1e-2 * (1 + np.cos(np.pi / 4)) / 2)
     if not frozen_backbone:
         assert rates["head"] == pytest.approx(10 * rates["backbone"])
-    plain = RetrievalTraining(
-        network, Preprocessing(max_side=None, scales=(1.0,)), None, partial(torch.optim.Adam, lr=1e-3), None, "gem", {}
-    ).configure_optimizers()
+    plain = helpers.training_module(network).configure_optimizers()
     assert len(plain.param_groups) == 1 and plain.param_groups[0]["lr"] == 1e-3  # scale 1: one group, as before 0.9.0
     with pytest.raises(ValueError, match="module.head_lr_scale must be positive"):
-        RetrievalTraining(
-            network, Preprocessing(max_side=None, scales=(1.0,)), None, None, None, "gem", {}, head_lr_scale=0
-        )
+        helpers.training_module(network, head_lr_scale=0)
     with pytest.raises(
         ValueError, match="module.head_lr_scale=10.0 needs a network with a backbone .* Sequential has no 'backbone'"
     ):
-        RetrievalTraining(
-            trunk, Preprocessing(max_side=None, scales=(1.0,)), None, None, None, "gem", {}, head_lr_scale=10.0
-        )
+        helpers.training_module(trunk, head_lr_scale=10.0)
 
 
 def test_validation_on_a_seeded_subset_of_the_queries_with_capped_sfm_features(tmp_path):
@@ -916,25 +903,14 @@ class TemperatureLoss(torch.nn.Module):
 def test_the_parameters_of_a_loss_are_optimized(tmp_path, head_lr_scale):
     from functools import partial
 
-    from locretrieval.models.extraction import Preprocessing
     from locretrieval.models.networks import GeMPooling, RetrievalNet
-    from locretrieval.training.module import RetrievalTraining
 
     torch.manual_seed(0)
     network = RetrievalNet(
         torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, stride=2), torch.nn.ReLU()), GeMPooling(8, 3.0, trainable=False), 8
     )
     loss = TemperatureLoss()
-    module = RetrievalTraining(
-        network,
-        Preprocessing(max_side=None, scales=(1.0,)),
-        loss,
-        partial(torch.optim.Adam, lr=1e-2),
-        None,
-        "gem",
-        {},
-        head_lr_scale=head_lr_scale,
-    )
+    module = helpers.training_module(network, loss, partial(torch.optim.Adam, lr=1e-2), head_lr_scale=head_lr_scale)
     optimizer = module.configure_optimizers()
     assert any(parameter is loss.log_temperature for group in optimizer.param_groups for parameter in group["params"])
     before = loss.log_temperature.item()

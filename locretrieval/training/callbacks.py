@@ -98,9 +98,9 @@ class LocalizationValidation(L.Callback):
         relevance_scope: str,
         every_n_epochs: int,
         sfm_every_n_epochs: int | None,
-        gallery_queries: int = 0,
-        gallery_k: int = 5,
-        gallery_size: int = 160,
+        gallery_queries: int,
+        gallery_k: int,
+        gallery_size: int,
         reference_models: Mapping[str, GlobalDescriptor] | None = None,
         headline: Sequence[str] = (),
     ) -> None:

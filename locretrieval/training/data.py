@@ -111,7 +111,7 @@ class RelevanceBatchSampler(Sampler[list[int]]):
     number (`set_epoch`)."""
 
     def __init__(
-        self, pairs: TrainingPairs, anchors: int, negatives: int, batches_per_epoch: int, seed: int, positives: int = 1
+        self, pairs: TrainingPairs, *, anchors: int, negatives: int, batches_per_epoch: int, seed: int, positives: int
     ) -> None:
         require(anchors >= 1, "anchors", f"must be >= 1, got {anchors}")
         require(positives >= 1, "positives", f"must be >= 1, got {positives}")
