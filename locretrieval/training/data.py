@@ -32,7 +32,8 @@ class TrainingAugmentation:
     ``blur_probability``, a Gaussian blur of sigma in ``blur_sigma`` (pixels); with
     ``noise_probability``, Gaussian noise of standard deviation ``noise_sigma`` (intensities in
     [0, 1]). Each image of a batch draws its own parameters (kornia, on the batch's device: the
-    distributions of torchvision's per-image transforms, tested)."""
+    distributions of torchvision's per-image transforms, tested); the order of the four colour
+    operations is drawn once per batch (kornia's), where torchvision draws it per image."""
 
     zoom_probability: float
     zoom: list[float]
