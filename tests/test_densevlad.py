@@ -118,13 +118,15 @@ def test_gradient_histograms_equal_kornias():
 
 # (bin size, step, largest bin): the last puts the lattice origin on an odd pixel (3) with a
 # stride of 2, where the first cells' triangles reach the image border at pixel 0.
+#: VLFeat vl_dsift's magnification and window size (bins), the values `explicit_rootsift` uses.
+VL_DSIFT = (6.0, 1.5)
 LATTICES = [(4, 3, 6), (6, 3, 6), (8, 2, 10), (10, 2, 10)]
 
 
 @pytest.mark.parametrize("bin_size, step, max_bin_size", LATTICES)
 def test_dense_rootsift_matches_explicit_loops(bin_size, step, max_bin_size):
     image = torch.from_numpy(texture(7, 64)[:44, :52].astype(np.float32) / 255.0)[None, None]
-    descriptors, contrast = dense_rootsift(image, bin_size, step=step, max_bin_size=max_bin_size)
+    descriptors, contrast = dense_rootsift(image, bin_size, step, max_bin_size, *VL_DSIFT)
     expected = explicit_rootsift(image, bin_size, step=step, max_bin_size=max_bin_size)
     assert descriptors.shape == (1, len(expected), 128)
     np.testing.assert_allclose(descriptors[0].numpy(), expected, atol=2e-5)
@@ -134,11 +136,11 @@ def test_dense_rootsift_matches_explicit_loops(bin_size, step, max_bin_size):
 @pytest.mark.parametrize("bin_size, step, max_bin_size", LATTICES)
 def test_cpu_kernels_build_the_same_rootsift(bin_size, step, max_bin_size):
     image = torch.from_numpy(texture(7, 64)[:44, :52].astype(np.float32) / 255.0)[None]
-    pooled, geometry = cpu_lattice(image, bin_size, step, max_bin_size)
-    window = window_weights(1.5, torch.device("cpu")).numpy()
+    pooled, geometry = cpu_lattice(image, bin_size, step, max_bin_size, VL_DSIFT[0])
+    window = window_weights(VL_DSIFT[1], torch.device("cpu")).numpy()
     descriptors, contrast = cpu_rootsift(pooled, geometry, slice(0, geometry.rows), window)
     np.testing.assert_allclose(descriptors, explicit_rootsift(image[None], bin_size, step, max_bin_size), atol=2e-5)
-    expected_descriptors, expected_contrast = dense_rootsift(image[None], bin_size, step, max_bin_size)
+    expected_descriptors, expected_contrast = dense_rootsift(image[None], bin_size, step, max_bin_size, *VL_DSIFT)
     np.testing.assert_allclose(descriptors, expected_descriptors[0].numpy(), atol=1e-6)
     np.testing.assert_allclose(contrast, expected_contrast[0].numpy(), rtol=1e-5)
     # A few rows into a larger buffer: the same rows.
@@ -154,7 +156,7 @@ def test_dense_rootsift_is_nonnegative_unit_norm_and_zero_on_flat_images():
             torch.full((1, 96, 96), 0.5),
         ]
     )
-    descriptors, contrast = dense_rootsift(images, 8, step=2, max_bin_size=10)
+    descriptors, contrast = dense_rootsift(images, 8, 2, 10, *VL_DSIFT)
     first, count = grid_layout(96, 10, 2)
     assert (first, count) == (15, 33)
     assert descriptors.shape == (2, 33 * 33, 128)
@@ -260,7 +262,9 @@ def test_cpu_vlads_a_few_rows_at_a_time_equal_the_torch_whole_image_computation(
         image = fitted._load(textures_scene.queries, index)[None]
         residuals = 0
         for bin_size in fitted.bin_sizes:
-            descriptors, contrast = dense_rootsift(image, bin_size, fitted.step, max(fitted.bin_sizes))
+            descriptors, contrast = dense_rootsift(
+                image, bin_size, fitted.step, max(fitted.bin_sizes), fitted.magnification, fitted.window_size
+            )
             kept = (contrast >= fitted.contrast_threshold) & (contrast > 0)
             residuals = residuals + vlad_residuals(descriptors, kept, fitted._centroids, cpu_kernels=False)
         expected.append(normalize_vlad(residuals)[0].numpy())
@@ -313,7 +317,7 @@ def test_contrast_threshold_drops_faint_regions_from_the_vlad(tmp_path, fitted):
     model._centroids = fitted._centroids
     vlad = model._vlads(images)[0]
 
-    descriptors, contrast = dense_rootsift(torch.from_numpy(pixels / np.float32(255))[None, None], 4, 3, 4)
+    descriptors, contrast = dense_rootsift(torch.from_numpy(pixels / np.float32(255))[None, None], 4, 3, 4, *VL_DSIFT)
     descriptors, contrast = descriptors[0].double().numpy(), contrast[0].numpy()
     faint = (contrast > 0) & (contrast < threshold)
     assert faint.sum() > 400 and (contrast >= threshold).sum() > 400

@@ -185,8 +185,8 @@ def sift_lattice(
     bin_size: int,
     step: int,
     max_bin_size: int,
-    magnification: float = 6.0,
-    window_size: float = 1.5,
+    magnification: float,
+    window_size: float,
 ) -> SiftLattice:
     """Upright SIFT cells on the grid of `grid_layout` at one scale (torch, any device).
 
@@ -220,8 +220,8 @@ def dense_rootsift(
     bin_size: int,
     step: int,
     max_bin_size: int,
-    magnification: float = 6.0,
-    window_size: float = 1.5,
+    magnification: float,
+    window_size: float,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Every RootSIFT of `sift_lattice` at once: ``(descriptors [B, G, 128], contrast [B, G])``.
 
@@ -235,7 +235,7 @@ def dense_rootsift(
 
 
 def cpu_lattice(
-    image: torch.Tensor, bin_size: int, step: int, max_bin_size: int, magnification: float = 6.0
+    image: torch.Tensor, bin_size: int, step: int, max_bin_size: int, magnification: float
 ) -> tuple[np.ndarray, LatticeGeometry]:
     """`sift_lattice`'s pooled histograms of one CPU image ``[1, H, W]`` by the numba kernels:
     ``(pooled [Y, X * 8], geometry)``."""
