@@ -75,17 +75,22 @@ def fitted(textures_scene) -> DenseVLAD:
 # -- dense RootSIFT -----------------------------------------------------------------------
 
 
+#: VLFeat vl_dsift's magnification and window size (bins), the values `explicit_rootsift` uses.
+VL_DSIFT = (6.0, 1.5)
+
+
 def explicit_rootsift(image: torch.Tensor, bin_size: int, step: int, max_bin_size: int) -> np.ndarray:
     """Per-point loops over cells: bilinear pooling of kornia's gradient histograms, Gaussian
-    cell window (1.5 bins), SIFT normalisation with clipping at 0.2, then RootSIFT."""
-    sigma = math.sqrt((bin_size / 6.0) ** 2 - 0.25)
+    cell window (`VL_DSIFT`), SIFT normalisation with clipping at 0.2, then RootSIFT."""
+    magnification, window_size = VL_DSIFT
+    sigma = math.sqrt((bin_size / magnification) ** 2 - 0.25)
     size = 2 * math.ceil(3 * sigma) + 1
     smoothed = kornia.filters.gaussian_blur2d(image, (size, size), (sigma, sigma))
     histograms = kornia.feature.DenseSIFTDescriptor().get_gradient_histograms(smoothed)[0].double().numpy()
     _, height, width = histograms.shape
     first_y, rows = grid_layout(height, max_bin_size, step)
     first_x, cols = grid_layout(width, max_bin_size, step)
-    window = [math.exp(-0.5 * ((cell - 1.5) / 1.5) ** 2) for cell in range(4)]
+    window = [math.exp(-0.5 * ((cell - 1.5) / window_size) ** 2) for cell in range(4)]
 
     def bilinear(centre: int, length: int) -> np.ndarray:
         return np.maximum(0.0, 1.0 - np.abs(np.arange(length) - centre) / bin_size)
@@ -118,8 +123,6 @@ def test_gradient_histograms_equal_kornias():
 
 # (bin size, step, largest bin): the last puts the lattice origin on an odd pixel (3) with a
 # stride of 2, where the first cells' triangles reach the image border at pixel 0.
-#: VLFeat vl_dsift's magnification and window size (bins), the values `explicit_rootsift` uses.
-VL_DSIFT = (6.0, 1.5)
 LATTICES = [(4, 3, 6), (6, 3, 6), (8, 2, 10), (10, 2, 10)]
 
 
@@ -317,7 +320,9 @@ def test_contrast_threshold_drops_faint_regions_from_the_vlad(tmp_path, fitted):
     model._centroids = fitted._centroids
     vlad = model._vlads(images)[0]
 
-    descriptors, contrast = dense_rootsift(torch.from_numpy(pixels / np.float32(255))[None, None], 4, 3, 4, *VL_DSIFT)
+    descriptors, contrast = dense_rootsift(
+        torch.from_numpy(pixels / np.float32(255))[None, None], 4, model.step, 4, model.magnification, model.window_size
+    )
     descriptors, contrast = descriptors[0].double().numpy(), contrast[0].numpy()
     faint = (contrast > 0) & (contrast < threshold)
     assert faint.sum() > 400 and (contrast >= threshold).sum() > 400
