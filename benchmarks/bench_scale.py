@@ -22,10 +22,10 @@ Then the SfM paradigms (2a, 2b) with the dataset config's settings (``sfm``, fro
 
 1. their work counted exactly (`local_sfm.plan`, `global_sfm.plan`) for these rankings and the k
    lists of ``configs/paradigms/default.yaml``;
-2. unit costs measured by the product's own `measure_unit_costs` on 10 database images and a
-   query of a generated world (`sfm_world.FeatureWorld`: points with descriptors, each image's
-   features their projections plus clutter, written as R2D2 kapture files and read back):
-   reading features, matching (as the pipeline batches it), verification, triangulation, PnP;
+2. unit costs measured by the product's own `measure_unit_costs` (the SfM pipeline run on its
+   sample: a neighbourhood of database images and two queries) with the features of a generated
+   world (`sfm_world.FeatureWorld`: points with descriptors, each image's features their
+   projections plus clutter, written as R2D2 kapture files and read back);
 3. the full sweep's forecast (`SfmPlan.forecast`, what ``evaluate.py`` logs) per stage;
 4. **the forecast checked**: a slice of the work (the ``--slice`` share of the queries with the
    smallest x and the database images within 25 m of them, their own rankings, features of
@@ -58,7 +58,14 @@ from locretrieval.localization import approximation, global_sfm, local_sfm
 from locretrieval.localization.global_sfm import GlobalSfmSettings
 from locretrieval.localization.local_sfm import LocalSfmSettings
 from locretrieval.localization.pipeline import run_sfm
-from locretrieval.localization.plan import SfmPlan, UnitCosts, feature_work, measure_unit_costs
+from locretrieval.localization.plan import (
+    SfmPlan,
+    UnitCosts,
+    feature_work,
+    forecast_sample,
+    measure_unit_costs,
+    sample_depth,
+)
 from locretrieval.localization.sfm import SfmSettings
 from locretrieval.localization.triangulation import BatchedTriangulation, MapInput
 from locretrieval.metrics.localization import localization_table, query_error_table
@@ -75,10 +82,8 @@ DEPTH = 50
 KS = [1, 2, 3, 5, 10, 20, 50]  # configs/paradigms/default.yaml, approximation
 THRESHOLDS = [[0.25, 2.0], [0.5, 5.0], [5.0, 10.0]]  # configs/evaluate.yaml
 GIB = 2.0**30
-#: Database images of the unit-cost sample (the product's plan measures on fewer, the scene's own).
-UNIT_COST_IMAGES = 10
-#: Each SfM paradigm's plan.
-PARADIGM_PLANS = {"local_sfm": local_sfm.plan, "global_sfm": global_sfm.plan}
+#: Database images of the map the triangulations are compared on.
+TRIANGULATION_IMAGES = 10
 
 
 def images(centers: np.ndarray, yaw: np.ndarray, rng: np.random.Generator, prefix: str) -> ImageSet:
@@ -326,10 +331,7 @@ def sfm_plan(scene: Scene, rankings, sfm: SfmSettings, cache: Path) -> SfmPlan:
     """The exact SfM work of both paradigms for ``rankings`` (no cost yet)."""
     from locretrieval.localization.sfm import SfmInputs
 
-    work = [
-        PARADIGM_PLANS[name](scene, rankings, settings, sfm, cache, 0)
-        for name, (_, settings) in sfm_paradigms().items()
-    ]
+    work = [stages.plan(scene, rankings, settings, sfm, cache, 0) for stages, settings in sfm_paradigms().values()]
     return SfmPlan(feature_work(SfmInputs.prepare(scene, sfm, cache, extract=False)), work, True, sfm.processes)
 
 
@@ -347,19 +349,14 @@ def with_kapture_root(scene: Scene, root: Path) -> Scene:
 def measured_unit_costs(
     scene: Scene, sfm: SfmSettings, keypoints: int, rng: np.random.Generator, folder: Path
 ) -> UnitCosts:
-    """`measure_unit_costs` on the first database image, its 9 nearest and the nearest query,
-    their features generated (`FeatureWorld`) at ``keypoints`` and written as kapture files."""
-    database, queries = scene.database, scene.queries
-    near = np.argsort(np.linalg.norm(database.centers - database.centers[0], axis=1), kind="stable")[:UNIT_COST_IMAGES]
-    query = int(np.argmin(np.linalg.norm(queries.centers - database.centers[0], axis=1)))
-    sample = with_kapture_root(
-        Scene(scene.name, database.subset(near), queries.subset(np.array([query])), frustum_far=scene.frustum_far),
-        folder,
-    )
-    world = FeatureWorld(sample.database.centers, scene.frustum_far, rng)
-    world.write(sample.database, range(len(near)), keypoints, scene.frustum_far, sfm.features.name)
-    world.write(sample.queries, [0], keypoints, scene.frustum_far, sfm.features.name)
-    return measure_unit_costs(sample, sfm, sample_images=UNIT_COST_IMAGES)
+    """`measure_unit_costs` on the scene, the images of its sample given generated features
+    (`FeatureWorld`) at ``keypoints``, written as kapture files under ``folder``."""
+    paradigms, scene = sfm_paradigms(), with_kapture_root(scene, folder)
+    sample, _ = forecast_sample(scene, sample_depth(scene, paradigms))
+    world = FeatureWorld(np.concatenate([sample.database.centers, sample.queries.centers]), scene.frustum_far, rng)
+    for images in (sample.database, sample.queries):
+        world.write(images, range(len(images)), keypoints, scene.frustum_far, sfm.features.name)
+    return measure_unit_costs(scene, sfm, paradigms, folder / "cache", start_pool=False)
 
 
 def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Generator) -> None:
@@ -388,9 +385,8 @@ def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Ge
         ratio = measure(
             "batched against COLMAP triangulation", batched_triangulation_ratio, scene, sfm, args.keypoints, rng
         )
-        batched = dataclasses.replace(
-            plan, costs=dataclasses.replace(plan.costs, triangulation=plan.costs.triangulation * ratio)
-        )
+        scaled = {name: seconds * ratio for name, seconds in plan.costs.map_pairs.items()}
+        batched = dataclasses.replace(plan, costs=dataclasses.replace(plan.costs, map_pairs=scaled))
         print(
             forecast_line(f"  with sfm/triangulation=batched ({ratio:.2f} of COLMAP's time per map", batched, processes)
         )
@@ -405,7 +401,9 @@ def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Ge
         for images in (slice_scene.database, slice_scene.queries):
             world.write(images, range(len(images)), keypoints, scene.frustum_far, sfm.features.name)
         slice_plan = sfm_plan(slice_scene, slice_rankings, sfm, folder / "slice_cache")
-        slice_plan.costs = measure_unit_costs(slice_scene, sfm, sample_images=UNIT_COST_IMAGES)
+        slice_plan.costs = measure_unit_costs(
+            slice_scene, sfm, sfm_paradigms(), folder / "slice_cache", slice_plan.pool_needed()
+        )
         forecast = sum(slice_plan.forecast().values())
         stages: dict[str, float] = {}
         started = time.perf_counter()
@@ -430,13 +428,13 @@ def batched_triangulation_ratio(scene: Scene, sfm: SfmSettings, keypoints: int, 
     """`BatchedTriangulation`'s time over the configured triangulation's on one map of the first
     database image and its 9 nearest, generated features with their true correspondences."""
     database = scene.database
-    near = np.argsort(np.linalg.norm(database.centers - database.centers[0], axis=1), kind="stable")[:UNIT_COST_IMAGES]
-    images = database.subset(near)
+    near = np.argsort(np.linalg.norm(database.centers - database.centers[0], axis=1), kind="stable")
+    images = database.subset(near[:TRIANGULATION_IMAGES])
     world = FeatureWorld(images.centers, scene.frustum_far, rng)
-    features = [world.features(images, i, keypoints, scene.frustum_far) for i in range(len(near))]
+    features = [world.features(images, i, keypoints, scene.frustum_far) for i in range(len(images))]
     matches = {}
-    for a in range(len(near)):
-        for b in range(a + 1, len(near)):
+    for a in range(len(images)):
+        for b in range(a + 1, len(images)):
             shared, rows_a, rows_b = np.intersect1d(features[a][2], features[b][2], return_indices=True)
             matches[(a, b)] = np.column_stack([rows_a, rows_b])[shared >= 0]
     map_input = MapInput(images.cameras, images.qvec, images.tvec, [f[0][:, :2] + 0.5 for f in features], matches)
@@ -451,12 +449,15 @@ def batched_triangulation_ratio(scene: Scene, sfm: SfmSettings, keypoints: int, 
 
 
 def unit_cost_line(costs: UnitCosts) -> str:
+    units = ", ".join(
+        f"{name}: triangulate {costs.map_pairs[name] * 1e3:.2f} ms/map pair, register "
+        f"{costs.registrations[name] * 1e3:.2f} ms/image"
+        for name in costs.map_pairs
+    )
     return (
-        f"  per unit ({costs.keypoints:,.0f} keypoints, matching on "
-        f"{costs.device}): read features {costs.features:.4f} s/image, "
-        f"match {costs.matching:.4f} s/pair, verify {costs.pose_verification:.4f} "
-        f"s/database pair and {costs.query_verification:.4f} "
-        f"s/query pair, triangulate {costs.triangulation:.4f} s/pair, register {costs.registration:.4f} s/query"
+        f"  per unit in one process ({costs.keypoints:,.0f} keypoints, matching on {costs.device}, "
+        f"measured on {costs.sample}): features {costs.features:.4f} s/image, "
+        f"match + verify {costs.pairs * 1e3:.2f} ms/pair, {units}"
     )
 
 

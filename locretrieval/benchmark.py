@@ -35,7 +35,7 @@ from locretrieval.localization.global_sfm import GlobalSfmSettings
 from locretrieval.localization.local_sfm import LocalSfmSettings
 from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.pipeline import SfmStages, run_sfm
-from locretrieval.localization.plan import ParadigmWork, SfmPlan, UnitCosts, feature_work, measure_unit_costs
+from locretrieval.localization.plan import SfmPlan, UnitCosts, feature_work, measure_unit_costs
 from locretrieval.localization.sfm import SfmInputs, SfmSettings
 from locretrieval.metrics.localization import MetricsSettings, localization_table, query_error_table, query_subsets
 from locretrieval.metrics.retrieval import retrieval_tables
@@ -56,18 +56,16 @@ class Paradigm:
     """A localization paradigm: its ``settings`` schema (a `ParadigmSettings`, the section of
     ``configs/paradigms`` of its name), its entry point ``run(scene, rankings, settings, sfm,
     cache_dir) -> [PoseEstimates]``, and what it needs: ``uses_local_features`` (the ``sfm``
-    group's features and matches), ``plan`` (its work forecast, `locretrieval.localization.plan`,
-    ``plan(scene, rankings or None, settings, sfm, cache_dir, num_rankings) -> ParadigmWork``),
-    ``missing_inputs(settings) -> [problem]`` (files it reads that are absent), ``cost``:
+    group's features and matches), ``missing_inputs(settings) -> [problem]`` (files it reads that are absent), ``cost``:
     ``cheap`` (run at every training validation) or ``sfm`` (every ``sfm_every_n_epochs``), and
     ``map_points(scene, settings, sfm, cache_dir) -> [P, 3] or None`` (the 3D points of a map it
     built, for the report's 3D view). An SfM paradigm gives its ``stages`` of the SfM pipeline
-    (`SfmStages`): the benchmark runs every enabled one through one pipeline (`run_sfm`)."""
+    (`SfmStages`, its work counted by their ``plan``): the benchmark runs every enabled one
+    through one pipeline (`run_sfm`)."""
 
     settings: type[ParadigmSettings]
     run: Callable[..., list[PoseEstimates]]
     stages: SfmStages | None = None
-    plan: Callable[..., ParadigmWork] | None = None
     missing_inputs: Callable[[Any], list[str]] | None = None
     cost: str = "cheap"
     map_points: Callable[..., np.ndarray | None] | None = None
@@ -86,12 +84,11 @@ class Paradigm:
 #: paradigm is its module (settings schema, ``run``) and one entry here (and its YAML section).
 PARADIGMS: dict[str, Paradigm] = {
     "approximation": Paradigm(ApproximationSettings, approximation.run),
-    "local_sfm": Paradigm(LocalSfmSettings, local_sfm.run, local_sfm.STAGES, plan=local_sfm.plan, cost="sfm"),
+    "local_sfm": Paradigm(LocalSfmSettings, local_sfm.run, local_sfm.STAGES, cost="sfm"),
     "global_sfm": Paradigm(
         GlobalSfmSettings,
         global_sfm.run,
         global_sfm.STAGES,
-        plan=global_sfm.plan,
         missing_inputs=global_sfm.missing_inputs,
         cost="sfm",
         map_points=global_sfm.map_points,
@@ -174,7 +171,8 @@ class BenchmarkResult:
 
     ``localization``: % localised per subset x ranking x paradigm x method x k x threshold
     (`RESULT_COLUMNS`); ``query_errors``: per query; ``retrieval`` / ``query_retrieval``:
-    P@k, R@k, mAP@k of every ranking against every ground truth (empty without ground truth).
+    P@k, R@k, mAP@k of every ranking against every ground truth (empty without ground truth);
+    ``sfm_stages``: per SfM stage, its forecast and measured seconds (`stage_times`).
     """
 
     dataset: str
@@ -184,6 +182,7 @@ class BenchmarkResult:
     query_errors: pd.DataFrame
     retrieval: pd.DataFrame
     query_retrieval: pd.DataFrame
+    sfm_stages: dict[str, dict[str, float | None]] = dataclasses.field(default_factory=dict)
 
 
 def build_rankings(
@@ -277,21 +276,27 @@ def sfm_plan(
     """The work of the enabled SfM paradigms (`SfmPlan`; ``None`` when none is enabled or there
     is no cache): exact for ``rankings``, or upper bounds for ``num_rankings`` rankings not
     computed yet (``None``). When there is new work, unit costs are measured on a sample of the
-    scene (once per scene and settings in a process) for the forecast."""
-    enabled = [name for name in settings.paradigms.enabled() if PARADIGMS[name].plan is not None]
-    if not enabled or cache_dir is None:
+    scene (`measure_unit_costs`, once per scene and settings in a process) for the forecast, and
+    the worker pool is started when a stage will need it."""
+    paradigms = sfm_paradigms(settings)
+    if not paradigms or cache_dir is None:
         return None
     cache_dir = Path(cache_dir)
     inputs = SfmInputs.prepare(scene, settings.sfm, cache_dir, extract=False)
     work = [
-        PARADIGMS[name].plan(scene, rankings, getattr(settings.paradigms, name), settings.sfm, cache_dir, num_rankings)
-        for name in enabled
+        stages.plan(scene, rankings, paradigm_settings, settings.sfm, cache_dir, num_rankings)
+        for stages, paradigm_settings in paradigms.values()
     ]
     plan = SfmPlan(feature_work(inputs), work, rankings is not None, settings.sfm.processes)
-    if plan.features.new or plan.new_pairs() or any(w.maps.new or w.registrations.new for w in work):
-        key = config_key(scene.database.fingerprint(), scene.queries.fingerprint(), dataclasses.asdict(settings.sfm))
+    if plan.has_new_work:
+        key = config_key(
+            scene.database.fingerprint(),
+            scene.queries.fingerprint(),
+            dataclasses.asdict(settings.sfm),
+            {name: dataclasses.asdict(paradigm_settings) for name, (_, paradigm_settings) in paradigms.items()},
+        )
         if key not in _unit_costs:
-            _unit_costs[key] = measure_unit_costs(scene, settings.sfm)
+            _unit_costs[key] = measure_unit_costs(scene, settings.sfm, paradigms, cache_dir, plan.pool_needed())
         plan.costs = _unit_costs[key]
     return plan
 
@@ -351,9 +356,13 @@ def benchmark(
     plan = sfm_plan(scene, rankings, settings, cache_dir)
     if plan is not None:
         log.info("%s", plan.describe())
+    measured: dict[str, float] = {}
     sfm_estimates = (
-        run_sfm(scene, rankings, sfm_paradigms(settings), settings.sfm, cache_dir) if sfm_paradigms(settings) else {}
+        run_sfm(scene, rankings, sfm_paradigms(settings), settings.sfm, cache_dir, measured)
+        if sfm_paradigms(settings)
+        else {}
     )
+    sfm_stages = stage_times(plan.forecast() if plan is not None and plan.costs else {}, measured)
     estimates: list[PoseEstimates] = []
     for paradigm in settings.paradigms.enabled():
         paradigm_settings = getattr(settings.paradigms, paradigm)
@@ -381,5 +390,33 @@ def benchmark(
             settings.paradigms.ks(),
         )
     return BenchmarkResult(
-        scene.name, list(rankings), estimates, localization, query_errors, retrieval, query_retrieval
+        scene.name, list(rankings), estimates, localization, query_errors, retrieval, query_retrieval, sfm_stages
     )
+
+
+def stage_times(forecast: Mapping[str, float], measured: Mapping[str, float]) -> dict[str, dict[str, float | None]]:
+    """Per SfM stage (and ``total``), its ``forecast_s`` and ``measured_s`` seconds (None where
+    one is missing) and their ``ratio`` (measured / forecast), logged."""
+    stages = {
+        stage: {"forecast_s": forecast.get(stage), "measured_s": measured.get(stage)}
+        for stage in dict.fromkeys([*forecast, *measured])
+    }
+    if forecast and measured:
+        stages["total"] = {"forecast_s": sum(forecast.values()), "measured_s": sum(measured.values())}
+    for times in stages.values():
+        known = times["forecast_s"] is not None and times["measured_s"] is not None and times["forecast_s"] > 0
+        times["ratio"] = times["measured_s"] / times["forecast_s"] if known else None
+    if stages:
+        log.info(
+            "SfM stages, forecast -> measured: %s",
+            ", ".join(
+                f"{stage} {_seconds(times['forecast_s'])} -> {_seconds(times['measured_s'])}"
+                + (f" ({times['ratio']:.2f}x)" if times["ratio"] is not None else "")
+                for stage, times in stages.items()
+            ),
+        )
+    return stages
+
+
+def _seconds(value: float | None) -> str:
+    return "-" if value is None else f"{value:.1f} s"

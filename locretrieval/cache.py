@@ -6,6 +6,9 @@ import contextlib
 import hashlib
 import json
 import os
+import re
+import shutil
+import socket
 import tempfile
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
@@ -20,13 +23,25 @@ def config_key(*parts: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+#: The temporary file of a write in progress: ``.<name>.<host>-<pid>-<random>.partial<suffix>``.
+_TEMPORARY = re.compile(r"^\..*\.(?P<host>[^.]+)-(?P<pid>\d+)-[^.]+\.partial[^/]*$")
+#: Folders whose killed runs' temporary files this process has removed.
+_swept: set[Path] = set()
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; move it into place only on success."""
+    """Yield a temporary path next to ``path``; on success flush it to disk (fsync), move it into
+    place and fsync the folder, so a crash or power loss leaves the old file or the new one, never
+    a partial one. The first write of this process into a folder removes the temporary files
+    that killed processes of this host left there (readers ignore them: they are hidden)."""
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
+        remove_stale_temporaries(path.parent)
+        handle, temporary = tempfile.mkstemp(
+            dir=path.parent, prefix=f".{path.name}.{_HOST}-{os.getpid()}-", suffix=f".partial{path.suffix}"
+        )
     except OSError as error:
         raise OSError(
             error.errno,
@@ -36,10 +51,70 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     os.close(handle)
     try:
         yield Path(temporary)
+        _fsync(temporary)
         os.replace(temporary, path)
+        _fsync(path.parent)
     finally:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(temporary)
+
+
+_HOST = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname()) or "host"
+
+
+def _fsync(path: str | os.PathLike) -> None:
+    """Flush a file's (or a folder's entries') data to the disk."""
+    handle = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(handle)
+    finally:
+        os.close(handle)
+
+
+@contextlib.contextmanager
+def temporary_folder(parent: str | os.PathLike, label: str) -> Iterator[Path]:
+    """A hidden folder of ``parent`` for scratch work, deleted afterwards (or, when this process
+    is killed, by the next process of this host that writes into ``parent``)."""
+    parent = Path(parent)
+    parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(parent)
+    folder = Path(tempfile.mkdtemp(dir=parent, prefix=f".{label}.{_HOST}-{os.getpid()}-", suffix=".partial"))
+    try:
+        yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def remove_stale_temporaries(folder: Path) -> list[Path]:
+    """Delete the `atomic_path` temporary files and `temporary_folder` folders in ``folder``
+    whose process (on this host) is gone, once per folder and process; returns those deleted."""
+    folder = Path(folder).resolve()
+    if folder in _swept:
+        return []
+    _swept.add(folder)
+    removed = []
+    with os.scandir(folder) as entries:
+        for entry in entries:
+            match = _TEMPORARY.match(entry.name) if entry.name.startswith(".") else None
+            if match and match["host"] == _HOST and not process_alive(int(match["pid"])):
+                if entry.is_dir(follow_symlinks=False):
+                    shutil.rmtree(entry.path, ignore_errors=True)
+                else:
+                    with contextlib.suppress(FileNotFoundError):
+                        os.unlink(entry.path)
+                removed.append(Path(entry.path))
+    return removed
+
+
+def process_alive(pid: int) -> bool:
+    """Whether a process ``pid`` runs on this host."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def save_arrays(path: str | os.PathLike, arrays: Mapping[str, np.ndarray]) -> None:

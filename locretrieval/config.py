@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import collections.abc
 import dataclasses
+import hashlib
 import inspect
 import os
 import re
@@ -62,6 +63,29 @@ def file_stem(path: Any) -> str:
 
 if not OmegaConf.has_resolver("file_stem"):
     OmegaConf.register_new_resolver("file_stem", file_stem)
+
+
+#: Characters longer sweep folder names lose (kept: the job number, the overrides' start, a hash).
+JOB_DIRNAME_LENGTH = 96
+
+
+def job_dirname(number: Any, label: Any) -> str:
+    """``${job_dirname:${hydra.job.num},${hydra.job.override_dirname}}``: a multirun job's folder
+    name, ``<number>_<label>`` with each override's key shortened to its last part
+    (``sampler.anchors=3`` -> ``anchors=3``) and every character but letters, digits and
+    ``._=,+-`` made ``-``; a longer one is cut to `JOB_DIRNAME_LENGTH` characters ending in a hash
+    of the whole label (so it stays unique). The job's full overrides are in its
+    ``.hydra/overrides.yaml``."""
+    short = re.sub(r"(^|,)[~+]*(?:[\w@/-]+\.)+(?=[\w-]+=)", r"\1", str(label))
+    name = f"{number}_{re.sub(r'[^A-Za-z0-9._=,+-]', '-', short)}".rstrip(".")
+    if len(name) <= JOB_DIRNAME_LENGTH:
+        return name
+    digest = hashlib.sha256(str(label).encode()).hexdigest()[:12]
+    return f"{name[: JOB_DIRNAME_LENGTH - len(digest) - 1]}-{digest}"
+
+
+if not OmegaConf.has_resolver("job_dirname"):
+    OmegaConf.register_new_resolver("job_dirname", job_dirname)
 
 
 def trainer_accelerator(device: str) -> str:

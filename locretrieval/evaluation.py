@@ -118,6 +118,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
         "paradigms": ", ".join(f"{p} (k={getattr(settings.paradigms, p).k})" for p in settings.paradigms.enabled()),
         "LTVL exports": f"{exported} files in ltvl/",
         "run time": f"{time.perf_counter() - started:.1f} s",
+        "SfM stages": result.sfm_stages,  # forecast and measured seconds per stage
     }
     (output_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     from locretrieval.report import build_report  # here: matplotlib is imported when figures are drawn

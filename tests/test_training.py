@@ -652,14 +652,17 @@ def test_a_run_killed_while_writing_last_ckpt_keeps_the_previous_checkpoint_whol
     assert not [path.name for path in last.parent.iterdir() if path.name.startswith(".")]  # no temporary file left
 
 
-def test_two_trainings_of_a_joblib_multirun_share_one_cache_without_corrupting_it(tmp_path):
-    """Two jobs at once on a cold cache: the scene is rendered once (the other job waits for it),
-    features, matches, maps and ground truths are shared, and both validate exactly as a run alone
-    on the finished cache does."""
+@pytest.mark.parametrize("launcher", ["joblib_local", "submitit_local"])
+def test_a_parallel_training_multirun_as_documented_shares_one_cache_without_corrupting_it(tmp_path, launcher):
+    """docs/training.md's ``python train.py -m hydra/launcher=joblib_local loss=ap,triplet`` (and
+    under submitit's local executor, as on SLURM), with the default worker counts (renderer,
+    DataLoader, SfM) and as many overrides as a real sweep: two jobs at once on a cold cache render
+    the scene once (the other job waits for it), share features, matches, maps and ground truths,
+    get short job folders, and both validate exactly as a run alone on the finished cache does."""
     import subprocess
     import sys
 
-    tiny = [f"data.render.{key}={value}" for key, value in SCENE.items() if key != "conditions"]
+    tiny = [f"data.render.{key}={value}" for key, value in SCENE.items() if key not in ("conditions", "workers")]
     tiny += [f"data.render.conditions.{key}={value}" for key, value in SCENE["conditions"].items()]
     common = [
         f"paths.root_dir={tmp_path}",
@@ -667,7 +670,7 @@ def test_two_trainings_of_a_joblib_multirun_share_one_cache_without_corrupting_i
         "device=cpu",
         *tiny,
         "model.max_side=96",
-        *TINY_TRAINING,
+        *(override for override in TINY_TRAINING if not override.startswith("datamodule.num_workers")),
         "callbacks.localization_validation.sfm_every_n_epochs=1",
         "paradigms.global_sfm.k=[1,3]",
         "paradigms.local_sfm.k=[3]",
@@ -679,15 +682,17 @@ def test_two_trainings_of_a_joblib_multirun_share_one_cache_without_corrupting_i
         sys.executable,
         str(helpers.CONFIGS.parent / "train.py"),
         "-m",
-        "hydra/launcher=joblib_local",
+        f"hydra/launcher={launcher}",
+        "loss=ap,triplet",
         f"hydra.sweep.dir={tmp_path}/multirun",
-        "hydra.sweep.subdir=${hydra.job.num}",
         *common,
-        "sampler.batches_per_epoch=2,3",
     ]
     done = subprocess.run(command, capture_output=True, text=True, timeout=900, cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-3000:]
-    logs = [(tmp_path / "multirun" / job / "train.log").read_text() for job in ("0", "1")]
+    jobs = sorted(path.parent for path in (tmp_path / "multirun").glob("*/validation.csv"))
+    assert [job.name.split("_")[0] for job in jobs] == ["0", "1"]
+    assert all(len(job.name) <= 96 for job in jobs)  # 24 overrides: cut, with a hash
+    logs = [(job / "train.log").read_text() for job in jobs]
     assert sum(log.count("rendering the synthetic scene") for log in logs) == 1  # one job rendered, the other read it
     alone = train(
         train_config(
@@ -704,8 +709,8 @@ def test_two_trainings_of_a_joblib_multirun_share_one_cache_without_corrupting_i
     assert any(key.startswith("val/global_sfm/") for key in before_training) and any(
         key.startswith("val/local_sfm/") for key in before_training
     )
-    for job in ("0", "1"):
-        history = pd.read_csv(tmp_path / "multirun" / job / "validation.csv")
+    for job in jobs:
+        history = pd.read_csv(job / "validation.csv")
         first = history[history["epoch"] == -1].set_index("metric")["value"]
         assert set(first.index) == set(before_training) - {"epoch"}
         for key, value in first.items():
@@ -876,11 +881,18 @@ def test_a_validation_forecast_above_its_budget_is_refused_before_training(tmp_p
     )
     with pytest.raises(
         ConfigError,
-        match=r"training.validation.budget_minutes: one validation's SfM work is forecast at [\d.]+ min, "
-        r"above the budget of 0.001 min \(6 queries, [\d,]+ pairs to match .*training.validation.max_queries",
+        match=r"training.validation.budget_minutes: one validation is forecast at [\d.]+ min, above the budget of "
+        r"0.001 min: describing its 30 images takes [\d.]+ min and its SfM work [\d.]+ min \(6 queries, [\d,]+ pairs "
+        r"to match .*training.validation.max_queries",
     ):
         train(cfg, tmp_path / "run")
     assert not (tmp_path / "run" / "checkpoints").exists()  # refused before any step
+
+
+def test_the_validation_budget_counts_describing_the_images_without_sfm(tmp_path):
+    cfg = train_config(tmp_path, "training.validation.budget_minutes=0.00001")  # no SfM validation: describing only
+    with pytest.raises(ConfigError, match=r"describing its 30 images takes [\d.]+ min and its SfM work 0.0 min"):
+        train(cfg, tmp_path / "run")
 
 
 class TemperatureLoss(torch.nn.Module):

@@ -1,8 +1,15 @@
 """Worker processes: small workloads stay in this process."""
 
 import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
 
 from locretrieval.localization import workers
+from locretrieval.processes import WorkerPoolError
 
 
 def process_id(shared, task):
@@ -15,3 +22,45 @@ def test_a_small_workload_runs_in_this_process_without_starting_workers(monkeypa
     results = list(workers.parallel_map(process_id, list(range(few)), 2, "test", shared="s"))
     assert results == [("s", task, os.getpid()) for task in range(few)]
     assert workers._pools.pools == {}  # no worker was spawned
+
+
+def killed_in_a_worker(task):
+    if task == 3:
+        os.kill(os.getpid(), signal.SIGKILL)  # as the out-of-memory killer ends a process
+    return task
+
+
+def test_a_worker_killed_mid_stage_is_an_error_naming_the_stage_and_the_signal(monkeypatch):
+    monkeypatch.setattr(workers, "_pools", workers.SpawnedPools(workers._pools.initializer))
+    tasks = list(range(workers.MIN_TASKS_PER_WORKER * 2))  # enough for the pool of two workers
+    with pytest.raises(WorkerPoolError, match=r"^triangulate \+ register: a worker process ended abruptly \(.*SIGKILL"):
+        list(workers.parallel_map(killed_in_a_worker, tasks, 2, "triangulate + register"))
+    assert workers._pools.pools == {}  # the broken pool is gone: the next call starts a new one
+    assert list(workers.parallel_map(killed_in_a_worker, [0, 1, 2] * 3, 2, "again")) == [0, 1, 2] * 3
+
+
+def spawned_pool_results():
+    """Two workers' results, from a process of joblib's loky executor (a job of Hydra's joblib launcher)."""
+    return os.getpid(), list(workers.parallel_map(process_id, list(range(8)), 2, "in a joblib job", shared="s"))
+
+
+JOBLIB_JOB = """
+import sys
+sys.path.insert(0, sys.argv[1])
+from joblib import Parallel, delayed
+import test_workers
+((job, results),) = Parallel(n_jobs=2, backend="loky")([delayed(test_workers.spawned_pool_results)()])
+assert [task for _, task, _ in results] == list(range(8)), results
+assert job not in {pid for *_, pid in results}  # the job's own worker processes ran them
+print("done")
+"""
+
+
+def test_the_worker_pool_runs_inside_a_job_of_joblibs_loky_executor_and_lets_it_exit():
+    """The pool starts in a loky process (whose start method no spawned child knows), and the job's
+    process exits afterwards: multiprocessing joins a child's children before the interpreter
+    would stop their pools, so the pools are stopped first (it used to wait forever)."""
+    done = subprocess.run(
+        [sys.executable, "-c", JOBLIB_JOB, str(Path(__file__).parent)], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0 and done.stdout.strip() == "done", done.stderr[-3000:]

@@ -36,7 +36,15 @@ from locretrieval.localization.features import extract_features
 from locretrieval.localization.pairs import database_pairs
 from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.pipeline import SfmStages, run_sfm
-from locretrieval.localization.plan import ParadigmWork, Work, database_pair_work, query_pair_work, registration_work
+from locretrieval.localization.plan import (
+    ParadigmWork,
+    Work,
+    database_pair_work,
+    queries_to_register,
+    query_pair_work,
+    registration_bound,
+    registration_work,
+)
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS
 from locretrieval.localization.pose_cache import PoseCache
 from locretrieval.localization.sfm import (
@@ -119,10 +127,6 @@ def localize(
     )
 
 
-#: This paradigm's stages of the SfM pipeline.
-STAGES = SfmStages(shared_map_pairs, query_map_pairs, localize)
-
-
 def plan(
     scene: Scene,
     rankings: Sequence[Ranking] | None,
@@ -143,22 +147,38 @@ def plan(
         map_pairs = database_pair_work(inputs, [(scene.database.names[a], scene.database.names[b]) for a, b in pairs])
         maps = Work(1, 1)
     if rankings is None:
-        registrations = num_rankings * len(scene.queries) * len(settings.k)
         return ParadigmWork(
             "global_sfm",
             query_pairs,
             map_pairs,
             maps,
             map_pairs.total,
-            Work(registrations, registrations),
+            *registration_bound(len(scene.queries), len(scene.database), settings.k, num_rankings),
+            Work(len(scene.queries), len(scene.queries)),
             parallel_maps=False,
         )
     tasks = query_tasks(
         rankings, [ranking.clamp_ks(settings.k) for ranking in rankings], _pose_cache(inputs, settings, cache_dir)
     )
     return ParadigmWork(
-        "global_sfm", query_pairs, map_pairs, maps, map_pairs.total, registration_work(tasks), parallel_maps=False
+        "global_sfm",
+        query_pairs,
+        map_pairs,
+        maps,
+        map_pairs.total,
+        *registration_work(tasks),
+        queries_to_register(tasks),
+        parallel_maps=False,
     )
+
+
+def triangulate(inputs: SfmInputs, settings: GlobalSfmSettings, cache_dir: Path) -> None:
+    """The global map's stage: triangulated (or read) and cached once, before any query is registered."""
+    global_map(inputs, settings.colmap_model, cache_dir)
+
+
+#: This paradigm's stages of the SfM pipeline: the global map, then each query registered in it.
+STAGES = SfmStages(shared_map_pairs, query_map_pairs, triangulate, localize, "register", plan)
 
 
 def _pose_cache(inputs: SfmInputs, settings: GlobalSfmSettings, cache_dir: Path) -> PoseCache:

@@ -41,7 +41,15 @@ from locretrieval.config import require
 from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.pipeline import SfmStages, run_sfm
-from locretrieval.localization.plan import ParadigmWork, Work, database_pair_work, query_pair_work, registration_work
+from locretrieval.localization.plan import (
+    ParadigmWork,
+    Work,
+    database_pair_work,
+    queries_to_register,
+    query_pair_work,
+    registration_bound,
+    registration_work,
+)
 from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
 from locretrieval.localization.pose_cache import PoseCache
 from locretrieval.localization.sfm import (
@@ -129,10 +137,6 @@ def localize(
     return run_queries("local_sfm", rankings, ks, localize_query, shared, inputs.settings.processes, cache, queries)
 
 
-#: This paradigm's stages of the SfM pipeline.
-STAGES = SfmStages(shared_map_pairs, query_map_pairs, localize)
-
-
 def plan(
     scene: Scene,
     rankings: Sequence[Ranking] | None,
@@ -154,14 +158,14 @@ def plan(
             else 0
         )
         maps = num_rankings * queries * sum(1 for k in settings.k if k >= 2)
-        registrations = num_rankings * queries * len(settings.k)
         return ParadigmWork(
             "local_sfm",
             query_pairs,
             Work(bound, bound),
             Work(maps, maps),
             pairs_per_map,
-            Work(registrations, registrations),
+            *registration_bound(queries, len(scene.database), settings.k, num_rankings),
+            Work(queries, queries),
         )
     ks = [ranking.clamp_ks(settings.k) for ranking in rankings]
     database_pairs = database_pair_work(inputs, query_map_pairs(inputs, rankings, ks, settings, None))
@@ -179,8 +183,13 @@ def plan(
         database_pairs,
         Work(len(maps), len(new_maps)),
         pairs_per_map,
-        registration_work(tasks),
+        *registration_work(tasks),
+        queries_to_register(tasks),
     )
+
+
+#: This paradigm's stages of the SfM pipeline: no shared map, each query's maps triangulated with its registration.
+STAGES = SfmStages(shared_map_pairs, query_map_pairs, None, localize, "triangulate + register", plan)
 
 
 def _pose_cache(inputs: SfmInputs, settings: LocalSfmSettings, cache_dir: Path) -> PoseCache:

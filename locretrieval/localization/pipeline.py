@@ -7,9 +7,9 @@ The stages hand each other their results through the caches:
    pairs of the maps every query shares (the global map), then, per chunk of queries, each
    query with its top ``max(k)`` images of every ranking (verified per
    ``sfm.query_verification``) and the database pairs of its local maps (pose-verified);
-3. **triangulate + register**: each paradigm's `SfmStages.localize`, per query in worker
-   processes (a local map is triangulated and the query registered in it at once; the global
-   map once), outcomes cached.
+3. **triangulate** a map every query shares (the global map, `SfmStages.shared_map`: once, in
+   this process), then **register** (`SfmStages.localize`): per query in worker processes (a
+   local map is triangulated and the query registered in it at once), outcomes cached.
 
 `run_sfm` is the driver: it streams the queries in chunks, so that while one chunk is
 triangulated and registered the next one is matched (on a GPU the two stages then overlap), and
@@ -59,14 +59,27 @@ class SfmStages:
       uses (the global map), to be matched and pose-verified;
     - ``query_map_pairs(inputs, rankings, ks, settings, queries) -> [pair]``: those of maps built
       per query, for ``queries`` (None: all);
+    - ``shared_map(inputs, settings, cache_dir)``: triangulates (and caches) the map every query
+      uses, in this process, once its pairs are matched (the stage ``<paradigm>: triangulate``);
+      None when the paradigm has none;
     - ``localize(inputs, rankings, ks, settings, cache_dir, queries) -> [PoseEstimates]``: its
-      triangulate and register stage; with ``queries`` (a shard's) those are localised and cached
-      only, and None is returned.
+      per-query stage (``<paradigm>: <query_work>``, e.g. ``triangulate + register`` when each
+      query has maps of its own); with ``queries`` (a shard's) those are localised and cached
+      only, and None is returned;
+    - ``plan(scene, rankings or None, settings, sfm, cache_dir, num_rankings) -> ParadigmWork``:
+      its work, counted without doing any (`locretrieval.localization.plan`).
     """
 
     shared_map_pairs: Callable[[SfmInputs, Any], list[Pair]]
     query_map_pairs: Callable[[SfmInputs, Sequence[Ranking], list[list[int]], Any, Sequence[int] | None], list[Pair]]
+    shared_map: Callable[[SfmInputs, Any, Path], None] | None
     localize: Callable[..., list[PoseEstimates] | None]
+    query_work: str
+    plan: Callable[..., Any]
+
+    def stage_names(self, paradigm: str) -> list[str]:
+        """The names of this paradigm's stages as `run_sfm` times them."""
+        return [f"{paradigm}: triangulate"] * (self.shared_map is not None) + [f"{paradigm}: {self.query_work}"]
 
 
 def run_sfm(
@@ -125,11 +138,15 @@ def run_sfm(
         )
     with clock("match + verify"):
         match_stage(inputs, [], shared_pairs)
+    for name, (stages, settings) in paradigms.items():
+        if stages.shared_map is not None:
+            with clock(f"{name}: triangulate"):
+                stages.shared_map(inputs, settings, cache_dir)
 
     def localize(chunk: Sequence[int] | None) -> dict[str, list[PoseEstimates] | None]:
         found = {}
         for name, (stages, settings) in paradigms.items():
-            with clock(f"{name}: triangulate + register"):
+            with clock(f"{name}: {stages.query_work}"):
                 found[name] = stages.localize(inputs, rankings, ks[name], settings, cache_dir, chunk)
         return found
 

@@ -1,39 +1,54 @@
 """The work of the SfM paradigms, counted and forecast before any of it is done.
 
 Per paradigm: the query-database pairs to match, the database pairs to match, the maps to
-triangulate and the registrations, each as needed in all and new (not in the caches); for the
-scene: the images whose local features are not cached. With the rankings known the counts are
-exact; before (``evaluate.py dry_run=true``) they are upper bounds: every ranking's top-k taken
-as disjoint from the others'.
+triangulate, the registrations and the queries they belong to, each as needed in all and new
+(not in the caches); for the scene: the images whose local features are not cached. With the
+rankings known the counts are exact; before (``evaluate.py dry_run=true``) they are upper
+bounds: every ranking's top-k taken as disjoint from the others'.
 
-The forecast multiplies the new work by unit costs measured on a small sample of the scene on
-this machine and device (`measure_unit_costs`: a database image, its nearest neighbours and a
-query: their features, matches, a map of them and a registration, all in memory).
+The forecast multiplies the new work by unit costs measured on this machine just before, by
+running the pipeline's own stages (`run_sfm`, into a temporary cache) on a sample of the scene
+(`measure_unit_costs`: a neighbourhood of database images and a few queries ranking it), in one
+process with one thread as a worker runs them, so that reading and writing the stores, the work
+per map and per query are in the units; it then spreads each stage over the processes that
+`run_sfm` will give it (`runs_here`, the worker pool started now when a stage will need it).
+It assumes the machine stays as loaded as it was when measured (the log gives that load).
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
-import time
-from collections.abc import Iterable, Iterator, Sequence
+import math
+import os
+import shutil
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from locretrieval.localization.features import read_or_extract
-from locretrieval.localization.matching import pair_key
-from locretrieval.localization.pnp import estimate_absolute_pose
-from locretrieval.localization.sfm import QueryTask, SfmInputs, SfmSettings, correspondences
-from locretrieval.localization.verification import PairVerification, VerificationBatch, verify_pairs
+from locretrieval.cache import temporary_folder
+from locretrieval.localization.features import IMAGES_PER_SHARD
+from locretrieval.localization.matching import PAIRS_PER_SHARD, pair_key
+from locretrieval.localization.sfm import QueryTask, SfmInputs, SfmSettings
+from locretrieval.localization.workers import runs_here, start_workers, workers_started
 from locretrieval.retrieval import Ranking
-from locretrieval.scene import ImageSet, Scene
+from locretrieval.scene import Scene
+from locretrieval.threads import single_threaded
+
+if TYPE_CHECKING:
+    from locretrieval.localization.paradigm import ParadigmSettings
+    from locretrieval.localization.pipeline import SfmStages
 
 log = logging.getLogger(__name__)
 
-#: Database images of the sample that unit costs are measured on (one query besides).
-SAMPLE_IMAGES = 3
+#: Queries of the sample that unit costs are measured on.
+SAMPLE_QUERIES = 2
+#: Database images of the sample: the deepest k of a paradigm, at least the first, at most the second.
+SAMPLE_DATABASE = (10, 20)
 
 
 @dataclass(frozen=True)
@@ -50,8 +65,10 @@ class Work:
 @dataclass
 class ParadigmWork:
     """What one SfM paradigm needs: query-database and database pairs to match, maps to
-    triangulate (with ``pairs_per_map`` matched pairs each, on average; ``parallel_maps``: in the
-    worker processes, else one map in this process) and registrations."""
+    triangulate (with ``pairs_per_map`` matched pairs each, on average; ``parallel_maps``: each
+    query's own, in the worker processes, else one map every query shares, in this process),
+    registrations, the database images they register against (summed over them: their
+    correspondences, so their cost, grow with it) and the ``queries`` they are of."""
 
     paradigm: str
     query_pairs: Work
@@ -59,26 +76,43 @@ class ParadigmWork:
     maps: Work
     pairs_per_map: float
     registrations: Work
+    registered_images: Work
+    queries: Work
     parallel_maps: bool = True
+
+    @property
+    def new_map_pairs(self) -> float:
+        """Matched pairs to triangulate into new maps."""
+        return self.maps.new * self.pairs_per_map
+
+    def stages(self) -> tuple[str, str | None]:
+        """The names `run_sfm` times this paradigm's work under: its shared map's triangulation
+        (None: maps are per query) and its per-query stage."""
+        if self.parallel_maps:
+            return None, f"{self.paradigm}: triangulate + register"
+        return f"{self.paradigm}: triangulate", f"{self.paradigm}: register"
 
 
 @dataclass(frozen=True)
 class UnitCosts:
-    """Seconds per unit, measured on a sample: local features of an image (one process), a
-    matched pair (one CPU worker's thread, or the GPU), a database pair verified against its poses
-    and a query pair by ``sfm.matching.query_verification`` (one process), a matched pair
-    triangulated into a map, and a registration (one process); ``keypoints``: mean per image of
-    the ``sample_images`` database images and the query they were measured on."""
+    """Seconds per unit of work in one process with one thread, as a worker process runs it,
+    measured by `measure_unit_costs`: ``features`` per image, ``pairs`` per pair matched and
+    verified (on ``device``), and per paradigm ``map_pairs`` per matched pair triangulated into
+    a map and ``registrations`` per database image a query is registered against (reading its
+    map and matches included).
+    ``keypoints``: mean per image of the sample, ``sample``: what it was, ``load``: the
+    machine's one-minute load average when measured, ``worker_start``: seconds the worker pool
+    took to start for the run (0: none needed or already running)."""
 
     features: float
-    matching: float
-    pose_verification: float
-    query_verification: float
-    triangulation: float
-    registration: float
+    pairs: float
+    map_pairs: dict[str, float]
+    registrations: dict[str, float]
     keypoints: float
     device: str
-    sample_images: int
+    sample: str
+    load: float
+    worker_start: float = 0.0
 
 
 @dataclass
@@ -100,26 +134,57 @@ class SfmPlan:
         """Pairs to match: new query pairs and new database pairs."""
         return self.new_query_pairs() + sum(p.database_pairs.new for p in self.paradigms)
 
+    @property
+    def has_new_work(self) -> bool:
+        return bool(
+            self.features.new or self.new_pairs() or any(p.maps.new or p.registrations.new for p in self.paradigms)
+        )
+
+    def pool_needed(self) -> bool:
+        """Whether some stage of the run will start the worker pool (`runs_here`)."""
+        return any(tasks > 1 and not runs_here(tasks, self.processes, started=False) for tasks in self._tasks())
+
+    def _tasks(self) -> list[int]:
+        """The tasks of each stage that may run in workers, in the order `run_sfm` runs them."""
+        return [
+            math.ceil(self.features.new / IMAGES_PER_SHARD),
+            math.ceil(self.new_pairs() / PAIRS_PER_SHARD),
+            *(p.queries.new for p in self.paradigms),
+        ]
+
     def forecast(self) -> dict[str, float]:
-        """Seconds per stage for the new work (`costs` required): single-threaded stages, and
-        matching on a CPU, are spread over the worker processes (a map every query shares is one
-        process's); on a GPU matching is one process's, fed by the others."""
+        """Seconds per stage for the new work (`costs` required), by the names `run_sfm` times
+        its stages under: each stage's units in one process (`UnitCosts`), spread over the
+        worker processes `run_sfm` gives it (`runs_here`: a small workload stays in this process
+        until the pool is started, and the pool then serves every later stage); matching on a
+        CPU over every core either way (workers, or this process's threads), on a GPU in one
+        process; a map every query shares in this process."""
         costs = self.costs
         assert costs is not None, "forecast needs measured unit costs"
-        triangulated = sum(
-            p.maps.new * p.pairs_per_map / (self.processes if p.parallel_maps else 1) for p in self.paradigms
-        )
-        verified = (
-            sum(p.database_pairs.new for p in self.paradigms) * costs.pose_verification
-            + self.new_query_pairs() * costs.query_verification
-        )
-        return {
-            "features": self.features.new * costs.features / self.processes,
-            "matching": self.new_pairs() * costs.matching / (self.processes if costs.device == "cpu" else 1),
-            "verification": verified / self.processes,
-            "triangulation": triangulated * costs.triangulation,
-            "registration": sum(p.registrations.new for p in self.paradigms) * costs.registration / self.processes,
-        }
+        started = workers_started(self.processes) or costs.worker_start > 0
+
+        def spread(tasks: int) -> int:
+            nonlocal started
+            if tasks <= 1 or runs_here(tasks, self.processes, started):
+                return 1
+            started = True
+            return min(self.processes, tasks)
+
+        features_tasks, pair_tasks, *query_tasks = self._tasks()
+        stages = {"features": self.features.new * costs.features / spread(features_tasks)}
+        spread(pair_tasks)
+        stages["match + verify"] = self.new_pairs() * costs.pairs / (self.processes if costs.device == "cpu" else 1)
+        for work, tasks in zip(self.paradigms, query_tasks):
+            map_pairs, registrations = costs.map_pairs[work.paradigm], costs.registrations[work.paradigm]
+            shared, per_query = work.stages()
+            if shared is None:
+                stages[per_query] = (
+                    work.new_map_pairs * map_pairs + work.registered_images.new * registrations
+                ) / spread(tasks)
+            else:
+                stages[shared] = work.new_map_pairs * map_pairs
+                stages[per_query] = work.registered_images.new * registrations / spread(tasks)
+        return stages
 
     def describe(self) -> str:
         """The plan as log lines."""
@@ -132,14 +197,18 @@ class SfmPlan:
             )
         if self.costs is not None:
             c = self.costs
+            units = ", ".join(
+                f"{name} {c.map_pairs[name] * 1e3:.2f} ms/map pair and "
+                f"{c.registrations[name] * 1e3:.2f} ms/registered image"
+                for name in c.map_pairs
+            )
             lines.append(
-                f"  measured on {c.sample_images + 1} images of the scene "
-                f"({c.keypoints:.0f} keypoints each, matching on {c.device}): "
-                f"features {c.features:.3f} s/image, matching {c.matching:.4f} "
-                f"s/pair, verification {c.pose_verification:.4f} "
-                f"s/database pair and {c.query_verification:.4f} s/query "
-                f"pair, triangulation {c.triangulation:.4f} s/pair, "
-                f"registration {c.registration:.4f} s/query; {self.processes} worker process(es)"
+                f"  unit costs measured just now by running the pipeline on {c.sample} of the scene "
+                f"({c.keypoints:.0f} keypoints per image, matching on {c.device}), in one process with one thread, "
+                f"while the machine's load average was {c.load:.1f}: features {c.features:.3f} s/image, "
+                f"match + verify {c.pairs * 1e3:.1f} ms/pair, {units}; spread over {self.processes} worker "
+                f"process(es){f' (their pool started in {c.worker_start:.1f} s)' if c.worker_start else ''}; "
+                "a machine busier than when measured takes longer"
             )
             stages = self.forecast()
             lines.append(
@@ -190,129 +259,129 @@ def database_pair_work(inputs: SfmInputs, pairs: Iterable[tuple[str, str]]) -> W
     return Work(len(pairs), len(inputs.database_pairs.raw.missing(map(pair_key, pairs))))
 
 
-def registration_work(tasks: Sequence[QueryTask]) -> Work:
-    """Registrations (a query in one set of images) of ``tasks``, and those not cached."""
-    return Work(sum(len(task.image_sets()) for task in tasks), sum(len(task.pending()) for task in tasks))
-
-
-def measure_unit_costs(scene: Scene, settings: SfmSettings, sample_images: int = SAMPLE_IMAGES) -> UnitCosts:
-    """Unit costs on a sample of the scene, in memory: the first posed database image and its
-    ``sample_images - 1`` nearest posed neighbours (by camera centre), and the first query: their
-    local features, every pair's matches (each image against its later partners in one call, as
-    the pipeline batches them) and verification, the database images' map with their known
-    poses, the query's registration in it."""
-    import pycolmap  # noqa: F401  (its first import is no unit's cost)
-
-    database = scene.database
-    posed = np.flatnonzero(database.has_pose)
-    if len(posed) < 2:
-        raise ValueError(
-            f"scene {scene.name!r}: fewer than 2 database images with a pose; the SfM paradigms cannot run"
-        )
-    distances = np.linalg.norm(database.centers[posed] - database.centers[posed[0]], axis=1)
-    sample = posed[np.argsort(distances, kind="stable")[:sample_images]].tolist()
-    features = read_or_extract(settings.features)
-    started = time.perf_counter()
-    records = [features(database.names[i], database.paths[i]) for i in sample]
-    query = features(scene.queries.names[0], scene.queries.paths[0])
-    feature_seconds = (time.perf_counter() - started) / (len(sample) + 1)
-
-    matcher = settings.matching.matcher()
-    matcher(records[0]["descriptors"][:2], [records[1]["descriptors"][:2]])  # torch's first call: not a pair's cost
-    pairs = [(a, b) for a in range(len(sample)) for b in range(a + 1, len(sample))]
-    with matching_threads(matcher, settings.processes):
-        started = time.perf_counter()
-        matches = {}
-        for a in range(len(sample) - 1):
-            partners = list(range(a + 1, len(sample)))
-            matches.update(
-                zip(
-                    [(a, b) for b in partners],
-                    matcher(records[a]["descriptors"], [records[b]["descriptors"] for b in partners]),
-                )
-            )
-        query_matches = dict(enumerate(matcher(query["descriptors"], [r["descriptors"] for r in records])))
-        matching_seconds = (time.perf_counter() - started) / (len(pairs) + len(sample))
-
-    keypoints = {database.names[i]: r["keypoints"] for i, r in zip(sample, records)}
-    pose_seconds, kept = verification_seconds(
-        settings.matching.database_verification,
-        database,
-        database,
-        [(sample[a], sample[b]) for a, b in pairs],
-        list(matches.values()),
-        keypoints,
-        keypoints,
-    )
-    verified = dict(zip(pairs, kept))
-    query_seconds, _ = verification_seconds(
-        settings.query_verification,
-        scene.queries,
-        database,
-        [(0, i) for i in sample],
-        list(query_matches.values()),
-        {scene.queries.names[0]: query["keypoints"]},
-        keypoints,
+def registration_work(tasks: Sequence[QueryTask]) -> tuple[Work, Work]:
+    """Registrations (a query in one set of images) of ``tasks``, and those not cached; and the
+    same summed over the images of each set."""
+    return (
+        Work(sum(len(task.image_sets()) for task in tasks), sum(len(task.pending()) for task in tasks)),
+        Work(
+            sum(len(images) for task in tasks for images in task.image_sets()),
+            sum(len(images) for task in tasks for images in task.pending()),
+        ),
     )
 
-    started = time.perf_counter()
-    sparse_map = settings.triangulation.triangulate(
-        [database.cameras[i] for i in sample],
-        database.qvec[sample],
-        database.tvec[sample],
-        [r["keypoints"] for r in records],
-        verified,
-    )
-    triangulation_seconds = (time.perf_counter() - started) / len(pairs)
 
-    started = time.perf_counter()
-    points2D, points3D = correspondences(
-        query["keypoints"], query_matches, sparse_map, {s: s for s in range(len(sample))}
+def registration_bound(queries: int, database: int, ks: Sequence[int], num_rankings: int) -> tuple[Work, Work]:
+    """`registration_work` at most, for ``num_rankings`` rankings not computed yet."""
+    registrations = num_rankings * queries * len(ks)
+    images = num_rankings * queries * sum(min(k, database) for k in ks)
+    return Work(registrations, registrations), Work(images, images)
+
+
+def queries_to_register(tasks: Sequence[QueryTask]) -> Work:
+    """Queries of ``tasks``, and those with a registration not cached (a task of the per-query stage)."""
+    return Work(len(tasks), sum(not task.complete for task in tasks))
+
+
+def forecast_sample(scene: Scene, depth: int, queries: int = SAMPLE_QUERIES) -> tuple[Scene, Ranking]:
+    """A neighbourhood of ``scene`` to measure unit costs on, and its ranking: the ``depth``
+    database images nearest (camera centres) to the one nearest the database's centroid, and
+    the ``queries`` queries nearest to that one (the first ones where queries have no reference
+    pose), each ranking the neighbourhood by distance to itself (to that one, without a pose)."""
+    database, all_queries = scene.database, scene.queries
+    centres = database.centers
+    seed = int(np.argmin(np.linalg.norm(centres - centres.mean(0), axis=1)))
+    neighbours = np.argsort(np.linalg.norm(centres - centres[seed], axis=1), kind="stable")[:depth]
+    posed = np.flatnonzero(all_queries.has_pose)
+    if len(posed):
+        chosen = posed[np.argsort(np.linalg.norm(all_queries.centers[posed] - centres[seed], axis=1), kind="stable")]
+    else:
+        chosen = np.arange(len(all_queries))
+    chosen = chosen[:queries]
+    anchors = np.where(all_queries.has_pose[chosen, None], all_queries.centers[chosen], centres[seed])
+    distances = np.linalg.norm(anchors[:, None] - centres[neighbours][None], axis=2)
+    order = np.argsort(distances, axis=1, kind="stable")
+    ranking = Ranking("forecast sample", order, -np.take_along_axis(distances, order, axis=1), "groundtruth")
+    sample = Scene(
+        f"{scene.name} (forecast sample)",
+        database.subset(neighbours),
+        all_queries.subset(chosen),
+        frustum_far=scene.frustum_far,
     )
-    if len(points2D):
-        estimate_absolute_pose(points2D, points3D, scene.queries.cameras[0], settings.pnp)
-    registration_seconds = time.perf_counter() - started
-    mean_keypoints = float(np.mean([len(r["keypoints"]) for r in [*records, query]]))
+    return sample, ranking
+
+
+def sample_depth(scene: Scene, paradigms: Mapping[str, tuple[SfmStages, ParadigmSettings]]) -> int:
+    """Database images of `measure_unit_costs`' sample: the paradigms' deepest k within the
+    `SAMPLE_DATABASE` bounds (and the database)."""
+    deepest = max(max(paradigm_settings.k) for _, paradigm_settings in paradigms.values())
+    return min(len(scene.database), max(SAMPLE_DATABASE[0], min(deepest, SAMPLE_DATABASE[1])))
+
+
+def measure_unit_costs(
+    scene: Scene,
+    settings: SfmSettings,
+    paradigms: Mapping[str, tuple[SfmStages, ParadigmSettings]],
+    cache_dir: Path,
+    start_pool: bool,
+) -> UnitCosts:
+    """Unit costs of the SfM stages, measured by `run_sfm` itself on `forecast_sample` (a
+    neighbourhood of database images as deep as the paradigms' deepest k, between the
+    `SAMPLE_DATABASE` bounds, and `SAMPLE_QUERIES` queries ranking it) with the run's
+    paradigms, in one process with one thread, into a temporary folder of ``cache_dir`` (deleted
+    afterwards): the sample's seconds per stage over its units (its `SfmPlan`). The per-query
+    stage runs twice, the second time with the maps cached, which separates the triangulation
+    of a query's maps from its registrations. ``start_pool``: start the run's worker pool too
+    (timed), so that the run finds it ready."""
+    from locretrieval.localization.pipeline import run_sfm  # (the pipeline's stages import this module)
+
+    sample, ranking = forecast_sample(scene, sample_depth(scene, paradigms))
+    one_process = dataclasses.replace(settings, workers=1, shard=None)
+    worker_start = start_workers(settings.processes) if start_pool else 0.0
+    load = os.getloadavg()[0]
+    with temporary_folder(cache_dir, "forecast") as folder, single_threaded(), _quiet():
+        inputs = SfmInputs.prepare(sample, one_process, folder, extract=False)
+        work = {
+            name: stages.plan(sample, [ranking], paradigm_settings, one_process, folder, 0)
+            for name, (stages, paradigm_settings) in paradigms.items()
+        }
+        plan = SfmPlan(feature_work(inputs), list(work.values()), True, 1)
+        built, registered = {}, {}
+        run_sfm(sample, [ranking], paradigms, one_process, folder, built)
+        shutil.rmtree(folder / "poses")
+        run_sfm(sample, [ranking], paradigms, one_process, folder, registered)
+        inputs.database_features.store.refresh()  # written since the plan read it
+        keypoints = inputs.database_features.keypoints(sample.database.names)
+    map_pairs, registrations = {}, {}
+    for name, paradigm_work in work.items():
+        shared, per_query = paradigm_work.stages()
+        triangulated = built[shared] if shared else built[per_query] - registered[per_query]
+        map_pairs[name] = _per(max(0.0, triangulated), paradigm_work.new_map_pairs)
+        registrations[name] = _per(registered[per_query], paradigm_work.registered_images.new)
     return UnitCosts(
-        feature_seconds,
-        matching_seconds,
-        pose_seconds,
-        query_seconds,
-        triangulation_seconds,
-        registration_seconds,
-        mean_keypoints,
-        matcher.device,
-        len(sample),
+        _per(built["features"], plan.features.new),
+        _per(built["match + verify"], plan.new_pairs()),
+        map_pairs,
+        registrations,
+        float(np.mean([len(points) for points in keypoints.values()])),
+        settings.matching.matcher().device,
+        f"{len(sample.database)} database images and {len(sample.queries)} queries",
+        load,
+        worker_start,
     )
+
+
+def _per(seconds: float, units: float) -> float:
+    return seconds / units if units else 0.0
 
 
 @contextlib.contextmanager
-def matching_threads(matcher: Any, processes: int) -> Iterator[None]:
-    """Torch's threads as a matching worker has them: one when CPU workers share the cores
-    (`SfmPlan.forecast` divides the matching then), all of them otherwise (one process, or the GPU)."""
-    import torch
-
-    threads = torch.get_num_threads()
-    if matcher.device == "cpu" and processes > 1:
-        torch.set_num_threads(1)
+def _quiet() -> Iterator[None]:
+    """The pipeline's log below warnings while it runs on a sample (its lines are not the run's)."""
+    logger = logging.getLogger("locretrieval.localization")
+    level = logger.level
+    logger.setLevel(logging.WARNING)
     try:
         yield
     finally:
-        torch.set_num_threads(threads)
-
-
-def verification_seconds(
-    verification: PairVerification,
-    images0: ImageSet,
-    images1: ImageSet,
-    pairs: Sequence[tuple[int, int]],
-    matches: Sequence[np.ndarray],
-    keypoints0: dict[str, np.ndarray],
-    keypoints1: dict[str, np.ndarray],
-) -> tuple[float, list[np.ndarray]]:
-    """Seconds per pair of ``verification`` on a batch of pairs (indices) and what it keeps."""
-    started = time.perf_counter()
-    kept = verify_pairs(
-        verification, VerificationBatch(images0, images1, list(pairs), list(matches), keypoints0, keypoints1)
-    )
-    return (time.perf_counter() - started) / max(1, len(pairs)), kept
+        logger.setLevel(level)

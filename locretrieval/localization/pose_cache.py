@@ -10,15 +10,18 @@ callback's next epoch computes only the sets it has not seen.
 
 Safe for concurrent writers (shards of one evaluation, several runs sharing a cache): each save
 writes a new part file holding only that writer's new outcomes, atomically, and readers take the
-union of the parts, so no writer's entries are lost. When a folder holds more than `MAX_PARTS`
-parts, a save merges every part it read with its own into one file and deletes the parts it
-merged (never those written since it read); a reader that finds a part gone reads the folder again.
+union of the parts, so no writer's entries are lost. A running paradigm saves every second or so,
+so a killed run loses at most that much work. Once a cache knows of `MAX_PARTS` parts (read or
+written by itself), a save merges them with its own outcomes into one file and deletes the parts
+it merged (never those other writers wrote since it read); a reader that finds a part gone reads
+the folder again.
 """
 
 from __future__ import annotations
 
 import hashlib
 import logging
+import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
@@ -48,7 +51,8 @@ class PoseCache:
         self.database_names = database_names
         self.outcomes: dict[bytes, Outcome] = {}
         self._new: dict[bytes, Outcome] = {}
-        self._parts_read: list[Path] = []
+        self._parts: list[Path] = []  # the parts read or written, whose entries are all in `outcomes`
+        self._saved, self._unreported = time.monotonic(), 0
         if path is not None:
             self._read()
 
@@ -69,7 +73,7 @@ class PoseCache:
         for part in arrays:
             for key, qvec, tvec, reason in zip(part["keys"], part["qvec"], part["tvec"], part["reason"]):
                 self.outcomes[key.tobytes()] = (qvec, tvec) if reason == LOCALIZED else str(reason)
-        self._parts_read = parts
+        self._parts = parts
         if parts:
             log.info("%d registration outcomes read from %d part(s) in %s", len(self.outcomes), len(parts), self.path)
 
@@ -86,25 +90,26 @@ class PoseCache:
         if key not in self.outcomes:
             self.outcomes[key] = self._new[key] = outcome
 
-    def save(self) -> None:
-        """Write the new outcomes as a part of their own; merge the parts read with them when
-        the folder holds more than `MAX_PARTS`."""
-        if self.path is None or not self._new:
-            return
-        merge = len(self._parts_read) >= MAX_PARTS
-        entries = self.outcomes if merge else self._new
-        _write_part(self.path, entries)
-        if merge:
-            for part in self._parts_read:
-                part.unlink(missing_ok=True)
-            self._parts_read = []
-        log.info(
-            "%d new registration outcomes saved to %s%s",
-            len(self._new),
-            self.path,
-            f" (merged with {len(self.outcomes) - len(self._new)} read)" if merge else "",
-        )
-        self._new = {}
+    def save(self, every: float = 0.0) -> None:
+        """Write the outcomes put since the last save as a part of their own (merged with every
+        part this object read or wrote, into one, once it knows of `MAX_PARTS`). With ``every``
+        (seconds), only when the last save is at least that old, logged only at debug level;
+        without, the outcomes saved since the last such call are logged."""
+        if self.path is not None and self._new and time.monotonic() - self._saved >= every:
+            merge = len(self._parts) >= MAX_PARTS
+            written = _write_part(self.path, self.outcomes if merge else self._new)
+            if merge:
+                for part in self._parts:
+                    if part != written:
+                        part.unlink(missing_ok=True)
+                self._parts = []
+            self._parts.append(written)
+            self._unreported += len(self._new)
+            log.debug("%d registration outcomes saved to %s%s", len(self._new), self.path, " (merged)" * merge)
+            self._new, self._saved = {}, time.monotonic()
+        if not every and self._unreported:
+            log.info("%d new registration outcomes saved to %s", self._unreported, self.path)
+            self._unreported = 0
 
 
 def _write_part(folder: Path, entries: dict[bytes, Outcome]) -> Path:

@@ -39,6 +39,8 @@ log = logging.getLogger(__name__)
 
 #: The ``method`` of the SfM paradigms' pose estimates: PnP + RANSAC on the retrieved images' 3D points.
 SFM_METHOD = "pnp"
+#: Seconds between saves of the registration outcomes while a paradigm runs.
+SAVE_SECONDS = 1.0
 
 
 @dataclass
@@ -292,7 +294,8 @@ def run_queries(
 ) -> list[PoseEstimates] | None:
     """Run ``localize(shared, task)`` (outcomes ``[ranking][k]`` of one query) in worker processes
     on every query with an image set whose outcome ``cache`` does not hold, add the new outcomes
-    to the cache and save it, and gather one `PoseEstimates` per ranking; failures are logged.
+    to the cache as they arrive (saved every `SAVE_SECONDS` and at the end, also after an error),
+    and gather one `PoseEstimates` per ranking; failures are logged.
     With ``queries`` (a shard's), only those are localised and cached, and nothing is gathered."""
     tasks = query_tasks(rankings, ks, cache, queries)
     pending = [task for task in tasks if not task.complete]
@@ -304,12 +307,16 @@ def run_queries(
             len(tasks),
         )
     computed = iter(parallel_map(localize, pending, workers, paradigm, shared))
-    outcomes = [outcomes_per_image_set(task, _never) if task.complete else next(computed) for task in tasks]
-    for task, per_query in zip(tasks, outcomes):
-        for top, ranking_ks, per_k in zip(task.top, task.ks, per_query):
-            for k, outcome in zip(ranking_ks, per_k):
-                cache.put(task.query, top[:k], outcome)
-    cache.save()
+    outcomes = []
+    try:
+        for task in tasks:
+            outcomes.append(outcomes_per_image_set(task, _never) if task.complete else next(computed))
+            for top, ranking_ks, per_k in zip(task.top, task.ks, outcomes[-1]):
+                for k, outcome in zip(ranking_ks, per_k):
+                    cache.put(task.query, top[:k], outcome)
+            cache.save(every=SAVE_SECONDS)  # a killed run loses at most this many seconds of outcomes
+    finally:
+        cache.save()  # an error or an interrupt keeps what finished
     if queries is not None:
         return None
     return [

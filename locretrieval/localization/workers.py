@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import multiprocessing
+import multiprocessing.util
 import os
 import pickle
 import tempfile
@@ -24,6 +24,8 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from tqdm import tqdm
+
+from locretrieval.processes import broken_pool_error, spawn_context
 
 Task = TypeVar("Task")
 Result = TypeVar("Result")
@@ -63,6 +65,8 @@ def _initialize_worker(parent: int) -> None:
     import pycolmap
 
     pycolmap.logging.minloglevel = 2
+    # the SfM stages' modules (h5py, scipy, the triangulators), which their first task would import
+    import locretrieval.localization.pipeline  # noqa: F401
 
 
 def exit_with_parent(parent: int) -> None:
@@ -91,6 +95,18 @@ class SpawnedPools:
         self.initializer = initializer
         self.pools: dict[int, ProcessPoolExecutor] = {}
         self._lock = threading.Lock()  # the SfM pipeline submits from two threads
+        # A process that multiprocessing started (a job of Hydra's joblib launcher) joins its
+        # children as it exits, before the interpreter would shut these pools down: shut them
+        # down first (finalizers of priority >= 0 run before that join, highest first; above the
+        # pools' own queues', 10, whose feeder threads must still send the workers their stop).
+        multiprocessing.util.Finalize(self, SpawnedPools.shutdown, args=(self,), exitpriority=100)
+
+    def shutdown(self) -> None:
+        """Stop every pool's workers (they exit when told, or with this process)."""
+        with self._lock:
+            for pool in self.pools.values():
+                pool.shutdown(wait=True, cancel_futures=True)
+            self.pools.clear()
 
     def started(self, workers: int) -> bool:
         return workers in self.pools
@@ -98,19 +114,52 @@ class SpawnedPools:
     def get(self, workers: int) -> ProcessPoolExecutor:
         with self._lock:
             if workers not in self.pools:
-                context = multiprocessing.get_context("spawn")
                 self.pools[workers] = ProcessPoolExecutor(
-                    workers, mp_context=context, initializer=self.initializer, initargs=(os.getpid(),)
+                    workers, mp_context=spawn_context(), initializer=self.initializer, initargs=(os.getpid(),)
                 )
             return self.pools[workers]
 
-    def discard(self, workers: int) -> None:
-        """Shut a broken pool down; the next `get` starts a new one."""
-        self.pools.pop(workers).shutdown(cancel_futures=True)
+    def discard(self, workers: int, stage: str) -> Exception:
+        """Shut a broken pool down (the next `get` starts a new one); the error to raise, naming
+        ``stage`` and how its workers ended."""
+        pool = self.pools.pop(workers)
+        pool.shutdown(cancel_futures=True)
+        return broken_pool_error(pool, stage)
 
 
 #: The SfM workers of this process.
 _pools = SpawnedPools(_initialize_worker)
+
+
+def runs_here(tasks: int, workers: int, started: bool | None = None) -> bool:
+    """Whether `parallel_map` and `task_stream` run ``tasks`` tasks in this process rather than
+    in ``workers`` worker processes: one worker, one task, or a small workload (fewer than
+    `MIN_TASKS_PER_WORKER` tasks per worker) while no pool of that size is started (``started``:
+    whether one is, None: this process's pools tell)."""
+    started = workers_started(workers) if started is None else started
+    return workers == 1 or tasks <= 1 or (not started and tasks < MIN_TASKS_PER_WORKER * workers)
+
+
+def workers_started(workers: int) -> bool:
+    """Whether this process's pool of ``workers`` processes is running."""
+    return _pools.started(workers)
+
+
+def start_workers(workers: int) -> float:
+    """Start this process's pool of ``workers`` processes now, each through its initializer;
+    the seconds it took (0 when it was started already)."""
+    if workers == 1 or _pools.started(workers):
+        return 0.0
+    started, answered = time.perf_counter(), set()
+    pool = _pools.get(workers)
+    while len(answered) < workers:  # until every worker has answered: each one is past its initializer
+        answered.update(future.result() for future in [pool.submit(_worker_pid) for _ in range(workers)])
+    return time.perf_counter() - started
+
+
+def _worker_pid() -> int:
+    time.sleep(0.01)  # long enough for the other workers to take their tasks
+    return os.getpid()
 
 
 def parallel_map(
@@ -127,11 +176,7 @@ def parallel_map(
     workers = resolve_workers(workers)
     progress: Any = tqdm(total=len(tasks), desc=description, unit="task", disable=None, leave=False)
     with progress:
-        if (
-            workers == 1
-            or len(tasks) <= 1
-            or (not _pools.started(workers) and len(tasks) < MIN_TASKS_PER_WORKER * workers)
-        ):
+        if runs_here(len(tasks), workers):
             for task in tasks:
                 yield function(task) if shared is None else function(shared, task)
                 progress.update()
@@ -141,9 +186,8 @@ def parallel_map(
                 for result in _pools.get(workers).map(partial(_call, function, shared_file), tasks, chunksize=1):
                     yield result
                     progress.update()
-            except BrokenProcessPool:
-                _pools.discard(workers)
-                raise
+            except BrokenProcessPool as error:
+                raise _pools.discard(workers, description) from error
 
 
 @contextlib.contextmanager
@@ -159,7 +203,7 @@ def task_stream(
     workers = resolve_workers(workers)
     progress: Any = tqdm(total=tasks, desc=description, unit="task", disable=None, leave=False)
     with progress:
-        if workers == 1 or tasks <= 1 or (not _pools.started(workers) and tasks < MIN_TASKS_PER_WORKER * workers):
+        if runs_here(tasks, workers):
 
             def run_here(task: Any) -> None:
                 function(task) if shared is None else function(shared, task)
@@ -181,9 +225,8 @@ def task_stream(
                 while pending:
                     pending.popleft().result()
                     progress.update()
-            except BrokenProcessPool:
-                _pools.discard(workers)
-                raise
+            except BrokenProcessPool as error:
+                raise _pools.discard(workers, description) from error
             finally:
                 for future in pending:
                     future.cancel()

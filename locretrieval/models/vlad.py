@@ -14,6 +14,7 @@ import torch.nn.functional as F
 
 from locretrieval.models import densevlad_kernels as kernels
 from locretrieval.models.densevlad_kernels import EPS as _EPS
+from locretrieval.threads import single_threaded
 
 
 def kmeans_vocabulary(points: np.ndarray, num_words: int, iterations: int, seed: int) -> np.ndarray:
@@ -27,7 +28,8 @@ def kmeans_vocabulary(points: np.ndarray, num_words: int, iterations: int, seed:
         spherical=True,
         max_points_per_centroid=math.ceil(len(points) / num_words),
     )
-    kmeans.train(np.ascontiguousarray(points, dtype=np.float32))
+    with single_threaded():  # a threaded BLAS changes the assignments' last bits, then the centroids
+        kmeans.train(np.ascontiguousarray(points, dtype=np.float32))
     return kmeans.centroids.copy()
 
 
@@ -36,7 +38,8 @@ def pca_whitening(vlads: np.ndarray, dim: int, regularization: float) -> tuple[n
     component ``i`` is divided by ``sqrt(lambda_i + regularization * lambda_1)`` (bounding the gain
     of near-zero eigenvalues); ``dim`` at most ``N - 1``."""
     pca = faiss.PCAMatrix(vlads.shape[1], dim, 0.0, False)
-    pca.train(np.ascontiguousarray(vlads, dtype=np.float32))
+    with single_threaded():  # the covariance and eigenvectors the same on any machine
+        pca.train(np.ascontiguousarray(vlads, dtype=np.float32))
     eigenvalues = faiss.vector_to_array(pca.eigenvalues)[:dim].astype(np.float64)
     if eigenvalues[0] <= 0:
         raise ValueError("DenseVLAD: all database VLADs are identical; PCA whitening is undefined")

@@ -40,7 +40,7 @@ class Painters:
         try:
             return _painters.get(self.workers).submit(plot, *args, **kwargs)
         except BrokenProcessPool:  # a worker died in an earlier report: start a new pool
-            _painters.discard(self.workers)
+            _painters.discard(self.workers, "figures")
             return _painters.get(self.workers).submit(plot, *args, **kwargs)
 
 

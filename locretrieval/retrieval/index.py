@@ -10,6 +10,7 @@ import numpy as np
 
 from locretrieval.config import require
 from locretrieval.retrieval.ranking import Ranking
+from locretrieval.threads import map_single_threaded
 
 log = logging.getLogger(__name__)
 
@@ -56,8 +57,9 @@ def search(
 ) -> Ranking:
     """Top-``depth`` database images per query by inner product (cosine for L2-normalised rows).
 
-    An exact faiss ``IndexFlatIP`` is searched ``chunk_size`` queries at a time, so no
-    ``[Q, N]`` matrix is ever formed. Rows are ordered by decreasing score, ties by
+    An exact faiss ``IndexFlatIP`` is searched ``chunk_size`` queries at a time (each chunk on
+    one thread, chunks in parallel), so no ``[Q, N]`` matrix is ever formed and the scores do not
+    depend on the machine's thread count. Rows are ordered by decreasing score, ties by
     increasing database index (which of several candidates tied at the last slot is kept
     is faiss's choice). ``exclude_self`` ranks a set against itself (the same
     array): row ``i`` never contains ``i`` and still holds ``depth`` results. A ``depth``
@@ -94,7 +96,8 @@ def search(
     index.add(database)
     indices = np.empty((len(queries), depth), dtype=np.int64)
     scores = np.empty((len(queries), depth), dtype=np.float32)
-    for start in range(0, len(queries), chunk_size):
+
+    def search_chunk(start: int) -> None:
         stop = min(start + chunk_size, len(queries))
         chunk_scores, chunk_indices = index.search(queries[start:stop], depth + int(exclude_self))
         if exclude_self:
@@ -102,4 +105,7 @@ def search(
         order = np.lexsort((chunk_indices, -chunk_scores), axis=1)
         indices[start:stop] = np.take_along_axis(chunk_indices, order, axis=1)
         scores[start:stop] = np.take_along_axis(chunk_scores, order, axis=1)
+
+    # each chunk's product on one thread, chunks in parallel: the same scores (so the same order) on any machine
+    map_single_threaded(search_chunk, range(0, len(queries), chunk_size))
     return Ranking(name, indices, scores, "descriptor", queries, database)

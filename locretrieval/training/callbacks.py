@@ -123,6 +123,7 @@ class LocalizationValidation(L.Callback):
         self.subsets = {"all": np.ones(len(scene.queries), dtype=bool)}
         self.history: list[dict[str, float]] = []
         self.reference: dict[str, dict[str, float]] = {}
+        self.sfm_stages: dict[str, dict] = {}  # per validation with SfM: its stages' forecast and measured seconds
         posed = np.flatnonzero(scene.queries.has_pose)  # a fixed set: the same queries at every validation
         self.gallery_rows = np.sort(
             np.random.default_rng(0).choice(posed, size=min(gallery_queries, len(posed)), replace=False)
@@ -174,6 +175,8 @@ class LocalizationValidation(L.Callback):
                 self.relevance,
             )
             self.reference = {r.name: metric_rows(result, r.name, self.settings.paradigms.ks()) for r in rankings}
+            if result.sfm_stages:
+                self.sfm_stages["references"] = result.sfm_stages
             for name, metrics in self.reference.items():
                 log.info("reference %s: %s", name, headline_line(metrics, self.headline))
                 if trainer.logger is not None:
@@ -197,6 +200,8 @@ class LocalizationValidation(L.Callback):
         """Validate the module's network after ``epoch`` (-1: before training), keep and print the
         metrics, and log the gallery of the fixed validation queries."""
         result = self.validate(pl_module.network, self._wants_sfm(epoch))
+        if result.sfm_stages:
+            self.sfm_stages[f"epoch {epoch}"] = result.sfm_stages
         metrics = metric_rows(result, TRAINED, self.settings.paradigms.ks())
         self.history.append({"epoch": epoch, **metrics})
         log.info(

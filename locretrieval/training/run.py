@@ -4,7 +4,9 @@ Lightning, validate by localization every epoch, write the validation curves and
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
+import time
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -13,12 +15,15 @@ from typing import Any
 
 import lightning as L
 import numpy as np
+import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.benchmark import BenchmarkSettings, sfm_plan
 from locretrieval.config import ConfigError, built, check_node, require, validated
+from locretrieval.device import resolve_device
 from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, compute_groundtruths
+from locretrieval.models import NetworkDescriptor
 from locretrieval.scene import ImageSet, Scene
 from locretrieval.scene.datasets import instantiate_scene, load_synthetic_dataset
 from locretrieval.scene.kapture_io import concatenate_image_sets
@@ -39,8 +44,8 @@ class ValidationScope:
     """How much of the validation scene each validation localizes, so that it fits a large scene:
     ``max_queries`` (a fixed subset drawn with ``seed``; null: every query), the SfM paradigms'
     local features capped at ``sfm_max_keypoints`` per image (null: ``sfm.features``' own), and
-    ``budget_minutes``: a validation whose SfM work is forecast (`sfm_plan`) to take longer is
-    refused before training starts (null: no bound)."""
+    ``budget_minutes``: a validation forecast to take longer (describing its images and its SfM
+    work, `check_validation_budget`) is refused before training starts (null: no bound)."""
 
     max_queries: int | None
     seed: int
@@ -206,7 +211,7 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     scene: Scene = instantiate_scene(cfg.data)
     validation_scene, validation_settings = training.validation.scene(scene), training.validation.settings(settings)
     check_validation_budget(
-        cfg, validation_scene, validation_settings, groundtruth_settings, training.validation, cache_dir
+        cfg, validation_scene, validation_settings, groundtruth_settings, training.validation, cache_dir, descriptor
     )
     parts = training_parts(cfg, scene, descriptor.preprocessing, settings, relevance, training)
     groundtruths = compute_groundtruths(validation_scene, groundtruth_settings, validation_settings.sfm, cache_dir)
@@ -243,6 +248,8 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     trainer.fit(module, datamodule=parts.datamodule, ckpt_path=cfg.get("ckpt_path"))
     if trainer.is_global_zero:
         write_training_report(validator, output_dir, report, unfilled)
+        summary = {"SfM stages per validation": validator.sfm_stages}  # forecast and measured seconds per stage
+        (output_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return validator
 
 
@@ -272,42 +279,74 @@ def check_validation_budget(
     groundtruths: GroundTruthSettings,
     scope: ValidationScope,
     cache_dir: Path,
+    descriptor: Any,
 ) -> None:
     """Log the SfM work of the first (largest) validation with its forecast (`sfm_plan`: upper
-    bounds for the trained ranking, the reference models', the ground truths' and random's), and
-    raise `ConfigError` naming the keys to change when it exceeds ``scope.budget_minutes``."""
-    every = cfg.callbacks.localization_validation.get("sfm_every_n_epochs")
-    if every is None or not scene.queries.has_pose.any():
-        return
-    rankings = (
-        1 + len(cfg.get("validation_references") or {}) + len(groundtruths.parsed()) + int(bool(cfg.baselines.random))
-    )
-    plan = sfm_plan(scene, None, settings, cache_dir, rankings)
-    if plan is None:
-        return
-    log.info(
-        "SfM work of the first validation (%d queries, %d rankings; "
-        "later ones: the trained ranking's new pairs only):\n%s",
-        len(scene.queries),
-        rankings,
-        plan.describe(),
-    )
-    if scope.budget_minutes is None or plan.costs is None:
-        return
-    minutes = sum(plan.forecast().values()) / 60
-    if minutes > scope.budget_minutes:
-        keypoints = settings.sfm.features.max_keypoints or f"{plan.costs.keypoints:.0f} (measured)"
-        raise ConfigError(
-            f"training.validation.budget_minutes: one validation's SfM "
-            f"work is forecast at {minutes:.1f} min, above the budget of "
-            f"{scope.budget_minutes:g} min ({len(scene.queries)} queries, "
-            f"{plan.new_pairs():,} pairs to match at {keypoints} keypoints per "
-            f"image, {sum(w.registrations.total for w in plan.paradigms):,} "
-            f"registrations; the forecast is logged above). Lower "
-            "training.validation.max_queries or training.validation.sfm_max_keypoints, lower paradigms.local_sfm.k / "
-            "paradigms.global_sfm.k, or validate without the SfM paradigms "
-            "(callbacks.localization_validation.sfm_every_n_epochs=null)"
+    bounds for the trained ranking, the reference models', the ground truths' and random's);
+    with ``scope.budget_minutes``, add the trained network's description of every validation
+    image (`extraction_seconds`) and raise `ConfigError` naming the keys to change when the
+    validation exceeds the budget."""
+    plan = None
+    if cfg.callbacks.localization_validation.get("sfm_every_n_epochs") is not None and scene.queries.has_pose.any():
+        rankings = (
+            1
+            + len(cfg.get("validation_references") or {})
+            + len(groundtruths.parsed())
+            + int(bool(cfg.baselines.random))
         )
+        plan = sfm_plan(scene, None, settings, cache_dir, rankings)
+    if plan is not None:
+        log.info(
+            "SfM work of the first validation (%d queries, %d rankings; "
+            "later ones: the trained ranking's new pairs only):\n%s",
+            len(scene.queries),
+            rankings,
+            plan.describe(),
+        )
+    if scope.budget_minutes is None:
+        return
+    images = len(scene.database) + len(scene.queries)
+    describing = images * extraction_seconds(descriptor, scene.queries, resolve_device(str(cfg.device)))
+    sfm_seconds = sum(plan.forecast().values()) if plan is not None and plan.costs is not None else 0.0
+    log.info(
+        "one validation is forecast at %.1f min: describing its %d images %.1f s, its SfM work %.1f s "
+        "(the reference models' descriptors are computed once, before training)",
+        (describing + sfm_seconds) / 60,
+        images,
+        describing,
+        sfm_seconds,
+    )
+    minutes = (describing + sfm_seconds) / 60
+    if minutes > scope.budget_minutes:
+        keypoints = settings.sfm.features.max_keypoints or (
+            f"{plan.costs.keypoints:.0f} (measured)" if plan is not None and plan.costs is not None else "all"
+        )
+        raise ConfigError(
+            f"training.validation.budget_minutes: one validation is forecast at {minutes:.1f} min, above the budget "
+            f"of {scope.budget_minutes:g} min: describing its {images:,} images takes {describing / 60:.1f} min and "
+            f"its SfM work {sfm_seconds / 60:.1f} min ({len(scene.queries)} queries, "
+            f"{plan.new_pairs() if plan is not None else 0:,} pairs to match at {keypoints} keypoints per image, "
+            f"{sum(w.registrations.total for w in plan.paradigms) if plan is not None else 0:,} registrations; the "
+            "forecast is logged above). Lower training.validation.max_queries or "
+            "training.validation.sfm_max_keypoints, lower paradigms.local_sfm.k / paradigms.global_sfm.k, "
+            "or validate without the SfM paradigms (callbacks.localization_validation.sfm_every_n_epochs=null)"
+        )
+
+
+def extraction_seconds(descriptor: Any, images: ImageSet, device: torch.device, sample: int = 4) -> float:
+    """Seconds per image of the model's network describing ``images`` (``sample`` of them, after
+    one to warm up) on ``device``, as each validation describes the validation scene."""
+    network = descriptor.network
+    previous = next(network.parameters()).device
+    model = NetworkDescriptor("budget", network.to(device), descriptor.preprocessing, descriptor.settings)
+    try:
+        model.describe(images.subset(np.arange(min(1, len(images)))))
+        chosen = images.subset(np.arange(min(sample, len(images))))
+        started = time.perf_counter()
+        model.describe(chosen)
+        return (time.perf_counter() - started) / len(chosen)
+    finally:
+        network.to(previous)
 
 
 def checked_callbacks(

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import contextlib
 import json
-import multiprocessing
 import os
 import shutil
 import tempfile
 from collections.abc import Iterator, Mapping
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,7 +18,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from locretrieval.cache import process_alive
 from locretrieval.device import resolve_device
+from locretrieval.processes import broken_pool_error, spawn_context
 from locretrieval.scene.synthetic.camera import PinholeCamera
 from locretrieval.scene.synthetic.conditions import add_sensor_noise, exposure_path, sample_conditions
 from locretrieval.scene.synthetic.config import CONDITIONS, resolve_config
@@ -259,12 +261,14 @@ def _render(config: dict[str, Any], output_dir: Path) -> None:
             for plan in tqdm(plans, **progress):
                 context(plan)
         else:
-            spawn = multiprocessing.get_context("spawn")
             with ProcessPoolExecutor(
-                workers, mp_context=spawn, initializer=_start_worker, initargs=(config, staging)
+                workers, mp_context=spawn_context(), initializer=_start_worker, initargs=(config, staging)
             ) as pool:
-                for _ in tqdm(pool.map(_render_in_worker, plans), **progress):
-                    pass
+                try:
+                    for _ in tqdm(pool.map(_render_in_worker, plans), **progress):
+                        pass
+                except BrokenProcessPool as error:
+                    raise broken_pool_error(pool, f"rendering synthetic {environment.name}") from error
         write_kapture_lists(staging / "mapping", [database_camera], _written(database))
         write_kapture_lists(staging / "query", query_cameras, _written(queries))
         (staging / "synthetic_config.json").write_text(json.dumps(config, indent=2, sort_keys=True) + "\n")
@@ -283,20 +287,10 @@ def remove_stale_staging(output_dir: Path) -> list[Path]:
     removed = []
     for folder in output_dir.glob(f"{STAGING_PREFIX}*"):
         pid = folder.name.removeprefix(STAGING_PREFIX).split("-", 1)[0]
-        if not pid.isdigit() or not _process_alive(int(pid)):
+        if not pid.isdigit() or not process_alive(int(pid)):
             shutil.rmtree(folder, ignore_errors=True)
             removed.append(folder)
     return removed
-
-
-def _process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def _written(plans: list[ImagePlan]) -> list[WrittenImage]:

@@ -1,0 +1,135 @@
+"""The SfM forecast: stages named as the run times them, spread over the processes the run gives
+each stage, unit costs measured by the pipeline itself on a sample; every run reports forecast and
+measured seconds per stage."""
+
+import dataclasses
+import json
+
+import helpers
+import numpy as np
+import pytest
+
+from locretrieval.benchmark import BenchmarkSettings, sfm_paradigms, sfm_plan
+from locretrieval.localization.pipeline import run_sfm
+from locretrieval.localization.plan import ParadigmWork, SfmPlan, UnitCosts, Work, forecast_sample
+from locretrieval.localization.workers import MIN_TASKS_PER_WORKER
+from locretrieval.retrieval import Ranking
+
+SCENE = {"width": 160, "height": 120, "num_database": 24, "num_queries": 6, "texture_size": 64, "length": 20.0,
+         "workers": 2, "seed": 4}  # fmt: skip
+
+
+def costs(**changes) -> UnitCosts:
+    values = {
+        "features": 0.1,
+        "pairs": 0.01,
+        "map_pairs": {"local_sfm": 0.002, "global_sfm": 0.004},
+        "registrations": {"local_sfm": 0.003, "global_sfm": 0.005},
+        "keypoints": 500.0,
+        "device": "cpu",
+        "sample": "a sample",
+        "load": 0.0,
+    }
+    return UnitCosts(**{**values, **changes})
+
+
+def paradigm_work(name: str, queries: int, parallel_maps: bool) -> ParadigmWork:
+    return ParadigmWork(
+        name,
+        Work(100, 100),
+        Work(300, 200),
+        Work(40, 30),
+        45.0,
+        Work(90, 60),
+        Work(500, 400),
+        Work(queries, queries),
+        parallel_maps,
+    )
+
+
+def test_the_forecast_spreads_each_stage_over_the_processes_the_run_gives_it():
+    local, shared = paradigm_work("local_sfm", 20, True), paradigm_work("global_sfm", 20, False)
+    # 64 new images: 2 tasks of 32, too few for a pool not started: in this process
+    plan = SfmPlan(Work(100, 64), [local, shared], True, 4, costs())
+    stages = plan.forecast()
+    assert stages["features"] == pytest.approx(64 * 0.1)
+    assert stages["match + verify"] == pytest.approx((100 + 200 + 200) * 0.01 / 4)  # every core either way
+    # 20 queries: enough tasks for the pool (MIN_TASKS_PER_WORKER * 4 = 16), spread over 4 workers
+    assert 20 >= MIN_TASKS_PER_WORKER * 4
+    assert stages["local_sfm: triangulate + register"] == pytest.approx((30 * 45.0 * 0.002 + 400 * 0.003) / 4)
+    assert stages["global_sfm: triangulate"] == pytest.approx(30 * 45.0 * 0.004)  # one map, in this process
+    assert stages["global_sfm: register"] == pytest.approx(400 * 0.005 / 4)
+    # a pool the run starts for its features (640 images: 20 tasks) serves the small stages after it
+    small = SfmPlan(Work(640, 640), [paradigm_work("local_sfm", 3, True)], True, 4, costs())
+    assert small.forecast()["features"] == pytest.approx(640 * 0.1 / 4)
+    assert small.forecast()["local_sfm: triangulate + register"] == pytest.approx((30 * 45.0 * 0.002 + 400 * 0.003) / 3)
+    alone = SfmPlan(Work(64, 64), [paradigm_work("local_sfm", 3, True)], True, 4, costs())
+    assert alone.forecast()["local_sfm: triangulate + register"] == pytest.approx(30 * 45.0 * 0.002 + 400 * 0.003)
+    assert small.pool_needed() and not alone.pool_needed()
+
+
+def test_the_sample_is_a_neighbourhood_ranked_by_its_queries(tmp_path):
+    scene = helpers.rendered_scene(tmp_path, SCENE)
+    sample, ranking = forecast_sample(scene, 10, 2)
+    assert len(sample.database) == 10 and len(sample.queries) == 2
+    assert set(sample.database.names) <= set(scene.database.names)
+    centres = sample.database.centers
+    assert (
+        np.linalg.norm(centres - centres[0], axis=1).max()
+        <= np.linalg.norm(scene.database.centers - centres[0], axis=1).max()
+    )
+    distances = np.linalg.norm(sample.queries.centers[:, None] - centres[None], axis=2)
+    assert np.array_equal(ranking.indices, np.argsort(distances, axis=1, kind="stable"))
+    assert isinstance(ranking, Ranking) and ranking.depth == 10
+
+
+def test_forecast_and_run_name_the_same_stages_and_the_units_come_from_the_pipeline(tmp_path, monkeypatch):
+    scene = dataclasses.replace(helpers.rendered_scene(tmp_path / "scene", SCENE), frustum_far=25.0)
+    config = helpers.evaluate_config("paradigms.local_sfm.k=[3,5]", "paradigms.global_sfm.k=[1,3]", "device=cpu")
+    settings = BenchmarkSettings.from_config(config)
+    order = np.argsort(
+        np.linalg.norm(scene.queries.centers[:, None] - scene.database.centers[None], axis=2), axis=1, kind="stable"
+    )
+    rankings = [Ranking("nearest", order[:, :8], -np.arange(8.0)[None].repeat(len(order), 0), "groundtruth")]
+    calls = []
+    monkeypatch.setattr(
+        "locretrieval.localization.pipeline.run_sfm", lambda *a, **k: calls.append(a) or run_sfm(*a, **k)
+    )
+    plan = sfm_plan(scene, rankings, settings, tmp_path / "cache")
+    assert len(calls) == 2 and calls[0][0].name.endswith("(forecast sample)")  # the sample: built, then registered
+    assert not list((tmp_path / "cache").glob(".forecast*"))  # its scratch folder is gone
+    measured = {}
+    run_sfm(scene, rankings, sfm_paradigms(settings), settings.sfm, tmp_path / "cache", measured)
+    assert set(plan.forecast()) == set(measured)
+    assert all(value >= 0 for value in plan.forecast().values())
+
+
+@pytest.mark.slow
+def test_evaluate_writes_forecast_and_measured_seconds_per_stage_to_its_summary(tmp_path):
+    from locretrieval.evaluation import evaluate
+
+    tiny = [f"data.render.{key}={value}" for key, value in SCENE.items()]
+    config = helpers.evaluate_config(
+        f"paths.root_dir={tmp_path}",
+        *tiny,
+        "model.max_side=160",
+        "model.step=4",
+        "subsets.blur_width=160",
+        "groundtruth.enabled=[relative_pose]",
+        "paradigms.local_sfm.k=[3,5]",
+        "paradigms.global_sfm.k=[1,3]",
+        "report.figure_formats=[]",
+        "report.scene_view.enabled=false",
+        "output.ltvl=false",
+        "device=cpu",
+    )
+    evaluate(config, tmp_path / "run")
+    stages = json.loads((tmp_path / "run" / "summary.json").read_text())["SfM stages"]
+    assert {"features", "match + verify", "local_sfm: triangulate + register", "global_sfm: register", "total"} <= set(
+        stages
+    )
+    for times in stages.values():
+        assert times["measured_s"] is not None and times["measured_s"] >= 0
+        assert times["forecast_s"] is not None and times["forecast_s"] >= 0
+    total = stages["total"]
+    assert total["ratio"] == pytest.approx(total["measured_s"] / total["forecast_s"])
