@@ -183,7 +183,7 @@ def test_extraction_runs_on_the_networks_device_and_restores_train_mode(scene):
 
 #: The data flow, lowest first: a module may import its own layer and those before it.
 LAYERS = [
-    {"scene", "geometry", "config", "cache", "device", "frusta", "chebyshev", "restricted_pickle"},
+    {"scene", "geometry", "config", "cache", "device", "frusta", "chebyshev", "restricted_pickle", "errors"},
     {"models"},
     {"retrieval"},
     {"localization"},
