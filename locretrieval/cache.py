@@ -6,6 +6,7 @@ import contextlib
 import hashlib
 import json
 import os
+import re
 import tempfile
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
@@ -18,6 +19,22 @@ def config_key(*parts: Any) -> str:
     """Stable 16-hex-digit hash of JSON-serialisable parts (dict keys sorted)."""
     text = json.dumps(parts, sort_keys=True, default=str, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+#: A name usable as one file name as it is: letters, digits, ``._-``, not starting with a dot.
+_SAFE_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,99}")
+
+
+def safe_name(text: str) -> str:
+    """``text`` as one file name inside its folder (a ranking, ground-truth, model or figure name):
+    unchanged when it is one already (`_SAFE_NAME`); otherwise other characters become ``_`` (a
+    leading dot too: no ``..``, no hidden file), cut to 80 characters, followed by ``-`` and 8 hex
+    digits of its hash, so that two names never share a file."""
+    text = str(text)
+    if _SAFE_NAME.fullmatch(text):
+        return text
+    readable = re.sub(r"[^A-Za-z0-9._-]", "_", text)[:80]
+    return re.sub(r"^\.", "_", readable) + "-" + config_key(text)[:8]
 
 
 @contextlib.contextmanager

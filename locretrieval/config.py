@@ -24,6 +24,8 @@ from typing import Any, TypeVar
 from omegaconf import Container, DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
 
+from locretrieval.cache import safe_name
+
 Schema = TypeVar("Schema")
 
 
@@ -62,6 +64,11 @@ def file_stem(path: Any) -> str:
 
 if not OmegaConf.has_resolver("file_stem"):
     OmegaConf.register_new_resolver("file_stem", file_stem)
+
+
+if not OmegaConf.has_resolver("safe_name"):
+    # ``${safe_name:${model.name}}``: a name from the config as one folder name of Hydra's run folder
+    OmegaConf.register_new_resolver("safe_name", safe_name)
 
 
 def trainer_accelerator(device: str) -> str:
