@@ -8,11 +8,15 @@ import json
 import os
 import re
 import tempfile
+import zipfile
+import zlib
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from locretrieval.errors import DELETE_CACHE_FILE, DataFileError
 
 
 def config_key(*parts: Any) -> str:
@@ -39,7 +43,9 @@ def safe_name(text: str) -> str:
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; move it into place only on success."""
+    """Yield a temporary path next to ``path``; move it into place only on success, after the file's
+    data and then the rename reached the disk (``fsync`` of the file, then of its folder), so that a
+    power loss leaves the old file or the whole new one, never a partial or empty one."""
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -53,10 +59,21 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     os.close(handle)
     try:
         yield Path(temporary)
+        _sync(temporary)
         os.replace(temporary, path)
+        _sync(path.parent)
     finally:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(temporary)
+
+
+def _sync(path: str | os.PathLike) -> None:
+    """``fsync`` a file or a folder (its entries: a rename) to the disk."""
+    descriptor = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
 
 
 def save_arrays(path: str | os.PathLike, arrays: Mapping[str, np.ndarray]) -> None:
@@ -66,10 +83,17 @@ def save_arrays(path: str | os.PathLike, arrays: Mapping[str, np.ndarray]) -> No
             np.savez(stream, **arrays)
 
 
-def load_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Read every array of an ``.npz`` file into memory."""
-    with np.load(path, allow_pickle=False) as data:
-        return {name: data[name] for name in data.files}
+def load_arrays(path: str | os.PathLike, remedy: str = DELETE_CACHE_FILE) -> dict[str, np.ndarray]:
+    """Read every array of an ``.npz`` file into memory (no pickled object). A file that is not a
+    whole ``.npz`` (truncated, empty, damaged) is a `DataFileError` naming it and ``remedy`` (what
+    to do: by default, delete the cache file); a missing one a ``FileNotFoundError``."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {name: data[name] for name in data.files}
+    except FileNotFoundError:
+        raise
+    except (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error) as error:
+        raise DataFileError(path, f"not a readable .npz file ({type(error).__name__}: {error})", remedy) from None
 
 
 def cached_arrays(

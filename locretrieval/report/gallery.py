@@ -40,6 +40,7 @@ from scipy import sparse
 
 from locretrieval.cache import atomic_path, config_key, file_signature, load_arrays, safe_name, save_arrays
 from locretrieval.config import require, validated
+from locretrieval.errors import DELETE_CACHE_FILE, DataFileError
 from locretrieval.metrics.correlation import capped_pose_error
 from locretrieval.report.markdown import ReportWriter, md_code, md_text
 from locretrieval.report.tables import TABLES, read_table
@@ -50,6 +51,8 @@ from locretrieval.scene.images import read_image
 log = logging.getLogger(__name__)
 
 IMAGES_FILE = "images.csv"
+#: What to do about a damaged file of a run folder.
+RERUN = "the run folder is damaged: run evaluate.py again"
 RELEVANCE_FOLDER = "relevance"
 RANKINGS_FOLDER = "rankings"
 #: The report's gallery images, below its folder (replaced at every report).
@@ -106,7 +109,10 @@ class Thumbnails:
             return read_image(path, max_side=self.size)
         file = self.cache_dir / f"{config_key(path, file_signature(path), self.size)}.npy"
         if file.is_file():
-            return np.load(file, allow_pickle=False)
+            try:
+                return np.load(file, allow_pickle=False)
+            except (OSError, EOFError, ValueError) as error:
+                raise DataFileError(file, f"not a readable thumbnail ({error})", DELETE_CACHE_FILE) from None
         thumbnail = read_image(path, max_side=self.size)
         with atomic_path(file) as temporary:
             np.save(temporary, thumbnail)
@@ -195,7 +201,7 @@ def relevance_file(run: Path, groundtruth: str) -> Path:
 
 def load_relevance(path: Path) -> sparse.csr_matrix:
     """A relevance matrix written by `write_gallery_inputs`."""
-    arrays = load_arrays(path)
+    arrays = load_arrays(path, RERUN)
     data = np.ones(len(arrays["indices"]), dtype=bool)
     return sparse.csr_matrix((data, arrays["indices"], arrays["indptr"]), shape=tuple(arrays["shape"]))
 
@@ -225,7 +231,7 @@ class GalleryInputs:
         relevance = load_relevance(relevance_path) if relevance_path is not None and relevance_path.is_file() else None
         rankings = {}
         for path in sorted((run / RANKINGS_FOLDER).glob("*.npz")):
-            arrays = load_arrays(path)
+            arrays = load_arrays(path, RERUN)
             if str(arrays.get("kind", "")) == "descriptor":
                 rankings[str(arrays.get("name", path.stem))] = arrays["indices"]  # the file name is its safe_name
         return cls(list(queries["name"]), list(queries["path"]), list(database["path"]), relevance, rankings)

@@ -86,7 +86,7 @@ def write_html(markdown_path: Path, html_path: Path | None = None) -> Path:
     links = [(name, label) for name, label in COMPANIONS.items() if (html_path.parent / name).is_file()]
     if markdown_path.parent == html_path.parent:
         links.append((markdown_path.name, "Markdown version"))
-    page = PAGE.render(title=title, body=Markup(body), links=links, policy=CONTENT_SECURITY_POLICY)
+    page = PAGE.render(title=title, body=Markup(body), links=links, policy=Markup(CONTENT_SECURITY_POLICY))
     html_path.write_text(page)
     return html_path
 
