@@ -410,9 +410,10 @@ def _check_image_sizes(
         except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as error:
             raise DataFileError(path, f"not a readable image ({error})", FIX_DATA_FILE) from None
         if size != (camera.width, camera.height):
-            raise ValueError(
-                f"{path}: image is {size[0]}x{size[1]} pixels but its camera {camera_id!r} in {SENSORS_FILE} is "
-                f"{camera.width}x{camera.height}; resize the image or scale that camera's intrinsics to the image"
+            raise DataFileError(
+                path,
+                f"image is {size[0]}x{size[1]} pixels but its camera {camera_id!r} in {SENSORS_FILE} is "
+                f"{camera.width}x{camera.height}; resize the image or scale that camera's intrinsics to the image",
             )
 
 
@@ -420,7 +421,7 @@ def _check_names(path: Path, names: Sequence[str]) -> None:
     """Image names are written space-separated in LTVL submissions: refuse whitespace at load time."""
     spaced = [name for name in names if any(character.isspace() for character in name)]
     if spaced:
-        raise ValueError(f"{path}: image names with whitespace cannot be exported for LTVL: {spaced[:3]}")
+        raise DataFileError(path, f"image names with whitespace cannot be exported for LTVL: {spaced[:3]}")
 
 
 def _depth_paths(root: Path, keys: Sequence[tuple[int, str]], sensors: dict[str, CsvRow]) -> list[Path | None] | None:
@@ -472,7 +473,7 @@ def load_image_set(kapture_root: str | Path, tag: str | None = None) -> ImageSet
     rigs = _rigs(_check_rigs(root / RIGS_FILE, sensors)) if (root / RIGS_FILE).is_file() else kapture.Rigs()
     records = _check_records(root / RECORDS_CAMERA_FILE, sensors, ("camera",))
     if not records:
-        raise ValueError(f"{root / RECORDS_CAMERA_FILE} lists no image")
+        raise DataFileError(root / RECORDS_CAMERA_FILE, "lists no image")
     for camera_id in {row.fields[1] for row in records}:
         _check_camera_supported(sensors[camera_id])
     trajectories = kapture.Trajectories()
@@ -487,7 +488,7 @@ def load_image_set(kapture_root: str | Path, tag: str | None = None) -> ImageSet
     names = [name for _, _, name in entries]
     duplicates = sorted(name for name, count in Counter(names).items() if count > 1)
     if duplicates:
-        raise ValueError(f"{root / RECORDS_CAMERA_FILE}: image file(s) listed more than once: {duplicates[:3]}")
+        raise DataFileError(root / RECORDS_CAMERA_FILE, f"image file(s) listed more than once: {duplicates[:3]}")
     _check_names(root / RECORDS_CAMERA_FILE, names)
     image_root = root / RECORDS_DATA_DIR
     _check_files_exist(image_root, names, "image")
