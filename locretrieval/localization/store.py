@@ -139,14 +139,12 @@ class ShardedStore:
 
 @contextlib.contextmanager
 def _open(shard: Path) -> Iterator[h5py.File]:
-    """``shard`` open for reading; a shard that cannot be opened or read (damaged, truncated, missing
-    its datasets) is a `DataFileError` naming it and saying to delete it (its records are recomputed)."""
+    """``shard`` open for reading; a shard that cannot be opened or read (damaged, truncated: h5py's
+    ``OSError``) is a `DataFileError` naming it and saying to delete it (its records are recomputed)."""
     import h5py
 
     try:
         with h5py.File(shard, "r") as file:
             yield file
-    except DataFileError:
-        raise
-    except (OSError, KeyError, ValueError) as error:
+    except OSError as error:
         raise DataFileError(shard, f"not a readable cache shard ({error})", DELETE_CACHE_FILE) from None
