@@ -127,3 +127,13 @@ def run_python(code: str, timeout: float = 120):
     return subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout, env=environment, cwd=root
     )
+
+
+def error_in_subprocess(function: str, path: Path):
+    """``function(path)`` (``module.name``) called by a fresh interpreter (`run_python`) that prints
+    the `DataFileError` it raises and exits 0: the completed process (a crash: a negative code)."""
+    module, name = function.rsplit(".", 1)
+    return run_python(
+        f"from locretrieval.errors import DataFileError\nfrom {module} import {name}\n"
+        f"try:\n    {name}({str(path)!r})\nexcept DataFileError as error:\n    print(error)\n"
+    )

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 import torchvision
-from helpers import ObjectPointerArray, run_python, zoo_model
+from helpers import ObjectPointerArray, error_in_subprocess, run_python, zoo_model
 from PIL import Image
 
 from locretrieval.models.apgem import convert_apgem
@@ -248,14 +248,7 @@ def test_a_crafted_numpy_dtype_in_a_dirtorch_file_is_refused_not_a_crash(tmp_pat
     path = tmp_path / "Resnet18-AP-GeM-crafted.pt"
     state = {"fc.weight": torch.zeros(4, 512), "fc.bias": torch.zeros(4), "adpool.p": torch.ones(1)}
     torch.save({"state_dict": state, "model_options": {"arch": "resnet18_rmac"}, "pca": {"x": pca}}, path)
-    process = run_python(
-        "from locretrieval.errors import DataFileError\n"
-        "from locretrieval.models.apgem import read_apgem_weights\n"
-        "try:\n"
-        f"    read_apgem_weights({str(path)!r})\n"
-        "except DataFileError as error:\n"
-        "    print(error)\n"
-    )
+    process = error_in_subprocess("locretrieval.models.apgem.read_apgem_weights", path)
     assert process.returncode == 0, process.stderr[-2000:]  # -11 (SIGSEGV) before the stand-ins
     assert process.stdout.startswith(f"{path}: refused to unpickle an object this loader does not allow")
     assert "refused dtype 'V8' with fields or a sub-array" in process.stdout

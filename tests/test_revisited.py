@@ -2,7 +2,7 @@ import pickle
 
 import numpy as np
 import pytest
-from helpers import ObjectPointerArray, run_python
+from helpers import ObjectPointerArray, error_in_subprocess
 
 from locretrieval.errors import DataFileError
 from locretrieval.metrics.revisited import REVISITED_COLUMNS, evaluate_revisited, load_revisited_groundtruth
@@ -146,15 +146,7 @@ def test_other_callables_than_numpy_reconstruction_are_refused(tmp_path):
 def test_a_crafted_object_dtype_is_refused_instead_of_crashing_the_interpreter(tmp_path):
     path = tmp_path / "gnd_roxford5k.pkl"
     path.write_bytes(pickle.dumps({**GROUNDTRUTH, "gnd": [{"easy": ObjectPointerArray(), "hard": [], "junk": []}] * 2}))
-    process = run_python(
-        "import sys\n"
-        "from locretrieval.metrics.revisited import load_revisited_groundtruth\n"
-        "from locretrieval.restricted_pickle import RefusedPickleError\n"
-        "try:\n"
-        f"    load_revisited_groundtruth({str(path)!r})\n"
-        "except RefusedPickleError as error:\n"
-        "    print(error)\n"
-    )
+    process = error_in_subprocess("locretrieval.metrics.revisited.load_revisited_groundtruth", path)
     assert process.returncode == 0, process.stderr[-2000:]  # -11 (SIGSEGV) before the stand-ins
     assert process.stdout.startswith(f"{path}: refused dtype 'V8' with fields or a sub-array")
 
