@@ -104,8 +104,9 @@ def with_script_policy(page: str) -> str:
         "'sha256-" + base64.b64encode(hashlib.sha256(script.encode()).digest()).decode() + "'"
         for script in _INLINE_SCRIPT.findall(page)
     ]
+    scripts = " ".join(digests) or "'none'"
     policy = (
-        f"default-src 'none'; script-src {' '.join(digests) or chr(39) + 'none' + chr(39)}; "
+        f"default-src 'none'; script-src {scripts}; "
         "style-src 'unsafe-inline'; img-src data: blob:; font-src data:; worker-src blob:; "
         "base-uri 'none'; form-action 'none'"
     )
