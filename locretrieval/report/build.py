@@ -139,7 +139,7 @@ def overview(writer: markdown.ReportWriter, tables: RunTables, groundtruth: str 
         {
             "runs": ", ".join(md_code(run) for run in tables.run_dirs),
             "rankings": ", ".join(md_text(f"{r.ranking} ({r.ranking_kind})") for r in rankings.itertuples()) or "none",
-            "paradigms": ", ".join(md_text(f"{p} (k={sorted(int(k) for k in ks)})") for p, ks in paradigms.items())
+            "paradigms": ", ".join(f"{md_text(p)} (k={sorted(int(k) for k in ks)})" for p, ks in paradigms.items())
             or "none",
             "subsets": md_text(", ".join(sorted(set(results["subset"]) | set(tables.retrieval["subset"])))) or "none",
             "ground truth of the correlation analysis": md_text(groundtruth or "none"),
