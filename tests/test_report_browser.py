@@ -95,3 +95,29 @@ def test_the_3d_view_loads_without_console_errors(run, browser):
     images, errors = open_page(browser, page)
     assert errors == []
     assert all(complete and width > 0 for _, complete, width in images)
+
+
+#: JavaScript: the globals a hostile dataset's handlers would set, and what the page shows of them.
+PWNED = "return [window.__pwned === undefined ? null : window.__pwned, document.body.innerText];"
+#: JavaScript: whether the plotly figure of the 3D view was drawn under its policy (its scripts ran).
+PLOTTED = "const d = document.querySelector('.plotly-graph-div'); return !!(window.Plotly && d && d.data);"
+
+
+def test_a_report_of_a_hostile_dataset_runs_no_script_and_shows_the_names(hostile_run, browser):
+    from conftest import HOSTILE_IMAGE, HOSTILE_MODEL, HOSTILE_QUERY_FOLDER, HOSTILE_TAG
+
+    images, errors = open_page(browser, hostile_run.run / "report.html")
+    pwned, text = browser.execute_script(PWNED)
+    assert pwned is None  # no onerror / onload handler of the dataset's names ran
+    for name in (HOSTILE_QUERY_FOLDER, HOSTILE_TAG, HOSTILE_IMAGE, HOSTILE_MODEL):
+        assert name in text  # shown as text where the report names it
+    assert errors == []  # the policy refused nothing the report itself needs
+    galleries = [src for src, _, _ in images if src.startswith("galleries/")]
+    assert len(galleries) == 15 and all(complete and width > 0 for _, complete, width in images)
+
+
+def test_the_3d_view_of_a_hostile_dataset_draws_with_its_own_scripts_only(hostile_run, browser):
+    _, errors = open_page(browser, hostile_run.run / "scene_3d.html")
+    assert browser.execute_script(PLOTTED) is True
+    assert browser.execute_script(PWNED)[0] is None
+    assert errors == []
