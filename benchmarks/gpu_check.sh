@@ -25,8 +25,8 @@ source "$(dirname "$0")/gpu_steps.sh" gpu_check.txt "$@"
 
 set -f  # the overrides' brackets are no file patterns
 if [ "$REHEARSE" = 1 ]; then
-    # a tiny scene: 24 database images and 6 queries of 160 x 120, rendered in this process
-    scene="data.render.device=cpu data.render.workers=1 data.render.width=160 data.render.height=120
+    # a tiny scene: 24 database images and 6 queries of 160 x 120, rendered by a pool as on the GPU machine
+    scene="data.render.device=cpu data.render.workers=$(nproc) data.render.width=160 data.render.height=120
         data.render.num_database=24 data.render.num_queries=6 data.render.texture_size=64 data.render.length=20"
     collect_only="--collect-only"
     matching="--keypoints 300 600 --repeats 1 --pipeline-images 3"
