@@ -58,9 +58,8 @@ PYTHONPATH = os.pathsep.join([str(ROOT), str(ROOT / "tests")])
 def train_py(root: Path, run: str, processes: int, *overrides: str, timeout: int = 240) -> subprocess.CompletedProcess:
     """``python train.py`` on ``processes`` gloo processes (``trainer=ddp``) or one (``trainer=cpu``),
     everything under ``root`` (the cache too), the outputs in ``root/<run>``, with `TINY_RUN` and
-    ``overrides``. One torch thread per process (what Lightning gives each of two DDP processes on
-    two cores), so that one process computes what each rank does (DenseVLAD's k-means follows the
-    thread count)."""
+    ``overrides``; each with the threads it gets (Lightning gives each of two DDP processes half the
+    cores): the numbers do not depend on them."""
     trainer = ["trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2"] if processes == 2 else ["trainer=cpu"]
     paths = [f"paths.root_dir={root}", f"hydra.run.dir={root}/{run}"]
     root.mkdir(parents=True, exist_ok=True)
@@ -70,7 +69,7 @@ def train_py(root: Path, run: str, processes: int, *overrides: str, timeout: int
         text=True,
         timeout=timeout,
         cwd=root,
-        env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": PYTHONPATH},
+        env={**os.environ, "PYTHONPATH": PYTHONPATH},
     )
 
 
