@@ -1,5 +1,5 @@
 """Shared test helpers: the project's configs composed by Hydra, zoo models built from them, a
-callback that interrupts training."""
+callback that interrupts training, a network that fails on one rank."""
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -137,3 +137,21 @@ def error_in_subprocess(function: str, path: Path):
         f"from locretrieval.errors import DataFileError\nfrom {module} import {name}\n"
         f"try:\n    {name}({str(path)!r})\nexcept DataFileError as error:\n    print(error)\n"
     )
+
+
+def network_failing_on_rank(rank: int):
+    """``model=callable`` of train.py: a small network whose description for validation (eval
+    mode) raises on global rank ``rank`` of a DDP run, a fault of one process; it trains anywhere."""
+    import torch
+
+    class FailingOnRank(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.conv = torch.nn.Conv2d(3, 8, 5, stride=4)
+
+        def forward(self, images: torch.Tensor) -> torch.Tensor:
+            if not self.training and torch.distributed.is_initialized() and torch.distributed.get_rank() == rank:
+                raise RuntimeError(f"a validation fault of rank {rank}")
+            return self.conv(images).mean((2, 3))
+
+    return FailingOnRank()

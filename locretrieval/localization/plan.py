@@ -50,7 +50,7 @@ POOL_WORTH_SECONDS = 10.0
 #: Queries of the sample that unit costs are measured on.
 SAMPLE_QUERIES = 2
 #: Database images of the sample: the deepest k of a paradigm, at least the first, at most the second.
-SAMPLE_DATABASE = (10, 20)
+SAMPLE_DATABASE = (10, 50)
 
 
 @dataclass(frozen=True)
