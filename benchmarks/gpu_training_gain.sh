@@ -36,7 +36,7 @@ max_time=$seconds
 if [ "$REHEARSE" = 1 ]; then
     # tiny scenes (24 database images and 6 queries of 160 x 120), a few steps
     render="device:cpu,workers:1,width:160,height:120,num_database:24,num_queries:6,texture_size:64,length:20"
-    max_time=120 epochs=2 batches=3 extraction_workers=1
+    max_time=120 epochs=2 batches=2 extraction_workers=1
     recipe="datamodule.image_size=[96,72] sampler.anchors=3 sampler.negatives=2 validation_references.densevlad.step=4"
 else
     render="device:cpu,workers:$(nproc)"

@@ -95,8 +95,11 @@ def test_gpu_check_rehearsal(rehearsals):
 
 def test_gpu_training_gain_rehearsal(rehearsals):
     log, out, work = finished(rehearsals, "gpu_training_gain.sh")
-    # the rehearsal's recipe: 2 epochs of 3 batches, within its time limit
-    assert re.search(r"checkpoint \S+last\.ckpt: 6 steps, in epoch 2\n", log)
+    # the rehearsal's recipe: 2 epochs of 2 batches (mining after the first), within its time limit
+    assert re.search(r"checkpoint \S+last\.ckpt: 4 steps, in epoch 2\n", log)
+    assert "hard negatives mined for" in log
+    # the five scenes' databases (24 images each) and four more worlds, all their 24 + 6 images
+    assert f"training on {5 * 24 + 4 * (24 + 6)} images" in log
     for scene in SCENES:
         gaps = pd.read_csv(work / "training_gain" / "scenes" / scene / "gap.csv")
         assert list(gaps["metric"]) == GAP_METRICS
