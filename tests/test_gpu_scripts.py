@@ -4,6 +4,7 @@ ready. The two rehearsals run side by side (about a minute each on 2 cores)."""
 
 import os
 import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -39,11 +40,13 @@ def rehearsals(tmp_path_factory):
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
+            start_new_session=True,  # its own process group: ended with every step it started
         )
         started[script] = (process, root / "out", root / "work")
     yield started
     for process, _, _ in started.values():
-        process.kill()
+        if process.poll() is None:  # a test failed before waiting for it
+            os.killpg(process.pid, signal.SIGKILL)
 
 
 def finished(rehearsals, script: str) -> tuple[str, Path, Path]:
