@@ -1,13 +1,15 @@
 """Time and peak memory of the benchmark core at dataset scale, on generated data; the SfM sweep projected and checked.
 
     .venv/bin/python benchmarks/bench_scale.py [--size baidu aachen robotcar] [--dimension 4096] [--keypoints 20000]
-                                               [--slice 0.02] [--slice-keypoints 20000]
+                                               [--slice 0.02] [--slice-keypoints 20000] [--scale 1]
 
 ``baidu``: Baidu-mall's 689 database images and 2,292 queries, handheld cameras in a
 150 m x 60 m mall; ``aachen``: Aachen Day-Night v1.1's 6,697 database images and 1,015 queries,
 handheld cameras over a 600 m x 600 m city centre; ``robotcar``: RobotCar Seasons v2's
 20,862 x 11,934, left, rear and right cameras of a car every 1.4 m along a 10 km route
-(queries: other traversals).
+(queries: other traversals). ``--scale s`` below 1 generates that share of the images over that
+share of the area (the route's length), so the density of the cameras stays the dataset's: the same
+steps at a rehearsal's size (`benchmarks/gpu_check.sh --rehearse`).
 Descriptors vary smoothly with the camera centre and viewing direction (random Fourier
 features plus noise), so retrieval finds nearby views. Steps: faiss retrieval, the
 relative-pose and frustum ground truths, the co-observation ranking of synthetic
@@ -221,6 +223,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--size", choices=sorted(SIZES), nargs="+", default=["aachen"])
     parser.add_argument("--dimension", type=int, default=4096)
+    parser.add_argument(
+        "--scale",
+        type=float,
+        default=1.0,
+        help="share of the dataset's images (and of its area) generated; 1: the published size",
+    )
     parser.add_argument("--noise", type=float, default=0.5, help="descriptor noise (relative to the features)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
@@ -239,6 +247,8 @@ def main() -> None:
         help="keypoints per image in the slice (default: --keypoints on a GPU, 1,000 on a CPU)",
     )
     args = parser.parse_args()
+    if not 0.0 < args.scale <= 1.0:
+        parser.error(f"--scale must be in (0, 1], got {args.scale}")
     device = torch.cuda.get_device_name() if torch.cuda.is_available() else f"CPU ({os.cpu_count()} cores)"
     print(f"device: {device}, torch {torch.__version__}")
     for size in args.size:
@@ -248,14 +258,17 @@ def main() -> None:
 def run_size(args: argparse.Namespace) -> None:
     """Every step at ``args.size``, then the SfM paradigms (`sfm_at_scale`)."""
     rng = np.random.default_rng(args.seed)
-    num_database, num_queries = SIZES[args.size]
+    num_database, num_queries = (max(2, round(args.scale * count)) for count in SIZES[args.size])
+    side = np.sqrt(args.scale)  # an area of args.scale times the dataset's: the same density of cameras
     started = time.perf_counter()
     if args.size == "baidu":
-        database, queries = city(num_database, rng, "db", (150.0, 60.0)), city(num_queries, rng, "query", (150.0, 60.0))
+        mall = (150.0 * side, 60.0 * side)
+        database, queries = city(num_database, rng, "db", mall), city(num_queries, rng, "query", mall)
     elif args.size == "aachen":
-        database, queries = city(num_database, rng, "db"), city(num_queries, rng, "query")
+        centre = (600.0 * side, 600.0 * side)
+        database, queries = city(num_database, rng, "db", centre), city(num_queries, rng, "query", centre)
     else:
-        path = road(10_000.0, 1.0, rng)
+        path = road(10_000.0 * args.scale, 1.0, rng)
         database, queries = route(num_database, rng, "db", path, 0.5), route(num_queries, rng, "query", path, 1.5)
     frustum_far = float(OmegaConf.load(CONFIGS / "data" / f"{args.size}.yaml").data.frustum_far)
     scene = Scene(args.size, database, queries, frustum_far=frustum_far)
@@ -263,7 +276,8 @@ def run_size(args: argparse.Namespace) -> None:
     database_descriptors = descriptors(database, projection, phase, args.noise, rng)
     query_descriptors = descriptors(queries, projection, phase, args.noise, rng)
     print(
-        f"{args.size}: {num_database:,} database images x {num_queries:,} queries, D={args.dimension} "
+        f"{args.size}{f' at scale {args.scale:g}' if args.scale < 1 else ''}: "
+        f"{num_database:,} database images x {num_queries:,} queries, D={args.dimension} "
         f"(generated in {time.perf_counter() - started:.1f} s)"
     )
 
@@ -405,10 +419,6 @@ def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Ge
         slice_plan.costs = measure_unit_costs(slice_scene, sfm, sfm_paradigms(), folder / "slice_cache")
         prepare_workers(slice_plan)
         forecast = sum(slice_plan.forecast().values())
-        stages: dict[str, float] = {}
-        started = time.perf_counter()
-        run_sfm(slice_scene, slice_rankings, sfm_paradigms(), sfm, folder / "slice_cache", stages)
-        measured = time.perf_counter() - started
         print(
             f"slice: {len(slice_scene.queries)} queries ({100 * fraction:g} %) "
             f"and {len(slice_scene.database)} database images at "
@@ -416,7 +426,12 @@ def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Ge
             f"{sum(w.maps.new for w in slice_plan.paradigms):,} maps, "
             f"{sum(w.registrations.new for w in slice_plan.paradigms):,} registrations"
         )
-        print(forecast_line("  slice forecast", slice_plan, processes))
+        # printed before the run: one cut short by a time limit still shows its forecast
+        print(forecast_line("  slice forecast", slice_plan, processes), flush=True)
+        stages: dict[str, float] = {}
+        started = time.perf_counter()
+        run_sfm(slice_scene, slice_rankings, sfm_paradigms(), sfm, folder / "slice_cache", stages)
+        measured = time.perf_counter() - started
         print(
             f"  slice measured end to end: {measured:.1f} s ("
             + ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in stages.items())

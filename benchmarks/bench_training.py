@@ -151,6 +151,7 @@ def pipeline_images_per_second(data, steps: int) -> tuple[float, float]:
     decoded from the image files at every step (the same sampler, workers and collate)."""
     from torch.utils.data import DataLoader
 
+    from locretrieval.processes import dataloader_context
     from locretrieval.training.data import collate
     from locretrieval.training.decoded import decode
 
@@ -172,6 +173,7 @@ def pipeline_images_per_second(data, steps: int) -> tuple[float, float]:
             collate_fn=collate(data.pairs),
             num_workers=data.num_workers,
             persistent_workers=data.num_workers > 0,
+            multiprocessing_context=dataloader_context(data.num_workers),  # as the datamodule's: fork
         )
         data.sampler.batches_per_epoch = steps + 2
         batches = iter(loader)
