@@ -91,9 +91,11 @@ def _fsync(path: str | os.PathLike) -> None:
 
 @contextlib.contextmanager
 def temporary_folder(parent: str | os.PathLike, label: str) -> Iterator[Path]:
-    """A hidden folder of ``parent`` for scratch work, deleted afterwards (or, when this process
-    is killed, by the next process of this host that writes into ``parent``)."""
+    """A hidden folder of ``parent`` for scratch work, deleted afterwards with the folders made for
+    it (or, when this process is killed, by the next process of this host that writes into
+    ``parent``)."""
     parent = Path(parent)
+    missing = [folder for folder in (parent, *parent.parents) if not folder.exists()]
     parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(parent)
     folder = Path(tempfile.mkdtemp(dir=parent, prefix=f".{label}.{_HOST}-{os.getpid()}-", suffix=".partial"))
@@ -101,6 +103,9 @@ def temporary_folder(parent: str | os.PathLike, label: str) -> Iterator[Path]:
         yield folder
     finally:
         shutil.rmtree(folder, ignore_errors=True)
+        for created in missing:  # the folders made for it, innermost first, unless something else was written there
+            with contextlib.suppress(OSError):
+                created.rmdir()
 
 
 def remove_stale_temporaries(folder: Path) -> list[Path]:
