@@ -26,7 +26,7 @@ from locretrieval.benchmark import (
 )
 from locretrieval.cache import safe_name, save_arrays
 from locretrieval.config import validated
-from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths, definition_type, statistics_table
+from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths, statistics_table
 from locretrieval.localization.estimates import estimated_pose_table
 from locretrieval.metrics.localization import best_over_k, median_errors
 from locretrieval.metrics.subsets import SubsetSettings, missing_mask_inputs
@@ -173,7 +173,7 @@ def check_inputs(
     `FileNotFoundError` names them all (model weights or feature folders, kapture local
     features, the COLMAP model, dynamic-object masks or their Mask R-CNN weights); before that,
     a paradigm or ground truth the dataset does not support is a `ConfigError`."""
-    check_supported(scene, [*settings.paradigms.enabled(), *map(definition_type, groundtruths.parsed().values())])
+    check_supported(scene, [*settings.paradigms.enabled(), *groundtruths.parsed()])
     missing = [
         *model_inputs(cfg.model, scene),
         *local_feature_inputs(scene, settings, groundtruths),

@@ -61,7 +61,12 @@ def scene_pairs(scene_dir: Path):
 
     images = load_kapture_scene("tiny", [scene_dir / "mapping"], [scene_dir / "query"]).database
     settings = TrainingRelevanceSettings(
-        {"type": "relative_pose", "position_threshold": 10.0, "rotation_threshold": 30.0},
+        {
+            "_target_": "locretrieval.groundtruth.RelativePoseDefinition",
+            "position_threshold": 10.0,
+            "rotation_threshold": 30.0,
+            "ranked": "within_thresholds",
+        },
         NegativeSettings("unrelated", 0.1, None, None),
     )
     return images, training_pairs(images, settings, DefinitionContext(far=25.0))

@@ -256,7 +256,12 @@ def test_pretrained_features_rank_the_database_better_than_random_ones(tmp_path)
     )
     scene = load_kapture_scene("tiny", [tmp_path / "mapping"], [tmp_path / "query"])
     truth = relative_pose_groundtruth(
-        scene.database, scene.queries, depth=50, position_threshold=25.0, rotation_threshold=45.0
+        scene.database,
+        scene.queries,
+        depth=50,
+        position_threshold=25.0,
+        rotation_threshold=45.0,
+        ranked="within_thresholds",
     )
     relevance = truth.relevance.toarray()
     pretrained = TrainableDescriptor(weights=PATH, random_init=False, seed=0, **GEM)

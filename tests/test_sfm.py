@@ -92,7 +92,9 @@ def cache(features_cache, tmp_path):
 @pytest.fixture(scope="module")
 def rankings(scene):
     database, queries = scene.database, scene.queries
-    truth = relative_pose_groundtruth(database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0)
+    truth = relative_pose_groundtruth(
+        database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0, ranked="within_thresholds"
+    )
     return [truth.ranking, random_ranking(len(queries), len(database), 50, 0)]
 
 

@@ -31,7 +31,12 @@ SCENE = {"width": 96, "height": 72, "num_database": 24, "num_queries": 6, "textu
          "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
          "hard_query_fraction": 0.0, "workers": 1, "seed": 5}  # fmt: skip
 RELATIVE_POSE = TrainingRelevanceSettings(
-    {"type": "relative_pose", "position_threshold": 10.0, "rotation_threshold": 30.0},
+    {
+        "_target_": "locretrieval.groundtruth.RelativePoseDefinition",
+        "position_threshold": 10.0,
+        "rotation_threshold": 30.0,
+        "ranked": "within_thresholds",
+    },
     NegativeSettings("unrelated", 0.1, None, None),
 )
 AT_25M = DefinitionContext(far=25.0)
@@ -769,7 +774,10 @@ def test_the_gap_table_gives_the_share_of_the_gap_to_the_ground_truth_that_train
             "callbacks.localization_validation.every_n_epochs=often",
             r"callbacks.localization_validation.every_n_epochs: Value 'often'",
         ),
-        ("train_relevance.definition=relative_pose", r"train_relevance.definition: must be a mapping with a type of"),
+        (
+            "train_relevance.definition=relative_pose",
+            r"train_relevance.definition: must be a mapping with a _target_, the definition's class",
+        ),
     ],
 )
 def test_every_object_node_is_checked_by_its_full_key_before_the_scene_is_prepared(tmp_path, override, message):

@@ -9,7 +9,6 @@ from locretrieval.groundtruth.base import (
 )
 from locretrieval.groundtruth.co_observation import CoObservationDefinition, co_observation_groundtruth
 from locretrieval.groundtruth.compute import (
-    DEFINITIONS,
     GroundTruthSettings,
     compute_groundtruths,
     definition_type,
@@ -23,7 +22,6 @@ from locretrieval.groundtruth.relative_pose import (
 )
 
 __all__ = [
-    "DEFINITIONS",
     "CoObservationDefinition",
     "Definition",
     "DefinitionContext",

@@ -62,8 +62,8 @@ class Definition(Protocol):
     """A ground-truth definition (a typed parameter schema, checked in ``__post_init__``) that
     gives both the benchmark's ranking and relevance of queries against the database and the
     graded relevance of training pairs. ``uses_sfm``: it matches local features (the SfM
-    paradigms' settings, features and caches). Registered in
-    `locretrieval.groundtruth.compute.DEFINITIONS`."""
+    paradigms' settings, features and caches). Chosen by its ``_target_`` (the built-in ones:
+    ``configs/groundtruth/definitions/``), in any package."""
 
     uses_sfm: ClassVar[bool]
 

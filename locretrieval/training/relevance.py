@@ -67,7 +67,7 @@ class NegativeSettings:
 @dataclass
 class TrainingRelevanceSettings:
     """The ``train_relevance`` config group: the ground-truth ``definition`` of positives (a
-    mapping with its ``type``, a `locretrieval.groundtruth.DEFINITIONS` name, and that type's
+    mapping with its ``_target_``, a `locretrieval.groundtruth.Definition` class, and that class's
     parameters, as in ``groundtruth.definitions``; parsed into the definition object) and which
     pairs are ``negatives``."""
 
