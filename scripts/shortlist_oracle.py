@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from locretrieval.groundtruth.relative_pose import relative_pose_scores
-from locretrieval.localization.approximation import approximate_poses
+from locretrieval.localization.approximation import EqualWeights, approximate_poses
 from locretrieval.metrics.localization import localized
 from locretrieval.retrieval.ranking import EMPTY, Ranking
 from locretrieval.scene import Scene
@@ -41,7 +41,7 @@ def reordered(ranking: Ranking, pose_scores: np.ndarray, shortlist: int) -> Rank
 
 def ewb_localized(scene: Scene, ranking: Ranking, k: int, thresholds: list[list[float]], inclusive: bool) -> np.ndarray:
     """% of the queries with a reference pose that EWB over the top ``k`` localizes, per threshold."""
-    estimate = approximate_poses(scene.database, ranking, [k], ["ewb"], alpha=1.0)[0]
+    estimate = approximate_poses(scene.database, ranking, [k], {"ewb": EqualWeights()})[0]
     hits = localized(*estimate.errors(scene.queries.qvec, scene.queries.tvec), thresholds, inclusive)[:, 0]
     return 100.0 * hits[:, scene.queries.has_pose].mean(axis=1)
 

@@ -128,7 +128,7 @@ def test_multirun_from_the_command_line(run):
         str(ROOT / "evaluate.py"),
         "-m",
         f"paths.root_dir={root}",
-        "paradigms.approximation.alpha=4,8",
+        "paradigms.approximation.weights.csi.alpha=4,8",
         f"hydra.sweep.dir={root}/multirun",
         "baselines.random=false",
         "output.ltvl=false",
@@ -162,7 +162,7 @@ def test_multirun_from_the_command_line(run):
     assert report.returncode == 0, report.stderr[-3000:]
     text = (root / "report" / "report.md").read_text()
     # CSI's interpolated poses change with alpha: densevlad is reported once per setting (as Markdown text)
-    labels = [f"densevlad [paradigms.approximation.alpha={alpha}]" for alpha in (4, 8)]
+    labels = [f"densevlad [paradigms.approximation.weights.csi.alpha={alpha}]" for alpha in (4, 8)]
     assert all(md_text(label) in text for label in labels)
     assert all(label in html.unescape((root / "report" / "report.html").read_text()) for label in labels)
 

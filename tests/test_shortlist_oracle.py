@@ -8,7 +8,7 @@ import pytest
 from test_training import SCENE
 
 from locretrieval.groundtruth.relative_pose import relative_pose_groundtruth
-from locretrieval.localization.approximation import approximate_poses
+from locretrieval.localization.approximation import EqualWeights, approximate_poses
 from locretrieval.metrics.localization import localized
 from locretrieval.retrieval.ranking import EMPTY, Ranking, random_ranking
 from locretrieval.scene.kapture_io import load_kapture_scene
@@ -45,7 +45,7 @@ def test_reordering_the_whole_database_by_pose_is_the_relative_pose_ground_truth
     truth = relative_pose_groundtruth(
         scene.database, scene.queries, depth=size, position_threshold=25.0, rotation_threshold=45.0, ranked="all"
     ).ranking
-    estimate = approximate_poses(scene.database, truth, [3], ["ewb"], alpha=1.0)[0]
+    estimate = approximate_poses(scene.database, truth, [3], {"ewb": EqualWeights()})[0]
     expected = 100 * localized(*estimate.errors(scene.queries.qvec, scene.queries.tvec), THRESHOLDS)[:, 0].mean(axis=1)
     np.testing.assert_allclose(table.loc["relative pose (whole database)"], expected)
     np.testing.assert_allclose(table.loc[f"top {size} by pose"], expected)
