@@ -27,7 +27,7 @@ from locretrieval.localization.approximation import (
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Camera, ImageSet
 
-CSI = Path(__file__).resolve().parents[1] / "configs" / "paradigms" / "weights" / "csi.yaml"
+CSI = Path(__file__).resolve().parents[1] / "configs" / "paradigms" / "approximation" / "weights" / "csi.yaml"
 
 
 def unit_rows(rng: np.random.Generator, rows: int, dimension: int) -> np.ndarray:

@@ -318,13 +318,13 @@ def dataset_sfm(size: str) -> SfmSettings:
 
 def sfm_paradigms() -> dict[str, tuple]:
     """The SfM paradigms of ``configs/paradigms/default.yaml``: name -> (stages, settings)."""
-    paradigms = OmegaConf.load(CONFIGS / "paradigms" / "default.yaml")
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        paradigms = compose(config_name="evaluate").paradigms
     return {
-        "local_sfm": (
-            local_sfm.STAGES,
-            LocalSfmSettings(True, list(paradigms.local_sfm.k), str(paradigms.local_sfm.map_matches)),
-        ),
-        "global_sfm": (global_sfm.STAGES, GlobalSfmSettings(True, list(paradigms.global_sfm.k), None)),
+        "local_sfm": (local_sfm.STAGES, validated(LocalSfmSettings, paradigms.local_sfm, "paradigms.local_sfm")),
+        "global_sfm": (global_sfm.STAGES, validated(GlobalSfmSettings, paradigms.global_sfm, "paradigms.global_sfm")),
     }
 
 

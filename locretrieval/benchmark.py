@@ -292,8 +292,8 @@ def sfm_plan(
         key = config_key(
             scene.database.fingerprint(),
             scene.queries.fingerprint(),
-            dataclasses.asdict(settings.sfm),
-            {name: dataclasses.asdict(paradigm_settings) for name, (_, paradigm_settings) in paradigms.items()},
+            repr(settings.sfm),  # the parts' classes too (two without fields have the same asdict)
+            {name: repr(paradigm_settings) for name, (_, paradigm_settings) in paradigms.items()},
         )
         if key not in _unit_costs:
             _unit_costs[key] = measure_unit_costs(scene, settings.sfm, paradigms, cache_dir)

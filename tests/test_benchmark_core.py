@@ -264,6 +264,15 @@ def test_no_module_imports_from_a_layer_above_it():
             r"paradigms.local_sfm.kk: unknown key; expected one of \['enabled', 'k', 'map_matches'\]",
         ),
         ("sfm.pnp.max_error=-1", r"sfm.pnp.max_error: must be"),
+        (
+            "paradigms.local_sfm.map_matches=query",
+            r"paradigms.local_sfm.map_matches: a MapMatches is chosen by its config group now: "
+            r"paradigms/local_sfm/map_matches=query \(configs/paradigms/local_sfm/map_matches/query.yaml\)",
+        ),
+        (
+            "+paradigms.approximation.alpha=4",
+            r"paradigms.approximation.alpha: moved, now paradigms.approximation.weights.csi.alpha",
+        ),
         ("retrieval.depth=0", r"retrieval.depth: must be >= 1"),
     ],
 )

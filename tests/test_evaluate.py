@@ -202,7 +202,8 @@ def test_every_missing_input_is_named_in_one_error_before_any_work(tmp_path):
 
 
 def test_paradigm_sections_are_checked():
-    paradigms = OmegaConf.load(ROOT / "configs" / "paradigms" / "default.yaml")
+    paradigms = evaluate_config("paths.root_dir=/nonexistent").paradigms  # configs/paradigms/default.yaml, composed
+    OmegaConf.set_struct(paradigms, False)
     assert validated(ParadigmsSettings, paradigms, "paradigms").enabled() == [
         "approximation",
         "local_sfm",

@@ -2,7 +2,7 @@
 
 The query pose is ``P_q = sum_i w_i P_i`` over the top ``k`` database images, with weights
 summing to one. A method is an `ApproximationMethod` chosen by ``_target_``
-(``configs/paradigms/weights/``, ``paradigms.approximation.weights.<name>``); the built-in ones:
+(``configs/paradigms/approximation/weights/``, ``paradigms.approximation.weights.<name>``); the built-in ones:
 
 - `EqualWeights` (``ewb``): equal weights ``1/k``;
 - `CosineSimilarityWeights` (``csi``): ``w_i ∝ (d_q . d_i)^alpha`` (cosine similarity of
@@ -163,7 +163,7 @@ class BarycentricWeights(ApproximationMethod):
 @dataclass
 class ApproximationSettings(ParadigmSettings):
     """``methods``: the names of the methods computed, in this order, each a key of ``weights``:
-    name -> `ApproximationMethod` (chosen by its ``_target_``; ``configs/paradigms/weights/``)."""
+    name -> `ApproximationMethod` (chosen by its ``_target_``; ``configs/paradigms/approximation/weights/``)."""
 
     methods: list[str]
     weights: dict[str, Any] = named_parts(ApproximationMethod)
