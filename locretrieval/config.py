@@ -122,6 +122,7 @@ class ConfigError(ValueError):
 #: (`refuse_moved_keys`) and where a section is checked (an unknown key, `validated`).
 MOVED_KEYS = {
     "paradigms.approximation.alpha": "paradigms.approximation.weights.csi.alpha",
+    "sfm.matching.max_epipolar_error": "sfm.database_verification.max_epipolar_error",
 }
 
 

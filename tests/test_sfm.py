@@ -172,7 +172,7 @@ def test_the_global_map_cache_key_follows_what_the_map_depends_on(scene, cache):
     )  # query pairs only
     assert path(triangulation={"min_angle": 3.0}) != base
     assert path(matching={"ratio": 0.9}) != base
-    assert path(matching={"max_epipolar_error": 8.0}) != base
+    assert path(database_verification={"max_epipolar_error": 8.0}) != base
     assert path(map_pairs={"far": 30.0}) != base
     assert path(pnp={"max_error": 6.0}) == base  # registration only
 

@@ -122,6 +122,7 @@ def compute_groundtruths(
                 "map_pairs": dataclasses.asdict(sfm.map_pairs),
             }
             produced_by["sfm"]["matching"] = context.sfm.matching.identity()
+            produced_by["sfm"]["database_verification"] = repr(sfm.database_verification)
         path = None
         if cache_dir is not None:
             key = config_key(CACHE_VERSION, definition_type(definition), produced_by, settings.depth, *fingerprints)

@@ -11,8 +11,8 @@ For each query, ranking and k:
    - `QueryMapMatches`: derived from the query's matches (Sec. 4.1.2, discussion): if query keypoint
      q1 matches m1 in one map image and m2 in another, (m1, m2) is a map-map match; no
      database pair is matched at all;
-   either way, map-map matches are then kept only within ``matching.max_epipolar_error``
-   pixels of the epipolar geometry of the two known poses;
+   either way, map-map matches are then kept by ``sfm.database_verification`` (within
+   ``max_epipolar_error`` pixels of the epipolar geometry of the two known poses);
 3. COLMAP's triangulator builds tracks across the k images and triangulates them
    (``sfm.triangulation``: COLMAP's, or the batched one, every map of a query in one call); the map is
    cached in ``<cache_dir>/local_maps/`` keyed by its images, the matches' store and the
@@ -68,7 +68,7 @@ from locretrieval.localization.sfm import (
 )
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.localization.triangulation import MapInput
-from locretrieval.localization.verification import epipolar_inliers
+from locretrieval.localization.verification import VerificationBatch
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import Scene
 
@@ -151,9 +151,9 @@ class DatabaseMapMatches(MapMatches):
 @dataclass
 class QueryMapMatches(MapMatches):
     """Derived from the query's matches (paper Sec. 4.1.2, discussion): if query keypoint q1 matches
-    m1 in one map image and m2 in another, (m1, m2) is a map-map match, kept within
-    ``matching.max_epipolar_error`` pixels of the two known poses' epipolar geometry; no database
-    pair is matched."""
+    m1 in one map image and m2 in another, (m1, m2) is a map-map match, kept by the database
+    verification (``sfm.database_verification``: within ``max_epipolar_error`` pixels of the two
+    known poses' epipolar geometry); no database pair is matched."""
 
     def identity(self) -> str:
         return "query"
@@ -174,22 +174,12 @@ class QueryMapMatches(MapMatches):
         for image, matches in query_matches.items():
             partner[image] = np.full(num_query_keypoints, -1, dtype=np.int64)
             partner[image][matches[:, 0]] = matches[:, 1]
-        derived = {}
+        derived = []
         for a, b in pairs:
             both = (partner[a] >= 0) & (partner[b] >= 0)
-            matches = np.column_stack([partner[a][both], partner[b][both]]).astype(np.int32)
-            keep = epipolar_inliers(
-                keypoints[database.names[a]],
-                keypoints[database.names[b]],
-                matches,
-                database.cameras[a],
-                (database.qvec[a], database.tvec[a]),
-                database.cameras[b],
-                (database.qvec[b], database.tvec[b]),
-                inputs.settings.matching.max_epipolar_error,
-            )
-            derived[(a, b)] = matches[keep]
-        return derived
+            derived.append(np.column_stack([partner[a][both], partner[b][both]]).astype(np.int32))
+        batch = VerificationBatch(database, database, pairs, derived, keypoints, keypoints)
+        return dict(zip(pairs, inputs.database_verification.verify(batch)))
 
 
 @dataclass
