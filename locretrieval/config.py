@@ -123,6 +123,7 @@ class ConfigError(ValueError):
 MOVED_KEYS = {
     "paradigms.approximation.alpha": "paradigms.approximation.weights.csi.alpha",
     "sfm.matching.max_epipolar_error": "sfm.database_verification.max_epipolar_error",
+    "train_relevance.negatives.rule": "train_relevance/negatives=unrelated|not_relevant",
 }
 
 

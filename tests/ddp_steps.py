@@ -57,7 +57,7 @@ def scene_pairs(scene_dir: Path):
     (relative pose, 10 m and 30 degrees)."""
     from locretrieval.groundtruth import DefinitionContext
     from locretrieval.scene.kapture_io import load_kapture_scene
-    from locretrieval.training.relevance import NegativeSettings, TrainingRelevanceSettings, training_pairs
+    from locretrieval.training.relevance import TrainingRelevanceSettings, UnrelatedNegatives, training_pairs
 
     images = load_kapture_scene("tiny", [scene_dir / "mapping"], [scene_dir / "query"]).database
     settings = TrainingRelevanceSettings(
@@ -67,7 +67,7 @@ def scene_pairs(scene_dir: Path):
             "rotation_threshold": 30.0,
             "ranked": "within_thresholds",
         },
-        NegativeSettings("unrelated", 0.1, None, None),
+        UnrelatedNegatives(0.1, None, None),
     )
     return images, training_pairs(images, settings, DefinitionContext(far=25.0))
 

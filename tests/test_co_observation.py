@@ -20,7 +20,7 @@ from locretrieval.localization.pairs import PairSelection, database_pairs, overl
 from locretrieval.localization.sfm import SfmInputs
 from locretrieval.retrieval import EMPTY
 from locretrieval.scene import ImageSet, Scene
-from locretrieval.training.relevance import NegativeSettings, TrainingRelevanceSettings, training_pairs
+from locretrieval.training.relevance import TrainingRelevanceSettings, UnrelatedNegatives, training_pairs
 
 SCENE = {
     "width": 256,
@@ -221,7 +221,7 @@ def test_database_co_observations_train_by_the_share_of_points_of_the_global_map
     np.testing.assert_array_equal(counts, expected)
     assert (expected[~np.eye(len(points), dtype=bool)] >= 5).sum() > len(points)  # many pairs share points
     settings = TrainingRelevanceSettings(
-        {"_target_": CO_OBSERVATION, "min_shared": 5, "query_pairs": 50}, NegativeSettings("unrelated", 0.1, None, None)
+        {"_target_": CO_OBSERVATION, "min_shared": 5, "query_pairs": 50}, UnrelatedNegatives(0.1, None, None)
     )
     context = DefinitionContext(far=25.0, sfm=SFM, cache_dir=cache, world=world)
     graded = training_pairs(world.database, settings, context).graded.toarray()

@@ -24,7 +24,14 @@ from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 from locretrieval.training.callbacks import TRAINED, every_validation_metrics, metric_rows
 from locretrieval.training.data import RelevanceBatchSampler, TrainingAugmentation
-from locretrieval.training.relevance import NegativeSettings, TrainingRelevanceSettings, combined_pairs, training_pairs
+from locretrieval.training.relevance import (
+    NegativesRule,
+    NotRelevantNegatives,
+    TrainingRelevanceSettings,
+    UnrelatedNegatives,
+    combined_pairs,
+    training_pairs,
+)
 from locretrieval.training.run import ValidationScope, train
 
 SCENE = {"width": 96, "height": 72, "num_database": 24, "num_queries": 6, "texture_size": 64, "length": 20.0,
@@ -37,7 +44,7 @@ RELATIVE_POSE = TrainingRelevanceSettings(
         "rotation_threshold": 30.0,
         "ranked": "within_thresholds",
     },
-    NegativeSettings("unrelated", 0.1, None, None),
+    UnrelatedNegatives(0.1, None, None),
 )
 AT_25M = DefinitionContext(far=25.0)
 #: A short training of the tiny scene: small batches, no SfM validation.
@@ -51,9 +58,9 @@ TINY_TRAINING = (
 )
 
 
-def negatives(**changes):
-    """`RELATIVE_POSE` with other negatives settings."""
-    return dataclasses.replace(RELATIVE_POSE, negatives=dataclasses.replace(RELATIVE_POSE.negatives, **changes))
+def negatives(rule=None, **changes):
+    """`RELATIVE_POSE` with another negatives ``rule``, or its rule with other settings."""
+    return dataclasses.replace(RELATIVE_POSE, negatives=rule or dataclasses.replace(RELATIVE_POSE.negatives, **changes))
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +85,7 @@ def test_relative_pose_training_pairs_against_a_direct_computation(scene):
     overlap = pairwise_overlap_radii(frusta, frusta) > 0
     np.testing.assert_array_equal(pairs.related.toarray(), overlap | relevant)
     assert relevant.any() and (~overlap).any()  # both positives and surely unrelated pairs exist
-    strict = training_pairs(database, negatives(rule="not_relevant"), AT_25M)
+    strict = training_pairs(database, negatives(NotRelevantNegatives()), AT_25M)
     np.testing.assert_array_equal(strict.related.toarray(), relevant)  # every pair not relevant may be a negative
     facing = training_pairs(database, negatives(max_rotation=90.0), AT_25M)
     np.testing.assert_array_equal(facing.related.toarray(), (overlap & (rotation <= 90.0)) | relevant)
@@ -986,3 +993,26 @@ def test_the_report_says_which_requested_gap_row_it_cannot_fill(tmp_path, caplog
 def test_train_py_takes_a_step_with_a_pytorch_metric_learning_loss(tmp_path):
     validator = train(train_config(tmp_path, "loss=multi_similarity", "+trainer.fast_dev_run=true"), tmp_path / "run")
     assert [entry["epoch"] for entry in validator.history] == [-1, 0]
+
+
+@dataclasses.dataclass
+class FarApart(NegativesRule):
+    """A negatives rule from outside the package: negatives are the pairs more than ``metres`` apart."""
+
+    metres: float
+
+    def covisible(self, images, context):
+        return lambda rows: geometry.pairwise_position_errors(images.centers[rows], images.centers) <= self.metres
+
+
+def test_a_negatives_rule_from_outside_the_package_is_chosen_through_the_config(scene, tmp_path):
+    node = f"{{_target_: {__name__}.FarApart, metres: 15.0}}"
+    cfg = train_config(tmp_path, "~train_relevance.negatives", f"+train_relevance.negatives={node}")
+    settings = validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance")
+    database = scene.database
+    pairs = training_pairs(database, settings, AT_25M)
+    distance = geometry.position_errors(database.centers[:, None], database.centers[None])
+    np.testing.assert_array_equal(pairs.related.toarray(), (distance <= 15.0) | (pairs.graded.toarray() > 0))
+    assert (distance > 15.0).any()
+    chosen = train_config(tmp_path, "train_relevance/negatives=not_relevant").train_relevance
+    assert validated(TrainingRelevanceSettings, chosen, "train_relevance").negatives == NotRelevantNegatives()
