@@ -254,11 +254,11 @@ def relevances(groundtruths: Mapping[str, GroundTruth], scope: str = "top_k") ->
 
 
 def scene_subsets(
-    scene: Scene, settings: SubsetSettings, cache_dir: str | Path | None, device: str
+    scene: Scene, settings: SubsetSettings, cache_dir: str | Path | None
 ) -> tuple[dict[str, np.ndarray], pd.DataFrame]:
     """The query subsets every metric is reported on (``all``, one per query tag, ``blurry``,
     ``dynamic_scene``) and the per-query table behind the image subsets (``subsets.csv``)."""
-    image_masks, table = image_subsets(scene.name, scene.queries, settings, cache_dir, device)
+    image_masks, table = image_subsets(scene.name, scene.queries, settings, cache_dir)
     tag_masks = query_subsets(scene.queries)
     clash = sorted(set(tag_masks) & set(image_masks))
     if clash:

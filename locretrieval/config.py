@@ -124,6 +124,12 @@ MOVED_KEYS = {
     "paradigms.approximation.alpha": "paradigms.approximation.weights.csi.alpha",
     "sfm.matching.max_epipolar_error": "sfm.database_verification.max_epipolar_error",
     "train_relevance.negatives.rule": "train_relevance/negatives=unrelated|not_relevant",
+    "subsets.mask_source": "subsets.dynamic_masks, the names of subsets.mask_sources tried in order "
+    "(auto: [masks,maskrcnn], masks: [masks], maskrcnn: [maskrcnn], none: [])",
+    **{
+        f"subsets.maskrcnn_{key}": f"subsets.mask_sources.maskrcnn.{key}"
+        for key in ("weights", "min_size", "score_threshold", "mask_threshold")
+    },
 }
 
 

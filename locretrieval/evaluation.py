@@ -88,7 +88,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     if settings.sfm.job_shard is not None:  # one job of a sharded evaluation: its SfM work, no results
         run_sfm_shard(scene, rankings, settings, cache_dir)
         return pd.DataFrame()
-    subsets, subset_table = scene_subsets(scene, subset_settings, cache_dir, str(cfg.device))
+    subsets, subset_table = scene_subsets(scene, subset_settings, cache_dir)
     if cfg.report.figure_formats:
         from locretrieval.report.painters import start_painters
 

@@ -182,8 +182,8 @@ def test_every_missing_input_is_named_in_one_error_before_any_work(tmp_path):
     missing, cache = tmp_path / "missing", tmp_path / "cache"
     paths = [f"paths.root_dir={tmp_path}", f"paths.cache_dir={cache}", *SMALL_SCENE]
     overrides = ["model=precomputed", f"model.path={missing}/AP-GeM-LM18", "sfm/features=kapture",
-                 f"paradigms.global_sfm.colmap_model={missing}/sfm", "subsets.mask_source=maskrcnn",
-                 f"subsets.maskrcnn_weights={missing}/maskrcnn.pth"]  # fmt: skip
+                 f"paradigms.global_sfm.colmap_model={missing}/sfm", "subsets.dynamic_masks=[maskrcnn]",
+                 f"subsets.mask_sources.maskrcnn.weights={missing}/maskrcnn.pth"]  # fmt: skip
     with pytest.raises(FileNotFoundError) as error:
         evaluate(evaluate_config(*paths, *overrides), tmp_path / "run")
     message = str(error.value)
