@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from helpers import evaluate_config
+from helpers import evaluate_config, render_settings
 from PIL import Image
 from torch import nn
 
@@ -36,7 +36,7 @@ EXTRACTION = ExtractionSettings(
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("core_scene")
-    render_synthetic_dataset(SCENE, root)
+    render_synthetic_dataset(render_settings(SCENE), root)
     return load_kapture_scene("tiny", [root / "mapping"], [root / "query"], frustum_far=25.0)
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import render_settings
 from hydra import compose, initialize_config_dir
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
@@ -214,17 +215,6 @@ def test_bad_dataset_settings_fail_before_loading(tmp_path):
         instantiate(compose_data("gangnam", f"paths.data_dir={tmp_path}", "data.query_tags=[x]").data)
 
 
-def test_synthetic_yaml_mirrors_the_renderer_defaults():
-    from omegaconf import OmegaConf
-
-    from locretrieval.scene.synthetic import DEFAULT_CONFIG
-
-    render = OmegaConf.load(Path(__file__).parents[1] / "configs" / "data" / "synthetic.yaml").render
-    assert set(render) == set(DEFAULT_CONFIG)
-    literal = {key: value for key, value in OmegaConf.to_container(render).items() if not str(value).startswith("${")}
-    assert literal == {key: DEFAULT_CONFIG[key] for key in literal}
-
-
 def test_synthetic_street_is_rendered_once_whatever_the_workers_and_auto_device(tmp_path, caplog):
     import logging
 
@@ -237,9 +227,10 @@ def test_synthetic_street_is_rendered_once_whatever_the_workers_and_auto_device(
               "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 1.0, "noise": 0.0},
               "workers": 1, "device": "cpu", "seed": 2}  # fmt: skip
     facts = {"ltvl_name_style": "full", "frustum_far": 25.0}
-    first = load_synthetic_dataset("street", tmp_path, render, **facts)
+    first = load_synthetic_dataset("street", tmp_path, render_settings(render), **facts)
     with caplog.at_level(logging.INFO):
-        again = load_synthetic_dataset("street", tmp_path, {**render, "workers": 2, "device": "auto"}, **facts)
+        auto = render_settings({**render, "workers": 2, "device": "auto"})
+        again = load_synthetic_dataset("street", tmp_path, auto, **facts)
     assert (again.ltvl_name_style, again.frustum_far) == ("full", 25.0)  # dataset facts kept on the scene
     assert "synthetic scene cached" in caplog.text and again.database.paths == first.database.paths
     assert len([path for path in (tmp_path / "synthetic").iterdir() if path.is_dir()]) == 1  # and its render lock

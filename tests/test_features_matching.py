@@ -64,7 +64,7 @@ def features(overrides, kind="sift"):
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("features_scene")
-    render_synthetic_dataset(SCENE, root)
+    render_synthetic_dataset(helpers.render_settings(SCENE), root)
     return load_kapture_scene("tiny", [root / "mapping"], [root / "query"])
 
 

@@ -109,7 +109,7 @@ LAYOUTS = {
 @pytest.fixture(scope="module")
 def rendered(tmp_path_factory):
     root = tmp_path_factory.mktemp("published_source")
-    render_synthetic_dataset(SCENE, root)
+    render_synthetic_dataset(helpers.render_settings(SCENE), root)
     scene = load_kapture_scene("rendered", [root / "mapping"], [root / "query"])
     features = extract_features(scene.database, helpers.sfm_settings().features, root / "cache", 1)
     query_features = extract_features(scene.queries, helpers.sfm_settings().features, root / "cache", 1)

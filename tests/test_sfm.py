@@ -79,7 +79,7 @@ def run_global(scene, rankings, k, cache, colmap_model=None, sfm=None):
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("sfm_scene")
-    render_synthetic_dataset(SCENE, root)
+    render_synthetic_dataset(helpers.render_settings(SCENE), root)
     blank = root / "query" / "sensors" / "records_data" / "query" / f"{BLANK:06d}.png"
     Image.new("RGB", (SCENE["width"], SCENE["height"]), (128, 128, 128)).save(blank)
     return load_kapture_scene("tiny", [root / "mapping"], [root / "query"])

@@ -25,7 +25,7 @@ THRESHOLDS = [[0.5, 5.0], [5.0, 10.0]]
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("oracle_scene")
-    render_synthetic_dataset(SCENE, root)
+    render_synthetic_dataset(helpers.render_settings(SCENE), root)
     return load_kapture_scene("tiny", [root / "mapping"], [root / "query"], frustum_far=25.0)
 
 

@@ -66,7 +66,7 @@ def negatives(rule=None, **changes):
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("training_scene")
-    render_synthetic_dataset(SCENE, root)
+    render_synthetic_dataset(helpers.render_settings(SCENE), root)
     return load_kapture_scene("tiny", [root / "mapping"], [root / "query"], frustum_far=25.0)
 
 

@@ -17,6 +17,7 @@ from typing import Any
 from filelock import FileLock
 
 from locretrieval.cache import config_key
+from locretrieval.config import ConfigError, validated
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.types import Scene
 
@@ -116,24 +117,22 @@ def load_dataset(
 def load_synthetic_dataset(
     name: str,
     cache_dir: str | Path,
-    render: Mapping,
+    render: Any,
     ltvl_name_style: str,
     frustum_far: float,
 ) -> Scene:
-    """The built-in synthetic scene: rendered once per ``render`` config into
+    """The built-in synthetic scene: rendered once per ``render`` settings into
     ``<cache_dir>/synthetic/<key>/{mapping,query}`` (kapture), then read like any dataset.
 
-    ``render`` holds the renderer's keys (`locretrieval.scene.synthetic.DEFAULT_CONFIG`);
-    the folder key hashes the fully resolved config, so any change renders a new scene.
+    ``render``: the ``data.render`` node (checked as `locretrieval.scene.synthetic.RenderSettings`);
+    the folder key hashes its record (`RenderSettings.record`), so any change renders a new scene.
     """
     from locretrieval.device import resolve_device
-    from locretrieval.scene.synthetic import resolve_config  # the renderer only when the scene is not cached
+    from locretrieval.scene.synthetic import RenderSettings  # the renderer only when the scene is not cached
 
-    config = resolve_config(render)
-    keyed = {k: v for k, v in config.items() if k not in RENDER_ONLY_KEYS}
-    keyed["device"] = resolve_device(
-        str(config["device"])
-    ).type  # "auto" keys what it resolves to: float results may differ
+    settings = validated(RenderSettings, render, "data.render")
+    keyed = {k: v for k, v in settings.record().items() if k not in RENDER_ONLY_KEYS}
+    keyed["device"] = resolve_device(settings.device).type  # "auto" keys what it resolves to: float results may differ
     folder = Path(cache_dir) / "synthetic" / config_key(keyed)
     folder.parent.mkdir(parents=True, exist_ok=True)
     # one process renders, the others (a multirun's jobs on one cache) wait and read its scene:
@@ -143,7 +142,7 @@ def load_synthetic_dataset(
             from locretrieval.scene.synthetic import render_synthetic_dataset
 
             log.info("rendering the synthetic scene into %s", folder)
-            render_synthetic_dataset(config, folder)
+            render_synthetic_dataset(settings, folder)
         else:
             log.info("synthetic scene cached in %s", folder)
     return load_dataset(
@@ -162,15 +161,16 @@ RENDER_ONLY_KEYS = ("workers",)
 
 
 def instantiate_scene(node: Any) -> Scene:
-    """The scene of a data config node (Hydra's `instantiate`); a missing dataset's error is raised
-    as itself, so that its several lines (the path expected, how to get the dataset) are printed
-    once and as written, not inside Hydra's one-line `InstantiationException`."""
+    """The scene of a data config node (Hydra's `instantiate`, its nested nodes given as they are:
+    the loader builds and checks its parts); a missing dataset's error and a `ConfigError` are
+    raised as themselves, so that their lines (the path expected, how to get the dataset; the key)
+    are printed once and as written, not inside Hydra's one-line `InstantiationException`."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
     try:
-        return instantiate(node)
+        return instantiate(node, _recursive_=False)
     except InstantiationException as error:
-        if isinstance(error.__cause__, DatasetNotFoundError):
+        if isinstance(error.__cause__, (DatasetNotFoundError, ConfigError)):
             raise error.__cause__ from None
         raise
