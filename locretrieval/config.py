@@ -126,6 +126,7 @@ MOVED_KEYS = {
     "train_relevance.negatives.rule": "train_relevance/negatives=unrelated|not_relevant",
     "subsets.mask_source": "subsets.dynamic_masks, the names of subsets.mask_sources tried in order "
     "(auto: [masks,maskrcnn], masks: [masks], maskrcnn: [maskrcnn], none: [])",
+    "data.ltvl_name_style": "data/ltvl_names=full|basename|strip_prefix",
     **{
         f"subsets.maskrcnn_{key}": f"subsets.mask_sources.maskrcnn.{key}"
         for key in ("weights", "min_size", "score_threshold", "mask_threshold")
@@ -211,9 +212,14 @@ def require_part(value: Any, kind: type, key: str, group: str | None = None) -> 
     raise ConfigError(f"{key}: expected a node with a _target_ (a {kind.__name__}), got {value!r}")
 
 
-def _build_part(kind: type, node: Any, where: str, group: str | None = None) -> Any:
+def build_part(kind: type, node: Any, where: str, group: str | None = None) -> Any:
+    """The ``kind`` the config node ``node`` at ``where`` builds (its ``_target_``, its keys checked
+    by `check_node`), or ``node`` if it is a ``kind`` already; a `ConfigError` naming the key
+    otherwise (a plain name: the ``group`` option that chooses it now, `require_part`)."""
+    if isinstance(node, collections.abc.Mapping) and not isinstance(node, Container):
+        node = OmegaConf.create(dict(node))
     if not isinstance(node, Container) or "_target_" not in node:
-        return require_part(node, kind, where, group)  # refused: not a _target_ node
+        return require_part(node, kind, where, group)  # refused unless already built
     check_node(node, where)
     built_part = built(node, where)
     if not isinstance(built_part, kind):
@@ -232,10 +238,10 @@ def _build(schema: type[Schema], node: DictConfig, key: str) -> Schema:
             raise ConfigError(f"{where}: missing; expected {_type_name(hints[field.name])}") from None
         item = _dataclass_items(hints[field.name])
         if "part" in field.metadata:
-            values[field.name] = _build_part(field.metadata["part"], value, where, field.metadata["group"])
+            values[field.name] = build_part(field.metadata["part"], value, where, field.metadata["group"])
         elif "parts" in field.metadata:
             values[field.name] = {
-                name: _build_part(field.metadata["parts"], entry, f"{where}.{name}") for name, entry in value.items()
+                name: build_part(field.metadata["parts"], entry, f"{where}.{name}") for name, entry in value.items()
             }
         elif item is not None:
             values[field.name] = [_build(item, entry, f"{where}[{index}]") for index, entry in enumerate(value)]

@@ -264,13 +264,13 @@ def write_tables(
 
 def export_ltvl(scene: Scene, result: BenchmarkResult, folder: Path) -> int:
     """Write one LTVL file per ranking x paradigm x method x k (images named per
-    ``scene.ltvl_name_style``); returns how many were written."""
+    ``scene.ltvl_names``); returns how many were written."""
     written = skipped = 0
     for e in result.estimates:
         for n, k in enumerate(e.ks):
             path = folder / safe_name(e.ranking) / f"{e.paradigm}_{e.method}_k{k}.txt"
             path.parent.mkdir(parents=True, exist_ok=True)
-            missing = write_ltvl(path, scene.queries.names, e.qvec[n], e.tvec[n], name_style=scene.ltvl_name_style)
+            missing = write_ltvl(path, scene.queries.names, e.qvec[n], e.tvec[n], scene.ltvl_names)
             log.debug("%s: %d queries without an estimate are not in the file", path, missing)
             written, skipped = written + 1, skipped + missing
     log.info(

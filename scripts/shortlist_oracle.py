@@ -52,7 +52,7 @@ def database_as_queries(scene: Scene) -> Scene:
         f"{scene.name} database",
         scene.database,
         scene.database,
-        ltvl_name_style=scene.ltvl_name_style,
+        ltvl_names=scene.ltvl_names,
         frustum_far=scene.frustum_far,
     )
 

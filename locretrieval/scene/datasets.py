@@ -17,8 +17,9 @@ from typing import Any
 from filelock import FileLock
 
 from locretrieval.cache import config_key
-from locretrieval.config import ConfigError, validated
+from locretrieval.config import ConfigError, build_part, validated
 from locretrieval.scene.kapture_io import load_kapture_scene
+from locretrieval.scene.ltvl import LtvlNames
 from locretrieval.scene.types import Scene
 
 log = logging.getLogger(__name__)
@@ -68,7 +69,7 @@ def load_dataset(
     mapping: str | Sequence[str],
     queries: str | Sequence[str],
     *,
-    ltvl_name_style: str,
+    ltvl_names: Any,
     frustum_far: float | None,
     query_tags: Sequence[str] | None = None,
     name_tags: Mapping[str, str] | None = None,
@@ -80,12 +81,14 @@ def load_dataset(
     ``mapping``/``queries``: folders (or glob patterns) relative to ``root``. ``query_tags``:
     one tag per query entry, given to every folder it matches (default: the folder name).
     ``name_tags``: ``{tag: regex}`` on image names (e.g. RobotCar's day/night conditions).
-    ``ltvl_name_style`` and ``frustum_far`` (metres) are dataset facts kept on the `Scene`
-    (checked before any folder is read). ``install``: the commands that obtain the dataset,
-    shown when a folder is missing. ``unsupported``: paradigm or ground-truth name -> why the
-    dataset cannot run it (kept on the `Scene`; enabling one is an error at start-up).
+    ``ltvl_names`` (an `LtvlNames`, or its config node: ``data.ltvl_names``) and ``frustum_far``
+    (metres) are dataset facts kept on the `Scene` (checked before any folder is read).
+    ``install``: the commands that obtain the dataset, shown when a folder is missing.
+    ``unsupported``: paradigm or ground-truth name -> why the dataset cannot run it (kept on the
+    `Scene`; enabling one is an error at start-up).
     """
-    Scene.check_facts(name, ltvl_name_style, frustum_far)
+    ltvl_names = build_part(LtvlNames, ltvl_names, "data.ltvl_names", "data/ltvl_names")
+    Scene.check_facts(name, ltvl_names, frustum_far)
     root = Path(root).expanduser()
     mapping_entries, query_entries = _as_list(mapping), _as_list(queries)
     if query_tags is not None and len(query_tags) != len(query_entries):
@@ -107,7 +110,7 @@ def load_dataset(
         query_folders,
         query_tags=tags,
         name_tags=dict(name_tags) if name_tags else None,
-        ltvl_name_style=ltvl_name_style,
+        ltvl_names=ltvl_names,
         frustum_far=frustum_far,
     )
     scene.unsupported = dict(unsupported or {})
@@ -118,7 +121,7 @@ def load_synthetic_dataset(
     name: str,
     cache_dir: str | Path,
     render: Any,
-    ltvl_name_style: str,
+    ltvl_names: Any,
     frustum_far: float,
 ) -> Scene:
     """The built-in synthetic scene: rendered once per ``render`` settings into
@@ -150,7 +153,7 @@ def load_synthetic_dataset(
         folder,
         "mapping",
         ["query"],
-        ltvl_name_style=ltvl_name_style,
+        ltvl_names=ltvl_names,
         frustum_far=frustum_far,
         query_tags=["query"],
     )
@@ -161,15 +164,15 @@ RENDER_ONLY_KEYS = ("workers",)
 
 
 def instantiate_scene(node: Any) -> Scene:
-    """The scene of a data config node (Hydra's `instantiate`, its nested nodes given as they are:
-    the loader builds and checks its parts); a missing dataset's error and a `ConfigError` are
-    raised as themselves, so that their lines (the path expected, how to get the dataset; the key)
-    are printed once and as written, not inside Hydra's one-line `InstantiationException`."""
+    """The scene of a data config node (Hydra's `instantiate`); a missing dataset's error and a
+    `ConfigError` are raised as themselves, so that their lines (the path expected, how to get the
+    dataset; the key) are printed once and as written, not inside Hydra's one-line
+    `InstantiationException`."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
     try:
-        return instantiate(node, _recursive_=False)
+        return instantiate(node)
     except InstantiationException as error:
         if isinstance(error.__cause__, (DatasetNotFoundError, ConfigError)):
             raise error.__cause__ from None
