@@ -369,4 +369,6 @@ def built(node: Any, key: str, **runtime: Any) -> Any:
     except InstantiationException as error:
         if isinstance(error.__cause__, SettingError):
             raise ConfigError(f"{key}.{error.__cause__}") from None
+        if isinstance(error.__cause__, ConfigError):  # a part of it refused (naming its own key)
+            raise error.__cause__ from None
         raise

@@ -121,9 +121,11 @@ def main() -> None:
     depth = max([arguments.k, *arguments.shortlists])
     if arguments.database:
         scene = database_as_queries(scene)
-        ranking = search(described.database, described.database, depth, model.name, exclude_self=True)
+        ranking = search(
+            described.database, described.database, depth, model.name, cfg.retrieval.chunk_size, exclude_self=True
+        )
     else:
-        ranking = search(described.queries, described.database, depth, model.name)
+        ranking = search(described.queries, described.database, depth, model.name, cfg.retrieval.chunk_size)
     pose = cfg.groundtruth.definitions.relative_pose
     table = shortlist_table(
         scene,

@@ -63,6 +63,16 @@ def zoo_model(model: str, **options):
     return model_class(**{**parameters, **options})
 
 
+def precomputed(**keys):
+    """A `PrecomputedDescriptor` of ``keys``, built in Python; its other keys as
+    ``configs/model/precomputed.yaml`` sets them (``name``: ``None``, named after its folders)."""
+    from locretrieval.models import PrecomputedDescriptor
+
+    node = OmegaConf.to_container(OmegaConf.load(CONFIGS / "model" / "precomputed.yaml"))
+    literal = {key: value for key, value in node.items() if not key.startswith("_") and key != "name"}
+    return PrecomputedDescriptor(**{"name": None, **literal, **keys})
+
+
 def render_settings(settings: Mapping = {}) -> RenderSettings:  # noqa: B006  (read only)
     """``data.render`` as ``configs/data/synthetic.yaml`` composes it (seed 0, on the CPU), the keys
     of ``settings`` (``conditions`` too) merged in, checked."""

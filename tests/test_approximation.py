@@ -256,7 +256,7 @@ def test_bdi_from_float32_products_equals_the_float64_solution(monkeypatch, tabl
         unit(places[rng.integers(6, size=n)] + 0.05 * rng.normal(size=(n, dim))),
     ):
         queries = unit(db_desc[:20] + 0.3 * rng.normal(size=(20, dim)))
-        ranking = search(queries, db_desc, depth=k)
+        ranking = search(queries, db_desc, depth=k, name="d", chunk_size=256)
         for axis in range(3):  # interpolated centres are the weights applied to random centres
             centers = np.zeros((n, 3))
             centers[:, axis] = rng.normal(size=n)
@@ -305,7 +305,7 @@ def test_only_ill_conditioned_queries_take_the_float64_path(monkeypatch):
             if not takes_float64
             else unit(db_desc[::7] + 0.01 * rng.normal(size=(29, dim)))
         )
-        ranking = search(queries, db_desc, depth=k)
+        ranking = search(queries, db_desc, depth=k, name="d", chunk_size=256)
         (bdi,) = approximate(database, ranking, [k], methods=["bdi"])
         assert (sum(exact) > 0) == takes_float64
         expected = [

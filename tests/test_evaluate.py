@@ -17,7 +17,8 @@ from locretrieval.benchmark import ParadigmsSettings, check_unique_names
 from locretrieval.config import ConfigError, validated
 from locretrieval.evaluation import evaluate
 from locretrieval.report.markdown import md_text
-from locretrieval.retrieval import random_ranking
+from locretrieval.retrieval import Ranking, random_ranking
+from locretrieval.scene.datasets import instantiate_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_SCENE = [
@@ -223,3 +224,39 @@ def test_rankings_sharing_a_name_are_an_error():
     check_unique_names([random_ranking(3, 5, 2, seed=0)])
     with pytest.raises(ValueError, match=r"\['random'\] are named twice"):
         check_unique_names([random_ranking(3, 5, 2, seed=0), random_ranking(3, 5, 2, seed=1)])
+
+
+class CentreOracle:
+    """A model from outside the package, not a descriptor: each query's database images by camera
+    distance; it reads a ``marker`` file (an input of the run)."""
+
+    def __init__(self, name: str, marker: str) -> None:
+        self.name, self.marker = name, Path(marker)
+
+    def missing_inputs(self, scene):
+        return [] if self.marker.is_file() else [f"marker: {self.marker} not found"]
+
+    def rankings(self, scene, search):
+        distance = np.linalg.norm(scene.queries.centers[:, None] - scene.database.centers[None], axis=2)
+        order = np.argsort(distance, axis=1, kind="stable")[:, : search.settings.depth]
+        return [Ranking(self.name, order, -np.take_along_axis(distance, order, 1), "groundtruth")]
+
+
+def test_a_model_from_outside_the_package_is_evaluated_through_the_config(tmp_path):
+    marker = tmp_path / "marker.txt"
+    node = f"{{_target_: {__name__}.CentreOracle, name: oracle, marker: {marker}}}"
+    cfg = evaluate_config(
+        f"paths.root_dir={tmp_path}", *SMALL_SCENE, "~model", f"+model={node}", "groundtruth=none",
+        "paradigms.local_sfm.enabled=false", "paradigms.global_sfm.enabled=false", "paradigms.approximation.k=[1]",
+        "report.figure_formats=[]", "report.scene_view.enabled=false", "baselines.random=false",
+    )  # fmt: skip
+    with pytest.raises(FileNotFoundError, match=rf"1 missing input.*\n- model.marker: {marker} not found"):
+        evaluate(cfg, tmp_path / "run")
+    marker.write_text("here")
+    evaluate(cfg, tmp_path / "run")
+    saved = np.load(tmp_path / "run" / "rankings" / "oracle.npz")
+    scene = instantiate_scene(cfg.data)
+    distance = np.linalg.norm(scene.queries.centers[:, None] - scene.database.centers[None], axis=2)
+    np.testing.assert_array_equal(saved["indices"], np.argsort(distance, axis=1, kind="stable"))
+    results = pd.read_csv(tmp_path / "run" / "results.csv")
+    assert set(results["ranking"]) == {"oracle"} and set(results["method"]) == {"ewb"}
