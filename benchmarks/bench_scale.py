@@ -81,7 +81,7 @@ SIZES = {"baidu": (689, 2_292), "aachen": (6_697, 1_015), "robotcar": (20_862, 1
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 DEPTH = 50
 KS = [1, 2, 3, 5, 10, 20, 50]  # configs/paradigms/default.yaml, approximation
-THRESHOLDS = [[0.25, 2.0], [0.5, 5.0], [5.0, 10.0]]  # configs/evaluate.yaml
+THRESHOLDS = [[0.25, 2.0], [0.5, 5.0], [5.0, 10.0]]  # configs/metrics/default.yaml (inclusive: <=)
 GIB = 2.0**30
 #: Database images of the map the triangulations are compared on.
 TRIANGULATION_IMAGES = 10
@@ -276,7 +276,7 @@ def run_size(args: argparse.Namespace) -> None:
     measure(
         "localization metrics (tables)",
         lambda: (
-            localization_table(args.size, estimates, queries, THRESHOLDS, subsets),
+            localization_table(args.size, estimates, queries, THRESHOLDS, subsets, inclusive=True),
             query_error_table(args.size, estimates, queries),
         ),
     )

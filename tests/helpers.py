@@ -63,6 +63,13 @@ def zoo_model(model: str, **options):
     return model_class(**{**parameters, **options})
 
 
+def groundtruth_section(definitions: Mapping, depth: int) -> dict:
+    """A ``groundtruth`` section of ``definitions`` (name -> node, every one enabled), ``depth``
+    images per query and the YAML's default relevance (``configs/groundtruth/relevance/top_k.yaml``)."""
+    relevance = OmegaConf.to_container(OmegaConf.load(CONFIGS / "groundtruth" / "relevance" / "top_k.yaml"))
+    return {"depth": depth, "definitions": dict(definitions), "enabled": None, "relevance": relevance}
+
+
 def precomputed(**keys):
     """A `PrecomputedDescriptor` of ``keys``, built in Python; its other keys as
     ``configs/model/precomputed.yaml`` sets them (``name``: ``None``, named after its folders)."""

@@ -110,7 +110,9 @@ def test_shared_points_agree_with_covisibility_by_depth(scene, cache, shared):
 def test_groundtruth_ranks_by_shared_points_chosen_by_target(scene, cache, shared, monkeypatch):
     database, queries = scene.database, scene.queries
     scene = Scene("tiny", database, queries)
-    config = {"depth": 10, "definitions": {"coobs": {"_target_": CO_OBSERVATION, "min_shared": 5, "query_pairs": 10}}}
+    config = helpers.groundtruth_section(
+        {"coobs": {"_target_": CO_OBSERVATION, "min_shared": 5, "query_pairs": 10}}, depth=10
+    )
     groundtruth = compute_groundtruths(scene, config, SFM, cache_dir=cache)["coobs"]
     assert groundtruth.name == "gt_coobs" and groundtruth.ranking.kind == "groundtruth"
     indices, scores = groundtruth.ranking.indices, groundtruth.ranking.scores
@@ -134,10 +136,9 @@ def test_groundtruth_ranks_by_shared_points_chosen_by_target(scene, cache, share
     with pytest.raises(ConfigError, match=r"groundtruth.definitions.co_observation.min_shard: unknown key"):
         compute_groundtruths(
             scene,
-            {
-                "depth": 10,
-                "definitions": {"co_observation": {"_target_": CO_OBSERVATION, "min_shard": 1, "query_pairs": 10}},
-            },
+            helpers.groundtruth_section(
+                {"co_observation": {"_target_": CO_OBSERVATION, "min_shard": 1, "query_pairs": 10}}, depth=10
+            ),
             SFM,
         )
     with pytest.raises(

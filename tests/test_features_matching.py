@@ -20,7 +20,7 @@ from locretrieval.localization import features as features_module
 from locretrieval.localization import matching, nearest_neighbours
 from locretrieval.localization.features import FeatureStore, LocalFeatures, extract_features
 from locretrieval.localization.matching import PairMatcher
-from locretrieval.localization.nearest_neighbours import BatchedMatcher, NearestNeighbourMatcher
+from locretrieval.localization.nearest_neighbours import CPU_BLOCK_BYTES, BatchedMatcher, NearestNeighbourMatcher
 from locretrieval.localization.sfm import SfmInputs, SfmSettings
 from locretrieval.localization.store import ShardedStore
 from locretrieval.localization.verification import (
@@ -309,7 +309,7 @@ def test_matcher_equals_an_explicit_computation_on_real_valued_descriptors():
                 [first[rows] + 0.3 * rng.normal(size=(len(rows), 16)), rng.normal(size=(size - len(rows), 16))]
             )
         )
-    matches = NearestNeighbourMatcher(0.8, block_bytes=4 * 128 * 128)(first, others)
+    matches = NearestNeighbourMatcher(0.8, "float32", 4 * 128 * 128)(first, others)
     for other, found in zip(others, matches):
         assert found.dtype == np.int32 and found.shape[1] == 2
         if len(other) >= 2:
@@ -319,7 +319,7 @@ def test_matcher_equals_an_explicit_computation_on_real_valued_descriptors():
 
 
 def test_matcher_block_shape_bounds_the_similarity_memory():
-    matcher = NearestNeighbourMatcher(0.8, block_bytes=8 << 20)
+    matcher = NearestNeighbourMatcher(0.8, "float32", 8 << 20)
     # about square, equal blocks: 20,000 columns = 157 tiles of 128 in 15 blocks of 11 tiles; rows in 15 blocks of 1,408
     assert matcher.block_shape(20_000, 20_000, 4) == (1408, 1408)
     assert matcher.block_shape(20_000, 300, 4) == (
@@ -401,7 +401,9 @@ def test_batched_matcher_on_the_gpu_equals_the_cpu_with_ties(precision, batch_mi
     ).matching
     gpu = settings.matcher()
     assert isinstance(gpu, BatchedMatcher) and gpu.device.startswith("cuda")
-    for found, expected in zip(gpu(first, partners), NearestNeighbourMatcher(0.8, precision)(first, partners)):
+    for found, expected in zip(
+        gpu(first, partners), NearestNeighbourMatcher(0.8, precision, CPU_BLOCK_BYTES)(first, partners)
+    ):
         np.testing.assert_array_equal(found, expected)
 
 

@@ -2,6 +2,7 @@ import dataclasses
 import logging
 from typing import ClassVar
 
+import helpers
 import numpy as np
 import pytest
 from helpers import compose_config, evaluate_config
@@ -173,14 +174,21 @@ def test_relative_pose_thresholds_and_depth(pose_scene):
 def test_retrieval_relevance_is_that_of_the_top_depth_ranking_unless_all(pose_scene):
     from locretrieval.benchmark import relevances
 
+    def scope(*overrides: str) -> compute.GroundTruthSettings:
+        cfg = evaluate_config("paths.root_dir=/nonexistent", *overrides)
+        return validated(compute.GroundTruthSettings, cfg.groundtruth, "groundtruth").relevance
+
     database, queries = pose_scene
     gt = relative_pose_groundtruth(database, queries, depth=2)  # query 0: relevant d0, d1, d4; top 2: d0, d4
-    top = relevances({"rp": gt})["rp"]
+    top = relevances({"rp": gt}, scope())["rp"]  # the default: configs/groundtruth/relevance/top_k.yaml
     assert top.dtype == bool and top.shape == gt.relevance.shape
     assert top[0].indices.tolist() == [0, 4] and top[1].nnz == 0 and top[2].nnz == 0  # the paper: reduced to the top k
-    assert relevances({"rp": gt}, "all")["rp"][0].indices.tolist() == [0, 1, 4]
-    with pytest.raises(ConfigError, match="groundtruth.relevance must be one of"):
-        relevances({"rp": gt}, "some")
+    assert relevances({"rp": gt}, scope("groundtruth/relevance=all"))["rp"][0].indices.tolist() == [0, 1, 4]
+    with pytest.raises(
+        ConfigError,
+        match=r"groundtruth.relevance: a RelevanceScope is chosen by its config group now: groundtruth/relevance=all",
+    ):
+        scope("groundtruth.relevance=all")
 
 
 def test_relative_pose_ignores_quaternion_signs(pose_scene):
@@ -377,24 +385,24 @@ def test_ground_truths_are_switched_off_and_picked_through_hydra(pose_scene):
 def test_definition_types_and_errors(pose_scene):
     database, queries = pose_scene
     scene = Scene("poses", database, queries)
-    config = {"depth": 3, "definitions": {"frustum_25m": {"far": 25.0, **FRUSTUM}}}
+    config = helpers.groundtruth_section({"frustum_25m": {"far": 25.0, **FRUSTUM}}, depth=3)
     gt = compute_groundtruths(scene, config)["frustum_25m"]
     assert gt.name == "gt_frustum_25m" and gt.ranking.depth == 3
     with pytest.raises(ConfigError, match=r"groundtruth.definitions.coobs: must be a mapping with a _target_"):
-        compute_groundtruths(scene, {"depth": 3, "definitions": {"coobs": {}}})
+        compute_groundtruths(scene, helpers.groundtruth_section({"coobs": {}}, depth=3))
     with pytest.raises(ConfigError, match=r"groundtruth.definitions.frustum: must be .* its parameters, not a type"):
-        compute_groundtruths(scene, {"depth": 3, "definitions": {"frustum": {"type": "frustum", "far": 25.0}}})
+        compute_groundtruths(scene, helpers.groundtruth_section({"frustum": {"type": "frustum", "far": 25.0}}, depth=3))
     with pytest.raises(
         ConfigError,
         match=r"groundtruth.definitions.frustum.farr: unknown key; expected one of \['near', 'far', 'min_radius'\]",
     ):
-        compute_groundtruths(scene, {"depth": 3, "definitions": {"frustum": {"farr": 3, **FRUSTUM}}})
+        compute_groundtruths(scene, helpers.groundtruth_section({"frustum": {"farr": 3, **FRUSTUM}}, depth=3))
     with pytest.raises(
         ConfigError, match=r"groundtruth.definitions.frustum.far is null .* scene 'poses' has no frustum_far"
     ):
-        compute_groundtruths(scene, {"depth": 3, "definitions": {"frustum": {"far": None, **FRUSTUM}}})
+        compute_groundtruths(scene, helpers.groundtruth_section({"frustum": {"far": None, **FRUSTUM}}, depth=3))
     with pytest.raises(ConfigError, match=r"groundtruth.depth: must be >= 1, got 0"):
-        compute_groundtruths(scene, {"depth": 0, "definitions": {}})
+        compute_groundtruths(scene, helpers.groundtruth_section({}, depth=0))
 
 
 def test_cache_round_trip(pose_scene, tmp_path, monkeypatch):
@@ -406,7 +414,9 @@ def test_cache_round_trip(pose_scene, tmp_path, monkeypatch):
         "rotation_threshold": 45.0,
         "ranked": "within_thresholds",
     }
-    config = {"depth": 50, "definitions": {"relative_pose": relative_pose, "frustum": {"far": 40.0, **FRUSTUM}}}
+    config = helpers.groundtruth_section(
+        {"relative_pose": relative_pose, "frustum": {"far": 40.0, **FRUSTUM}}, depth=50
+    )
     first = compute_groundtruths(scene, config, cache_dir=tmp_path)
     files = sorted((tmp_path / "groundtruth").glob("*.npz"))
     assert len(files) == 2
@@ -424,7 +434,9 @@ def test_cache_round_trip(pose_scene, tmp_path, monkeypatch):
         assert (second[name].relevance != gt.relevance).nnz == 0
         assert second[name].statistics() == gt.statistics()
     monkeypatch.undo()
-    compute_groundtruths(scene, {"depth": 50, "definitions": {"frustum": {"far": 20.0, **FRUSTUM}}}, cache_dir=tmp_path)
+    compute_groundtruths(
+        scene, helpers.groundtruth_section({"frustum": {"far": 20.0, **FRUSTUM}}, depth=50), cache_dir=tmp_path
+    )
     assert len(list((tmp_path / "groundtruth").glob("*.npz"))) == 3
 
 
@@ -510,5 +522,5 @@ def test_a_definition_from_outside_the_package_is_chosen_by_target_for_ranking_r
     ):
         with pytest.raises(ConfigError, match=rf"groundtruth.definitions.near._target_: .*{message}"):
             compute_groundtruths(
-                Scene("poses", database, queries), {"depth": 50, "definitions": {"near": {"_target_": target}}}
+                Scene("poses", database, queries), helpers.groundtruth_section({"near": {"_target_": target}}, depth=50)
             )

@@ -46,7 +46,9 @@ def test_reordering_the_whole_database_by_pose_is_the_relative_pose_ground_truth
         scene.database, scene.queries, depth=size, position_threshold=25.0, rotation_threshold=45.0, ranked="all"
     ).ranking
     estimate = approximate_poses(scene.database, truth, [3], {"ewb": EqualWeights()})[0]
-    expected = 100 * localized(*estimate.errors(scene.queries.qvec, scene.queries.tvec), THRESHOLDS)[:, 0].mean(axis=1)
+    expected = 100 * localized(*estimate.errors(scene.queries.qvec, scene.queries.tvec), THRESHOLDS, True)[:, 0].mean(
+        axis=1
+    )
     np.testing.assert_allclose(table.loc["relative pose (whole database)"], expected)
     np.testing.assert_allclose(table.loc[f"top {size} by pose"], expected)
     np.testing.assert_allclose(table.loc["top 3 by pose"], table.loc["as ranked"])
@@ -68,7 +70,7 @@ def test_the_database_against_itself_leaves_each_image_out(scene):
     estimate = approximate_poses(
         scene.database, Ranking("n", nearest, np.zeros(nearest.shape), "groundtruth"), [3], ["ewb"], alpha=1.0
     )[0]
-    expected = 100 * localized(*estimate.errors(qvec, scene.database.tvec), THRESHOLDS)[:, 0].mean(axis=1)
+    expected = 100 * localized(*estimate.errors(qvec, scene.database.tvec), THRESHOLDS, True)[:, 0].mean(axis=1)
     rng = np.random.default_rng(4)
     others = np.array([[j for j in rng.permutation(size) if j != i] for i in range(size)])
     ranking = Ranking("shuffled", others, np.zeros(others.shape), "baseline")

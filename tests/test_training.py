@@ -18,7 +18,7 @@ from locretrieval import geometry
 from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
 from locretrieval.config import ConfigError, validated
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
-from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, compute_groundtruths
+from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, RankedRelevance, compute_groundtruths
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
@@ -366,7 +366,7 @@ def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkp
         settings,
         {"all": np.ones(len(scene.queries), bool)},
         cfg.paths.cache_dir,
-        relevances(groundtruths),
+        relevances(groundtruths, RankedRelevance()),
     )
     direct = metric_rows(result, TRAINED, settings.paradigms.ks())
     assert direct.keys() == {k for k in logged if k != "epoch"}

@@ -1,9 +1,12 @@
 """Ground-truth rankings and relevance (paper Sec. 3.6.3) and their statistics (Table 1)."""
 
 from locretrieval.groundtruth.base import (
+    AllRelevance,
     Definition,
     DefinitionContext,
     GroundTruth,
+    RankedRelevance,
+    RelevanceScope,
     groundtruth_from_scores,
     statistics_table,
 )
@@ -22,6 +25,9 @@ from locretrieval.groundtruth.relative_pose import (
 )
 
 __all__ = [
+    "AllRelevance",
+    "RankedRelevance",
+    "RelevanceScope",
     "CoObservationDefinition",
     "Definition",
     "DefinitionContext",

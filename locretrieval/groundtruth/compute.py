@@ -13,8 +13,8 @@ import numpy as np
 from scipy import sparse
 
 from locretrieval.cache import cached_arrays, config_key, safe_name
-from locretrieval.config import ConfigError, require, validated
-from locretrieval.groundtruth.base import Definition, DefinitionContext, GroundTruth
+from locretrieval.config import ConfigError, part, require, validated
+from locretrieval.groundtruth.base import Definition, DefinitionContext, GroundTruth, RelevanceScope
 from locretrieval.localization.sfm import SfmSettings
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
@@ -47,19 +47,19 @@ class GroundTruthSettings:
     """The ``groundtruth`` config group: ``depth`` images kept per query in each ranking,
     ``definitions`` mapping a name to its definition (a ``_target_``, the `Definition` class, and
     its parameters; `parse_definition`), and ``enabled`` the names of those computed, in order
-    (``[]``: none; ``None``, or left out of a mapping given in Python: every definition). One class
+    (``[]``: none; ``None``: every definition), and the retrieval metrics' ``relevance`` (a
+    `RelevanceScope` chosen by its ``_target_``). One class
     can appear under two names, e.g. ``frustum_25m: {_target_: ...FrustumDefinition, far: 25.0,
     ...}``. A definition set to ``null`` is switched off, even when enabled; ``definitions: null``
     switches every one off."""
 
     depth: int
     definitions: dict[str, Any] | None
-    enabled: list[str] | None = None  # the one default: a mapping written in Python may leave it out
-    relevance: str = "top_k"  # the retrieval metrics' relevance: in the top-depth ranking (the paper's) | all
+    enabled: list[str] | None
+    relevance: Any = part(RelevanceScope, "groundtruth/relevance")
 
     def __post_init__(self) -> None:
         require(self.depth >= 1, "depth", f"must be >= 1, got {self.depth}")
-        require(self.relevance in ("top_k", "all"), "relevance", f"must be top_k or all, got {self.relevance!r}")
         definitions = self.definitions if self.definitions is not None else {}  # null: none
         enabled = list(definitions) if self.enabled is None or self.definitions is None else self.enabled
         unknown = [name for name in enabled if name not in definitions]

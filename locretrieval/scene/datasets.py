@@ -71,10 +71,10 @@ def load_dataset(
     *,
     ltvl_names: Any,
     frustum_far: float | None,
-    query_tags: Sequence[str] | None = None,
-    name_tags: Mapping[str, str] | None = None,
-    install: str = "",
-    unsupported: Mapping[str, str] | None = None,
+    query_tags: Sequence[str] | None,
+    name_tags: Mapping[str, str] | None,
+    install: str,
+    unsupported: Mapping[str, str] | None,
 ) -> Scene:
     """A `Scene` from kapture folders under ``root``.
 
@@ -156,6 +156,9 @@ def load_synthetic_dataset(
         ltvl_names=ltvl_names,
         frustum_far=frustum_far,
         query_tags=["query"],
+        name_tags=None,
+        install="",  # rendered above
+        unsupported=None,
     )
 
 
