@@ -6,15 +6,25 @@ import dataclasses
 import importlib
 import inspect
 import os
+import re
 from collections.abc import Iterator, Mapping
 from typing import Any
 
 import helpers
+import pytest
 from hydra.utils import get_object
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from locretrieval import config as config_module
-from locretrieval.config import JOB_DIRNAME_LENGTH, ConfigError, job_dirname, validated
+from locretrieval.config import (
+    JOB_DIRNAME_LENGTH,
+    MOVED_KEYS,
+    ConfigError,
+    job_dirname,
+    refuse_moved_keys,
+    validated,
+)
+from locretrieval.metrics.subsets import SubsetSettings
 
 #: 15 long overrides, as a sweep over the training's nested keys writes them.
 LONG = [f"callbacks.localization_validation.some_rather_long_option_{i}=value_number_{i}" for i in range(15)]
@@ -118,20 +128,13 @@ def test_no_schema_or_constructor_built_from_yaml_has_a_default_the_yaml_also_se
     parts included) and no class or function a ``_target_`` names (in any YAML file, or in the
     entry points' composed configs) has a default for a key its YAML node sets."""
     composed = {name: helpers.compose_config(name, "paths.root_dir=/nonexistent") for name in ENTRY_POINTS}
-    violations = []
-    for path in sorted(helpers.CONFIGS.rglob("*.yaml")):
-        for source, config in ((path.relative_to(helpers.CONFIGS), OmegaConf.load(path)),):
-            for key, node in target_nodes(config):
-                if node._target_.startswith("locretrieval."):
-                    violations += [
-                        f"{source}:{key}: {node._target_} defaults {repeated(get_object(node._target_), node)}"
-                    ]
-    for name, config in composed.items():
-        for key, node in target_nodes(config):
-            if node._target_.startswith("locretrieval."):
-                violations += [
-                    f"{name}.yaml:{key}: {node._target_} defaults {repeated(get_object(node._target_), node)}"
-                ]
+    files = {str(path.relative_to(helpers.CONFIGS)): OmegaConf.load(path) for path in helpers.CONFIGS.rglob("*.yaml")}
+    violations = [
+        f"{source}:{key or '<root>'}: {node._target_} defaults {repeated(get_object(node._target_), node)}"
+        for source, config in sorted({**files, **{f"{name}.yaml composed": c for name, c in composed.items()}}.items())
+        for key, node in target_nodes(config)
+        if node._target_.startswith("locretrieval.")
+    ]
     built = []  # (schema, key) of every section `validated` builds, nested ones too
     real_build = config_module._build
     monkeypatch.setattr(
@@ -155,7 +158,8 @@ def test_no_schema_or_constructor_built_from_yaml_has_a_default_the_yaml_also_se
             node = OmegaConf.select(config, key)
             if node is not None and dataclasses.is_dataclass(schema):
                 violations += [f"{key}: {schema.__name__} defaults {repeated(schema, node)}"]
-    assert [v for v in dict.fromkeys(violations) if not v.endswith("defaults []")] == []
+    found = [violation for violation in dict.fromkeys(violations) if not violation.endswith("defaults []")]
+    assert not found, "\n".join(found)
     assert unchecked == [] and len(dict.fromkeys(built)) > 20  # every section found was checked, nested ones too
 
     @dataclasses.dataclass
@@ -168,3 +172,27 @@ def test_no_schema_or_constructor_built_from_yaml_has_a_default_the_yaml_also_se
     assert repeated(lambda depth, name="x": None, {"name": "y"}) == ["name"]
     nested = OmegaConf.create({"a": {"_target_": "x.Y", "b": [{"_target_": "x.Z"}]}})
     assert [key for key, _ in target_nodes(nested)] == ["a", "a.b[0]"]
+
+
+@pytest.mark.parametrize("old", sorted(MOVED_KEYS))
+def test_a_moved_key_is_refused_naming_its_new_spelling(old):
+    for override in (f"{old}=1", f"+{old}=1", f"~{old}"):
+        with pytest.raises(ConfigError, match=rf"^{re.escape(old)}: moved, now {re.escape(MOVED_KEYS[old])} "):
+            refuse_moved_keys(["model=netvlad", override])
+    refuse_moved_keys(["model=netvlad", f"{old}_other=1", f"x.{old}=1"])  # other keys pass
+
+
+def test_moved_keys_are_refused_on_the_command_line_and_in_a_section():
+    completed = helpers.run_python(
+        "import sys; sys.argv = ['evaluate.py', 'paradigms.approximation.alpha=4']; "
+        "import runpy; runpy.run_path('evaluate.py', run_name='__main__')"
+    )
+    assert completed.returncode != 0
+    assert "ConfigError: paradigms.approximation.alpha: moved, now paradigms.approximation.weights.csi.alpha" in (
+        completed.stderr
+    )
+    cfg = helpers.evaluate_config("paths.root_dir=/nonexistent", "+subsets.maskrcnn_weights=/w.pth")
+    with pytest.raises(
+        ConfigError, match=r"subsets.maskrcnn_weights: moved, now subsets.mask_sources.maskrcnn.weights"
+    ):
+        validated(SubsetSettings, cfg.subsets, "subsets")
