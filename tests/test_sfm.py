@@ -250,7 +250,7 @@ class NoMapMatches(local_sfm.MapMatches):
     def source(self, inputs, query):
         return []
 
-    def matches(self, inputs, pairs, query_matches, num_query_keypoints, keypoints):
+    def matches(self, pairs, query):
         return {pair: np.empty((0, 2), dtype=np.int32) for pair in pairs}
 
 

@@ -79,6 +79,19 @@ CACHE_VERSION = 1
 IndexPairs = list[tuple[int, int]]
 
 
+@dataclass
+class QueryMaps:
+    """What one query's local maps are built from: the cached ``inputs``, the ``query``'s index, its
+    ``keypoints``, its ``matches`` to each map image (by database index) and the map images'
+    ``database_keypoints`` (by name)."""
+
+    inputs: SfmInputs
+    query: int
+    keypoints: np.ndarray
+    matches: Mapping[int, np.ndarray]
+    database_keypoints: Mapping[str, np.ndarray]
+
+
 class MapMatches(abc.ABC):
     """Where the matches between the images of a local map come from. A new source subclasses
     this, in any package, and is chosen by its ``_target_`` (``paradigms.local_sfm.map_matches``)."""
@@ -104,16 +117,8 @@ class MapMatches(abc.ABC):
         """What the matches of ``query``'s maps are read from (part of a map's cache key)."""
 
     @abc.abstractmethod
-    def matches(
-        self,
-        inputs: SfmInputs,
-        pairs: IndexPairs,
-        query_matches: Mapping[int, np.ndarray],
-        num_query_keypoints: int,
-        keypoints: Mapping[str, np.ndarray],
-    ) -> dict[tuple[int, int], np.ndarray]:
-        """Pose-verified matches ``[m, 2]`` of every database pair of ``pairs`` of one query's maps,
-        given its matches to each map image and the database images' ``keypoints`` by name."""
+    def matches(self, pairs: IndexPairs, query: QueryMaps) -> dict[tuple[int, int], np.ndarray]:
+        """Pose-verified matches ``[m, 2]`` of every database pair of ``pairs`` of one query's maps."""
 
 
 @dataclass
@@ -135,15 +140,8 @@ class DatabaseMapMatches(MapMatches):
     def source(self, inputs: SfmInputs, query: int) -> list[str]:
         return [_database_matches(inputs)]
 
-    def matches(
-        self,
-        inputs: SfmInputs,
-        pairs: IndexPairs,
-        query_matches: Mapping[int, np.ndarray],
-        num_query_keypoints: int,
-        keypoints: Mapping[str, np.ndarray],
-    ) -> dict[tuple[int, int], np.ndarray]:
-        names = inputs.scene.database.names
+    def matches(self, pairs: IndexPairs, query: QueryMaps) -> dict[tuple[int, int], np.ndarray]:
+        inputs, names = query.inputs, query.inputs.scene.database.names
         loaded = inputs.database_pairs.load([(names[a], names[b]) for a, b in pairs], inputs.database_verification)
         return {(a, b): loaded[(names[a], names[b])] for a, b in pairs}
 
@@ -161,25 +159,18 @@ class QueryMapMatches(MapMatches):
     def source(self, inputs: SfmInputs, query: int) -> list[str]:
         return [inputs.query_pairs.store(inputs.query_verification).folder.name, inputs.scene.queries.names[query]]
 
-    def matches(
-        self,
-        inputs: SfmInputs,
-        pairs: IndexPairs,
-        query_matches: Mapping[int, np.ndarray],
-        num_query_keypoints: int,
-        keypoints: Mapping[str, np.ndarray],
-    ) -> dict[tuple[int, int], np.ndarray]:
-        database = inputs.scene.database
+    def matches(self, pairs: IndexPairs, query: QueryMaps) -> dict[tuple[int, int], np.ndarray]:
         partner = {}
-        for image, matches in query_matches.items():
-            partner[image] = np.full(num_query_keypoints, -1, dtype=np.int64)
+        for image, matches in query.matches.items():
+            partner[image] = np.full(len(query.keypoints), -1, dtype=np.int64)
             partner[image][matches[:, 0]] = matches[:, 1]
         derived = []
         for a, b in pairs:
             both = (partner[a] >= 0) & (partner[b] >= 0)
             derived.append(np.column_stack([partner[a][both], partner[b][both]]).astype(np.int32))
+        database, keypoints = query.inputs.scene.database, query.database_keypoints
         batch = VerificationBatch(database, database, pairs, derived, keypoints, keypoints)
-        return dict(zip(pairs, inputs.database_verification.verify(batch)))
+        return dict(zip(pairs, query.inputs.database_verification.verify(batch)))
 
 
 @dataclass
@@ -330,7 +321,7 @@ def localize_query(shared: tuple[SfmInputs, MapMatches, Path], task: QueryTask) 
     query_keypoints, query_matches = inputs.query_matches(task.query, images)
     keypoints = inputs.database_features.keypoints([database.names[i] for i in images])
     pairs = sorted({(a, b) for selected in pending for a in selected for b in selected if a < b})
-    map_pairs = map_matches.matches(inputs, pairs, query_matches, len(query_keypoints), keypoints)
+    map_pairs = map_matches.matches(pairs, QueryMaps(inputs, task.query, query_keypoints, query_matches, keypoints))
     paths = {
         selected: maps / f"{_map_key(inputs, map_matches, task.query, selected)}.npz"
         for selected in sorted(pending)
