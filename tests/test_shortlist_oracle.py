@@ -68,7 +68,7 @@ def test_the_database_against_itself_leaves_each_image_out(scene):
     np.fill_diagonal(score, np.inf)
     nearest = np.argsort(score, axis=1, kind="stable")[:, : size - 1]
     estimate = approximate_poses(
-        scene.database, Ranking("n", nearest, np.zeros(nearest.shape), "groundtruth"), [3], ["ewb"], alpha=1.0
+        scene.database, Ranking("n", nearest, np.zeros(nearest.shape), "groundtruth"), [3], {"ewb": EqualWeights()}
     )[0]
     expected = 100 * localized(*estimate.errors(qvec, scene.database.tvec), THRESHOLDS, True)[:, 0].mean(axis=1)
     rng = np.random.default_rng(4)
