@@ -5,6 +5,7 @@ python evaluate.py data=baidu model=precomputed model.path=/path/to/global_featu
 python evaluate.py -m model=densevlad,precomputed   # multirun sweep
 """
 
+import sys
 from pathlib import Path
 
 import hydra
@@ -23,4 +24,5 @@ def main(cfg: DictConfig) -> None:
 
 if __name__ == "__main__":
     locretrieval.exit_without_final_collection()
+    locretrieval.config.refuse_moved_keys(sys.argv[1:])  # a key of before 0.12, named with its new spelling
     main()

@@ -6,6 +6,7 @@ python train.py -m loss=ap,triplet,contrastive,listwise      # a sweep, one dire
 python train.py ckpt_path=<run>/checkpoints/last.ckpt        # resume
 """
 
+import sys
 from pathlib import Path
 
 import hydra
@@ -23,4 +24,5 @@ def main(cfg: DictConfig) -> None:
 
 if __name__ == "__main__":
     locretrieval.exit_without_final_collection()
+    locretrieval.config.refuse_moved_keys(sys.argv[1:])  # a key of before 0.12, named with its new spelling
     main()

@@ -18,11 +18,16 @@ from scipy.spatial.transform import Rotation
 import locretrieval  # noqa: F401
 from locretrieval import geometry
 from locretrieval.localization import approximation
-from locretrieval.localization.approximation import approximate_poses
+from locretrieval.localization.approximation import (
+    BarycentricWeights,
+    CosineSimilarityWeights,
+    EqualWeights,
+    approximate_poses,
+)
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Camera, ImageSet
 
-PARADIGMS = Path(__file__).resolve().parents[1] / "configs" / "paradigms" / "default.yaml"
+CSI = Path(__file__).resolve().parents[1] / "configs" / "paradigms" / "approximation" / "weights" / "csi.yaml"
 
 
 def unit_rows(rng: np.random.Generator, rows: int, dimension: int) -> np.ndarray:
@@ -37,9 +42,7 @@ def main() -> None:
     parser.add_argument("--dimension", type=int, nargs="+", default=[256, 4096])
     parser.add_argument("--depth", type=int, default=50)
     parser.add_argument("--check", type=int, default=500, help="queries whose BDI weights are compared with float64")
-    parser.add_argument(
-        "--alpha", type=float, default=OmegaConf.load(PARADIGMS).approximation.alpha, help="CSI exponent"
-    )
+    parser.add_argument("--alpha", type=float, default=OmegaConf.load(CSI).alpha, help="CSI exponent")
     args = parser.parse_args()
 
     rng = np.random.default_rng(0)
@@ -50,6 +53,7 @@ def main() -> None:
         [f"db/{i}.jpg" for i in range(args.database)], "/nonexistent", [camera] * args.database, qvec, tvec
     )
     ks = list(range(1, args.depth + 1))
+    built = {"ewb": EqualWeights(), "bdi": BarycentricWeights(), "csi": CosineSimilarityWeights(args.alpha)}
     for dimension in args.dimension:
         database_descriptors = unit_rows(rng, args.database, dimension)
         query_descriptors = unit_rows(rng, args.queries, dimension)
@@ -66,7 +70,7 @@ def main() -> None:
         )
         for methods in (["ewb"], ["csi"], ["bdi"], ["ewb", "bdi", "csi"]):
             start = time.perf_counter()
-            approximate_poses(database, ranking, ks, methods, args.alpha)
+            approximate_poses(database, ranking, ks, {name: built[name] for name in methods})
             elapsed = time.perf_counter() - start
             print(
                 f"paradigm 1: {args.queries} queries x k=1..{args.depth} x {'+'.join(methods):>11}, "

@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
+from omegaconf import OmegaConf
 from scipy.spatial.transform import Rotation
 
 from locretrieval import geometry
@@ -20,6 +22,8 @@ from locretrieval.groundtruth import compute_groundtruths
 from locretrieval.scene import Camera, ImageSet, Scene
 
 CAMERA = Camera("PINHOLE", 1920, 1080, (1500.0, 1500.0, 960.0, 540.0))
+#: The ground truths' YAMLs: each definition's parameters, the retrieval metrics' relevance.
+GROUNDTRUTH = Path(__file__).resolve().parents[1] / "configs" / "groundtruth"
 
 
 def random_indoor_images(count: int, length: float, width: float, rng: np.random.Generator, prefix: str) -> ImageSet:
@@ -55,13 +59,15 @@ def main() -> None:
     queries = random_indoor_images(args.queries, args.length, args.width, rng, "query")
     scene = Scene("random_indoor", database, queries)
     definitions = {
-        "relative_pose": {"position_threshold": 25.0, "rotation_threshold": 45.0},
-        "frustum": {"near": 0.1, "far": args.far, "min_radius": 0.0},
+        name: OmegaConf.load(GROUNDTRUTH / "definitions" / f"{name}.yaml") for name in ("relative_pose", "frustum")
     }
+    definitions["frustum"].far = args.far
+    relevance = OmegaConf.load(GROUNDTRUTH / "relevance" / "top_k.yaml")
     print(f"{args.queries} queries x {args.database} database images = {args.queries * args.database:,} pairs")
     for name, parameters in definitions.items():
         started = time.perf_counter()
-        groundtruth = compute_groundtruths(scene, {"depth": 50, "definitions": {name: parameters}})[name]
+        settings = {"depth": 50, "definitions": {name: parameters}, "enabled": None, "relevance": relevance}
+        groundtruth = compute_groundtruths(scene, settings)[name]
         elapsed = time.perf_counter() - started
         statistics = groundtruth.statistics()
         print(

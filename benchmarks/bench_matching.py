@@ -39,12 +39,19 @@ from locretrieval.config import validated
 from locretrieval.device import resolve_device
 from locretrieval.localization.features import SiftFeatures, feature_store
 from locretrieval.localization.matching import MatchingSettings, PairMatcher
-from locretrieval.localization.nearest_neighbours import BatchedMatcher, NearestNeighbourMatcher, normalized_on_device
+from locretrieval.localization.nearest_neighbours import (
+    CPU_BLOCK_BYTES,
+    BatchedMatcher,
+    NearestNeighbourMatcher,
+    normalized_on_device,
+)
 from locretrieval.localization.verification import NoVerification
 from locretrieval.scene import Camera, ImageSet
 
 DIMENSION = 128
 RATIO = 0.8
+#: Similarities of one batch of the GPU matchers compared here (1 GiB, one pair's product at 20,000 keypoints).
+BATCH_BYTES = 1 << 30
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
@@ -191,17 +198,17 @@ def main() -> None:
     if on_gpu:
         for count in args.keypoints:
             first, second = pairs[count]
-            reference = BatchedMatcher(RATIO, str(device), "float32")(first, [second])[0]
-            half = BatchedMatcher(RATIO, str(device), "float16")(first, [second])[0]
-            cpu = NearestNeighbourMatcher(RATIO)(first, [second])[0]
+            reference = BatchedMatcher(RATIO, str(device), "float32", BATCH_BYTES)(first, [second])[0]
+            half = BatchedMatcher(RATIO, str(device), "float16", BATCH_BYTES)(first, [second])[0]
+            cpu = NearestNeighbourMatcher(RATIO, "float32", CPU_BLOCK_BYTES)(first, [second])[0]
             print(
                 f"{count} keypoints: float16 keeps {100 * agreement(reference, half):.2f} % of float32's matches; "
                 f"GPU float32 keeps {100 * agreement(cpu, reference):.2f} % of the CPU's"
             )
     else:
         half = agreement(
-            NearestNeighbourMatcher(RATIO)(first, [second])[0],
-            NearestNeighbourMatcher(RATIO, "float16")(first, [second])[0],
+            NearestNeighbourMatcher(RATIO, "float32", CPU_BLOCK_BYTES)(first, [second])[0],
+            NearestNeighbourMatcher(RATIO, "float16", CPU_BLOCK_BYTES)(first, [second])[0],
         )
         print(f"CPU float16 at {smallest} keypoints: {100 * half:.2f} % of float32's matches")
         print("no CUDA GPU: the GPU figures (batched matcher, float16 floors) are not measured here")

@@ -10,15 +10,20 @@ all processes (the default config renders with 2 worker processes).
 """
 
 import argparse
+import dataclasses
 import resource
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 import locretrieval  # noqa: F401
+from locretrieval.config import validated
 from locretrieval.device import resolve_device
-from locretrieval.scene.synthetic import DEFAULT_CONFIG, render_synthetic_dataset, resolve_config
+from locretrieval.scene.synthetic import RenderSettings, render_synthetic_dataset
 from locretrieval.scene.synthetic.dataset import (
     ImagePlan,
     build_environment,
@@ -31,6 +36,14 @@ from locretrieval.scene.synthetic.dynamic import place_dynamic_objects
 from locretrieval.scene.synthetic.render import Renderer
 
 
+def render_settings(**changes) -> RenderSettings:
+    """``data.render`` as ``configs/data/synthetic.yaml`` sets it (on the CPU), ``changes`` applied."""
+    configs = Path(__file__).resolve().parents[1] / "configs"
+    with initialize_config_dir(config_dir=str(configs), version_base="1.3"):
+        render = compose("evaluate", ["device=cpu", "paths.root_dir=/nonexistent"]).data.render
+    return validated(RenderSettings, {**OmegaConf.to_container(render, resolve=True), **changes}, "data.render")
+
+
 def cpu_seconds() -> float:
     """CPU time of this process and of its finished children."""
     own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -38,16 +51,15 @@ def cpu_seconds() -> float:
 
 
 def per_image(environment_name: str, images: int) -> None:
-    config = resolve_config({"environment": environment_name, "num_database": images})
+    config = render_settings(environment=environment_name, num_database=images)
     start = time.perf_counter()
     environment = build_environment(config)
-    renderer = Renderer(environment, resolve_device(config["device"]))
+    renderer = Renderer(environment, resolve_device(config.device))
     print(
-        f"{environment_name}: scene + textures ({config['texture_size']} px) "
-        f"built in {time.perf_counter() - start:.2f} s"
+        f"{environment_name}: scene + textures ({config.texture_size} px) built in {time.perf_counter() - start:.2f} s"
     )
     database_camera, query_cameras = cameras(config)
-    plans = plan_database({**config, "database_dynamic": 0.0}, environment, renderer, database_camera)
+    plans = plan_database(dataclasses.replace(config, database_dynamic=0.0), environment, renderer, database_camera)
     rng = np.random.default_rng(0)
     kinds = {
         "database day": ({"day"}, database_camera),
@@ -71,21 +83,21 @@ def per_image(environment_name: str, images: int) -> None:
             )
         n = len(plans)
         print(
-            f"  {kind:14s} {config['width']}x{config['height']}: "
+            f"  {kind:14s} {config.width}x{config.height}: "
             f"{(time.perf_counter() - wall) / n:.3f} s/image wall, "
             f"{(cpu_seconds() - cpu) / n:.3f} s/image CPU ({n} images)"
         )
 
 
 def full(environment_name: str) -> None:
-    config = {"environment": environment_name}
-    total = DEFAULT_CONFIG["num_database"] + DEFAULT_CONFIG["num_queries"]
+    config = render_settings(environment=environment_name)
+    total = config.num_database + config.num_queries
     with tempfile.TemporaryDirectory() as folder:
         wall, cpu = time.perf_counter(), cpu_seconds()
         render_synthetic_dataset(config, folder)
         wall, cpu = time.perf_counter() - wall, cpu_seconds() - cpu
     print(
-        f"{environment_name}: default dataset ({total} images, {DEFAULT_CONFIG['workers']} workers): "
+        f"{environment_name}: default dataset ({total} images, {config.workers} workers): "
         f"{wall:.1f} s wall, {cpu:.1f} s CPU of all processes, {wall / total:.3f} s/image wall"
     )
 

@@ -83,7 +83,7 @@ SIZES = {"baidu": (689, 2_292), "aachen": (6_697, 1_015), "robotcar": (20_862, 1
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 DEPTH = 50
 KS = [1, 2, 3, 5, 10, 20, 50]  # configs/paradigms/default.yaml, approximation
-THRESHOLDS = [[0.25, 2.0], [0.5, 5.0], [5.0, 10.0]]  # configs/evaluate.yaml
+THRESHOLDS = [[0.25, 2.0], [0.5, 5.0], [5.0, 10.0]]  # configs/metrics/default.yaml (inclusive: <=)
 GIB = 2.0**30
 #: Database images of the map the triangulations are compared on.
 TRIANGULATION_IMAGES = 10
@@ -290,7 +290,7 @@ def run_size(args: argparse.Namespace) -> None:
     measure(
         "localization metrics (tables)",
         lambda: (
-            localization_table(args.size, estimates, queries, THRESHOLDS, subsets),
+            localization_table(args.size, estimates, queries, THRESHOLDS, subsets, inclusive=True),
             query_error_table(args.size, estimates, queries),
         ),
     )
@@ -332,13 +332,13 @@ def dataset_sfm(size: str) -> SfmSettings:
 
 def sfm_paradigms() -> dict[str, tuple]:
     """The SfM paradigms of ``configs/paradigms/default.yaml``: name -> (stages, settings)."""
-    paradigms = OmegaConf.load(CONFIGS / "paradigms" / "default.yaml")
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        paradigms = compose(config_name="evaluate").paradigms
     return {
-        "local_sfm": (
-            local_sfm.STAGES,
-            LocalSfmSettings(True, list(paradigms.local_sfm.k), str(paradigms.local_sfm.map_matches)),
-        ),
-        "global_sfm": (global_sfm.STAGES, GlobalSfmSettings(True, list(paradigms.global_sfm.k), None)),
+        "local_sfm": (local_sfm.STAGES, validated(LocalSfmSettings, paradigms.local_sfm, "paradigms.local_sfm")),
+        "global_sfm": (global_sfm.STAGES, validated(GlobalSfmSettings, paradigms.global_sfm, "paradigms.global_sfm")),
     }
 
 

@@ -26,7 +26,7 @@ from locretrieval.groundtruth import relative_pose_groundtruth
 from locretrieval.localization import global_sfm, local_sfm
 from locretrieval.localization.features import extract_features
 from locretrieval.localization.global_sfm import GlobalSfmSettings
-from locretrieval.localization.local_sfm import LocalSfmSettings
+from locretrieval.localization.local_sfm import DatabaseMapMatches, LocalSfmSettings
 from locretrieval.localization.matching import PairMatcher
 from locretrieval.localization.pose_cache import PoseCache
 from locretrieval.localization.sfm import SfmInputs, SfmSettings, query_tasks
@@ -112,7 +112,7 @@ def benchmark(scene: Scene, base: Path, sfm: SfmSettings, workers: int) -> None:
     print(f"matching (mutual NN + ratio, 1 process): {1000 * elapsed / matched:.1f} ms/pair")
 
     paradigms = (
-        ("local_sfm", local_sfm, LOCAL_KS, lambda ks: LocalSfmSettings(True, ks, "database")),
+        ("local_sfm", local_sfm, LOCAL_KS, lambda ks: LocalSfmSettings(True, ks, DatabaseMapMatches())),
         ("global_sfm", global_sfm, GLOBAL_KS, lambda ks: GlobalSfmSettings(True, ks, None)),
     )
     for name, module, ks, settings in paradigms:

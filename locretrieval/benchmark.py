@@ -6,7 +6,7 @@
     groundtruths = compute_groundtruths(scene, gt_settings, settings.sfm, cache_dir)
     descriptors = describe_scene(model, scene, cache_dir=None)       # e.g. a network in memory
     rankings = build_rankings(scene, {model.name: descriptors}, groundtruths, settings.retrieval, seed)
-    result = benchmark(scene, rankings, settings, subsets, cache_dir, relevances(groundtruths))
+    result = benchmark(scene, rankings, settings, subsets, cache_dir, relevances(groundtruths, gt_settings.relevance))
 
 ``cache_dir`` only holds what the SfM paradigms reuse across runs (local features, matches,
 maps), keyed by what produced them; it is never a place results are written to.
@@ -27,7 +27,7 @@ from scipy import sparse
 
 from locretrieval.cache import config_key
 from locretrieval.config import ConfigError, validated
-from locretrieval.groundtruth import GroundTruth
+from locretrieval.groundtruth import GroundTruth, RelevanceScope
 from locretrieval.localization import approximation, global_sfm, local_sfm
 from locretrieval.localization.approximation import ApproximationSettings
 from locretrieval.localization.estimates import PoseEstimates
@@ -215,10 +215,6 @@ def check_unique_names(rankings: Sequence[Ranking]) -> None:
         raise ValueError(f"rankings {repeated} are named twice ({names}): rename the model (model.name=...)")
 
 
-#: Which relevant images the retrieval metrics count (`relevances`).
-RELEVANCE_SCOPES = ("top_k", "all")
-
-
 def check_supported(scene: Scene, names: Sequence[str]) -> None:
     """Raise `ConfigError` when a paradigm or ground truth in ``names`` is one the scene's dataset
     cannot run (`Scene.unsupported`), saying why and how to switch it off."""
@@ -245,20 +241,18 @@ def warn_shallow_rankings(rankings: Sequence[Ranking], ks: Sequence[int]) -> Non
         )
 
 
-def relevances(groundtruths: Mapping[str, GroundTruth], scope: str = "top_k") -> dict[str, sparse.csr_matrix]:
-    """Each ground truth's ``[Q, N]`` relevance, by name: of the images in its top-``depth``
-    ranking (``scope="top_k"``, the paper's) or of every database image (``"all"``)."""
-    if scope not in RELEVANCE_SCOPES:
-        raise ConfigError(f"groundtruth.relevance must be one of {list(RELEVANCE_SCOPES)}, got {scope!r}")
-    return {name: gt.relevance_in_ranking() if scope == "top_k" else gt.relevance for name, gt in groundtruths.items()}
+def relevances(groundtruths: Mapping[str, GroundTruth], scope: RelevanceScope) -> dict[str, sparse.csr_matrix]:
+    """Each ground truth's ``[Q, N]`` relevance the retrieval metrics count, by name (``scope``:
+    ``groundtruth.relevance``, e.g. the images of its top-``depth`` ranking, the paper's)."""
+    return {name: scope(gt) for name, gt in groundtruths.items()}
 
 
 def scene_subsets(
-    scene: Scene, settings: SubsetSettings, cache_dir: str | Path | None, device: str
+    scene: Scene, settings: SubsetSettings, cache_dir: str | Path | None
 ) -> tuple[dict[str, np.ndarray], pd.DataFrame]:
     """The query subsets every metric is reported on (``all``, one per query tag, ``blurry``,
     ``dynamic_scene``) and the per-query table behind the image subsets (``subsets.csv``)."""
-    image_masks, table = image_subsets(scene.name, scene.queries, settings, cache_dir, device)
+    image_masks, table = image_subsets(scene.name, scene.queries, settings, cache_dir)
     tag_masks = query_subsets(scene.queries)
     clash = sorted(set(tag_masks) & set(image_masks))
     if clash:
@@ -292,8 +286,8 @@ def sfm_plan(
         key = config_key(
             scene.database.fingerprint(),
             scene.queries.fingerprint(),
-            dataclasses.asdict(settings.sfm),
-            {name: dataclasses.asdict(paradigm_settings) for name, (_, paradigm_settings) in paradigms.items()},
+            repr(settings.sfm),  # the parts' classes too (two without fields have the same asdict)
+            {name: repr(paradigm_settings) for name, (_, paradigm_settings) in paradigms.items()},
         )
         if key not in _unit_costs:
             _unit_costs[key] = measure_unit_costs(scene, settings.sfm, paradigms, cache_dir)

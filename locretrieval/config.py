@@ -117,6 +117,39 @@ class ConfigError(ValueError):
     """A configuration value of the wrong type or range; the message names the full key."""
 
 
+#: Keys that moved when their value became an object chosen by ``_target_`` (0.12): the old key ->
+#: its new spelling. An override of an old key is refused naming the new one, on the command line
+#: (`refuse_moved_keys`) and where a section is checked (an unknown key, `validated`).
+MOVED_KEYS = {
+    "paradigms.approximation.alpha": "paradigms.approximation.weights.csi.alpha",
+    "sfm.matching.max_epipolar_error": "sfm.database_verification.max_epipolar_error",
+    "train_relevance.negatives.rule": "train_relevance/negatives=unrelated|not_relevant",
+    "subsets.mask_source": "subsets.dynamic_masks, the names of subsets.mask_sources tried in order "
+    "(auto: [masks,maskrcnn], masks: [masks], maskrcnn: [maskrcnn], none: [])",
+    "data.ltvl_name_style": "data/ltvl_names=full|basename|strip_prefix",
+    **{
+        f"subsets.maskrcnn_{key}": f"subsets.mask_sources.maskrcnn.{key}"
+        for key in ("weights", "min_size", "score_threshold", "mask_threshold")
+    },
+}
+
+
+def unknown_key(full_key: str, known: Sequence[str]) -> str:
+    """The error of an unknown ``full_key`` (the keys ``known`` there; a moved key's new spelling)."""
+    if full_key in MOVED_KEYS:
+        return f"{full_key}: moved, now {MOVED_KEYS[full_key]}"
+    return f"{full_key}: unknown key; expected one of {list(known)}"
+
+
+def refuse_moved_keys(overrides: Sequence[str]) -> None:
+    """Raise `ConfigError` for a command-line override (``key=value``, ``+key=value``, ``~key``) of a
+    key in `MOVED_KEYS`, naming the new spelling: Hydra would refuse it as a key the config lacks."""
+    for override in overrides:
+        key = override.lstrip("+~").split("=", 1)[0]
+        if key in MOVED_KEYS:
+            raise ConfigError(unknown_key(key, []) + f" (the command line's {override})")
+
+
 class SettingError(ValueError):
     """A value a schema's ``__post_init__`` refuses; ``field`` is its key within the schema."""
 
@@ -152,16 +185,41 @@ def validated(schema: type[Schema], config: Any, key: str) -> Schema:
     return _build(schema, node, key)
 
 
-def part(kind: type) -> Any:
+def part(kind: type, group: str | None = None) -> Any:
     """A schema field holding an object chosen by ``_target_`` (``query_verification: Any =
-    part(PairVerification)``): `validated` checks its node's keys against the target's
-    parameters (`check_node`), builds it and requires an instance of ``kind``."""
-    return dataclasses.field(metadata={"part": kind})
+    part(PairVerification, "sfm/query_verification")``): `validated` checks its node's keys against
+    the target's parameters (`check_node`), builds it and requires an instance of ``kind``.
+    ``group``: the config group whose options choose it, named when a plain name is given instead."""
+    return dataclasses.field(metadata={"part": kind, "group": group})
 
 
-def _build_part(kind: type, node: Any, where: str) -> Any:
+def named_parts(kind: type) -> Any:
+    """A schema field holding a mapping of names to objects chosen by ``_target_`` (``weights:
+    dict[str, Any] = named_parts(ApproximationMethod)``), each checked and built as a `part`."""
+    return dataclasses.field(metadata={"parts": kind})
+
+
+def require_part(value: Any, kind: type, key: str, group: str | None = None) -> Any:
+    """``value`` if it is a ``kind`` (an object its config node's ``_target_`` built), else a
+    `ConfigError` naming ``key``; a plain name says which option of ``group`` chooses it now."""
+    if isinstance(value, kind):
+        return value
+    if isinstance(value, str) and group is not None:
+        raise ConfigError(
+            f"{key}: a {kind.__name__} is chosen by its config group now: {group}={value} "
+            f"(configs/{group}/{value}.yaml), not {key}={value}"
+        )
+    raise ConfigError(f"{key}: expected a node with a _target_ (a {kind.__name__}), got {value!r}")
+
+
+def build_part(kind: type, node: Any, where: str, group: str | None = None) -> Any:
+    """The ``kind`` the config node ``node`` at ``where`` builds (its ``_target_``, its keys checked
+    by `check_node`), or ``node`` if it is a ``kind`` already; a `ConfigError` naming the key
+    otherwise (a plain name: the ``group`` option that chooses it now, `require_part`)."""
+    if isinstance(node, collections.abc.Mapping) and not isinstance(node, Container):
+        node = OmegaConf.create(dict(node))
     if not isinstance(node, Container) or "_target_" not in node:
-        raise ConfigError(f"{where}: expected a node with a _target_ (a {kind.__name__}), got {node!r}")
+        return require_part(node, kind, where, group)  # refused unless already built
     check_node(node, where)
     built_part = built(node, where)
     if not isinstance(built_part, kind):
@@ -180,7 +238,11 @@ def _build(schema: type[Schema], node: DictConfig, key: str) -> Schema:
             raise ConfigError(f"{where}: missing; expected {_type_name(hints[field.name])}") from None
         item = _dataclass_items(hints[field.name])
         if "part" in field.metadata:
-            values[field.name] = _build_part(field.metadata["part"], value, where)
+            values[field.name] = build_part(field.metadata["part"], value, where, field.metadata["group"])
+        elif "parts" in field.metadata:
+            values[field.name] = {
+                name: build_part(field.metadata["parts"], entry, f"{where}.{name}") for name, entry in value.items()
+            }
         elif item is not None:
             values[field.name] = [_build(item, entry, f"{where}[{index}]") for index, entry in enumerate(value)]
         elif dataclasses.is_dataclass(hints[field.name]):
@@ -209,8 +271,7 @@ def _message(schema: type, key: str, error: OmegaConfBaseException) -> str:
     path = str(getattr(error, "full_key", "") or "")
     full_key = ".".join(part for part in (key, path) if part)
     if isinstance(error, ConfigKeyError) and dataclasses.is_dataclass(getattr(error, "object_type", None)):
-        known = [field.name for field in dataclasses.fields(error.object_type)]
-        return f"{full_key}: unknown key; expected one of {known}"
+        return unknown_key(full_key, [field.name for field in dataclasses.fields(error.object_type)])
     expected = _hint_at(schema, path)
     return f"{full_key}: {str(error).splitlines()[0]}" + (f"; expected {_type_name(expected)}" if expected else "")
 
@@ -261,7 +322,7 @@ def check_node(node: Any, key: str) -> None:
     if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
         unknown = [name for name in values if name not in parameters]
         if unknown:
-            raise ConfigError(f"{key}.{unknown[0]}: unknown key; expected one of {list(parameters)}")
+            raise ConfigError(unknown_key(f"{key}.{unknown[0]}", list(parameters)))
     try:
         hints = typing.get_type_hints(target.__init__ if isinstance(target, type) else target)
     except Exception:  # annotations that do not resolve (a library's forward references): keys only
@@ -308,4 +369,6 @@ def built(node: Any, key: str, **runtime: Any) -> Any:
     except InstantiationException as error:
         if isinstance(error.__cause__, SettingError):
             raise ConfigError(f"{key}.{error.__cause__}") from None
+        if isinstance(error.__cause__, ConfigError):  # a part of it refused (naming its own key)
+            raise error.__cause__ from None
         raise

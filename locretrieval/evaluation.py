@@ -6,10 +6,10 @@ import json
 import logging
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
-from hydra.utils import get_class, instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.benchmark import (
@@ -25,16 +25,14 @@ from locretrieval.benchmark import (
     sfm_plan,
 )
 from locretrieval.cache import safe_name, save_arrays
-from locretrieval.config import validated
-from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths, definition_type, statistics_table
+from locretrieval.config import built, validated
+from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths, statistics_table
 from locretrieval.localization.estimates import estimated_pose_table
 from locretrieval.metrics.localization import best_over_k, median_errors
 from locretrieval.metrics.subsets import SubsetSettings, missing_mask_inputs
-from locretrieval.models.precomputed import PrecomputedDescriptor, missing_feature_folders
 from locretrieval.report.gallery import GallerySettings, write_gallery_inputs
 from locretrieval.report.scene_view import SCENE_VIEW_FILE, SceneViewSettings, write_scene_view
-from locretrieval.retrieval.descriptors import describe_scene
-from locretrieval.retrieval.pairs_file import PairsFileRanking
+from locretrieval.retrieval.descriptors import DescriptorSearch
 from locretrieval.scene import Scene
 from locretrieval.scene.datasets import instantiate_scene
 from locretrieval.scene.ltvl import write_ltvl
@@ -64,18 +62,17 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     cache_dir = Path(cfg.paths.cache_dir)
     scene: Scene = instantiate_scene(cfg.data)
     log.info("scene %s: %d database images, %d queries", scene.name, len(scene.database), len(scene.queries))
-    check_inputs(cfg, scene, settings, groundtruth_settings, subset_settings)
+    check_supported(scene, [*settings.paradigms.enabled(), *groundtruth_settings.parsed()])
+    missing_weights = weight_inputs(cfg.model)
+    model = None if missing_weights else built(cfg.model, "model")  # a weight file is read as the model is built
+    check_inputs(scene, model, settings, groundtruth_settings, subset_settings, missing_weights)
     if cfg.dry_run:
         log_plan(cfg, scene, settings, groundtruth_settings, cache_dir)
         return pd.DataFrame()
     output_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, output_dir / "config.yaml", resolve=True)  # as run; .hydra/ keeps the interpolations
 
-    model = instantiate(cfg.model)
-    if isinstance(model, PairsFileRanking):  # a ranking computed elsewhere: no descriptors
-        given, descriptors = [model.ranking(scene, settings.retrieval.depth)], {}
-    else:
-        given, descriptors = [], {model.name: describe_scene(model, scene, cache_dir)}
+    given = model.rankings(scene, DescriptorSearch(settings.retrieval, cache_dir))  # descriptors or a pairs file
     groundtruths = {}
     if scene.queries.has_pose.any():
         groundtruths = compute_groundtruths(scene, groundtruth_settings, settings.sfm, cache_dir)
@@ -84,11 +81,11 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
             "no query has a reference pose: ground truth and metrics are skipped, poses are only exported (ltvl/)"
         )
     random_seed = int(cfg.seed) if cfg.baselines.random else None
-    rankings = build_rankings(scene, descriptors, groundtruths, settings.retrieval, random_seed, given)
+    rankings = build_rankings(scene, {}, groundtruths, settings.retrieval, random_seed, given)
     if settings.sfm.job_shard is not None:  # one job of a sharded evaluation: its SfM work, no results
         run_sfm_shard(scene, rankings, settings, cache_dir)
         return pd.DataFrame()
-    subsets, subset_table = scene_subsets(scene, subset_settings, cache_dir, str(cfg.device))
+    subsets, subset_table = scene_subsets(scene, subset_settings, cache_dir)
     if cfg.report.figure_formats:
         from locretrieval.report.painters import start_painters
 
@@ -163,19 +160,21 @@ def log_plan(
 
 
 def check_inputs(
-    cfg: DictConfig,
     scene: Scene,
+    model: Any,
     settings: BenchmarkSettings,
     groundtruths: GroundTruthSettings,
     subsets: SubsetSettings,
+    missing_weights: list[str],
 ) -> None:
     """Stop before the first expensive stage when inputs the run needs are missing: one
-    `FileNotFoundError` names them all (model weights or feature folders, kapture local
-    features, the COLMAP model, dynamic-object masks or their Mask R-CNN weights); before that,
-    a paradigm or ground truth the dataset does not support is a `ConfigError`."""
-    check_supported(scene, [*settings.paradigms.enabled(), *map(definition_type, groundtruths.parsed().values())])
+    `FileNotFoundError` names them all (``missing_weights``, the model's inputs,
+    `GlobalDescriptor.missing_inputs`: feature folders or a pairs file; kapture local features,
+    the COLMAP model, dynamic-object masks or their Mask R-CNN weights). ``model``: ``None``
+    when it could not be built for its missing weights."""
     missing = [
-        *model_inputs(cfg.model, scene),
+        *missing_weights,
+        *([f"model.{problem}" for problem in model.missing_inputs(scene)] if model is not None else []),
         *local_feature_inputs(scene, settings, groundtruths),
         *paradigm_inputs(settings),
         *missing_mask_inputs(scene.queries, subsets),
@@ -186,15 +185,8 @@ def check_inputs(
         )
 
 
-def model_inputs(model: DictConfig, scene: Scene) -> list[str]:
-    """The model's weight file (``model.weights``), precomputed feature folders or pairs file, if absent."""
-    if issubclass(get_class(model._target_), PairsFileRanking):
-        return [] if Path(model.path).is_file() else [f"model.path: pairs file {model.path} not found"]
-    if issubclass(get_class(model._target_), PrecomputedDescriptor):
-        key = "model.path" if model.path is not None else "model.feature_name"
-        return [
-            f"{key}: {problem}" for problem in missing_feature_folders(model.path, model.feature_name, scene.sources)
-        ]
+def weight_inputs(model: DictConfig) -> list[str]:
+    """The model's weight file (``model.weights``, read when the model is built), if it is absent."""
     weights = model.get("weights")
     return (
         [f"model.weights: weight file {weights} not found"]
@@ -264,13 +256,13 @@ def write_tables(
 
 def export_ltvl(scene: Scene, result: BenchmarkResult, folder: Path) -> int:
     """Write one LTVL file per ranking x paradigm x method x k (images named per
-    ``scene.ltvl_name_style``); returns how many were written."""
+    ``scene.ltvl_names``); returns how many were written."""
     written = skipped = 0
     for e in result.estimates:
         for n, k in enumerate(e.ks):
             path = folder / safe_name(e.ranking) / f"{e.paradigm}_{e.method}_k{k}.txt"
             path.parent.mkdir(parents=True, exist_ok=True)
-            missing = write_ltvl(path, scene.queries.names, e.qvec[n], e.tvec[n], name_style=scene.ltvl_name_style)
+            missing = write_ltvl(path, scene.queries.names, e.qvec[n], e.tvec[n], scene.ltvl_names)
             log.debug("%s: %d queries without an estimate are not in the file", path, missing)
             written, skipped = written + 1, skipped + missing
     log.info(

@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from locretrieval.groundtruth.relative_pose import relative_pose_scores
-from locretrieval.localization.approximation import approximate_poses
+from locretrieval.localization.approximation import EqualWeights, approximate_poses
 from locretrieval.metrics.localization import localized
 from locretrieval.retrieval.ranking import EMPTY, Ranking
 from locretrieval.scene import Scene
@@ -41,7 +41,7 @@ def reordered(ranking: Ranking, pose_scores: np.ndarray, shortlist: int) -> Rank
 
 def ewb_localized(scene: Scene, ranking: Ranking, k: int, thresholds: list[list[float]], inclusive: bool) -> np.ndarray:
     """% of the queries with a reference pose that EWB over the top ``k`` localizes, per threshold."""
-    estimate = approximate_poses(scene.database, ranking, [k], ["ewb"], alpha=1.0)[0]
+    estimate = approximate_poses(scene.database, ranking, [k], {"ewb": EqualWeights()})[0]
     hits = localized(*estimate.errors(scene.queries.qvec, scene.queries.tvec), thresholds, inclusive)[:, 0]
     return 100.0 * hits[:, scene.queries.has_pose].mean(axis=1)
 
@@ -52,7 +52,7 @@ def database_as_queries(scene: Scene) -> Scene:
         f"{scene.name} database",
         scene.database,
         scene.database,
-        ltvl_name_style=scene.ltvl_name_style,
+        ltvl_names=scene.ltvl_names,
         frustum_far=scene.frustum_far,
     )
 
@@ -121,9 +121,11 @@ def main() -> None:
     depth = max([arguments.k, *arguments.shortlists])
     if arguments.database:
         scene = database_as_queries(scene)
-        ranking = search(described.database, described.database, depth, model.name, exclude_self=True)
+        ranking = search(
+            described.database, described.database, depth, model.name, cfg.retrieval.chunk_size, exclude_self=True
+        )
     else:
-        ranking = search(described.queries, described.database, depth, model.name)
+        ranking = search(described.queries, described.database, depth, model.name, cfg.retrieval.chunk_size)
     pose = cfg.groundtruth.definitions.relative_pose
     table = shortlist_table(
         scene,

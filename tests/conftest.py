@@ -25,11 +25,13 @@ class HostileRun:
 def hostile_dataset(root: Path) -> tuple[Path, Path]:
     """A tiny rendered scene as kapture folders whose query folder, one query image and one tag are
     the markup above; returns ``(mapping folder, query folder)``."""
+    from helpers import render_settings
+
     from locretrieval.scene.synthetic import render_synthetic_dataset
 
     render = root / "render"
     settings = {"width": 160, "height": 120, "num_database": 32, "num_queries": 16, "texture_size": 64}
-    render_synthetic_dataset({**settings, "length": 20.0, "workers": 1, "seed": 3}, render)
+    render_synthetic_dataset(render_settings({**settings, "length": 20.0, "workers": 1, "seed": 3}), render)
     query = root / "data" / HOSTILE_QUERY_FOLDER
     shutil.copytree(render / "query", query)
     for folder in (query / "sensors" / "records_data", query / "masks"):

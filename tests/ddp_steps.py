@@ -57,12 +57,17 @@ def scene_pairs(scene_dir: Path):
     (relative pose, 10 m and 30 degrees)."""
     from locretrieval.groundtruth import DefinitionContext
     from locretrieval.scene.kapture_io import load_kapture_scene
-    from locretrieval.training.relevance import NegativeSettings, TrainingRelevanceSettings, training_pairs
+    from locretrieval.training.relevance import TrainingRelevanceSettings, UnrelatedNegatives, training_pairs
 
     images = load_kapture_scene("tiny", [scene_dir / "mapping"], [scene_dir / "query"]).database
     settings = TrainingRelevanceSettings(
-        {"type": "relative_pose", "position_threshold": 10.0, "rotation_threshold": 30.0},
-        NegativeSettings("unrelated", 0.1, None, None),
+        {
+            "_target_": "locretrieval.groundtruth.RelativePoseDefinition",
+            "position_threshold": 10.0,
+            "rotation_threshold": 30.0,
+            "ranked": "within_thresholds",
+        },
+        UnrelatedNegatives(0.1, None, None),
     )
     return images, training_pairs(images, settings, DefinitionContext(far=25.0))
 

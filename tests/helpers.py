@@ -13,7 +13,7 @@ from locretrieval.config import validated
 from locretrieval.localization.sfm import SfmSettings
 from locretrieval.scene import Scene
 from locretrieval.scene.kapture_io import load_kapture_scene
-from locretrieval.scene.synthetic import render_synthetic_dataset
+from locretrieval.scene.synthetic import RenderSettings, render_synthetic_dataset
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 #: Extraction overrides for tests: CPU, in this process, no progress bars.
@@ -63,9 +63,35 @@ def zoo_model(model: str, **options):
     return model_class(**{**parameters, **options})
 
 
+def groundtruth_section(definitions: Mapping, depth: int) -> dict:
+    """A ``groundtruth`` section of ``definitions`` (name -> node, every one enabled), ``depth``
+    images per query and the YAML's default relevance (``configs/groundtruth/relevance/top_k.yaml``)."""
+    relevance = OmegaConf.to_container(OmegaConf.load(CONFIGS / "groundtruth" / "relevance" / "top_k.yaml"))
+    return {"depth": depth, "definitions": dict(definitions), "enabled": None, "relevance": relevance}
+
+
+def precomputed(**keys):
+    """A `PrecomputedDescriptor` of ``keys``, built in Python; its other keys as
+    ``configs/model/precomputed.yaml`` sets them (``name``: ``None``, named after its folders)."""
+    from locretrieval.models import PrecomputedDescriptor
+
+    node = OmegaConf.to_container(OmegaConf.load(CONFIGS / "model" / "precomputed.yaml"))
+    literal = {key: value for key, value in node.items() if not key.startswith("_") and key != "name"}
+    return PrecomputedDescriptor(**{"name": None, **literal, **keys})
+
+
+def render_settings(settings: Mapping = {}) -> RenderSettings:  # noqa: B006  (read only)
+    """``data.render`` as ``configs/data/synthetic.yaml`` composes it (seed 0, on the CPU), the keys
+    of ``settings`` (``conditions`` too) merged in, checked."""
+    render = compose_config("evaluate", "device=cpu", "paths.root_dir=/nonexistent").data.render
+    plain = OmegaConf.to_container(render, resolve=True)
+    return validated(RenderSettings, OmegaConf.merge(plain, dict(settings)), "data.render")
+
+
 def rendered_scene(root: Path, settings: Mapping) -> Scene:
-    """A synthetic scene rendered with ``settings`` into ``root`` and read back from its kapture folders."""
-    render_synthetic_dataset(dict(settings), root)
+    """A synthetic scene rendered with ``settings`` (`render_settings`) into ``root`` and read back
+    from its kapture folders."""
+    render_synthetic_dataset(render_settings(settings), root)
     return load_kapture_scene("tiny", [root / "mapping"], [root / "query"])
 
 

@@ -1,21 +1,36 @@
 import numpy as np
 import pytest
+from helpers import evaluate_config
 from scipy.spatial.transform import Rotation
 
 from locretrieval import geometry
+from locretrieval.benchmark import BenchmarkSettings, benchmark
+from locretrieval.config import ConfigError
 from locretrieval.localization import approximation
-from locretrieval.localization.approximation import DEGENERATE_BDI, EMPTY_RETRIEVAL, METHODS, approximate_poses
+from locretrieval.localization.approximation import (
+    DEGENERATE_BDI,
+    EMPTY_RETRIEVAL,
+    BarycentricWeights,
+    CosineSimilarityWeights,
+    EqualWeights,
+    PrefixWeights,
+    approximate_poses,
+)
 from locretrieval.localization.estimates import LOCALIZED
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.retrieval.index import search
-from locretrieval.scene import Camera, ImageSet
+from locretrieval.scene import Camera, ImageSet, Scene
 
 CAMERA = Camera("PINHOLE", 64, 48, (50.0, 50.0, 32.0, 24.0))
 
 
+METHODS = ("ewb", "bdi", "csi")
+
+
 def approximate(database, ranking, ks, methods=METHODS, alpha=8.0):
-    """Paradigm 1 with every method and the default CSI exponent unless given."""
-    return approximate_poses(database, ranking, ks, methods, alpha)
+    """Paradigm 1 with every method and the paper's CSI exponent unless given."""
+    built = {"ewb": EqualWeights(), "bdi": BarycentricWeights(), "csi": CosineSimilarityWeights(alpha)}
+    return approximate_poses(database, ranking, ks, {name: built[name] for name in methods})
 
 
 def image_set(qvec, centers) -> ImageSet:
@@ -138,10 +153,25 @@ def test_descriptor_free_rankings_get_ewb_only(two_images):
     assert [e.method for e in approximate(two_images, ranking, [1, 2])] == ["ewb"]
 
 
-def test_unknown_method_is_an_error(two_images):
-    ranking = Ranking("gt", [[0, 1]], [[1.0, 0.5]], "groundtruth")
-    with pytest.raises(ValueError, match="unknown pose approximation"):
-        approximate(two_images, ranking, [1], methods=["median"])
+def test_the_configured_methods_are_the_papers_and_an_unknown_name_is_an_error():
+    settings = BenchmarkSettings.from_config(evaluate_config("paths.root_dir=/nonexistent")).paradigms.approximation
+    assert settings.chosen() == {
+        "ewb": EqualWeights(),
+        "bdi": BarycentricWeights(),
+        "csi": CosineSimilarityWeights(8.0),
+    }
+    with pytest.raises(
+        ConfigError,
+        match=r"paradigms.approximation.methods: must be a non-empty list of names of paradigms.approximation.weights "
+        r"\['ewb', 'bdi', 'csi'\], got \['ewb', 'median'\]",
+    ):
+        BenchmarkSettings.from_config(
+            evaluate_config("paths.root_dir=/nonexistent", "paradigms.approximation.methods=[ewb,median]")
+        )
+    with pytest.raises(ConfigError, match=r"paradigms.approximation.weights.csi.alpha: must be positive, got 0"):
+        BenchmarkSettings.from_config(
+            evaluate_config("paths.root_dir=/nonexistent", "paradigms.approximation.weights.csi.alpha=0")
+        )
 
 
 def test_csi_with_a_huge_exponent_keeps_the_most_similar_image():
@@ -226,7 +256,7 @@ def test_bdi_from_float32_products_equals_the_float64_solution(monkeypatch, tabl
         unit(places[rng.integers(6, size=n)] + 0.05 * rng.normal(size=(n, dim))),
     ):
         queries = unit(db_desc[:20] + 0.3 * rng.normal(size=(20, dim)))
-        ranking = search(queries, db_desc, depth=k)
+        ranking = search(queries, db_desc, depth=k, name="d", chunk_size=256)
         for axis in range(3):  # interpolated centres are the weights applied to random centres
             centers = np.zeros((n, 3))
             centers[:, axis] = rng.normal(size=n)
@@ -275,7 +305,7 @@ def test_only_ill_conditioned_queries_take_the_float64_path(monkeypatch):
             if not takes_float64
             else unit(db_desc[::7] + 0.01 * rng.normal(size=(29, dim)))
         )
-        ranking = search(queries, db_desc, depth=k)
+        ranking = search(queries, db_desc, depth=k, name="d", chunk_size=256)
         (bdi,) = approximate(database, ranking, [k], methods=["bdi"])
         assert (sum(exact) > 0) == takes_float64
         expected = [
@@ -307,3 +337,37 @@ def test_chunks_run_in_parallel_threads_keep_each_querys_result_in_its_place(mon
         np.testing.assert_allclose(chunked[method].qvec, whole[method].qvec, atol=1e-12, err_msg=method)
         np.testing.assert_allclose(chunked[method].tvec, whole[method].tvec, atol=1e-12, err_msg=method)
     assert (whole["bdi"].failures[:, [2, 7]] == EMPTY_RETRIEVAL).all()
+
+
+class TopImageWeights(PrefixWeights):
+    """A method from outside the package: all the weight on the best-ranked image, at every k."""
+
+    uses_descriptors = False
+
+    def raw_weights(self, scores, valid):
+        return (np.arange(valid.shape[1]) == 0)[None, :] & valid
+
+
+def test_a_method_from_outside_the_package_is_chosen_through_the_config(two_images):
+    """``TopImageWeights``, named in the config alone, runs on every ranking beside EWB: at every k
+    it gives the top image's pose, as EWB does at k=1."""
+    cfg = evaluate_config(
+        "paths.root_dir=/nonexistent",
+        f"+paradigms.approximation.weights.top={{_target_: {__name__}.TopImageWeights}}",
+        "paradigms.approximation.methods=[ewb,top]",
+        "paradigms.approximation.k=[1,2]",
+        "paradigms.local_sfm.enabled=false",
+        "paradigms.global_sfm.enabled=false",
+    )
+    settings = BenchmarkSettings.from_config(cfg)
+    queries = image_set(two_images.qvec[[1, 0]], two_images.centers[[1, 0]] + 0.5)
+    scene = Scene("two", two_images, queries)
+    ranking = Ranking("gt", [[0, 1], [1, 0]], [[1.0, 0.5], [1.0, 0.5]], "groundtruth")
+    everyone = {"all": np.ones(2, dtype=bool)}
+    estimates = {e.method: e for e in benchmark(scene, [ranking], settings, everyone, None, {}).estimates}
+    assert list(estimates) == ["ewb", "top"]
+    for at in range(2):  # k=1 and k=2
+        np.testing.assert_allclose(estimates["top"].qvec[at], two_images.qvec[[0, 1]], atol=1e-12)
+        np.testing.assert_allclose(estimates["top"].tvec[at], two_images.tvec[[0, 1]], atol=1e-12)
+    np.testing.assert_allclose(estimates["top"].tvec[0], estimates["ewb"].tvec[0], atol=1e-12)
+    assert not np.allclose(estimates["top"].tvec[1], estimates["ewb"].tvec[1])  # EWB at k=2 averages two poses

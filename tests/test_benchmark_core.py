@@ -4,18 +4,19 @@ leaves the network as it was, layers that import one way, and config sections ch
 import ast
 from pathlib import Path
 
+import helpers
 import numpy as np
 import pandas as pd
 import pytest
 import torch
-from helpers import evaluate_config
+from helpers import evaluate_config, render_settings
 from PIL import Image
 from torch import nn
 
 from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
 from locretrieval.config import ConfigError
 from locretrieval.evaluation import export_ltvl
-from locretrieval.groundtruth import compute_groundtruths
+from locretrieval.groundtruth import RankedRelevance, compute_groundtruths
 from locretrieval.models import NetworkDescriptor
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing, extract_descriptors
 from locretrieval.models.networks import GeMPooling, RetrievalNet, l2_normalize
@@ -36,7 +37,7 @@ EXTRACTION = ExtractionSettings(
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("core_scene")
-    render_synthetic_dataset(SCENE, root)
+    render_synthetic_dataset(render_settings(SCENE), root)
     return load_kapture_scene("tiny", [root / "mapping"], [root / "query"], frustum_far=25.0)
 
 
@@ -72,7 +73,7 @@ def test_the_core_benchmarks_a_network_in_memory_twice_without_disk_caches(scene
     )
     settings = BenchmarkSettings.from_config(cfg)
     groundtruths = compute_groundtruths(
-        scene, {"depth": 50, "definitions": {"relative_pose": cfg.groundtruth.definitions.relative_pose}}
+        scene, helpers.groundtruth_section({"relative_pose": cfg.groundtruth.definitions.relative_pose}, depth=50)
     )
     network = tiny_network(0)
     everyone = {"all": np.ones(len(scene.queries), dtype=bool)}
@@ -81,7 +82,7 @@ def test_the_core_benchmarks_a_network_in_memory_twice_without_disk_caches(scene
         network.load_state_dict(tiny_network(seed).state_dict())  # the same module, new weights
         described = describe_scene(NetworkDescriptor("tiny", network, PREPROCESSING, EXTRACTION), scene, cache_dir=None)
         rankings = build_rankings(scene, {"tiny": described}, groundtruths, settings.retrieval, random_seed=None)
-        result = benchmark(scene, rankings, settings, everyone, None, relevances(groundtruths))
+        result = benchmark(scene, rankings, settings, everyone, None, relevances(groundtruths, RankedRelevance()))
 
         similarity = by_hand(network, scene.queries.paths) @ by_hand(network, scene.database.paths).T
         ranking = rankings[0]
@@ -109,7 +110,7 @@ def test_a_k_beyond_the_ranking_depth_keeps_its_label_in_every_paradigm(scene, t
     )
     settings = BenchmarkSettings.from_config(cfg)
     groundtruths = compute_groundtruths(
-        scene, {"depth": 3, "definitions": {"relative_pose": cfg.groundtruth.definitions.relative_pose}}
+        scene, helpers.groundtruth_section({"relative_pose": cfg.groundtruth.definitions.relative_pose}, depth=3)
     )
     described = describe_scene(
         NetworkDescriptor("tiny", tiny_network(0), PREPROCESSING, EXTRACTION), scene, cache_dir=None
@@ -118,7 +119,7 @@ def test_a_k_beyond_the_ranking_depth_keeps_its_label_in_every_paradigm(scene, t
     assert {r.depth for r in rankings} == {3}
     everyone = {"all": np.ones(len(scene.queries), dtype=bool)}
     with caplog.at_level("WARNING"):
-        result = benchmark(scene, rankings, settings, everyone, tmp_path, relevances(groundtruths))
+        result = benchmark(scene, rankings, settings, everyone, tmp_path, relevances(groundtruths, RankedRelevance()))
     assert sum("exceed the images ranked per query" in r.getMessage() for r in caplog.records) == 1
     labels = result.localization.drop_duplicates(["paradigm", "k"]).set_index(["paradigm", "k"])["k_effective"]
     assert labels.to_dict() == {("approximation", 1): 1, ("approximation", 5): 3, ("approximation", 8): 3,
@@ -264,6 +265,15 @@ def test_no_module_imports_from_a_layer_above_it():
             r"paradigms.local_sfm.kk: unknown key; expected one of \['enabled', 'k', 'map_matches'\]",
         ),
         ("sfm.pnp.max_error=-1", r"sfm.pnp.max_error: must be"),
+        (
+            "paradigms.local_sfm.map_matches=query",
+            r"paradigms.local_sfm.map_matches: a MapMatches is chosen by its config group now: "
+            r"paradigms/local_sfm/map_matches=query \(configs/paradigms/local_sfm/map_matches/query.yaml\)",
+        ),
+        (
+            "+paradigms.approximation.alpha=4",
+            r"paradigms.approximation.alpha: moved, now paradigms.approximation.weights.csi.alpha",
+        ),
         ("retrieval.depth=0", r"retrieval.depth: must be >= 1"),
     ],
 )
@@ -313,11 +323,16 @@ def test_a_new_paradigm_is_its_module_and_one_registry_entry(scene, monkeypatch)
     settings = BenchmarkSettings.from_config(cfg)
     assert settings.paradigms.enabled() == ["approximation", "top_image"]
     groundtruths = compute_groundtruths(
-        scene, {"depth": 50, "definitions": {"relative_pose": cfg.groundtruth.definitions.relative_pose}}
+        scene, helpers.groundtruth_section({"relative_pose": cfg.groundtruth.definitions.relative_pose}, depth=50)
     )
     rankings = build_rankings(scene, {}, groundtruths, settings.retrieval, random_seed=0)
     table = benchmark(
-        scene, rankings, settings, {"all": np.ones(len(scene.queries), dtype=bool)}, None, relevances(groundtruths)
+        scene,
+        rankings,
+        settings,
+        {"all": np.ones(len(scene.queries), dtype=bool)},
+        None,
+        relevances(groundtruths, RankedRelevance()),
     ).localization
     columns = ["ranking", "k", "position_threshold_m", "localized_pct"]
     mine = table[table["paradigm"] == "top_image"][columns].sort_values(columns[:3]).reset_index(drop=True)

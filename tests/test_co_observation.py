@@ -20,7 +20,7 @@ from locretrieval.localization.pairs import PairSelection, database_pairs, overl
 from locretrieval.localization.sfm import SfmInputs
 from locretrieval.retrieval import EMPTY
 from locretrieval.scene import ImageSet, Scene
-from locretrieval.training.relevance import NegativeSettings, TrainingRelevanceSettings, training_pairs
+from locretrieval.training.relevance import TrainingRelevanceSettings, UnrelatedNegatives, training_pairs
 
 SCENE = {
     "width": 256,
@@ -38,6 +38,7 @@ SCENE = {
 PAIRS = {"near": 0.1, "far": 25.0, "min_radius": 0.0, "max_per_image": 10}  # the scene has no frustum_far
 SFM = helpers.sfm_settings({"map_pairs": PAIRS})
 COOBS = {"min_shared": 1, "query_pairs": 10, "sfm": SFM}
+CO_OBSERVATION = "locretrieval.groundtruth.CoObservationDefinition"
 
 
 def selection(**overrides) -> PairSelection:
@@ -106,10 +107,12 @@ def test_shared_points_agree_with_covisibility_by_depth(scene, cache, shared):
     assert all(shared[q, best[q]].max() > 0 for q in range(len(shared)))
 
 
-def test_groundtruth_ranks_by_shared_points_through_the_registry(scene, cache, shared, monkeypatch):
+def test_groundtruth_ranks_by_shared_points_chosen_by_target(scene, cache, shared, monkeypatch):
     database, queries = scene.database, scene.queries
     scene = Scene("tiny", database, queries)
-    config = {"depth": 10, "definitions": {"coobs": {"type": "co_observation", "min_shared": 5, "query_pairs": 10}}}
+    config = helpers.groundtruth_section(
+        {"coobs": {"_target_": CO_OBSERVATION, "min_shared": 5, "query_pairs": 10}}, depth=10
+    )
     groundtruth = compute_groundtruths(scene, config, SFM, cache_dir=cache)["coobs"]
     assert groundtruth.name == "gt_coobs" and groundtruth.ranking.kind == "groundtruth"
     indices, scores = groundtruth.ranking.indices, groundtruth.ranking.scores
@@ -132,12 +135,18 @@ def test_groundtruth_ranks_by_shared_points_through_the_registry(scene, cache, s
     assert not calls
     with pytest.raises(ConfigError, match=r"groundtruth.definitions.co_observation.min_shard: unknown key"):
         compute_groundtruths(
-            scene, {"depth": 10, "definitions": {"co_observation": {"min_shard": 1, "query_pairs": 10}}}, SFM
+            scene,
+            helpers.groundtruth_section(
+                {"co_observation": {"_target_": CO_OBSERVATION, "min_shard": 1, "query_pairs": 10}}, depth=10
+            ),
+            SFM,
         )
     with pytest.raises(
-        ConfigError, match=r"groundtruth.definitions.co_observation: the co_observation ground truth needs the sfm"
+        ConfigError,
+        match=r"groundtruth.definitions.co_observation: locretrieval.*CoObservationDefinition needs the sfm",
     ):
-        compute_groundtruths(scene, config | {"definitions": {"co_observation": {"min_shared": 1, "query_pairs": 10}}})
+        definition = {"_target_": CO_OBSERVATION, "min_shared": 1, "query_pairs": 10}
+        compute_groundtruths(scene, config | {"definitions": {"co_observation": definition}})
 
 
 def test_queries_without_a_pose_get_no_ranking_and_share_the_caches(scene, tmp_path):
@@ -213,7 +222,7 @@ def test_database_co_observations_train_by_the_share_of_points_of_the_global_map
     np.testing.assert_array_equal(counts, expected)
     assert (expected[~np.eye(len(points), dtype=bool)] >= 5).sum() > len(points)  # many pairs share points
     settings = TrainingRelevanceSettings(
-        {"type": "co_observation", "min_shared": 5, "query_pairs": 50}, NegativeSettings("unrelated", 0.1, None, None)
+        {"_target_": CO_OBSERVATION, "min_shared": 5, "query_pairs": 50}, UnrelatedNegatives(0.1, None, None)
     )
     context = DefinitionContext(far=25.0, sfm=SFM, cache_dir=cache, world=world)
     graded = training_pairs(world.database, settings, context).graded.toarray()

@@ -1,11 +1,30 @@
-"""The config resolvers: multirun job folders that always fit."""
+"""The config resolvers (multirun job folders that always fit) and the one place of every
+default (the YAML's), checked by parsing the package and composing its configs."""
 
+import ast
+import dataclasses
+import importlib
+import inspect
 import os
+import re
+from collections.abc import Iterator, Mapping
+from typing import Any
 
 import helpers
-from omegaconf import OmegaConf
+import pytest
+from hydra.utils import get_object
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from locretrieval.config import JOB_DIRNAME_LENGTH, job_dirname
+from locretrieval import config as config_module
+from locretrieval.config import (
+    JOB_DIRNAME_LENGTH,
+    MOVED_KEYS,
+    ConfigError,
+    job_dirname,
+    refuse_moved_keys,
+    validated,
+)
+from locretrieval.metrics.subsets import SubsetSettings
 
 #: 15 long overrides, as a sweep over the training's nested keys writes them.
 LONG = [f"callbacks.localization_validation.some_rather_long_option_{i}=value_number_{i}" for i in range(15)]
@@ -30,3 +49,150 @@ def test_both_entry_points_name_their_jobs_by_the_resolver():
     for name in ("train", "evaluate"):
         subdir = OmegaConf.load(helpers.CONFIGS / f"{name}.yaml").hydra.sweep._get_node("subdir")._value()
         assert subdir.startswith("${job_dirname:${hydra.job.num},"), name
+
+
+# ------------------------------------------------- one place per default: the YAML's, never Python's too
+
+PACKAGE = helpers.CONFIGS.parent / "locretrieval"
+#: The entry points' configs, composed with their default choices.
+ENTRY_POINTS = ("evaluate", "train")
+
+
+def defaults_of(target: Any) -> set[str]:
+    """The parameters of a class or function (a dataclass: its fields) that have a default."""
+    if dataclasses.is_dataclass(target):
+        return {
+            field.name
+            for field in dataclasses.fields(target)
+            if field.default is not dataclasses.MISSING or field.default_factory is not dataclasses.MISSING
+        }
+    parameters = inspect.signature(target).parameters.values()
+    return {parameter.name for parameter in parameters if parameter.default is not inspect.Parameter.empty}
+
+
+def repeated(target: Any, node: Any) -> list[str]:
+    """The keys ``node`` (a config node) sets whose default ``target`` holds as well, sorted."""
+    keys = node.keys() if isinstance(node, (Mapping, DictConfig)) else ()
+    return sorted(defaults_of(target) & {str(key) for key in keys})
+
+
+def target_nodes(node: Any, key: str = "") -> Iterator[tuple[str, DictConfig]]:
+    """Every ``_target_`` node in a config (the node itself, nested mappings and lists), with its key."""
+    if isinstance(node, DictConfig):
+        if "_target_" in node:
+            yield key, node
+        children = ((name, node._get_node(name)) for name in node.keys())
+    elif isinstance(node, ListConfig):
+        children = ((f"[{index}]", node._get_node(index)) for index in range(len(node)))
+    else:
+        return
+    for name, child in children:
+        yield from target_nodes(child, f"{key}.{name}".lstrip(".") if not name.startswith("[") else f"{key}{name}")
+
+
+def validated_sections() -> list[tuple[type, str]]:
+    """(schema, config key) of every ``validated(Schema, ..., "key")`` call of the package with a
+    literal key (the sections it checks), found by parsing its modules; the schema by the name
+    its module imports (at the top or in a function)."""
+    sections = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        tree = ast.parse(path.read_text())
+        calls = [
+            node
+            for node in ast.walk(tree)
+            if isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Name)
+            and node.func.id == "validated"
+            and len(node.args) == 3
+            and isinstance(node.args[0], ast.Name)
+            and isinstance(node.args[2], ast.Constant)
+        ]
+        if not calls:
+            continue
+        module = importlib.import_module(".".join(path.relative_to(PACKAGE.parent).with_suffix("").parts))
+        imported = {
+            alias.asname or alias.name: node.module
+            for node in ast.walk(tree)
+            if isinstance(node, ast.ImportFrom) and node.module
+            for alias in node.names
+        }
+        for call in calls:
+            name = call.args[0].id
+            owner = module if hasattr(module, name) else importlib.import_module(imported[name])
+            sections.append((getattr(owner, name), call.args[2].value))
+    return list(dict.fromkeys(sections))
+
+
+def test_no_schema_or_constructor_built_from_yaml_has_a_default_the_yaml_also_sets(monkeypatch):
+    """A default lives in the YAML alone: no schema checked by `validated` (nested sections and
+    parts included) and no class or function a ``_target_`` names (in any YAML file, or in the
+    entry points' composed configs) has a default for a key its YAML node sets."""
+    composed = {name: helpers.compose_config(name, "paths.root_dir=/nonexistent") for name in ENTRY_POINTS}
+    files = {str(path.relative_to(helpers.CONFIGS)): OmegaConf.load(path) for path in helpers.CONFIGS.rglob("*.yaml")}
+    violations = [
+        f"{source}:{key or '<root>'}: {node._target_} defaults {repeated(get_object(node._target_), node)}"
+        for source, config in sorted({**files, **{f"{name}.yaml composed": c for name, c in composed.items()}}.items())
+        for key, node in target_nodes(config)
+        if node._target_.startswith("locretrieval.")
+    ]
+    built = []  # (schema, key) of every section `validated` builds, nested ones too
+    real_build = config_module._build
+    monkeypatch.setattr(
+        config_module, "_build", lambda schema, node, key: built.append((schema, key)) or real_build(schema, node, key)
+    )
+    unchecked = []
+    for schema, key in validated_sections():
+        checked = False
+        for config in composed.values():
+            node = OmegaConf.select(config, key)
+            if node is None:
+                continue
+            try:
+                validated(schema, node, key)
+            except ConfigError:  # another entry point's section of that name
+                continue
+            checked = True
+        unchecked += [] if checked else [f"{schema.__name__} at {key}"]
+    for schema, key in dict.fromkeys(built):
+        for config in composed.values():
+            node = OmegaConf.select(config, key)
+            if node is not None and dataclasses.is_dataclass(schema):
+                violations += [f"{key}: {schema.__name__} defaults {repeated(schema, node)}"]
+    found = [violation for violation in dict.fromkeys(violations) if not violation.endswith("defaults []")]
+    assert not found, "\n".join(found)
+    assert unchecked == [] and len(dict.fromkeys(built)) > 20  # every section found was checked, nested ones too
+
+    @dataclasses.dataclass
+    class Section:  # the test's own check of its detector
+        depth: int
+        chunk_size: int = 256
+
+    assert repeated(Section, OmegaConf.create({"depth": 50, "chunk_size": 256})) == ["chunk_size"]
+    assert repeated(Section, OmegaConf.create({"depth": 50})) == []
+    assert repeated(lambda depth, name="x": None, {"name": "y"}) == ["name"]
+    nested = OmegaConf.create({"a": {"_target_": "x.Y", "b": [{"_target_": "x.Z"}]}})
+    assert [key for key, _ in target_nodes(nested)] == ["a", "a.b[0]"]
+
+
+@pytest.mark.parametrize("old", sorted(MOVED_KEYS))
+def test_a_moved_key_is_refused_naming_its_new_spelling(old):
+    for override in (f"{old}=1", f"+{old}=1", f"~{old}"):
+        with pytest.raises(ConfigError, match=rf"^{re.escape(old)}: moved, now {re.escape(MOVED_KEYS[old])} "):
+            refuse_moved_keys(["model=netvlad", override])
+    refuse_moved_keys(["model=netvlad", f"{old}_other=1", f"x.{old}=1"])  # other keys pass
+
+
+def test_moved_keys_are_refused_on_the_command_line_and_in_a_section():
+    completed = helpers.run_python(
+        "import sys; sys.argv = ['evaluate.py', 'paradigms.approximation.alpha=4']; "
+        "import runpy; runpy.run_path('evaluate.py', run_name='__main__')"
+    )
+    assert completed.returncode != 0
+    assert "ConfigError: paradigms.approximation.alpha: moved, now paradigms.approximation.weights.csi.alpha" in (
+        completed.stderr
+    )
+    cfg = helpers.evaluate_config("paths.root_dir=/nonexistent", "+subsets.maskrcnn_weights=/w.pth")
+    with pytest.raises(
+        ConfigError, match=r"subsets.maskrcnn_weights: moved, now subsets.mask_sources.maskrcnn.weights"
+    ):
+        validated(SubsetSettings, cfg.subsets, "subsets")

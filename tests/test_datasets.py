@@ -8,14 +8,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import render_settings
 from hydra import compose, initialize_config_dir
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from test_kapture_io import PINHOLE, pose, write_kapture
 
+from locretrieval.config import ConfigError
 from locretrieval.scene import Scene
-from locretrieval.scene.datasets import DatasetNotFoundError
-from locretrieval.scene.ltvl import LTVL_NAME_STYLES, ltvl_name
+from locretrieval.scene.datasets import DatasetNotFoundError, instantiate_scene
+from locretrieval.scene.ltvl import KaptureNames, LtvlNames, WithoutFirstFolder, write_ltvl
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 DATASETS = ["aachen", "baidu", "robotcar", "robotcar_v2", "gangnam", "inloc"]
@@ -43,13 +45,11 @@ def kapture_folder(root: Path, names: list[str], posed: bool) -> Path:
 def test_every_data_config_has_the_same_keys():
     configs = {dataset: compose_data(dataset, "paths.data_dir=/d").data for dataset in [*DATASETS, "kapture"]}
     assert len({frozenset(cfg) for cfg in configs.values()}) == 1
-    assert {"_target_", "name", "root", "mapping", "queries", "ltvl_name_style", "frustum_far"} <= set(
-        configs["aachen"]
-    )
+    assert {"_target_", "name", "root", "mapping", "queries", "ltvl_names", "frustum_far"} <= set(configs["aachen"])
     for dataset in DATASETS:
         cfg = configs[dataset]
         assert cfg.name == dataset
-        assert cfg.ltvl_name_style in LTVL_NAME_STYLES
+        assert cfg.ltvl_names._target_.startswith("locretrieval.scene.ltvl.")
         assert cfg.frustum_far in (25.0, 50.0)
         assert cfg.root == "/d"
 
@@ -113,7 +113,7 @@ def test_aachen_layout_loads_with_day_night_tags_from_env_root(tmp_path, monkeyp
     assert scene.queries.names == ["query/day/milestone/a.jpg", "query/night/nexus5x/b.jpg"]
     assert scene.queries.tags == [frozenset({"day"}), frozenset({"night"})]
     assert not scene.queries.has_pose.any()
-    assert [ltvl_name(n, cfg.data.ltvl_name_style) for n in scene.queries.names] == ["a.jpg", "b.jpg"]
+    assert [scene.ltvl_names(n) for n in scene.queries.names] == ["a.jpg", "b.jpg"]
     assert scene.sources == [base / "mapping", base / "query_day", base / "query_night"]
 
 
@@ -133,7 +133,7 @@ def test_robotcar_v2_locations_and_conditions(tmp_path):
     assert scene.queries.tag_mask("day").tolist() == [False, True, False]
     assert all("query" in tags for tags in scene.queries.tags)
     assert scene.queries.paths[2] == base / "02/query/sensors/records_data/night/rear/7.jpg"
-    assert [ltvl_name(n, cfg.data.ltvl_name_style) for n in scene.queries.names] == [
+    assert [scene.ltvl_names(n) for n in scene.queries.names] == [
         "rear/5.jpg",
         "rear/6.jpg",
         "rear/7.jpg",
@@ -206,23 +206,15 @@ def test_generic_kapture_config(tmp_path):
 
 
 def test_bad_dataset_settings_fail_before_loading(tmp_path):
-    with pytest.raises(InstantiationException, match="unknown ltvl_name_style 'short'"):
-        instantiate(compose_data("baidu", f"paths.data_dir={tmp_path}", "data.ltvl_name_style=short").data)
+    with pytest.raises(
+        ConfigError,
+        match=r"data.ltvl_names: a LtvlNames is chosen by its config group now: data/ltvl_names=basename \(configs/",
+    ):
+        instantiate_scene(compose_data("baidu", f"paths.data_dir={tmp_path}", "data.ltvl_names=basename").data)
     with pytest.raises(InstantiationException, match="frustum_far must be a positive distance"):
         instantiate(compose_data("baidu", f"paths.data_dir={tmp_path}", "data.frustum_far=0").data)
     with pytest.raises(InstantiationException, match=r"1 query_tags \['x'\] for 2 query entries"):
         instantiate(compose_data("gangnam", f"paths.data_dir={tmp_path}", "data.query_tags=[x]").data)
-
-
-def test_synthetic_yaml_mirrors_the_renderer_defaults():
-    from omegaconf import OmegaConf
-
-    from locretrieval.scene.synthetic import DEFAULT_CONFIG
-
-    render = OmegaConf.load(Path(__file__).parents[1] / "configs" / "data" / "synthetic.yaml").render
-    assert set(render) == set(DEFAULT_CONFIG)
-    literal = {key: value for key, value in OmegaConf.to_container(render).items() if not str(value).startswith("${")}
-    assert literal == {key: DEFAULT_CONFIG[key] for key in literal}
 
 
 def test_synthetic_street_is_rendered_once_whatever_the_workers_and_auto_device(tmp_path, caplog):
@@ -236,11 +228,12 @@ def test_synthetic_street_is_rendered_once_whatever_the_workers_and_auto_device(
               "texture_size": 32, "length": 20.0,
               "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 1.0, "noise": 0.0},
               "workers": 1, "device": "cpu", "seed": 2}  # fmt: skip
-    facts = {"ltvl_name_style": "full", "frustum_far": 25.0}
-    first = load_synthetic_dataset("street", tmp_path, render, **facts)
+    facts = {"ltvl_names": KaptureNames(), "frustum_far": 25.0}
+    first = load_synthetic_dataset("street", tmp_path, render_settings(render), **facts)
     with caplog.at_level(logging.INFO):
-        again = load_synthetic_dataset("street", tmp_path, {**render, "workers": 2, "device": "auto"}, **facts)
-    assert (again.ltvl_name_style, again.frustum_far) == ("full", 25.0)  # dataset facts kept on the scene
+        auto = render_settings({**render, "workers": 2, "device": "auto"})
+        again = load_synthetic_dataset("street", tmp_path, auto, **facts)
+    assert (again.ltvl_names, again.frustum_far) == (KaptureNames(), 25.0)  # dataset facts kept on the scene
     assert "synthetic scene cached" in caplog.text and again.database.paths == first.database.paths
     assert len([path for path in (tmp_path / "synthetic").iterdir() if path.is_dir()]) == 1  # and its render lock
     masks = [
@@ -267,3 +260,26 @@ def test_a_missing_dataset_is_reported_once_with_its_lines_as_written(tmp_path):
     lines = [line.strip() for line in shown.splitlines()]
     assert "kapture_download_dataset.py update" in lines  # its lines as lines, not inside a one-line repr
     assert "InstantiationException" not in shown
+
+
+class ShoutedNames(LtvlNames):
+    """LTVL names from outside the package: the file name, upper case."""
+
+    def __call__(self, name):
+        return Path(name).name.upper()
+
+
+def test_ltvl_names_from_outside_the_package_are_chosen_through_the_config(tmp_path, monkeypatch):
+    base = tmp_path / "Aachen-Day-Night-v1.1"
+    kapture_folder(base / "mapping", ["db/1.jpg", "db/2.jpg"], posed=True)
+    kapture_folder(base / "query_day", ["query/day/milestone/a.jpg"], posed=False)
+    kapture_folder(base / "query_night", ["query/night/nexus5x/b.jpg"], posed=False)
+    cfg = compose_data("aachen", f"paths.data_dir={tmp_path}", f"data.ltvl_names._target_={__name__}.ShoutedNames")
+    scene = instantiate_scene(cfg.data)
+    assert isinstance(scene.ltvl_names, ShoutedNames)
+    write_ltvl(
+        tmp_path / "out.txt", scene.queries.names, np.tile([1.0, 0, 0, 0], (2, 1)), np.zeros((2, 3)), scene.ltvl_names
+    )
+    assert [line.split()[0] for line in (tmp_path / "out.txt").read_text().splitlines()] == ["A.JPG", "B.JPG"]
+    chosen = compose_data("aachen", f"paths.data_dir={tmp_path}", "data/ltvl_names=strip_prefix")
+    assert instantiate_scene(chosen.data).ltvl_names == WithoutFirstFolder()

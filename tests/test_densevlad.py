@@ -286,7 +286,7 @@ def test_small_images_keep_their_size_unless_upsampled(tmp_path):
 def test_shifted_crops_retrieve_their_source_texture(textures_scene, fitted):
     database = fitted.describe(textures_scene.database)
     queries = fitted.describe(textures_scene.queries)
-    ranking = search(queries, database, depth=3, name="densevlad")
+    ranking = search(queries, database, depth=3, name="densevlad", chunk_size=256)
     np.testing.assert_array_equal(ranking.indices[:, 0], [4, 0, 2])
     assert (ranking.scores[:, 0] > ranking.scores[:, 1] + 0.1).all()
 

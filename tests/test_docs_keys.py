@@ -5,6 +5,7 @@ import re
 from pathlib import Path
 
 import yaml
+from helpers import compose_config
 from hydra.conf import HydraConf
 from omegaconf import OmegaConf
 
@@ -24,7 +25,8 @@ def _paths(node, prefix: tuple[str, ...]):
 
 def config_keys() -> set[tuple[str, ...]]:
     """Every key path any config file defines, under the package it lands in (its group's path,
-    or the root for ``@package _global_`` files and the primary configs), and Hydra's own."""
+    or the root for ``@package _global_`` files and the primary configs), those of the composed
+    entry points (a default placed by its defaults list) and Hydra's own."""
     keys = set(_paths(OmegaConf.to_container(OmegaConf.structured(HydraConf)), ("hydra",)))
     for path in CONFIGS.rglob("*.yaml"):
         text = path.read_text()
@@ -38,6 +40,8 @@ def config_keys() -> set[tuple[str, ...]]:
         keys |= set(_paths(yaml.safe_load(text) or {}, prefix))
         if group and group[0] == "model" and path.name != "preprocessing":  # model@validation_references.<name>
             keys |= set(_paths(yaml.safe_load(text) or {}, ("validation_references", "densevlad")))
+    for name in ("evaluate", "train"):  # where defaults lists place a group's options (weights@...weights.csi)
+        keys |= set(_paths(OmegaConf.to_container(compose_config(name, "paths.root_dir=/nonexistent")), ()))
     return keys
 
 

@@ -241,22 +241,29 @@ def retrieval_at_5(model: TrainableDescriptor, scene, relevance: np.ndarray) -> 
 
 def test_pretrained_features_rank_the_database_better_than_random_ones(tmp_path):
     render_synthetic_dataset(
-        {
-            "width": 160,
-            "height": 120,
-            "num_database": 64,
-            "num_queries": 16,
-            "texture_size": 128,
-            "length": 48.0,
-            "workers": 1,
-            "seed": 6,
-            "hard_query_fraction": 0.0,
-        },
+        helpers.render_settings(
+            {
+                "width": 160,
+                "height": 120,
+                "num_database": 64,
+                "num_queries": 16,
+                "texture_size": 128,
+                "length": 48.0,
+                "workers": 1,
+                "seed": 6,
+                "hard_query_fraction": 0.0,
+            }
+        ),
         tmp_path,
     )
     scene = load_kapture_scene("tiny", [tmp_path / "mapping"], [tmp_path / "query"])
     truth = relative_pose_groundtruth(
-        scene.database, scene.queries, depth=50, position_threshold=25.0, rotation_threshold=45.0
+        scene.database,
+        scene.queries,
+        depth=50,
+        position_threshold=25.0,
+        rotation_threshold=45.0,
+        ranked="within_thresholds",
     )
     relevance = truth.relevance.toarray()
     pretrained = TrainableDescriptor(weights=PATH, random_init=False, seed=0, **GEM)

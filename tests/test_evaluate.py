@@ -17,7 +17,8 @@ from locretrieval.benchmark import ParadigmsSettings, check_unique_names
 from locretrieval.config import ConfigError, validated
 from locretrieval.evaluation import evaluate
 from locretrieval.report.markdown import md_text
-from locretrieval.retrieval import random_ranking
+from locretrieval.retrieval import Ranking, random_ranking
+from locretrieval.scene.datasets import instantiate_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_SCENE = [
@@ -128,7 +129,7 @@ def test_multirun_from_the_command_line(run):
         str(ROOT / "evaluate.py"),
         "-m",
         f"paths.root_dir={root}",
-        "paradigms.approximation.alpha=4,8",
+        "paradigms.approximation.weights.csi.alpha=4,8",
         f"hydra.sweep.dir={root}/multirun",
         "baselines.random=false",
         "output.ltvl=false",
@@ -162,7 +163,7 @@ def test_multirun_from_the_command_line(run):
     assert report.returncode == 0, report.stderr[-3000:]
     text = (root / "report" / "report.md").read_text()
     # CSI's interpolated poses change with alpha: densevlad is reported once per setting (as Markdown text)
-    labels = [f"densevlad [paradigms.approximation.alpha={alpha}]" for alpha in (4, 8)]
+    labels = [f"densevlad [paradigms.approximation.weights.csi.alpha={alpha}]" for alpha in (4, 8)]
     assert all(md_text(label) in text for label in labels)
     assert all(label in html.unescape((root / "report" / "report.html").read_text()) for label in labels)
 
@@ -182,8 +183,8 @@ def test_every_missing_input_is_named_in_one_error_before_any_work(tmp_path):
     missing, cache = tmp_path / "missing", tmp_path / "cache"
     paths = [f"paths.root_dir={tmp_path}", f"paths.cache_dir={cache}", *SMALL_SCENE]
     overrides = ["model=precomputed", f"model.path={missing}/AP-GeM-LM18", "sfm/features=kapture",
-                 f"paradigms.global_sfm.colmap_model={missing}/sfm", "subsets.mask_source=maskrcnn",
-                 f"subsets.maskrcnn_weights={missing}/maskrcnn.pth"]  # fmt: skip
+                 f"paradigms.global_sfm.colmap_model={missing}/sfm", "subsets.dynamic_masks=[maskrcnn]",
+                 f"subsets.mask_sources.maskrcnn.weights={missing}/maskrcnn.pth"]  # fmt: skip
     with pytest.raises(FileNotFoundError) as error:
         evaluate(evaluate_config(*paths, *overrides), tmp_path / "run")
     message = str(error.value)
@@ -202,7 +203,8 @@ def test_every_missing_input_is_named_in_one_error_before_any_work(tmp_path):
 
 
 def test_paradigm_sections_are_checked():
-    paradigms = OmegaConf.load(ROOT / "configs" / "paradigms" / "default.yaml")
+    paradigms = evaluate_config("paths.root_dir=/nonexistent").paradigms  # configs/paradigms/default.yaml, composed
+    OmegaConf.set_struct(paradigms, False)
     assert validated(ParadigmsSettings, paradigms, "paradigms").enabled() == [
         "approximation",
         "local_sfm",
@@ -222,3 +224,39 @@ def test_rankings_sharing_a_name_are_an_error():
     check_unique_names([random_ranking(3, 5, 2, seed=0)])
     with pytest.raises(ValueError, match=r"\['random'\] are named twice"):
         check_unique_names([random_ranking(3, 5, 2, seed=0), random_ranking(3, 5, 2, seed=1)])
+
+
+class CentreOracle:
+    """A model from outside the package, not a descriptor: each query's database images by camera
+    distance; it reads a ``marker`` file (an input of the run)."""
+
+    def __init__(self, name: str, marker: str) -> None:
+        self.name, self.marker = name, Path(marker)
+
+    def missing_inputs(self, scene):
+        return [] if self.marker.is_file() else [f"marker: {self.marker} not found"]
+
+    def rankings(self, scene, search):
+        distance = np.linalg.norm(scene.queries.centers[:, None] - scene.database.centers[None], axis=2)
+        order = np.argsort(distance, axis=1, kind="stable")[:, : search.settings.depth]
+        return [Ranking(self.name, order, -np.take_along_axis(distance, order, 1), "groundtruth")]
+
+
+def test_a_model_from_outside_the_package_is_evaluated_through_the_config(tmp_path):
+    marker = tmp_path / "marker.txt"
+    node = f"{{_target_: {__name__}.CentreOracle, name: oracle, marker: {marker}}}"
+    cfg = evaluate_config(
+        f"paths.root_dir={tmp_path}", *SMALL_SCENE, "~model", f"+model={node}", "groundtruth=none",
+        "paradigms.local_sfm.enabled=false", "paradigms.global_sfm.enabled=false", "paradigms.approximation.k=[1]",
+        "report.figure_formats=[]", "report.scene_view.enabled=false", "baselines.random=false",
+    )  # fmt: skip
+    with pytest.raises(FileNotFoundError, match=rf"1 missing input.*\n- model.marker: {marker} not found"):
+        evaluate(cfg, tmp_path / "run")
+    marker.write_text("here")
+    evaluate(cfg, tmp_path / "run")
+    saved = np.load(tmp_path / "run" / "rankings" / "oracle.npz")
+    scene = instantiate_scene(cfg.data)
+    distance = np.linalg.norm(scene.queries.centers[:, None] - scene.database.centers[None], axis=2)
+    np.testing.assert_array_equal(saved["indices"], np.argsort(distance, axis=1, kind="stable"))
+    results = pd.read_csv(tmp_path / "run" / "results.csv")
+    assert set(results["ranking"]) == {"oracle"} and set(results["method"]) == {"ewb"}

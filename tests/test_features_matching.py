@@ -20,19 +20,20 @@ from locretrieval.localization import features as features_module
 from locretrieval.localization import matching, nearest_neighbours
 from locretrieval.localization.features import FeatureStore, LocalFeatures, extract_features
 from locretrieval.localization.matching import PairMatcher
-from locretrieval.localization.nearest_neighbours import BatchedMatcher, NearestNeighbourMatcher
-from locretrieval.localization.sfm import SfmSettings
+from locretrieval.localization.nearest_neighbours import CPU_BLOCK_BYTES, BatchedMatcher, NearestNeighbourMatcher
+from locretrieval.localization.sfm import SfmInputs, SfmSettings
 from locretrieval.localization.store import ShardedStore
 from locretrieval.localization.verification import (
     NoVerification,
+    PairVerification,
     PoseVerification,
     TwoViewVerification,
-    epipolar_inliers,
+    VerificationBatch,
     essential_matrices,
     sampson_errors,
     two_view_inliers,
 )
-from locretrieval.scene import Camera, ImageSet
+from locretrieval.scene import Camera, ImageSet, Scene
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 
@@ -63,7 +64,7 @@ def features(overrides, kind="sift"):
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("features_scene")
-    render_synthetic_dataset(SCENE, root)
+    render_synthetic_dataset(helpers.render_settings(SCENE), root)
     return load_kapture_scene("tiny", [root / "mapping"], [root / "query"])
 
 
@@ -308,7 +309,7 @@ def test_matcher_equals_an_explicit_computation_on_real_valued_descriptors():
                 [first[rows] + 0.3 * rng.normal(size=(len(rows), 16)), rng.normal(size=(size - len(rows), 16))]
             )
         )
-    matches = NearestNeighbourMatcher(0.8, block_bytes=4 * 128 * 128)(first, others)
+    matches = NearestNeighbourMatcher(0.8, "float32", 4 * 128 * 128)(first, others)
     for other, found in zip(others, matches):
         assert found.dtype == np.int32 and found.shape[1] == 2
         if len(other) >= 2:
@@ -318,7 +319,7 @@ def test_matcher_equals_an_explicit_computation_on_real_valued_descriptors():
 
 
 def test_matcher_block_shape_bounds_the_similarity_memory():
-    matcher = NearestNeighbourMatcher(0.8, block_bytes=8 << 20)
+    matcher = NearestNeighbourMatcher(0.8, "float32", 8 << 20)
     # about square, equal blocks: 20,000 columns = 157 tiles of 128 in 15 blocks of 11 tiles; rows in 15 blocks of 1,408
     assert matcher.block_shape(20_000, 20_000, 4) == (1408, 1408)
     assert matcher.block_shape(20_000, 300, 4) == (
@@ -400,7 +401,9 @@ def test_batched_matcher_on_the_gpu_equals_the_cpu_with_ties(precision, batch_mi
     ).matching
     gpu = settings.matcher()
     assert isinstance(gpu, BatchedMatcher) and gpu.device.startswith("cuda")
-    for found, expected in zip(gpu(first, partners), NearestNeighbourMatcher(0.8, precision)(first, partners)):
+    for found, expected in zip(
+        gpu(first, partners), NearestNeighbourMatcher(0.8, precision, CPU_BLOCK_BYTES)(first, partners)
+    ):
         np.testing.assert_array_equal(found, expected)
 
 
@@ -458,10 +461,10 @@ def test_sampson_error_approximates_the_geometric_error_and_bounds_matches_in_pi
     normal = line[:, :2] / np.linalg.norm(line[:, :2], axis=1, keepdims=True)
     moved = np.where((np.arange(50) < 25)[:, None], x1, x1 + 0.02 * normal)
     matches = np.column_stack([np.arange(50), np.arange(50)])
-    inliers = epipolar_inliers(
-        x0 * 500 + [320, 240], moved * 500 + [320, 240], matches, camera, (q0, t0), camera, (q1, t1), max_error=2.0
-    )
-    np.testing.assert_array_equal(inliers, np.arange(50) < 25)
+    images = ImageSet(["a.jpg", "b.jpg"], Path("/nonexistent"), [camera] * 2, np.stack([q0, q1]), np.stack([t0, t1]))
+    keypoints = {"a.jpg": x0 * 500 + [320, 240], "b.jpg": moved * 500 + [320, 240]}
+    (kept,) = PoseVerification(2.0).verify(VerificationBatch(images, images, [(0, 1)], [matches], keypoints, keypoints))
+    np.testing.assert_array_equal(kept, matches[:25])
 
 
 def test_matches_are_cached_per_pair_and_reused_for_larger_sets(scene, tmp_path, monkeypatch):
@@ -550,17 +553,9 @@ def test_two_view_verification_keeps_raw_matches_consistent_with_the_poses(scene
     raw, verified = matcher.load([pair], NoVerification())[pair], matcher.load([pair], TWO_VIEW)[pair]
     assert len(verified) >= 15 and {tuple(m) for m in verified.tolist()} <= {tuple(m) for m in raw.tolist()}
     keypoints = store.keypoints(list(pair))
-    consistent = epipolar_inliers(
-        keypoints[pair[0]],
-        keypoints[pair[1]],
-        verified,
-        database.cameras[first],
-        (database.qvec[first], database.tvec[first]),
-        database.cameras[second],
-        (database.qvec[second], database.tvec[second]),
-        max_error=4.0,
-    )
-    assert consistent.mean() > 0.9
+    batch = VerificationBatch(database, database, [(first, second)], [verified], keypoints, keypoints)
+    (consistent,) = PoseVerification(4.0).verify(batch)
+    assert len(consistent) > 0.9 * len(verified)
 
 
 @pytest.mark.parametrize(
@@ -736,3 +731,42 @@ def test_local_features_and_a_verification_from_outside_the_package_are_chosen_b
         validated(SfmSettings, wrong, "sfm")
     with pytest.raises(ConfigError, match=r"sfm.query_verification.max_eror: unknown key"):
         validated(SfmSettings, {**plain, "query_verification": {**nodes["query_verification"], "max_eror": 1}}, "sfm")
+
+
+@dataclass(unsafe_hash=True)
+class FirstMatches(PairVerification):
+    """A database verification from outside the package: each pair's first ``count`` matches."""
+
+    count: int
+
+    def store_name(self, images0, images1):
+        return f"first-{self.count}"
+
+    def verify(self, batch):
+        return [matches[: self.count] for matches in batch.matches]
+
+
+def test_a_database_verification_from_outside_the_package_is_chosen_through_the_config(tmp_path):
+    settings = helpers.sfm_settings(
+        choices=[
+            "~sfm.features",
+            f"+sfm.features={{_target_: {__name__}.GridFeatures, max_keypoints: 50, step: 16}}",
+            "~sfm.database_verification",
+            f"+sfm.database_verification={{_target_: {__name__}.FirstMatches, count: 3}}",
+        ]
+    )
+    assert settings.database_verification == FirstMatches(3)
+    camera = Camera("PINHOLE", 200, 150, (150.0, 150.0, 100.0, 75.0))
+    images = ImageSet(
+        ["a.jpg", "b.jpg"], Path("/nonexistent"), [camera] * 2, np.tile([1.0, 0, 0, 0], (2, 1)), np.zeros((2, 3))
+    )
+    inputs = SfmInputs.prepare(Scene("grid", images, images.subset(np.arange(0))), settings, tmp_path)
+    pair = ("a.jpg", "b.jpg")
+    inputs.database_pairs.ensure([pair], 1, inputs.database_verification)
+    np.testing.assert_array_equal(
+        inputs.database_pairs.load([pair], inputs.database_verification)[pair], np.tile(np.arange(3), (2, 1)).T
+    )
+    default = helpers.sfm_settings().database_verification
+    assert default == PoseVerification(
+        OmegaConf.load(helpers.CONFIGS / "sfm/database_verification/poses.yaml").max_epipolar_error
+    )

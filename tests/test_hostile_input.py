@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from locretrieval.localization.features import extract_features
-from locretrieval.models import PrecomputedDescriptor
 from locretrieval.report.markdown import md_text
 from locretrieval.scene import Camera, ImageSet
 from locretrieval.scene.feature_files import read_feature_array, read_feature_header
@@ -67,7 +66,7 @@ def test_global_features_header_is_parsed_not_evaluated(tmp_path):
     vectors = np.eye(2, 4, dtype=np.float32)
     folder = write_global_features(tmp_path / "mapping", command_dtype(marker), vectors, 4)
     with pytest.raises(KaptureFormatError, match=r"global_features\.txt:2: dtype .*__import__.* is not one of"):
-        PrecomputedDescriptor(path=folder)
+        helpers.precomputed(path=folder)
     assert not marker.exists()
 
 
@@ -107,8 +106,8 @@ def test_integer_global_features_are_refused_unless_allowed(tmp_path):
     with pytest.raises(
         ValueError, match=r"global_features\.txt: dtype int32 is not floating point.*allow_integer=true"
     ):
-        PrecomputedDescriptor(path=folder)
-    model = PrecomputedDescriptor(path=folder, allow_integer=True)
+        helpers.precomputed(path=folder)
+    model = helpers.precomputed(path=folder, allow_integer=True)
     assert model.describe(image_set(tmp_path / "mapping" / "sensors" / "records_data")).dtype == np.float32
 
 

@@ -13,7 +13,7 @@ from PIL import Image
 from locretrieval import geometry
 from locretrieval.scene import Camera, kapture_io
 from locretrieval.scene.kapture_io import KaptureFormatError, load_image_set, load_kapture_scene
-from locretrieval.scene.ltvl import ltvl_name, write_ltvl
+from locretrieval.scene.ltvl import FileNames, KaptureNames, WithoutFirstFolder, write_ltvl
 
 PINHOLE = kapture.Camera(kapture.CameraType.PINHOLE, [40, 30, 35.0, 36.0, 20.0, 15.0])
 SIMPLE_RADIAL = kapture.Camera(kapture.CameraType.SIMPLE_RADIAL, [32, 24, 30.0, 16.0, 12.0, 0.01])
@@ -346,13 +346,13 @@ def test_ltvl_export(tmp_path):
     qvec = np.array([[1.0, 0.0, 0.0, 0.0], [np.nan] * 4, [0.5, 0.5, -0.5, 0.5]])
     tvec = np.array([[1.5, -2.0, 3.25], [0.0, 0.0, 0.0], [0.1, 1e-5, -7.0]])
     path = tmp_path / "ltvl" / "aachen.txt"
-    assert write_ltvl(path, names, qvec, tvec, name_style="basename") == 1
+    assert write_ltvl(path, names, qvec, tvec, FileNames()) == 1
     assert path.read_text() == "IMG_1.jpg 1.0 0.0 0.0 0.0 1.5 -2.0 3.25\nIMG_2.jpg 0.5 0.5 -0.5 0.5 0.1 1e-05 -7.0\n"
-    assert write_ltvl(path, names, qvec, tvec) == 1
+    assert write_ltvl(path, names, qvec, tvec, KaptureNames()) == 1
     assert path.read_text().splitlines()[1].startswith("query/night/nexus5x/IMG_2.jpg 0.5 ")
-    assert write_ltvl(path, names[1:2], qvec[[0]], tvec[[0]], name_style="strip_prefix") == 0
+    assert write_ltvl(path, names[1:2], qvec[[0]], tvec[[0]], WithoutFirstFolder()) == 0
     assert path.read_text() == "rear/1417.jpg 1.0 0.0 0.0 0.0 1.5 -2.0 3.25\n"
-    assert [ltvl_name("a/b/c.jpg", style) for style in ("full", "basename", "strip_prefix")] == [
+    assert [names("a/b/c.jpg") for names in (KaptureNames(), FileNames(), WithoutFirstFolder())] == [
         "a/b/c.jpg",
         "c.jpg",
         "b/c.jpg",
@@ -362,13 +362,11 @@ def test_ltvl_export(tmp_path):
 def test_ltvl_export_rejects_ambiguous_or_unwritable_names(tmp_path):
     q, t = np.array([[1.0, 0, 0, 0]] * 2), np.zeros((2, 3))
     with pytest.raises(ValueError, match="same name, e.g. \\['x.jpg'\\]"):
-        write_ltvl(tmp_path / "a.txt", ["day/x.jpg", "night/x.jpg"], q, t, name_style="basename")
+        write_ltvl(tmp_path / "a.txt", ["day/x.jpg", "night/x.jpg"], q, t, FileNames())
     with pytest.raises(ValueError, match="no leading folder"):
-        write_ltvl(tmp_path / "a.txt", ["x.jpg", "y.jpg"], q, t, name_style="strip_prefix")
+        write_ltvl(tmp_path / "a.txt", ["x.jpg", "y.jpg"], q, t, WithoutFirstFolder())
     with pytest.raises(ValueError, match="whitespace"):
-        write_ltvl(tmp_path / "a.txt", ["x y.jpg", "z.jpg"], q, t)
-    with pytest.raises(ValueError, match="unknown LTVL name style 'short'"):
-        write_ltvl(tmp_path / "a.txt", ["x.jpg", "z.jpg"], q, t, name_style="short")
+        write_ltvl(tmp_path / "a.txt", ["x y.jpg", "z.jpg"], q, t, KaptureNames())
     assert not (tmp_path / "a.txt").exists()
 
 

@@ -1,9 +1,17 @@
 import numpy as np
 import pytest
+from helpers import evaluate_config
 
 from locretrieval import geometry
+from locretrieval.config import validated
 from locretrieval.localization.estimates import PoseEstimates
-from locretrieval.metrics.localization import localization_table, localized, query_error_table, query_subsets
+from locretrieval.metrics.localization import (
+    MetricsSettings,
+    localization_table,
+    localized,
+    query_error_table,
+    query_subsets,
+)
 from locretrieval.scene import Camera, ImageSet
 
 CAMERA = Camera("SIMPLE_PINHOLE", 64, 48, (50.0, 32.0, 24.0))
@@ -33,7 +41,11 @@ def estimate(position_offsets, rotation_degrees):
 
 def test_thresholds_include_equality_by_default_and_nan_is_not_localized():
     position, rotation = np.array([0.25, 0.2, 0.2, np.nan]), np.array([1.0, 2.0, 2.5, 1.0])
-    assert localized(position, rotation, [[0.25, 2.0]]).tolist() == [[True, True, False, False]]  # <=, the reference's
+    inclusive = validated(MetricsSettings, evaluate_config("paths.root_dir=/nonexistent").metrics, "metrics").inclusive
+    assert inclusive and localized(position, rotation, [[0.25, 2.0]], inclusive).tolist() == [
+        [True, True, False, False]
+    ]
+    # the YAML's default: <=, the reference's
     assert localized(position, rotation, [[0.25, 2.0]], inclusive=False).tolist() == [[False, False, False, False]]
     queries = queries_with_poses()
     at_threshold = estimate([0.25, 0.1, 0.3, 0.0], [1.0, 2.0, 1.0, 0.0])
@@ -44,7 +56,7 @@ def test_thresholds_include_equality_by_default_and_nan_is_not_localized():
 def test_localization_table_percentages():
     queries = queries_with_poses()
     e = estimate([0.1, 0.4, np.nan, 0.0], [1.0, 3.0, 0.0, 0.0])
-    table = localization_table("toy", [e], queries, THRESHOLDS, query_subsets(queries))
+    table = localization_table("toy", [e], queries, THRESHOLDS, query_subsets(queries), inclusive=True)
     lookup = table.set_index(["subset", "position_threshold_m"])["localized_pct"]
     assert lookup[("all", 0.25)] == pytest.approx(100 / 3)
     assert lookup[("all", 0.5)] == pytest.approx(200 / 3)

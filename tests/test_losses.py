@@ -10,7 +10,7 @@ from locretrieval.training.losses import APLoss, ContrastiveLoss, ListwiseLoss, 
 
 LOSSES = {"ap": APLoss, "triplet": TripletLoss, "contrastive": ContrastiveLoss, "listwise": ListwiseLoss}
 
-SETTINGS = [("ap", {"bins": 20}), ("triplet", {"margin": 0.1}),
+SETTINGS = [("ap", {"bins": 20}), ("triplet", {"margin": 0.1, "max_triplets_per_anchor": None}),
             ("triplet", {"margin": 0.1, "max_triplets_per_anchor": 2}),
             ("contrastive", {"pos_margin": 0.8, "neg_margin": 0.3}),
             ("listwise", {"temperature": 0.05, "target_temperature": 0.5})]  # fmt: skip
@@ -63,7 +63,9 @@ def test_triplet_is_the_mean_hinge_per_anchor_then_over_anchors():
     s = (descriptors @ descriptors.T).double().numpy()
     hinges = {a: [max(0.0, s[a, n] - s[a, p] + 0.1) for p in ps for n in ns] for a, (ps, ns) in ANCHORS.items()}
     expected = np.mean([np.mean(h) for h in hinges.values()])
-    assert TripletLoss(0.1)(descriptors, relevance, negatives).item() == pytest.approx(expected, abs=1e-6)
+    assert TripletLoss(0.1, max_triplets_per_anchor=None)(descriptors, relevance, negatives).item() == pytest.approx(
+        expected, abs=1e-6
+    )
     hardest = np.mean([max(h) for h in hinges.values()])  # one triplet per anchor: its largest hinge
     assert TripletLoss(0.1, max_triplets_per_anchor=1)(descriptors, relevance, negatives).item() == pytest.approx(
         hardest, abs=1e-6

@@ -1,6 +1,7 @@
 """Descriptors out as kapture global features, in from hloc HDF5 files."""
 
 import h5py
+import helpers
 import kapture
 import kapture.io.csv
 import kapture.io.features
@@ -8,7 +9,6 @@ import numpy as np
 import pytest
 
 from locretrieval.models.feature_io import export_global_features, read_hloc_global_descriptors
-from locretrieval.models.precomputed import PrecomputedDescriptor
 from locretrieval.scene import Camera, ImageSet
 
 NAMES = ["db/seq1/000.jpg", "db/seq1/001.jpg", "query/night/q.jpg"]
@@ -36,7 +36,7 @@ def test_exported_features_read_back_with_kapture_and_the_precomputed_model(tmp_
 
     camera = Camera("PINHOLE", 8, 8, (4.0, 4.0, 4.0, 4.0))
     images = ImageSet(NAMES, tmp_path, [camera] * 3, [[1.0, 0, 0, 0]] * 3, [[0.0, 0, 0]] * 3)
-    np.testing.assert_allclose(PrecomputedDescriptor(path=folder).describe(images), descriptors, atol=1e-7)
+    np.testing.assert_allclose(helpers.precomputed(path=folder).describe(images), descriptors, atol=1e-7)
 
 
 def test_export_refuses_mismatched_names(tmp_path):

@@ -2,6 +2,7 @@ import logging
 import os
 from pathlib import Path
 
+import helpers
 import kapture
 import kapture.io.csv
 import kapture.io.features
@@ -50,7 +51,7 @@ def normalised(vectors: dict[str, np.ndarray], names: list[str]) -> np.ndarray:
 def test_single_folder_reads_back_what_kapture_wrote(tmp_path, caplog):
     vectors = random_vectors(DATABASE + QUERIES, 16, seed=0)
     folder = write_global_features(tmp_path / "dataset", "Resnet101-AP-GeM", vectors)
-    model = PrecomputedDescriptor(path=str(folder))
+    model = helpers.precomputed(path=str(folder))
     assert model.name == "Resnet101-AP-GeM"  # from global_features.txt
     images = image_set(QUERIES + DATABASE[:2], tmp_path / "dataset" / "sensors" / "records_data")
     with caplog.at_level(logging.INFO, logger="locretrieval.models.precomputed"):
@@ -63,7 +64,7 @@ def test_single_folder_reads_back_what_kapture_wrote(tmp_path, caplog):
 def test_float64_features_are_read_as_float32(tmp_path):
     vectors = random_vectors(DATABASE, 8, seed=1, dtype=np.float64)
     folder = write_global_features(tmp_path, "dense", vectors)
-    descriptors = PrecomputedDescriptor(path=folder, name="dense").describe(image_set(DATABASE, tmp_path))
+    descriptors = helpers.precomputed(path=folder, name="dense").describe(image_set(DATABASE, tmp_path))
     assert descriptors.dtype == np.float32
     np.testing.assert_allclose(descriptors, normalised(vectors, DATABASE), atol=1e-6)
 
@@ -89,9 +90,9 @@ def mapping_and_query(tmp_path) -> tuple[Scene, dict[str, np.ndarray], list[Path
 def test_mapping_and_query_folders(tmp_path, mapping_and_query, how):
     scene, vectors, folders = mapping_and_query
     model = {
-        "path_list": lambda: PrecomputedDescriptor(path=[str(f) for f in folders]),
-        "sources_by_name": lambda: PrecomputedDescriptor(feature_name="apgem"),
-        "sources_single_type": lambda: PrecomputedDescriptor(),
+        "path_list": lambda: helpers.precomputed(path=[str(f) for f in folders]),
+        "sources_by_name": lambda: helpers.precomputed(feature_name="apgem"),
+        "sources_single_type": lambda: helpers.precomputed(),
     }[how]()
     database, queries = describe_scene(model, scene, tmp_path / "cache")
     assert model.name == "apgem"
@@ -102,14 +103,14 @@ def test_mapping_and_query_folders(tmp_path, mapping_and_query, how):
 
 def test_cache_invalidates_when_the_files_change(tmp_path, mapping_and_query):
     scene, vectors, folders = mapping_and_query
-    before, _ = describe_scene(PrecomputedDescriptor(feature_name="apgem"), scene, tmp_path / "cache")
-    again, _ = describe_scene(PrecomputedDescriptor(feature_name="apgem"), scene, tmp_path / "cache")
+    before, _ = describe_scene(helpers.precomputed(feature_name="apgem"), scene, tmp_path / "cache")
+    again, _ = describe_scene(helpers.precomputed(feature_name="apgem"), scene, tmp_path / "cache")
     np.testing.assert_array_equal(again, before)
     changed = folders[0] / f"{DATABASE[1]}.gfeat"
     kapture.io.features.image_global_features_to_file(str(changed), -vectors[DATABASE[1]])
     stat = changed.stat()
     os.utime(changed, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))  # coarse file-system clocks
-    after, _ = describe_scene(PrecomputedDescriptor(feature_name="apgem"), scene, tmp_path / "cache")
+    after, _ = describe_scene(helpers.precomputed(feature_name="apgem"), scene, tmp_path / "cache")
     np.testing.assert_allclose(after[1], -before[1], atol=1e-6)
     np.testing.assert_array_equal(np.delete(after, 1, axis=0), np.delete(before, 1, axis=0))
     assert len(list((tmp_path / "cache" / "descriptors").glob("*.npz"))) == 2
@@ -118,7 +119,7 @@ def test_cache_invalidates_when_the_files_change(tmp_path, mapping_and_query):
 def test_missing_feature_file_names_image_and_folders(tmp_path):
     folder = write_global_features(tmp_path, "apgem", random_vectors(DATABASE[:3], 8, seed=3))
     with pytest.raises(FileNotFoundError, match=r"'mapping/cam1/0002\.jpg'.*searched \[.*apgem'\]"):
-        PrecomputedDescriptor(path=folder).describe(image_set(DATABASE, tmp_path))
+        helpers.precomputed(path=folder).describe(image_set(DATABASE, tmp_path))
 
 
 def test_wrong_file_size_names_file_and_byte_counts(tmp_path):
@@ -126,7 +127,7 @@ def test_wrong_file_size_names_file_and_byte_counts(tmp_path):
     vectors[DATABASE[2]] = vectors[DATABASE[2]][:6]
     folder = write_global_features(tmp_path, "apgem", vectors, dsize=8)
     with pytest.raises(ValueError, match=r"cam1/0001\.jpg\.gfeat: 24 bytes, expected 32 \(8 x float32\)"):
-        PrecomputedDescriptor(path=folder).describe(image_set(DATABASE, tmp_path))
+        helpers.precomputed(path=folder).describe(image_set(DATABASE, tmp_path))
 
 
 def test_inconsistent_dimensions_between_folders(tmp_path):
@@ -134,7 +135,7 @@ def test_inconsistent_dimensions_between_folders(tmp_path):
     second = write_global_features(tmp_path / "query", "apgem", random_vectors(QUERIES, 16, seed=6))
     message = r"inconsistent global features: .*mapping.* 8 x float32, .*query.* 16 x float32"
     with pytest.raises(ValueError, match=message):
-        PrecomputedDescriptor(path=[first, second])
+        helpers.precomputed(path=[first, second])
 
 
 def test_non_finite_and_zero_features_are_errors(tmp_path):
@@ -142,24 +143,32 @@ def test_non_finite_and_zero_features_are_errors(tmp_path):
     vectors[DATABASE[1]][3] = np.nan
     folder = write_global_features(tmp_path / "nan", "apgem", vectors)
     with pytest.raises(ValueError, match=r"cam0/0002\.jpg\.gfeat: global feature holds non-finite values"):
-        PrecomputedDescriptor(path=folder).describe(image_set(DATABASE, tmp_path))
+        helpers.precomputed(path=folder).describe(image_set(DATABASE, tmp_path))
     vectors[DATABASE[1]][:] = 0.0
     folder = write_global_features(tmp_path / "zero", "apgem", vectors)
     with pytest.raises(ValueError, match=r"cam0/0002\.jpg\.gfeat: global feature is all zeros"):
-        PrecomputedDescriptor(path=folder).describe(image_set(DATABASE, tmp_path))
+        helpers.precomputed(path=folder).describe(image_set(DATABASE, tmp_path))
 
 
 def test_folder_errors(tmp_path, mapping_and_query):
-    with pytest.raises(FileNotFoundError, match=r"global_features header not found: .*nowhere/global_features\.txt"):
-        PrecomputedDescriptor(path=tmp_path / "nowhere")
     scene, _, _ = mapping_and_query
+    absent = helpers.precomputed(path=tmp_path / "nowhere")  # built: its missing inputs are named before any work
+    assert absent.missing_inputs(scene) == [f"path: global features {tmp_path}/nowhere/global_features.txt not found"]
+    with pytest.raises(FileNotFoundError, match=r"global_features header not found: .*nowhere/global_features\.txt"):
+        absent.describe(scene.queries)
+    assert helpers.precomputed(feature_name="apgem").missing_inputs(scene) == []
+    assert (
+        helpers.precomputed(feature_name="netvlad")
+        .missing_inputs(scene)[0]
+        .startswith("feature_name: no global features 'netvlad': searched")
+    )
     with pytest.raises(FileNotFoundError, match=r"no global features 'netvlad': searched .*mapping.*query"):
-        describe_scene(PrecomputedDescriptor(feature_name="netvlad"), scene, None)
+        describe_scene(helpers.precomputed(feature_name="netvlad"), scene, None)
     write_global_features(tmp_path / "mapping", "netvlad", random_vectors(DATABASE, 4, seed=8))
     with pytest.raises(ValueError, match=r"2 global-feature types \['apgem', 'netvlad'\]"):
-        describe_scene(PrecomputedDescriptor(), scene, None)
+        describe_scene(helpers.precomputed(), scene, None)
     with pytest.raises(RuntimeError, match="no feature folders"):
-        PrecomputedDescriptor(feature_name="apgem").describe(scene.queries)
+        helpers.precomputed(feature_name="apgem").describe(scene.queries)
 
 
 def precomputed_config(tmp_path, *overrides):
@@ -200,4 +209,7 @@ def test_a_feature_folder_names_the_ranking_unless_a_name_is_given(tmp_path):
     assert instantiate(precomputed_config(tmp_path, f"model.path=[{mapping},{query}]").model).name == "apgem"
     named = precomputed_config(tmp_path, f"model.path={folders['NetVLAD']}", "model.name=mine")
     assert instantiate(named.model).name == "mine"
-    assert PrecomputedDescriptor(path=folders["NetVLAD"]).name == "NetVLAD"  # the Python API names it alike
+    assert (
+        PrecomputedDescriptor(name=None, path=folders["NetVLAD"], feature_name=None, allow_integer=False).name
+        == "NetVLAD"
+    )  # the Python API names it alike

@@ -19,12 +19,13 @@ import pandas as pd
 import pytest
 from PIL import Image
 
-from locretrieval.config import ConfigError
+from locretrieval.config import ConfigError, built
 from locretrieval.evaluation import evaluate
 from locretrieval.localization.features import extract_features
 from locretrieval.localization.pairs import database_pairs
-from locretrieval.retrieval.pairs_file import PairsFileRanking
+from locretrieval.retrieval.pairs_file import FileOrder, PairOrder, PairsFileRanking, ScoreOrder
 from locretrieval.scene import ImageSet
+from locretrieval.scene.datasets import instantiate_scene
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 
@@ -109,7 +110,7 @@ LAYOUTS = {
 @pytest.fixture(scope="module")
 def rendered(tmp_path_factory):
     root = tmp_path_factory.mktemp("published_source")
-    render_synthetic_dataset(SCENE, root)
+    render_synthetic_dataset(helpers.render_settings(SCENE), root)
     scene = load_kapture_scene("rendered", [root / "mapping"], [root / "query"])
     features = extract_features(scene.database, helpers.sfm_settings().features, root / "cache", 1)
     query_features = extract_features(scene.queries, helpers.sfm_settings().features, root / "cache", 1)
@@ -344,7 +345,7 @@ def test_rankings_from_pairs_files_give_the_poses_of_the_ranking_they_came_from(
     }
     for path, order in ((reference, "score"), (hloc, "file")):
         output = tmp_path / path.stem
-        evaluate(helpers.evaluate_config(*common, "model=pairs", f"model.path={path}", f"model.order={order}"), output)
+        evaluate(helpers.evaluate_config(*common, "model=pairs", f"model.path={path}", f"model/order={order}"), output)
         ltvl = output / "ltvl" / path.stem
         assert sorted(p.name for p in ltvl.iterdir()) == [
             "approximation_ewb_k1.txt",
@@ -372,11 +373,13 @@ def test_a_bad_pairs_file_is_refused_naming_its_line(rendered, tmp_path):
     for text, message in cases.items():
         path.write_text(text)
         with pytest.raises(ValueError, match=message):
-            PairsFileRanking("pairs", str(path), "file").ranking(scene, 50)
+            PairsFileRanking(name="pairs", path=str(path), order=FileOrder()).ranking(scene, 50)
     path.write_text(f"{query} {image}\n")
-    with pytest.raises(ConfigError, match=r"model.order=score: .*pairs.txt:1 has no score"):
-        PairsFileRanking("pairs", str(path), "score").ranking(scene, 50)
-    ranking = PairsFileRanking("pairs", str(path), "file").ranking(scene, 50)  # the other queries: empty rankings
+    with pytest.raises(ConfigError, match=r"model.order \(ScoreOrder\): .*pairs.txt:1 has no score"):
+        PairsFileRanking(name="pairs", path=str(path), order=ScoreOrder()).ranking(scene, 50)
+    ranking = PairsFileRanking(name="pairs", path=str(path), order=FileOrder()).ranking(
+        scene, 50
+    )  # the other queries: empty rankings
     assert ranking.indices[0, 0] == 0 and (ranking.indices[1:] == -1).all() and not ranking.has_descriptors
     cfg = helpers.evaluate_config(
         "data=baidu",
@@ -388,3 +391,28 @@ def test_a_bad_pairs_file_is_refused_naming_its_line(rendered, tmp_path):
     assert cfg.model.name == "absent"
     with pytest.raises(FileNotFoundError, match=r"model.path: pairs file .*absent.txt not found"):
         evaluate(cfg, tmp_path / "run")
+
+
+class ReversedOrder(PairOrder):
+    """A pairs order from outside the package: each query's pairs last first."""
+
+    def arranged(self, rows, path):
+        return {query: ranked[::-1] for query, ranked in rows.items()}
+
+
+def test_a_pairs_order_from_outside_the_package_is_chosen_through_the_config(rendered, tmp_path):
+    install(LAYOUTS["baidu"], rendered, tmp_path / "data")
+    common = ["data=baidu", f"paths.data_dir={tmp_path / 'data'}", f"paths.root_dir={tmp_path}", "model=pairs"]
+    scene = instantiate_scene(helpers.evaluate_config(*common, "model.path=unused").data)
+    path = tmp_path / "pairs.txt"
+    path.write_text(
+        "".join(f"{query} {image}\n" for query in scene.queries.names for image in scene.database.names[:3])
+    )
+    cfg = helpers.evaluate_config(*common, f"model.path={path}", f"model.order._target_={__name__}.ReversedOrder")
+    model = built(cfg.model, "model")
+    assert isinstance(model.order, ReversedOrder) and model.missing_inputs(scene) == []
+    np.testing.assert_array_equal(model.ranking(scene, 50).indices[:, :3], np.tile([2, 1, 0], (len(scene.queries), 1)))
+    with pytest.raises(
+        ConfigError, match=r"model.order: a PairOrder is chosen by its config group now: model/order=score"
+    ):
+        built(helpers.evaluate_config(*common, f"model.path={path}", "model.order=score").model, "model")

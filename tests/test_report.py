@@ -304,9 +304,14 @@ def test_one_descriptor_under_several_settings_is_labelled_by_its_overrides(tmp_
     _shift_results(runs[1], "netvlad")
     for run, alpha in zip(runs, (4, 8)):
         (run / ".hydra").mkdir()
-        (run / ".hydra" / "overrides.yaml").write_text(f"- model=netvlad\n- paradigms.approximation.alpha={alpha}\n")
+        (run / ".hydra" / "overrides.yaml").write_text(
+            f"- model=netvlad\n- paradigms.approximation.weights.csi.alpha={alpha}\n"
+        )
     combined = load_runs([tmp_path / "sweep"])
-    variants = ["netvlad [paradigms.approximation.alpha=4]", "netvlad [paradigms.approximation.alpha=8]"]
+    variants = [
+        "netvlad [paradigms.approximation.weights.csi.alpha=4]",
+        "netvlad [paradigms.approximation.weights.csi.alpha=8]",
+    ]
     assert set(combined.results["ranking"]) == {*variants, GROUNDTRUTH, "random"}
     assert set(combined.retrieval.loc[combined.retrieval["ranking_kind"] == "descriptor", "ranking"]) == set(variants)
     single = load_runs([runs[0]]).results

@@ -12,12 +12,19 @@ from helpers import evaluate_config
 from hydra.utils import instantiate
 from scipy.spatial.transform import Rotation
 
+from locretrieval.config import validated
 from locretrieval.evaluation import evaluate
 from locretrieval.localization.estimates import ESTIMATED_POSE_COLUMNS, PoseEstimates, estimated_pose_table
 from locretrieval.report.scene_view import SceneViewSettings, scene_figure, write_scene_view
 from locretrieval.scene import Camera, ImageSet, Scene
 
 FX, FY, CX, CY, WIDTH, HEIGHT = 50.0, 40.0, 32.0, 24.0, 64, 48
+
+
+def view_settings(**changes) -> SceneViewSettings:
+    """``report.scene_view`` as ``evaluate.yaml`` sets it, ``changes`` applied."""
+    node = evaluate_config("paths.root_dir=/nonexistent").report.scene_view
+    return validated(SceneViewSettings, {**node, **changes}, "report.scene_view")
 
 
 def world_to_camera(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -74,7 +81,7 @@ def test_database_frusta_start_at_the_camera_centres_and_open_along_the_optical_
     scene, estimates = toy()
     depth = 1.5
     figure = scene_figure(scene, estimated_pose_table("toy", estimates, scene.queries.names), None,
-                          SceneViewSettings(frustum_depth_m=depth))  # fmt: skip
+                          view_settings(frustum_depth_m=depth))  # fmt: skip
     database = figure.data[0]
     vertices = np.stack([database.x, database.y, database.z], axis=1).astype(float).reshape(len(scene.database), 11, 3)
     expected = centres(scene.database.qvec, scene.database.tvec)
@@ -96,7 +103,7 @@ def selection_traces(data: list[dict]) -> dict[tuple, dict]:
 
 def test_each_ranking_paradigm_and_k_is_selectable_with_its_estimates():
     scene, estimates = toy()
-    figure = scene_figure(scene, estimated_pose_table("toy", estimates, scene.queries.names), None, SceneViewSettings())
+    figure = scene_figure(scene, estimated_pose_table("toy", estimates, scene.queries.names), None, view_settings())
     data = [trace.to_plotly_json() for trace in figure.data]
     traces = selection_traces(data)
     expected = {(e.ranking, e.paradigm, e.method, k): (e, n) for e in estimates for n, k in enumerate(e.ks)}
@@ -121,7 +128,7 @@ def test_drawn_cameras_queries_and_map_points_are_bounded():
     scene, estimates = toy()
     poses = estimated_pose_table("toy", estimates, scene.queries.names)
     points = np.concatenate([np.random.default_rng(0).normal(size=(1000, 3)), [[1e6, 0.0, 0.0]]])  # one stray point
-    settings = SceneViewSettings(max_cameras=4, max_queries=2, max_map_points=100, frustum_depth_m=1.0)
+    settings = view_settings(max_cameras=4, max_queries=2, max_map_points=100, frustum_depth_m=1.0)
     data = [trace.to_plotly_json() for trace in scene_figure(scene, poses, points, settings).data]
     assert (
         len(data[0]["x"]) == 4 * 11
@@ -157,7 +164,7 @@ def html_traces(path: Path) -> list[dict]:
 def test_written_file_carries_plotly_js_and_the_same_traces(tmp_path):
     scene, estimates = toy()
     poses = estimated_pose_table("toy", estimates, scene.queries.names)
-    path = write_scene_view(tmp_path / "scene_3d.html", scene, poses, None, SceneViewSettings(frustum_depth_m=2.0))
+    path = write_scene_view(tmp_path / "scene_3d.html", scene, poses, None, view_settings(frustum_depth_m=2.0))
     text = path.read_text()
     assert "<script src=" not in text and "plotly.js v" in text  # plotly.js inline: opens from file://
     traces = html_traces(path)

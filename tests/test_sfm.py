@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
+from locretrieval.config import validated
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.groundtruth import relative_pose_groundtruth
 from locretrieval.localization import global_sfm, local_sfm, matching, pipeline
@@ -24,7 +25,13 @@ from locretrieval.localization.local_sfm import LocalSfmSettings, local_map_pair
 from locretrieval.localization.pairs import PairSelection, database_pairs
 from locretrieval.localization.pipeline import run_sfm
 from locretrieval.localization.plan import Work
-from locretrieval.localization.pnp import NO_KEYPOINTS, TOO_FEW_IMAGES, TOO_FEW_MATCHES, estimate_absolute_pose
+from locretrieval.localization.pnp import (
+    NO_3D_POINTS,
+    NO_KEYPOINTS,
+    TOO_FEW_IMAGES,
+    TOO_FEW_MATCHES,
+    estimate_absolute_pose,
+)
 from locretrieval.localization.sfm import QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set
 from locretrieval.localization.triangulation import BatchedTriangulation, MapInput
 from locretrieval.retrieval import Ranking, random_ranking
@@ -55,9 +62,13 @@ def sfm_settings(triangulation_kind: str = "colmap", **overrides) -> SfmSettings
     return helpers.sfm_settings({"map_pairs": PAIRS}, overrides, choices=[f"sfm/triangulation={triangulation_kind}"])
 
 
+MAP_MATCHES = {"database": local_sfm.DatabaseMapMatches(), "query": local_sfm.QueryMapMatches()}
+
+
 def run_local(scene, rankings, k, cache, map_matches="database", sfm=None):
-    """Paradigm 2a with the given ks."""
-    return local_sfm.run(scene, rankings, LocalSfmSettings(True, list(k), map_matches), sfm or sfm_settings(), cache)
+    """Paradigm 2a with the given ks, its map matches by name (`MAP_MATCHES`)."""
+    settings = LocalSfmSettings(True, list(k), MAP_MATCHES[map_matches])
+    return local_sfm.run(scene, rankings, settings, sfm or sfm_settings(), cache)
 
 
 def run_global(scene, rankings, k, cache, colmap_model=None, sfm=None):
@@ -68,7 +79,7 @@ def run_global(scene, rankings, k, cache, colmap_model=None, sfm=None):
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("sfm_scene")
-    render_synthetic_dataset(SCENE, root)
+    render_synthetic_dataset(helpers.render_settings(SCENE), root)
     blank = root / "query" / "sensors" / "records_data" / "query" / f"{BLANK:06d}.png"
     Image.new("RGB", (SCENE["width"], SCENE["height"]), (128, 128, 128)).save(blank)
     return load_kapture_scene("tiny", [root / "mapping"], [root / "query"])
@@ -92,7 +103,9 @@ def cache(features_cache, tmp_path):
 @pytest.fixture(scope="module")
 def rankings(scene):
     database, queries = scene.database, scene.queries
-    truth = relative_pose_groundtruth(database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0)
+    truth = relative_pose_groundtruth(
+        database, queries, depth=50, position_threshold=25.0, rotation_threshold=45.0, ranked="within_thresholds"
+    )
     return [truth.ranking, random_ranking(len(queries), len(database), 50, 0)]
 
 
@@ -159,7 +172,7 @@ def test_the_global_map_cache_key_follows_what_the_map_depends_on(scene, cache):
     )  # query pairs only
     assert path(triangulation={"min_angle": 3.0}) != base
     assert path(matching={"ratio": 0.9}) != base
-    assert path(matching={"max_epipolar_error": 8.0}) != base
+    assert path(database_verification={"max_epipolar_error": 8.0}) != base
     assert path(map_pairs={"far": 30.0}) != base
     assert path(pnp={"max_error": 6.0}) == base  # registration only
 
@@ -226,6 +239,39 @@ def test_local_maps_from_query_derived_matches_match_no_database_pair(scene, cac
     assert sum(calls) == len(scene.queries) * 5  # query pairs only
     position, rotation = estimates.errors(scene.queries.qvec, scene.queries.tvec)
     assert ((position < 0.25) & (rotation < 2.0)).mean() >= 0.6
+
+
+class NoMapMatches(local_sfm.MapMatches):
+    """Map matches from outside the package: none at all, so no local map has a point."""
+
+    def identity(self):
+        return f"{__name__}.NoMapMatches"
+
+    def source(self, inputs, query):
+        return []
+
+    def matches(self, pairs, query):
+        return {pair: np.empty((0, 2), dtype=np.int32) for pair in pairs}
+
+
+def test_map_matches_from_outside_the_package_are_chosen_through_the_config(scene, cache, rankings, monkeypatch):
+    cfg = helpers.evaluate_config(
+        "paths.root_dir=/nonexistent",
+        f"paradigms.local_sfm.map_matches._target_={__name__}.NoMapMatches",
+        "paradigms.local_sfm.k=[1,5]",
+    )
+    settings = validated(LocalSfmSettings, cfg.paradigms.local_sfm, "paradigms.local_sfm")
+    assert isinstance(settings.map_matches, NoMapMatches)
+    calls = count_matcher_calls(monkeypatch)
+    estimates = local_sfm.run(scene, rankings[:1], settings, sfm_settings(), cache)[0]
+    assert sum(calls) == len(scene.queries) * 5  # query pairs only: no database pair is matched
+    assert (estimates.failures[0] == TOO_FEW_IMAGES).all() and (estimates.failures[1] == NO_3D_POINTS).all()
+    for choice, kind in (
+        ([], local_sfm.DatabaseMapMatches),
+        (["paradigms/local_sfm/map_matches=query"], local_sfm.QueryMapMatches),
+    ):
+        section = helpers.evaluate_config("paths.root_dir=/nonexistent", *choice).paradigms.local_sfm
+        assert type(validated(LocalSfmSettings, section, "paradigms.local_sfm").map_matches) is kind
 
 
 def count_matcher_calls(monkeypatch) -> list[int]:
@@ -373,7 +419,7 @@ def test_queries_streamed_in_chunks_give_the_results_of_one_pass(scene, cache, r
     """Chunks of 3 of the 8 queries: each chunk's pairs matched while the last chunk is triangulated
     and registered (a thread and 2 workers), then the outcomes gathered: those of one pass."""
     paradigms = {
-        "local_sfm": (local_sfm.STAGES, LocalSfmSettings(True, [2, 4], "database")),
+        "local_sfm": (local_sfm.STAGES, LocalSfmSettings(True, [2, 4], MAP_MATCHES["database"])),
         "global_sfm": (global_sfm.STAGES, GlobalSfmSettings(True, [1, 3], None)),
     }
     one_pass = run_sfm(scene, rankings, paradigms, sfm_settings(), cache)
@@ -538,7 +584,7 @@ def distinct_work(rankings, ks):
 
 def test_the_plan_counts_the_work_that_the_paradigms_then_do(scene, cache, rankings, monkeypatch):
     sfm = sfm_settings()
-    local, global_ = LocalSfmSettings(True, [3, 5], "database"), GlobalSfmSettings(True, [1, 5], None)
+    local, global_ = LocalSfmSettings(True, [3, 5], MAP_MATCHES["database"]), GlobalSfmSettings(True, [1, 5], None)
 
     def plans():
         return local_sfm.plan(scene, rankings, local, sfm, cache, 0), global_sfm.plan(

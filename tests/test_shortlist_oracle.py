@@ -8,7 +8,7 @@ import pytest
 from test_training import SCENE
 
 from locretrieval.groundtruth.relative_pose import relative_pose_groundtruth
-from locretrieval.localization.approximation import approximate_poses
+from locretrieval.localization.approximation import EqualWeights, approximate_poses
 from locretrieval.metrics.localization import localized
 from locretrieval.retrieval.ranking import EMPTY, Ranking, random_ranking
 from locretrieval.scene.kapture_io import load_kapture_scene
@@ -25,7 +25,7 @@ THRESHOLDS = [[0.5, 5.0], [5.0, 10.0]]
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("oracle_scene")
-    render_synthetic_dataset(SCENE, root)
+    render_synthetic_dataset(helpers.render_settings(SCENE), root)
     return load_kapture_scene("tiny", [root / "mapping"], [root / "query"], frustum_far=25.0)
 
 
@@ -45,8 +45,10 @@ def test_reordering_the_whole_database_by_pose_is_the_relative_pose_ground_truth
     truth = relative_pose_groundtruth(
         scene.database, scene.queries, depth=size, position_threshold=25.0, rotation_threshold=45.0, ranked="all"
     ).ranking
-    estimate = approximate_poses(scene.database, truth, [3], ["ewb"], alpha=1.0)[0]
-    expected = 100 * localized(*estimate.errors(scene.queries.qvec, scene.queries.tvec), THRESHOLDS)[:, 0].mean(axis=1)
+    estimate = approximate_poses(scene.database, truth, [3], {"ewb": EqualWeights()})[0]
+    expected = 100 * localized(*estimate.errors(scene.queries.qvec, scene.queries.tvec), THRESHOLDS, True)[:, 0].mean(
+        axis=1
+    )
     np.testing.assert_allclose(table.loc["relative pose (whole database)"], expected)
     np.testing.assert_allclose(table.loc[f"top {size} by pose"], expected)
     np.testing.assert_allclose(table.loc["top 3 by pose"], table.loc["as ranked"])
@@ -66,9 +68,9 @@ def test_the_database_against_itself_leaves_each_image_out(scene):
     np.fill_diagonal(score, np.inf)
     nearest = np.argsort(score, axis=1, kind="stable")[:, : size - 1]
     estimate = approximate_poses(
-        scene.database, Ranking("n", nearest, np.zeros(nearest.shape), "groundtruth"), [3], ["ewb"], alpha=1.0
+        scene.database, Ranking("n", nearest, np.zeros(nearest.shape), "groundtruth"), [3], {"ewb": EqualWeights()}
     )[0]
-    expected = 100 * localized(*estimate.errors(qvec, scene.database.tvec), THRESHOLDS)[:, 0].mean(axis=1)
+    expected = 100 * localized(*estimate.errors(qvec, scene.database.tvec), THRESHOLDS, True)[:, 0].mean(axis=1)
     rng = np.random.default_rng(4)
     others = np.array([[j for j in rng.permutation(size) if j != i] for i in range(size)])
     ranking = Ranking("shuffled", others, np.zeros(others.shape), "baseline")

@@ -28,7 +28,7 @@ def test_the_report_sfm_modules_and_synthetic_config_import_their_libraries_when
     code = """
 from locretrieval.report import build_report
 from locretrieval.localization import colmap_model, pnp, store, triangulation
-from locretrieval.scene.synthetic import DEFAULT_CONFIG, resolve_config
+from locretrieval.scene.synthetic import RenderSettings
 """
     loaded = loaded_after(code)
     assert {

@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+from helpers import evaluate_config
 from PIL import Image, ImageFilter
 
 from locretrieval.config import ConfigError, validated
@@ -7,36 +8,30 @@ from locretrieval.metrics.subsets import (
     BLURRY,
     DYNAMIC_SCENE,
     MASKRCNN_WEIGHTS_FILE,
+    MaskSource,
     SubsetSettings,
     blur_score,
     dynamic_category_ids,
     dynamic_fraction,
     image_subsets,
     load_maskrcnn,
+    mask_source,
     maskrcnn_fractions,
-    resolve_mask_source,
+    missing_mask_inputs,
     subset_masks,
     subset_scores,
 )
 from locretrieval.scene import Camera, ImageSet
-
-SETTINGS = {
-    "enabled": True,
-    "blur_threshold": 20.0,
-    "blur_radius": 60,
-    "blur_width": 500,
-    "dynamic_fraction": 0.2,
-    "mask_source": "auto",
-    "maskrcnn_weights": None,
-    "maskrcnn_min_size": 64,
-    "maskrcnn_score_threshold": 0.5,
-    "maskrcnn_mask_threshold": 0.5,
-}
-CONFIG = SubsetSettings(**SETTINGS)
+from locretrieval.scene.images import read_image
 
 
-def settings(**overrides) -> SubsetSettings:
-    return validated(SubsetSettings, {**SETTINGS, **overrides}, "subsets")
+def settings(*overrides: str) -> SubsetSettings:
+    """The ``subsets`` group as ``evaluate.yaml`` composes it (its mask sources too), ``overrides`` applied."""
+    cfg = evaluate_config("paths.root_dir=/nonexistent", "device=cpu", *overrides)
+    return validated(SubsetSettings, cfg.subsets, "subsets")
+
+
+CONFIG = settings()
 
 
 def textured(height: int = 300, width: int = 500) -> np.ndarray:
@@ -69,16 +64,18 @@ def test_blur_score_of_a_pure_high_frequency_pattern_is_20_ln_amplitude():
     # removed low-frequency square: the residual is +-10 everywhere
     rows, columns = np.indices((400, 500))
     board = (128 + 10 * (-1) ** (rows + columns)).astype(np.uint8)
-    assert blur_score(np.repeat(board[..., None], 3, axis=2)) == pytest.approx(20 * np.log(10), abs=1e-6)
+    score = blur_score(np.repeat(board[..., None], 3, axis=2), CONFIG.blur_radius, CONFIG.blur_width)
+    assert score == pytest.approx(20 * np.log(10), abs=1e-6)
 
 
 def test_blur_score_orders_a_sharp_image_above_its_blurred_copy():
     sharp = textured()
     blurred = np.asarray(Image.fromarray(sharp).filter(ImageFilter.GaussianBlur(4)))
-    sharp_score, blurred_score = blur_score(sharp), blur_score(blurred)
+    radius, width = CONFIG.blur_radius, CONFIG.blur_width
+    sharp_score, blurred_score = blur_score(sharp, radius, width), blur_score(blurred, radius, width)
     assert sharp_score > CONFIG.blur_threshold >= blurred_score
     resized = np.asarray(Image.fromarray(sharp).resize((1000, 600), Image.Resampling.NEAREST))
-    assert blur_score(resized) == pytest.approx(sharp_score, abs=1.0)  # scored at width 500
+    assert width == 500 and blur_score(resized, radius, width) == pytest.approx(sharp_score, abs=1.0)  # at width 500
 
 
 def test_mask_subsets_threshold_inclusive_and_cached(tmp_path):
@@ -95,7 +92,7 @@ def test_mask_subsets_threshold_inclusive_and_cached(tmp_path):
     assert set(table["mask_source"]) == {"masks"} and table["image"].tolist() == queries.names
     cached = sorted((cache / "subsets").iterdir())
     assert len(cached) == 2  # blur scores and mask fractions
-    stricter = settings(dynamic_fraction=0.05, blur_threshold=-1e9)
+    stricter = settings("subsets.dynamic_fraction=0.05", "subsets.blur_threshold=-1e9")
     again, _ = image_subsets("toy", queries, stricter, cache_dir=cache)  # thresholds are not cache keys
     assert sorted((cache / "subsets").iterdir()) == cached
     assert again[DYNAMIC_SCENE].tolist() == [True, True, False] and not again[BLURRY].any()
@@ -104,19 +101,31 @@ def test_mask_subsets_threshold_inclusive_and_cached(tmp_path):
 def test_mask_source_resolution(tmp_path):
     with_masks = image_set(tmp_path, [textured()], [np.zeros((4, 4), np.uint8)])
     without = image_set(tmp_path, [textured()])
-    assert resolve_mask_source(with_masks, CONFIG) == "masks"
-    assert resolve_mask_source(without, CONFIG) == "none"
-    assert resolve_mask_source(without, settings(maskrcnn_weights="w.pth")) == "maskrcnn"
+    assert CONFIG.dynamic_masks == ["masks", "maskrcnn"]  # the first that serves every query
+    assert mask_source(with_masks, CONFIG) == ("masks", CONFIG.mask_sources["masks"])
+    assert mask_source(without, CONFIG) == ("none", None)
+    weights = settings(f"subsets.mask_sources.maskrcnn.weights={tmp_path}/w.pth")
+    assert mask_source(without, weights)[0] == "maskrcnn"
+    assert missing_mask_inputs(without, weights) == [
+        f"subsets.mask_sources.maskrcnn.weights: {tmp_path}/w.pth not found (torchvision's {MASKRCNN_WEIGHTS_FILE})"
+    ]
+    assert missing_mask_inputs(without, CONFIG) == []  # no mask source: no dynamic-scene subset
+    assert missing_mask_inputs(without, settings("subsets.dynamic_masks=[masks]")) == [
+        "subsets.dynamic_masks=[masks]: 1 of 1 images have no mask file (<kapture>/masks/<name>), e.g. 'q0.png'"
+    ]  # the one source asked for
+    (problem,) = missing_mask_inputs(without, settings("subsets.dynamic_masks=[maskrcnn]"))
+    assert problem.startswith(
+        f"subsets.dynamic_masks=[maskrcnn]: no weights (the path of torchvision's {MASKRCNN_WEIGHTS_FILE}"
+    )
     with pytest.raises(
-        ConfigError, match=r"subsets.mask_source: must be one of \['auto', 'masks', 'maskrcnn', 'none'\], got 'sam'"
+        ConfigError,
+        match=r"subsets.dynamic_masks: \['sam'\] are not names of subsets.mask_sources \['masks', 'maskrcnn'\]",
     ):
-        settings(mask_source="sam")
-    with pytest.raises(
-        ConfigError, match=f"subsets.maskrcnn_weights: mask_source=maskrcnn needs .*{MASKRCNN_WEIGHTS_FILE}"
-    ):
-        settings(mask_source="maskrcnn")
-    scores = subset_scores(without, CONFIG)
-    assert scores["dynamic_fraction"].isna().all()
+        settings("subsets.dynamic_masks=[masks,sam]")
+    with pytest.raises(ConfigError, match=r"subsets.mask_sources.maskrcnn.min_size: must be >= 32 pixels, got 8"):
+        settings("subsets.mask_sources.maskrcnn.min_size=8")
+    scores = subset_scores(without, CONFIG, None)
+    assert scores["dynamic_fraction"].isna().all() and set(scores["mask_source"]) == {"none"}
     assert set(subset_masks(scores, CONFIG)) == {BLURRY}  # no dynamic subset without masks
 
 
@@ -144,7 +153,7 @@ def test_maskrcnn_weights_are_loaded_from_a_local_torchvision_state_dict(tmp_pat
     from torchvision.ops.misc import FrozenBatchNorm2d
 
     with pytest.raises(FileNotFoundError, match=f"{MASKRCNN_WEIGHTS_FILE}.*download.pytorch.org"):
-        load_maskrcnn(tmp_path / MASKRCNN_WEIGHTS_FILE)
+        load_maskrcnn(tmp_path / MASKRCNN_WEIGHTS_FILE, "cpu", 800, 0.5)
     torch.manual_seed(0)
     # the layout of the published file: torchvision builds pretrained models with frozen batch norm
     backbone = resnet_fpn_backbone(
@@ -153,7 +162,7 @@ def test_maskrcnn_weights_are_loaded_from_a_local_torchvision_state_dict(tmp_pat
     state = MaskRCNN(backbone, num_classes=91).state_dict()
     weights = tmp_path / MASKRCNN_WEIGHTS_FILE
     torch.save(state, weights)
-    model = load_maskrcnn(weights, min_size=64, score_threshold=0.7)
+    model = load_maskrcnn(weights, "cpu", min_size=64, score_threshold=0.7)
     name = "roi_heads.box_predictor.cls_score.weight"
     assert torch.equal(model.state_dict()[name], state[name])
     assert model.transform.min_size == (64,) and model.roi_heads.score_thresh == 0.7 and not model.training
@@ -163,7 +172,7 @@ def test_maskrcnn_weights_are_loaded_from_a_local_torchvision_state_dict(tmp_pat
     garbage = tmp_path / "garbage.pth"
     garbage.write_bytes(b"not a state dict")
     with pytest.raises(ValueError, match="garbage.pth"):
-        load_maskrcnn(garbage)
+        load_maskrcnn(garbage, "cpu", 800, 0.5)
 
 
 def test_a_moved_dataset_and_cache_reuse_the_cached_mask_fractions(tmp_path, monkeypatch):
@@ -191,3 +200,32 @@ def test_a_moved_dataset_and_cache_reuse_the_cached_mask_fractions(tmp_path, mon
     monkeypatch.setattr(subsets_module, "blur_scores", lambda *args: pytest.fail("recomputed after a move"))
     _, moved_table = image_subsets("toy", again, CONFIG, cache_dir=moved / "cache")
     np.testing.assert_array_equal(moved_table["dynamic_fraction"], table["dynamic_fraction"])
+
+
+class BrightPixels(MaskSource):
+    """A mask source from outside the package: the pixels brighter than ``level``."""
+
+    def __init__(self, level: int) -> None:
+        self.level = level
+
+    def unavailable(self, images):
+        return None
+
+    def key(self, images):
+        return ["bright", self.level]
+
+    def fractions(self, images):
+        return np.array([(read_image(path).mean(-1) > self.level).mean() for path in images.paths])
+
+
+def test_a_mask_source_from_outside_the_package_is_chosen_through_the_config(tmp_path):
+    chosen = settings(
+        f"+subsets.mask_sources.bright={{_target_: {__name__}.BrightPixels, level: 128}}",
+        "subsets.dynamic_masks=[bright]",
+    )
+    images = [textured(), np.full((300, 500, 3), 255, np.uint8)]
+    queries = image_set(tmp_path, images, [np.zeros((10, 10), np.uint8)] * 2)  # mask files, not chosen
+    subsets, table = image_subsets("toy", queries, chosen, cache_dir=tmp_path / "cache")
+    expected = [(image.mean(-1) > 128).mean() for image in images]
+    np.testing.assert_allclose(table["dynamic_fraction"], expected)
+    assert set(table["mask_source"]) == {"bright"} and subsets[DYNAMIC_SCENE].tolist() == [e >= 0.2 for e in expected]

@@ -10,16 +10,19 @@ import kapture.io.records as kapture_records
 import numpy as np
 import pycolmap  # noqa: E402  (after locretrieval)
 import pytest
-from omegaconf import OmegaConf
+from helpers import evaluate_config, render_settings
 from PIL import Image
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
+from locretrieval.config import ConfigError
 from locretrieval.device import resolve_device
-from locretrieval.scene.synthetic import DEFAULT_CONFIG, render_synthetic_dataset, resolve_config
+from locretrieval.scene.synthetic import render_synthetic_dataset
 from locretrieval.scene.synthetic.camera import PinholeCamera
+from locretrieval.scene.synthetic.config import EnvironmentBuilder
 from locretrieval.scene.synthetic.dataset import ImagePlan, build_environment, render_plan, single_torch_thread
 from locretrieval.scene.synthetic.dynamic import place_dynamic_objects
+from locretrieval.scene.synthetic.mall import Mall
 from locretrieval.scene.synthetic.render import Renderer
 from locretrieval.scene.synthetic.trajectories import Viewpoint
 
@@ -114,7 +117,7 @@ def high_frequency_energy(image: np.ndarray) -> float:
 @pytest.fixture(scope="module")
 def medium(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("synthetic_medium")
-    render_synthetic_dataset(MEDIUM, root)
+    render_synthetic_dataset(render_settings(MEDIUM), root)
     return root
 
 
@@ -126,22 +129,32 @@ def medium_sets(medium) -> dict:
 # --- configuration and determinism ---------------------------------------------------------------
 
 
-def test_config_defaults_unknown_keys_and_dictconfig():
-    assert resolve_config({}) == DEFAULT_CONFIG
-    resolved = resolve_config(OmegaConf.create({"environment": "street", "conditions": {"night": 1.0}}))
-    assert resolved["environment"] == "street" and resolved["conditions"]["night"] == 1.0
-    assert resolved["conditions"]["blur"] == DEFAULT_CONFIG["conditions"]["blur"]
-    with pytest.raises(ValueError, match="unknown.*'colour'"):
-        resolve_config({"colour": 1})
-    with pytest.raises(ValueError, match="unknown.*'rain'"):
-        resolve_config({"conditions": {"rain": 0.1}})
-    with pytest.raises(ValueError, match="environment"):
-        resolve_config({"environment": "forest"})
+def test_render_settings_are_the_yaml_checked_by_key():
+    settings = render_settings({"environment": "street", "conditions": {"night": 1.0}})
+    assert settings.environment == "street" and settings.conditions.night == 1.0
+    yaml = evaluate_config("paths.root_dir=/nonexistent").data.render
+    assert settings.conditions.blur == yaml.conditions.blur and settings.width == yaml.width
+    assert type(settings.builder).__name__ == "Street"
+    for changes, message in (
+        ({"colour": 1}, r"data.render.colour: unknown key"),
+        ({"conditions": {"rain": 0.1}}, r"data.render.conditions.rain: unknown key"),
+        ({"environment": "forest"}, r"data.render.environment: must be a name of data.render.environments"),
+        ({"width": 0}, r"data.render.width: must be a positive integer, got 0"),
+        ({"blur_subframes": 4}, r"data.render.blur_subframes: must be odd"),
+        ({"texture_size": 100}, r"data.render.texture_size: must be a power of two >= 16, got 100"),
+        ({"length": 10.0}, r"data.render.length: must be between 20 and 500 metres"),
+        ({"query_fov_deg": [55.0, 170.0]}, r"data.render.query_fov_deg: must be between 10 and 150 degrees"),
+        ({"conditions": {"night": 1.5}}, r"data.render.conditions.night: must be a probability in \[0, 1\], got 1.5"),
+        ({"noise_std": -0.1}, r"data.render.noise_std: must be >= 0"),
+        ({"width": "wide"}, r"data.render.width: Value 'wide' of type 'str' could not be converted to Integer"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            render_settings(changes)
 
 
 def test_rendering_is_deterministic_and_seed_dependent(tmp_path):
     for folder, seed in (("a", 5), ("b", 5), ("c", 6)):
-        render_synthetic_dataset({**TINY, "seed": seed}, tmp_path / folder)
+        render_synthetic_dataset(render_settings({**TINY, "seed": seed}), tmp_path / folder)
     for kapture_set in ("mapping", "query"):
         files = sorted(p.relative_to(tmp_path / "a") for p in (tmp_path / "a" / kapture_set).rglob("*") if p.is_file())
         assert any(str(f).endswith(".depth") for f in files) and any("masks" in str(f) for f in files)
@@ -150,12 +163,14 @@ def test_rendering_is_deterministic_and_seed_dependent(tmp_path):
         images = [f for f in files if str(f).endswith(".png") and "masks" not in str(f)]
         _, differing, _ = filecmp.cmpfiles(tmp_path / "a", tmp_path / "c", images, shallow=False)
         assert len(differing) == len(images)
-    assert json.loads((tmp_path / "a" / "synthetic_config.json").read_text()) == resolve_config({**TINY, "seed": 5})
+    record = json.loads((tmp_path / "a" / "synthetic_config.json").read_text())
+    assert record == render_settings({**TINY, "seed": 5}).record()
+    assert record["environments"] == {"mall": {"_target_": "locretrieval.scene.synthetic.mall.Mall"}}
 
 
 def test_forced_conditions_give_the_forced_tags(tmp_path):
     config = {**TINY, "conditions": {"night": 1.0, "blur": 0.0, "dynamic": 1.0, "noise": 0.0}, "database_dynamic": 1.0}
-    render_synthetic_dataset(config, tmp_path)
+    render_synthetic_dataset(render_settings(config), tmp_path)
     queries = read_set(tmp_path / "query")
     database = read_set(tmp_path / "mapping")
     assert len(queries) == TINY["num_queries"] and len(database) == TINY["num_database"]
@@ -298,7 +313,7 @@ def test_sift_matches_agree_with_the_known_relative_pose(medium_sets):
 
 @pytest.fixture(scope="module")
 def scene():
-    config = resolve_config({**MEDIUM, "width": 160, "height": 120})
+    config = render_settings({**MEDIUM, "width": 160, "height": 120})
     with single_torch_thread():  # as render_synthetic_dataset does
         environment = build_environment(config)
         renderer = Renderer(environment, resolve_device("cpu"))
@@ -371,3 +386,29 @@ def test_staging_folders_of_killed_renders_are_removed_and_live_ones_kept(tmp_pa
         (folder / "mapping").mkdir(parents=True)
     assert remove_stale_staging(tmp_path) == [dead]
     assert not dead.exists() and live.exists()
+
+
+BUILT = []
+
+
+class RecordedMall(EnvironmentBuilder):
+    """An environment from outside the package: the mall, each build recorded."""
+
+    def build(self, rng, length, texture_size):
+        BUILT.append((length, texture_size))
+        return Mall().build(rng, length, texture_size)
+
+
+def test_an_environment_from_outside_the_package_is_chosen_through_the_config(tmp_path):
+    from locretrieval.scene.datasets import instantiate_scene
+
+    tiny = [f"data.render.{key}={value}" for key, value in TINY.items() if key != "conditions"]
+    common = ["device=cpu", f"paths.root_dir={tmp_path}", f"paths.cache_dir={tmp_path / 'cache'}", *tiny]
+    node = f"{{_target_: {__name__}.RecordedMall}}"
+    cfg = evaluate_config(*common, f"+data.render.environments.recorded={node}", "data.render.environment=recorded")
+    recorded = instantiate_scene(cfg.data)
+    assert recorded.name == "synthetic_recorded" and BUILT == [(TINY["length"], TINY["texture_size"])]
+    mall = instantiate_scene(evaluate_config(*common).data)
+    assert mall.database.paths != recorded.database.paths  # rendered into a folder of its own
+    for ours, theirs in zip(recorded.database.paths + recorded.queries.paths, mall.database.paths + mall.queries.paths):
+        assert filecmp.cmp(ours, theirs, shallow=False)  # the mall's images, by the same seed

@@ -18,21 +18,33 @@ from locretrieval import geometry
 from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
 from locretrieval.config import ConfigError, validated
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
-from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, compute_groundtruths
+from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, RankedRelevance, compute_groundtruths
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 from locretrieval.training.callbacks import TRAINED, every_validation_metrics, metric_rows
 from locretrieval.training.data import RelevanceBatchSampler, TrainingAugmentation
-from locretrieval.training.relevance import NegativeSettings, TrainingRelevanceSettings, combined_pairs, training_pairs
+from locretrieval.training.relevance import (
+    NegativesRule,
+    NotRelevantNegatives,
+    TrainingRelevanceSettings,
+    UnrelatedNegatives,
+    combined_pairs,
+    training_pairs,
+)
 from locretrieval.training.run import ValidationScope, train
 
 SCENE = {"width": 96, "height": 72, "num_database": 24, "num_queries": 6, "texture_size": 64, "length": 20.0,
          "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
          "hard_query_fraction": 0.0, "workers": 1, "seed": 5}  # fmt: skip
 RELATIVE_POSE = TrainingRelevanceSettings(
-    {"type": "relative_pose", "position_threshold": 10.0, "rotation_threshold": 30.0},
-    NegativeSettings("unrelated", 0.1, None, None),
+    {
+        "_target_": "locretrieval.groundtruth.RelativePoseDefinition",
+        "position_threshold": 10.0,
+        "rotation_threshold": 30.0,
+        "ranked": "within_thresholds",
+    },
+    UnrelatedNegatives(0.1, None, None),
 )
 AT_25M = DefinitionContext(far=25.0)
 #: A short training of the tiny scene: small batches, no SfM validation.
@@ -46,15 +58,15 @@ TINY_TRAINING = (
 )
 
 
-def negatives(**changes):
-    """`RELATIVE_POSE` with other negatives settings."""
-    return dataclasses.replace(RELATIVE_POSE, negatives=dataclasses.replace(RELATIVE_POSE.negatives, **changes))
+def negatives(rule=None, **changes):
+    """`RELATIVE_POSE` with another negatives ``rule``, or its rule with other settings."""
+    return dataclasses.replace(RELATIVE_POSE, negatives=rule or dataclasses.replace(RELATIVE_POSE.negatives, **changes))
 
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("training_scene")
-    render_synthetic_dataset(SCENE, root)
+    render_synthetic_dataset(helpers.render_settings(SCENE), root)
     return load_kapture_scene("tiny", [root / "mapping"], [root / "query"], frustum_far=25.0)
 
 
@@ -73,7 +85,7 @@ def test_relative_pose_training_pairs_against_a_direct_computation(scene):
     overlap = pairwise_overlap_radii(frusta, frusta) > 0
     np.testing.assert_array_equal(pairs.related.toarray(), overlap | relevant)
     assert relevant.any() and (~overlap).any()  # both positives and surely unrelated pairs exist
-    strict = training_pairs(database, negatives(rule="not_relevant"), AT_25M)
+    strict = training_pairs(database, negatives(NotRelevantNegatives()), AT_25M)
     np.testing.assert_array_equal(strict.related.toarray(), relevant)  # every pair not relevant may be a negative
     facing = training_pairs(database, negatives(max_rotation=90.0), AT_25M)
     np.testing.assert_array_equal(facing.related.toarray(), (overlap & (rotation <= 90.0)) | relevant)
@@ -354,7 +366,7 @@ def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkp
         settings,
         {"all": np.ones(len(scene.queries), bool)},
         cfg.paths.cache_dir,
-        relevances(groundtruths),
+        relevances(groundtruths, RankedRelevance()),
     )
     direct = metric_rows(result, TRAINED, settings.paradigms.ks())
     assert direct.keys() == {k for k in logged if k != "epoch"}
@@ -769,7 +781,10 @@ def test_the_gap_table_gives_the_share_of_the_gap_to_the_ground_truth_that_train
             "callbacks.localization_validation.every_n_epochs=often",
             r"callbacks.localization_validation.every_n_epochs: Value 'often'",
         ),
-        ("train_relevance.definition=relative_pose", r"train_relevance.definition: must be a mapping with a type of"),
+        (
+            "train_relevance.definition=relative_pose",
+            r"train_relevance.definition: must be a mapping with a _target_, the definition's class",
+        ),
     ],
 )
 def test_every_object_node_is_checked_by_its_full_key_before_the_scene_is_prepared(tmp_path, override, message):
@@ -978,3 +993,26 @@ def test_the_report_says_which_requested_gap_row_it_cannot_fill(tmp_path, caplog
 def test_train_py_takes_a_step_with_a_pytorch_metric_learning_loss(tmp_path):
     validator = train(train_config(tmp_path, "loss=multi_similarity", "+trainer.fast_dev_run=true"), tmp_path / "run")
     assert [entry["epoch"] for entry in validator.history] == [-1, 0]
+
+
+@dataclasses.dataclass
+class FarApart(NegativesRule):
+    """A negatives rule from outside the package: negatives are the pairs more than ``metres`` apart."""
+
+    metres: float
+
+    def covisible(self, images, context):
+        return lambda rows: geometry.pairwise_position_errors(images.centers[rows], images.centers) <= self.metres
+
+
+def test_a_negatives_rule_from_outside_the_package_is_chosen_through_the_config(scene, tmp_path):
+    node = f"{{_target_: {__name__}.FarApart, metres: 15.0}}"
+    cfg = train_config(tmp_path, "~train_relevance.negatives", f"+train_relevance.negatives={node}")
+    settings = validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance")
+    database = scene.database
+    pairs = training_pairs(database, settings, AT_25M)
+    distance = geometry.position_errors(database.centers[:, None], database.centers[None])
+    np.testing.assert_array_equal(pairs.related.toarray(), (distance <= 15.0) | (pairs.graded.toarray() > 0))
+    assert (distance > 15.0).any()
+    chosen = train_config(tmp_path, "train_relevance/negatives=not_relevant").train_relevance
+    assert validated(TrainingRelevanceSettings, chosen, "train_relevance").negatives == NotRelevantNegatives()

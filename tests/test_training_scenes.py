@@ -23,7 +23,7 @@ from locretrieval.training.run import TrainingSettings, train, training_parts
 def data_dir(tmp_path_factory):
     """Aachen's and Baidu's downloader layouts and a plain kapture folder of JPEG images, from a rendered scene."""
     root = tmp_path_factory.mktemp("training_scenes")
-    render_synthetic_dataset({**SCENE, "seed": 9}, root / "source")
+    render_synthetic_dataset(helpers.render_settings({**SCENE, "seed": 9}), root / "source")
     scene = load_kapture_scene("source", [root / "source" / "mapping"], [root / "source" / "query"])
     local = {
         **extract_features(scene.database, helpers.sfm_settings().features, root / "cache", 1).load(

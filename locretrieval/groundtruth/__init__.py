@@ -1,15 +1,17 @@
 """Ground-truth rankings and relevance (paper Sec. 3.6.3) and their statistics (Table 1)."""
 
 from locretrieval.groundtruth.base import (
+    AllRelevance,
     Definition,
     DefinitionContext,
     GroundTruth,
+    RankedRelevance,
+    RelevanceScope,
     groundtruth_from_scores,
     statistics_table,
 )
 from locretrieval.groundtruth.co_observation import CoObservationDefinition, co_observation_groundtruth
 from locretrieval.groundtruth.compute import (
-    DEFINITIONS,
     GroundTruthSettings,
     compute_groundtruths,
     definition_type,
@@ -23,7 +25,9 @@ from locretrieval.groundtruth.relative_pose import (
 )
 
 __all__ = [
-    "DEFINITIONS",
+    "AllRelevance",
+    "RankedRelevance",
+    "RelevanceScope",
     "CoObservationDefinition",
     "Definition",
     "DefinitionContext",

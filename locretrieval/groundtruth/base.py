@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import abc
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -62,8 +63,8 @@ class Definition(Protocol):
     """A ground-truth definition (a typed parameter schema, checked in ``__post_init__``) that
     gives both the benchmark's ranking and relevance of queries against the database and the
     graded relevance of training pairs. ``uses_sfm``: it matches local features (the SfM
-    paradigms' settings, features and caches). Registered in
-    `locretrieval.groundtruth.compute.DEFINITIONS`."""
+    paradigms' settings, features and caches). Chosen by its ``_target_`` (the built-in ones:
+    ``configs/groundtruth/definitions/``), in any package."""
 
     uses_sfm: ClassVar[bool]
 
@@ -149,6 +150,32 @@ class GroundTruth:
             "avg_relevant_in_ranking": float(in_ranking.mean()) if has_queries else float("nan"),
             "missing_pct": float(100.0 * (relevant == 0).mean()) if has_queries else float("nan"),
         }
+
+
+class RelevanceScope(abc.ABC):
+    """Which relevant images of a ground truth the retrieval metrics count (``groundtruth.relevance``,
+    chosen by its ``_target_``: ``configs/groundtruth/relevance/``)."""
+
+    @abc.abstractmethod
+    def __call__(self, groundtruth: GroundTruth) -> sparse.csr_matrix:
+        """The boolean ``[Q, N]`` relevance the metrics count."""
+
+
+@dataclass(frozen=True)
+class RankedRelevance(RelevanceScope):
+    """The relevant images within the top-``depth`` ranking (`GroundTruth.relevance_in_ranking`):
+    the paper reduces the ground-truth rankings to the top 50 (Sec. 3.6.3), and so its relevance."""
+
+    def __call__(self, groundtruth: GroundTruth) -> sparse.csr_matrix:
+        return groundtruth.relevance_in_ranking()
+
+
+@dataclass(frozen=True)
+class AllRelevance(RelevanceScope):
+    """Every relevant database image (`GroundTruth.relevance`)."""
+
+    def __call__(self, groundtruth: GroundTruth) -> sparse.csr_matrix:
+        return groundtruth.relevance
 
 
 def groundtruth_from_scores(

@@ -126,7 +126,7 @@ def shared_points(
     query_pair_rows = overlapping_pairs(queries, database, query_selection, exclude_self=False)
     named_database = [(database.names[a], database.names[b]) for a, b in database_pair_rows]
     named_queries = [(queries.names[q], database.names[t]) for q, t in query_pair_rows]
-    verification = sfm.matching.database_verification  # queries with a reference pose: verified by it too
+    verification = sfm.database_verification  # queries with a reference pose: verified by it too
     database_matcher.ensure(named_database, workers, verification)
     query_matcher.ensure(named_queries, workers, verification)
     database_matches = database_matcher.load(named_database, verification)

@@ -13,11 +13,8 @@ import numpy as np
 from scipy import sparse
 
 from locretrieval.cache import cached_arrays, config_key, safe_name
-from locretrieval.config import ConfigError, require, validated
-from locretrieval.groundtruth.base import Definition, DefinitionContext, GroundTruth
-from locretrieval.groundtruth.co_observation import CoObservationDefinition
-from locretrieval.groundtruth.frustum import FrustumDefinition
-from locretrieval.groundtruth.relative_pose import RelativePoseDefinition
+from locretrieval.config import ConfigError, part, require, validated
+from locretrieval.groundtruth.base import Definition, DefinitionContext, GroundTruth, RelevanceScope
 from locretrieval.localization.sfm import SfmSettings
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
@@ -25,32 +22,20 @@ from locretrieval.scene import Scene
 log = logging.getLogger(__name__)
 
 
-#: The built-in ground-truth definition types by name (the ``type`` of a ``definitions`` entry
-#: and of ``train_relevance.definition``): each a `Definition` (its module: schema, ranking,
-#: training relevance). Another one, in any package, is chosen by its ``_target_`` instead.
-DEFINITIONS: dict[str, type[Definition]] = {
-    "relative_pose": RelativePoseDefinition,
-    "frustum": FrustumDefinition,
-    "co_observation": CoObservationDefinition,
-}
-
-
-def parse_definition(parameters: Mapping[str, Any], key: str, default_type: str | None = None) -> Definition:
+def parse_definition(parameters: Mapping[str, Any], key: str) -> Definition:
     """The checked definition of ``parameters``: its ``_target_`` (a `Definition` class of any
-    package), else its ``type`` (default ``default_type``) picks the `DEFINITIONS` entry; the rest
-    are its schema's fields. Errors name ``key``."""
-    if not isinstance(parameters, Mapping):
+    package, the built-in ones of ``configs/groundtruth/definitions/`` too) and the parameters
+    of that class's schema. Errors name ``key``."""
+    if not isinstance(parameters, Mapping) or "_target_" not in parameters:
+        retired = isinstance(parameters, Mapping) and "type" in parameters  # before 0.12: {type: frustum, ...}
         raise ConfigError(
-            f"{key}: must be a mapping with a type of {sorted(DEFINITIONS)} (or a _target_) and its parameters, "
-            f"got {parameters!r}"
+            f"{key}: must be a mapping with a _target_, the definition's class (e.g. "
+            "locretrieval.groundtruth.FrustumDefinition, configs/groundtruth/definitions/), and its parameters"
+            + (", not a type" if retired else "")
+            + f"; got {parameters!r}"
         )
     parameters = dict(parameters)
-    if "_target_" in parameters:
-        return validated(definition_class(str(parameters.pop("_target_")), key), parameters, key)
-    kind = parameters.pop("type", default_type)
-    if kind not in DEFINITIONS:
-        raise ConfigError(f"{key}.type: unknown definition type {kind!r}; known: {sorted(DEFINITIONS)}")
-    return validated(DEFINITIONS[kind], parameters, key)
+    return validated(definition_class(str(parameters.pop("_target_")), key), parameters, key)
 
 
 #: Bump when the meaning of cached ground-truth files changes.
@@ -60,21 +45,21 @@ CACHE_VERSION = 2
 @dataclass
 class GroundTruthSettings:
     """The ``groundtruth`` config group: ``depth`` images kept per query in each ranking,
-    ``definitions`` mapping a name to its parameters, and ``enabled`` the names of those
-    computed, in order (``[]``: none; ``None``, or left out of a mapping given in Python: every
-    definition). The optional ``type`` parameter picks the definition type in `DEFINITIONS`
-    (default: the name itself), so one type can appear twice, e.g. ``frustum_25m: {type:
-    frustum, far: 25.0, ...}``. A definition set to ``null`` is switched off, even when enabled;
-    ``definitions: null`` switches every one off."""
+    ``definitions`` mapping a name to its definition (a ``_target_``, the `Definition` class, and
+    its parameters; `parse_definition`), and ``enabled`` the names of those computed, in order
+    (``[]``: none; ``None``: every definition), and the retrieval metrics' ``relevance`` (a
+    `RelevanceScope` chosen by its ``_target_``). One class
+    can appear under two names, e.g. ``frustum_25m: {_target_: ...FrustumDefinition, far: 25.0,
+    ...}``. A definition set to ``null`` is switched off, even when enabled; ``definitions: null``
+    switches every one off."""
 
     depth: int
     definitions: dict[str, Any] | None
-    enabled: list[str] | None = None  # the one default: a mapping written in Python may leave it out
-    relevance: str = "top_k"  # the retrieval metrics' relevance: in the top-depth ranking (the paper's) | all
+    enabled: list[str] | None
+    relevance: Any = part(RelevanceScope, "groundtruth/relevance")
 
     def __post_init__(self) -> None:
         require(self.depth >= 1, "depth", f"must be >= 1, got {self.depth}")
-        require(self.relevance in ("top_k", "all"), "relevance", f"must be top_k or all, got {self.relevance!r}")
         definitions = self.definitions if self.definitions is not None else {}  # null: none
         enabled = list(definitions) if self.enabled is None or self.definitions is None else self.enabled
         unknown = [name for name in enabled if name not in definitions]
@@ -85,13 +70,13 @@ class GroundTruthSettings:
         )
         # a definition set to null is switched off (e.g. groundtruth.definitions.co_observation=null)
         self.definitions = {name: definitions[name] for name in enabled if definitions[name] is not None}
-        for name, parameters in self.definitions.items():  # each checked now, by its type's schema
-            parse_definition(parameters, f"groundtruth.definitions.{name}", name)
+        for name, parameters in self.definitions.items():  # each checked now, by its class's schema
+            parse_definition(parameters, f"groundtruth.definitions.{name}")
 
     def parsed(self) -> dict[str, Definition]:
         """``name -> checked definition`` of every enabled one, in ``enabled`` order."""
         return {
-            name: parse_definition(parameters, f"groundtruth.definitions.{name}", name)
+            name: parse_definition(parameters, f"groundtruth.definitions.{name}")
             for name, parameters in self.definitions.items()
         }
 
@@ -125,8 +110,7 @@ def compute_groundtruths(
         if definition.uses_sfm:
             if sfm is None:
                 raise ConfigError(
-                    f"groundtruth.definitions.{name}: "
-                    f"the {definition_type(definition)} ground truth needs the sfm settings"
+                    f"groundtruth.definitions.{name}: {definition_type(definition)} needs the sfm settings"
                 )
             context = dataclasses.replace(
                 context, sfm=dataclasses.replace(sfm, map_pairs=sfm.map_pairs.for_scene(scene))
@@ -138,6 +122,7 @@ def compute_groundtruths(
                 "map_pairs": dataclasses.asdict(sfm.map_pairs),
             }
             produced_by["sfm"]["matching"] = context.sfm.matching.identity()
+            produced_by["sfm"]["database_verification"] = repr(sfm.database_verification)
         path = None
         if cache_dir is not None:
             key = config_key(CACHE_VERSION, definition_type(definition), produced_by, settings.depth, *fingerprints)
@@ -174,11 +159,9 @@ def definition_class(target: str, key: str) -> type[Definition]:
 
 
 def definition_type(definition: Definition) -> str:
-    """The `DEFINITIONS` name of ``definition``'s type, or its class's import path (part of its cache key)."""
+    """The import path of ``definition``'s class (its ``_target_``; part of its cache key)."""
     kind = type(definition)
-    return next(
-        (name for name, known in DEFINITIONS.items() if kind is known), f"{kind.__module__}.{kind.__qualname__}"
-    )
+    return f"{kind.__module__}.{kind.__qualname__}"
 
 
 def _to_arrays(groundtruth: GroundTruth) -> dict[str, np.ndarray]:

@@ -24,7 +24,7 @@ class RelativePoseDefinition:
 
     position_threshold: float
     rotation_threshold: float
-    ranked: str = "within_thresholds"
+    ranked: str
     uses_sfm: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
@@ -110,7 +110,7 @@ def relative_pose_groundtruth(
     depth: int,
     position_threshold: float,
     rotation_threshold: float,
-    ranked: str = "within_thresholds",
+    ranked: str,
     name: str = "gt_relative_pose",
 ) -> GroundTruth:
     """`RelativePoseDefinition.groundtruth` of these parameters, by keyword."""

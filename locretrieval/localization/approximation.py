@@ -1,37 +1,39 @@
 """Paradigm 1, pose approximation (paper Sec. 3.1): interpolate the poses of the top-k images.
 
 The query pose is ``P_q = sum_i w_i P_i`` over the top ``k`` database images, with weights
-summing to one:
+summing to one. A method is an `ApproximationMethod` chosen by ``_target_``
+(``configs/paradigms/approximation/weights/``, ``paradigms.approximation.weights.<name>``); the built-in ones:
 
-- ``ewb``: equal weights ``1/k``;
-- ``csi``: ``w_i ∝ (d_q . d_i)^alpha`` (cosine similarity of L2-normalised descriptors, read
-  from the ranking's scores, which `search` sets to ``d_q . d_i``; clamped at 0 so that an
-  even ``alpha`` cannot reward dissimilar images), ``alpha = 8``;
-- ``bdi``: the weights minimising ``||d_q - sum_i w_i d_i||`` subject to ``sum_i w_i = 1``
-  (no sign constraint), in closed form ``w = G^-1 1 / (1^T G^-1 1)`` with
+- `EqualWeights` (``ewb``): equal weights ``1/k``;
+- `CosineSimilarityWeights` (``csi``): ``w_i ∝ (d_q . d_i)^alpha`` (cosine similarity of
+  L2-normalised descriptors, read from the ranking's scores, which `search` sets to ``d_q . d_i``;
+  clamped at 0 so that an even ``alpha`` cannot reward dissimilar images), the paper's ``alpha = 8``;
+- `BarycentricWeights` (``bdi``): the weights minimising ``||d_q - sum_i w_i d_i||`` subject to
+  ``sum_i w_i = 1`` (no sign constraint), in closed form ``w = G^-1 1 / (1^T G^-1 1)`` with
   ``G_ij = (d_i - d_q) . (d_j - d_q)``.
 
 Camera centres are interpolated linearly; rotations are averaged as the dominant eigenvector
 of ``sum_i w_i q_i q_i^T`` (sign-invariant), not as a renormalised sum. All k are processed
-at once, queries a chunk at a time. ``bdi`` and ``csi`` need descriptors, so rankings without them
-(ground truth) get ``ewb`` only, as in the paper's Fig. 4.
+at once, queries a chunk at a time. ``bdi`` and ``csi`` need descriptors (`ApproximationMethod.uses_descriptors`),
+so rankings without them (ground truth) get ``ewb`` only, as in the paper's Fig. 4.
 """
 
 from __future__ import annotations
 
+import abc
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import scipy.linalg
 
 from locretrieval import geometry
-from locretrieval.config import require
+from locretrieval.config import named_parts, require
 from locretrieval.localization.estimates import LOCALIZED, PoseEstimates
 from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.workers import resolve_workers
@@ -40,8 +42,6 @@ from locretrieval.scene import ImageSet, Scene
 
 log = logging.getLogger(__name__)
 
-METHODS = ("ewb", "bdi", "csi")
-DESCRIPTOR_METHODS = ("bdi", "csi")
 EMPTY_RETRIEVAL = "empty retrieval"
 #: Relative ridge added to BDI's Gram matrix so duplicate descriptors split weights evenly.
 BDI_RIDGE = 1e-9
@@ -62,25 +62,128 @@ EXACT_CHUNK_QUERIES = 16
 SCORE_TOLERANCE = 1e-3
 
 
+#: The centres ``[q, K, 3]`` and world-to-camera rotations ``[q, K, 4]`` (wxyz) of a chunk's ranked images.
+Poses = tuple[np.ndarray, np.ndarray]
+
+
+class ApproximationMethod(abc.ABC):
+    """A pose-approximation method: the weights of the top-k database poses of each query (module
+    docstring). ``uses_descriptors``: it reads the ranking's descriptors or its scores ``d_q . d_i``,
+    so rankings without descriptors (ground truth, pairs files) skip it. A new one subclasses this
+    (or `PrefixWeights`), in any package, and is chosen by its ``_target_``."""
+
+    uses_descriptors: ClassVar[bool]
+
+    def prepare(self, top: Ranking) -> Any:
+        """What every chunk of ``top``'s queries reads, computed once per ranking (default: nothing)."""
+        return None
+
+    @abc.abstractmethod
+    def poses(
+        self, top: Ranking, rows: slice, valid: np.ndarray, ks: list[int], poses: Poses, prepared: Any
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(qvec [len(ks), q, 4], tvec [len(ks), q, 3], failures [len(ks), q])`` of the queries
+        ``rows`` of ``top`` from the ``poses`` of their ranked images (``valid [q, K]``: the slots
+        holding one; a query has at least one): world-to-camera poses, through `interpolate` or
+        `interpolate_prefixes`, and per k and query ``LOCALIZED`` or why the method failed."""
+
+
+class PrefixWeights(ApproximationMethod):
+    """A method that weighs each ranked image independently of k (`raw_weights`): the top-k weights
+    are the first k, normalised, so one row serves every k (`interpolate_prefixes`)."""
+
+    @abc.abstractmethod
+    def raw_weights(self, scores: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        """Unnormalised weights ``[q, K]`` from the ranking's ``scores [q, K]`` (0 on empty slots)."""
+
+    def poses(
+        self, top: Ranking, rows: slice, valid: np.ndarray, ks: list[int], poses: Poses, prepared: Any
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        qvec, tvec = interpolate_prefixes(self.raw_weights(top.scores[rows], valid), ks, *poses)
+        return qvec, tvec, np.full((len(ks), len(valid)), LOCALIZED, dtype=object)
+
+
+@dataclass
+class EqualWeights(PrefixWeights):
+    """EWB: equal weights ``1 / k``."""
+
+    uses_descriptors: ClassVar[bool] = False
+
+    def raw_weights(self, scores: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        return valid.astype(np.float64)
+
+
+@dataclass
+class CosineSimilarityWeights(PrefixWeights):
+    """CSI: ``w_i ∝ (d_q . d_i)^alpha`` (``alpha`` positive; the paper: 8).
+
+    Similarities are clamped at 0 and divided by the query's largest one before the power (the
+    normalised weights are unchanged, and a large ``alpha`` cannot underflow them all); a query
+    without a positive similarity gets equal weights.
+    """
+
+    alpha: float
+    uses_descriptors: ClassVar[bool] = True
+
+    def __post_init__(self) -> None:
+        require(self.alpha > 0, "alpha", f"must be positive, got {self.alpha}")
+
+    def raw_weights(self, scores: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        similarity = np.where(valid, np.clip(scores, 0.0, None), 0.0)  # descriptor rankings: d_q . d_i
+        largest = similarity.max(axis=1, keepdims=True)
+        dead = valid[:, 0] & (largest[:, 0] == 0)
+        if dead.any():
+            log.warning(
+                "csi: %d queries with no positive similarity among their ranked images use equal weights", dead.sum()
+            )
+        with np.errstate(invalid="ignore", divide="ignore"):
+            raw = (similarity / largest) ** self.alpha
+        return np.where(dead[:, None], valid, np.where(valid, raw, 0.0))
+
+
+@dataclass
+class BarycentricWeights(ApproximationMethod):
+    """BDI: the weights whose combination of the ranked descriptors is nearest the query's
+    (`_bdi_weights`); a query whose Gram matrix cannot be solved fails (`DEGENERATE_BDI`)."""
+
+    uses_descriptors: ClassVar[bool] = True
+
+    def prepare(self, top: Ranking) -> DescriptorProducts:
+        return DescriptorProducts(top)
+
+    def poses(
+        self, top: Ranking, rows: slice, valid: np.ndarray, ks: list[int], poses: Poses, prepared: DescriptorProducts
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        weights = _bdi_weights(_residual_gram_factors(top, rows, prepared), valid, ks)
+        degenerate = ~np.isfinite(weights).all(-1)
+        qvec, tvec = interpolate(np.where(degenerate[..., None], 0.0, weights), *poses)
+        return qvec, tvec, np.where(degenerate, DEGENERATE_BDI, LOCALIZED).astype(object)
+
+
 @dataclass
 class ApproximationSettings(ParadigmSettings):
-    """``methods``: any of `METHODS`; ``alpha``: the CSI exponent (the paper: 8)."""
+    """``methods``: the names of the methods computed, in this order, each a key of ``weights``:
+    name -> `ApproximationMethod` (chosen by its ``_target_``; ``configs/paradigms/approximation/weights/``)."""
 
     methods: list[str]
-    alpha: float
+    weights: dict[str, Any] = named_parts(ApproximationMethod)
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        unknown = sorted(set(self.methods) - set(METHODS))
+        unknown = [name for name in self.methods if name not in self.weights]
         require(
             bool(self.methods) and not unknown,
             "methods",
-            f"must be a non-empty list of {list(METHODS)}, got {self.methods}",
+            f"must be a non-empty list of names of paradigms.approximation.weights {list(self.weights)}, "
+            f"got {self.methods}",
         )
-        require(self.alpha > 0, "alpha", f"must be positive, got {self.alpha}")
 
     def method_names(self) -> list[str]:
         return list(self.methods)
+
+    def chosen(self) -> dict[str, ApproximationMethod]:
+        """The methods computed, by name, in order."""
+        return {name: self.weights[name] for name in self.methods}
 
 
 def run(
@@ -95,92 +198,57 @@ def run(
     return [
         estimate
         for ranking in rankings
-        for estimate in approximate_poses(scene.database, ranking, settings.k, settings.methods, settings.alpha)
+        for estimate in approximate_poses(scene.database, ranking, settings.k, settings.chosen())
     ]
 
 
 def approximate_poses(
-    database: ImageSet, ranking: Ranking, ks: Sequence[int], methods: Sequence[str], alpha: float
+    database: ImageSet, ranking: Ranking, ks: Sequence[int], methods: Mapping[str, ApproximationMethod]
 ) -> list[PoseEstimates]:
-    """Pose estimates of every query for every k and method applicable to ``ranking``.
+    """Pose estimates of every query for every k and method (name -> `ApproximationMethod`)
+    applicable to ``ranking``.
 
     Each estimate is a world-to-camera pose (q wxyz, t). A query whose ranking is empty
     has no estimate (failure ``"empty retrieval"``); a query with fewer than ``k`` ranked
     images uses those it has. Queries are processed `CHUNK_QUERIES` at a time, chunks on one
     thread per core (numpy and LAPACK release the GIL).
     """
-    unknown = set(methods) - set(METHODS)
-    if unknown:
-        raise ValueError(f"unknown pose approximation methods {sorted(unknown)}; expected {METHODS}")
     ks = ranking.clamp_ks(ks)
     top = ranking.top(max(ks))
-    applicable = [m for m in methods if m not in DESCRIPTOR_METHODS or ranking.has_descriptors]
-    skipped = [m for m in methods if m not in applicable]
+    applicable = {name: m for name, m in methods.items() if not m.uses_descriptors or ranking.has_descriptors}
+    skipped = [name for name in methods if name not in applicable]
     if skipped:
-        log.info("ranking %r has no descriptors: %s skipped, %s only", ranking.name, skipped, applicable)
+        log.info("ranking %r has no descriptors: %s skipped, %s only", ranking.name, skipped, list(applicable))
     poses = (database.centers, database.qvec)
-    products = DescriptorProducts(top) if "bdi" in applicable else None
     chunks = [slice(start, start + CHUNK_QUERIES) for start in range(0, top.num_queries, CHUNK_QUERIES)]
     results = []
     with ThreadPoolExecutor(max(1, min(resolve_workers(None), len(chunks)))) as pool:
-        for method in applicable:
-            chunk_estimates = partial(
-                _approximate_chunk, method, top, ks=ks, poses=poses, alpha=alpha, products=products
-            )
+        for name, method in applicable.items():
+            chunk_estimates = partial(_approximate_chunk, method, top, ks=ks, poses=poses, prepared=method.prepare(top))
             parts = list(pool.map(chunk_estimates, chunks))
             qvec, tvec, failures = (np.concatenate(arrays, axis=1) for arrays in zip(*parts))
-            results.append(PoseEstimates(ranking.name, ranking.kind, "approximation", method, ks, qvec, tvec, failures))
+            results.append(PoseEstimates(ranking.name, ranking.kind, "approximation", name, ks, qvec, tvec, failures))
     return results
 
 
 def _approximate_chunk(
-    method: str,
+    method: ApproximationMethod,
     top: Ranking,
     rows: slice,
     ks: list[int],
     poses: tuple[np.ndarray, np.ndarray],
-    alpha: float,
-    products: DescriptorProducts | None,
+    prepared: Any,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(qvec [len(ks), q, 4], tvec [len(ks), q, 3], failures [len(ks), q])`` of the queries ``rows``."""
     indices = top.indices[rows]
     valid = indices != EMPTY
     safe = np.where(valid, indices, 0)
-    centers, rotations = poses[0][safe], poses[1][safe]
     failures = np.where(valid[:, 0][None, :].repeat(len(ks), 0), LOCALIZED, EMPTY_RETRIEVAL).astype(object)
-    if method == "bdi":
-        weights = _bdi_weights(_residual_gram_factors(top, rows, products), valid, ks)
-        degenerate = ~np.isfinite(weights).all(-1)
-        failures[degenerate & (failures == LOCALIZED)] = DEGENERATE_BDI
-        qvec, tvec = _interpolate(np.where(degenerate[..., None], 0.0, weights), centers, rotations)
-    else:
-        scores = top.scores[rows]
-        qvec, tvec = _interpolate_prefixes(_prefix_weights(method, scores, valid, alpha), ks, centers, rotations)
+    qvec, tvec, failed = method.poses(top, rows, valid, ks, (poses[0][safe], poses[1][safe]), prepared)
+    failures = np.where(failures == LOCALIZED, failed, failures)
     qvec[failures != LOCALIZED] = np.nan
     tvec[failures != LOCALIZED] = np.nan
     return qvec, tvec, failures
-
-
-def _prefix_weights(method: str, scores: np.ndarray, valid: np.ndarray, alpha: float) -> np.ndarray:
-    """Unnormalised weights ``[q, K]`` whose first k entries, normalised, are the top-k weights.
-
-    EWB and CSI weigh each image independently of k, so one row serves every k. CSI
-    similarities are clamped at 0 and divided by the query's largest one before the power
-    (the normalised weights are unchanged, and a large ``alpha`` cannot underflow them all);
-    a query without a positive similarity gets equal weights.
-    """
-    if method == "ewb":
-        return valid.astype(np.float64)
-    similarity = np.where(valid, np.clip(scores, 0.0, None), 0.0)  # descriptor rankings: d_q . d_i
-    largest = similarity.max(axis=1, keepdims=True)
-    dead = valid[:, 0] & (largest[:, 0] == 0)
-    if dead.any():
-        log.warning(
-            "csi: %d queries with no positive similarity among their ranked images use equal weights", dead.sum()
-        )
-    with np.errstate(invalid="ignore", divide="ignore"):
-        raw = (similarity / largest) ** alpha
-    return np.where(dead[:, None], valid, np.where(valid, raw, 0.0))
 
 
 def _bdi_weights(factors: np.ndarray, valid: np.ndarray, ks: list[int]) -> np.ndarray:
@@ -328,14 +396,14 @@ def check_scores(name: str, first: np.ndarray, queries: np.ndarray, scores: np.n
         )
 
 
-def _interpolate(weights: np.ndarray, centers: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def interpolate(weights: np.ndarray, centers: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World-to-camera poses ``([len(ks), Q, 4], [len(ks), Q, 3])`` from per-k weights ``[len(ks), Q, K]``."""
     center = (weights[..., None, :] @ centers)[..., 0, :]  # [len(ks), Q, 1, K] @ [Q, K, 3]
     qvec = geometry.average_quaternions(rotations, weights)
     return qvec, geometry.translations_from_centers(qvec, center)
 
 
-def _interpolate_prefixes(
+def interpolate_prefixes(
     raw: np.ndarray, ks: list[int], centers: np.ndarray, rotations: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Poses for weights proportional to ``raw[:, :k]`` for each k, by cumulative sums over slots."""

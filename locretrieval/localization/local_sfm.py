@@ -3,19 +3,20 @@
 For each query, ranking and k:
 
 1. the map images are the query's top-k database images (their known poses are kept fixed);
-2. map-map matches (``map_matches``):
-   - ``database`` (the paper's protocol): every pair of the k images is matched (mutual
+2. map-map matches (``map_matches``, a `MapMatches` chosen by ``_target_``,
+   ``configs/paradigms/local_sfm/map_matches/``):
+   - `DatabaseMapMatches` (the paper's protocol): every pair of the k images is matched (mutual
      nearest neighbours + ratio test). Database pairs are matched once for all queries,
      rankings and k and cached;
-   - ``query``: derived from the query's matches (Sec. 4.1.2, discussion): if query keypoint
+   - `QueryMapMatches`: derived from the query's matches (Sec. 4.1.2, discussion): if query keypoint
      q1 matches m1 in one map image and m2 in another, (m1, m2) is a map-map match; no
      database pair is matched at all;
-   either way, map-map matches are then kept only within ``matching.max_epipolar_error``
-   pixels of the epipolar geometry of the two known poses;
+   either way, map-map matches are then kept by ``sfm.database_verification`` (within
+   ``max_epipolar_error`` pixels of the epipolar geometry of the two known poses);
 3. COLMAP's triangulator builds tracks across the k images and triangulates them
    (``sfm.triangulation``: COLMAP's, or the batched one, every map of a query in one call); the map is
    cached in ``<cache_dir>/local_maps/`` keyed by its images, the matches' store and the
-   triangulation settings (and, with ``query`` map matches, the query), so a map shared by
+   triangulation settings (and, with map matches derived from the query's, the query), so a map shared by
    several queries or a rerun is triangulated once;
 4. the query's matches to the k images (verified per ``matching.query_verification``) give
    2D-3D correspondences through the triangulated keypoints, and LO-RANSAC P3P with
@@ -29,15 +30,17 @@ available ("too few images"), the map has no point, or PnP fails.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+import abc
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from math import comb
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from locretrieval.cache import config_key
-from locretrieval.config import require
+from locretrieval.config import part
 from locretrieval.localization.estimates import PoseEstimates
 from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.pipeline import SfmStages, run_sfm
@@ -65,29 +68,117 @@ from locretrieval.localization.sfm import (
 )
 from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.localization.triangulation import MapInput
-from locretrieval.localization.verification import epipolar_inliers
+from locretrieval.localization.verification import VerificationBatch
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import Scene
 
-MAP_MATCHES = ("database", "query")
 #: Bump when the meaning of cached local maps changes.
 CACHE_VERSION = 1
+
+#: Database pairs ``(a, b)``, a < b, by index.
+IndexPairs = list[tuple[int, int]]
+
+
+@dataclass
+class QueryMaps:
+    """What one query's local maps are built from: the cached ``inputs``, the ``query``'s index, its
+    ``keypoints``, its ``matches`` to each map image (by database index) and the map images'
+    ``database_keypoints`` (by name)."""
+
+    inputs: SfmInputs
+    query: int
+    keypoints: np.ndarray
+    matches: Mapping[int, np.ndarray]
+    database_keypoints: Mapping[str, np.ndarray]
+
+
+class MapMatches(abc.ABC):
+    """Where the matches between the images of a local map come from. A new source subclasses
+    this, in any package, and is chosen by its ``_target_`` (``paradigms.local_sfm.map_matches``)."""
+
+    @abc.abstractmethod
+    def identity(self) -> str:
+        """What determines the matches, beside `source` (part of the maps' and outcomes' cache keys)."""
+
+    def database_pairs(
+        self, rankings: Sequence[Ranking], ks: Sequence[Sequence[int]], queries: Sequence[int] | None
+    ) -> np.ndarray:
+        """The database pairs ``[P, 2]`` to match before the maps of ``queries`` (None: all) are
+        built (default: none)."""
+        return np.empty((0, 2), dtype=np.int64)
+
+    def pair_bound(self, pairs_per_query: int, queries: int, num_rankings: int, database: int) -> int:
+        """At most how many database pairs `database_pairs` gives for ``num_rankings`` rankings not
+        computed yet (``pairs_per_query``: the pairs among one query's deepest k images)."""
+        return 0
+
+    @abc.abstractmethod
+    def source(self, inputs: SfmInputs, query: int) -> list[str]:
+        """What the matches of ``query``'s maps are read from (part of a map's cache key)."""
+
+    @abc.abstractmethod
+    def matches(self, pairs: IndexPairs, query: QueryMaps) -> dict[tuple[int, int], np.ndarray]:
+        """Pose-verified matches ``[m, 2]`` of every database pair of ``pairs`` of one query's maps."""
+
+
+@dataclass
+class DatabaseMapMatches(MapMatches):
+    """The paper's protocol: every pair of the k images matched (and verified against their poses),
+    once for all queries, rankings and k, cached."""
+
+    def identity(self) -> str:
+        return "database"
+
+    def database_pairs(
+        self, rankings: Sequence[Ranking], ks: Sequence[Sequence[int]], queries: Sequence[int] | None
+    ) -> np.ndarray:
+        return local_map_pairs(rankings, ks, queries)
+
+    def pair_bound(self, pairs_per_query: int, queries: int, num_rankings: int, database: int) -> int:
+        return min(num_rankings * queries * pairs_per_query, comb(database, 2))
+
+    def source(self, inputs: SfmInputs, query: int) -> list[str]:
+        return [_database_matches(inputs)]
+
+    def matches(self, pairs: IndexPairs, query: QueryMaps) -> dict[tuple[int, int], np.ndarray]:
+        inputs, names = query.inputs, query.inputs.scene.database.names
+        loaded = inputs.database_pairs.load([(names[a], names[b]) for a, b in pairs], inputs.database_verification)
+        return {(a, b): loaded[(names[a], names[b])] for a, b in pairs}
+
+
+@dataclass
+class QueryMapMatches(MapMatches):
+    """Derived from the query's matches (paper Sec. 4.1.2, discussion): if query keypoint q1 matches
+    m1 in one map image and m2 in another, (m1, m2) is a map-map match, kept by the database
+    verification (``sfm.database_verification``: within ``max_epipolar_error`` pixels of the two
+    known poses' epipolar geometry); no database pair is matched."""
+
+    def identity(self) -> str:
+        return "query"
+
+    def source(self, inputs: SfmInputs, query: int) -> list[str]:
+        return [inputs.query_pairs.store(inputs.query_verification).folder.name, inputs.scene.queries.names[query]]
+
+    def matches(self, pairs: IndexPairs, query: QueryMaps) -> dict[tuple[int, int], np.ndarray]:
+        partner = {}
+        for image, matches in query.matches.items():
+            partner[image] = np.full(len(query.keypoints), -1, dtype=np.int64)
+            partner[image][matches[:, 0]] = matches[:, 1]
+        derived = []
+        for a, b in pairs:
+            both = (partner[a] >= 0) & (partner[b] >= 0)
+            derived.append(np.column_stack([partner[a][both], partner[b][both]]).astype(np.int32))
+        database, keypoints = query.inputs.scene.database, query.database_keypoints
+        batch = VerificationBatch(database, database, pairs, derived, keypoints, keypoints)
+        return dict(zip(pairs, query.inputs.database_verification.verify(batch)))
 
 
 @dataclass
 class LocalSfmSettings(ParadigmSettings):
-    """``map_matches``: ``database`` (match every pair of the k images, cached) or ``query``
-    (derive map-map matches from the query's matches)."""
+    """``map_matches``: where the matches among a local map's images come from (a `MapMatches`,
+    chosen by its ``_target_``: ``paradigms/local_sfm/map_matches=database|query``)."""
 
-    map_matches: str
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        require(
-            self.map_matches in MAP_MATCHES,
-            "map_matches",
-            f"must be one of {list(MAP_MATCHES)}, got {self.map_matches!r}",
-        )
+    map_matches: Any = part(MapMatches, "paradigms/local_sfm/map_matches")
 
     def method_names(self) -> list[str]:
         return [SFM_METHOD]
@@ -114,12 +205,10 @@ def query_map_pairs(
     settings: LocalSfmSettings,
     queries: Sequence[int] | None,
 ) -> list[tuple[str, str]]:
-    """The database pairs (names) of every local map of ``queries`` (None: all) with ``database``
-    map matches (`local_map_pairs`); none with ``query`` map matches."""
-    if settings.map_matches != "database":
-        return []
+    """The database pairs (names) every local map of ``queries`` (None: all) needs matched first
+    (`MapMatches.database_pairs`)."""
     names = inputs.scene.database.names
-    return [(names[a], names[b]) for a, b in local_map_pairs(rankings, ks, queries)]
+    return [(names[a], names[b]) for a, b in settings.map_matches.database_pairs(rankings, ks, queries)]
 
 
 def localize(
@@ -152,11 +241,7 @@ def plan(
     pairs_per_map = float(np.mean([comb(min(k, len(scene.database)), 2) for k in settings.k if k >= 2] or [0]))
     if rankings is None:
         queries, depth = len(scene.queries), min(max(settings.k), len(scene.database))
-        bound = (
-            min(num_rankings * queries * comb(depth, 2), comb(len(scene.database), 2))
-            if settings.map_matches == "database"
-            else 0
-        )
+        bound = settings.map_matches.pair_bound(comb(depth, 2), queries, num_rankings, len(scene.database))
         maps = num_rankings * queries * sum(1 for k in settings.k if k >= 2)
         return ParadigmWork(
             "local_sfm",
@@ -194,7 +279,12 @@ STAGES = SfmStages(shared_map_pairs, query_map_pairs, None, localize, "triangula
 
 def _pose_cache(inputs: SfmInputs, settings: LocalSfmSettings, cache_dir: Path) -> PoseCache:
     """The registration outcomes, keyed by what the local maps are keyed by."""
-    maps = [CACHE_VERSION, settings.map_matches, _database_matches(inputs), inputs.settings.triangulation.identity()]
+    maps = [
+        CACHE_VERSION,
+        settings.map_matches.identity(),
+        _database_matches(inputs),
+        inputs.settings.triangulation.identity(),
+    ]
     return inputs.pose_cache("local_sfm", maps, cache_dir)
 
 
@@ -219,7 +309,7 @@ def local_map_pairs(
     return np.unique(np.concatenate(pairs), axis=0)
 
 
-def localize_query(shared: tuple[SfmInputs, str, Path], task: QueryTask) -> list[list[Outcome]]:
+def localize_query(shared: tuple[SfmInputs, MapMatches, Path], task: QueryTask) -> list[list[Outcome]]:
     """Outcomes ``[ranking][k]`` of one query; its maps (the image sets whose outcome is not
     known) are read from ``maps`` (the cache folder) or triangulated, all of them in one call of
     the triangulation, and the query registered in each once, whichever rankings, ks and orders
@@ -230,7 +320,8 @@ def localize_query(shared: tuple[SfmInputs, str, Path], task: QueryTask) -> list
     images = sorted({i for selected in pending for i in selected})
     query_keypoints, query_matches = inputs.query_matches(task.query, images)
     keypoints = inputs.database_features.keypoints([database.names[i] for i in images])
-    map_pairs = _map_matches(inputs, pending, map_matches, query_matches, len(query_keypoints), keypoints)
+    pairs = sorted({(a, b) for selected in pending for a in selected for b in selected if a < b})
+    map_pairs = map_matches.matches(pairs, QueryMaps(inputs, task.query, query_keypoints, query_matches, keypoints))
     paths = {
         selected: maps / f"{_map_key(inputs, map_matches, task.query, selected)}.npz"
         for selected in sorted(pending)
@@ -278,51 +369,9 @@ def localize_query(shared: tuple[SfmInputs, str, Path], task: QueryTask) -> list
     return outcomes_per_image_set(task, localize)
 
 
-def _map_key(inputs: SfmInputs, map_matches: str, query: int, selected: tuple[int, ...]) -> str:
-    """Cache key of a local map: its images, the database matches' store (features, ratio,
-    epipolar bound, poses), the triangulation settings and, for ``query`` map matches (derived
-    from the query's), the query and its matches' store."""
+def _map_key(inputs: SfmInputs, map_matches: MapMatches, query: int, selected: tuple[int, ...]) -> str:
+    """Cache key of a local map: its images, where its matches come from (`MapMatches.source`:
+    the database matches' store, or the query's matches and the query) and the triangulation settings."""
     names = [inputs.scene.database.names[i] for i in selected]
-    source = [_database_matches(inputs)]
-    if map_matches == "query":
-        source = [inputs.query_pairs.store(inputs.query_verification).folder.name, inputs.scene.queries.names[query]]
-    return config_key(CACHE_VERSION, map_matches, source, names, inputs.settings.triangulation.identity())
-
-
-def _map_matches(
-    inputs: SfmInputs,
-    image_sets: Iterable[tuple[int, ...]],
-    map_matches: str,
-    query_matches: Mapping[int, np.ndarray],
-    num_query_keypoints: int,
-    keypoints: Mapping[str, np.ndarray],
-) -> dict[tuple[int, int], np.ndarray]:
-    """Pose-verified matches of every database pair ``(a, b)``, a < b, within one of the image
-    sets (sorted tuples); ``keypoints``: those of the database images by name."""
-    database = inputs.scene.database
-    pairs = sorted({(a, b) for images in image_sets for a in images for b in images if a < b})
-    if map_matches == "database":
-        loaded = inputs.database_pairs.load(
-            [(database.names[a], database.names[b]) for a, b in pairs], inputs.database_verification
-        )
-        return {(a, b): loaded[(database.names[a], database.names[b])] for a, b in pairs}
-    partner = {}
-    for image, matches in query_matches.items():
-        partner[image] = np.full(num_query_keypoints, -1, dtype=np.int64)
-        partner[image][matches[:, 0]] = matches[:, 1]
-    derived = {}
-    for a, b in pairs:
-        both = (partner[a] >= 0) & (partner[b] >= 0)
-        matches = np.column_stack([partner[a][both], partner[b][both]]).astype(np.int32)
-        keep = epipolar_inliers(
-            keypoints[database.names[a]],
-            keypoints[database.names[b]],
-            matches,
-            database.cameras[a],
-            (database.qvec[a], database.tvec[a]),
-            database.cameras[b],
-            (database.qvec[b], database.tvec[b]),
-            inputs.settings.matching.max_epipolar_error,
-        )
-        derived[(a, b)] = matches[keep]
-    return derived
+    source = map_matches.source(inputs, query)
+    return config_key(CACHE_VERSION, map_matches.identity(), source, names, inputs.settings.triangulation.identity())

@@ -3,7 +3,8 @@
 Matching is mutual nearest neighbours with Lowe's ratio test on L2-normalised descriptors
 (`locretrieval.localization.nearest_neighbours`). Matches ``int32 [m, 2]`` hold keypoint indices
 (first image, second image). Verification (`locretrieval.localization.verification`) keeps the
-geometrically consistent ones; database pairs are verified against their known poses.
+geometrically consistent ones: ``sfm.query_verification`` of query-database pairs,
+``sfm.database_verification`` of database pairs (against their known poses).
 
 Where it runs (`MatchingSettings.matcher`):
 
@@ -28,7 +29,6 @@ import logging
 from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from functools import cached_property
 from itertools import groupby
 from pathlib import Path
 from typing import Any
@@ -49,7 +49,6 @@ from locretrieval.localization.store import ShardedStore
 from locretrieval.localization.verification import (
     NoVerification,
     PairVerification,
-    PoseVerification,
     VerificationBatch,
     pair_indices,
     verify_pairs,
@@ -73,14 +72,12 @@ Pair = tuple[str, str]
 
 @dataclass
 class MatchingSettings:
-    """Mutual nearest neighbours with Lowe's ``ratio`` test (1: off); database pairs verified
-    against their known poses (Sampson error below ``max_epipolar_error`` px). Matching runs on
+    """Mutual nearest neighbours with Lowe's ``ratio`` test (1: off). Matching runs on
     ``device`` (``auto``: CUDA when there is a GPU) with ``precision``
     similarities; ``block_mib`` MiB of them at once (null: `CPU_BLOCK_BYTES` on a CPU, a quarter
     of the free memory on a GPU)."""
 
     ratio: float
-    max_epipolar_error: float
     device: str
     precision: str
     block_mib: float | None
@@ -98,21 +95,10 @@ class MatchingSettings:
             "block_mib",
             f"must be a positive number of MiB or null, got {self.block_mib}",
         )
-        require(
-            self.max_epipolar_error > 0,
-            "max_epipolar_error",
-            f"must be a positive number of pixels, got {self.max_epipolar_error}",
-        )
-
-    @cached_property
-    def database_verification(self) -> PoseVerification:
-        """Database pairs: Sampson error against the known poses."""
-        return PoseVerification(self.max_epipolar_error)
 
     def identity(self) -> dict[str, Any]:
-        """What determines the matches (not where or in which blocks they are computed)."""
-        settings = dataclasses.asdict(self)
-        return {key: settings[key] for key in ("ratio", "max_epipolar_error", "precision")}
+        """What determines the raw matches (not where or in which blocks they are computed)."""
+        return {"ratio": self.ratio, "precision": self.precision}
 
     def matcher(self) -> NearestNeighbourMatcher | BatchedMatcher:
         """The matcher of these settings in this process: `NearestNeighbourMatcher` on a CPU,

@@ -82,8 +82,8 @@ class NearestNeighbourMatcher:
     """
 
     ratio: float
-    precision: str = "float32"
-    block_bytes: int = CPU_BLOCK_BYTES
+    precision: str
+    block_bytes: int
 
     def __post_init__(self) -> None:
         require(0 < self.ratio <= 1, "ratio", f"must be in (0, 1], got {self.ratio}")
@@ -246,8 +246,8 @@ class BatchedMatcher:
 
     ratio: float
     device: str
-    precision: str = "float32"
-    batch_bytes: int = 1 << 30
+    precision: str
+    batch_bytes: int
 
     def __post_init__(self) -> None:
         require(0 < self.ratio <= 1, "ratio", f"must be in (0, 1], got {self.ratio}")

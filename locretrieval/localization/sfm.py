@@ -48,16 +48,18 @@ class SfmSettings:
     """The ``sfm`` config group, shared by local SfM (2a), global SfM (2b) and the
     co-observation ground truth so that they share their cached features and matches:
     local ``features`` (a `LocalFeatures` chosen by ``_target_``), ``matching``, the
-    ``query_verification`` of query-database matches (a `PairVerification` chosen by
-    ``_target_``), ``triangulation`` with known poses (a `Triangulation` chosen by ``_target_``), ``pnp``
+    ``query_verification`` of query-database matches and the ``database_verification`` of
+    database pairs (each a `PairVerification` chosen by ``_target_``), ``triangulation`` with
+    known poses (a `Triangulation` chosen by ``_target_``), ``pnp``
     registration, the database pairs of global maps (``map_pairs``, by frustum overlap), the
     worker processes (``workers``: ``null`` or 0, one per core; 1, in this process) and this job's
     ``shard`` of the work (``i/n``: the i-th of n jobs sharing the cache; null: all of it)."""
 
-    features: Any = part(LocalFeatures)
+    features: Any = part(LocalFeatures, "sfm/features")
     matching: MatchingSettings
-    query_verification: Any = part(PairVerification)
-    triangulation: Any = part(Triangulation)
+    query_verification: Any = part(PairVerification, "sfm/query_verification")
+    database_verification: Any = part(PairVerification, "sfm/database_verification")
+    triangulation: Any = part(Triangulation, "sfm/triangulation")
     pnp: PnPSettings
     map_pairs: PairSelection
     workers: int | None
@@ -155,7 +157,7 @@ class SfmInputs:
 
     @property
     def database_verification(self) -> PairVerification:
-        return self.settings.matching.database_verification
+        return self.settings.database_verification
 
     def ranked_pairs(
         self, rankings: Sequence[Ranking], ks: Sequence[Sequence[int]], queries: Sequence[int] | None = None

@@ -1,8 +1,8 @@
 """Geometric verification of the matches of image pairs: which matches a pair keeps.
 
-A verification is an object chosen by ``_target_`` (``sfm.matching.query_verification`` for
-query-database pairs); database pairs, whose poses are known, are always verified by
-`PoseVerification`:
+A verification is an object chosen by ``_target_``: ``sfm.query_verification`` of
+query-database pairs, ``sfm.database_verification`` of database pairs, whose poses are known
+(`PoseVerification`):
 
 - `NoVerification`: the raw matches (PnP's RANSAC rejects outliers later);
 - `PoseVerification`: both images have known poses: matches whose Sampson error against the
@@ -192,29 +192,6 @@ def sampson_errors(points0: np.ndarray, points1: np.ndarray, essential: np.ndarr
     numerator = np.einsum("ij,ij->i", x1, line1) ** 2
     denominator = line1[:, 0] ** 2 + line1[:, 1] ** 2 + line0[:, 0] ** 2 + line0[:, 1] ** 2
     return np.sqrt(numerator / np.maximum(denominator, np.finfo(float).tiny))
-
-
-def epipolar_inliers(
-    keypoints0: np.ndarray,
-    keypoints1: np.ndarray,
-    matches: np.ndarray,
-    camera0: Camera,
-    pose0: tuple[np.ndarray, np.ndarray],
-    camera1: Camera,
-    pose1: tuple[np.ndarray, np.ndarray],
-    max_error: float,
-) -> np.ndarray:
-    """Boolean ``[m]``: matches within ``max_error`` pixels of the epipolar geometry of two
-    known world-to-camera poses (distortion removed through the cameras' models); one pair of
-    `PoseVerification`'s computation."""
-    if not len(matches):
-        return np.zeros(0, dtype=bool)
-    (points0, focal0), (points1, focal1) = (
-        undistorted(camera0, keypoints0[matches[:, 0]]),
-        undistorted(camera1, keypoints1[matches[:, 1]]),
-    )
-    errors = sampson_errors(points0, points1, essential_matrices(*pose0, *pose1))
-    return np.isfinite(errors) & (errors * 0.5 * (focal0 + focal1) <= max_error)
 
 
 def two_view_inliers(

@@ -53,7 +53,7 @@ class MetricsSettings:
     counts as localised (the reference evaluation's ``<=``), else only a smaller one."""
 
     thresholds: list[Any]
-    inclusive: bool = True
+    inclusive: bool
 
     def __post_init__(self) -> None:
         pairs = [t for t in self.thresholds if isinstance(t, (list, tuple)) and len(t) == 2]
@@ -70,7 +70,7 @@ def localized(
     position_errors: np.ndarray,
     rotation_errors: np.ndarray,
     thresholds: Sequence[Sequence[float]],
-    inclusive: bool = True,
+    inclusive: bool,
 ) -> np.ndarray:
     """Boolean ``[T, ...]``: both errors within ``(X m, Y deg)``, for each threshold: ``<=``
     when ``inclusive`` (the reference evaluation's convention), else ``<``.
@@ -90,7 +90,7 @@ def localization_table(
     queries: ImageSet,
     thresholds: Sequence[Sequence[float]],
     subsets: Mapping[str, np.ndarray],
-    inclusive: bool = True,
+    inclusive: bool,
 ) -> pd.DataFrame:
     """Tidy % localised over the queries with a reference pose, for each subset mask (``inclusive``:
     see `localized`).

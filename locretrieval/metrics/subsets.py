@@ -14,16 +14,18 @@ the reference code; an exactly flat image scores ``-inf``). Low scores mean litt
 high-frequency content: an image is **blurry when score <= threshold** (20, the reference
 code's default and the paper's value).
 
-**Dynamic scenes.** The fraction of pixels on dynamic objects, from per-image masks
-(``ImageSet.mask_paths``: non-zero on dynamic objects, e.g. the synthetic scene's exact
-masks) or from torchvision's Mask R-CNN (ResNet-50 FPN, COCO weights read from a local
-file): the union of the masks (probability >= ``mask_threshold``) of detections scoring
->= ``score_threshold`` whose class is in `DYNAMIC_CATEGORIES`. An image is a **dynamic
-scene when fraction >= 0.2**.
+**Dynamic scenes.** The fraction of pixels on dynamic objects, from a `MaskSource` chosen by
+``_target_`` (``subsets.mask_sources``; the first of ``subsets.dynamic_masks`` that can serve
+every query is used): per-image mask files (`MaskFiles`, ``ImageSet.mask_paths``: non-zero on
+dynamic objects, e.g. the synthetic scene's exact masks) or torchvision's Mask R-CNN
+(`MaskRcnn`, ResNet-50 FPN, COCO weights read from a local file): the union of the masks
+(probability >= ``mask_threshold``) of detections scoring >= ``score_threshold`` whose class is
+in `DYNAMIC_CATEGORIES`. An image is a **dynamic scene when fraction >= 0.2**.
 """
 
 from __future__ import annotations
 
+import abc
 import logging
 import os
 import pickle
@@ -38,14 +40,14 @@ from PIL import Image
 from tqdm import tqdm
 
 from locretrieval.cache import cached_arrays, config_key, file_signature
-from locretrieval.config import require
+from locretrieval.config import named_parts, require
 from locretrieval.scene import ImageSet
 from locretrieval.scene.images import read_image
 
 log = logging.getLogger(__name__)
 
 #: Bump when the meaning of cached scores changes.
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 
 #: Names of the subsets `subset_masks` returns (distinct from the synthetic scene's tags).
 BLURRY = "blurry"
@@ -73,24 +75,108 @@ MASKRCNN_WEIGHTS_FILE = "maskrcnn_resnet50_fpn_coco-bf2d0c1e.pth"
 #: Columns of the per-image table (``subsets.csv``), before one boolean column per subset.
 SUBSET_COLUMNS = ["dataset", "image", "blur_score", "dynamic_fraction", "mask_source"]
 
-#: Mask sources of ``configs/subsets``.
-MASK_SOURCES = ("auto", "masks", "maskrcnn", "none")
+#: The ``mask_source`` of images without one (no dynamic-scene subset).
+NO_MASK_SOURCE = "none"
+
+
+class MaskSource(abc.ABC):
+    """Where the fraction of each image's pixels on dynamic objects comes from. A new source
+    subclasses this, in any package, and is chosen by its ``_target_`` (``subsets.mask_sources``)."""
+
+    @abc.abstractmethod
+    def unavailable(self, images: ImageSet) -> str | None:
+        """Why it cannot serve ``images`` (e.g. no mask files), or ``None`` when it can."""
+
+    def missing_inputs(self, images: ImageSet) -> list[str]:
+        """The files it names that are absent, checked before any work (default: none)."""
+        return []
+
+    @abc.abstractmethod
+    def key(self, images: ImageSet) -> list[Any]:
+        """What its fractions of ``images`` depend on beyond the images (the cache key)."""
+
+    @abc.abstractmethod
+    def fractions(self, images: ImageSet) -> np.ndarray:
+        """The dynamic fraction ``[N]`` of every image, in [0, 1]."""
+
+
+@dataclass
+class MaskFiles(MaskSource):
+    """The image set's mask files (``ImageSet.mask_paths``; `mask_fraction`)."""
+
+    def unavailable(self, images: ImageSet) -> str | None:
+        absent = [name for name, path in zip(images.names, images.mask_paths or [None] * len(images)) if path is None]
+        if absent:
+            return (
+                f"{len(absent)} of {len(images)} images have no mask file (<kapture>/masks/<name>), e.g. {absent[0]!r}"
+            )
+        return None
+
+    def key(self, images: ImageSet) -> list[Any]:
+        # mask paths relative to the images: a moved or copied dataset and cache keep the key
+        relative = [os.path.relpath(p, images.image_root) for p in images.mask_paths]
+        return ["masks", relative, [file_signature(p) for p in images.mask_paths]]
+
+    def fractions(self, images: ImageSet) -> np.ndarray:
+        return mask_fractions(images)
+
+
+@dataclass
+class MaskRcnn(MaskSource):
+    """torchvision's Mask R-CNN with COCO ``weights`` read from a local file (`load_maskrcnn`:
+    ``min_size``, ``score_threshold``; `maskrcnn_fractions`: ``mask_threshold``) on ``device``;
+    unavailable while ``weights`` is null."""
+
+    weights: str | None
+    min_size: int
+    score_threshold: float
+    mask_threshold: float
+    device: str
+
+    def __post_init__(self) -> None:
+        require(self.min_size >= 32, "min_size", f"must be >= 32 pixels, got {self.min_size}")
+        for name in ("score_threshold", "mask_threshold"):
+            require(0 <= getattr(self, name) <= 1, name, f"must be in [0, 1], got {getattr(self, name)}")
+
+    def unavailable(self, images: ImageSet) -> str | None:
+        return None if self.weights else f"no weights (the path of torchvision's {MASKRCNN_WEIGHTS_FILE})"
+
+    def missing_inputs(self, images: ImageSet) -> list[str]:
+        if self.weights and not Path(self.weights).is_file():
+            return [f"weights: {self.weights} not found (torchvision's {MASKRCNN_WEIGHTS_FILE})"]
+        return []
+
+    def key(self, images: ImageSet) -> list[Any]:
+        weights = Path(self.weights)
+        return [
+            "maskrcnn",
+            str(weights),
+            file_signature(weights),
+            self.min_size,
+            self.score_threshold,
+            self.mask_threshold,
+        ]
+
+    def fractions(self, images: ImageSet) -> np.ndarray:
+        from locretrieval.device import resolve_device
+
+        model = load_maskrcnn(self.weights, resolve_device(self.device), self.min_size, self.score_threshold)
+        return maskrcnn_fractions(images, model, self.mask_threshold)
 
 
 @dataclass
 class SubsetSettings:
-    """The ``subsets`` config group (``configs/subsets/default.yaml`` documents each key)."""
+    """The ``subsets`` config group (``configs/subsets/default.yaml`` documents each key):
+    ``dynamic_masks`` names the ``mask_sources`` (name -> `MaskSource`, chosen by ``_target_``)
+    tried in order (`mask_source`)."""
 
     enabled: bool
     blur_threshold: float
     blur_radius: int
     blur_width: int
     dynamic_fraction: float
-    mask_source: str
-    maskrcnn_weights: str | None
-    maskrcnn_min_size: int
-    maskrcnn_score_threshold: float
-    maskrcnn_mask_threshold: float
+    dynamic_masks: list[str]
+    mask_sources: dict[str, Any] = named_parts(MaskSource)
 
     def __post_init__(self) -> None:
         require(self.blur_radius >= 1, "blur_radius", f"must be >= 1 frequency bin, got {self.blur_radius}")
@@ -100,24 +186,15 @@ class SubsetSettings:
             f"must exceed twice blur_radius ({2 * self.blur_radius}), got {self.blur_width}",
         )
         require(0 <= self.dynamic_fraction <= 1, "dynamic_fraction", f"must be in [0, 1], got {self.dynamic_fraction}")
+        unknown = [name for name in self.dynamic_masks if name not in self.mask_sources]
         require(
-            self.mask_source in MASK_SOURCES,
-            "mask_source",
-            f"must be one of {list(MASK_SOURCES)}, got {self.mask_source!r}",
+            not unknown,
+            "dynamic_masks",
+            f"{unknown} are not names of subsets.mask_sources {list(self.mask_sources)}",
         )
-        require(
-            self.mask_source != "maskrcnn" or bool(self.maskrcnn_weights),
-            "maskrcnn_weights",
-            f"mask_source=maskrcnn needs the path of torchvision's {MASKRCNN_WEIGHTS_FILE}",
-        )
-        require(
-            self.maskrcnn_min_size >= 32, "maskrcnn_min_size", f"must be >= 32 pixels, got {self.maskrcnn_min_size}"
-        )
-        for name in ("maskrcnn_score_threshold", "maskrcnn_mask_threshold"):
-            require(0 <= getattr(self, name) <= 1, name, f"must be in [0, 1], got {getattr(self, name)}")
 
 
-def blur_score(image: np.ndarray, radius: int = 60, width: int = 500) -> float:
+def blur_score(image: np.ndarray, radius: int, width: int) -> float:
     """FFT blur score of an RGB ``uint8 [H, W, 3]`` image (module docstring); higher is sharper."""
     height = int(image.shape[0] * width / image.shape[1])
     gray = np.asarray(
@@ -131,7 +208,7 @@ def blur_score(image: np.ndarray, radius: int = 60, width: int = 500) -> float:
         return float(np.mean(20.0 * np.log(np.abs(residual))))
 
 
-def blur_scores(images: ImageSet, radius: int = 60, width: int = 500) -> np.ndarray:
+def blur_scores(images: ImageSet, radius: int, width: int) -> np.ndarray:
     """`blur_score` of every image ``[N]``."""
     return np.array(
         [
@@ -168,7 +245,7 @@ def dynamic_category_ids() -> np.ndarray:
     return np.array([categories.index(name) for name in DYNAMIC_CATEGORIES])
 
 
-def load_maskrcnn(weights: str | Path, device: Any = "cpu", min_size: int = 800, score_threshold: float = 0.5) -> Any:
+def load_maskrcnn(weights: str | Path, device: Any, min_size: int, score_threshold: float) -> Any:
     """torchvision ``maskrcnn_resnet50_fpn`` in eval mode with COCO weights from a local file.
 
     ``min_size`` is the shorter image side the model resizes to (torchvision's default
@@ -228,34 +305,32 @@ def maskrcnn_fractions(images: ImageSet, model, mask_threshold: float) -> np.nda
     return np.array(fractions)
 
 
-def resolve_mask_source(images: ImageSet, settings: SubsetSettings) -> str:
-    """``masks``, ``maskrcnn`` or ``none`` for the configured ``mask_source`` (``auto`` logged)."""
-    source = settings.mask_source
-    if source != "auto":
-        return source
-    has_masks = images.mask_paths is not None and all(path is not None for path in images.mask_paths)
-    resolved = "masks" if has_masks else "maskrcnn" if settings.maskrcnn_weights else "none"
-    log.info(
-        "dynamic-scene subset: mask_source=auto -> %s (%s)",
-        resolved,
-        {"masks": "every image has a mask file", "maskrcnn": f"weights {settings.maskrcnn_weights}",
-         "none": "no mask files and no subsets.maskrcnn_weights: no dynamic-scene subset"}[resolved],
-    )  # fmt: skip
-    return resolved
+def mask_source(images: ImageSet, settings: SubsetSettings) -> tuple[str, MaskSource | None]:
+    """The first of ``settings.dynamic_masks`` that can serve every image of ``images`` (its name
+    and source), logged; ``(NO_MASK_SOURCE, None)`` when none can (no dynamic-scene subset)."""
+    reasons = {}
+    for name in settings.dynamic_masks:
+        source = settings.mask_sources[name]
+        reasons[name] = source.unavailable(images)
+        if reasons[name] is None:
+            log.info("dynamic-scene subset: mask source %s", name)
+            return name, source
+    log.info("dynamic-scene subset: none (%s)", "; ".join(f"{n}: {r}" for n, r in reasons.items()) or "no mask source")
+    return NO_MASK_SOURCE, None
 
 
 def missing_mask_inputs(images: ImageSet, settings: SubsetSettings) -> list[str]:
-    """What the dynamic-scene subset of ``images`` lacks: mask files (``mask_source=masks``) or
-    the Mask R-CNN weight file."""
-    source = resolve_mask_source(images, settings) if settings.enabled else "none"
-    if source == "masks":
-        absent = [name for name, path in zip(images.names, images.mask_paths or [None] * len(images)) if path is None]
-        return [f"subsets.mask_source=masks: {len(absent)} of {len(images)} queries have no mask file "
-                f"(<kapture>/masks/<name>), e.g. {absent[0]!r}"] if absent else []  # fmt: skip
-    if source == "maskrcnn" and not Path(settings.maskrcnn_weights).is_file():
-        return [
-            f"subsets.maskrcnn_weights: {settings.maskrcnn_weights} not found (torchvision's {MASKRCNN_WEIGHTS_FILE})"
-        ]
+    """What the dynamic-scene subset of ``images`` lacks: the files its mask source names
+    (`MaskSource.missing_inputs`), or, when ``subsets.dynamic_masks`` names one source alone,
+    why that one cannot serve them."""
+    if not settings.enabled:
+        return []
+    name, source = mask_source(images, settings)
+    if source is not None:
+        return [f"subsets.mask_sources.{name}.{problem}" for problem in source.missing_inputs(images)]
+    if len(settings.dynamic_masks) == 1:  # the one source asked for
+        (name,) = settings.dynamic_masks
+        return [f"subsets.dynamic_masks=[{name}]: {settings.mask_sources[name].unavailable(images)}"]
     return []
 
 
@@ -264,38 +339,20 @@ def _cached(cache_dir: str | Path | None, parts: list, compute: Callable[[], np.
     return cached_arrays(path, lambda: {"values": compute()})[0]["values"]
 
 
-def subset_scores(
-    images: ImageSet, settings: SubsetSettings, cache_dir: str | Path | None = None, device: str = "auto"
-) -> pd.DataFrame:
+def subset_scores(images: ImageSet, settings: SubsetSettings, cache_dir: str | Path | None) -> pd.DataFrame:
     """Per-image ``blur_score`` and ``dynamic_fraction`` (NaN without a mask source) and the
-    ``mask_source`` used; cached under ``<cache_dir>/subsets`` by the image set's fingerprint
-    and the parameters that produce each score (thresholds are applied later, uncached).
+    ``mask_source`` used (`mask_source`); cached under ``<cache_dir>/subsets`` by the image set's
+    fingerprint and what produces each score (thresholds are applied later, uncached).
     """
-    source = resolve_mask_source(images, settings)
+    name, source = mask_source(images, settings)
     fingerprint = images.fingerprint(include_poses=False)
     radius, width = settings.blur_radius, settings.blur_width
     blur = _cached(cache_dir, ["blur", fingerprint, radius, width], lambda: blur_scores(images, radius, width))
-    if source == "masks":
-        # mask paths relative to the images: a moved or copied dataset and cache keep the key
-        relative = [os.path.relpath(p, images.image_root) for p in images.mask_paths]
-        key = ["masks", fingerprint, relative, [file_signature(p) for p in images.mask_paths]]
-        dynamic = _cached(cache_dir, key, lambda: mask_fractions(images))
-    elif source == "maskrcnn":
-        weights = Path(settings.maskrcnn_weights)
-        min_size = settings.maskrcnn_min_size
-        thresholds = settings.maskrcnn_score_threshold, settings.maskrcnn_mask_threshold
-        key = ["maskrcnn", fingerprint, str(weights), file_signature(weights), min_size, *thresholds]
-
-        def detect() -> np.ndarray:
-            from locretrieval.device import resolve_device
-
-            model = load_maskrcnn(weights, resolve_device(str(device)), min_size, thresholds[0])
-            return maskrcnn_fractions(images, model, thresholds[1])
-
-        dynamic = _cached(cache_dir, key, detect)
+    if source is not None:
+        dynamic = _cached(cache_dir, ["dynamic", fingerprint, source.key(images)], lambda: source.fractions(images))
     else:
         dynamic = np.full(len(images), np.nan)
-    return pd.DataFrame({"image": images.names, "blur_score": blur, "dynamic_fraction": dynamic, "mask_source": source})
+    return pd.DataFrame({"image": images.names, "blur_score": blur, "dynamic_fraction": dynamic, "mask_source": name})
 
 
 def subset_masks(scores: pd.DataFrame, settings: SubsetSettings) -> dict[str, np.ndarray]:
@@ -304,13 +361,13 @@ def subset_masks(scores: pd.DataFrame, settings: SubsetSettings) -> dict[str, np
     ``dynamic_scene`` is absent when no mask source was available.
     """
     masks = {BLURRY: scores["blur_score"].to_numpy() <= settings.blur_threshold}
-    if (scores["mask_source"] != "none").all():
+    if (scores["mask_source"] != NO_MASK_SOURCE).all():
         masks[DYNAMIC_SCENE] = scores["dynamic_fraction"].to_numpy() >= settings.dynamic_fraction
     return masks
 
 
 def image_subsets(
-    dataset: str, images: ImageSet, settings: SubsetSettings, cache_dir: str | Path | None = None, device: str = "auto"
+    dataset: str, images: ImageSet, settings: SubsetSettings, cache_dir: str | Path | None
 ) -> tuple[dict[str, np.ndarray], pd.DataFrame]:
     """Subset masks of ``images`` and the per-image table written as ``subsets.csv``.
 
@@ -318,7 +375,7 @@ def image_subsets(
     """
     if not settings.enabled:
         return {}, pd.DataFrame(columns=SUBSET_COLUMNS)
-    scores = subset_scores(images, settings, cache_dir, device)
+    scores = subset_scores(images, settings, cache_dir)
     masks = subset_masks(scores, settings)
     table = scores.assign(**{name: mask for name, mask in masks.items()})
     table.insert(0, "dataset", dataset)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import abc
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -32,6 +33,17 @@ class GlobalDescriptor(abc.ABC):
     def bind_scene(self, scene: Scene) -> None:
         """Take scene-level side data the model reads besides the images, e.g. published
         feature files under ``scene.sources`` (default: nothing). Called before `identity`."""
+
+    def missing_inputs(self, scene: Scene) -> list[str]:
+        """The files it reads for ``scene`` that are absent, each ``<its key>: <problem>``, checked
+        before any work (default: none; a weight file is read when the model is built)."""
+        return []
+
+    def rankings(self, scene: Scene, search: Callable[[GlobalDescriptor, Scene], Any]) -> list[Any]:
+        """Its rankings of ``scene``'s queries (`locretrieval.retrieval.Ranking`): its descriptors
+        searched by ``search`` (`locretrieval.retrieval.descriptors.DescriptorSearch`: described,
+        cached, the top ``retrieval.depth`` database images of each query)."""
+        return [search(self, scene)]
 
     def fit(self, database: ImageSet) -> None:
         """Learn data-dependent parameters on the database images (default: nothing)."""

@@ -105,27 +105,38 @@ class PrecomputedDescriptor(GlobalDescriptor):
     layout or the downloader's). Without ``name`` or ``feature_name``, the ranking is named after
     the folders (`folder_label`, e.g. ``AP-GeM-LM18``). Descriptors are converted to
     ``float32`` and L2-normalised (logged once per call when the files were not); rankings
-    use the inner product, which orders unit vectors as the L2 metric does.
+    use the inner product, which orders unit vectors as the L2 metric does. The folders' headers
+    are read when it is built; an absent one is named by `missing_inputs` (read once it is there).
     """
 
     def __init__(
         self,
-        name: str | None = None,
-        path: str | os.PathLike | Sequence[str | os.PathLike] | None = None,
-        feature_name: str | None = None,
-        allow_integer: bool = False,
+        *,
+        name: str | None,
+        path: str | os.PathLike | Sequence[str | os.PathLike] | None,
+        feature_name: str | None,
+        allow_integer: bool,
     ) -> None:
         super().__init__(name or feature_name or "precomputed")
         self.allow_integer = bool(allow_integer)
         self._named = name is not None or feature_name is not None
         self.feature_name = feature_name
         self._folders: list[Path] | None = None
-        self._from_sources = path is None
-        if path is not None:
-            folders = as_folders(path)
-            if not folders:
+        self._paths = None if path is None else as_folders(path)
+        if self._paths is not None:
+            if not self._paths:
                 raise ValueError("model.path is an empty list; give at least one global-features folder")
-            self._set_folders(folders)
+            if not self._named:
+                self.name = folder_label(self._paths)
+            if all((folder / CONFIG_FILENAME).is_file() for folder in self._paths):
+                self._set_folders(self._paths)
+
+    def missing_inputs(self, scene: Scene) -> list[str]:
+        """The feature folders' headers that are absent (``path``), or why no folder of
+        ``feature_name`` is among ``scene``'s sources."""
+        key = "path" if self._paths is not None else "feature_name"
+        problems = missing_feature_folders(self._paths, self.feature_name, scene.sources)
+        return [f"{key}: {problem}" for problem in problems]
 
     def _set_folders(self, folders: list[Path]) -> None:
         configs = [read_config(folder, self.allow_integer) for folder in folders]
@@ -149,6 +160,8 @@ class PrecomputedDescriptor(GlobalDescriptor):
 
     @property
     def folders(self) -> list[Path]:
+        if self._folders is None and self._paths is not None:
+            self._set_folders(self._paths)  # absent when the model was built
         if self._folders is None:
             raise RuntimeError(
                 "precomputed model has no feature folders: set model.path, or describe through "
@@ -158,7 +171,7 @@ class PrecomputedDescriptor(GlobalDescriptor):
 
     def bind_scene(self, scene: Scene) -> None:
         """Find the feature folders under ``scene.sources`` unless ``path`` was given."""
-        if self._from_sources:
+        if self._paths is None:
             self._set_folders(find_feature_folders(scene.sources, self.feature_name))
 
     def identity(self) -> dict[str, Any]:

@@ -24,6 +24,7 @@ import numpy as np
 import pandas as pd
 
 from locretrieval import geometry
+from locretrieval.config import require
 from locretrieval.report.html import with_script_policy
 from locretrieval.report.markdown import md_link
 from locretrieval.scene import ImageSet, Scene
@@ -56,33 +57,33 @@ class SceneViewSettings:
     metres (``None``: the median distance between neighbouring database cameras).
     """
 
-    enabled: bool = True
-    max_cameras: int = 5000
-    max_queries: int = 2000
-    max_map_points: int = 20000
-    frustum_depth_m: float | None = None
+    enabled: bool
+    max_cameras: int
+    max_queries: int
+    max_map_points: int
+    frustum_depth_m: float | None
 
     def __post_init__(self) -> None:
         for key in ("max_cameras", "max_queries", "max_map_points"):
-            if int(getattr(self, key)) < 0:
-                raise ValueError(f"report.scene_view.{key} must be >= 0, got {getattr(self, key)}")
-        if self.frustum_depth_m is not None and not float(self.frustum_depth_m) > 0:
-            raise ValueError(
-                f"report.scene_view.frustum_depth_m must be a positive distance or null, got {self.frustum_depth_m}"
-            )
+            require(getattr(self, key) >= 0, key, f"must be >= 0, got {getattr(self, key)}")
+        require(
+            self.frustum_depth_m is None or self.frustum_depth_m > 0,
+            "frustum_depth_m",
+            f"must be a positive distance or null, got {self.frustum_depth_m}",
+        )
 
 
 def write_scene_view(
     path: str | Path,
     scene: Scene,
     estimated_poses: pd.DataFrame,
-    map_points: np.ndarray | None = None,
-    settings: SceneViewSettings | None = None,
+    map_points: np.ndarray | None,
+    settings: SceneViewSettings,
 ) -> Path:
     """Write ``scene_figure`` as a self-contained HTML file (plotly.js embedded, a Content-Security-Policy
     allowing its own scripts only: `with_script_policy`); returns its path."""
     path = Path(path)
-    figure = scene_figure(scene, estimated_poses, map_points, settings or SceneViewSettings())
+    figure = scene_figure(scene, estimated_poses, map_points, settings)
     path.parent.mkdir(parents=True, exist_ok=True)
     page = figure.to_html(include_plotlyjs=True, full_html=True, config={"displaylogo": False, "responsive": True})
     path.write_text(with_script_policy(page), encoding="utf-8")  # its own scripts only: names are data

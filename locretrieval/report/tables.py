@@ -143,7 +143,7 @@ def combine(frames: Sequence[tuple[Path, pd.DataFrame]], spec: TableSpec) -> pd.
 
 def run_variants(run_dirs: Sequence[Path]) -> dict[Path, str]:
     """A label per run: the Hydra command-line overrides (``.hydra/overrides.yaml``) that are not
-    shared by every run, e.g. ``paradigms.approximation.alpha=4``; the directory name otherwise."""
+    shared by every run, e.g. ``paradigms.approximation.weights.csi.alpha=4``; the directory name otherwise."""
     overrides = {}
     for run in run_dirs:
         path = run / ".hydra" / "overrides.yaml"

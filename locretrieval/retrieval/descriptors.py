@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -11,6 +12,8 @@ import numpy as np
 
 from locretrieval.cache import cached_arrays, config_key
 from locretrieval.models.base import NORM_TOLERANCE, GlobalDescriptor
+from locretrieval.retrieval.index import RetrievalSettings, search
+from locretrieval.retrieval.ranking import Ranking
 from locretrieval.scene import ImageSet, Scene
 
 log = logging.getLogger(__name__)
@@ -100,3 +103,17 @@ def _describe_scene(model: GlobalDescriptor, scene: Scene, describe: Describer) 
             f"database ones {database.shape[1]}"
         )
     return {"database": database, "queries": queries}
+
+
+@dataclass(frozen=True)
+class DescriptorSearch:
+    """How a descriptor model ranks a scene (`GlobalDescriptor.rankings`): its descriptors
+    (`describe_scene`, cached in ``cache_dir``) searched for each query's top ``settings.depth``
+    database images (`search`)."""
+
+    settings: RetrievalSettings
+    cache_dir: Path | None
+
+    def __call__(self, model: GlobalDescriptor, scene: Scene) -> Ranking:
+        described = describe_scene(model, scene, self.cache_dir)
+        return search(described.queries, described.database, self.settings.depth, model.name, self.settings.chunk_size)

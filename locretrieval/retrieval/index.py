@@ -50,9 +50,9 @@ def _drop_self(indices: np.ndarray, scores: np.ndarray, rows: np.ndarray, depth:
 def search(
     query_descriptors: np.ndarray,
     database_descriptors: np.ndarray,
-    depth: int = 50,
-    name: str = "descriptor",
-    chunk_size: int = 4096,
+    depth: int,
+    name: str,
+    chunk_size: int,
     exclude_self: bool = False,
 ) -> Ranking:
     """Top-``depth`` database images per query by inner product (cosine for L2-normalised rows).

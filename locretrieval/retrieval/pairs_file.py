@@ -7,8 +7,9 @@ Two formats, told apart per line:
 - the reference tools' (kapture-localization's ``pairs_localization_<k>.txt``): ``query,
   database, score`` separated by commas, ``#`` comment lines (its header).
 
-Pairs keep the file's order per query (``order: file``) or are sorted by decreasing score
-(``order: score``, ties in file order; every line then needs a score). The ranking has no
+Each query's pairs are ordered by a `PairOrder` chosen by ``_target_`` (``model/order=file|score``):
+the file's order (`FileOrder`) or decreasing score (`ScoreOrder`, ties in file order; every line
+then needs a score). The ranking has no
 descriptors: paradigm 1 runs EWB only (BDI and CSI are skipped with the reason logged), as for
 the ground-truth rankings. A query without a pair in the file has an empty ranking (counted
 as not localized, "empty retrieval").
@@ -16,20 +17,20 @@ as not localized, "empty retrieval").
 
 from __future__ import annotations
 
+import abc
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from locretrieval.config import ConfigError, require
+from locretrieval.config import ConfigError, build_part
 from locretrieval.retrieval.ranking import EMPTY, Ranking
 from locretrieval.scene import Scene
 
 log = logging.getLogger(__name__)
-
-ORDERS = ("file", "score")
 
 
 @dataclass(frozen=True)
@@ -42,17 +43,53 @@ class PairLine:
     score: float | None
 
 
+class PairOrder(abc.ABC):
+    """How a pairs file's pairs of one query are ordered, best first (``model.order``, chosen by
+    its ``_target_``: ``configs/model/order/``). A new one subclasses this, in any package."""
+
+    @abc.abstractmethod
+    def arranged(self, rows: dict[int, list[PairLine]], path: Path) -> dict[int, list[PairLine]]:
+        """Each query's pairs of ``rows`` (in the file's order) best first; errors name ``path``."""
+
+
 @dataclass
+class FileOrder(PairOrder):
+    """The file's order (hloc's files: best first)."""
+
+    def arranged(self, rows: dict[int, list[PairLine]], path: Path) -> dict[int, list[PairLine]]:
+        return rows
+
+
+@dataclass
+class ScoreOrder(PairOrder):
+    """Decreasing score (the third column; ties in the file's order): every line needs one."""
+
+    def arranged(self, rows: dict[int, list[PairLine]], path: Path) -> dict[int, list[PairLine]]:
+        unscored = [pair.line for ranked in rows.values() for pair in ranked if pair.score is None]
+        if unscored:
+            raise ConfigError(
+                f"model.order (ScoreOrder): {path}:{min(unscored)} has no score "
+                "(model/order=file keeps the file's order)"
+            )
+        return {q: sorted(ranked, key=lambda p: -p.score) for q, ranked in rows.items()}  # stable: ties in file order
+
+
 class PairsFileRanking:
     """The ``model=pairs`` config node: the ranking named ``name`` read from the pairs file
-    ``path``, in ``order`` (`ORDERS`)."""
+    ``path``, each query's pairs in ``order`` (a `PairOrder`, or its config node)."""
 
-    name: str
-    path: str
-    order: str
+    def __init__(self, *, name: str, path: str, order: Any) -> None:
+        self.name, self.path = name, path
+        self.order = build_part(PairOrder, order, "model.order", "model/order")
 
-    def __post_init__(self) -> None:
-        require(self.order in ORDERS, "order", f"must be one of {list(ORDERS)}, got {self.order!r}")
+    def missing_inputs(self, scene: Scene) -> list[str]:
+        """The pairs file, if it is absent (``path: ...``)."""
+        return [] if Path(self.path).is_file() else [f"path: pairs file {self.path} not found"]
+
+    def rankings(self, scene: Scene, search: Callable[..., Ranking]) -> list[Ranking]:
+        """Its one ranking of ``scene`` (`ranking`), as deep as ``search`` ranks descriptors
+        (`locretrieval.retrieval.descriptors.DescriptorSearch`; the file has no descriptors)."""
+        return [self.ranking(scene, search.settings.depth)]
 
     def ranking(self, scene: Scene, depth: int) -> Ranking:
         """The top-``depth`` database images of each query of ``scene`` as the file ranks them."""
@@ -81,7 +118,9 @@ def read_pairs(path: Path) -> Iterator[PairLine]:
             yield PairLine(number, fields[0], fields[1], score)
 
 
-def ranking_from_pairs(name: str, pairs: list[PairLine], scene: Scene, depth: int, order: str, path: Path) -> Ranking:
+def ranking_from_pairs(
+    name: str, pairs: list[PairLine], scene: Scene, depth: int, order: PairOrder, path: Path
+) -> Ranking:
     """The ranking of ``pairs`` over the scene's queries (rows) and database images (indices).
 
     Every name must be a query, respectively a database image, of the scene, and a pair may
@@ -108,13 +147,7 @@ def ranking_from_pairs(name: str, pairs: list[PairLine], scene: Scene, depth: in
             )
         seen[(pair.query, pair.database)] = pair.line
         rows.setdefault(queries[pair.query], []).append(pair)
-    if order == "score":
-        unscored = next((p for p in pairs if p.score is None), None)
-        if unscored is not None:
-            raise ConfigError(
-                f"model.order=score: {path}:{unscored.line} has no score (order: file keeps the file's order)"
-            )
-        rows = {q: sorted(ranked, key=lambda p: -p.score) for q, ranked in rows.items()}  # stable: ties in file order
+    rows = order.arranged(rows, path)
     depth = min(depth, len(database))  # as `search` clamps it
     indices = np.full((len(queries), depth), EMPTY, dtype=np.int64)
     scores = np.zeros((len(queries), depth), dtype=np.float32)

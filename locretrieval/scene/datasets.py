@@ -17,7 +17,9 @@ from typing import Any
 from filelock import FileLock
 
 from locretrieval.cache import config_key
+from locretrieval.config import ConfigError, build_part, validated
 from locretrieval.scene.kapture_io import load_kapture_scene
+from locretrieval.scene.ltvl import LtvlNames
 from locretrieval.scene.types import Scene
 
 log = logging.getLogger(__name__)
@@ -67,24 +69,26 @@ def load_dataset(
     mapping: str | Sequence[str],
     queries: str | Sequence[str],
     *,
-    ltvl_name_style: str,
+    ltvl_names: Any,
     frustum_far: float | None,
-    query_tags: Sequence[str] | None = None,
-    name_tags: Mapping[str, str] | None = None,
-    install: str = "",
-    unsupported: Mapping[str, str] | None = None,
+    query_tags: Sequence[str] | None,
+    name_tags: Mapping[str, str] | None,
+    install: str,
+    unsupported: Mapping[str, str] | None,
 ) -> Scene:
     """A `Scene` from kapture folders under ``root``.
 
     ``mapping``/``queries``: folders (or glob patterns) relative to ``root``. ``query_tags``:
     one tag per query entry, given to every folder it matches (default: the folder name).
     ``name_tags``: ``{tag: regex}`` on image names (e.g. RobotCar's day/night conditions).
-    ``ltvl_name_style`` and ``frustum_far`` (metres) are dataset facts kept on the `Scene`
-    (checked before any folder is read). ``install``: the commands that obtain the dataset,
-    shown when a folder is missing. ``unsupported``: paradigm or ground-truth name -> why the
-    dataset cannot run it (kept on the `Scene`; enabling one is an error at start-up).
+    ``ltvl_names`` (an `LtvlNames`, or its config node: ``data.ltvl_names``) and ``frustum_far``
+    (metres) are dataset facts kept on the `Scene` (checked before any folder is read).
+    ``install``: the commands that obtain the dataset, shown when a folder is missing.
+    ``unsupported``: paradigm or ground-truth name -> why the dataset cannot run it (kept on the
+    `Scene`; enabling one is an error at start-up).
     """
-    Scene.check_facts(name, ltvl_name_style, frustum_far)
+    ltvl_names = build_part(LtvlNames, ltvl_names, "data.ltvl_names", "data/ltvl_names")
+    Scene.check_facts(name, ltvl_names, frustum_far)
     root = Path(root).expanduser()
     mapping_entries, query_entries = _as_list(mapping), _as_list(queries)
     if query_tags is not None and len(query_tags) != len(query_entries):
@@ -106,7 +110,7 @@ def load_dataset(
         query_folders,
         query_tags=tags,
         name_tags=dict(name_tags) if name_tags else None,
-        ltvl_name_style=ltvl_name_style,
+        ltvl_names=ltvl_names,
         frustum_far=frustum_far,
     )
     scene.unsupported = dict(unsupported or {})
@@ -116,24 +120,22 @@ def load_dataset(
 def load_synthetic_dataset(
     name: str,
     cache_dir: str | Path,
-    render: Mapping,
-    ltvl_name_style: str,
+    render: Any,
+    ltvl_names: Any,
     frustum_far: float,
 ) -> Scene:
-    """The built-in synthetic scene: rendered once per ``render`` config into
+    """The built-in synthetic scene: rendered once per ``render`` settings into
     ``<cache_dir>/synthetic/<key>/{mapping,query}`` (kapture), then read like any dataset.
 
-    ``render`` holds the renderer's keys (`locretrieval.scene.synthetic.DEFAULT_CONFIG`);
-    the folder key hashes the fully resolved config, so any change renders a new scene.
+    ``render``: the ``data.render`` node (checked as `locretrieval.scene.synthetic.RenderSettings`);
+    the folder key hashes its record (`RenderSettings.record`), so any change renders a new scene.
     """
     from locretrieval.device import resolve_device
-    from locretrieval.scene.synthetic import resolve_config  # the renderer only when the scene is not cached
+    from locretrieval.scene.synthetic import RenderSettings  # the renderer only when the scene is not cached
 
-    config = resolve_config(render)
-    keyed = {k: v for k, v in config.items() if k not in RENDER_ONLY_KEYS}
-    keyed["device"] = resolve_device(
-        str(config["device"])
-    ).type  # "auto" keys what it resolves to: float results may differ
+    settings = validated(RenderSettings, render, "data.render")
+    keyed = {k: v for k, v in settings.record().items() if k not in RENDER_ONLY_KEYS}
+    keyed["device"] = resolve_device(settings.device).type  # "auto" keys what it resolves to: float results may differ
     folder = Path(cache_dir) / "synthetic" / config_key(keyed)
     folder.parent.mkdir(parents=True, exist_ok=True)
     # one process renders, the others (a multirun's jobs on one cache) wait and read its scene:
@@ -143,7 +145,7 @@ def load_synthetic_dataset(
             from locretrieval.scene.synthetic import render_synthetic_dataset
 
             log.info("rendering the synthetic scene into %s", folder)
-            render_synthetic_dataset(config, folder)
+            render_synthetic_dataset(settings, folder)
         else:
             log.info("synthetic scene cached in %s", folder)
     return load_dataset(
@@ -151,9 +153,12 @@ def load_synthetic_dataset(
         folder,
         "mapping",
         ["query"],
-        ltvl_name_style=ltvl_name_style,
+        ltvl_names=ltvl_names,
         frustum_far=frustum_far,
         query_tags=["query"],
+        name_tags=None,
+        install="",  # rendered above
+        unsupported=None,
     )
 
 
@@ -162,15 +167,16 @@ RENDER_ONLY_KEYS = ("workers",)
 
 
 def instantiate_scene(node: Any) -> Scene:
-    """The scene of a data config node (Hydra's `instantiate`); a missing dataset's error is raised
-    as itself, so that its several lines (the path expected, how to get the dataset) are printed
-    once and as written, not inside Hydra's one-line `InstantiationException`."""
+    """The scene of a data config node (Hydra's `instantiate`); a missing dataset's error and a
+    `ConfigError` are raised as themselves, so that their lines (the path expected, how to get the
+    dataset; the key) are printed once and as written, not inside Hydra's one-line
+    `InstantiationException`."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
     try:
         return instantiate(node)
     except InstantiationException as error:
-        if isinstance(error.__cause__, DatasetNotFoundError):
+        if isinstance(error.__cause__, (DatasetNotFoundError, ConfigError)):
             raise error.__cause__ from None
         raise

@@ -29,6 +29,7 @@ from PIL import Image, UnidentifiedImageError
 
 from locretrieval import geometry
 from locretrieval.errors import FIX_DATA_FILE, DataFileError
+from locretrieval.scene.ltvl import KaptureNames, LtvlNames
 from locretrieval.scene.types import CAMERA_MODELS, Camera, ImageSet, Scene
 
 log = logging.getLogger(__name__)
@@ -613,7 +614,7 @@ def load_kapture_scene(
     *,
     query_tags: Sequence[str] | None = None,
     name_tags: Mapping[str, str] | None = None,
-    ltvl_name_style: str = "full",
+    ltvl_names: LtvlNames | None = None,
     frustum_far: float | None = None,
 ) -> Scene:
     """A scene from kapture folders: database from the mapping folder(s), queries from the
@@ -622,8 +623,8 @@ def load_kapture_scene(
     Each query folder's images are tagged with ``query_tags`` (default: the folder name, e.g.
     ``query_day``); ``name_tags`` ``{tag: regex}`` tag database and query images by name.
     Mapping images without a pose are left out of the database (logged).
-    ``Scene.sources`` lists all folders; ``ltvl_name_style`` and ``frustum_far`` are kept on
-    the `Scene`.
+    ``Scene.sources`` lists all folders; ``ltvl_names`` (None: kapture's names) and
+    ``frustum_far`` are kept on the `Scene`.
     """
     mapping_folders = [Path(mapping)] if isinstance(mapping, (str, Path)) else [Path(folder) for folder in mapping]
     query_folders = [Path(folder) for folder in queries]
@@ -641,4 +642,5 @@ def load_kapture_scene(
     _check_disjoint(database, query_set)
     if name_tags:
         database, query_set = add_name_tags(database, name_tags), add_name_tags(query_set, name_tags)
-    return Scene(name, database, query_set, mapping_folders + query_folders, ltvl_name_style, frustum_far)
+    sources = mapping_folders + query_folders
+    return Scene(name, database, query_set, sources, ltvl_names or KaptureNames(), frustum_far)

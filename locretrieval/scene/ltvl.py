@@ -2,40 +2,63 @@
 
 from __future__ import annotations
 
+import abc
 from collections import Counter
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 import numpy as np
 
 from locretrieval.cache import atomic_path
-from locretrieval.scene.types import LTVL_NAME_STYLES
 
 
-def ltvl_name(name: str, style: str) -> str:
-    """The image name LTVL expects for ``name`` (a records_data path) under ``style``."""
-    if style == "full":
+class LtvlNames(abc.ABC):
+    """How a dataset's LTVL submissions name its images (a dataset fact, ``data.ltvl_names``, chosen
+    by its ``_target_``: ``configs/data/ltvl_names/``). A new one subclasses this, in any package."""
+
+    @abc.abstractmethod
+    def __call__(self, name: str) -> str:
+        """The image name LTVL expects for ``name`` (a records_data path); ``ValueError`` when it has none."""
+
+
+@dataclass
+class KaptureNames(LtvlNames):
+    """The names as kapture lists them (GangnamStation, Baidu)."""
+
+    def __call__(self, name: str) -> str:
         return name
-    if style == "basename":
+
+
+@dataclass
+class FileNames(LtvlNames):
+    """The file name only (Aachen, InLoc)."""
+
+    def __call__(self, name: str) -> str:
         return PurePosixPath(name).name
-    if style == "strip_prefix":
+
+
+@dataclass
+class WithoutFirstFolder(LtvlNames):
+    """The name without its first folder (RobotCar: ``night/rear/123.jpg`` -> ``rear/123.jpg``,
+    the camera name then the file name)."""
+
+    def __call__(self, name: str) -> str:
         prefix, separator, rest = name.partition("/")
         if not separator or not rest:
-            raise ValueError(f"LTVL name style 'strip_prefix': image name {name!r} has no leading folder to strip")
+            raise ValueError(f"LTVL names without the first folder: image name {name!r} has no leading folder to strip")
         return rest
-    raise ValueError(f"unknown LTVL name style {style!r}; expected one of {LTVL_NAME_STYLES}")
 
 
 def write_ltvl(
-    path: str | Path, names: Sequence[str], qvec: np.ndarray, tvec: np.ndarray, name_style: str = "full"
+    path: str | Path, names: Sequence[str], qvec: np.ndarray, tvec: np.ndarray, ltvl_names: LtvlNames
 ) -> int:
     """Write a visuallocalization.net submission: ``name qw qx qy qz tx ty tz`` per line.
 
     Poses are world-to-camera (wxyz quaternion, translation -- not the camera centre), as
-    kapture stores them. Rows with a NaN pose are not written; returns how many were skipped.
+    kapture stores them; images are named by ``ltvl_names``. Rows with a NaN pose are not written;
+    returns how many were skipped.
     """
-    if name_style not in LTVL_NAME_STYLES:
-        raise ValueError(f"unknown LTVL name style {name_style!r}; expected one of {LTVL_NAME_STYLES}")
     qvec = np.asarray(qvec, dtype=np.float64)
     tvec = np.asarray(tvec, dtype=np.float64)
     if qvec.shape != (len(names), 4) or tvec.shape != (len(names), 3):
@@ -43,12 +66,10 @@ def write_ltvl(
             f"write_ltvl: {len(names)} names need qvec [N, 4] and tvec [N, 3], got {qvec.shape} and {tvec.shape}"
         )
     known = np.isfinite(qvec).all(axis=1) & np.isfinite(tvec).all(axis=1)
-    written = [ltvl_name(name, name_style) for name, ok in zip(names, known) if ok]
+    written = [ltvl_names(name) for name, ok in zip(names, known) if ok]
     clashes = sorted(n for n, count in Counter(written).items() if count > 1)
     if clashes:
-        raise ValueError(
-            f"write_ltvl: name style {name_style!r} maps several images to the same name, e.g. {clashes[:3]}"
-        )
+        raise ValueError(f"write_ltvl: {ltvl_names} maps several images to the same name, e.g. {clashes[:3]}")
     spaced = [n for n in written if any(c.isspace() for c in n)]
     if spaced:
         raise ValueError(

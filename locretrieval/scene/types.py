@@ -11,7 +11,8 @@ import numpy as np
 
 from locretrieval import geometry
 from locretrieval.cache import file_signature
-from locretrieval.config import ConfigError
+from locretrieval.config import ConfigError, require_part
+from locretrieval.scene.ltvl import KaptureNames, LtvlNames
 
 #: COLMAP camera models and the indices of (fx, fy, cx, cy) in their parameter vectors.
 #: Single-focal models repeat the focal length.
@@ -202,20 +203,14 @@ class ImageSet:
 
 
 #: How LTVL submission files name images (cf. kapture's ``kapture_export_LTVL2020``):
-#: ``full`` as kapture lists them (GangnamStation, Baidu), ``basename`` the file name only
-#: (Aachen, InLoc), ``strip_prefix`` without the first folder (RobotCar:
-#: ``night/rear/123.jpg`` -> ``rear/123.jpg``, the camera name then the file name).
-LTVL_NAME_STYLES = ("full", "basename", "strip_prefix")
-
-
 @dataclass
 class Scene:
     """A localisation benchmark: database images with known poses and query images.
 
     ``sources`` are the folders the scene was read from (e.g. kapture mapping and query
     folders), used to find published side data such as precomputed features. Dataset facts
-    the pipeline reads: ``ltvl_name_style`` (`LTVL_NAME_STYLES`, how LTVL submissions name
-    images) and ``frustum_far`` (metres, the far plane of the frustum ground truth and of
+    the pipeline reads: ``ltvl_names`` (`LtvlNames`, how LTVL submissions name images; kapture's
+    names unless given) and ``frustum_far`` (metres, the far plane of the frustum ground truth and of
     global-map pair selection where their config leaves ``far`` null; ``None``: unset) and
     ``unsupported`` (paradigm or ground-truth name -> why this dataset cannot run it, e.g.
     InLoc's global SfM, which the paper builds from depth scans).
@@ -225,12 +220,12 @@ class Scene:
     database: ImageSet
     queries: ImageSet
     sources: list[Path] = field(default_factory=list)
-    ltvl_name_style: str = "full"
+    ltvl_names: LtvlNames = field(default_factory=KaptureNames)
     frustum_far: float | None = None
     unsupported: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.check_facts(self.name, self.ltvl_name_style, self.frustum_far)
+        self.check_facts(self.name, self.ltvl_names, self.frustum_far)
         if len(self.database) == 0:
             raise ValueError(f"scene {self.name!r} has an empty database")
         if not self.database.has_pose.all():
@@ -248,12 +243,9 @@ class Scene:
         return float(self.frustum_far)
 
     @staticmethod
-    def check_facts(name: str, ltvl_name_style: str, frustum_far: float | None) -> None:
-        """Raise unless ``ltvl_name_style`` is one of `LTVL_NAME_STYLES` and ``frustum_far`` is
-        ``None`` or a positive number of metres."""
-        if ltvl_name_style not in LTVL_NAME_STYLES:
-            raise ValueError(
-                f"dataset {name!r}: unknown ltvl_name_style {ltvl_name_style!r}; expected one of {LTVL_NAME_STYLES}"
-            )
+    def check_facts(name: str, ltvl_names: LtvlNames, frustum_far: float | None) -> None:
+        """Raise unless ``ltvl_names`` is an `LtvlNames` and ``frustum_far`` is ``None`` or a
+        positive number of metres."""
+        require_part(ltvl_names, LtvlNames, "data.ltvl_names", "data/ltvl_names")
         if frustum_far is not None and not float(frustum_far) > 0:
             raise ValueError(f"dataset {name!r}: frustum_far must be a positive distance in metres, got {frustum_far}")

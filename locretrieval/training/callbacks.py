@@ -23,7 +23,7 @@ from locretrieval.benchmark import (
     sfm_paradigms,
 )
 from locretrieval.config import require
-from locretrieval.groundtruth import GroundTruth
+from locretrieval.groundtruth import GroundTruth, RelevanceScope
 from locretrieval.metrics.retrieval import METRICS
 from locretrieval.models import GlobalDescriptor, NetworkDescriptor
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
@@ -113,7 +113,7 @@ class LocalizationValidation(L.Callback):
         extraction: ExtractionSettings,
         cache_dir: str | Path | None,
         random_seed: int | None,
-        relevance_scope: str,
+        relevance_scope: RelevanceScope,
         every_n_epochs: int,
         sfm_every_n_epochs: int | None,
         gallery_queries: int,

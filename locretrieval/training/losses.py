@@ -83,7 +83,7 @@ class TripletLoss(nn.Module):
     anchor's hardest ones (largest ``s(a, n) - s(a, p)``, chosen without gradient, ties by
     index), a deterministic choice."""
 
-    def __init__(self, margin: float, max_triplets_per_anchor: int | None = None) -> None:
+    def __init__(self, margin: float, max_triplets_per_anchor: int | None) -> None:
         super().__init__()
         if max_triplets_per_anchor is not None and max_triplets_per_anchor < 1:
             raise ValueError(f"max_triplets_per_anchor must be >= 1 or None, got {max_triplets_per_anchor}")

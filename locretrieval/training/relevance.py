@@ -6,9 +6,10 @@ definition of `locretrieval.groundtruth`: relative pose, frustum overlap, or co-
 (3D points shared in the known-pose map of the training images, paradigm 2b's global map), the
 same definition objects that rank the benchmark's queries (`Definition.graded`). Pairs the
 definition calls relevant are positives, with a graded score (higher: more relevant).
-Negatives come only from *surely unrelated* pairs: those whose viewing frusta (truncated at
-``negatives.near``/``far`` metres) share no interior, or whose orientations differ by more
-than ``negatives.max_rotation`` degrees (two cameras facing each
+Which other pairs may be negatives is a rule chosen by ``_target_`` (``train_relevance.negatives``,
+a `NegativesRule`): by default (`UnrelatedNegatives`) only *surely unrelated* pairs, those whose
+viewing frusta (truncated at ``negatives.near``/``far`` metres) share no interior, or whose
+orientations differ by more than ``negatives.max_rotation`` degrees (two cameras facing each
 other share the volume between them but see its surfaces from opposite sides), whatever the
 definition, so that two views of the same place that a strict definition does not call
 relevant (e.g. 30 m apart looking the same way) are never pushed apart. Pairs that are
@@ -17,7 +18,8 @@ neither are ambiguous and ignored by every loss.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import abc
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,32 +27,39 @@ import numpy as np
 from scipy import sparse
 
 from locretrieval import geometry
-from locretrieval.config import ConfigError, SettingError, require
+from locretrieval.config import ConfigError, SettingError, part, require
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.groundtruth import DefinitionContext, parse_definition
 from locretrieval.scene import ImageSet
 
 #: Image pairs scored at once.
 PAIRS_PER_CHUNK = 1 << 18
-#: What may serve as a negative: surely unrelated pairs only, or every pair that is not relevant.
-NEGATIVE_RULES = ("unrelated", "not_relevant")
+#: ``covisible(rows) -> [len(rows), N]``: pairs of images ``rows`` of a set that may not serve as
+#: negatives although the definition does not call them relevant (they may see one place).
+CovisibleRows = Callable[[np.ndarray], np.ndarray]
+
+
+class NegativesRule(abc.ABC):
+    """Which pairs may serve as negatives besides the relevant ones (``train_relevance.negatives``,
+    chosen by its ``_target_``; ``configs/train_relevance/negatives/``)."""
+
+    @abc.abstractmethod
+    def covisible(self, images: ImageSet, context: DefinitionContext) -> CovisibleRows:
+        """``covisible(rows)``: the pairs of images ``rows`` to every image of ``images`` that are
+        no negatives (beside the relevant ones); what every row needs is computed here, once."""
 
 
 @dataclass
-class NegativeSettings:
-    """Which pairs may serve as negatives (``train_relevance.negatives``): ``rule`` ``unrelated``
-    (pairs whose frusta, truncated at ``near``/``far`` metres, ``far`` ``None``: the scene's, do
-    not overlap, or whose orientations differ by more than ``max_rotation`` degrees, ``None``:
-    frusta only) or ``not_relevant`` (every pair that is not relevant, ambiguous ones included:
-    harder batches, at the risk of pushing apart views of one place)."""
+class UnrelatedNegatives(NegativesRule):
+    """Surely unrelated pairs only: those whose frusta, truncated at ``near``/``far`` metres
+    (``far`` ``None``: the scene's), do not overlap, or whose orientations differ by more than
+    ``max_rotation`` degrees (``None``: frusta only)."""
 
-    rule: str
     near: float
     far: float | None
     max_rotation: float | None
 
     def __post_init__(self) -> None:
-        require(self.rule in NEGATIVE_RULES, "rule", f"must be one of {list(NEGATIVE_RULES)}, got {self.rule!r}")
         require(self.near > 0, "near", f"must be a positive depth in metres, got {self.near}")
         require(
             self.far is None or self.far > self.near,
@@ -63,16 +72,43 @@ class NegativeSettings:
             f"must be degrees in [0, 180] or null, got {self.max_rotation}",
         )
 
+    def covisible(self, images: ImageSet, context: DefinitionContext) -> CovisibleRows:
+        far = self.far if self.far is not None else context.far
+        if far is None:
+            raise ConfigError(
+                f"train_relevance.negatives.far is null (the dataset's frustum "
+                f"far plane) but scene {context.scene!r} has no frustum_far"
+            )
+        frusta = TruncatedFrusta.of_images(images, np.arange(len(images)), self.near, far)
+
+        def covisible(rows: np.ndarray) -> np.ndarray:
+            overlap = pairwise_overlap_radii(frusta[rows], frusta) > 0
+            if self.max_rotation is None:
+                return overlap
+            rotation = geometry.pairwise_rotation_errors_deg(images.qvec[rows], images.qvec)
+            return overlap & (rotation <= self.max_rotation)
+
+        return covisible
+
+
+@dataclass
+class NotRelevantNegatives(NegativesRule):
+    """Every pair that is not relevant, ambiguous ones included: harder batches, at the risk of
+    pushing apart views of one place."""
+
+    def covisible(self, images: ImageSet, context: DefinitionContext) -> CovisibleRows:
+        return lambda rows: np.zeros((len(rows), len(images)), dtype=bool)
+
 
 @dataclass
 class TrainingRelevanceSettings:
     """The ``train_relevance`` config group: the ground-truth ``definition`` of positives (a
-    mapping with its ``type``, a `locretrieval.groundtruth.DEFINITIONS` name, and that type's
+    mapping with its ``_target_``, a `locretrieval.groundtruth.Definition` class, and that class's
     parameters, as in ``groundtruth.definitions``; parsed into the definition object) and which
-    pairs are ``negatives``."""
+    pairs are ``negatives`` (a `NegativesRule` chosen by its ``_target_``)."""
 
     definition: Any
-    negatives: NegativeSettings
+    negatives: Any = part(NegativesRule, "train_relevance/negatives")
 
     def __post_init__(self) -> None:
         if not hasattr(self.definition, "graded"):  # a mapping from the config (anything else is refused by name)
@@ -87,8 +123,7 @@ class TrainingRelevanceSettings:
 class TrainingPairs:
     """``graded [N, N]`` (sparse float): the relevance score of each relevant pair (> 0), the
     diagonal empty; ``related [N, N]`` (sparse bool): pairs that may not serve as negatives
-    (relevant ones, and unless negatives are ``not_relevant`` those whose frusta overlap, at a
-    rotation within ``negatives.max_rotation``).
+    (relevant ones, and those the negatives rule calls covisible, `NegativesRule.covisible`).
     Negatives are the pairs outside ``related`` (and off the diagonal)."""
 
     graded: sparse.csr_matrix
@@ -125,16 +160,7 @@ def training_pairs(images: ImageSet, settings: TrainingRelevanceSettings, contex
         missing = [n for n, posed in zip(images.names, images.has_pose) if not posed][:5]
         raise ValueError(f"training images need poses; without: {missing}")
     count = len(images)
-    negatives = settings.negatives
-    frusta = None
-    if negatives.rule == "unrelated":
-        far = negatives.far if negatives.far is not None else context.far
-        if far is None:
-            raise ConfigError(
-                f"train_relevance.negatives.far is null (the dataset's frustum "
-                f"far plane) but scene {context.scene!r} has no frustum_far"
-            )
-        frusta = TruncatedFrusta.of_images(images, np.arange(count), negatives.near, far)
+    covisible = settings.negatives.covisible(images, context)
     grade = settings.definition.graded(images, context)
     graded_blocks, related_blocks = [], []
     rows_per_chunk = max(1, PAIRS_PER_CHUNK // count)
@@ -143,19 +169,8 @@ def training_pairs(images: ImageSet, settings: TrainingRelevanceSettings, contex
         graded = grade(rows)
         graded[rows - start, rows] = 0.0
         graded_blocks.append(sparse.csr_matrix(graded))
-        related = graded > 0 if frusta is None else (_covisible(images, rows, frusta, negatives) | (graded > 0))
-        related_blocks.append(sparse.csr_matrix(related))
+        related_blocks.append(sparse.csr_matrix(covisible(rows) | (graded > 0)))
     return TrainingPairs(sparse.vstack(graded_blocks).tocsr(), sparse.vstack(related_blocks).tocsr())
-
-
-def _covisible(images: ImageSet, rows: np.ndarray, frusta: TruncatedFrusta, negatives: NegativeSettings) -> np.ndarray:
-    """``[len(rows), N]``: pairs that may see one place: overlapping ``frusta``, at an orientation
-    difference of at most ``max_rotation`` degrees when it is set."""
-    overlap = pairwise_overlap_radii(frusta[rows], frusta) > 0
-    if negatives.max_rotation is None:
-        return overlap
-    rotation = geometry.pairwise_rotation_errors_deg(images.qvec[rows], images.qvec)
-    return overlap & (rotation <= negatives.max_rotation)
 
 
 def combined_pairs(

@@ -143,7 +143,7 @@ def training_worlds(cfg: DictConfig, scene: Scene, settings: TrainingSettings) -
                 f"train_{render.environment}_{render.seed}",
                 cfg.paths.cache_dir,
                 render,
-                ltvl_name_style="full",
+                ltvl_names=scene.ltvl_names,
                 frustum_far=scene.frustum_far,
             )
             if extra.database.fingerprint() == scene.database.fingerprint():
@@ -159,18 +159,27 @@ def listed_scene(cfg: DictConfig, entry: Any) -> Scene:
     name, overrides = (
         (entry, {}) if isinstance(entry, str) else (entry["config"], {k: v for k, v in entry.items() if k != "config"})
     )
-    loaded = OmegaConf.load(DATA_CONFIGS / f"{name}.yaml")
-    node = loaded if "_target_" in loaded else loaded.data  # the published datasets' configs are `@package _global_`
+    node = composed_data(name)
     run = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))  # the run's config, its data node replaced
     run.data = OmegaConf.merge(node, overrides)
     return instantiate_scene(run.data)
 
 
+def composed_data(name: str) -> DictConfig:
+    """The ``data`` node of ``configs/data/<name>.yaml`` as Hydra composes it (its defaults list, e.g.
+    its LTVL names, applied), interpolations left for the run's config to resolve."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    if GlobalHydra.instance().is_initialized():  # in train.py's Hydra app
+        return compose(config_name="train", overrides=[f"data={name}"]).data
+    with initialize_config_dir(config_dir=str(DATA_CONFIGS.parent), version_base="1.3"):
+        return compose(config_name="train", overrides=[f"data={name}"]).data
+
+
 def _without_queries(name: str, images: ImageSet, scene: Scene) -> Scene:
     """A scene of ``images`` as its database, no queries, ``scene``'s dataset facts."""
-    return Scene(
-        name, images, images.subset(np.arange(0)), ltvl_name_style=scene.ltvl_name_style, frustum_far=scene.frustum_far
-    )
+    return Scene(name, images, images.subset(np.arange(0)), ltvl_names=scene.ltvl_names, frustum_far=scene.frustum_far)
 
 
 #: The config nodes of the objects train.py builds (besides callbacks and loggers), checked first.

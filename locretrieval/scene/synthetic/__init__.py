@@ -1,8 +1,9 @@
 """Built-in synthetic scene: a textured mall corridor or street, ray cast with torch.
 
-``render_synthetic_dataset(config, output_dir)`` writes ``output_dir/mapping`` (database) and
+``render_synthetic_dataset(settings, output_dir)`` writes ``output_dir/mapping`` (database) and
 ``output_dir/query`` as kapture folders with images, depth maps, dynamic-object masks and
-condition tags; :data:`DEFAULT_CONFIG` lists every configuration key with its default.
+condition tags; `RenderSettings` is the schema of its settings (``data.render``, whose defaults
+are in ``configs/data/synthetic.yaml``).
 
 The renderer (``render_synthetic_dataset``) is imported on first use (PEP 562): reading a scene
 rendered earlier needs only its configuration.
@@ -12,12 +13,12 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from locretrieval.scene.synthetic.config import DEFAULT_CONFIG, resolve_config
+from locretrieval.scene.synthetic.config import RenderSettings
 
 if TYPE_CHECKING:
     from locretrieval.scene.synthetic.dataset import render_synthetic_dataset
 
-__all__ = ["DEFAULT_CONFIG", "render_synthetic_dataset", "resolve_config"]
+__all__ = ["RenderSettings", "render_synthetic_dataset"]
 
 
 def __getattr__(name: str) -> Any:

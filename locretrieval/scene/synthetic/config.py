@@ -1,98 +1,124 @@
-"""Configuration of the synthetic scene: defaults, merging and validation."""
+"""The render settings of the synthetic scene (``data.render``), checked by `locretrieval.config.validated`.
+
+Their defaults live in ``configs/data/synthetic.yaml``; each environment is an
+`EnvironmentBuilder` chosen by its ``_target_`` (``data.render.environments``), the one
+rendered named by ``data.render.environment``.
+"""
 
 from __future__ import annotations
 
-import copy
-from collections.abc import Mapping, Sequence
-from typing import Any
+import abc
+import dataclasses
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
-ENVIRONMENTS = ("mall", "street")
+from locretrieval.config import named_parts, require
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from locretrieval.scene.synthetic.world import Environment
+
 CONDITIONS = ("night", "blur", "dynamic", "noise")
 
-#: Every key of the synthetic data configuration with its default value.
-DEFAULT_CONFIG: dict[str, Any] = {
-    "seed": 0,  # scene layout, textures, viewpoints, conditions and noise all follow from it
-    "environment": "mall",  # "mall" (shop corridor) or "street" (facades, road, sky)
-    "device": "cpu",  # torch device of the renderer ("cpu", "cuda", "auto")
-    "length": 48.0,  # corridor / street length in metres
-    "width": 480,  # image size in pixels (all cameras)
-    "height": 360,
-    "num_database": 128,  # mapping images: stations x 2 lanes x 4 headings
-    "num_queries": 64,
-    "database_fov_deg": 70.0,  # horizontal field of view of the mapping camera (PINHOLE)
-    "query_fov_deg": [55.0, 65.0],  # one SIMPLE_PINHOLE query camera per value
-    "conditions": {"night": 0.25, "blur": 0.2, "dynamic": 0.3, "noise": 0.2},  # per-query probabilities
-    "database_dynamic": 0.1,  # probability that a mapping image shows people/vehicles
-    "hard_query_fraction": 0.2,  # queries anywhere, any heading, more tilt (not near a mapping view)
-    "supersampling": 1,  # s x s colour samples per pixel (textures are mipmapped anyway)
-    "texture_size": 256,  # texels per side of every procedural texture (power of two)
-    "blur_subframes": 9,  # sub-frames averaged along the exposure of a blurred image (odd)
-    "noise_std": 0.03,  # read-noise standard deviation (image range 0..1), plus shot noise
-    "workers": 2,  # rendering processes (1 = in this process)
-}
+
+class EnvironmentBuilder(abc.ABC):
+    """A kind of synthetic scene (the mall, the street). A new one subclasses this, in any
+    package, and is chosen by its ``_target_`` (``data.render.environments.<name>``)."""
+
+    @abc.abstractmethod
+    def build(self, rng: np.random.Generator, length: float, texture_size: int) -> Environment:
+        """A random scene ``length`` metres long along ``x``, its textures ``texture_size`` texels
+        square, drawn from ``rng`` (deterministic in it)."""
 
 
-def _plain(value: Any) -> Any:
-    """Nested mappings/sequences (e.g. OmegaConf containers) as plain dicts and lists."""
-    if isinstance(value, Mapping):
-        return {str(key): _plain(item) for key, item in value.items()}
-    if isinstance(value, Sequence) and not isinstance(value, str):
-        return [_plain(item) for item in value]
-    return value
+@dataclass
+class Conditions:
+    """Independent per-query probabilities of each capture condition (`CONDITIONS`)."""
+
+    night: float
+    blur: float
+    dynamic: float
+    noise: float
+
+    def __post_init__(self) -> None:
+        for name in CONDITIONS:
+            _require_probability(getattr(self, name), name)
 
 
-def _check_unknown(given: Mapping[str, Any], known: Mapping[str, Any], where: str) -> None:
-    unknown = sorted(set(given) - set(known))
-    if unknown:
-        raise ValueError(f"unknown {where} key(s) {unknown}; known keys: {sorted(known)}")
+@dataclass
+class RenderSettings:
+    """The ``data.render`` section (``configs/data/synthetic.yaml`` documents each key): the scene
+    (``environment``, a name of ``environments``, ``seed``, ``length``, ``texture_size``), the
+    cameras and images, their conditions, and how the renderer runs (``device``, ``workers``)."""
+
+    seed: int
+    environment: str
+    environments: dict[str, Any] = named_parts(EnvironmentBuilder)
+    device: str
+    length: float
+    width: int
+    height: int
+    num_database: int
+    num_queries: int
+    database_fov_deg: float
+    query_fov_deg: list[float]
+    conditions: Conditions
+    database_dynamic: float
+    hard_query_fraction: float
+    supersampling: int
+    texture_size: int
+    blur_subframes: int
+    noise_std: float
+    workers: int
+
+    def __post_init__(self) -> None:
+        require(
+            self.environment in self.environments,
+            "environment",
+            f"must be a name of data.render.environments {list(self.environments)}, got {self.environment!r}",
+        )
+        for key in ("width", "height", "num_database", "supersampling", "blur_subframes", "workers"):
+            require(getattr(self, key) >= 1, key, f"must be a positive integer, got {getattr(self, key)}")
+        require(self.num_queries >= 0, "num_queries", f"must be >= 0, got {self.num_queries}")
+        require(
+            self.blur_subframes % 2 == 1,
+            "blur_subframes",
+            f"must be odd (the middle sub-frame is the written mid-exposure pose), got {self.blur_subframes}",
+        )
+        size = self.texture_size
+        require(size >= 16 and not size & (size - 1), "texture_size", f"must be a power of two >= 16, got {size}")
+        require(20.0 <= self.length <= 500.0, "length", f"must be between 20 and 500 metres, got {self.length}")
+        require(
+            bool(self.query_fov_deg),
+            "query_fov_deg",
+            "must be a non-empty list of horizontal fields of view in degrees",
+        )
+        for key, fovs in (("database_fov_deg", [self.database_fov_deg]), ("query_fov_deg", self.query_fov_deg)):
+            require(all(10.0 <= fov <= 150.0 for fov in fovs), key, f"must be between 10 and 150 degrees, got {fovs}")
+        _require_probability(self.database_dynamic, "database_dynamic")
+        _require_probability(self.hard_query_fraction, "hard_query_fraction")
+        require(self.noise_std >= 0, "noise_std", f"must be >= 0, got {self.noise_std}")
+
+    @property
+    def builder(self) -> EnvironmentBuilder:
+        """The `EnvironmentBuilder` of ``environment``."""
+        return self.environments[self.environment]
+
+    def record(self) -> dict[str, Any]:
+        """The settings as plain data (``synthetic_config.json``, the rendered scene's cache key):
+        the environment rendered by its name and its builder's class and parameters, not the others."""
+        values = {field.name: getattr(self, field.name) for field in dataclasses.fields(self)}
+        builder = self.builder
+        values["environments"] = {
+            self.environment: {
+                "_target_": f"{type(builder).__module__}.{type(builder).__qualname__}",
+                **(dataclasses.asdict(builder) if dataclasses.is_dataclass(builder) else {}),
+            }
+        }
+        values["conditions"] = dataclasses.asdict(self.conditions)
+        return values
 
 
-def resolve_config(config: Mapping[str, Any] | None) -> dict[str, Any]:
-    """The full configuration: ``config`` over :data:`DEFAULT_CONFIG`, validated.
-
-    ``config`` may be any mapping (a dict or an OmegaConf ``DictConfig``); missing keys take
-    their defaults, unknown keys are an error naming them.
-    """
-    given = _plain(config or {})
-    _check_unknown(given, DEFAULT_CONFIG, "synthetic data config")
-    resolved = copy.deepcopy(DEFAULT_CONFIG)
-    conditions = given.pop("conditions", {})
-    _check_unknown(conditions, DEFAULT_CONFIG["conditions"], "synthetic data 'conditions'")
-    resolved.update(given)
-    resolved["conditions"].update(conditions)
-    _validate(resolved)
-    return resolved
-
-
-def _validate(config: dict[str, Any]) -> None:
-    def fail(key: str, message: str) -> None:
-        raise ValueError(f"synthetic data config: {key}={config[key]!r} {message}")
-
-    if config["environment"] not in ENVIRONMENTS:
-        fail("environment", f"is not one of {list(ENVIRONMENTS)}")
-    for key in ("width", "height", "num_database", "supersampling", "blur_subframes", "workers"):
-        if not isinstance(config[key], int) or config[key] < 1:
-            fail(key, "must be a positive integer")
-    if config["num_queries"] < 0:
-        fail("num_queries", "must be >= 0")
-    if config["blur_subframes"] % 2 == 0:
-        fail("blur_subframes", "must be odd (the middle sub-frame is the written mid-exposure pose)")
-    size = config["texture_size"]
-    if not isinstance(size, int) or size < 16 or size & (size - 1):
-        fail("texture_size", "must be a power of two >= 16")
-    if not 20.0 <= float(config["length"]) <= 500.0:
-        fail("length", "must be between 20 and 500 metres")
-    fovs = config["query_fov_deg"]
-    if not isinstance(fovs, list) or not fovs:
-        fail("query_fov_deg", "must be a non-empty list of horizontal fields of view in degrees")
-    for fov in [config["database_fov_deg"], *fovs]:
-        if not 10.0 <= float(fov) <= 150.0:
-            raise ValueError(f"synthetic data config: field of view {fov!r} must be between 10 and 150 degrees")
-    probabilities = {f"conditions.{k}": v for k, v in config["conditions"].items()}
-    probabilities["database_dynamic"] = config["database_dynamic"]
-    probabilities["hard_query_fraction"] = config["hard_query_fraction"]
-    for key, value in probabilities.items():
-        if not 0.0 <= float(value) <= 1.0:
-            raise ValueError(f"synthetic data config: {key}={value!r} must be a probability in [0, 1]")
-    if float(config["noise_std"]) < 0:
-        fail("noise_std", "must be >= 0")
+def _require_probability(value: float, key: str) -> None:
+    require(0.0 <= value <= 1.0, key, f"must be a probability in [0, 1], got {value}")

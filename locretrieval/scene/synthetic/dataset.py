@@ -3,32 +3,31 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
 from locretrieval.cache import process_alive
+from locretrieval.config import validated
 from locretrieval.device import resolve_device
 from locretrieval.processes import broken_pool_error, spawn_context
 from locretrieval.scene.synthetic.camera import PinholeCamera
 from locretrieval.scene.synthetic.conditions import add_sensor_noise, exposure_path, sample_conditions
-from locretrieval.scene.synthetic.config import CONDITIONS, resolve_config
+from locretrieval.scene.synthetic.config import CONDITIONS, RenderSettings
 from locretrieval.scene.synthetic.dynamic import place_dynamic_objects, probe_camera
 from locretrieval.scene.synthetic.kapture_writer import WrittenImage, write_image_files, write_kapture_lists
-from locretrieval.scene.synthetic.mall import build_mall
 from locretrieval.scene.synthetic.render import Renderer
-from locretrieval.scene.synthetic.street import build_street
 from locretrieval.scene.synthetic.trajectories import (
     Viewpoint,
     acceptable_view,
@@ -37,7 +36,6 @@ from locretrieval.scene.synthetic.trajectories import (
 )
 from locretrieval.scene.synthetic.world import BoxSet, Environment
 
-BUILDERS = {"mall": build_mall, "street": build_street}
 #: Independent random streams derived from the seed.
 SCENE, MAPPING, QUERIES, EXPOSURE = range(4)
 MAX_VIEWPOINT_ATTEMPTS = 500
@@ -64,30 +62,32 @@ class ImagePlan:
         return f"{'db' if self.folder == 'mapping' else 'query'}/{self.index:06d}.png"
 
 
-def build_environment(config: Mapping[str, Any]) -> Environment:
-    """The scene of a resolved config (deterministic in ``seed``)."""
-    rng = np.random.default_rng([int(config["seed"]), SCENE])
-    return BUILDERS[config["environment"]](rng, float(config["length"]), int(config["texture_size"]))
+def build_environment(settings: RenderSettings) -> Environment:
+    """The scene of ``settings`` (its environment's builder; deterministic in ``seed``)."""
+    rng = np.random.default_rng([int(settings.seed), SCENE])
+    return settings.builder.build(rng, float(settings.length), int(settings.texture_size))
 
 
-def cameras(config: Mapping[str, Any]) -> tuple[PinholeCamera, list[PinholeCamera]]:
+def cameras(config: RenderSettings) -> tuple[PinholeCamera, list[PinholeCamera]]:
     """Database camera (``PINHOLE``) and query cameras (``SIMPLE_PINHOLE``, one per query FOV)."""
-    width, height = int(config["width"]), int(config["height"])
-    database = PinholeCamera.centred(DATABASE_CAMERA, "PINHOLE", width, height, float(config["database_fov_deg"]))
+    width, height = int(config.width), int(config.height)
+    database = PinholeCamera.centred(DATABASE_CAMERA, "PINHOLE", width, height, float(config.database_fov_deg))
     queries = [
         PinholeCamera.centred(f"query_cam{i}", "SIMPLE_PINHOLE", width, height, float(fov))
-        for i, fov in enumerate(config["query_fov_deg"])
+        for i, fov in enumerate(config.query_fov_deg)
     ]
     return database, queries
 
 
-def plan_database(config, environment: Environment, renderer: Renderer, camera: PinholeCamera) -> list[ImagePlan]:
+def plan_database(
+    config: RenderSettings, environment: Environment, renderer: Renderer, camera: PinholeCamera
+) -> list[ImagePlan]:
     """Mapping viewpoints, all ``day``; some with dynamic objects (``database_dynamic``)."""
-    rng = np.random.default_rng([int(config["seed"]), MAPPING])
+    rng = np.random.default_rng([int(config.seed), MAPPING])
     plans = []
-    for index, viewpoint in enumerate(mapping_viewpoints(environment, int(config["num_database"]), rng)):
+    for index, viewpoint in enumerate(mapping_viewpoints(environment, int(config.num_database), rng)):
         tags, objects = {"day"}, None
-        if rng.random() < float(config["database_dynamic"]):
+        if rng.random() < float(config.database_dynamic):
             objects = place_dynamic_objects(
                 environment,
                 renderer,
@@ -106,14 +106,18 @@ def plan_database(config, environment: Environment, renderer: Renderer, camera: 
 
 
 def plan_queries(
-    config, environment: Environment, renderer: Renderer, query_cameras: list[PinholeCamera], mapping: list[Viewpoint]
+    config: RenderSettings,
+    environment: Environment,
+    renderer: Renderer,
+    query_cameras: list[PinholeCamera],
+    mapping: list[Viewpoint],
 ) -> list[ImagePlan]:
     """Query viewpoints (validated with depth probes) with their sampled conditions."""
-    rng = np.random.default_rng([int(config["seed"]), QUERIES])
+    rng = np.random.default_rng([int(config.seed), QUERIES])
     plans = []
-    for index in range(int(config["num_queries"])):
-        tags = sample_conditions(config["conditions"], rng)
-        hard = bool(rng.random() < float(config["hard_query_fraction"]))
+    for index in range(int(config.num_queries)):
+        tags = sample_conditions(dataclasses.asdict(config.conditions), rng)
+        hard = bool(rng.random() < float(config.hard_query_fraction))
         camera = query_cameras[int(rng.integers(len(query_cameras)))]
         for _ in range(MAX_VIEWPOINT_ATTEMPTS):
             viewpoint = sample_query_viewpoint(environment, mapping, hard, rng)
@@ -144,7 +148,7 @@ def plan_queries(
 
 
 def render_plan(
-    renderer: Renderer, environment: Environment, plan: ImagePlan, config
+    renderer: Renderer, environment: Environment, plan: ImagePlan, config: RenderSettings
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """uint8 RGB ``[H, W, 3]``, float32 depth ``[H, W]`` and bool dynamic mask of one plan.
 
@@ -153,14 +157,14 @@ def render_plan(
     come from the mid-exposure pose at full resolution, the mask joined with the objects'
     positions in every sub-frame.
     """
-    rng = np.random.default_rng([int(config["seed"]), EXPOSURE, plan.folder == "query", plan.index])
+    rng = np.random.default_rng([int(config.seed), EXPOSURE, plan.folder == "query", plan.index])
     lighting = environment.night if "night" in plan.tags else environment.day
     rotation, center = plan.viewpoint.rotation, plan.viewpoint.center
-    supersampling = int(config["supersampling"])
+    supersampling = int(config.supersampling)
     if "blur" in plan.tags:
         camera = plan.camera
         low = camera.scaled(-(-camera.width // 2), -(-camera.height // 2))
-        path = exposure_path(rotation, center, int(config["blur_subframes"]), rng)
+        path = exposure_path(rotation, center, int(config.blur_subframes), rng)
         frames = [renderer.render(low, R, c, lighting, plan.objects, supersampling) for R, c in path]
         rgb = _resize(np.mean([frame.rgb for frame in frames], axis=0), camera, "bilinear")
         depth, mask = renderer.geometry(camera, rotation, center, plan.objects)
@@ -174,7 +178,7 @@ def render_plan(
         result = renderer.render(plan.camera, rotation, center, lighting, plan.objects, supersampling)
         rgb, depth, mask = result.rgb, result.depth, result.dynamic
     if "noise" in plan.tags:
-        rgb = add_sensor_noise(rgb, float(config["noise_std"]), rng)
+        rgb = add_sensor_noise(rgb, float(config.noise_std), rng)
     if ("dynamic" in plan.tags) != bool(mask.any()):
         raise RuntimeError(f"synthetic image {plan.name}: dynamic tag and rendered mask disagree")
     return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8), depth.astype(np.float32), mask
@@ -192,7 +196,7 @@ def _resize(image: np.ndarray, camera: PinholeCamera, mode: str) -> np.ndarray:
 class _RenderContext:
     """What rendering one planned image needs (built once per worker process)."""
 
-    config: dict[str, Any]
+    config: RenderSettings
     environment: Environment
     renderer: Renderer
     staging: Path
@@ -205,10 +209,10 @@ class _RenderContext:
 _WORKER_CONTEXT: list[_RenderContext] = []
 
 
-def _start_worker(config: dict[str, Any], staging: Path) -> None:
+def _start_worker(config: RenderSettings, staging: Path) -> None:
     torch.set_num_threads(1)
     environment = build_environment(config)
-    renderer = Renderer(environment, resolve_device(str(config["device"])))
+    renderer = Renderer(environment, resolve_device(str(config.device)))
     _WORKER_CONTEXT.append(_RenderContext(config, environment, renderer, staging))
 
 
@@ -216,18 +220,17 @@ def _render_in_worker(plan: ImagePlan) -> None:
     _WORKER_CONTEXT[0](plan)
 
 
-def render_synthetic_dataset(config: Mapping[str, Any], output_dir: str | Path) -> None:
-    """Render the synthetic scene of ``config`` into ``output_dir/{mapping,query}`` (kapture).
+def render_synthetic_dataset(settings: RenderSettings, output_dir: str | Path) -> None:
+    """Render the synthetic scene of ``settings`` into ``output_dir/{mapping,query}`` (kapture).
 
-    Deterministic in ``config["seed"]`` (byte-identical files on the same machine and
-    device). ``config`` may be a dict or an OmegaConf ``DictConfig``; missing keys take
-    :data:`DEFAULT_CONFIG` values, unknown keys raise ``ValueError``. Poses are written
-    world-to-camera. Everything is rendered into a temporary folder and then replaces
-    ``mapping/``, ``query/`` and ``synthetic_config.json`` in ``output_dir``.
+    Deterministic in ``settings.seed`` (byte-identical files on the same machine and device).
+    ``settings``: a `RenderSettings`, or the ``data.render`` node it is checked from. Poses are
+    written world-to-camera. Everything is rendered into a temporary folder and then replaces
+    ``mapping/``, ``query/`` and ``synthetic_config.json`` (`RenderSettings.record`) in ``output_dir``.
     """
-    config = resolve_config(config)
+    settings = validated(RenderSettings, settings, "data.render")
     with single_torch_thread():
-        _render(config, Path(output_dir))
+        _render(settings, Path(output_dir))
 
 
 @contextlib.contextmanager
@@ -243,10 +246,10 @@ def single_torch_thread() -> Iterator[None]:
         torch.set_num_threads(previous)
 
 
-def _render(config: dict[str, Any], output_dir: Path) -> None:
+def _render(config: RenderSettings, output_dir: Path) -> None:
     output_dir.mkdir(parents=True, exist_ok=True)
     environment = build_environment(config)
-    renderer = Renderer(environment, resolve_device(str(config["device"])))
+    renderer = Renderer(environment, resolve_device(str(config.device)))
     database_camera, query_cameras = cameras(config)
     database = plan_database(config, environment, renderer, database_camera)
     queries = plan_queries(config, environment, renderer, query_cameras, [plan.viewpoint for plan in database])
@@ -254,7 +257,7 @@ def _render(config: dict[str, Any], output_dir: Path) -> None:
     remove_stale_staging(output_dir)
     with tempfile.TemporaryDirectory(dir=output_dir, prefix=f"{STAGING_PREFIX}{os.getpid()}-") as staging:
         staging = Path(staging)
-        workers = int(config["workers"])
+        workers = int(config.workers)
         progress = {"desc": f"rendering synthetic {environment.name}", "unit": "image", "total": len(plans)}
         if workers == 1:
             context = _RenderContext(config, environment, renderer, staging)
@@ -271,7 +274,7 @@ def _render(config: dict[str, Any], output_dir: Path) -> None:
                     raise broken_pool_error(pool, f"rendering synthetic {environment.name}") from error
         write_kapture_lists(staging / "mapping", [database_camera], _written(database))
         write_kapture_lists(staging / "query", query_cameras, _written(queries))
-        (staging / "synthetic_config.json").write_text(json.dumps(config, indent=2, sort_keys=True) + "\n")
+        (staging / "synthetic_config.json").write_text(json.dumps(config.record(), indent=2, sort_keys=True) + "\n")
         for entry in ("mapping", "query", "synthetic_config.json"):
             target = output_dir / entry
             if target.is_dir():

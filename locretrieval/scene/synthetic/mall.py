@@ -8,9 +8,12 @@ with a blade sign across the corridor) and posters between the shops and on some
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from locretrieval.scene.synthetic import textures as tx
+from locretrieval.scene.synthetic.config import EnvironmentBuilder
 from locretrieval.scene.synthetic.world import BoxSetBuilder, Environment, LampGrid, Lighting, Surface, TextureBank
 
 HALF_WIDTH = 5.0
@@ -21,6 +24,14 @@ COLUMN_SPACING = 8.0
 LAMP_SPACING = 4.0
 LAMP_ROWS = (-1.5, 1.5)
 LAMP_HEIGHT = 4.82
+
+
+@dataclass
+class Mall(EnvironmentBuilder):
+    """The shop corridor (`build_mall`)."""
+
+    def build(self, rng: np.random.Generator, length: float, texture_size: int) -> Environment:
+        return build_mall(rng, length, texture_size)
 
 
 def build_mall(rng: np.random.Generator, length: float, size: int) -> Environment:

@@ -9,9 +9,12 @@ Identical street lamps stand along both kerbs. Above the roofs is sky (at infini
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from locretrieval.scene.synthetic import textures as tx
+from locretrieval.scene.synthetic.config import EnvironmentBuilder
 from locretrieval.scene.synthetic.world import SKY, BoxSetBuilder, Environment, LampGrid, Lighting, Surface, TextureBank
 
 ROAD_HALF = 4.0
@@ -24,6 +27,14 @@ LAMP_HEIGHT = 5.5
 MODULE = (3.2, 3.2)  # facade window module, metres
 GROUND_FLOOR = 4.2
 LIT_WINDOWS = 0.4  # share of windows lit at night
+
+
+@dataclass
+class Street(EnvironmentBuilder):
+    """The street of facades, road and sky (`build_street`)."""
+
+    def build(self, rng: np.random.Generator, length: float, texture_size: int) -> Environment:
+        return build_street(rng, length, texture_size)
 
 
 def build_street(rng: np.random.Generator, length: float, size: int) -> Environment:
