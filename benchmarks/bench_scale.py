@@ -64,6 +64,7 @@ from locretrieval.localization.plan import (
     feature_work,
     forecast_sample,
     measure_unit_costs,
+    prepare_workers,
     sample_depth,
 )
 from locretrieval.localization.sfm import SfmSettings
@@ -356,7 +357,7 @@ def measured_unit_costs(
     world = FeatureWorld(np.concatenate([sample.database.centers, sample.queries.centers]), scene.frustum_far, rng)
     for images in (sample.database, sample.queries):
         world.write(images, range(len(images)), keypoints, scene.frustum_far, sfm.features.name)
-    return measure_unit_costs(scene, sfm, paradigms, folder / "cache", start_pool=False)
+    return measure_unit_costs(scene, sfm, paradigms, folder / "cache")
 
 
 def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Generator) -> None:
@@ -401,9 +402,8 @@ def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Ge
         for images in (slice_scene.database, slice_scene.queries):
             world.write(images, range(len(images)), keypoints, scene.frustum_far, sfm.features.name)
         slice_plan = sfm_plan(slice_scene, slice_rankings, sfm, folder / "slice_cache")
-        slice_plan.costs = measure_unit_costs(
-            slice_scene, sfm, sfm_paradigms(), folder / "slice_cache", slice_plan.pool_needed()
-        )
+        slice_plan.costs = measure_unit_costs(slice_scene, sfm, sfm_paradigms(), folder / "slice_cache")
+        prepare_workers(slice_plan)
         forecast = sum(slice_plan.forecast().values())
         stages: dict[str, float] = {}
         started = time.perf_counter()

@@ -13,11 +13,19 @@ limit for this step), and the data pipeline alone.
 - The pipeline alone: the DataLoader's batches (sampler, workers, collate) with no network, read
   from the decoded cache, beside the same batches decoded from the image files at every step (as
   train.py did before the cache).
+- ``--ranks N``: the loop alone on 1 and on N DDP processes (``trainer=ddp``: gloo on the CPU,
+  one process per GPU on a machine with several), each process taking ``--steps`` steps of its
+  batch, all ranks' batches one global batch (``module.global_batch``); images/s counts every
+  rank's images, and the N processes' figure is also given as a multiple of the one process's.
 
     .venv/bin/python benchmarks/bench_training.py [--steps 20] [--overrides datamodule.num_workers=0 ...]
+    .venv/bin/python benchmarks/bench_training.py --ranks 2 [--steps 20] [--overrides ...]
 """
 
 import argparse
+import re
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -80,16 +88,18 @@ def training_setup(overrides: list[str]):
     return cfg, parts.datamodule, training_module(cfg, descriptor, parts.pairs)
 
 
-def loop_images_per_second(cfg, data, module, steps: int) -> tuple[float, float, float]:
+def loop_images_per_second(cfg, data, module, steps: int, processes: int) -> tuple[float, float, float]:
     """``(images/s, mean step s, mean batch wait s)`` of Lightning's loop over ``steps`` steps (the
-    first two not timed), on train.py's accelerator and precision."""
+    first two not timed), on train.py's accelerator and precision, on ``processes`` DDP processes
+    (images/s: of all of them; each takes every ``processes``-th batch of the sampler)."""
     import lightning as L
 
     timer = StepTimer()
     trainer = L.Trainer(
         accelerator=cfg.trainer.accelerator,
         precision=cfg.trainer.precision,
-        devices=1,
+        devices=processes,
+        strategy="ddp" if processes > 1 else "auto",
         max_steps=steps,
         logger=False,
         enable_checkpointing=False,
@@ -99,9 +109,9 @@ def loop_images_per_second(cfg, data, module, steps: int) -> tuple[float, float,
         use_distributed_sampler=False,
         num_sanity_val_steps=0,
     )
-    data.sampler.batches_per_epoch = steps
+    data.sampler.batches_per_epoch = steps * processes
     trainer.fit(module, datamodule=data)
-    batch = len(next(iter(data.sampler)))
+    batch = len(next(iter(data.sampler))) * processes
     step, wait = np.mean(timer.steps[2:]), np.mean(timer.waits[2:])
     return batch / (step + wait), float(step), float(wait)
 
@@ -174,13 +184,58 @@ def pipeline_images_per_second(data, steps: int) -> tuple[float, float]:
     return rates[0], rates[1]
 
 
+#: What a run on ``--processes`` prints: its images/s, and what each step took.
+LOOP_LINE = re.compile(r"^loop on (\d+) process(?:es)?: ([\d.]+) images/s .*$", re.MULTILINE)
+
+
+def loop_on_processes(processes: int, steps: int, overrides: list[str]) -> None:
+    """Print the `LOOP_LINE` of the training loop on ``processes`` DDP processes (rank 0's; with
+    several, Lightning starts the others by running this script again)."""
+    import torch
+
+    cfg, data, module = training_setup(overrides)
+    torch.set_flush_denormal(True)  # as RetrievalTraining.on_fit_start
+    rate, step, wait = loop_images_per_second(cfg, data, module, steps, processes)
+    if module.trainer.is_global_zero:
+        print(
+            f"loop on {processes} process{'es' if processes > 1 else ''}: {rate:.1f} images/s "
+            f"(batches of {len(next(iter(data.sampler)))} images per process, per step {step:.3f} s computing, "
+            f"{wait:.3f} s waiting; {torch.get_num_threads()} torch threads per process)",
+            flush=True,
+        )
+
+
+def ranks_scaling(ranks: int, steps: int, overrides: list[str]) -> None:
+    """The training loop on 1 and on ``ranks`` DDP processes, each run in its own process."""
+    rates = {}
+    for processes in sorted({1, ranks}):
+        done = subprocess.run(
+            [sys.executable, __file__, "--processes", str(processes), "--steps", str(steps), "--overrides", *overrides],
+            capture_output=True,
+            text=True,
+        )
+        found = LOOP_LINE.search(done.stdout)
+        if done.returncode or found is None:
+            raise RuntimeError(f"the loop on {processes} processes failed:\n{(done.stdout + done.stderr)[-3000:]}")
+        rates[processes] = float(found.group(2))
+        print(found.group(0), flush=True)
+    if ranks > 1:
+        print(f"{ranks} processes: {rates[ranks] / rates[1]:.2f}x the images/s of one")
+
+
 def main() -> None:
     import torch
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--overrides", nargs="*", default=[])
+    parser.add_argument("--ranks", type=int, help="the loop alone on 1 and on this many DDP processes")
+    parser.add_argument("--processes", type=int, help=argparse.SUPPRESS)  # one run of --ranks
     arguments = parser.parse_args()
+    if arguments.ranks is not None:
+        return ranks_scaling(arguments.ranks, arguments.steps, arguments.overrides)
+    if arguments.processes is not None:
+        return loop_on_processes(arguments.processes, arguments.steps, arguments.overrides)
     cfg, data, module = training_setup(arguments.overrides)
     torch.set_flush_denormal(True)  # as RetrievalTraining.on_fit_start
     device = (
@@ -199,7 +254,7 @@ def main() -> None:
         f"the decoded cache, {decoded:.0f} images/s decoding every image"
     )
     bare = bare_images_per_second(cfg, data, module, arguments.steps)
-    loop, step, wait = loop_images_per_second(cfg, data, module, arguments.steps)
+    loop, step, wait = loop_images_per_second(cfg, data, module, arguments.steps, 1)
     print(f"bare forward+backward+step: {bare:.1f} images/s")
     print(
         f"train.py loop: {loop:.1f} images/s ({bare / loop:.2f}x "

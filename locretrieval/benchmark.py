@@ -35,7 +35,7 @@ from locretrieval.localization.global_sfm import GlobalSfmSettings
 from locretrieval.localization.local_sfm import LocalSfmSettings
 from locretrieval.localization.paradigm import ParadigmSettings
 from locretrieval.localization.pipeline import SfmStages, run_sfm
-from locretrieval.localization.plan import SfmPlan, UnitCosts, feature_work, measure_unit_costs
+from locretrieval.localization.plan import SfmPlan, UnitCosts, feature_work, measure_unit_costs, prepare_workers
 from locretrieval.localization.sfm import SfmInputs, SfmSettings
 from locretrieval.metrics.localization import MetricsSettings, localization_table, query_error_table, query_subsets
 from locretrieval.metrics.retrieval import retrieval_tables
@@ -296,8 +296,9 @@ def sfm_plan(
             {name: dataclasses.asdict(paradigm_settings) for name, (_, paradigm_settings) in paradigms.items()},
         )
         if key not in _unit_costs:
-            _unit_costs[key] = measure_unit_costs(scene, settings.sfm, paradigms, cache_dir, plan.pool_needed())
+            _unit_costs[key] = measure_unit_costs(scene, settings.sfm, paradigms, cache_dir)
         plan.costs = _unit_costs[key]
+        prepare_workers(plan)
     return plan
 
 

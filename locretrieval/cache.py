@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from locretrieval.errors import DELETE_CACHE_FILE, DataFileError
+
 
 def config_key(*parts: Any) -> str:
     """Stable 16-hex-digit hash of JSON-serialisable parts (dict keys sorted)."""
@@ -27,6 +29,22 @@ def config_key(*parts: Any) -> str:
 _TEMPORARY = re.compile(r"^\..*\.(?P<host>[^.]+)-(?P<pid>\d+)-[^.]+\.partial[^/]*$")
 #: Folders whose killed runs' temporary files this process has removed.
 _swept: set[Path] = set()
+
+
+#: A name usable as one file name as it is: letters, digits, ``._-``, not starting with a dot.
+_SAFE_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,99}")
+
+
+def safe_name(text: str) -> str:
+    """``text`` as one file name inside its folder (a ranking, ground-truth, model or figure name):
+    unchanged when it is one already (`_SAFE_NAME`); otherwise other characters become ``_`` (a
+    leading dot too: no ``..``, no hidden file), cut to 80 characters, followed by ``-`` and 8 hex
+    digits of its hash, so that two names never share a file."""
+    text = str(text)
+    if _SAFE_NAME.fullmatch(text):
+        return text
+    readable = re.sub(r"[^A-Za-z0-9._-]", "_", text)[:80]
+    return re.sub(r"^\.", "_", readable) + "-" + config_key(text)[:8]
 
 
 @contextlib.contextmanager
@@ -124,10 +142,17 @@ def save_arrays(path: str | os.PathLike, arrays: Mapping[str, np.ndarray]) -> No
             np.savez(stream, **arrays)
 
 
-def load_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Read every array of an ``.npz`` file into memory."""
-    with np.load(path, allow_pickle=False) as data:
-        return {name: data[name] for name in data.files}
+def load_arrays(path: str | os.PathLike, remedy: str = DELETE_CACHE_FILE) -> dict[str, np.ndarray]:
+    """Read every array of an ``.npz`` file into memory (no pickled object). A file that is not a
+    whole ``.npz`` (truncated, empty, damaged) is a `DataFileError` naming it and ``remedy`` (what
+    to do: by default, delete the cache file); a missing one a ``FileNotFoundError``."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {name: data[name] for name in data.files}
+    except FileNotFoundError:
+        raise
+    except Exception as error:  # zipfile and numpy raise a dozen types on a damaged file: all mean "unreadable"
+        raise DataFileError(path, f"not a readable .npz file ({type(error).__name__}: {error})", remedy) from None
 
 
 def cached_arrays(

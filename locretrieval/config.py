@@ -25,6 +25,8 @@ from typing import Any, TypeVar
 from omegaconf import Container, DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
 
+from locretrieval.cache import safe_name
+
 Schema = TypeVar("Schema")
 
 
@@ -86,6 +88,11 @@ def job_dirname(number: Any, label: Any) -> str:
 
 if not OmegaConf.has_resolver("job_dirname"):
     OmegaConf.register_new_resolver("job_dirname", job_dirname)
+
+
+if not OmegaConf.has_resolver("safe_name"):
+    # ``${safe_name:${model.name}}``: a name from the config as one folder name of Hydra's run folder
+    OmegaConf.register_new_resolver("safe_name", safe_name)
 
 
 def trainer_accelerator(device: str) -> str:

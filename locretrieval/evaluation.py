@@ -24,7 +24,7 @@ from locretrieval.benchmark import (
     scene_subsets,
     sfm_plan,
 )
-from locretrieval.cache import save_arrays
+from locretrieval.cache import safe_name, save_arrays
 from locretrieval.config import validated
 from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths, definition_type, statistics_table
 from locretrieval.localization.estimates import estimated_pose_table
@@ -245,8 +245,13 @@ def write_tables(
 ) -> None:
     """The tidy tables and the rankings of a run (see `evaluate`)."""
     for ranking in result.rankings:
-        arrays = {"indices": ranking.indices, "scores": ranking.scores, "kind": np.asarray(ranking.kind)}
-        save_arrays(output_dir / "rankings" / f"{ranking.name}.npz", arrays)
+        arrays = {
+            "indices": ranking.indices,
+            "scores": ranking.scores,
+            "kind": np.asarray(ranking.kind),
+            "name": np.asarray(ranking.name),
+        }
+        save_arrays(output_dir / "rankings" / f"{safe_name(ranking.name)}.npz", arrays)
     result.localization.to_csv(output_dir / "results.csv", index=False)
     result.query_errors.to_csv(output_dir / "query_errors.csv.gz", index=False)
     median_errors(result.query_errors).to_csv(output_dir / "median_errors.csv", index=False)
@@ -263,7 +268,7 @@ def export_ltvl(scene: Scene, result: BenchmarkResult, folder: Path) -> int:
     written = skipped = 0
     for e in result.estimates:
         for n, k in enumerate(e.ks):
-            path = folder / e.ranking / f"{e.paradigm}_{e.method}_k{k}.txt"
+            path = folder / safe_name(e.ranking) / f"{e.paradigm}_{e.method}_k{k}.txt"
             path.parent.mkdir(parents=True, exist_ok=True)
             missing = write_ltvl(path, scene.queries.names, e.qvec[n], e.tvec[n], name_style=scene.ltvl_name_style)
             log.debug("%s: %d queries without an estimate are not in the file", path, missing)

@@ -28,7 +28,8 @@ class WorkerPoolError(RuntimeError):
 def spawn_context() -> BaseContext:
     """The ``spawn`` context for a process pool, with this process's global start method made one
     that a spawned child can re-apply (``loky`` inside a joblib launcher's job is not)."""
-    if multiprocessing.get_start_method(allow_none=True) not in multiprocessing.get_all_start_methods():
+    method = multiprocessing.get_start_method(allow_none=True)
+    if method is not None and method not in multiprocessing.get_all_start_methods():  # unset: left so
         multiprocessing.set_start_method("spawn", force=True)
     return multiprocessing.get_context("spawn")
 

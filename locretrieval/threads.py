@@ -11,6 +11,7 @@ in parallel threads (each chunk's arithmetic is the same whatever the thread cou
 from __future__ import annotations
 
 import contextlib
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
@@ -34,13 +35,35 @@ def torch_threads(count: int) -> Iterator[None]:
         torch.set_num_threads(previous)
 
 
+#: Blocks of `single_threaded` open in this process, and what closing the last one restores.
+_single = {"depth": 0, "restore": None}
+_single_lock = threading.Lock()
+
+
 @contextlib.contextmanager
 def single_threaded() -> Iterator[None]:
     """Every BLAS (numpy's and faiss's OpenBLAS, torch's MKL), OpenMP runtime and torch on one
     thread within the block, for this thread (an OpenMP limit holds per thread) and for the
-    libraries' process-wide settings (BLAS, torch: other Python threads are affected too)."""
-    with threadpoolctl.threadpool_limits(1), torch_threads(1):
+    libraries' process-wide settings (BLAS, torch: other Python threads are affected too). Blocks
+    may overlap in several threads: the first sets the limits, the last restores them."""
+    import torch
+
+    with _single_lock:
+        if _single["depth"] == 0:
+            _single["restore"] = (threadpoolctl.threadpool_limits(1), torch.get_num_threads())
+            torch.set_num_threads(1)
+        else:
+            threadpoolctl.threadpool_limits(1)  # this thread's own OpenMP limit
+        _single["depth"] += 1
+    try:
         yield
+    finally:
+        with _single_lock:
+            _single["depth"] -= 1
+            if _single["depth"] == 0:
+                limits, threads = _single["restore"]
+                limits.restore_original_limits()
+                torch.set_num_threads(threads)
 
 
 def _single_threaded_worker() -> None:

@@ -1,5 +1,5 @@
 """Shared test helpers: the project's configs composed by Hydra, zoo models built from them, a
-callback that interrupts training."""
+callback that interrupts training, a network that fails on one rank."""
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -90,3 +90,68 @@ class StopAfterEpoch(L.Callback):
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if trainer.current_epoch == self.epoch:
             trainer.should_stop = True
+
+
+class ObjectPointerArray:
+    """Pickles as a numpy array (allowlisted globals only: ``numpy.dtype``, ``_reconstruct``) whose
+    dtype declares an object field with numpy's "holds objects" flag cleared: numpy's own
+    unpickling stores the 8 bytes ``AAAAAAAA`` where a Python object pointer is read (a crash)."""
+
+    def __reduce__(self):
+        import numpy as np
+
+        state = (3, "|", None, ("a",), {"a": (np.dtype("O"), 0)}, 8, 1, 0)  # flags 0: "no objects"
+        dtype = _Reduced(np.dtype, ("V8", False, True), state)
+        return (np._core.multiarray._reconstruct, (np.ndarray, (0,), b"b"), (1, (1,), dtype, False, b"A" * 8))
+
+
+class _Reduced:
+    """Pickles as ``callable(*arguments)`` with ``state`` applied."""
+
+    def __init__(self, callable, arguments, state):
+        self.reduced = (callable, arguments, state)
+
+    def __reduce__(self):
+        return self.reduced
+
+
+def run_python(code: str, timeout: float = 120):
+    """``code`` run by a fresh interpreter (this checkout's package first on its path): the completed
+    process, its output captured (a crash of that interpreter cannot take the test run with it)."""
+    import os
+    import subprocess
+    import sys
+
+    root = str(Path(__file__).resolve().parents[1])
+    environment = {**os.environ, "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout, env=environment, cwd=root
+    )
+
+
+def error_in_subprocess(function: str, path: Path):
+    """``function(path)`` (``module.name``) called by a fresh interpreter (`run_python`) that prints
+    the `DataFileError` it raises and exits 0: the completed process (a crash: a negative code)."""
+    module, name = function.rsplit(".", 1)
+    return run_python(
+        f"from locretrieval.errors import DataFileError\nfrom {module} import {name}\n"
+        f"try:\n    {name}({str(path)!r})\nexcept DataFileError as error:\n    print(error)\n"
+    )
+
+
+def network_failing_on_rank(rank: int):
+    """``model=callable`` of train.py: a small network whose description for validation (eval
+    mode) raises on global rank ``rank`` of a DDP run, a fault of one process; it trains anywhere."""
+    import torch
+
+    class FailingOnRank(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.conv = torch.nn.Conv2d(3, 8, 5, stride=4)
+
+        def forward(self, images: torch.Tensor) -> torch.Tensor:
+            if not self.training and torch.distributed.is_initialized() and torch.distributed.get_rank() == rank:
+                raise RuntimeError(f"a validation fault of rank {rank}")
+            return self.conv(images).mean((2, 3))
+
+    return FailingOnRank()

@@ -194,6 +194,7 @@ LAYERS = [
         "restricted_pickle",
         "processes",
         "threads",
+        "errors",
     },
     {"models"},
     {"retrieval"},

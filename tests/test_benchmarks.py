@@ -41,3 +41,30 @@ def test_benchmark_runs_at_a_tiny_size(script):
     assert result.returncode == 0, result.stderr[-2000:]
     for pattern in patterns:
         assert re.search(pattern, result.stdout), f"{script}: no {pattern!r} in\n{result.stdout}"
+
+
+def test_training_benchmark_prints_the_loop_on_one_and_on_two_ddp_processes(tmp_path):
+    from test_training import SCENE, TINY_TRAINING
+
+    tiny = [f"data.render.{key}={value}" for key, value in SCENE.items() if key != "conditions"]
+    tiny += [override for override in TINY_TRAINING if not override.startswith("callbacks.")]
+    tiny += [
+        "model/backbone=torchvision",
+        "model.backbone.name=resnet18",
+        "model.weights=null",
+        "model.random_init=true",
+    ]
+    result = subprocess.run(
+        [sys.executable, str(BENCHMARKS / "bench_training.py"), "--ranks", "2", "--steps", "4", "--overrides"]
+        + [f"paths.root_dir={tmp_path}", *tiny],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    for pattern in (
+        r"loop on 1 process: [\d.]+ images/s \(batches of 14 images per process",
+        r"loop on 2 processes: [\d.]+ images/s \(batches of 14 images per process, .*; 1 torch threads per process",
+        r"2 processes: [\d.]+x the images/s of one",
+    ):
+        assert re.search(pattern, result.stdout), f"no {pattern!r} in\n{result.stdout}"

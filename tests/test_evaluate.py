@@ -1,5 +1,6 @@
 """End to end: `evaluate.py` on a tiny rendered scene, in-process and through the Hydra CLI."""
 
+import html
 import subprocess
 import sys
 from pathlib import Path
@@ -15,6 +16,7 @@ import locretrieval  # noqa: F401
 from locretrieval.benchmark import ParadigmsSettings, check_unique_names
 from locretrieval.config import ConfigError, validated
 from locretrieval.evaluation import evaluate
+from locretrieval.report.markdown import md_text
 from locretrieval.retrieval import random_ranking
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -159,10 +161,10 @@ def test_multirun_from_the_command_line(run):
     )
     assert report.returncode == 0, report.stderr[-3000:]
     text = (root / "report" / "report.md").read_text()
-    # CSI's interpolated poses change with alpha: densevlad is reported once per setting
-    assert (
-        "densevlad [paradigms.approximation.alpha=4]" in text and "densevlad [paradigms.approximation.alpha=8]" in text
-    )
+    # CSI's interpolated poses change with alpha: densevlad is reported once per setting (as Markdown text)
+    labels = [f"densevlad [paradigms.approximation.alpha={alpha}]" for alpha in (4, 8)]
+    assert all(md_text(label) in text for label in labels)
+    assert all(label in html.unescape((root / "report" / "report.html").read_text()) for label in labels)
 
 
 SMALL_SCENE = [

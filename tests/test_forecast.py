@@ -49,23 +49,28 @@ def paradigm_work(name: str, queries: int, parallel_maps: bool) -> ParadigmWork:
 
 def test_the_forecast_spreads_each_stage_over_the_processes_the_run_gives_it():
     local, shared = paradigm_work("local_sfm", 20, True), paradigm_work("global_sfm", 20, False)
-    # 64 new images: 2 tasks of 32, too few for a pool not started: in this process
+    # 64 new images: 4 tasks of 16 for 4 workers, too few for a pool not started: in this process
     plan = SfmPlan(Work(100, 64), [local, shared], True, 4, costs())
     stages = plan.forecast()
     assert stages["features"] == pytest.approx(64 * 0.1)
-    assert stages["match + verify"] == pytest.approx((100 + 200 + 200) * 0.01 / 4)  # every core either way
+    assert stages["match + verify"] == pytest.approx((100 + 200 + 200) * 0.01)  # 4 tasks of 125: here too
     # 20 queries: enough tasks for the pool (MIN_TASKS_PER_WORKER * 4 = 16), spread over 4 workers
     assert 20 >= MIN_TASKS_PER_WORKER * 4
     assert stages["local_sfm: triangulate + register"] == pytest.approx((30 * 45.0 * 0.002 + 400 * 0.003) / 4)
     assert stages["global_sfm: triangulate"] == pytest.approx(30 * 45.0 * 0.004)  # one map, in this process
     assert stages["global_sfm: register"] == pytest.approx(400 * 0.005 / 4)
-    # a pool the run starts for its features (640 images: 20 tasks) serves the small stages after it
+    # a pool the run starts for its features (640 images: 20 tasks of 32) serves the small stages after it
     small = SfmPlan(Work(640, 640), [paradigm_work("local_sfm", 3, True)], True, 4, costs())
     assert small.forecast()["features"] == pytest.approx(640 * 0.1 / 4)
     assert small.forecast()["local_sfm: triangulate + register"] == pytest.approx((30 * 45.0 * 0.002 + 400 * 0.003) / 3)
     alone = SfmPlan(Work(64, 64), [paradigm_work("local_sfm", 3, True)], True, 4, costs())
     assert alone.forecast()["local_sfm: triangulate + register"] == pytest.approx(30 * 45.0 * 0.002 + 400 * 0.003)
     assert small.pool_needed() and not alone.pool_needed()
+    # a few tasks that would take long in one process: the pool is started for them, and they are spread
+    long = SfmPlan(Work(64, 0), [paradigm_work("local_sfm", 3, True)], True, 4, costs(pairs=0.05))
+    assert long.one_process_seconds()[1] == pytest.approx(300 * 0.05) and long.pool_needed()
+    long.costs = costs(pairs=0.05, worker_start=2.0)  # what `prepare_workers` records
+    assert long.forecast()["match + verify"] == pytest.approx(300 * 0.05 / 4)
 
 
 def test_the_sample_is_a_neighbourhood_ranked_by_its_queries(tmp_path):

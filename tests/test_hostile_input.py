@@ -1,6 +1,7 @@
 """Hostile and sloppy input: every bad value stops with an error naming the file (or key) and
 what was wrong, no code runs from a data file, nothing is silently wrong. Tiny folders only."""
 
+import re
 from pathlib import Path
 
 import helpers
@@ -9,6 +10,7 @@ import pytest
 
 from locretrieval.localization.features import extract_features
 from locretrieval.models import PrecomputedDescriptor
+from locretrieval.report.markdown import md_text
 from locretrieval.scene import Camera, ImageSet
 from locretrieval.scene.feature_files import read_feature_array, read_feature_header
 from locretrieval.scene.kapture_io import KaptureFormatError
@@ -254,3 +256,194 @@ def test_a_negative_focal_length_names_the_sensor_line(tmp_path):
         match=r"sensors\.txt:\d+: camera 'phone': focal length\(s\) \[-50\.0, 50\.0\] must be positive",
     ):
         load_image_set(root)
+
+
+# ========================================================= third pass (#49): crafted datasets and names
+
+
+def files_below(folder: Path) -> set[Path]:
+    return {path for path in folder.rglob("*") if path.is_file()}
+
+
+def test_a_hostile_run_writes_only_in_its_run_and_cache_folders(hostile_run):
+    from conftest import HOSTILE_MODEL
+
+    outside = {
+        path
+        for path in files_below(hostile_run.root)
+        if not path.is_relative_to(hostile_run.run)
+        and not path.is_relative_to(hostile_run.cache)
+        and path.parts[len(hostile_run.root.parts)] not in ("render", "data")  # the dataset
+    }
+    assert outside == set()  # model.name=../../../x wrote x.npz and x/*.txt three levels up
+    rankings = sorted(path.name for path in (hostile_run.run / "rankings").iterdir())
+    assert len(rankings) >= 2 and all(re.fullmatch(r"[A-Za-z0-9_.-]+\.npz", name) for name in rankings)
+    stored = {str(np.load(path)["name"]) for path in (hostile_run.run / "rankings").iterdir()}
+    assert HOSTILE_MODEL in stored
+    assert all(path.parent.parent == hostile_run.run / "ltvl" for path in (hostile_run.run / "ltvl").rglob("*.txt"))
+
+
+def report_markup(page: str) -> tuple[set[str], list[tuple[str, str]]]:
+    """The tag names of an HTML page and its ``(tag, attribute)`` pairs."""
+    from html.parser import HTMLParser
+
+    tags, attributes = set(), []
+
+    class Collector(HTMLParser):
+        def handle_starttag(self, tag, attrs):
+            tags.add(tag)
+            attributes.extend((tag, name) for name, _ in attrs)
+
+    Collector().feed(page)
+    return tags, attributes
+
+
+def test_dataset_and_config_text_is_escaped_in_every_report_format(hostile_run):
+    from conftest import HOSTILE_IMAGE, HOSTILE_MODEL, HOSTILE_QUERY_FOLDER, HOSTILE_TAG
+
+    from locretrieval.report.html import ALLOWED_TAGS
+
+    markdown = (hostile_run.run / "report.md").read_text()
+    html = (hostile_run.run / "report.html").read_text()
+    for page in (markdown, html):
+        assert "<img src=x" not in page and "<svg" not in page  # only their escaped text
+    for name in (HOSTILE_QUERY_FOLDER, HOSTILE_TAG, HOSTILE_IMAGE, HOSTILE_MODEL):
+        assert md_text(name) in markdown  # shown literally where it is named
+    tags, attributes = report_markup(html)
+    assert tags <= set(ALLOWED_TAGS) | {"html", "head", "meta", "title", "link", "style", "body", "nav"}
+    assert [pair for pair in attributes if pair[1].startswith("on")] == []
+    policy = re.search(r'<meta http-equiv="Content-Security-Policy" content="([^"]+)">', html).group(1)
+    assert "default-src 'none'" in policy and "script-src" not in policy
+    latex = "\n".join(path.read_text() for path in (hostile_run.run / "tables").glob("*.tex"))
+    assert "\\input{x}" not in latex and "\\textbackslash input\\{x\\}" in latex
+    scene = (hostile_run.run / "scene_3d.html").read_text()
+    policy = re.search(r'<meta http-equiv="Content-Security-Policy" content="([^"]+)">', scene).group(1)
+    scripts = re.findall(r"<script[^>]*>(.*?)</script>", scene, re.DOTALL)
+    assert policy.count("'sha256-") == len(scripts) >= 2 and "unsafe-inline' " not in policy.split("style-src")[0]
+    assert "<svg/onload" not in scene and "<img src=x" not in scene  # names only inside escaped JSON
+
+
+def test_hydra_run_folders_keep_names_inside_outputs():
+    from helpers import CONFIGS
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        config = compose("evaluate", overrides=["model.name='../../../x'"], return_hydra_config=True)
+    run_dir = config.hydra.run.dir
+    assert run_dir.startswith("outputs/evaluate/synthetic_mall/") and ".." not in run_dir.split("/")
+    config.hydra.job.num = 0  # set by Hydra's launcher
+    assert config.hydra.sweep.subdir.startswith("0_synthetic_mall_") and "/" not in config.hydra.sweep.subdir
+
+
+@pytest.mark.parametrize(
+    "name, problem",
+    [
+        ("/etc/hostname", "is absolute"),
+        ("../../../secret/private.png", "has a '..' component"),
+        ("cam/../../outside.png", "has a '..' component"),
+        ("cam\\\\a.png", "has a backslash or a control character"),
+    ],
+)
+def test_image_names_stay_inside_their_kapture_folder(tmp_path, name, problem):
+    from locretrieval.scene.kapture_io import load_image_set
+
+    root = phone_folder(tmp_path, {(1, "phone"): "a.png", (2, "phone"): "b.png"})
+    records = root / "sensors" / "records_camera.txt"
+    records.write_text(records.read_text().replace("b.png", name))
+    with pytest.raises(KaptureFormatError, match=rf"records_camera\.txt:\d+: file name .* {re.escape(problem)}"):
+        load_image_set(root)
+
+
+@pytest.mark.parametrize(
+    "parameters, problem",
+    [
+        ([64, 48, 50.0, 50.0, float("nan"), 24.0], r"parameters \[50\.0, 50\.0, nan, 24\.0\] must all be finite"),
+        ([64, 48, 50.0, 50.0, 32.0, float("inf")], r"parameters \[50\.0, 50\.0, 32\.0, inf\] must all be finite"),
+        ([64, 48, 50.0, 50.0, 640.0, 24.0], r"principal point \(640\.0, 24\.0\) lies outside the 64 x 48 image"),
+        ([64, 48, 50.0, 50.0, 32.0, -3.0], r"principal point \(32\.0, -3\.0\) lies outside the 64 x 48 image"),
+    ],
+)
+def test_camera_parameters_are_finite_and_the_principal_point_inside_the_image(tmp_path, parameters, problem):
+    import kapture
+    from test_kapture_io import write_kapture
+
+    from locretrieval.scene.kapture_io import load_image_set
+
+    camera = kapture.Camera(kapture.CameraType.PINHOLE, parameters)
+    root = write_kapture(tmp_path / "query", {"phone": camera}, {(1, "phone"): "a.png"})
+    with pytest.raises(KaptureFormatError, match=rf"sensors\.txt:\d+: camera 'phone': {problem}"):
+        load_image_set(root)
+
+
+def test_a_query_folder_that_is_the_mapping_folder_is_refused_naming_both(tmp_path):
+    from test_kapture_io import PINHOLE, pose, write_kapture
+
+    from locretrieval.scene.kapture_io import load_kapture_scene
+
+    start, _ = pose("z", 1.0, [0.0, 0.0, 0.0])
+    mapping = write_kapture(tmp_path / "mapping", {"phone": PINHOLE}, {(1, "phone"): "db/a.png"}, {(1, "phone"): start})
+    linked = tmp_path / "query_link"
+    linked.symlink_to(mapping)
+    image = "sensors/records_data/db/a.png"
+    for queries in (mapping, linked):
+        message = rf"query image {queries}/{image} is the database image {mapping}/{image}"
+        with pytest.raises(ValueError, match=message):
+            load_kapture_scene("same", [mapping], [queries])
+
+
+def test_kapture_text_that_is_not_utf8_names_file_and_line(tmp_path):
+    from locretrieval.scene.kapture_io import load_image_set
+
+    root = phone_folder(tmp_path, {(1, "phone"): "a.png"})
+    sensors = root / "sensors" / "sensors.txt"
+    sensors.write_bytes(sensors.read_bytes() + b"# caf\xe9\n")
+    lines = sensors.read_bytes().count(b"\n")
+    with pytest.raises(KaptureFormatError, match=rf"sensors\.txt:{lines}: not UTF-8 text \(invalid continuation byte"):
+        load_image_set(root)
+
+
+def test_a_decompression_bomb_names_the_image(tmp_path):
+    from PIL import Image
+
+    from locretrieval.errors import DataFileError
+    from locretrieval.scene.images import read_image
+    from locretrieval.scene.kapture_io import load_image_set
+
+    root = phone_folder(tmp_path, {(1, "phone"): "a.png"})
+    image = root / "sensors" / "records_data" / "a.png"
+    Image.new("1", (20000, 20000)).save(image)  # 400 megapixels in 50 kB
+    with pytest.raises(
+        DataFileError, match=rf"{image}: not a readable image \(Image size \(400000000 pixels\) exceeds limit"
+    ):
+        load_image_set(root)
+    with pytest.raises(DataFileError, match=rf"{image}: cannot decode this image file \(Image size"):
+        read_image(image)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "empty"])
+def test_a_damaged_cache_file_is_named_with_what_to_do(tmp_path, damage):
+    from locretrieval.cache import load_arrays, save_arrays
+    from locretrieval.errors import DataFileError
+
+    path = tmp_path / "descriptors" / "key.npz"
+    save_arrays(path, {"descriptors": np.ones((100, 8), dtype=np.float32)})
+    path.write_bytes(path.read_bytes()[: len(path.read_bytes()) // 2] if damage == "truncated" else b"")
+    with pytest.raises(DataFileError, match=rf"{path}: not a readable \.npz file .*; delete it: it is recomputed"):
+        load_arrays(path)
+
+
+def test_atomic_writes_reach_the_disk_before_the_rename(tmp_path, monkeypatch):
+    import os
+
+    from locretrieval.cache import save_arrays
+
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+    monkeypatch.setattr(
+        os, "fsync", lambda fd: events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}"))) or real_fsync(fd)
+    )
+    monkeypatch.setattr(os, "replace", lambda a, b: events.append(("replace", str(a))) or real_replace(a, b))
+    path = tmp_path / "cache" / "x.npz"
+    save_arrays(path, {"a": np.arange(3)})
+    temporary = next(name for kind, name in events if kind == "replace")
+    assert events == [("fsync", temporary), ("replace", temporary), ("fsync", str(path.parent))]

@@ -15,12 +15,12 @@ import pytest
 from locretrieval.cache import load_arrays
 
 ROOT = Path(__file__).resolve().parents[1]
-#: Enough local maps (16 queries x 3 rankings x k = 5, 10, 20) for local SfM to run several seconds.
+#: Enough local maps (64 queries x 3 rankings x k = 5, 10, 20) for local SfM to run several seconds.
 COMMAND = [
     "data.render.width=160",
     "data.render.height=120",
     "data.render.num_database=30",
-    "data.render.num_queries=16",
+    "data.render.num_queries=64",
     "data.render.texture_size=64",
     "data.render.length=24.0",
     "data.render.seed=3",

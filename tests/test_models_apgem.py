@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 import torchvision
-from helpers import zoo_model
+from helpers import ObjectPointerArray, error_in_subprocess, run_python, zoo_model
 from PIL import Image
 
 from locretrieval.models.apgem import convert_apgem
@@ -240,3 +240,33 @@ def test_resnet101_checkpoint_layout_loads(tmp_path):
 def test_missing_file_names_the_expected_file_and_its_publisher(tmp_path):
     with pytest.raises(MissingWeightsError, match=r"Resnet101-AP-GeM-LM18\.pt.*deep-image-retrieval"):
         zoo_model("apgem", weights=tmp_path / "absent.pt")
+
+
+def test_a_crafted_numpy_dtype_in_a_dirtorch_file_is_refused_not_a_crash(tmp_path, sklearn_modules):
+    pca = fabricated_pca(np.random.default_rng(0), 4)
+    pca.mean_ = ObjectPointerArray()  # read through torch's restricted unpickler, numpy allowlisted
+    path = tmp_path / "Resnet18-AP-GeM-crafted.pt"
+    state = {"fc.weight": torch.zeros(4, 512), "fc.bias": torch.zeros(4), "adpool.p": torch.ones(1)}
+    torch.save({"state_dict": state, "model_options": {"arch": "resnet18_rmac"}, "pca": {"x": pca}}, path)
+    process = error_in_subprocess("locretrieval.models.apgem.read_apgem_weights", path)
+    assert process.returncode == 0, process.stderr[-2000:]  # -11 (SIGSEGV) before the stand-ins
+    assert process.stdout.startswith(f"{path}: refused to unpickle an object this loader does not allow")
+    assert "refused dtype 'V8' with fields or a sub-array" in process.stdout
+    script = run_python(  # the converter users run: a clean error naming the file, no crash
+        "import sys\n"
+        f"sys.argv = ['convert_weights.py', 'apgem', {str(path)!r}, {str(tmp_path / 'out.pt')!r}]\n"
+        "import runpy\n"
+        "runpy.run_path('scripts/convert_weights.py', run_name='__main__')\n"
+    )
+    assert script.returncode == 1 and f"DataFileError: {path}: refused" in script.stderr
+    assert not (tmp_path / "out.pt").exists()
+
+
+def test_numpy_values_of_a_dirtorch_pca_arrive_as_plain_arrays(checkpoint):
+    from locretrieval.models.apgem import read_apgem_weights
+
+    path, _, pca = checkpoint
+    loaded = read_apgem_weights(path).pcas["Landmarks_clean"]
+    assert type(loaded.components) is np.ndarray and loaded.components.dtype == np.float64
+    np.testing.assert_array_equal(loaded.components, pca.components_)
+    np.testing.assert_array_equal(loaded.explained_variance, pca.explained_variance_)

@@ -95,3 +95,65 @@ def test_the_3d_view_loads_without_console_errors(run, browser):
     images, errors = open_page(browser, page)
     assert errors == []
     assert all(complete and width > 0 for _, complete, width in images)
+
+
+#: JavaScript: the globals a hostile dataset's handlers would set, and what the page shows of them.
+PWNED = "return [window.__pwned === undefined ? null : window.__pwned, document.body.innerText];"
+#: JavaScript: whether the plotly figure of the 3D view was drawn under its policy (its scripts ran).
+PLOTTED = "const d = document.querySelector('.plotly-graph-div'); return !!(window.Plotly && d && d.data);"
+
+
+def test_a_report_of_a_hostile_dataset_runs_no_script_and_shows_the_names(hostile_run, browser):
+    from conftest import HOSTILE_IMAGE, HOSTILE_MODEL, HOSTILE_QUERY_FOLDER, HOSTILE_TAG
+
+    images, errors = open_page(browser, hostile_run.run / "report.html")
+    pwned, text = browser.execute_script(PWNED)
+    assert pwned is None  # no onerror / onload handler of the dataset's names ran
+    for name in (HOSTILE_QUERY_FOLDER, HOSTILE_TAG, HOSTILE_IMAGE, HOSTILE_MODEL):
+        assert name in text  # shown as text where the report names it
+    assert errors == []  # the policy refused nothing the report itself needs
+    galleries = [src for src, _, _ in images if src.startswith("galleries/")]
+    assert len(galleries) == 15 and all(complete and width > 0 for _, complete, width in images)
+
+
+def test_the_3d_view_of_a_hostile_dataset_draws_with_its_own_scripts_only(hostile_run, browser):
+    _, errors = open_page(browser, hostile_run.run / "scene_3d.html")
+    assert browser.execute_script(PLOTTED) is True
+    assert browser.execute_script(PWNED)[0] is None
+    assert errors == []
+
+
+def test_a_sweep_summary_and_its_optuna_figures_draw_with_their_own_scripts_only(tmp_path, browser):
+    """summary.html and optuna.html of an Optuna study whose trial overrides hold markup: the
+    markup shows as text, runs nothing, and Optuna's plotly figures draw under the page's policy."""
+    import optuna
+    from omegaconf import OmegaConf
+    from test_sweeps import gap_run
+
+    from locretrieval.training.summary import write_summary
+
+    hostile = "model.name=<img src=x onerror=window.__pwned=1>"
+    study = optuna.create_study(study_name="s", storage=f"sqlite:///{tmp_path / 'optuna.db'}", direction="maximize")
+    for number, value in enumerate((10.0, 30.0, 20.0)):
+        trial = study.ask()
+        trial.suggest_float("optimizer.lr", 1e-5, 1e-3, log=True)
+        study.tell(trial, value)
+        run = gap_run(tmp_path, f"{number}_job", value, [("approximation/ewb/k3/5m_10deg", 5.0, value, 10.0, 40.0)])
+        lr = f"optimizer.lr={trial.params['optimizer.lr']}"
+        OmegaConf.save(OmegaConf.create([lr, hostile]), run / ".hydra" / "overrides.yaml")
+        OmegaConf.save(OmegaConf.create({"hydra": {"job": {"num": number}}}), run / ".hydra" / "hydra.yaml")
+    sweeper = {"_target_": "hydra_plugins.hydra_optuna_sweeper.optuna_sweeper.OptunaSweeper", "study_name": "s"}
+    sweeper["storage"] = f"sqlite:///{tmp_path / 'optuna.db'}"
+    OmegaConf.save(
+        OmegaConf.create({"hydra": {"job": {"name": "train"}, "sweeper": sweeper}}), tmp_path / "multirun.yaml"
+    )
+    write_summary([tmp_path], tmp_path)
+
+    _, errors = open_page(browser, tmp_path / "summary.html")
+    pwned, text = browser.execute_script(PWNED)
+    assert pwned is None and hostile.removeprefix("model.name=") in text and errors == []
+    assert "1 (best)" in text
+    _, errors = open_page(browser, tmp_path / "optuna.html")
+    drawn = "return Array.from(document.querySelectorAll('.plotly-graph-div')).map(d => !!(window.Plotly && d.data));"
+    assert browser.execute_script(drawn) == [True, True]  # the optimization history and the importances
+    assert errors == []

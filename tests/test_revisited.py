@@ -2,9 +2,11 @@ import pickle
 
 import numpy as np
 import pytest
+from helpers import ObjectPointerArray, error_in_subprocess
 
+from locretrieval.errors import DataFileError
 from locretrieval.metrics.revisited import REVISITED_COLUMNS, evaluate_revisited, load_revisited_groundtruth
-from locretrieval.restricted_pickle import RefusedGlobalError
+from locretrieval.restricted_pickle import RefusedGlobalError, RefusedPickleError
 from locretrieval.retrieval import EMPTY, Ranking
 
 # 8 database images, 2 queries.
@@ -135,4 +137,47 @@ def test_other_callables_than_numpy_reconstruction_are_refused(tmp_path):
         pickle.dumps({"imlist": [], "qimlist": [], "gnd": [], "when": __import__("datetime").date(2020, 1, 1)})
     )
     with pytest.raises(RefusedGlobalError, match=r"gnd\.pkl: refused to unpickle the global datetime\.date"):
+        load_revisited_groundtruth(path)
+
+
+# ----------------------------------------------------- crafted files: never a crash, always the file named
+
+
+def test_a_crafted_object_dtype_is_refused_instead_of_crashing_the_interpreter(tmp_path):
+    path = tmp_path / "gnd_roxford5k.pkl"
+    path.write_bytes(pickle.dumps({**GROUNDTRUTH, "gnd": [{"easy": ObjectPointerArray(), "hard": [], "junk": []}] * 2}))
+    process = error_in_subprocess("locretrieval.metrics.revisited.load_revisited_groundtruth", path)
+    assert process.returncode == 0, process.stderr[-2000:]  # -11 (SIGSEGV) before the stand-ins
+    assert process.stdout.startswith(f"{path}: refused dtype 'V8' with fields or a sub-array")
+
+
+def test_a_size_is_never_allocated_from_a_pickle(tmp_path):
+    path = tmp_path / "gnd_roxford5k.pkl"
+    # builtins.bytes(1 << 44), as protocol 2 writes a call: 16 TiB asked by a 40-byte file
+    path.write_bytes(b"\x80\x02c__builtin__\nbytes\nq\x00\x8a\x06\x00\x00\x00\x00\x00\x10\x85R.")
+    with pytest.raises(RefusedPickleError, match=rf"{path}: refused the call bytes\(17592186044416,\)"):
+        load_revisited_groundtruth(path)
+
+
+def test_shared_references_cannot_blow_up_a_small_file(tmp_path):
+    row = list(range(1000))
+    path = tmp_path / "gnd_roxford5k.pkl"
+    path.write_bytes(pickle.dumps({**GROUNDTRUTH, "imlist": [row] * 100_000}))  # 200 kB, 10^8 values shared
+    with pytest.raises(RefusedPickleError, match=r"gnd_roxford5k\.pkl: refused a structure of more than \d+ elements"):
+        load_revisited_groundtruth(path)
+
+
+@pytest.mark.parametrize(
+    "entry, message",
+    [
+        ({"easy": ["a"], "hard": [], "junk": []}, r"gnd entry 0 \(q0\) has easy that are not integer indices"),
+        ({"easy": [[1], 2], "hard": [], "junk": []}, r"gnd entry 0 \(q0\) has easy that are not integer indices"),
+        ({"easy": [10**30], "hard": [], "junk": []}, r"gnd entry 0 \(q0\) has easy that are not integer indices"),
+        ([1, 2], r"gnd entry 0 \(q0\) must be a dict with easy, hard and junk, found list"),
+    ],
+)
+def test_a_wrong_structure_names_the_file_and_the_entry(tmp_path, entry, message):
+    path = tmp_path / "gnd_roxford5k.pkl"
+    path.write_bytes(pickle.dumps({**GROUNDTRUTH, "gnd": [entry, GROUNDTRUTH["gnd"][1]]}))
+    with pytest.raises(DataFileError, match=rf"{path}: {message}"):
         load_revisited_groundtruth(path)

@@ -487,9 +487,9 @@ def test_hard_negatives_are_the_highest_ranked_unrelated_images_by_the_current_n
     )
     module = SimpleNamespace(network=network)
     for step in (0, 3, 4):  # not a multiple of 5 (or the first step): nothing mined
-        mining.on_train_batch_start(SimpleNamespace(global_step=step), module, None, step)
+        mining.on_train_batch_start(SimpleNamespace(global_step=step, global_rank=0, world_size=1), module, None, step)
     assert sampler.hard == {}
-    mining.on_train_batch_start(SimpleNamespace(global_step=5), module, None, 5)
+    mining.on_train_batch_start(SimpleNamespace(global_step=5, global_rank=0, world_size=1), module, None, 5)
     descriptors = NetworkDescriptor("check", network, preprocessing, extraction).describe(scene.database)
     related = pairs.related.toarray()
     for anchor in sampler.anchors:

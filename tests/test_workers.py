@@ -64,3 +64,19 @@ def test_the_worker_pool_runs_inside_a_job_of_joblibs_loky_executor_and_lets_it_
         [sys.executable, "-c", JOBLIB_JOB, str(Path(__file__).parent)], capture_output=True, text=True, timeout=120
     )
     assert done.returncode == 0 and done.stdout.strip() == "done", done.stderr[-3000:]
+
+
+def test_starting_a_pool_leaves_a_plain_process_s_start_method_alone():
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import multiprocessing\nfrom locretrieval.processes import spawn_context\nspawn_context()\n"
+            "print(multiprocessing.get_start_method(allow_none=True))",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=Path(__file__).parents[1],
+    )
+    assert done.stdout.strip() == "None", done.stderr  # other libraries' pools keep their platform default

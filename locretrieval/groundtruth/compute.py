@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from scipy import sparse
 
-from locretrieval.cache import cached_arrays, config_key
+from locretrieval.cache import cached_arrays, config_key, safe_name
 from locretrieval.config import ConfigError, require, validated
 from locretrieval.groundtruth.base import Definition, DefinitionContext, GroundTruth
 from locretrieval.groundtruth.co_observation import CoObservationDefinition
@@ -141,7 +141,7 @@ def compute_groundtruths(
         path = None
         if cache_dir is not None:
             key = config_key(CACHE_VERSION, definition_type(definition), produced_by, settings.depth, *fingerprints)
-            path = Path(cache_dir) / "groundtruth" / f"{name}-{key}.npz"
+            path = Path(cache_dir) / "groundtruth" / f"{safe_name(name)}-{key}.npz"
 
         def build(
             definition: Definition = definition, context: DefinitionContext = context, name: str = name

@@ -44,7 +44,7 @@ from PIL import Image
 from locretrieval.cache import config_key
 from locretrieval.config import require
 from locretrieval.localization.store import ShardedStore
-from locretrieval.localization.workers import parallel_map
+from locretrieval.localization.workers import parallel_map, resolve_workers, split
 from locretrieval.scene import ImageSet
 from locretrieval.scene.feature_files import (
     feature_file,
@@ -211,7 +211,7 @@ def extract_features(
     missing = store.store.missing(images.names if names is None else names)
     if missing:
         log.info("local features (%s) of %d images into %s", type(settings).__name__, len(missing), store.folder)
-        chunks = [missing[start : start + IMAGES_PER_SHARD] for start in range(0, len(missing), IMAGES_PER_SHARD)]
+        chunks = split(missing, IMAGES_PER_SHARD, resolve_workers(workers))
         tasks = [[(name, str(paths[name])) for name in chunk] for chunk in chunks]
         shared = (str(store.folder), settings)
         for _ in parallel_map(_extract_shard, tasks, workers, f"features ({type(settings).__name__})", shared):

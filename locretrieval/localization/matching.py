@@ -54,7 +54,7 @@ from locretrieval.localization.verification import (
     pair_indices,
     verify_pairs,
 )
-from locretrieval.localization.workers import parallel_map, task_stream
+from locretrieval.localization.workers import parallel_map, resolve_workers, split, task_stream
 from locretrieval.scene import ImageSet
 
 log = logging.getLogger(__name__)
@@ -211,7 +211,8 @@ class PairMatcher:
             type(verification).__name__,
             self.raw.folder,
         )
-        shards = [todo[start : start + PAIRS_PER_SHARD] for start in range(0, len(todo), PAIRS_PER_SHARD)]
+        on_device = isinstance(matcher, BatchedMatcher)  # its shards are the device's batches: full ones
+        shards = split(todo, PAIRS_PER_SHARD, 1 if on_device else resolve_workers(workers))
         tasks = [
             ShardTask(
                 shard,
@@ -221,7 +222,7 @@ class PairMatcher:
             )
             for shard in shards
         ]
-        if isinstance(matcher, BatchedMatcher):
+        if on_device:
             self._ensure_on_device(matcher, tasks, workers)
         else:
             for _ in parallel_map(_match_shard, tasks, workers, "matching", shared=self):

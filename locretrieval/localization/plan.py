@@ -34,7 +34,7 @@ from locretrieval.cache import temporary_folder
 from locretrieval.localization.features import IMAGES_PER_SHARD
 from locretrieval.localization.matching import PAIRS_PER_SHARD, pair_key
 from locretrieval.localization.sfm import QueryTask, SfmInputs, SfmSettings
-from locretrieval.localization.workers import runs_here, start_workers, workers_started
+from locretrieval.localization.workers import runs_here, start_workers, task_size, workers_started
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
 from locretrieval.threads import single_threaded
@@ -45,10 +45,12 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+#: Seconds of a stage in one process above which the worker pool is started before the run.
+POOL_WORTH_SECONDS = 10.0
 #: Queries of the sample that unit costs are measured on.
 SAMPLE_QUERIES = 2
 #: Database images of the sample: the deepest k of a paradigm, at least the first, at most the second.
-SAMPLE_DATABASE = (10, 20)
+SAMPLE_DATABASE = (10, 50)
 
 
 @dataclass(frozen=True)
@@ -141,15 +143,37 @@ class SfmPlan:
         )
 
     def pool_needed(self) -> bool:
-        """Whether some stage of the run will start the worker pool (`runs_here`)."""
-        return any(tasks > 1 and not runs_here(tasks, self.processes, started=False) for tasks in self._tasks())
+        """Whether the worker pool is worth starting before the run (`costs` required): some stage
+        would start it anyway (`runs_here`), or would take more than `POOL_WORTH_SECONDS` in one
+        process while it can be split."""
+        single = self.one_process_seconds()
+        return any(
+            tasks > 1 and (not runs_here(tasks, self.processes, started=False) or seconds > POOL_WORTH_SECONDS)
+            for tasks, seconds in zip(self._tasks(), single)
+        )
 
     def _tasks(self) -> list[int]:
-        """The tasks of each stage that may run in workers, in the order `run_sfm` runs them."""
+        """The tasks of each stage that may run in workers, in the order `run_sfm` runs them (as `split` cuts them)."""
+        pairs_cap = PAIRS_PER_SHARD if self.costs is None or self.costs.device == "cpu" else math.inf
         return [
-            math.ceil(self.features.new / IMAGES_PER_SHARD),
-            math.ceil(self.new_pairs() / PAIRS_PER_SHARD),
+            _task_count(self.features.new, IMAGES_PER_SHARD, self.processes),
+            _task_count(self.new_pairs(), pairs_cap, self.processes),
             *(p.queries.new for p in self.paradigms),
+        ]
+
+    def one_process_seconds(self) -> list[float]:
+        """Seconds of each stage of `_tasks` in one process (`costs` required): features, match +
+        verify, each paradigm's triangulation and registration."""
+        costs = self.costs
+        assert costs is not None, "the stages' seconds need measured unit costs"
+        return [
+            self.features.new * costs.features,
+            self.new_pairs() * costs.pairs,
+            *(
+                p.new_map_pairs * costs.map_pairs[p.paradigm]
+                + p.registered_images.new * costs.registrations[p.paradigm]
+                for p in self.paradigms
+            ),
         ]
 
     def forecast(self) -> dict[str, float]:
@@ -172,8 +196,8 @@ class SfmPlan:
 
         features_tasks, pair_tasks, *query_tasks = self._tasks()
         stages = {"features": self.features.new * costs.features / spread(features_tasks)}
-        spread(pair_tasks)
-        stages["match + verify"] = self.new_pairs() * costs.pairs / (self.processes if costs.device == "cpu" else 1)
+        on_cpu = costs.device == "cpu"  # else one process matches on the device (the workers verify)
+        stages["match + verify"] = self.new_pairs() * costs.pairs / (spread(pair_tasks) if on_cpu else 1)
         for work, tasks in zip(self.paradigms, query_tasks):
             map_pairs, registrations = costs.map_pairs[work.paradigm], costs.registrations[work.paradigm]
             shared, per_query = work.stages()
@@ -218,6 +242,19 @@ class SfmPlan:
                 + ("" if self.exact else " at most")
             )
         return "\n".join(lines)
+
+
+def prepare_workers(plan: SfmPlan) -> SfmPlan:
+    """``plan`` with the worker pool started now when it is worth it (`SfmPlan.pool_needed`), and
+    the seconds that took in its costs."""
+    if plan.costs is not None and not workers_started(plan.processes) and plan.pool_needed():
+        plan.costs = dataclasses.replace(plan.costs, worker_start=start_workers(plan.processes))
+    return plan
+
+
+def _task_count(items: int, cap: float, workers: int) -> int:
+    """Tasks `split` cuts ``items`` into."""
+    return math.ceil(items / task_size(items, cap, workers)) if items else 0
 
 
 def _duration(seconds: float) -> str:
@@ -323,7 +360,6 @@ def measure_unit_costs(
     settings: SfmSettings,
     paradigms: Mapping[str, tuple[SfmStages, ParadigmSettings]],
     cache_dir: Path,
-    start_pool: bool,
 ) -> UnitCosts:
     """Unit costs of the SfM stages, measured by `run_sfm` itself on `forecast_sample` (a
     neighbourhood of database images as deep as the paradigms' deepest k, between the
@@ -331,13 +367,11 @@ def measure_unit_costs(
     paradigms, in one process with one thread, into a temporary folder of ``cache_dir`` (deleted
     afterwards): the sample's seconds per stage over its units (its `SfmPlan`). The per-query
     stage runs twice, the second time with the maps cached, which separates the triangulation
-    of a query's maps from its registrations. ``start_pool``: start the run's worker pool too
-    (timed), so that the run finds it ready."""
+    of a query's maps from its registrations."""
     from locretrieval.localization.pipeline import run_sfm  # (the pipeline's stages import this module)
 
     sample, ranking = forecast_sample(scene, sample_depth(scene, paradigms))
     one_process = dataclasses.replace(settings, workers=1, shard=None)
-    worker_start = start_workers(settings.processes) if start_pool else 0.0
     load = os.getloadavg()[0]
     with temporary_folder(cache_dir, "forecast") as folder, single_threaded(), _quiet():
         inputs = SfmInputs.prepare(sample, one_process, folder, extract=False)
@@ -367,7 +401,6 @@ def measure_unit_costs(
         settings.matching.matcher().device,
         f"{len(sample.database)} database images and {len(sample.queries)} queries",
         load,
-        worker_start,
     )
 
 

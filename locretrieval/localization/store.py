@@ -15,14 +15,16 @@ read ones stay in memory, up to `CACHED_BYTES` per store.
 
 from __future__ import annotations
 
+import contextlib
 from collections import OrderedDict
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from locretrieval.cache import atomic_path, config_key
+from locretrieval.errors import DELETE_CACHE_FILE, DataFileError
 
 if TYPE_CHECKING:
     import h5py  # imported where it is used: a run without local features does not load it
@@ -135,10 +137,14 @@ class ShardedStore:
         return path
 
 
-def _open(shard: Path) -> h5py.File:
+@contextlib.contextmanager
+def _open(shard: Path) -> Iterator[h5py.File]:
+    """``shard`` open for reading; a shard that cannot be opened or read (damaged, truncated: h5py's
+    ``OSError``) is a `DataFileError` naming it and saying to delete it (its records are recomputed)."""
     import h5py
 
     try:
-        return h5py.File(shard, "r")
+        with h5py.File(shard, "r") as file:
+            yield file
     except OSError as error:
-        raise OSError(f"cannot read cache shard {shard} ({error}); delete it to recompute its records") from error
+        raise DataFileError(shard, f"not a readable cache shard ({error})", DELETE_CACHE_FILE) from None

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import math
 import multiprocessing.util
 import os
 import pickle
@@ -26,6 +27,7 @@ from typing import Any, TypeVar
 from tqdm import tqdm
 
 from locretrieval.processes import broken_pool_error, spawn_context
+from locretrieval.threads import single_threaded
 
 Task = TypeVar("Task")
 Result = TypeVar("Result")
@@ -65,8 +67,13 @@ def _initialize_worker(parent: int) -> None:
     import pycolmap
 
     pycolmap.logging.minloglevel = 2
-    # the SfM stages' modules (h5py, scipy, the triangulators), which their first task would import
+    # the SfM stages' modules (h5py, scipy, the triangulators, torch for matching), which their first
+    # task would import: seconds a worker spends once, when the pool starts rather than in a stage
+    import torch
+
     import locretrieval.localization.pipeline  # noqa: F401
+
+    torch.set_num_threads(1)
 
 
 def exit_with_parent(parent: int) -> None:
@@ -140,6 +147,18 @@ def runs_here(tasks: int, workers: int, started: bool | None = None) -> bool:
     return workers == 1 or tasks <= 1 or (not started and tasks < MIN_TASKS_PER_WORKER * workers)
 
 
+def task_size(items: int, cap: int, workers: int) -> int:
+    """Items per task when ``items`` are split for ``workers`` processes: at most ``cap`` (e.g.
+    what one shard file holds), fewer so that every worker gets one."""
+    return max(1, min(cap, math.ceil(items / max(1, workers))))
+
+
+def split(items: Sequence[Task], cap: int, workers: int) -> list[Sequence[Task]]:
+    """``items`` in consecutive tasks of `task_size`."""
+    size = task_size(len(items), cap, workers)
+    return [items[start : start + size] for start in range(0, len(items), size)]
+
+
 def workers_started(workers: int) -> bool:
     """Whether this process's pool of ``workers`` processes is running."""
     return _pools.started(workers)
@@ -169,16 +188,19 @@ def parallel_map(
     task, in order, with a progress bar.
 
     ``workers == 1``, a single task, or a small workload (fewer than `MIN_TASKS_PER_WORKER`
-    tasks per worker while no pool is started) runs in this process; otherwise this process's
-    pool of spawned workers runs them. ``function`` must be a module-level
-    function and ``shared``, the tasks and the results picklable.
+    tasks per worker while no pool is started) runs in this process, single-threaded as a worker
+    runs it (one thread is faster on such tasks than several sharing them, and their costs are
+    the same either way); otherwise this process's pool of spawned workers runs them.
+    ``function`` must be a module-level function and ``shared``, the tasks and the results picklable.
     """
     workers = resolve_workers(workers)
     progress: Any = tqdm(total=len(tasks), desc=description, unit="task", disable=None, leave=False)
     with progress:
         if runs_here(len(tasks), workers):
             for task in tasks:
-                yield function(task) if shared is None else function(shared, task)
+                with single_threaded():  # as a worker runs it: threads are slower than one on such tasks
+                    result = function(task) if shared is None else function(shared, task)
+                yield result
                 progress.update()
             return
         with _shared_file(shared) as shared_file:
@@ -206,7 +228,8 @@ def task_stream(
         if runs_here(tasks, workers):
 
             def run_here(task: Any) -> None:
-                function(task) if shared is None else function(shared, task)
+                with single_threaded():
+                    function(task) if shared is None else function(shared, task)
                 progress.update()
 
             yield run_here

@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 from scipy import sparse
 
+from locretrieval.errors import FIX_DATA_FILE, DataFileError
 from locretrieval.restricted_pickle import load_plain_pickle
 from locretrieval.retrieval import EMPTY, Ranking, relevant_hits
 
@@ -76,8 +77,9 @@ class RevisitedGroundTruth:
 def load_revisited_groundtruth(path: str | Path) -> RevisitedGroundTruth:
     """Read a revisited Oxford/Paris ``gnd_*.pkl`` file, checking its structure.
 
-    The file is unpickled with `load_plain_pickle`: a global other than builtin containers,
-    scalars and numpy arrays is refused (``RefusedGlobalError`` naming the file and the global)."""
+    The file is unpickled with `load_plain_pickle`: anything but plain data (builtin containers and
+    scalars, numeric numpy arrays) is refused (`RefusedPickleError` naming the file and what was
+    refused); a structure other than the published one is a `DataFileError` naming the file."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(
@@ -85,21 +87,46 @@ def load_revisited_groundtruth(path: str | Path) -> RevisitedGroundTruth:
             + " and ".join(GROUNDTRUTH_URLS.values())
         )
     content = load_plain_pickle(path)  # a published file: plain data only, no code runs
+
+    def wrong(problem: str) -> DataFileError:
+        return DataFileError(path, problem, FIX_DATA_FILE)
+
     if not isinstance(content, dict) or not {"imlist", "qimlist", "gnd"} <= set(content):
-        found = sorted(content) if isinstance(content, dict) else type(content).__name__
-        raise ValueError(f"{path}: expected a dict with imlist, qimlist and gnd, found {found}")
-    imlist, qimlist, gnd = list(content["imlist"]), list(content["qimlist"]), list(content["gnd"])
+        found = sorted(map(str, content)) if isinstance(content, dict) else type(content).__name__
+        raise wrong(f"expected a dict with imlist, qimlist and gnd, found {found}")
+    lists = {key: content[key] for key in ("imlist", "qimlist", "gnd")}
+    if not all(isinstance(value, (list, tuple)) for value in lists.values()):
+        raise wrong(f"imlist, qimlist and gnd must be lists, found {[type(v).__name__ for v in lists.values()]}")
+    imlist, qimlist, gnd = (list(value) for value in lists.values())
+    if not all(isinstance(name, str) for name in [*imlist, *qimlist]):
+        raise wrong("imlist and qimlist must hold image names (strings)")
     if len(gnd) != len(qimlist):
-        raise ValueError(f"{path}: {len(gnd)} gnd entries for {len(qimlist)} queries")
+        raise wrong(f"{len(gnd)} gnd entries for {len(qimlist)} queries")
     for q, entry in enumerate(gnd):
-        missing = {"easy", "hard", "junk"} - set(entry)
-        if missing:
-            raise ValueError(f"{path}: gnd entry {q} ({qimlist[q]}) lacks {sorted(missing)}")
+        if not isinstance(entry, dict) or {"easy", "hard", "junk"} - set(entry):
+            found = sorted(map(str, entry)) if isinstance(entry, dict) else type(entry).__name__
+            raise wrong(f"gnd entry {q} ({qimlist[q]}) must be a dict with easy, hard and junk, found {found}")
         for key in ("easy", "hard", "junk"):
-            values = np.asarray(entry[key], dtype=np.int64).ravel()
+            values = _indices(entry[key])
+            if values is None:
+                raise wrong(f"gnd entry {q} ({qimlist[q]}) has {key} that are not integer indices")
             if values.size and (values.min() < 0 or values.max() >= len(imlist)):
-                raise ValueError(f"{path}: gnd entry {q} ({qimlist[q]}) has {key} indices outside 0..{len(imlist) - 1}")
+                raise wrong(f"gnd entry {q} ({qimlist[q]}) has {key} indices outside 0..{len(imlist) - 1}")
+            entry[key] = values
     return RevisitedGroundTruth(imlist, qimlist, gnd)
+
+
+def _indices(value: object) -> np.ndarray | None:
+    """``value`` (a list or array of integers) as ``int64 [n]``; ``None`` when it is not that."""
+    try:
+        array = np.asarray(value) if isinstance(value, (list, tuple, np.ndarray)) else None
+    except (ValueError, OverflowError):  # ragged or out of range
+        return None
+    if array is None or array.dtype == object or (array.size and array.dtype.kind not in "iu"):
+        return None
+    if array.size and array.dtype.kind == "u" and array.max() > np.iinfo(np.int64).max:
+        return None
+    return array.astype(np.int64).ravel()
 
 
 def revisited_scores(

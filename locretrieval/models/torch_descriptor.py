@@ -12,7 +12,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from locretrieval.cache import config_key
+from locretrieval.cache import config_key, safe_name
 from locretrieval.config import validated
 from locretrieval.device import resolve_device
 from locretrieval.models.base import GlobalDescriptor
@@ -99,7 +99,7 @@ class TorchGlobalDescriptor(GlobalDescriptor):
         out = None
         if self.settings.memmap_dir is not None:
             key = config_key(self.identity(), images.fingerprint(include_poses=False))
-            path = Path(self.settings.memmap_dir) / f"{self.name}-{key}.npy"
+            path = Path(self.settings.memmap_dir) / f"{safe_name(self.name)}-{key}.npy"
             path.parent.mkdir(parents=True, exist_ok=True)
             out = np.lib.format.open_memmap(
                 path, mode="w+", dtype=np.float32, shape=(len(images), self.network.output_dim)

@@ -15,11 +15,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from omegaconf import OmegaConf
 
 from locretrieval.cache import atomic_path, tree_signature
+from locretrieval.errors import FIX_DATA_FILE, DataFileError
+from locretrieval.restricted_pickle import TORCH_NUMPY_GLOBALS, plain_data
 
 #: Environment variable naming the folder of the weight-hash cache (default ~/.cache/locretrieval).
 HASH_CACHE_ENV = "LOCRETRIEVAL_HASH_CACHE"
@@ -122,36 +123,31 @@ def content_sha256(path: str | os.PathLike) -> str:
     return digest.hexdigest()
 
 
-#: numpy objects pickled inside the authors' checkpoints (old and numpy-2 module paths).
-_NUMPY_GLOBALS = [
-    (np._core.multiarray._reconstruct, "numpy.core.multiarray._reconstruct"),
-    (np._core.multiarray._reconstruct, "numpy._core.multiarray._reconstruct"),
-    (np._core.multiarray.scalar, "numpy.core.multiarray.scalar"),
-    (np._core.multiarray.scalar, "numpy._core.multiarray.scalar"),
-    np.ndarray,
-    np.dtype,
-    *(getattr(np.dtypes, name) for name in dir(np.dtypes) if name.endswith("DType")),
-]
-
-
 def load_torch_file(path: str | os.PathLike, allowed: Iterable[Any] = ()) -> Any:
     """``torch.load`` with the restricted (``weights_only``) unpickler.
 
-    Only tensors, containers, numpy arrays and the ``allowed`` globals (objects or
-    ``(object, "module.Name")`` pairs, see ``torch.serialization.safe_globals``) are rebuilt;
-    anything else is refused with an error naming the file.
-    """
+    Only tensors, containers, numeric numpy arrays and scalars (rebuilt by the checked stand-ins of
+    `locretrieval.restricted_pickle`, never by numpy's own functions) and the ``allowed`` globals
+    (objects or ``(object, "module.Name")`` pairs, see ``torch.serialization.safe_globals``) are
+    rebuilt; the loaded state is then walked (`plain_data`: the attributes of ``allowed`` classes
+    too) and any array that is not numeric refused. Errors are `DataFileError`s naming the file."""
+    allowed = list(allowed)
+    holders = [entry[0] if isinstance(entry, tuple) else entry for entry in allowed]
     try:
-        with torch.serialization.safe_globals([*_NUMPY_GLOBALS, *allowed]):
-            return torch.load(path, map_location="cpu", weights_only=True)
+        with torch.serialization.safe_globals([*TORCH_NUMPY_GLOBALS, *allowed]):
+            content = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise
     except pickle.UnpicklingError as error:
         parts = [part.strip() for part in str(error).split("\n\n") if part.strip()]
         reason = " ".join(parts[1:-1]) or str(error)  # torch's explanation between its boilerplate
-        if "global" in reason.lower() or "can only build" in reason.lower():
-            raise ValueError(f"{path}: refused to unpickle an object this loader does not allow: {reason}") from error
-        raise ValueError(f"{path}: not a readable PyTorch file ({reason})") from error
-    except RuntimeError as error:
-        raise ValueError(f"{path}: not a readable PyTorch file: {error}") from error
+        if any(word in reason.lower() for word in ("global", "can only build", "refused")):
+            raise DataFileError(path, f"refused to unpickle an object this loader does not allow: {reason}") from None
+        raise DataFileError(path, f"not a readable PyTorch file ({reason})", FIX_DATA_FILE) from None
+    except Exception as error:  # any failure of a crafted or damaged file (a refused numpy state included)
+        reason = f"{type(error).__name__}: {error}"
+        raise DataFileError(path, f"not a readable PyTorch file ({reason})", FIX_DATA_FILE) from None
+    return plain_data(content, path, strict=False, holders=[h for h in holders if isinstance(h, type)])
 
 
 def save_checkpoint(

@@ -15,6 +15,7 @@ from locretrieval.metrics.retrieval import METRICS
 from locretrieval.report import markdown, plots, scene_view
 from locretrieval.report.gallery import GallerySettings, gallery_section
 from locretrieval.report.html import write_html
+from locretrieval.report.markdown import md_code, md_text
 from locretrieval.report.painters import Painters
 from locretrieval.report.published import published_section
 from locretrieval.report.tables import RunTables, load_runs
@@ -74,7 +75,7 @@ def build_report(
         getattr(correlations, name).to_csv(output_dir / file, index=False)
     groundtruth = choose_groundtruth(tables.retrieval, primary_groundtruth)
     datasets = sorted(set(tables.results["dataset"]) | set(tables.retrieval["dataset"]))
-    writer = markdown.ReportWriter(output_dir, f"locretrieval report: {', '.join(datasets) or 'no results'}")
+    writer = markdown.ReportWriter(output_dir, f"locretrieval report: {md_text(', '.join(datasets) or 'no results')}")
     colors = plots.ranking_colors(pd.concat([tables.results["ranking"], tables.retrieval["ranking"]]))
     overview(writer, tables, groundtruth)
     writer.text(*filter(None, [scene_view.link(tables.run_dirs, output_dir)]))
@@ -136,16 +137,17 @@ def overview(writer: markdown.ReportWriter, tables: RunTables, groundtruth: str 
     paradigms = results.groupby("paradigm")["k"].unique()
     writer.bullets(
         {
-            "runs": ", ".join(f"`{run}`" for run in tables.run_dirs),
-            "rankings": ", ".join(f"{r.ranking} ({r.ranking_kind})" for r in rankings.itertuples()) or "none",
-            "paradigms": ", ".join(f"{p} (k={sorted(int(k) for k in ks)})" for p, ks in paradigms.items()) or "none",
-            "subsets": ", ".join(sorted(set(results["subset"]) | set(tables.retrieval["subset"]))) or "none",
-            "ground truth of the correlation analysis": groundtruth or "none",
+            "runs": ", ".join(md_code(run) for run in tables.run_dirs),
+            "rankings": ", ".join(md_text(f"{r.ranking} ({r.ranking_kind})") for r in rankings.itertuples()) or "none",
+            "paradigms": ", ".join(f"{md_text(p)} (k={sorted(int(k) for k in ks)})" for p, ks in paradigms.items())
+            or "none",
+            "subsets": md_text(", ".join(sorted(set(results["subset"]) | set(tables.retrieval["subset"])))) or "none",
+            "ground truth of the correlation analysis": md_text(groundtruth or "none"),
         }
     )
     for run, summary in tables.summaries.items():
-        writer.heading(f"Run `{run}`", 3)
-        writer.bullets(summary)
+        writer.heading(f"Run {md_code(run)}", 3)
+        writer.bullets({md_text(key): md_text(value) for key, value in summary.items()})
 
 
 def groundtruth_section(writer: markdown.ReportWriter, tables: RunTables) -> None:
@@ -166,7 +168,7 @@ def localization_section(writer: markdown.ReportWriter, tables: RunTables, paint
     best = markdown.best_localization(results)
     writer.table(best, "localization_best_over_k", "Best % of queries localized over k (all queries).", ".1f")
     for (dataset, paradigm, method), _ in results.groupby(["dataset", "paradigm", "method"], sort=True):
-        writer.heading(f"{dataset}: {paradigm}, {method}", 3)
+        writer.heading(md_text(f"{dataset}: {paradigm}, {method}"), 3)
         rows = results[(results["dataset"] == dataset) & (results["paradigm"] == paradigm)]  # a job per figure
         writer.figures(painters.draw(plots.plot_localization_vs_k, rows, painters.figures, colors, methods=[method]))
         pivot = markdown.pivot_localization(results[results["dataset"] == dataset], paradigm, method)
@@ -205,7 +207,9 @@ def correlation_section(
 ) -> None:
     if groundtruth is None or correlations.pearson.empty:
         return
-    writer.heading(f"Correlation between retrieval and localization (paper Sec. 3.7), relevance: {groundtruth}")
+    writer.heading(
+        f"Correlation between retrieval and localization (paper Sec. 3.7), relevance: {md_text(groundtruth)}"
+    )
     writer.text(
         "Pearson: per descriptor, over k, between the retrieval metric and % localized (Tables 3 and 6). "
         "Spearman: per k, over the descriptors (Tables 4 and 5). Violins: per query, over k, between the "
@@ -235,7 +239,7 @@ def correlation_section(
             [markdown.undefined_summary(frame).assign(analysis=name) for name, frame in analyses.items()]
         )
         if len(undefined):
-            table = undefined[["analysis", "undefined_reason", "count"]].to_markdown(index=False)
+            table = markdown.markdown_table(undefined[["analysis", "undefined_reason", "count"]], index=False)
             writer.text("Undefined coefficients:", table)
 
 
@@ -287,4 +291,6 @@ def failure_section(writer: markdown.ReportWriter, tables: RunTables) -> None:
     writer.table(medians, "median_errors", caption, ".2f")
     writer.heading("Failures")
     failures = markdown.failure_summary(tables.query_errors)
-    writer.text(failures.to_markdown(index=False) if len(failures) else "Every query received an estimate.")
+    writer.text(
+        markdown.markdown_table(failures, index=False) if len(failures) else "Every query received an estimate."
+    )

@@ -10,7 +10,8 @@ Beside its tables, a run folder holds what galleries need (`write_gallery_inputs
 ``evaluate.py``): ``images.csv`` (columns ``set`` = database | query, ``index``, ``name``,
 ``path``: every image file, absolute) and ``relevance/<ground truth>.npz`` (each ground truth's
 boolean ``[Q, N]`` relevance as the retrieval metrics count it: CSR arrays ``indptr``,
-``indices``, ``shape``); the rankings are ``rankings/<name>.npz`` (``indices [Q, K]``, ``kind``).
+``indices``, ``shape``); the rankings are ``rankings/<name>.npz`` (``indices [Q, K]``, ``kind``,
+``name``). File names are the names' `safe_name`.
 
 Queries shown (``report.gallery``): with ``queries: selected``, per descriptor ranking, its
 ``worst`` queries and ``random`` others drawn with ``seed``; with ``queries: all``, every query,
@@ -37,11 +38,11 @@ from omegaconf import OmegaConf
 from PIL import Image
 from scipy import sparse
 
-from locretrieval.cache import atomic_path, config_key, file_signature, load_arrays, save_arrays
+from locretrieval.cache import atomic_path, config_key, file_signature, load_arrays, safe_name, save_arrays
 from locretrieval.config import require, validated
+from locretrieval.errors import DELETE_CACHE_FILE, DataFileError
 from locretrieval.metrics.correlation import capped_pose_error
-from locretrieval.report.markdown import ReportWriter
-from locretrieval.report.plots import safe_name
+from locretrieval.report.markdown import ReportWriter, md_code, md_text
 from locretrieval.report.tables import TABLES, read_table
 from locretrieval.retrieval import EMPTY, relevant_hits
 from locretrieval.scene import Scene
@@ -50,6 +51,8 @@ from locretrieval.scene.images import read_image
 log = logging.getLogger(__name__)
 
 IMAGES_FILE = "images.csv"
+#: What to do about a damaged file of a run folder.
+RERUN = "the run folder is damaged: run evaluate.py again"
 RELEVANCE_FOLDER = "relevance"
 RANKINGS_FOLDER = "rankings"
 #: The report's gallery images, below its folder (replaced at every report).
@@ -106,7 +109,10 @@ class Thumbnails:
             return read_image(path, max_side=self.size)
         file = self.cache_dir / f"{config_key(path, file_signature(path), self.size)}.npy"
         if file.is_file():
-            return np.load(file, allow_pickle=False)
+            try:
+                return np.load(file, allow_pickle=False)
+            except (OSError, EOFError, ValueError) as error:
+                raise DataFileError(file, f"not a readable thumbnail ({error})", DELETE_CACHE_FILE) from None
         thumbnail = read_image(path, max_side=self.size)
         with atomic_path(file) as temporary:
             np.save(temporary, thumbnail)
@@ -185,12 +191,17 @@ def write_gallery_inputs(scene: Scene, relevance: Mapping[str, sparse.csr_matrix
     for name, matrix in relevance.items():
         matrix = sparse.csr_matrix(matrix, dtype=bool)
         arrays = {"indptr": matrix.indptr, "indices": matrix.indices, "shape": np.asarray(matrix.shape)}
-        save_arrays(output_dir / RELEVANCE_FOLDER / f"{name}.npz", arrays)
+        save_arrays(relevance_file(output_dir, name), arrays)
+
+
+def relevance_file(run: Path, groundtruth: str) -> Path:
+    """Where a run keeps the relevance of ``groundtruth`` (its `safe_name`)."""
+    return run / RELEVANCE_FOLDER / f"{safe_name(groundtruth)}.npz"
 
 
 def load_relevance(path: Path) -> sparse.csr_matrix:
     """A relevance matrix written by `write_gallery_inputs`."""
-    arrays = load_arrays(path)
+    arrays = load_arrays(path, RERUN)
     data = np.ones(len(arrays["indices"]), dtype=bool)
     return sparse.csr_matrix((data, arrays["indices"], arrays["indptr"]), shape=tuple(arrays["shape"]))
 
@@ -216,13 +227,13 @@ class GalleryInputs:
         if missing:
             raise ValueError(f"{run / IMAGES_FILE}: missing columns {missing} (found {list(images.columns)})")
         queries, database = (images[images["set"] == s].sort_values("index") for s in ("query", "database"))
-        relevance_file = run / RELEVANCE_FOLDER / f"{groundtruth}.npz"
-        relevance = load_relevance(relevance_file) if groundtruth is not None and relevance_file.is_file() else None
+        relevance_path = relevance_file(run, groundtruth) if groundtruth is not None else None
+        relevance = load_relevance(relevance_path) if relevance_path is not None and relevance_path.is_file() else None
         rankings = {}
         for path in sorted((run / RANKINGS_FOLDER).glob("*.npz")):
-            arrays = load_arrays(path)
+            arrays = load_arrays(path, RERUN)
             if str(arrays.get("kind", "")) == "descriptor":
-                rankings[path.stem] = arrays["indices"]
+                rankings[str(arrays.get("name", path.stem))] = arrays["indices"]  # the file name is its safe_name
         return cls(list(queries["name"]), list(queries["path"]), list(database["path"]), relevance, rankings)
 
 
@@ -284,7 +295,7 @@ def select_queries(names: Sequence[str], scores: pd.Series, settings: GallerySet
 
 
 def outcome_texts(errors: pd.DataFrame) -> pd.Series:
-    """Per query (the index), each paradigm and method's outcome, ``<br>``-separated:
+    """Per query (the index), each paradigm and method's outcome as Markdown (`md_text`), ``<br>``-separated:
     ``approximation ewb k=5: 0.42 m, 1.3°``, ``...: failed (reason)`` or ``...: no reference pose``."""
     if errors.empty:
         return pd.Series(dtype=str)
@@ -295,10 +306,10 @@ def outcome_texts(errors: pd.DataFrame) -> pd.Series:
     )
     outcome = np.where(
         failure != "",
-        "failed (" + failure.str.replace("|", "/") + ")",
+        "failed (" + failure + ")",
         np.where(errors["position_error_m"].isna(), "no reference pose", errors_text),
     )
-    text = label + outcome
+    text = (label + outcome).map(md_text)
     return text.groupby(errors["query"]).agg("<br>".join)
 
 
@@ -318,7 +329,7 @@ def gallery_section(
     ``thumbnail_cache``: see `Thumbnails`."""
     started = time.perf_counter()
     writer.heading("Galleries")
-    relevance = f"relevant under {groundtruth}" if groundtruth else "no ground truth: relevance unknown (grey)"
+    relevance = f"relevant under {md_text(groundtruth)}" if groundtruth else "no ground truth: relevance unknown (grey)"
     writer.text(
         f"Per query: the query (blue frame), then its top {settings.k} database images, rank 1 first, framed green "
         f"when relevant and red when not ({relevance}); the outcome is each paradigm's at the largest k <= "
@@ -355,14 +366,15 @@ def run_galleries(
     inputs = GalleryInputs.read(run, groundtruth)
     if inputs is None or not inputs.rankings:
         reason = f"no {IMAGES_FILE}, written by evaluate.py since 0.6" if inputs is None else "no descriptor ranking"
-        writer.text(f"No galleries for `{run}` ({reason}).")
+        writer.text(f"No galleries for {md_code(run)} ({reason}).")
         return 0
     if groundtruth is not None and inputs.relevance is None:
-        writer.text(f"`{run}` has no {RELEVANCE_FOLDER}/{groundtruth}.npz: frames are grey (relevance unknown).")
+        missing = relevance_file(run, groundtruth).relative_to(run)
+        writer.text(f"{md_code(run)} has no {md_code(missing)}: frames are grey (relevance unknown).")
     errors = read_table(run / TABLES["query_errors"].file, TABLES["query_errors"])
     rows = 0
     for name, indices in inputs.rankings.items():
-        title = f"{name}" + (f" (`{run}`)" if prefix else "")
+        title = md_text(name) + (f" ({md_code(run)})" if prefix else "")
         try:
             rows += ranking_gallery(
                 writer,
@@ -377,7 +389,9 @@ def run_galleries(
             )
         except FileNotFoundError as error:  # the dataset moved since the run: the report is still written
             log.warning("gallery of %s in %s not drawn: %s", name, run, error)
-            writer.text(f"Gallery of {name} not drawn: {error} (listed in `{run / IMAGES_FILE}`).")
+            writer.text(
+                f"Gallery of {md_text(name)} not drawn: {md_text(error)} (listed in {md_code(run / IMAGES_FILE)})."
+            )
     return rows
 
 
@@ -409,14 +423,8 @@ def ranking_gallery(
         name = inputs.query_names[q]
         hits = f"{int(marks.sum())}/{int((top[row] != EMPTY).sum())}" if marks is not None else "–"
         lines.append(
-            f"| `{_cell(name)}` | {why} | ![{_cell(name)}]({file.as_posix()}) "
-            f"| {hits} | {_cell(outcomes.get(name, '–'))} |"
+            f"| {md_text(name)} | {why} | ![{md_text(name)}]({file.as_posix()}) | {hits} | {outcomes.get(name, '–')} |"
         )
     writer.heading(f"Gallery: {title}", 3)
     writer.text("\n".join(lines) if chosen else "No query to show.")
     return len(chosen)
-
-
-def _cell(text: str) -> str:
-    """``text`` safe inside a Markdown table cell."""
-    return str(text).replace("|", "\\|")

@@ -1,7 +1,15 @@
-"""Markdown and LaTeX tables of the report, and the ``report.md`` writer."""
+"""Markdown and LaTeX tables of the report, and the ``report.md`` writer.
+
+Every string that comes from data or a configuration (names of images, folders, tags, models,
+rankings, ground truths, runs; error texts) is escaped where it is written: `md_text` (literal
+Markdown text, table cells included), `md_code` (a code span), `md_link` (a relative link),
+`latex_text` (LaTeX); tables escape their cells and labels (`write_table`, `markdown_table`).
+"""
 
 from __future__ import annotations
 
+import re
+import urllib.parse
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from functools import partial
@@ -9,8 +17,50 @@ from pathlib import Path
 
 import pandas as pd
 
+from locretrieval.cache import safe_name
 from locretrieval.metrics.localization import best_over_k
-from locretrieval.report.plots import safe_name, threshold_label
+from locretrieval.report.plots import threshold_label
+
+#: Characters Markdown (GitHub's and Python-Markdown's, tables included) or HTML could read as
+#: markup: written as numeric character references, which both show as the character.
+_MARKUP = re.compile(r"[\\`*\[\]<>&|$~]|(?<![A-Za-z0-9])_|_(?![A-Za-z0-9])")
+_LINE_BREAK = re.compile(r"[\r\n\t\v\f\u2028\u2029]+")
+#: LaTeX's special characters and what writes them literally.
+_LATEX = {
+    "\\": r"\textbackslash{}", "{": r"\{", "}": r"\}", "$": r"\$", "&": r"\&", "#": r"\#", "%": r"\%",
+    "_": r"\_", "^": r"\textasciicircum{}", "~": r"\textasciitilde{}",
+}  # fmt: skip
+
+
+def md_text(value: object) -> str:
+    """``value`` as literal Markdown text (a table cell too): markup characters become character
+    references, line breaks spaces; names without them (``AP-GeM-LM18``, ``synthetic_mall``) are unchanged."""
+    return _MARKUP.sub(lambda match: f"&#{ord(match.group())};", _LINE_BREAK.sub(" ", str(value)))
+
+
+def md_code(value: object) -> str:
+    """``value`` as a Markdown code span (not in a table: use `md_text`): fenced by one backtick more
+    than the longest run of backticks it holds, so that no backtick in it closes the span."""
+    text = _LINE_BREAK.sub(" ", str(value))
+    fence = "`" * (max((len(run) for run in re.findall("`+", text)), default=0) + 1)
+    padding = " " if text.startswith("`") or text.endswith("`") else ""
+    return f"{fence}{padding}{text}{padding}{fence}"
+
+
+def md_link(label: object, target: str) -> str:
+    """A Markdown link to the relative path ``target`` (percent-encoded) labelled ``label`` (`md_text`)."""
+    return f"[{md_text(label)}]({urllib.parse.quote(target)})"
+
+
+def latex_text(value: object) -> str:
+    """``value`` as literal LaTeX text (captions; `write_table` escapes cells and labels)."""
+    return "".join(_LATEX.get(character, character) for character in _LINE_BREAK.sub(" ", str(value)))
+
+
+def markdown_table(frame: pd.DataFrame, **options) -> str:
+    """``frame`` (index and columns flat) as a Markdown table, its string cells and labels `md_text`."""
+    escaped = frame.rename(columns=md_text).map(lambda value: md_text(value) if isinstance(value, str) else value)
+    return escaped.to_markdown(**options)
 
 
 class ReportWriter:
@@ -21,6 +71,7 @@ class ReportWriter:
         self.lines: list[str | Callable[[], list[str]]] = [f"# {title}", ""]
 
     def heading(self, text: str, level: int = 2) -> None:
+        """A heading; ``text`` is Markdown (data and config strings in it escaped by the caller)."""
         self.lines += [f"{'#' * level} {text}", ""]
 
     def text(self, *paragraphs: str) -> None:
@@ -28,6 +79,7 @@ class ReportWriter:
             self.lines += [paragraph, ""]
 
     def bullets(self, items: dict[str, object]) -> None:
+        """A list of ``**key**: value``; both are Markdown (strings from data escaped by the caller)."""
         self.lines += [f"- **{key}**: {value}" for key, value in items.items()] + [""]
 
     def figures(self, paths: Sequence[Path] | Future) -> None:
@@ -44,7 +96,7 @@ class ReportWriter:
         """Embed ``frame`` and write it as ``tables/<stem>.md`` and ``tables/<stem>.tex``."""
         stem = safe_name(stem)
         markdown = write_table(frame, self.directory / "tables", stem, caption, floatfmt)
-        self.lines += [f"{caption} ([LaTeX](tables/{stem}.tex))", "", markdown, ""]
+        self.lines += [f"{md_text(caption)} ([LaTeX](tables/{stem}.tex))", "", markdown, ""]
 
     def write(self, path: Path) -> Path:
         """Write ``report.md`` once every figure it links is drawn."""
@@ -56,7 +108,8 @@ class ReportWriter:
 def write_table(frame: pd.DataFrame, directory: Path, stem: str, caption: str, floatfmt: str = ".2f") -> str:
     """Write ``frame`` as ``<stem>.md`` and ``<stem>.tex`` (booktabs); returns the markdown.
 
-    Missing values (e.g. undefined correlations) print as ``–`` (``--`` in LaTeX).
+    Missing values (e.g. undefined correlations) print as ``–`` (``--`` in LaTeX). Strings are
+    written literally: `md_text` in Markdown, escaped in LaTeX (``caption`` is plain text).
     """
     directory.mkdir(parents=True, exist_ok=True)
     flat = frame.reset_index()
@@ -64,14 +117,16 @@ def write_table(frame: pd.DataFrame, directory: Path, stem: str, caption: str, f
     flat.columns = [
         " ".join(_label(n, v) for n, v in zip(names, c)) if isinstance(c, tuple) else str(c) for c in flat.columns
     ]
-    markdown = flat.astype(object).where(flat.notna(), None).to_markdown(index=False, floatfmt=floatfmt, missingval="–")
+    markdown = markdown_table(
+        flat.astype(object).where(flat.notna(), None), index=False, floatfmt=floatfmt, missingval="–"
+    )
     (directory / f"{stem}.md").write_text(markdown + "\n")
     latex = frame.to_latex(
         index=True,
         float_format=lambda value: format(value, floatfmt),
         na_rep="--",
-        escape=True,
-        caption=caption,
+        escape=True,  # cells, index and column labels
+        caption=latex_text(caption),
         label=f"tab:{stem}",
     )
     (directory / f"{stem}.tex").write_text(latex)

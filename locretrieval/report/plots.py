@@ -10,7 +10,6 @@ without figures (``report.figure_formats=[]``) does not load it.
 from __future__ import annotations
 
 import functools
-import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +17,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
+
+from locretrieval.cache import safe_name
 
 if TYPE_CHECKING:
     import matplotlib.pyplot as plt
@@ -58,10 +59,12 @@ FIGURE_KEYS = ["dataset", "groundtruth", "retrieval_metric"]
 
 @functools.cache
 def pyplot():
-    """``matplotlib.pyplot`` on the non-interactive Agg backend (chosen once, on first use)."""
+    """``matplotlib.pyplot`` on the non-interactive Agg backend (chosen once, on first use); text is
+    drawn as written (no ``$...$`` math: a ``$`` in a ranking or dataset name is a character)."""
     import matplotlib
 
     matplotlib.use("Agg")
+    matplotlib.rcParams["text.parse_math"] = False
     import matplotlib.pyplot
 
     return matplotlib.pyplot
@@ -70,11 +73,6 @@ def pyplot():
 def ranking_colors(names: Iterable[str]) -> dict[str, str]:
     """A stable colour per ranking name (sorted names over `RANKING_COLORS`)."""
     return {name: RANKING_COLORS[n % len(RANKING_COLORS)] for n, name in enumerate(sorted(set(names)))}
-
-
-def safe_name(text: str) -> str:
-    """``text`` usable as a file name: characters other than letters, digits, ``._-`` become ``_``."""
-    return re.sub(r"[^A-Za-z0-9._-]", "_", text)
 
 
 @dataclass(frozen=True)

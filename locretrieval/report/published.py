@@ -24,7 +24,7 @@ from pathlib import Path
 import pandas as pd
 from omegaconf import OmegaConf
 
-from locretrieval.report.markdown import ReportWriter
+from locretrieval.report.markdown import ReportWriter, md_text
 from locretrieval.report.plots import threshold_label
 from locretrieval.report.tables import TABLES, read_table
 
@@ -277,7 +277,8 @@ def published_section(writer: ReportWriter, run_dirs: Sequence[Path], folder: Pa
     matched = pd.concat(comparisons, ignore_index=True) if comparisons else pd.DataFrame()
     datasets = ", ".join(sorted(set(published["dataset"])))
     if matched.empty:
-        writer.text(f"No published result matches this run: looked for {' | '.join(searched)} (published: {datasets}).")
+        looked = md_text(" | ".join(searched))
+        writer.text(f"No published result matches this run: looked for {looked} (published: {md_text(datasets)}).")
         return
     caption = (
         "% of queries localized by this run and as published by kapture-localization (source and commit: "

@@ -24,6 +24,8 @@ import numpy as np
 import pandas as pd
 
 from locretrieval import geometry
+from locretrieval.report.html import with_script_policy
+from locretrieval.report.markdown import md_link
 from locretrieval.scene import ImageSet, Scene
 
 if TYPE_CHECKING:
@@ -77,11 +79,13 @@ def write_scene_view(
     map_points: np.ndarray | None = None,
     settings: SceneViewSettings | None = None,
 ) -> Path:
-    """Write ``scene_figure`` as a self-contained HTML file (plotly.js embedded); returns its path."""
+    """Write ``scene_figure`` as a self-contained HTML file (plotly.js embedded, a Content-Security-Policy
+    allowing its own scripts only: `with_script_policy`); returns its path."""
     path = Path(path)
     figure = scene_figure(scene, estimated_poses, map_points, settings or SceneViewSettings())
     path.parent.mkdir(parents=True, exist_ok=True)
-    figure.write_html(path, include_plotlyjs=True, full_html=True, config={"displaylogo": False, "responsive": True})
+    page = figure.to_html(include_plotlyjs=True, full_html=True, config={"displaylogo": False, "responsive": True})
+    path.write_text(with_script_policy(page), encoding="utf-8")  # its own scripts only: names are data
     log.info("3D view written to %s (%.1f MB)", path, path.stat().st_size / 2**20)
     return path
 
@@ -336,4 +340,4 @@ def link(run_dirs: Sequence[Path], output_dir: Path) -> str | None:
     if not found:
         return None
     targets = [Path(os.path.relpath(path, output_dir)).as_posix() for path in found]
-    return "3D view: " + ", ".join(f"[{target}]({target})" for target in targets)
+    return "3D view: " + ", ".join(md_link(target, target) for target in targets)

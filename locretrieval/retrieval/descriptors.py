@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
 
@@ -39,9 +40,13 @@ def validate_descriptors(model: GlobalDescriptor, images: ImageSet, descriptors:
     return descriptors
 
 
-def _describe(model: GlobalDescriptor, images: ImageSet) -> np.ndarray | None:
+#: How an image set is described: ``model.describe``, or that work split over processes.
+Describer = Callable[[ImageSet], np.ndarray]
+
+
+def _describe(model: GlobalDescriptor, images: ImageSet, describe: Describer) -> np.ndarray | None:
     """Validated descriptors of ``images``; ``None`` for an empty set (nothing to run)."""
-    return validate_descriptors(model, images, model.describe(images)) if len(images) else None
+    return validate_descriptors(model, images, describe(images)) if len(images) else None
 
 
 class SceneDescriptors(NamedTuple):
@@ -51,7 +56,9 @@ class SceneDescriptors(NamedTuple):
     queries: np.ndarray
 
 
-def describe_scene(model: GlobalDescriptor, scene: Scene, cache_dir: Path | None) -> SceneDescriptors:
+def describe_scene(
+    model: GlobalDescriptor, scene: Scene, cache_dir: Path | None, describe: Describer | None = None
+) -> SceneDescriptors:
     """The descriptors of a scene's database and queries.
 
     The model is bound to the scene (`GlobalDescriptor.bind_scene`) and, when it learns
@@ -60,7 +67,8 @@ def describe_scene(model: GlobalDescriptor, scene: Scene, cache_dir: Path | None
     network, the content of its weights as they are in memory) and both image sets'
     fingerprints; a later call with the same key runs no model at all and leaves the model
     unfitted (only the descriptors are cached, not what `fit` learned). ``cache_dir=None``
-    always describes.
+    always describes. ``describe``: how an image set is described (``model.describe`` by
+    default; training's validation splits it over its processes).
     """
     model.bind_scene(scene)
     key = config_key(
@@ -69,7 +77,7 @@ def describe_scene(model: GlobalDescriptor, scene: Scene, cache_dir: Path | None
         scene.queries.fingerprint(include_poses=False),
     )
     path = None if cache_dir is None else Path(cache_dir) / "descriptors" / f"{key}.npz"
-    arrays, hit = cached_arrays(path, lambda: _describe_scene(model, scene))
+    arrays, hit = cached_arrays(path, lambda: _describe_scene(model, scene, describe or model.describe))
     if hit:
         log.info("descriptor cache hit for %r: %s", model.name, path)
     elif path is not None:
@@ -77,13 +85,13 @@ def describe_scene(model: GlobalDescriptor, scene: Scene, cache_dir: Path | None
     return SceneDescriptors(arrays["database"], arrays["queries"])
 
 
-def _describe_scene(model: GlobalDescriptor, scene: Scene) -> dict[str, np.ndarray]:
+def _describe_scene(model: GlobalDescriptor, scene: Scene, describe: Describer) -> dict[str, np.ndarray]:
     """Database and query descriptors (fitting on the database first)."""
     log.info("describing %s with %r", scene.name, model.name)
     if model.learns_from_database:
         model.fit(scene.database)
-    database = _describe(model, scene.database)
-    queries = _describe(model, scene.queries)
+    database = _describe(model, scene.database, describe)
+    queries = _describe(model, scene.queries, describe)
     if queries is None:
         queries = np.zeros((0, database.shape[1]), dtype=np.float32)
     elif queries.shape[1] != database.shape[1]:

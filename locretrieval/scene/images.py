@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from locretrieval.errors import FIX_DATA_FILE, DataFileError
+
 
 def read_image(path: str | Path, grayscale: bool = False, max_side: int | None = None) -> np.ndarray:
     """``uint8`` array ``[H, W, 3]`` (RGB) or ``[H, W]`` (grayscale) of an image file; with
@@ -24,5 +26,5 @@ def read_image(path: str | Path, grayscale: bool = False, max_side: int | None =
             image = image.convert(mode)
             image.thumbnail((max_side, max_side), Image.Resampling.LANCZOS)
             return np.asarray(image)
-    except (UnidentifiedImageError, OSError) as error:
-        raise ValueError(f"cannot decode image file {path}: {error}") from error
+    except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as error:
+        raise DataFileError(path, f"cannot decode this image file ({error})", FIX_DATA_FILE) from None

@@ -17,7 +17,7 @@ import logging
 import os
 import re
 from collections import Counter
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,6 +28,7 @@ import quaternion
 from PIL import Image, UnidentifiedImageError
 
 from locretrieval import geometry
+from locretrieval.errors import FIX_DATA_FILE, DataFileError
 from locretrieval.scene.types import CAMERA_MODELS, Camera, ImageSet, Scene
 
 log = logging.getLogger(__name__)
@@ -50,11 +51,27 @@ MASKS_DIR = Path("masks")
 DEPTH_SENSOR_SUFFIX = "_depth"
 
 
-class KaptureFormatError(ValueError):
+class KaptureFormatError(DataFileError):
     """A line of a kapture text file that cannot be used."""
 
     def __init__(self, path: Path, line: int, text: str, problem: str) -> None:
-        super().__init__(f"{path}:{line}: {problem} (line: {text.strip()!r})")
+        super().__init__(f"{path}:{line}", f"{problem} (line: {text.strip()[:200]!r})")
+
+
+def _text_lines(path: Path) -> Iterator[tuple[int, str]]:
+    """``(number, text)`` of each line of a kapture text file (UTF-8, as kapture writes it); a byte
+    sequence that is not UTF-8 is a `KaptureFormatError` naming its line."""
+    with path.open("rb") as stream:
+        for number, raw in enumerate(stream, start=1):
+            try:
+                yield number, raw.decode("utf-8")
+            except UnicodeDecodeError as error:
+                raise KaptureFormatError(
+                    path,
+                    number,
+                    raw.decode("utf-8", "replace"),
+                    f"not UTF-8 text ({error.reason} at byte {error.start})",
+                ) from None
 
 
 @dataclass(frozen=True)
@@ -83,17 +100,16 @@ class CsvRow:
 def read_csv_rows(path: Path, min_fields: int, max_fields: int | None) -> list[CsvRow]:
     """Non-comment lines of a kapture CSV file, split like kapture does, field counts checked."""
     rows = []
-    with path.open() as stream:
-        for number, text in enumerate(stream, start=1):
-            if not text.strip() or text.lstrip().startswith("#"):
-                continue
-            fields = [value.strip() for value in text.split(",")]
-            if len(fields) < min_fields or (max_fields is not None and len(fields) > max_fields):
-                expected = str(min_fields) if min_fields == max_fields else f"at least {min_fields}"
-                raise KaptureFormatError(
-                    path, number, text, f"expected {expected} comma-separated fields, got {len(fields)}"
-                )
-            rows.append(CsvRow(path, number, text, fields))
+    for number, text in _text_lines(path):
+        if not text.strip() or text.lstrip().startswith("#"):
+            continue
+        fields = [value.strip() for value in text.split(",")]
+        if len(fields) < min_fields or (max_fields is not None and len(fields) > max_fields):
+            expected = str(min_fields) if min_fields == max_fields else f"at least {min_fields}"
+            raise KaptureFormatError(
+                path, number, text, f"expected {expected} comma-separated fields, got {len(fields)}"
+            )
+        rows.append(CsvRow(path, number, text, fields))
     return rows
 
 
@@ -224,9 +240,24 @@ def _check_records(path: Path, sensors: dict[str, CsvRow], sensor_types: tuple[s
             raise row.error(
                 f"sensor {row.fields[1]!r} is of type {sensor.fields[2]!r}, expected {' or '.join(sensor_types)}"
             )
-        if not row.fields[2]:
-            raise row.error("empty file name")
+        problem = _name_problem(row.fields[2])
+        if problem:
+            raise row.error(f"file name {row.fields[2][:200]!r} {problem}")
     return rows
+
+
+def _name_problem(name: str) -> str | None:
+    """Why ``name`` cannot be a file below its kapture folder's ``records_data`` (``None``: it can):
+    empty, absolute, with a ``..`` component, a backslash or a control character."""
+    if not name:
+        return "is empty"
+    if name.startswith("/") or re.match(r"[A-Za-z]:", name):
+        return "is absolute; names are relative to sensors/records_data"
+    if ".." in name.split("/"):
+        return "has a '..' component; names must stay inside sensors/records_data"
+    if "\\" in name or any(ord(character) < 32 or ord(character) == 127 for character in name):
+        return "has a backslash or a control character"
+    return None
 
 
 def _check_camera_supported(sensor: CsvRow) -> None:
@@ -240,9 +271,17 @@ def _check_camera_supported(sensor: CsvRow) -> None:
     if not (width.is_integer() and height.is_integer() and width > 0 and height > 0):
         raise sensor.error(f"camera {sensor.fields[0]!r}: image size {width} x {height} is not a positive integer size")
     params = sensor.floats(6, len(sensor.fields), "camera parameters")
+    if not all(np.isfinite(params)):
+        raise sensor.error(f"camera {sensor.fields[0]!r}: parameters {params} must all be finite")
     focal = [params[i] for i in CAMERA_MODELS[model][:2]]
-    if not all(np.isfinite(f) and f > 0 for f in focal):
+    if not all(f > 0 for f in focal):
         raise sensor.error(f"camera {sensor.fields[0]!r}: focal length(s) {focal} must be positive pixels")
+    cx, cy = (params[i] for i in CAMERA_MODELS[model][2:])
+    if not (0 <= cx <= width and 0 <= cy <= height):
+        raise sensor.error(
+            f"camera {sensor.fields[0]!r}: principal point ({cx}, {cy}) lies outside the {width:g} x {height:g} "
+            "image (pixels, COLMAP's convention)"
+        )
 
 
 def _camera(sensor: CsvRow) -> Camera:
@@ -338,16 +377,15 @@ def _read_tags_file(path: Path, names: list[str]) -> list[set[str]]:
     """Per-image tags from ``tags.txt`` (``# image_name, tags`` then ``name, tag1 tag2 ...``)."""
     index = {name: i for i, name in enumerate(names)}
     tags: list[set[str]] = [set() for _ in names]
-    with path.open() as stream:
-        for number, text in enumerate(stream, start=1):
-            if not text.strip() or text.lstrip().startswith("#"):
-                continue
-            name, separator, values = text.partition(",")
-            if not separator:
-                raise KaptureFormatError(path, number, text, "expected 'image_name, tag1 tag2 ...'")
-            if name.strip() not in index:
-                raise KaptureFormatError(path, number, text, f"image {name.strip()!r} is not in {RECORDS_CAMERA_FILE}")
-            tags[index[name.strip()]].update(values.split())
+    for number, text in _text_lines(path):
+        if not text.strip() or text.lstrip().startswith("#"):
+            continue
+        name, separator, values = text.partition(",")
+        if not separator:
+            raise KaptureFormatError(path, number, text, "expected 'image_name, tag1 tag2 ...'")
+        if name.strip() not in index:
+            raise KaptureFormatError(path, number, text, f"image {name.strip()!r} is not in {RECORDS_CAMERA_FILE}")
+        tags[index[name.strip()]].update(values.split())
     return tags
 
 
@@ -369,12 +407,13 @@ def _check_image_sizes(
         try:
             with Image.open(path) as image:
                 size = image.size
-        except (UnidentifiedImageError, OSError) as error:
-            raise ValueError(f"{path}: not a readable image ({error})") from None
+        except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as error:
+            raise DataFileError(path, f"not a readable image ({error})", FIX_DATA_FILE) from None
         if size != (camera.width, camera.height):
-            raise ValueError(
-                f"{path}: image is {size[0]}x{size[1]} pixels but its camera {camera_id!r} in {SENSORS_FILE} is "
-                f"{camera.width}x{camera.height}; resize the image or scale that camera's intrinsics to the image"
+            raise DataFileError(
+                path,
+                f"image is {size[0]}x{size[1]} pixels but its camera {camera_id!r} in {SENSORS_FILE} is "
+                f"{camera.width}x{camera.height}; resize the image or scale that camera's intrinsics to the image",
             )
 
 
@@ -382,7 +421,7 @@ def _check_names(path: Path, names: Sequence[str]) -> None:
     """Image names are written space-separated in LTVL submissions: refuse whitespace at load time."""
     spaced = [name for name in names if any(character.isspace() for character in name)]
     if spaced:
-        raise ValueError(f"{path}: image names with whitespace cannot be exported for LTVL: {spaced[:3]}")
+        raise DataFileError(path, f"image names with whitespace cannot be exported for LTVL: {spaced[:3]}")
 
 
 def _depth_paths(root: Path, keys: Sequence[tuple[int, str]], sensors: dict[str, CsvRow]) -> list[Path | None] | None:
@@ -434,7 +473,7 @@ def load_image_set(kapture_root: str | Path, tag: str | None = None) -> ImageSet
     rigs = _rigs(_check_rigs(root / RIGS_FILE, sensors)) if (root / RIGS_FILE).is_file() else kapture.Rigs()
     records = _check_records(root / RECORDS_CAMERA_FILE, sensors, ("camera",))
     if not records:
-        raise ValueError(f"{root / RECORDS_CAMERA_FILE} lists no image")
+        raise DataFileError(root / RECORDS_CAMERA_FILE, "lists no image")
     for camera_id in {row.fields[1] for row in records}:
         _check_camera_supported(sensors[camera_id])
     trajectories = kapture.Trajectories()
@@ -449,7 +488,7 @@ def load_image_set(kapture_root: str | Path, tag: str | None = None) -> ImageSet
     names = [name for _, _, name in entries]
     duplicates = sorted(name for name, count in Counter(names).items() if count > 1)
     if duplicates:
-        raise ValueError(f"{root / RECORDS_CAMERA_FILE}: image file(s) listed more than once: {duplicates[:3]}")
+        raise DataFileError(root / RECORDS_CAMERA_FILE, f"image file(s) listed more than once: {duplicates[:3]}")
     _check_names(root / RECORDS_CAMERA_FILE, names)
     image_root = root / RECORDS_DATA_DIR
     _check_files_exist(image_root, names, "image")
@@ -550,6 +589,23 @@ def _posed_database(image_set: ImageSet, folders: Sequence[Path]) -> ImageSet:
     return image_set.subset(posed)
 
 
+def _check_disjoint(database: ImageSet, queries: ImageSet) -> None:
+    """Raise when a query image is a database image (the same file, through any path or link): a
+    query folder that is (or shares images with) the mapping folder would be found by every ranking."""
+    files = {}
+    for path in database.paths:
+        status = os.stat(path)
+        files[(status.st_dev, status.st_ino)] = path
+    for path in queries.paths:
+        status = os.stat(path)
+        same = files.get((status.st_dev, status.st_ino))
+        if same is not None:
+            raise ValueError(
+                f"query image {path} is the database image {same}: the query folders must hold other images than "
+                "the mapping folders (data.queries and data.mapping)"
+            )
+
+
 def load_kapture_scene(
     name: str,
     mapping: str | Path | Sequence[str | Path],
@@ -582,6 +638,7 @@ def load_kapture_scene(
         concatenate_image_sets([load_image_set(folder) for folder in mapping_folders]), mapping_folders
     )
     query_set = concatenate_image_sets([load_image_set(folder, tag) for folder, tag in zip(query_folders, tags)])
+    _check_disjoint(database, query_set)
     if name_tags:
         database, query_set = add_name_tags(database, name_tags), add_name_tags(query_set, name_tags)
     return Scene(name, database, query_set, mapping_folders + query_folders, ltvl_name_style, frustum_far)

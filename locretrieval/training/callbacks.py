@@ -4,16 +4,24 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from pathlib import Path
+from typing import TypeVar
 
 import lightning as L
 import numpy as np
 import pandas as pd
 import torch
-from lightning.pytorch.utilities import rank_zero_only
 
-from locretrieval.benchmark import BenchmarkResult, BenchmarkSettings, benchmark, build_rankings, relevances
+from locretrieval.benchmark import (
+    BenchmarkResult,
+    BenchmarkSettings,
+    benchmark,
+    build_rankings,
+    relevances,
+    run_sfm_shard,
+    sfm_paradigms,
+)
 from locretrieval.config import require
 from locretrieval.groundtruth import GroundTruth
 from locretrieval.metrics.retrieval import METRICS
@@ -24,9 +32,12 @@ from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.retrieval.index import search
 from locretrieval.scene import ImageSet, Scene
 from locretrieval.training.data import RelevanceBatchSampler
+from locretrieval.training.distributed import Ranks, describe_across_ranks
 from locretrieval.training.relevance import TrainingPairs
 
 log = logging.getLogger(__name__)
+
+Reported = TypeVar("Reported")
 
 #: The ranking name of the network being trained in validation tables.
 TRAINED = "trained"
@@ -90,7 +101,14 @@ class LocalizationValidation(L.Callback):
     ``relevance_scope``: the retrieval metrics' relevance (`relevances`). ``gallery_queries`` fixed
     validation queries have their top ``gallery_k`` logged as an image at each validation.
     ``headline``: the metrics a validation prints (the training report's gap rows).
-    Runs on rank 0; ``history`` holds every validation (epoch -1: before training)."""
+    ``history`` holds every validation (epoch -1: before training).
+
+    Under DDP every rank takes part (`locretrieval.training.distributed`): each describes a share
+    of the images and every rank holds all descriptors; each does its share of the SfM paradigms'
+    work (``sfm.shard``) into the shared cache; rank 0 then runs the benchmark (the SfM results
+    read from the cache), logs the gallery and prints, and every rank logs its metrics. The
+    reference models are described by rank 0 (once per run, cached). The metrics equal a single
+    process's; a rank whose share raises ends every rank with its error."""
 
     def __init__(
         self,
@@ -148,43 +166,62 @@ class LocalizationValidation(L.Callback):
         """The benchmark settings of a validation: every paradigm, or the cheap ones (`Paradigm.cost`)."""
         return self.settings if with_sfm else every_validation_settings(self.settings)
 
-    def validate(self, network, with_sfm: bool) -> BenchmarkResult:
-        """The benchmark of ``network`` (a `RetrievalNet`) on the validation scene."""
-        model = NetworkDescriptor(TRAINED, network, self.preprocessing, self.extraction)
-        described = describe_scene(model, self.scene, cache_dir=None)
-        rankings = build_rankings(self.scene, {TRAINED: described}, {}, self.settings.retrieval, random_seed=None)
-        return benchmark(self.scene, rankings, self._settings(with_sfm), self.subsets, self.cache_dir, self.relevance)
-
-    def _references(self) -> list[Ranking]:
-        """The rankings the trained network is compared with: the reference models' (descriptors
-        cached in ``cache_dir``), the ground truths' and the random one."""
+    def _references(self, ranks: Ranks) -> list[Ranking]:
+        """The rankings the trained network is compared with: the reference models' (described by
+        rank 0, cached in ``cache_dir``), the ground truths' and the random one."""
         described = {
-            name: describe_scene(model, self.scene, self.cache_dir) for name, model in self.reference_models.items()
+            name: ranks.first(lambda model=model: describe_scene(model, self.scene, self.cache_dir))
+            for name, model in self.reference_models.items()
         }
         return build_rankings(self.scene, described, self.groundtruths, self.settings.retrieval, self.random_seed)
+
+    def _trained_ranking(self, network, ranks: Ranks) -> Ranking:
+        """The ranking of ``network`` (a `RetrievalNet`) on the validation scene, every rank
+        describing its share of the images."""
+        model = NetworkDescriptor(TRAINED, network, self.preprocessing, self.extraction)
+        described = describe_scene(model, self.scene, None, lambda images: describe_across_ranks(model, images, ranks))
+        return build_rankings(self.scene, {TRAINED: described}, {}, self.settings.retrieval, random_seed=None)[0]
+
+    def _run_sfm_shards(self, rankings: list[Ranking], settings: BenchmarkSettings, ranks: Ranks) -> None:
+        """Under DDP, each rank's share of the SfM paradigms' work on ``rankings`` (``sfm.shard``:
+        its rank of all), into the cache the benchmark then reads it from."""
+        if ranks.count == 1 or not sfm_paradigms(settings):
+            return
+        sfm = dataclasses.replace(settings.sfm, shard=str(ranks.shard))
+        ranks.gather(
+            lambda: run_sfm_shard(self.scene, rankings, dataclasses.replace(settings, sfm=sfm), self.cache_dir)
+        )
+
+    def _benchmark(
+        self, rankings: list[Ranking], with_sfm: bool, ranks: Ranks, report: Callable[[BenchmarkResult], Reported]
+    ) -> Reported:
+        """``report(result)`` of the benchmark of ``rankings`` (run on rank 0, the SfM work shared
+        by every rank), on every rank."""
+        settings = self._settings(with_sfm)
+        self._run_sfm_shards(rankings, settings, ranks)
+        return ranks.first(
+            lambda: report(benchmark(self.scene, rankings, settings, self.subsets, self.cache_dir, self.relevance))
+        )
 
     def _wants_sfm(self, epoch: int) -> bool:
         return self.sfm_every_n_epochs is not None and (epoch < 0 or (epoch + 1) % self.sfm_every_n_epochs == 0)
 
-    @rank_zero_only
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if self.history:  # resumed: the curve goes on
             return
-        rankings = self._references()
+        ranks = Ranks.of(trainer)
+        rankings = self._references(ranks)
         if rankings:
-            result = benchmark(
-                self.scene,
-                rankings,
-                self._settings(self.sfm_every_n_epochs is not None),
-                self.subsets,
-                self.cache_dir,
-                self.relevance,
-            )
-            self.reference = {r.name: metric_rows(result, r.name, self.settings.paradigms.ks()) for r in rankings}
-            if result.sfm_stages:
-                self.sfm_stages["references"] = result.sfm_stages
+
+            def report(result: BenchmarkResult) -> dict[str, dict[str, float]]:
+                if result.sfm_stages:
+                    self.sfm_stages["references"] = result.sfm_stages
+                return {r.name: metric_rows(result, r.name, self.settings.paradigms.ks()) for r in rankings}
+
+            self.reference = self._benchmark(rankings, self.sfm_every_n_epochs is not None, ranks, report)
             for name, metrics in self.reference.items():
-                log.info("reference %s: %s", name, headline_line(metrics, self.headline))
+                if trainer.is_global_zero:
+                    log.info("reference %s: %s", name, headline_line(metrics, self.headline))
                 if trainer.logger is not None:
                     trainer.logger.log_metrics(
                         {k.replace("val/", f"reference/{name}/"): v for k, v in metrics.items()}, step=0
@@ -197,24 +234,30 @@ class LocalizationValidation(L.Callback):
         epoch = trainer.current_epoch
         if (epoch + 1) % self.every_n_epochs:
             return
-        metrics = self._record(trainer, pl_module, epoch) if trainer.is_global_zero else None
-        metrics = trainer.strategy.broadcast(metrics, src=0)  # every rank logs them: checkpointing monitors them
-        for key, value in metrics.items():
+        for key, value in self._record(trainer, pl_module, epoch).items():  # every rank: checkpointing monitors them
             pl_module.log(key, value)
 
     def _record(self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int) -> dict[str, float]:
-        """Validate the module's network after ``epoch`` (-1: before training), keep and print the
-        metrics, and log the gallery of the fixed validation queries."""
-        result = self.validate(pl_module.network, self._wants_sfm(epoch))
-        if result.sfm_stages:
-            self.sfm_stages[f"epoch {epoch}"] = result.sfm_stages
-        metrics = metric_rows(result, TRAINED, self.settings.paradigms.ks())
+        """Validate the module's network after ``epoch`` (-1: before training), keep the metrics
+        (every rank) and, on rank 0, print them and log the gallery of the fixed validation queries."""
+        ranks = Ranks.of(trainer)
+        ranking = self._trained_ranking(pl_module.network, ranks)
+
+        def report(result: BenchmarkResult) -> dict[str, float]:
+            if result.sfm_stages:
+                self.sfm_stages[f"epoch {epoch}"] = result.sfm_stages
+            metrics = metric_rows(result, TRAINED, self.settings.paradigms.ks())
+            log.info(
+                "validation after epoch %d:\n%s",
+                epoch,
+                headline_table({TRAINED: metrics, **self.reference}, self.headline),
+            )
+            if len(self.gallery_rows):
+                self._log_gallery(trainer, ranking, epoch)
+            return metrics
+
+        metrics = self._benchmark([ranking], self._wants_sfm(epoch), ranks, report)
         self.history.append({"epoch": epoch, **metrics})
-        log.info(
-            "validation after epoch %d:\n%s", epoch, headline_table({TRAINED: metrics, **self.reference}, self.headline)
-        )
-        if len(self.gallery_rows):
-            self._log_gallery(trainer, next(r for r in result.rankings if r.name == TRAINED), epoch)
         return metrics
 
     def _log_gallery(self, trainer: L.Trainer, ranking: Ranking, epoch: int) -> None:
@@ -276,7 +319,8 @@ def headline_table(rankings: Mapping[str, Mapping[str, float]], keys: Sequence[s
 
 
 class HardNegativeMining(L.Callback):
-    """Every ``every_n_steps`` training steps, describe the training images with the current network and
+    """Every ``every_n_steps`` training steps, describe the training images with the current network (under
+    DDP, each rank a share) and
     give the sampler each anchor's ``per_anchor`` highest-ranked images among those it may be
     pushed from. The sampler builds batches lazily, so they apply from the next batches it builds
     (a DataLoader prefetches a few)."""
@@ -305,13 +349,14 @@ class HardNegativeMining(L.Callback):
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch, batch_idx: int) -> None:
         step = trainer.global_step
         if step and step % self.every == 0 and step != self.mined_at_step:  # once per step under gradient accumulation
-            self.mine(pl_module.network)
+            self.mine(pl_module.network, Ranks.of(trainer))
             self.mined_at_step = step
 
-    def mine(self, network) -> None:
-        """Hard negatives of every anchor by ``network`` (a `RetrievalNet`), given to the sampler."""
+    def mine(self, network, ranks: Ranks) -> None:
+        """Hard negatives of every anchor by ``network`` (a `RetrievalNet`), given to the sampler;
+        under DDP every rank describes a share of the images and mines the same negatives."""
         model = NetworkDescriptor("mining", network, self.preprocessing, self.extraction)
-        descriptors = np.concatenate([model.describe(images) for images in self.sets])
+        descriptors = np.concatenate([describe_across_ranks(model, images, ranks) for images in self.sets])
         anchors = self.sampler.anchors
         related = np.diff(self.pairs.related.indptr)
         depth = min(len(descriptors), self.per_anchor + 1 + int(related[anchors].max()))

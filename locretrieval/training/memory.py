@@ -15,8 +15,9 @@ from locretrieval.training.relevance import TrainingPairs
 
 class DescriptorMemory:
     """The descriptors of the ``size`` images most recently in a batch (the latest copy of each),
-    with their rows in the training pairs. A run starts it empty (also when it resumes) and each
-    process of a multi-process run keeps its own."""
+    with their rows in the training pairs. A run starts it empty (also when it resumes); under
+    DDP every rank remembers the union of the ranks' batches (``module.global_batch``), or with
+    per-rank losses its own batches."""
 
     def __init__(self, size: int) -> None:
         require(size >= 1, "memory_size", f"must be >= 1 (0: no memory), got {size}")

@@ -47,6 +47,12 @@ def freeze_parameters(network: torch.nn.Module, patterns: Sequence[str]) -> list
     return frozen
 
 
+def _world_size() -> int:
+    """The processes of the run (DDP's process group), 1 without one."""
+    distributed = torch.distributed.is_available() and torch.distributed.is_initialized()
+    return torch.distributed.get_world_size() if distributed else 1
+
+
 class TrainingDiverged(RuntimeError):
     """A non-finite loss or gradient: training stops at that step, nothing is updated with it."""
 
@@ -73,6 +79,10 @@ class RetrievalTraining(L.LightningModule):
     ``memory_size``: a cross-batch memory (`DescriptorMemory`) of the descriptors of the last this
     many training images, every batch's anchors ranked against them too, their relevance read from
     ``pairs``; 0: each anchor is ranked against its batch only.
+    ``global_batch``: under DDP, each step's loss, and the memory, see the union of every rank's
+    batch (in rank order, their relevance read from ``pairs``; the descriptors gathered with their
+    gradients, so that the step is the one a single process takes on the union); false: each
+    rank's loss sees its own batch (the gradients are averaged over ranks).
     """
 
     def __init__(
@@ -91,6 +101,7 @@ class RetrievalTraining(L.LightningModule):
         head_lr_scale: float,
         lr_scales: Mapping[str, float] | None,
         memory_size: int,
+        global_batch: bool,
         pairs: TrainingPairs | None = None,
     ) -> None:
         super().__init__()
@@ -119,6 +130,7 @@ class RetrievalTraining(L.LightningModule):
         if memory_size and pairs is None:
             raise ValueError("module.memory_size needs the training pairs (train.py gives them)")
         self.memory = DescriptorMemory(int(memory_size)) if memory_size else None
+        self.global_batch = bool(global_batch)
         self.pairs = pairs
 
     def train(self, mode: bool = True) -> RetrievalTraining:
@@ -139,17 +151,37 @@ class RetrievalTraining(L.LightningModule):
         # compute up to ~3x slower (measured: 10.5 s vs 3.9 s per batch); flush them to zero.
         torch.set_flush_denormal(True)
         self.train()  # Lightning keeps the modes it finds: freeze batch norm here
+        if self.global_batch and self.trainer.world_size > 1 and self.pairs is None:
+            raise ValueError("module.global_batch under DDP needs the training pairs (train.py gives them)")
 
     def batch_loss(self, batch: tuple[torch.Tensor, ...]) -> torch.Tensor:
         """The loss of a batch ``(images, relevance, negatives, indices)`` (`training.data.collate`),
-        ranked against the memory's images too when there is one, which then remembers the batch."""
+        under DDP with ``global_batch`` the union of every rank's (`union_of_batches`), ranked against
+        the memory's images too when there is one, which then remembers the batch."""
         images, relevance, negatives, indices = batch
         descriptors = self(images)
+        if self.global_batch and _world_size() > 1:
+            descriptors, relevance, negatives, indices = self.union_of_batches(descriptors, indices)
         if self.memory is None:
             return self.loss(descriptors, relevance, negatives)
         candidates, relevance, negatives = self.memory.extend(descriptors, relevance, negatives, indices, self.pairs)
         self.memory.write(descriptors, indices)
         return self.loss(candidates, relevance, negatives)
+
+    def union_of_batches(
+        self, descriptors: torch.Tensor, indices: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Every rank's batch, in rank order: ``(descriptors, relevance, negatives, indices)`` as
+        `collate` makes them for one batch of all their images. The descriptors are gathered with
+        their gradients: each rank's loss is the same function of all of them, and the gradient of
+        a rank's descriptors, summed over the ranks' losses by the gather's backward pass, then
+        averaged over ranks by DDP, is that of one process's loss on the union."""
+        descriptors = self.all_gather(descriptors, sync_grads=True).flatten(0, 1)
+        indices = self.all_gather(indices).flatten(0, 1)
+        relevance, negatives = (
+            torch.from_numpy(block).to(descriptors.device) for block in self.pairs.batch(indices.cpu().numpy())
+        )
+        return descriptors, relevance, negatives, indices
 
     def training_step(self, batch: tuple[torch.Tensor, ...], batch_index: int) -> torch.Tensor:
         loss = self.batch_loss(batch)

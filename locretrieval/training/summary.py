@@ -11,6 +11,7 @@ the report) and, for a study, ``optuna.html`` (Optuna's plotly figures, plotly.j
 
 from __future__ import annotations
 
+import html
 import json
 import math
 import re
@@ -20,10 +21,10 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
-from markupsafe import escape
 from omegaconf import OmegaConf
 
-from locretrieval.report.html import write_html
+from locretrieval.report.html import with_script_policy, write_html
+from locretrieval.report.markdown import markdown_table, md_code, md_link, md_text
 from locretrieval.training.objective import Objective, run_objective
 from locretrieval.training.sweeps import FINISHED_FILE, finished_job, job_folders, job_overrides, trial_overrides
 
@@ -275,9 +276,10 @@ def shared_overrides(rows: Sequence[TrialRow]) -> list[str]:
     return [item for item in rows[0].overrides if item in shared]
 
 
-def markdown_table(summary: Summary) -> pd.DataFrame:
-    """The trial table of ``summary.md``: the trials (the best marked), their overrides not shared
-    by all, objective, gap cells and time, then the mean row; the notes when there are any."""
+def trial_markdown(summary: Summary) -> pd.DataFrame:
+    """The trial table of ``summary.md`` (its text escaped by `markdown_table`): the trials (the
+    best marked), their overrides not shared by all, objective, gap cells and time, then the mean
+    row; the notes when there are any."""
     best, shared = summary.best(), shared_overrides(summary.rows)
     cells = gap_cells(summary.rows, gap_baseline(summary.rows))
     labels = [row.label for row in summary.rows]
@@ -297,9 +299,7 @@ def markdown_table(summary: Summary) -> pd.DataFrame:
     for label in cells.index[len(labels) :]:  # the mean row
         mean = dict.fromkeys(table.columns, "") | {"trial": label} | cells.loc[label].to_dict()
         table = pd.concat([table, pd.DataFrame([mean])], ignore_index=True)
-    if not any(row.note for row in summary.rows):
-        table = table.drop(columns="note")
-    return table.map(lambda value: value.replace("|", r"\|") if isinstance(value, str) else value)
+    return table if any(row.note for row in summary.rows) else table.drop(columns="note")
 
 
 def markdown_lines(summary: Summary, output_dir: Path) -> list[str]:
@@ -308,29 +308,29 @@ def markdown_lines(summary: Summary, output_dir: Path) -> list[str]:
     baseline = gap_baseline(summary.rows)
     aim = "higher is better" if summary.maximize else "lower is better"
     shared = shared_overrides(summary.rows)
+    objective_text = (
+        f"{md_code(objective.metric)} at its {objective.validation} validation after training, {aim}"
+        if objective
+        else "unknown"
+    )
     lines = [
-        f"# Sweep summary: {', '.join(folder.name for folder in summary.folders)}",
+        f"# Sweep summary: {md_text(', '.join(folder.name for folder in summary.folders))}",
         "",
-        f"- **folders**: {', '.join(f'`{folder}`' for folder in summary.folders)}",
+        f"- **folders**: {', '.join(md_code(folder) for folder in summary.folders)}",
         f"- **trials**: {len(summary.rows)}",
-        "- **objective**: "
-        + (
-            f"`{objective.metric}` at its {objective.validation} validation after training, {aim}"
-            if objective
-            else "unknown"
-        ),
-        f"- **overrides of every trial**: {', '.join(f'`{item}`' for item in shared) or 'none'}",
-        f"- **best trial**: {best.label}, objective {best.objective:.4g}"
+        f"- **objective**: {objective_text}",
+        f"- **overrides of every trial**: {', '.join(md_code(item) for item in shared) or 'none'}",
+        f"- **best trial**: {md_text(best.label)}, objective {best.objective:.4g}"
         if best
-        else "- **best trial**: none finished",
+        else "- **best trial**: none",
         "",
         "## Trials",
         "",
-        f"Per gap row of the training report: {baseline} / untrained / trained / ground truth, % of the validation "
-        f"queries localized, and the share of the gap between {baseline} and the ground truth that training "
-        "closed; for several trials their mean and the gap of the means.",
+        f"Per gap row of the training report: {md_text(baseline)} / untrained / trained / ground truth, % of the "
+        f"validation queries localized, and the share of the gap between {md_text(baseline)} and the ground truth "
+        "that training closed; for several trials their mean and the gap of the means.",
         "",
-        markdown_table(summary).to_markdown(index=False),
+        markdown_table(trial_markdown(summary), index=False),
         "",
     ]
     for study in summary.studies:
@@ -343,9 +343,9 @@ def study_lines(study: Study, output_dir: Path) -> list[str]:
     and a link to ``optuna.html`` (`write_study_figures`)."""
     states = pd.Series([trial.state.name.lower() for trial in study.trials]).value_counts()
     lines = [
-        f"## Optuna study `{study.name}`",
+        f"## Optuna study {md_code(study.name)}",
         "",
-        f"- **storage**: `{study.storage}`",
+        f"- **storage**: {md_code(study.storage)}",
         f"- **trials**: {', '.join(f'{count} {state}' for state, count in states.items()) or 'none'}",
         f"- **direction**: {study.direction}",
     ]
@@ -361,11 +361,11 @@ def study_lines(study: Study, output_dir: Path) -> list[str]:
             "Parameter importances (Optuna's mean decrease in impurity of a random forest fitted to the finished "
             "trials):",
             "",
-            importances.to_frame().to_markdown(floatfmt=".3f"),
+            markdown_table(importances.to_frame().reset_index(), index=False, floatfmt=".3f"),
         ]
     if write_study_figures(study, importances is not None, output_dir / FILES["figures"]):
         shown = "optimization history" + (" and parameter importances" if importances is not None else "")
-        lines += ["", f"The study's {shown}, Optuna's figures: [{FILES['figures']}]({FILES['figures']})."]
+        lines += ["", f"The study's {shown}, Optuna's figures: {md_link(FILES['figures'], FILES['figures'])}."]
     return lines + [""]
 
 
@@ -386,7 +386,8 @@ def parameter_importances(study: Study) -> tuple[pd.Series | None, str]:
 
 def write_study_figures(study: Study, with_importances: bool, path: Path) -> Path | None:
     """``optuna.html``: Optuna's optimization history (and parameter importances) of ``study``,
-    plotly.js embedded once, nothing fetched; None (no file) without a finished trial."""
+    plotly.js embedded once, nothing fetched, its own scripts only (`with_script_policy`); None (no
+    file) without a finished trial."""
     import optuna.visualization as visualization
     from optuna.importance import MeanDecreaseImpurityImportanceEvaluator
 
@@ -397,9 +398,10 @@ def write_study_figures(study: Study, with_importances: bool, path: Path) -> Pat
         evaluator = MeanDecreaseImpurityImportanceEvaluator(seed=0)
         figures.append(visualization.plot_param_importances(study.optuna_study, evaluator=evaluator))
     parts = [figure.to_html(full_html=False, include_plotlyjs=index == 0) for index, figure in enumerate(figures)]
-    title = escape(f"Optuna study {study.name}")
+    title = html.escape(f"Optuna study {study.name}")
     page = f'<!DOCTYPE html>\n<html lang="en">\n<head><meta charset="utf-8"><title>{title}</title></head>\n<body>\n'
-    path.write_text(page + f"<h1>{title}</h1>\n" + "\n".join(parts) + "\n</body>\n</html>\n")
+    page += f"<h1>{title}</h1>\n" + "\n".join(parts) + "\n</body>\n</html>\n"
+    path.write_text(with_script_policy(page), encoding="utf-8")  # its own scripts only: names are data
     return path
 
 

@@ -1,0 +1,21 @@
+"""The project's error for a data or cache file that cannot be used."""
+
+from __future__ import annotations
+
+import os
+
+#: What to do about a damaged cache file (caches are keyed by what produced them: deleting one recomputes it).
+DELETE_CACHE_FILE = "delete it: it is recomputed on the next run"
+#: What to do about a damaged data file (a dataset, weight or ground-truth file).
+FIX_DATA_FILE = "fix or replace the file (e.g. download it again)"
+
+
+class DataFileError(ValueError):
+    """A file the run reads (dataset, weights, ground truth, cache, run table) that cannot be used.
+
+    The message starts with the file's path, says what is wrong and what to do (`DELETE_CACHE_FILE`
+    for caches, `FIX_DATA_FILE` for inputs); ``path`` is the file."""
+
+    def __init__(self, path: str | os.PathLike, problem: str, remedy: str | None = None) -> None:
+        self.path = str(path)
+        super().__init__(f"{path}: {problem}" + (f"; {remedy}" if remedy else ""))

@@ -1,0 +1,60 @@
+"""Fixtures shared by test modules: an evaluation run of a hostile dataset (built once a session)."""
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+from helpers import evaluate_config
+
+#: Markup a hostile dataset and configuration put where names go: each handler would set a global the
+#: browser test reads back, and none may ever run. ``$`` and ``\\input`` probe matplotlib and LaTeX.
+HOSTILE_QUERY_FOLDER = "<img src=x onerror=window.__pwned=8>"
+HOSTILE_TAG = "<svg/onload=window.__pwned=7>$x$"
+HOSTILE_IMAGE = "query/`<svg/onload=window.__pwned=1>`.png"  # a backtick would close a code span
+HOSTILE_MODEL = "../../../<img src=x onerror=window.__pwned=5>\\input{x}"
+
+
+@dataclass(frozen=True)
+class HostileRun:
+    root: Path  # everything the run may write is below root/run and root/cache
+    run: Path
+    cache: Path
+
+
+def hostile_dataset(root: Path) -> tuple[Path, Path]:
+    """A tiny rendered scene as kapture folders whose query folder, one query image and one tag are
+    the markup above; returns ``(mapping folder, query folder)``."""
+    from locretrieval.scene.synthetic import render_synthetic_dataset
+
+    render = root / "render"
+    settings = {"width": 160, "height": 120, "num_database": 32, "num_queries": 16, "texture_size": 64}
+    render_synthetic_dataset({**settings, "length": 20.0, "workers": 1, "seed": 3}, render)
+    query = root / "data" / HOSTILE_QUERY_FOLDER
+    shutil.copytree(render / "query", query)
+    for folder in (query / "sensors" / "records_data", query / "masks"):
+        target = folder / HOSTILE_IMAGE
+        target.parent.mkdir(parents=True, exist_ok=True)
+        (folder / "query" / "000001.png").rename(target)
+    for text_file in (query / "sensors" / "records_camera.txt", query / "tags.txt"):
+        text_file.write_text(text_file.read_text().replace("query/000001.png", HOSTILE_IMAGE))
+    with (query / "tags.txt").open("a") as tags:
+        tags.write(f"query/000002.png, {HOSTILE_TAG}\n")
+    return render / "mapping", query
+
+
+@pytest.fixture(scope="session")
+def hostile_run(tmp_path_factory) -> HostileRun:
+    """`evaluate` of `hostile_dataset` with ``model.name`` `HOSTILE_MODEL`, the approximation paradigm only."""
+    from locretrieval.evaluation import evaluate
+
+    root = tmp_path_factory.mktemp("hostile")
+    mapping, query = hostile_dataset(root)
+    config = evaluate_config(
+        "data=kapture", f"paths.root_dir={root}", f"paths.cache_dir={root / 'cache'}", "device=cpu",
+        "report.figure_formats=[png]", "model.max_side=160", "model.step=4", "subsets.blur_width=160",
+        "paradigms.local_sfm.enabled=false", "paradigms.global_sfm.enabled=false", "data.mapping=x", "data.queries=[x]",
+    )  # fmt: skip
+    config.data.mapping, config.data.queries, config.model.name = str(mapping), [str(query)], HOSTILE_MODEL
+    evaluate(config, root / "run")
+    return HostileRun(root, root / "run", root / "cache")
