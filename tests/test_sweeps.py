@@ -166,11 +166,12 @@ def test_the_summary_of_runs_marks_the_best_closes_the_gap_of_the_means_and_says
 SWEEP = ["-m", "hparams_search=localization", "debug=quick", "hydra/launcher=joblib_local", "hydra.sweeper.n_trials=3"]
 
 
-def sweep(root: Path) -> subprocess.Popen:
+def sweep(root: Path, log: Path) -> subprocess.Popen:
+    """The sweep in its own session (killed with its workers), its output into ``log`` (a pipe
+    nobody reads while the test waits would fill and stop it)."""
     command = [sys.executable, str(ROOT / "train.py"), *SWEEP, f"paths.root_dir={root}"]
-    return subprocess.Popen(
-        command, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
-    )
+    with log.open("w") as output:
+        return subprocess.Popen(command, cwd=root, stdout=output, stderr=subprocess.STDOUT, start_new_session=True)
 
 
 def trials(database: Path) -> list[tuple[int, str, float | None]]:
@@ -191,12 +192,13 @@ def logged_interval(job: Path) -> tuple[datetime, datetime]:
 @pytest.mark.slow
 def test_an_optuna_sweep_killed_after_its_first_trial_resumes_without_running_it_again(tmp_path):
     folder = tmp_path / "multirun" / "train" / "localization"  # hparams_search's fixed sweep folder
-    killed = sweep(tmp_path)
+    killed, deadline = sweep(tmp_path, tmp_path / "killed.log"), time.monotonic() + 900
     while not list(folder.glob("*/summary.json")):
-        assert killed.poll() is None, killed.communicate()[0][-3000:]
+        assert killed.poll() is None and time.monotonic() < deadline, (tmp_path / "killed.log").read_text()[-3000:]
         time.sleep(0.2)
     os.killpg(killed.pid, signal.SIGKILL)  # the sweep and its joblib workers
-    log = killed.communicate()[0]
+    killed.wait()
+    log = (tmp_path / "killed.log").read_text()
     assert "Joblib.Parallel(n_jobs=2" in log and "is launching 2 jobs" in log
     started = trials(folder / "optuna.db")
     finished = {path: path.stat().st_mtime_ns for path in folder.glob("*/summary.json")}
@@ -205,9 +207,8 @@ def test_an_optuna_sweep_killed_after_its_first_trial_resumes_without_running_it
     (first_start, first_end), (second_start, second_end) = logged_interval(jobs[0]), logged_interval(jobs[1])
     assert first_start < second_end and second_start < first_end  # the two trials of the batch ran at once
 
-    resumed = sweep(tmp_path)
-    output = resumed.communicate(timeout=900)[0]
-    assert resumed.returncode == 0, output[-3000:]
+    resumed = sweep(tmp_path, tmp_path / "resumed.log")
+    assert resumed.wait(timeout=900) == 0, (tmp_path / "resumed.log").read_text()[-3000:]
     study = trials(folder / "optuna.db")
     interrupted = len(started) - len(finished)
     assert [state for _, state, _ in study].count("COMPLETE") == 3
