@@ -933,6 +933,7 @@ def test_the_report_says_which_requested_gap_row_it_cannot_fill(tmp_path, caplog
         "paradigms.approximation.k=[1,5]",
         "callbacks.localization_validation.sfm_every_n_epochs=null",
         "callbacks.best_checkpoint.monitor=val/approximation/ewb/k5/5m_10deg",
+        "optimized_metric=val/approximation/ewb/k5/5m_10deg",
         "+trainer.fast_dev_run=true",
     )
     with caplog.at_level("WARNING"):
