@@ -2,7 +2,9 @@
 
 python train.py                                # synthetic scene, EfficientNet-Lite0 + GeM, loss=listwise
 python train.py loss=triplet train_relevance=frustum trainer.max_epochs=20
-python train.py -m loss=ap,triplet,contrastive,listwise      # a sweep, one directory per run
+python train.py -m loss=ap,triplet,contrastive,listwise      # a sweep, one directory per run, summary.md
+python train.py -m hparams_search=localization hydra/launcher=joblib_local   # an Optuna study of the objective
+python train.py debug=quick                                  # under a minute: for trying a change
 python train.py ckpt_path=<run>/checkpoints/last.ckpt        # resume
 """
 
@@ -16,10 +18,11 @@ import locretrieval  # registers the config resolvers; imports zlib before pycol
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="train")
-def main(cfg: DictConfig) -> None:
-    from locretrieval.training.run import train  # here, so that `--help` imports none of the heavy modules
+def main(cfg: DictConfig) -> float | None:
+    """Train; returns the ``optimized_metric`` (the objective of ``-m hparams_search=localization``)."""
+    from locretrieval.training.run import optimized_value, train  # here: `--help` imports no heavy module
 
-    train(cfg, Path(cfg.output_dir))
+    return optimized_value(cfg, train(cfg, Path(cfg.output_dir)))
 
 
 if __name__ == "__main__":

@@ -1,7 +1,9 @@
 """What a trained checkpoint buys on the five validation scenes of docs/results.md: per scene, the
 gap rows of train.yaml's training report (``report.gap``: paradigms 1, 2a and 2b) for DenseVLAD (the
 ``report.baseline``), the untrained network, the checkpoint and the ground truth, written as each
-scene's ``gap.csv`` in the layout of a training run's, so that ``scripts/gap_table.py`` tabulates them.
+scene's folder in the layout of a train.py run (``gap.csv``, ``validation.csv``: the untrained
+network as epoch -1, the checkpoint as epoch 0; ``config.yaml``, ``summary.json``), so that
+``report.py <output>/*_* --output <output>`` summarizes them: a row per scene and the mean row.
 
     python benchmarks/training_gain.py <run>/checkpoints/last.ckpt <output folder> [--overrides key=value ...]
 
@@ -18,12 +20,14 @@ many steps and epochs the checkpoint was trained (used by ``gpu_training_gain.sh
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
+from omegaconf import OmegaConf
 
 import locretrieval  # noqa: F401  (config resolvers)
 
@@ -62,8 +66,9 @@ def checkpoint_progress(checkpoint: Path) -> str:
     return f"{content['global_step']} steps, in epoch {content['epoch'] + 1}"
 
 
-def scene_gaps(cfg, trained_model, report, cache_dir: Path) -> pd.DataFrame:
-    """The gap table of one scene: DenseVLAD, the untrained and the trained network, the ground truths."""
+def scene_gaps(cfg, trained_model, report, cache_dir: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The gap table of one scene (DenseVLAD, the untrained and the trained network, the ground
+    truths) and its validation history (``epoch, metric, value``: the untrained network -1, trained 0)."""
     from hydra.utils import instantiate
 
     from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
@@ -103,7 +108,7 @@ def scene_gaps(cfg, trained_model, report, cache_dir: Path) -> pd.DataFrame:
     )
     reference = {r.name: metric_rows(result, r.name, ks) for r in rankings if r.name not in (UNTRAINED, TRAINED)}
     # gap_table reads a validation's history (before training: the untrained network; last: trained)
-    return gap_table(SimpleNamespace(history_table=lambda: history, reference=reference), report)
+    return gap_table(SimpleNamespace(history_table=lambda: history, reference=reference), report), history
 
 
 def main() -> None:
@@ -127,10 +132,13 @@ def main() -> None:
         trained = composed([*scene, "model=checkpoint", f"model.weights={arguments.checkpoint}"]).model
         report = validated(TrainingReportSettings, cfg.report, "report")
         with_gap_ks(cfg, report)
-        gaps = scene_gaps(cfg, instantiate(trained), report, Path(cfg.paths.cache_dir))
+        gaps, history = scene_gaps(cfg, instantiate(trained), report, Path(cfg.paths.cache_dir))
         folder = arguments.output / f"{environment}_{seed}"
         folder.mkdir(parents=True, exist_ok=True)
         gaps.to_csv(folder / "gap.csv", index=False)
+        history.to_csv(folder / "validation.csv", index=False)
+        OmegaConf.save(cfg, folder / "config.yaml")
+        (folder / "summary.json").write_text(json.dumps({"seconds": round(time.perf_counter() - started, 1)}))
         print(f"{folder.name} ({time.perf_counter() - started:.0f} s):", flush=True)
         print(gaps.to_markdown(index=False, floatfmt=".1f"), flush=True)
 

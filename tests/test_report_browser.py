@@ -121,3 +121,39 @@ def test_the_3d_view_of_a_hostile_dataset_draws_with_its_own_scripts_only(hostil
     assert browser.execute_script(PLOTTED) is True
     assert browser.execute_script(PWNED)[0] is None
     assert errors == []
+
+
+def test_a_sweep_summary_and_its_optuna_figures_draw_with_their_own_scripts_only(tmp_path, browser):
+    """summary.html and optuna.html of an Optuna study whose trial overrides hold markup: the
+    markup shows as text, runs nothing, and Optuna's plotly figures draw under the page's policy."""
+    import optuna
+    from omegaconf import OmegaConf
+    from test_sweeps import gap_run
+
+    from locretrieval.training.summary import write_summary
+
+    hostile = "model.name=<img src=x onerror=window.__pwned=1>"
+    study = optuna.create_study(study_name="s", storage=f"sqlite:///{tmp_path / 'optuna.db'}", direction="maximize")
+    for number, value in enumerate((10.0, 30.0, 20.0)):
+        trial = study.ask()
+        trial.suggest_float("optimizer.lr", 1e-5, 1e-3, log=True)
+        study.tell(trial, value)
+        run = gap_run(tmp_path, f"{number}_job", value, [("approximation/ewb/k3/5m_10deg", 5.0, value, 10.0, 40.0)])
+        lr = f"optimizer.lr={trial.params['optimizer.lr']}"
+        OmegaConf.save(OmegaConf.create([lr, hostile]), run / ".hydra" / "overrides.yaml")
+        OmegaConf.save(OmegaConf.create({"hydra": {"job": {"num": number}}}), run / ".hydra" / "hydra.yaml")
+    sweeper = {"_target_": "hydra_plugins.hydra_optuna_sweeper.optuna_sweeper.OptunaSweeper", "study_name": "s"}
+    sweeper["storage"] = f"sqlite:///{tmp_path / 'optuna.db'}"
+    OmegaConf.save(
+        OmegaConf.create({"hydra": {"job": {"name": "train"}, "sweeper": sweeper}}), tmp_path / "multirun.yaml"
+    )
+    write_summary([tmp_path], tmp_path)
+
+    _, errors = open_page(browser, tmp_path / "summary.html")
+    pwned, text = browser.execute_script(PWNED)
+    assert pwned is None and hostile.removeprefix("model.name=") in text and errors == []
+    assert "1 (best)" in text
+    _, errors = open_page(browser, tmp_path / "optuna.html")
+    drawn = "return Array.from(document.querySelectorAll('.plotly-graph-div')).map(d => !!(window.Plotly && d.data));"
+    assert browser.execute_script(drawn) == [True, True]  # the optimization history and the importances
+    assert errors == []

@@ -47,6 +47,8 @@ RELATIVE_POSE = TrainingRelevanceSettings(
     UnrelatedNegatives(0.1, None, None),
 )
 AT_25M = DefinitionContext(far=25.0)
+#: train.py's default objective (optimized_metric).
+METRIC = "val/approximation/ewb/k3/5m_10deg"
 #: A short training of the tiny scene: small batches, no SfM validation.
 TINY_TRAINING = (
     "datamodule.image_size=[96,72]",
@@ -728,6 +730,26 @@ def test_a_parallel_training_multirun_as_documented_shares_one_cache_without_cor
         for key, value in first.items():
             assert value == pytest.approx(before_training[key], abs=1e-6), (job, key)
 
+    # the multirun's summary (the Hydra callback at its end), and report.py's of the folder afterwards
+    summary = pd.read_csv(tmp_path / "multirun" / "summary.csv")
+    objectives = [
+        pd.read_csv(job / "validation.csv").query("epoch >= 0 and metric == @METRIC")["value"].max() for job in jobs
+    ]
+    assert summary["objective"].tolist() == objectives and summary["state"].tolist() == ["finished", "finished"]
+    assert summary["overrides"].str.contains("loss=ap").tolist() == [True, False]
+    assert summary["best"].tolist() == [objectives[0] >= objectives[1], objectives[0] < objectives[1]]
+    gap = pd.read_csv(jobs[0] / "gap.csv").set_index("metric")
+    for metric, row in gap.iterrows():
+        assert summary.loc[0, f"{metric} trained"] == pytest.approx(row["trained"]), metric
+    markdown = (tmp_path / "multirun" / "summary.md").read_text()
+    assert "| loss=ap " in markdown and "(best)" in markdown and "nan" not in markdown.lower()
+    report = subprocess.run(
+        [sys.executable, str(helpers.CONFIGS.parent / "report.py"), str(tmp_path / "multirun"), "--output", "again"],
+        capture_output=True, text=True, timeout=300, cwd=tmp_path,
+    )  # fmt: skip
+    assert report.returncode == 0, report.stderr[-3000:]
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "again" / "summary.csv"), summary)
+
 
 def test_the_gap_table_gives_the_share_of_the_gap_to_the_ground_truth_that_training_closed():
     from types import SimpleNamespace
@@ -792,36 +814,6 @@ def test_every_object_node_is_checked_by_its_full_key_before_the_scene_is_prepar
     with pytest.raises(ConfigError, match=message):
         train(cfg, tmp_path / "run")
     assert not (Path(cfg.paths.cache_dir) / "synthetic").exists()
-
-
-def test_the_gap_table_of_several_runs_closes_the_gap_of_the_means(tmp_path):
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("gap_table", helpers.CONFIGS.parent / "scripts" / "gap_table.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
-    for run, (trained, densevlad, truth) in {"a": (40.0, 20.0, 60.0), "b": (20.0, 20.0, 30.0)}.items():
-        (tmp_path / run).mkdir()
-        pd.DataFrame(
-            [
-                {
-                    "metric": "approximation/ewb/k3/5m_10deg",
-                    "untrained": 10.0,
-                    "trained": trained,
-                    "densevlad": densevlad,
-                    "groundtruth": "gt_relative_pose",
-                    "groundtruth_value": truth,
-                    "gap_closed_pct": 100 * (trained - densevlad) / (truth - densevlad),
-                }
-            ]
-        ).to_csv(tmp_path / run / "gap.csv", index=False)
-    text = script.markdown(script.load([tmp_path / "a", tmp_path / "b"]))
-    mean = next(line for line in text.splitlines() if "| mean" in line)
-    assert (
-        f"{100 * (30.0 - 20.0) / (45.0 - 20.0):.1f}" in mean
-    )  # the gap of the means: 40 %, not the mean of 50 % and 0 %
-    wide = script.wide_markdown(script.load([tmp_path / "a", tmp_path / "b"]))
-    assert "| mean  | 20.0 / 10.0 / 30.0 / 45.0 (40 %)" in wide and "| a     | 20.0 / 10.0 / 40.0 / 60.0 (50 %)" in wide
 
 
 @pytest.mark.parametrize("frozen_backbone", [False, True])
@@ -956,6 +948,7 @@ def test_the_report_says_which_requested_gap_row_it_cannot_fill(tmp_path, caplog
         "paradigms.approximation.k=[1,5]",
         "callbacks.localization_validation.sfm_every_n_epochs=null",
         "callbacks.best_checkpoint.monitor=val/approximation/ewb/k5/5m_10deg",
+        "optimized_metric=val/approximation/ewb/k5/5m_10deg",
         "+trainer.fast_dev_run=true",
     )
     with caplog.at_level("WARNING"):

@@ -69,7 +69,13 @@ def every_validation_metrics(settings: BenchmarkSettings, groundtruths: Collecti
     """The `metric_rows` keys logged at every validation (those a checkpoint or early stopping may
     monitor): the cheap paradigms' localization per method, k and threshold, and the retrieval
     metrics against each ground truth in ``groundtruths`` at every k within the ranking depth."""
-    paradigms = every_validation_settings(settings).paradigms
+    return validation_metrics(settings, groundtruths, with_sfm=False)
+
+
+def validation_metrics(settings: BenchmarkSettings, groundtruths: Collection[str], with_sfm: bool) -> list[str]:
+    """The `metric_rows` keys a validation logs: `every_validation_metrics`, and ``with_sfm`` those
+    of the SfM paradigms too (a validation every ``sfm_every_n_epochs``)."""
+    paradigms = (settings if with_sfm else every_validation_settings(settings)).paradigms
     thresholds = [f"{position:g}m_{rotation:g}deg" for position, rotation in settings.metrics.thresholds]
     keys = [
         f"val/{name}/{method}/k{k}/{threshold}"

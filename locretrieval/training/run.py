@@ -17,6 +17,7 @@ import lightning as L
 import numpy as np
 import torch
 from hydra.utils import instantiate
+from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.benchmark import BenchmarkSettings, sfm_plan
@@ -27,8 +28,9 @@ from locretrieval.models import NetworkDescriptor
 from locretrieval.scene import ImageSet, Scene
 from locretrieval.scene.datasets import instantiate_scene, load_synthetic_dataset
 from locretrieval.scene.kapture_io import concatenate_image_sets
-from locretrieval.training.callbacks import LocalizationValidation, every_validation_metrics
+from locretrieval.training.callbacks import LocalizationValidation, every_validation_metrics, validation_metrics
 from locretrieval.training.checkpoints import check_resume_checkpoint
+from locretrieval.training.objective import Objective
 from locretrieval.training.relevance import TrainingPairs, TrainingRelevanceSettings, combined_pairs
 from locretrieval.training.report import TrainingReportSettings, write_training_report
 
@@ -198,10 +200,11 @@ class TrainingParts:
 
 
 def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
-    """Train the configured model; returns the validation callback (its ``history``). Every
-    object is built from its config group (`built`); what can be checked without the scene (the
-    sections and object nodes, the resumed checkpoint, the metrics checkpoints monitor) is
-    checked before it is prepared."""
+    """Train the configured model; returns the validation callback (its ``history``; `optimized_value`:
+    what train.py returns). Every object is built from its config group (`built`); what can be
+    checked without the scene (the sections and object nodes, the resumed checkpoint, the metrics
+    checkpoints monitor, the ``optimized_metric``) is checked before it is prepared."""
+    started = time.perf_counter()
     L.seed_everything(int(cfg.seed), workers=True)
     settings = BenchmarkSettings.from_config(cfg)
     training = validated(TrainingSettings, cfg.training, "training")
@@ -210,6 +213,8 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     report = validated(TrainingReportSettings, cfg.report, "report")
     unfilled = unfilled_report_rows(cfg, report, training.validation.settings(settings), groundtruth_settings)
     callbacks = checked_callbacks(cfg, settings, groundtruth_settings)
+    sfm_validated = cfg.callbacks.localization_validation.get("sfm_every_n_epochs") is not None
+    Objective.from_config(cfg).check(validation_metrics(settings, list(groundtruth_settings.parsed()), sfm_validated))
     output_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, output_dir / "config.yaml", resolve=True)
     cache_dir = Path(cfg.paths.cache_dir)
@@ -257,9 +262,21 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     trainer.fit(module, datamodule=parts.datamodule, ckpt_path=cfg.get("ckpt_path"))
     if trainer.is_global_zero:
         write_training_report(validator, output_dir, report, unfilled)
-        summary = {"SfM stages per validation": validator.sfm_stages}  # forecast and measured seconds per stage
+        summary = {
+            "seconds": round(time.perf_counter() - started, 1),  # the whole run: the sweep summary's time
+            "SfM stages per validation": validator.sfm_stages,  # forecast and measured seconds per stage
+        }
         (output_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return validator
+
+
+def optimized_value(cfg: DictConfig, validator: LocalizationValidation) -> float | None:
+    """What train.py returns, a sweep's objective: the ``optimized_metric`` at the
+    ``optimized_validation`` (`Objective`), the value ``validation.csv`` holds; None on the DDP
+    ranks other than 0, which do not validate."""
+    if rank_zero_only.rank != 0:
+        return None
+    return Objective.from_config(cfg).value(validator.history_table())[1]
 
 
 def unfilled_report_rows(

@@ -1,0 +1,249 @@
+"""Sweeps of train.py: the objective it returns, the Optuna study of ``hparams_search=localization``
+(parallel, resumed after a kill), and the summary of a sweep's trials."""
+
+import json
+import math
+import os
+import re
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+
+import helpers
+import pandas as pd
+import pytest
+from omegaconf import OmegaConf
+
+from locretrieval.config import ConfigError
+from locretrieval.training.objective import Objective
+from locretrieval.training.summary import write_summary
+
+ROOT = helpers.CONFIGS.parent
+METRIC = "val/approximation/ewb/k3/5m_10deg"
+
+
+def validation_table(rows):
+    return pd.DataFrame(rows, columns=["epoch", "metric", "value"])
+
+
+def test_the_objective_is_the_metric_at_its_best_or_last_validation_after_training():
+    table = validation_table(
+        [(-1, METRIC, 90.0), (0, METRIC, 20.0), (1, METRIC, 40.0), (2, METRIC, 30.0), (1, "val/other", 99.0)]
+    )
+    assert Objective(METRIC, "best").value(table) == (1, 40.0)  # before training (90) does not count
+    assert Objective(METRIC, "last").value(table) == (2, 30.0)
+    sfm = "val/global_sfm/pnp/k5/0.25m_2deg"  # logged every sfm_every_n_epochs: its last validation is the last
+    assert Objective(sfm, "last").value(validation_table([(-1, sfm, 5.0), (1, sfm, 7.0), (2, METRIC, 1.0)])) == (1, 7.0)
+    with pytest.raises(ValueError, match=r"optimized_metric: 'val/missing' was not logged .* val/approximation/ewb/k3"):
+        Objective("val/missing", "best").value(table)
+    for bad in (float("nan"), float("-inf")):
+        broken = validation_table([(0, METRIC, 20.0), (1, METRIC, bad)])
+        with pytest.raises(ValueError, match=rf"optimized_metric: '{METRIC}' is {bad} .* epoch 1, not a finite"):
+            Objective(METRIC, "best").value(broken)
+    with pytest.raises(ConfigError, match=r"optimized_validation: 'first'; expected one of \['best', 'last'\]"):
+        Objective.from_config(OmegaConf.create({"optimized_metric": METRIC, "optimized_validation": "first"}))
+
+
+def test_an_objective_that_validation_never_logs_is_refused_before_the_scene_is_prepared(tmp_path):
+    from test_training import train_config
+
+    from locretrieval.training.run import train
+
+    sfm = "val/global_sfm/pnp/k5/0.25m_2deg"  # the test config validates without the SfM paradigms
+    for metric in ("val/approximation/ewb/k4/5m_10deg", sfm):
+        cfg = train_config(tmp_path, f"optimized_metric={metric}")
+        with pytest.raises(
+            ConfigError, match=rf"optimized_metric: '{metric}' is not logged by validation; .* {METRIC}"
+        ):
+            train(cfg, tmp_path / "run")
+        assert not (Path(cfg.paths.cache_dir) / "synthetic").exists()
+    cfg = train_config(tmp_path, f"optimized_metric={sfm}", "callbacks.localization_validation.sfm_every_n_epochs=1")
+    from locretrieval.training.callbacks import validation_metrics  # accepted once the SfM paradigms are validated
+    from locretrieval.training.run import BenchmarkSettings
+
+    assert sfm in validation_metrics(BenchmarkSettings.from_config(cfg), ["relative_pose"], with_sfm=True)
+
+
+def test_the_search_space_names_keys_of_the_training_config():
+    """Every swept key exists in train.py's config (a renamed key would fail each trial), each
+    loss's parameters in that loss's node; the study resumes from a fixed folder."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(helpers.CONFIGS), version_base="1.3"):
+        cfg = compose(config_name="train", overrides=["hparams_search=localization"], return_hydra_config=True)
+    sweeper = cfg.hydra.sweeper
+    assert sweeper._target_ == "hydra_plugins.locretrieval_sweeper.resumable_optuna.ResumableOptunaSweeper"
+    assert sweeper.sampler.seed == 0 and "now" not in OmegaConf.to_container(cfg.hydra.sweep)["dir"]
+    for key in sweeper.params:
+        assert key == "loss" or OmegaConf.select(cfg, key, default="missing") != "missing", key
+    losses = re.fullmatch(r"choice\((.*)\)", sweeper.params.loss).group(1).split(", ")
+    assert (
+        sorted(losses) == sorted(cfg.loss_search_space) == sorted(p.stem for p in (helpers.CONFIGS / "loss").glob("*"))
+    )
+    for loss, ranges in cfg.loss_search_space.items():
+        node = helpers.compose_config("train", "hparams_search=localization", f"loss={loss}")
+        for key in ranges:
+            assert OmegaConf.select(node, key, default="missing") != "missing", (loss, key)
+
+
+def test_a_study_started_by_another_command_is_refused_and_a_resumed_sampler_draws_anew(tmp_path):
+    import optuna
+
+    from locretrieval.training.sweeps import check_same_command, reseeded
+
+    study = optuna.create_study(study_name="s", storage=f"sqlite:///{tmp_path / 'optuna.db'}", direction="maximize")
+    check_same_command(study, ["debug=quick", "seed=1"], {"optimizer.lr": "interval(0.1, 0.2)"})
+    check_same_command(study, ["seed=1", "debug=quick"], {"optimizer.lr": "interval(0.1, 0.2)"})  # the same command
+    with pytest.raises(ValueError, match=r"study 's' was started by another command .*'seed=2'.*study_name="):
+        check_same_command(study, ["debug=quick", "seed=2"], {"optimizer.lr": "interval(0.1, 0.2)"})
+    with pytest.raises(ValueError, match=r"started by another command .*interval\(0.1, 0.3\)"):
+        check_same_command(study, ["debug=quick", "seed=1"], {"optimizer.lr": "interval(0.1, 0.3)"})
+    node = OmegaConf.create({"_target_": "optuna.samplers.TPESampler", "seed": 0})
+    first = optuna.samplers.TPESampler(seed=0)
+    resumed = reseeded(first, node, 2)  # two trials in the study: seed 2
+    draws = [
+        optuna.create_study(sampler=sampler).ask().suggest_float("x", 0, 1)
+        for sampler in (first, resumed, optuna.samplers.TPESampler(seed=2))
+    ]
+    assert draws[1] == draws[2] != draws[0]
+
+
+def gap_run(folder: Path, label: str, objective: float, rows: list[tuple], seconds: float = 12.0) -> Path:
+    """A finished train.py run's files as the summary reads them: ``gap.csv`` of ``rows``
+    (metric, untrained, trained, densevlad, ground truth), validation.csv, summary.json, config.yaml, .hydra."""
+    run = folder / label
+    (run / ".hydra").mkdir(parents=True)
+    config = OmegaConf.create({"optimized_metric": METRIC, "optimized_validation": "best"})
+    OmegaConf.save(config, run / "config.yaml")  # train.py writes it
+    OmegaConf.save(OmegaConf.create([f"seed={label}", "debug=quick"]), run / ".hydra" / "overrides.yaml")
+    gap = pd.DataFrame(
+        [
+            {"metric": m, "untrained": u, "trained": t, "densevlad": d, "groundtruth": "gt_relative_pose",
+             "groundtruth_value": g, "gap_closed_pct": 100 * (t - d) / (g - d) if g != d else float("nan")}
+            for m, u, t, d, g in rows
+        ]
+    )  # fmt: skip
+    gap.to_csv(run / "gap.csv", index=False)
+    validation_table([(-1, METRIC, 1.0), (0, METRIC, objective - 1), (1, METRIC, objective)]).to_csv(
+        run / "validation.csv", index=False
+    )
+    (run / "summary.json").write_text(json.dumps({"seconds": seconds}))
+    return run
+
+
+def test_the_summary_of_runs_marks_the_best_closes_the_gap_of_the_means_and_says_why_a_gap_is_undefined(tmp_path):
+    p1, sfm = "approximation/ewb/k3/5m_10deg", "global_sfm/pnp/k5/0.25m_2deg"
+    runs = [
+        gap_run(tmp_path, "a", 40.0, [(p1, 10.0, 40.0, 20.0, 60.0), (sfm, 50.0, 55.0, 50.0, 50.0)]),
+        gap_run(tmp_path, "b", 20.0, [(p1, 10.0, 20.0, 20.0, 30.0), (sfm, 50.0, 60.0, 40.0, 70.0)]),
+    ]
+    unfinished = tmp_path / "c"
+    (unfinished / ".hydra").mkdir(parents=True)
+    pd.DataFrame({"epoch": [-1], "metric": [METRIC], "value": [1.0]}).to_csv(unfinished / "validation.csv", index=False)
+    OmegaConf.save(OmegaConf.create(["seed=c", "debug=quick"]), unfinished / ".hydra" / "overrides.yaml")
+    markdown = write_summary([*runs, unfinished], tmp_path / "out").read_text()
+    lines = {line.split("|")[1].strip(): line for line in markdown.splitlines() if line.startswith("| ")}
+    assert "20.0 / 10.0 / 40.0 / 60.0 (50 %)" in lines["a (best)"]  # (40 - 20) / (60 - 20)
+    assert "50.0 / 50.0 / 55.0 / 50.0 (gap undefined: the ground truth equals densevlad)" in lines["a (best)"]
+    assert "20.0 / 10.0 / 20.0 / 30.0 (0 %)" in lines["b"] and "40.0 / 50.0 / 60.0 / 70.0 (67 %)" in lines["b"]
+    # the gap of the means, not the mean of 50 % and 0 %
+    assert "20.0 / 10.0 / 30.0 / 45.0 (40 %)" in lines["mean of 2"]
+    assert "45.0 / 50.0 / 57.5 / 60.0 (83 %)" in lines["mean of 2"]  # (57.5 - 45) / (60 - 45)
+    assert "no summary.json: it did not finish" in lines["c"] and "seed=c" in lines["c"]
+    assert not re.search(r"\bnan\b|\binf\b", markdown, re.IGNORECASE)
+    table = pd.read_csv(tmp_path / "out" / "summary.csv")
+    assert table["best"].tolist() == [True, False, False] and table["objective"].tolist()[:2] == [40.0, 20.0]
+    assert math.isnan(table.loc[0, f"{sfm} gap_closed_pct"]) and table.loc[0, f"{sfm} why"].startswith("gap undefined")
+    assert (tmp_path / "out" / "summary.html").read_text().count("<tr>") == 5  # header, 3 trials, the mean
+
+
+#: The documented sweep, three trials of the quick run, in parallel through the joblib launcher (its
+#: default workers), run where the tests cannot write: everything under the test's folder.
+SWEEP = ["-m", "hparams_search=localization", "debug=quick", "hydra/launcher=joblib_local", "hydra.sweeper.n_trials=3"]
+
+
+def sweep(root: Path, log: Path) -> subprocess.Popen:
+    """The sweep in its own session (killed with its workers), its output into ``log`` (a pipe
+    nobody reads while the test waits would fill and stop it)."""
+    command = [sys.executable, str(ROOT / "train.py"), *SWEEP, f"paths.root_dir={root}"]
+    with log.open("w") as output:
+        return subprocess.Popen(command, cwd=root, stdout=output, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def trials(database: Path) -> list[tuple[int, str, float | None]]:
+    """``(number, state, value)`` of every trial of the SQLite study, read with sqlite3 alone."""
+    with sqlite3.connect(database) as connection:
+        return connection.execute(
+            "SELECT t.number, t.state, v.value FROM trials t LEFT JOIN trial_values v ON v.trial_id = t.trial_id "
+            "ORDER BY t.number"
+        ).fetchall()
+
+
+def logged_interval(job: Path) -> tuple[datetime, datetime]:
+    """When a job's train.log started and ended."""
+    stamps = re.findall(r"^\[(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+)\]", (job / "train.log").read_text(), re.MULTILINE)
+    return tuple(datetime.strptime(stamp, "%Y-%m-%d %H:%M:%S,%f") for stamp in (stamps[0], stamps[-1]))
+
+
+@pytest.mark.slow
+def test_an_optuna_sweep_killed_after_its_first_trial_resumes_without_running_it_again(tmp_path):
+    folder = tmp_path / "multirun" / "train" / "localization"  # hparams_search's fixed sweep folder
+    killed, deadline = sweep(tmp_path, tmp_path / "killed.log"), time.monotonic() + 900
+    while not list(folder.glob("*/summary.json")):
+        assert killed.poll() is None and time.monotonic() < deadline, (tmp_path / "killed.log").read_text()[-3000:]
+        time.sleep(0.2)
+    os.killpg(killed.pid, signal.SIGKILL)  # the sweep and its joblib workers
+    killed.wait()
+    log = (tmp_path / "killed.log").read_text()
+    assert "Joblib.Parallel(n_jobs=2" in log and "is launching 2 jobs" in log
+    started = trials(folder / "optuna.db")
+    finished = {path: path.stat().st_mtime_ns for path in folder.glob("*/summary.json")}
+    assert len(started) == 2 and len(finished) >= 1  # the first batch: a trial finished, maybe both
+    jobs = {int(path.name.split("_")[0]): path for path in folder.iterdir() if path.is_dir()}
+    (first_start, first_end), (second_start, second_end) = logged_interval(jobs[0]), logged_interval(jobs[1])
+    assert first_start < second_end and second_start < first_end  # the two trials of the batch ran at once
+
+    resumed = sweep(tmp_path, tmp_path / "resumed.log")
+    assert resumed.wait(timeout=900) == 0, (tmp_path / "resumed.log").read_text()[-3000:]
+    study = trials(folder / "optuna.db")
+    interrupted = len(started) - len(finished)
+    assert [state for _, state, _ in study].count("COMPLETE") == 3
+    assert len(study) == 3 + interrupted  # an interrupted trial ran once more, a finished one not again
+    assert {path: path.stat().st_mtime_ns for path in finished} == finished
+    jobs = {int(path.name.split("_")[0]): path for path in folder.iterdir() if path.is_dir()}
+    for number, state, value in study:
+        if state == "COMPLETE":  # the value main returned (or, for a job finished before the kill, read back)
+            history = pd.read_csv(jobs[number] / "validation.csv")
+            expected = history[(history["metric"] == METRIC) & (history["epoch"] >= 0)]["value"].max()
+            assert math.isfinite(value) and value == expected, number
+
+    import optuna
+
+    loaded = optuna.load_study(study_name="localization", storage=f"sqlite:///{folder / 'optuna.db'}")
+    search = helpers.compose_config("train", "hparams_search=localization").loss_search_space
+    for trial in loaded.trials:  # each trial drew its own loss's parameters and no other loss's
+        drawn = {key for key in trial.params if key.startswith("loss.")}
+        assert drawn == set(search[trial.params["loss"]]), trial.params
+
+    best = max((value, number) for number, state, value in study if state == "COMPLETE")[1]
+    summary = pd.read_csv(folder / "summary.csv")
+    assert summary["trial"].astype(int).tolist() == [number for number, _, _ in study]
+    assert summary.loc[summary["best"], "trial"].astype(int).tolist() == [best]
+    markdown = (folder / "summary.md").read_text()
+    assert f"| {best} (best)" in markdown and "## Optuna study `localization`" in markdown
+    assert not re.search(r"\bnan\b|\binf\b", markdown, re.IGNORECASE)
+    figures = (folder / "optuna.html").read_text()
+    assert "Optimization History Plot" in figures and "plotly" in figures
+
+    regenerated = subprocess.run(
+        [sys.executable, str(ROOT / "report.py"), str(folder), "--output", str(tmp_path / "report")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert regenerated.returncode == 0, regenerated.stderr[-3000:]
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "report" / "summary.csv"), summary)
