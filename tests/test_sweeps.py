@@ -163,7 +163,17 @@ def test_the_summary_of_runs_marks_the_best_closes_the_gap_of_the_means_and_says
 
 #: The documented sweep, three trials of the quick run, in parallel through the joblib launcher (its
 #: default workers), run where the tests cannot write: everything under the test's folder.
-SWEEP = ["-m", "hparams_search=localization", "debug=quick", "hydra/launcher=joblib_local", "hydra.sweeper.n_trials=3"]
+#: The documented study with the default workers, its trials quick runs of one epoch validated by paradigm 1 alone.
+SWEEP = [
+    "-m",
+    "hparams_search=localization",
+    "debug=quick",
+    "hydra/launcher=joblib_local",
+    "hydra.sweeper.n_trials=3",
+    "trainer.max_epochs=1",
+    "paradigms.local_sfm.enabled=false",
+    "paradigms.global_sfm.enabled=false",
+]
 
 
 def sweep(root: Path, log: Path) -> subprocess.Popen:
