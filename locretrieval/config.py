@@ -131,6 +131,31 @@ MOVED_KEYS = {
         f"subsets.maskrcnn_{key}": f"subsets.mask_sources.maskrcnn.{key}"
         for key in ("weights", "min_size", "score_threshold", "mask_threshold")
     },
+    # the training config nests as its objects do: the module's loss, optimizer and scheduler
+    **{
+        f"{part}.{key}": f"module.{part}.{key}"
+        for part, keys in {
+            "loss": (
+                "temperature",
+                "target_temperature",
+                "bins",
+                "margin",
+                "max_triplets_per_anchor",
+                "pos_margin",
+                "neg_margin",
+                "distance",
+                "reducer",
+                "loss",
+                "loss.alpha",
+                "loss.beta",
+                "loss.base",
+            ),
+            "optimizer": ("lr", "weight_decay"),
+            "scheduler": ("T_max",),
+        }.items()
+        for key in keys
+    },  # fmt: skip
+    "module.memory_size": "memory=cross_batch module.memory.size",
 }
 
 
