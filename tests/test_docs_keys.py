@@ -24,17 +24,19 @@ def _paths(node, prefix: tuple[str, ...]):
 
 
 def config_keys() -> set[tuple[str, ...]]:
-    """Every key path any config file defines, under the package it lands in (its group's path,
-    or the root for ``@package _global_`` files and the primary configs), those of the composed
-    entry points (a default placed by its defaults list) and Hydra's own."""
+    """Every key path any config file defines, under the package it lands in (its group's path, the
+    package of its ``@package`` header, or the root for ``@package _global_`` files and the primary
+    configs), those of the composed entry points (a default placed by its defaults list) and Hydra's
+    own."""
     keys = set(_paths(OmegaConf.to_container(OmegaConf.structured(HydraConf)), ("hydra",)))
     for path in CONFIGS.rglob("*.yaml"):
         text = path.read_text()
         group = path.relative_to(CONFIGS).parent.parts
+        package = re.search(r"^# @package (\S+)", text, flags=re.M)  # the file's header: where it lands
         if "@package _global_" in text or not group:
             prefix: tuple[str, ...] = ()
-        elif group[0] == "hydra":
-            prefix = group
+        elif package:
+            prefix = tuple(package.group(1).split("."))  # e.g. module.loss
         else:
             prefix = group
         keys |= set(_paths(yaml.safe_load(text) or {}, prefix))
