@@ -132,3 +132,19 @@ def test_train_py_trains_with_a_memory(tmp_path):
     validator = train(cfg, tmp_path / "run")
     assert [entry["epoch"] for entry in validator.history] == [-1, 0]
     assert np.isfinite(validator.history[-1]["val/approximation/ewb/k3/5m_10deg"])
+
+
+def test_a_memory_of_size_zero_is_the_loss_of_the_batch_alone():
+    """``module.memory.size=0`` (the sweep's "no memory"): the wrapped loss of each batch as it is,
+    nothing remembered; a negative size is refused naming the key."""
+    pairs = random_pairs(12, 5)
+    descriptors = unit(12, 5, 6)
+    loss = ListwiseLoss(temperature=0.1, target_temperature=0.2)
+    memory = CrossBatchMemory(loss, pairs, size=0)
+    for batch in (np.arange(6), np.arange(6, 12)):
+        relevance, negatives = (torch.from_numpy(block) for block in pairs.batch(batch))
+        value = memory(descriptors[batch], relevance, negatives, torch.from_numpy(batch))
+        assert value.item() == loss(descriptors[batch], relevance, negatives).item()
+    assert memory.memory is None
+    with pytest.raises(ValueError, match="size: must be >= 0"):
+        CrossBatchMemory(loss, pairs, size=-1)
