@@ -48,6 +48,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from scipy.spatial.transform import Rotation
 from sfm_world import FeatureWorld
@@ -185,7 +186,10 @@ def scene_rankings(
     """The five rankings of a run (faiss on the descriptors, the relative-pose, frustum and
     synthetic co-observation ground truths, random) and the ground truths; ``timed(label, f, ...)`` calls each step."""
     database, queries = scene.database, scene.queries
-    ranking = timed("retrieval (faiss, top 50)", search, query_descriptors, database_descriptors, DEPTH)
+    chunk_size = OmegaConf.load(CONFIGS / "retrieval" / "default.yaml").chunk_size  # evaluate.py's
+    ranking = timed(
+        "retrieval (faiss, top 50)", search, query_descriptors, database_descriptors, DEPTH, "descriptor", chunk_size
+    )
     groundtruths = {
         "relative_pose": timed(
             "ground truth: relative pose (25 m, 45 deg)",
@@ -195,6 +199,7 @@ def scene_rankings(
             depth=DEPTH,
             position_threshold=25.0,
             rotation_threshold=45.0,
+            ranked="within_thresholds",
         ),
         "frustum": timed(
             "ground truth: frustum (0.1-50 m)",
@@ -283,7 +288,7 @@ def run_size(args: argparse.Namespace) -> None:
 
     tracemalloc.start()
     rankings, groundtruths = scene_rankings(scene, database_descriptors, query_descriptors, rng, args.seed, measure)
-    settings = approximation.ApproximationSettings(enabled=True, k=KS, methods=list(approximation.METHODS), alpha=8.0)
+    settings = approximation_settings()
     estimates = measure("paradigm 1: descriptor (ewb, bdi, csi)", approximation.run, scene, rankings[:1], settings)
     estimates += measure("paradigm 1: ground truths + random (ewb)", approximation.run, scene, rankings[1:], settings)
     subsets = {"all": np.ones(num_queries, dtype=bool)}
@@ -294,7 +299,8 @@ def run_size(args: argparse.Namespace) -> None:
             query_error_table(args.size, estimates, queries),
         ),
     )
-    relevance = measure("relevance in the top 50", relevances, groundtruths)
+    scope = instantiate(evaluate_config([]).groundtruth.relevance)  # evaluate.py's: the top-50 ranking's
+    relevance = measure("relevance in the top 50", relevances, groundtruths, scope)
     tables = measure(
         "retrieval metrics (P/R/mAP@1..50)",
         retrieval_tables,
@@ -321,21 +327,28 @@ def run_size(args: argparse.Namespace) -> None:
     sfm_at_scale(scene, rankings, descriptors_of, args, rng)
 
 
-def dataset_sfm(size: str) -> SfmSettings:
-    """The ``sfm`` settings of ``python evaluate.py data=<size>`` (its preset and ``sfm`` section)."""
+def evaluate_config(overrides: list[str]):
+    """``configs/evaluate.yaml`` composed with ``overrides``: what ``python evaluate.py`` runs."""
     from hydra import compose, initialize_config_dir
 
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        cfg = compose(config_name="evaluate", overrides=[f"data={size}"])
-    return validated(SfmSettings, cfg.sfm, "sfm")
+        return compose(config_name="evaluate", overrides=overrides)
+
+
+def dataset_sfm(size: str) -> SfmSettings:
+    """The ``sfm`` settings of ``python evaluate.py data=<size>`` (its preset and ``sfm`` section)."""
+    return validated(SfmSettings, evaluate_config([f"data={size}"]).sfm, "sfm")
+
+
+def approximation_settings() -> approximation.ApproximationSettings:
+    """Paradigm 1 as ``python evaluate.py`` runs it (every method, its weights), at the k of `KS`."""
+    section = evaluate_config([f"paradigms.approximation.k=[{','.join(map(str, KS))}]"]).paradigms.approximation
+    return validated(approximation.ApproximationSettings, section, "paradigms.approximation")
 
 
 def sfm_paradigms() -> dict[str, tuple]:
     """The SfM paradigms of ``configs/paradigms/default.yaml``: name -> (stages, settings)."""
-    from hydra import compose, initialize_config_dir
-
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        paradigms = compose(config_name="evaluate").paradigms
+    paradigms = evaluate_config([]).paradigms
     return {
         "local_sfm": (local_sfm.STAGES, validated(LocalSfmSettings, paradigms.local_sfm, "paradigms.local_sfm")),
         "global_sfm": (global_sfm.STAGES, validated(GlobalSfmSettings, paradigms.global_sfm, "paradigms.global_sfm")),
