@@ -64,7 +64,8 @@ def choices(group: str) -> list[tuple[list[str], str]]:
 
 def composed(group: str, option: str) -> tuple[DictConfig, list[str]]:
     """The first entry point composed with ``option`` of ``group`` and the keys the option sets: its
-    package, or for a ``@package _global_`` option (a preset) the top-level keys it sets."""
+    package (the defaults entry's, its ``# @package`` header's, or its group's), or for a
+    ``@package _global_`` option (a preset) the top-level keys it sets."""
     text = (CONFIGS / group / f"{option}.yaml").read_text()
     preset = [key for key in (OmegaConf.create(text) or {}) if key not in ("defaults", *NOT_GROUPS)]
     errors = []
@@ -76,9 +77,12 @@ def composed(group: str, option: str) -> tuple[DictConfig, list[str]]:
             except Exception as error:  # this entry point does not have the group, or the host
                 errors.append(f"{entry_point} {overrides}: {str(error).splitlines()[0]}")
                 continue
-            if "@package _global_" in text:
+            header = re.search(r"^# @package (\S+)", text, flags=re.M)
+            if header and header.group(1) == "_global_":
                 return cfg, preset
-            return cfg, [key.split("@", 1)[1] if "@" in key else group.replace("/", ".")]
+            if "@" in key:
+                return cfg, [key.split("@", 1)[1]]
+            return cfg, [header.group(1) if header else group.replace("/", ".")]
     pytest.fail(f"{group}={option} composes into no entry point:\n" + "\n".join(errors))
 
 
