@@ -12,7 +12,7 @@ from helpers import render_settings
 from hydra import compose, initialize_config_dir
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
-from test_kapture_io import PINHOLE, pose, write_kapture
+from kapture_folders import PINHOLE, pose, write_kapture
 
 from locretrieval.config import ConfigError
 from locretrieval.scene import Scene

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 from PIL import Image
-from test_report import GROUNDTRUTH, KS, NUM_DATABASE, NUM_QUERIES, ranking, relevance, write_run
+from report_runs import GROUNDTRUTH, KS, NUM_DATABASE, NUM_QUERIES, ranking, relevance, write_run
 
 import locretrieval.report.gallery as gallery
 from locretrieval.cache import save_arrays

@@ -21,7 +21,7 @@ from hydra.utils import instantiate
 from lightning.pytorch.utilities import rank_zero as pytorch_rank_zero
 from lightning_utilities.core import rank_zero
 from omegaconf import OmegaConf
-from test_training import SCENE, TINY_TRAINING
+from training_runs import SCENE, TINY_TRAINING
 
 from locretrieval.models.weights import load_torch_file
 from locretrieval.training.data import RelevanceBatchSampler, TrainingData, collate
