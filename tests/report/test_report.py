@@ -252,7 +252,7 @@ def test_command_line_entry_point_with_only_a_localization_table(tmp_path):
     localization("netvlad", "descriptor")[0].to_csv(run / "results.csv", index=False)
     completed = subprocess.run(
         [sys.executable, "report.py", str(run)],
-        cwd=Path(__file__).parents[1],
+        cwd=Path(__file__).parents[2],
         capture_output=True,
         text=True,
         timeout=300,
