@@ -5,14 +5,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from helpers import evaluate_config
-
-#: Markup a hostile dataset and configuration put where names go: each handler would set a global the
-#: browser test reads back, and none may ever run. ``$`` and ``\\input`` probe matplotlib and LaTeX.
-HOSTILE_QUERY_FOLDER = "<img src=x onerror=window.__pwned=8>"
-HOSTILE_TAG = "<svg/onload=window.__pwned=7>$x$"
-HOSTILE_IMAGE = "query/`<svg/onload=window.__pwned=1>`.png"  # a backtick would close a code span
-HOSTILE_MODEL = "../../../<img src=x onerror=window.__pwned=5>\\input{x}"
+from helpers import HOSTILE_IMAGE, HOSTILE_MODEL, HOSTILE_QUERY_FOLDER, HOSTILE_TAG, evaluate_config
 
 
 @dataclass(frozen=True)

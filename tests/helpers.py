@@ -1,5 +1,5 @@
 """Shared test helpers: the project's configs composed by Hydra, zoo models built from them, a
-callback that interrupts training, a network that fails on one rank."""
+callback that interrupts training, a network that fails on one rank, the hostile names of conftest's hostile run."""
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -18,6 +18,13 @@ from locretrieval.scene.synthetic import RenderSettings, render_synthetic_datase
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 #: Extraction overrides for tests: CPU, in this process, no progress bars.
 QUIET_EXTRACTION = ("device=cpu", "model.extraction.num_workers=0", "model.extraction.progress=false")
+
+#: Markup a hostile dataset and configuration put where names go: each handler would set a global the
+#: browser test reads back, and none may ever run. ``$`` and ``\\input`` probe matplotlib and LaTeX.
+HOSTILE_QUERY_FOLDER = "<img src=x onerror=window.__pwned=8>"
+HOSTILE_TAG = "<svg/onload=window.__pwned=7>$x$"
+HOSTILE_IMAGE = "query/`<svg/onload=window.__pwned=1>`.png"  # a backtick would close a code span
+HOSTILE_MODEL = "../../../<img src=x onerror=window.__pwned=5>\\input{x}"
 
 
 def compose_config(name: str, *overrides: str) -> DictConfig:

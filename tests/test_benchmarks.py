@@ -44,7 +44,7 @@ def test_benchmark_runs_at_a_tiny_size(script):
 
 
 def test_training_benchmark_prints_the_loop_on_one_and_on_two_ddp_processes(tmp_path):
-    from test_training import SCENE, TINY_TRAINING
+    from training_runs import SCENE, TINY_TRAINING
 
     tiny = [f"data.render.{key}={value}" for key, value in SCENE.items() if key != "conditions"]
     tiny += [override for override in TINY_TRAINING if not override.startswith("callbacks.")]

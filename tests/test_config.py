@@ -213,7 +213,7 @@ def test_the_training_groups_compose_under_the_module_and_instantiate_with_it(ov
     nest under it (module.loss, module.optimizer, module.scheduler, module.memory) as the objects
     do, and Hydra builds them with it (`training_module`'s call), each with its YAML's values."""
     import torch
-    from test_memory import random_pairs
+    from training_runs import random_pairs
 
     from locretrieval.config import built
     from locretrieval.models.extraction import Preprocessing
@@ -252,7 +252,7 @@ def test_an_old_spelling_of_a_training_key_is_refused_naming_the_nested_one(tmp_
     """``python train.py loss.margin=0.2`` (before the nesting) is refused naming
     ``module.loss.margin``; a config file's top-level ``optimizer:`` section, naming
     ``module.optimizer``, before any work."""
-    from test_training import train_config
+    from training_runs import train_config
 
     from locretrieval.training.run import train
 

@@ -19,7 +19,7 @@ from omegaconf.errors import MissingMandatoryValue
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 ENTRY_POINTS = ("evaluate", "train")
-#: Not groups of the entry points: Hydra's own launchers and sweepers (Hydra builds them; tests/test_sweeps.py).
+#: Not groups of the entry points: Hydra's launchers and sweepers (Hydra builds them; tests/training/test_sweeps.py).
 NOT_GROUPS = {"hydra"}
 #: A defaults-list entry: ``- [optional] group[@package]: option``.
 DEFAULT_ENTRY = re.compile(r"^\s*-\s*(?:optional\s+)?/?([\w/]+)(@[\w.]+)?\s*:\s*[\w\-]+", re.M)

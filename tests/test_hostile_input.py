@@ -127,7 +127,7 @@ def test_local_feature_file_of_the_wrong_size_names_file_and_row_size(tmp_path):
 
 
 def phone_folder(tmp_path: Path, names: dict[tuple[int, str], str]) -> Path:
-    from test_kapture_io import PINHOLE, pose, write_kapture
+    from kapture_folders import PINHOLE, pose, write_kapture
 
     start, _ = pose("z", 1.0, [0.0, 0.0, 0.0])
     return write_kapture(tmp_path / "query", {"phone": PINHOLE}, names, {key: start for key in names})
@@ -244,7 +244,7 @@ def test_workers_exit_when_their_parent_dies_while_they_start(tmp_path):
 
 def test_a_negative_focal_length_names_the_sensor_line(tmp_path):
     import kapture
-    from test_kapture_io import write_kapture
+    from kapture_folders import write_kapture
 
     from locretrieval.scene.kapture_io import load_image_set
 
@@ -265,7 +265,7 @@ def files_below(folder: Path) -> set[Path]:
 
 
 def test_a_hostile_run_writes_only_in_its_run_and_cache_folders(hostile_run):
-    from conftest import HOSTILE_MODEL
+    from helpers import HOSTILE_MODEL
 
     outside = {
         path
@@ -298,7 +298,7 @@ def report_markup(page: str) -> tuple[set[str], list[tuple[str, str]]]:
 
 
 def test_dataset_and_config_text_is_escaped_in_every_report_format(hostile_run):
-    from conftest import HOSTILE_IMAGE, HOSTILE_MODEL, HOSTILE_QUERY_FOLDER, HOSTILE_TAG
+    from helpers import HOSTILE_IMAGE, HOSTILE_MODEL, HOSTILE_QUERY_FOLDER, HOSTILE_TAG
 
     from locretrieval.report.html import ALLOWED_TAGS
 
@@ -364,7 +364,7 @@ def test_image_names_stay_inside_their_kapture_folder(tmp_path, name, problem):
 )
 def test_camera_parameters_are_finite_and_the_principal_point_inside_the_image(tmp_path, parameters, problem):
     import kapture
-    from test_kapture_io import write_kapture
+    from kapture_folders import write_kapture
 
     from locretrieval.scene.kapture_io import load_image_set
 
@@ -375,7 +375,7 @@ def test_camera_parameters_are_finite_and_the_principal_point_inside_the_image(t
 
 
 def test_a_query_folder_that_is_the_mapping_folder_is_refused_naming_both(tmp_path):
-    from test_kapture_io import PINHOLE, pose, write_kapture
+    from kapture_folders import PINHOLE, pose, write_kapture
 
     from locretrieval.scene.kapture_io import load_kapture_scene
 

@@ -53,7 +53,7 @@ def test_matplotlib_is_imported_only_by_the_process_that_draws(tmp_path):
         return loaded_after(f"""
 sys.path.insert(0, {str(Path(__file__).parent)!r})
 from pathlib import Path
-from test_report import write_run
+from report_runs import write_run
 from locretrieval.report import build_report
 if __name__ == "__main__":
     run = write_run(Path({str(tmp_path)!r}) / "run_{len(formats)}_{workers}", ["netvlad"])

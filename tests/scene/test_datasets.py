@@ -12,14 +12,14 @@ from helpers import render_settings
 from hydra import compose, initialize_config_dir
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
-from test_kapture_io import PINHOLE, pose, write_kapture
+from kapture_folders import PINHOLE, pose, write_kapture
 
 from locretrieval.config import ConfigError
 from locretrieval.scene import Scene
 from locretrieval.scene.datasets import DatasetNotFoundError, instantiate_scene
 from locretrieval.scene.ltvl import KaptureNames, LtvlNames, WithoutFirstFolder, write_ltvl
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 DATASETS = ["aachen", "baidu", "robotcar", "robotcar_v2", "gangnam", "inloc"]
 
 
@@ -249,7 +249,7 @@ def test_a_missing_dataset_is_reported_once_with_its_lines_as_written(tmp_path):
     import subprocess
     import sys
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     command = [sys.executable, str(root / "evaluate.py"), "data=baidu", f"paths.root_dir={tmp_path}",
                f"paths.data_dir={tmp_path}/nowhere", f"hydra.run.dir={tmp_path}/run"]  # fmt: skip
     completed = subprocess.run(command, cwd=root, capture_output=True, text=True, timeout=300)

@@ -6,7 +6,7 @@ import helpers
 import pytest
 import torch
 from hydra.utils import instantiate
-from test_training import train_config
+from training_runs import train_config
 
 from locretrieval.config import SettingError
 from locretrieval.models.networks import GeMPooling, RetrievalNet

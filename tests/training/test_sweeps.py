@@ -1,7 +1,6 @@
 """Sweeps of train.py: the objective it returns, the Optuna study of ``hparams_search=localization``
 (parallel, resumed after a kill), and the summary of a sweep's trials."""
 
-import json
 import math
 import os
 import re
@@ -17,17 +16,13 @@ import helpers
 import pandas as pd
 import pytest
 from omegaconf import OmegaConf
+from training_runs import METRIC, gap_run, validation_table
 
 from locretrieval.config import ConfigError
 from locretrieval.training.objective import Objective
 from locretrieval.training.summary import write_summary
 
 ROOT = helpers.CONFIGS.parent
-METRIC = "val/approximation/ewb/k3/5m_10deg"
-
-
-def validation_table(rows):
-    return pd.DataFrame(rows, columns=["epoch", "metric", "value"])
 
 
 def test_the_objective_is_the_metric_at_its_best_or_last_validation_after_training():
@@ -49,7 +44,7 @@ def test_the_objective_is_the_metric_at_its_best_or_last_validation_after_traini
 
 
 def test_an_objective_that_validation_never_logs_is_refused_before_the_scene_is_prepared(tmp_path):
-    from test_training import train_config
+    from training_runs import train_config
 
     from locretrieval.training.run import train
 
@@ -112,29 +107,6 @@ def test_a_study_started_by_another_command_is_refused_and_a_resumed_sampler_dra
         for sampler in (first, resumed, optuna.samplers.TPESampler(seed=2))
     ]
     assert draws[1] == draws[2] != draws[0]
-
-
-def gap_run(folder: Path, label: str, objective: float, rows: list[tuple], seconds: float = 12.0) -> Path:
-    """A finished train.py run's files as the summary reads them: ``gap.csv`` of ``rows``
-    (metric, untrained, trained, densevlad, ground truth), validation.csv, summary.json, config.yaml, .hydra."""
-    run = folder / label
-    (run / ".hydra").mkdir(parents=True)
-    config = OmegaConf.create({"optimized_metric": METRIC, "optimized_validation": "best"})
-    OmegaConf.save(config, run / "config.yaml")  # train.py writes it
-    OmegaConf.save(OmegaConf.create([f"seed={label}", "debug=quick"]), run / ".hydra" / "overrides.yaml")
-    gap = pd.DataFrame(
-        [
-            {"metric": m, "untrained": u, "trained": t, "densevlad": d, "groundtruth": "gt_relative_pose",
-             "groundtruth_value": g, "gap_closed_pct": 100 * (t - d) / (g - d) if g != d else float("nan")}
-            for m, u, t, d, g in rows
-        ]
-    )  # fmt: skip
-    gap.to_csv(run / "gap.csv", index=False)
-    validation_table([(-1, METRIC, 1.0), (0, METRIC, objective - 1), (1, METRIC, objective)]).to_csv(
-        run / "validation.csv", index=False
-    )
-    (run / "summary.json").write_text(json.dumps({"seconds": seconds}))
-    return run
 
 
 def test_the_summary_of_runs_marks_the_best_closes_the_gap_of_the_means_and_says_why_a_gap_is_undefined(tmp_path):

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 from PIL import Image
-from test_report import GROUNDTRUTH, KS, NUM_DATABASE, NUM_QUERIES, ranking, relevance, write_run
+from report_runs import GROUNDTRUTH, KS, NUM_DATABASE, NUM_QUERIES, ranking, relevance, write_run
 
 import locretrieval.report.gallery as gallery
 from locretrieval.cache import save_arrays
@@ -160,7 +160,7 @@ def test_worst_queries_are_the_largest_mean_capped_errors_and_random_ones_are_se
 
 
 def gallery_run(tmp_path: Path) -> tuple[Path, list, list]:
-    """The toy run of test_report, with solid-colour images and the files galleries read."""
+    """The toy run of report_runs.py, with solid-colour images and the files galleries read."""
     run = write_run(tmp_path / "run", ["netvlad"])
     database_colours, query_colours = palette(NUM_DATABASE), palette(NUM_QUERIES, offset=NUM_DATABASE)
     solid_images(tmp_path / "images", database_colours, [f"db{i}.png" for i in range(NUM_DATABASE)])

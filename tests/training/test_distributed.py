@@ -21,13 +21,13 @@ from hydra.utils import instantiate
 from lightning.pytorch.utilities import rank_zero as pytorch_rank_zero
 from lightning_utilities.core import rank_zero
 from omegaconf import OmegaConf
-from test_training import SCENE, TINY_TRAINING
+from training_runs import SCENE, TINY_TRAINING
 
 from locretrieval.models.weights import load_torch_file
 from locretrieval.training.data import RelevanceBatchSampler, TrainingData, collate
 from locretrieval.training.distributed import Ranks
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 #: train.py's overrides of the tiny runs: the scene, short trainings (4 sampler batches an epoch).
 TINY_RUN = [
     *(f"data.render.{key}={value}" for key, value in SCENE.items() if key != "conditions"),
@@ -130,7 +130,13 @@ def steps(tmp_path_factory):
     root = tmp_path_factory.mktemp("ddp_steps")
     helpers.rendered_scene(root / "scene", SCENE)
     done = subprocess.run(
-        [sys.executable, str(ROOT / "tests" / "ddp_steps.py"), str(root / "scene"), str(root / "two"), "2"],
+        [
+            sys.executable,
+            str(ROOT / "tests" / "training" / "ddp_steps.py"),
+            str(root / "scene"),
+            str(root / "two"),
+            "2",
+        ],
         capture_output=True,
         text=True,
         timeout=300,

@@ -1,9 +1,9 @@
-"""Training steps of every loss under Lightning on the CPU, for tests/test_training_ddp.py: on
+"""Training steps of every loss under Lightning on the CPU, for tests/training/test_distributed.py: on
 ``processes`` DDP processes (gloo; Lightning launches the others by running this script again),
 each drawing its batches by global rank, or on one process given, at each step, the union of the
 batches the ranks of ``RANKS`` processes draw.
 
-    python tests/ddp_steps.py <rendered scene folder> <output folder> <processes>
+    python tests/training/ddp_steps.py <rendered scene folder> <output folder> <processes>
 
 Per loss (``configs/loss/<name>.yaml``) and rank, ``<output>/<loss>-rank<r>.npz`` holds the loss
 of each step, the network's parameters after each step and the memory's images; then the hard
@@ -21,7 +21,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 #: The losses of configs/loss/, multi_similarity through the pytorch-metric-learning adapter.
 LOSSES = ("listwise", "ap", "triplet", "contrastive", "multi_similarity")
 #: The DDP processes whose batches one process is given joined.
@@ -152,5 +152,5 @@ def main(scene_dir: Path, out: Path, processes: int) -> None:
 
 
 if __name__ == "__main__":
-    sys.path.insert(0, str(Path(__file__).resolve().parent))  # helpers
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # helpers
     main(Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3]))

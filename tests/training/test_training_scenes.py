@@ -7,8 +7,8 @@ import helpers
 import numpy as np
 import pytest
 from hydra.utils import instantiate
-from test_published_layouts import LAYOUTS, SCENE, install, write_kapture_folder
-from test_training import train_config
+from published_layouts import LAYOUTS, SCENE, install, write_kapture_folder
+from training_runs import train_config
 
 from locretrieval.benchmark import BenchmarkSettings
 from locretrieval.config import ConfigError, validated

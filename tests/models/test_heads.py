@@ -11,7 +11,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 from omegaconf import OmegaConf
-from test_training import train_config
+from training_runs import train_config
 
 from locretrieval.models.backbones import TorchvisionBackbone
 from locretrieval.models.heads import BoQHead, MixVPRHead, SALADHead

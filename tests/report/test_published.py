@@ -14,7 +14,7 @@ from locretrieval.report import build_report
 from locretrieval.report import published as published_module
 from locretrieval.report.published import MATCH_KEYS, PUBLISHED_COLUMNS, PUBLISHED_DIR, load_published, parse_adoc
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 #: Values read by hand off kapture-localization's doc/benchmark_results_*.adoc (commit 916e9d8):
 #: (dataset, local feature, global feature, paradigm, method, k, condition, metres, degrees) ->

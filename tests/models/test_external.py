@@ -260,7 +260,7 @@ def test_every_preset_composes_and_without_its_hub_code_names_the_repo(preset, t
 
 def test_train_py_trains_a_researchers_module_and_evaluate_reads_it_back(tmp_path, monkeypatch):
     from hydra.utils import instantiate
-    from test_training import train_config
+    from training_runs import train_config
 
     from locretrieval.training.run import train
 
@@ -329,7 +329,7 @@ def test_a_timm_backbone_loads_its_own_state_dict_without_the_classifier(scene, 
 
 
 def test_train_py_trains_a_timm_backbone(tmp_path):
-    from test_training import train_config
+    from training_runs import train_config
 
     from locretrieval.training.run import train
 

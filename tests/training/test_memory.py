@@ -7,24 +7,12 @@ import helpers
 import numpy as np
 import pytest
 import torch
-from scipy import sparse
-from test_training import train_config
+from training_runs import random_pairs, train_config
 
 from locretrieval.models.networks import GeMPooling, RetrievalNet
 from locretrieval.training.losses import ListwiseLoss
 from locretrieval.training.memory import CrossBatchMemory, DescriptorMemory
-from locretrieval.training.relevance import TrainingPairs
 from locretrieval.training.run import train
-
-
-def random_pairs(size: int, seed: int) -> TrainingPairs:
-    """Graded relevance and related pairs among ``size`` images, symmetric, drawn at random."""
-    rng = np.random.default_rng(seed)
-    graded = np.triu(rng.uniform(0.2, 1.0, (size, size)) * (rng.random((size, size)) < 0.3), 1)
-    graded = graded + graded.T
-    related = np.triu(rng.random((size, size)) < 0.3, 1)
-    related = related | related.T | (graded > 0)
-    return TrainingPairs(sparse.csr_matrix(graded), sparse.csr_matrix(related))
 
 
 def unit(rows: int, dim: int, seed: int) -> torch.Tensor:

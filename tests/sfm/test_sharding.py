@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 #: A small scene; every worker count (rendering, SfM, figures) left at its default.
 SCENE = [
     "data.render.width=160",

@@ -5,7 +5,7 @@ import importlib.util
 import helpers
 import numpy as np
 import pytest
-from test_training import SCENE
+from training_runs import SCENE
 
 from locretrieval.groundtruth.relative_pose import relative_pose_groundtruth
 from locretrieval.localization.approximation import EqualWeights, approximate_poses

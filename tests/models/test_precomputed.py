@@ -177,7 +177,7 @@ def precomputed_config(tmp_path, *overrides):
     from hydra.core.global_hydra import GlobalHydra
 
     GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(Path(__file__).parents[1] / "configs"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(Path(__file__).parents[2] / "configs"), version_base="1.3"):
         return compose(
             config_name="evaluate",
             overrides=["model=precomputed", f"paths.root_dir={tmp_path}", *overrides],

@@ -13,6 +13,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from torchvision.transforms import v2
+from training_runs import SCENE, TINY_TRAINING, train_config
 
 from locretrieval import geometry
 from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
@@ -34,9 +35,6 @@ from locretrieval.training.relevance import (
 )
 from locretrieval.training.run import ValidationScope, train
 
-SCENE = {"width": 96, "height": 72, "num_database": 24, "num_queries": 6, "texture_size": 64, "length": 20.0,
-         "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
-         "hard_query_fraction": 0.0, "workers": 1, "seed": 5}  # fmt: skip
 RELATIVE_POSE = TrainingRelevanceSettings(
     {
         "_target_": "locretrieval.groundtruth.RelativePoseDefinition",
@@ -49,15 +47,6 @@ RELATIVE_POSE = TrainingRelevanceSettings(
 AT_25M = DefinitionContext(far=25.0)
 #: train.py's default objective (optimized_metric).
 METRIC = "val/approximation/ewb/k3/5m_10deg"
-#: A short training of the tiny scene: small batches, no SfM validation.
-TINY_TRAINING = (
-    "datamodule.image_size=[96,72]",
-    "datamodule.num_workers=0",
-    "sampler.batches_per_epoch=2",
-    "sampler.anchors=3",
-    "sampler.negatives=2",
-    "callbacks.localization_validation.sfm_every_n_epochs=null",
-)
 
 
 def negatives(rule=None, **changes):
@@ -272,25 +261,6 @@ def test_images_of_different_training_scenes_are_unrelated(scene):
     np.testing.assert_array_equal(graded[:12, :12], alone[0].graded.toarray())
     np.testing.assert_array_equal(related[12:, 12:], alone[1].related.toarray())
     assert not graded[:12, 12:].any() and not related[:12, 12:].any() and not related[12:, :12].any()
-
-
-def train_config(root, *overrides, image_side="model.max_side=96"):
-    """configs/train.yaml on a tiny rendered scene, everything under ``root``; ``image_side``:
-    the override that shrinks validation images (the model's key)."""
-    tiny = [f"data.render.{key}={value}" for key, value in SCENE.items() if key != "conditions"]
-    tiny += [f"data.render.conditions.{key}={value}" for key, value in SCENE["conditions"].items()]
-    return helpers.compose_config(
-        "train",
-        f"paths.root_dir={root}",
-        f"output_dir={root}/run",
-        "device=cpu",
-        *tiny,
-        image_side,
-        *TINY_TRAINING,
-        "trainer.max_epochs=1",
-        "trainer.enable_progress_bar=false",
-        *overrides,
-    )
 
 
 def test_fast_dev_run_of_train_py_through_hydra_compose(tmp_path):

@@ -104,7 +104,7 @@ PLOTTED = "const d = document.querySelector('.plotly-graph-div'); return !!(wind
 
 
 def test_a_report_of_a_hostile_dataset_runs_no_script_and_shows_the_names(hostile_run, browser):
-    from conftest import HOSTILE_IMAGE, HOSTILE_MODEL, HOSTILE_QUERY_FOLDER, HOSTILE_TAG
+    from helpers import HOSTILE_IMAGE, HOSTILE_MODEL, HOSTILE_QUERY_FOLDER, HOSTILE_TAG
 
     images, errors = open_page(browser, hostile_run.run / "report.html")
     pwned, text = browser.execute_script(PWNED)
@@ -128,7 +128,7 @@ def test_a_sweep_summary_and_its_optuna_figures_draw_with_their_own_scripts_only
     markup shows as text, runs nothing, and Optuna's plotly figures draw under the page's policy."""
     import optuna
     from omegaconf import OmegaConf
-    from test_sweeps import gap_run
+    from training_runs import gap_run
 
     from locretrieval.training.summary import write_summary
 

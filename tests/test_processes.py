@@ -48,8 +48,8 @@ JOBLIB_JOB = """
 import sys
 sys.path.insert(0, sys.argv[1])
 from joblib import Parallel, delayed
-import test_workers
-((job, results),) = Parallel(n_jobs=2, backend="loky")([delayed(test_workers.spawned_pool_results)()])
+import test_processes
+((job, results),) = Parallel(n_jobs=2, backend="loky")([delayed(test_processes.spawned_pool_results)()])
 assert [task for _, task, _ in results] == list(range(8)), results
 assert job not in {pid for *_, pid in results}  # the job's own worker processes ran them
 print("done")

@@ -14,7 +14,7 @@ import pytest
 
 from locretrieval.cache import load_arrays
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 #: Enough local maps (128 queries x 3 rankings x k = 5, 10, 20) for local SfM to run several seconds.
 COMMAND = [
     "data.render.width=160",

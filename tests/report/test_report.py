@@ -1,106 +1,17 @@
-import json
 import re
 import subprocess
 import sys
-import zlib
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
-from scipy import sparse
+from report_runs import GROUNDTRUTH, KS, localization, write_run
 
-from locretrieval.metrics.localization import QUERY_ERROR_COLUMNS, RESULT_COLUMNS
-from locretrieval.metrics.retrieval import retrieval_tables
-from locretrieval.metrics.revisited import RevisitedGroundTruth, evaluate_revisited
 from locretrieval.report import build_report
 from locretrieval.report.markdown import pivot_localization
 from locretrieval.report.plots import MARGINS_INCHES, FigureFolder, _panels, curves_for_method, plot_query_violins
 from locretrieval.report.tables import load_runs
-from locretrieval.retrieval import Ranking
-from locretrieval.scene import Camera, ImageSet
-
-NUM_QUERIES, NUM_DATABASE = 6, 10
-KS = [1, 2, 5, 10]
-THRESHOLDS = [(0.25, 2.0), (5.0, 10.0)]
-GROUNDTRUTH = "gt_relative_pose"
-
-
-def seeded(name: str) -> np.random.Generator:
-    """The same numbers for a ranking in every run (ground truth repeats across a multirun)."""
-    return np.random.default_rng(zlib.crc32(name.encode()))
-
-
-def queries() -> ImageSet:
-    camera = Camera("SIMPLE_PINHOLE", 64, 48, (50.0, 32.0, 24.0))
-    names = [f"q{i}.png" for i in range(NUM_QUERIES)]
-    return ImageSet(
-        names, "/x", [camera] * NUM_QUERIES, np.tile([1.0, 0, 0, 0], (NUM_QUERIES, 1)), np.zeros((NUM_QUERIES, 3))
-    )
-
-
-def relevance() -> sparse.csr_matrix:
-    return sparse.csr_matrix(seeded("relevance").random((NUM_QUERIES, NUM_DATABASE)) < 0.3)
-
-
-def ranking(name: str, kind: str) -> Ranking:
-    keys = seeded(name).random((NUM_QUERIES, NUM_DATABASE)) - (relevance().toarray() if kind == "groundtruth" else 0)
-    return Ranking(name, np.argsort(keys, axis=1), np.zeros((NUM_QUERIES, NUM_DATABASE)), kind)
-
-
-def localization(name: str, kind: str) -> tuple[pd.DataFrame, pd.DataFrame]:
-    rng = seeded(name + "/poses")
-    results, errors = [], []
-    paradigms = [("approximation", "ewb"), ("global_sfm", "pnp")]
-    paradigms += [("approximation", "csi")] if kind == "descriptor" else []  # CSI needs descriptors
-    for paradigm, method in paradigms:
-        for k in KS:
-            position = rng.exponential(1.0, NUM_QUERIES)
-            position[rng.random(NUM_QUERIES) < 0.15] = np.nan
-            for n, query in enumerate(queries().names):
-                failure = "" if np.isfinite(position[n]) else "too few inliers"
-                errors.append(("toy", name, kind, paradigm, method, k, query, position[n], 2 * position[n], failure))
-            for subset, members in (("all", slice(None)), ("blurry", slice(0, 3))):
-                for x, y in THRESHOLDS:
-                    localized = 100 * np.mean(np.nan_to_num(position[members], nan=np.inf) < x)
-                    row = (paradigm, method, k, min(k, NUM_DATABASE), x, y, localized, len(position[members]))
-                    results.append(("toy", subset, name, kind, *row))
-    return pd.DataFrame(results, columns=RESULT_COLUMNS), pd.DataFrame(errors, columns=QUERY_ERROR_COLUMNS)
-
-
-def write_run(directory: Path, descriptors: list[str]) -> Path:
-    """A finished run's tables: the descriptors, the ground truth and a random baseline."""
-    directory.mkdir(parents=True)
-    rankings = [ranking(name, "descriptor") for name in descriptors]
-    rankings += [ranking(GROUNDTRUTH, "groundtruth"), ranking("random", "baseline")]
-    subsets = {"all": np.ones(NUM_QUERIES, bool), "blurry": np.arange(NUM_QUERIES) < 3}
-    retrieval, per_query = retrieval_tables(
-        "toy", rankings, {GROUNDTRUTH: relevance()}, queries(), subsets, range(1, 11), KS
-    )
-    tables = [localization(r.name, r.kind) for r in rankings]
-    pd.concat([t[0] for t in tables]).to_csv(directory / "results.csv", index=False)
-    pd.concat([t[1] for t in tables]).to_csv(directory / "query_errors.csv.gz", index=False)
-    retrieval.to_csv(directory / "retrieval.csv", index=False)
-    per_query.to_csv(directory / "query_retrieval.csv.gz", index=False)
-    pd.DataFrame([{"dataset": "toy", "groundtruth": GROUNDTRUTH, "avg_relevant": 3.1, "missing_pct": 0.0}]).to_csv(
-        directory / "groundtruth_statistics.csv", index=False
-    )
-    pd.DataFrame(
-        {
-            "dataset": "toy",
-            "image": queries().names,
-            "blur_score": np.linspace(10, 30, NUM_QUERIES),
-            "dynamic_fraction": np.nan,
-            "mask_source": "none",
-            "blurry": subsets["blurry"],
-        }
-    ).to_csv(directory / "subsets.csv", index=False)
-    revisited = RevisitedGroundTruth([f"db{i}" for i in range(4)], ["q0"], [{"easy": [1], "hard": [2], "junk": [0]}])
-    revisited_rankings = [Ranking(name, [[0, 1, 2, 3]], np.zeros((1, 4)), "descriptor") for name in descriptors]
-    revisited_tables = [evaluate_revisited(r, revisited, "roxford5k") for r in revisited_rankings]
-    pd.concat(revisited_tables).to_csv(directory / "revisited.csv", index=False)
-    (directory / "summary.json").write_text(json.dumps({"model": ", ".join(descriptors), "run time": "1.0 s"}))
-    return directory
 
 
 def test_ground_truth_without_a_method_is_drawn_with_ewb():
@@ -341,7 +252,7 @@ def test_command_line_entry_point_with_only_a_localization_table(tmp_path):
     localization("netvlad", "descriptor")[0].to_csv(run / "results.csv", index=False)
     completed = subprocess.run(
         [sys.executable, "report.py", str(run)],
-        cwd=Path(__file__).parents[1],
+        cwd=Path(__file__).parents[2],
         capture_output=True,
         text=True,
         timeout=300,

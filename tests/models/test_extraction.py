@@ -27,7 +27,7 @@ from locretrieval.models.weights import HASH_CACHE_ENV, MissingWeightsError, con
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.scene import Camera, ImageSet, Scene
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "model"
+CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "model"
 #: (width, height) of the test images: three sizes, interleaved.
 SIZES = [(64, 48), (48, 64), (64, 48), (80, 60), (48, 64)]
 
