@@ -45,8 +45,6 @@ RELATIVE_POSE = TrainingRelevanceSettings(
     UnrelatedNegatives(0.1, None, None),
 )
 AT_25M = DefinitionContext(far=25.0)
-#: train.py's default objective (optimized_metric).
-METRIC = "val/approximation/ewb/k3/5m_10deg"
 
 
 def negatives(rule=None, **changes):
