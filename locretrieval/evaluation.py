@@ -13,7 +13,6 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.benchmark import (
-    PARADIGMS,
     BenchmarkResult,
     BenchmarkSettings,
     benchmark,
@@ -26,8 +25,8 @@ from locretrieval.benchmark import (
 )
 from locretrieval.cache import safe_name, save_arrays
 from locretrieval.config import built, validated
+from locretrieval.estimates import estimated_pose_table
 from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths, statistics_table
-from locretrieval.localization.estimates import estimated_pose_table
 from locretrieval.metrics.localization import best_over_k, median_errors
 from locretrieval.metrics.subsets import SubsetSettings, missing_mask_inputs
 from locretrieval.report.gallery import GallerySettings, write_gallery_inputs
@@ -199,7 +198,7 @@ def local_feature_inputs(scene: Scene, settings: BenchmarkSettings, groundtruths
     """The files the local features read (`LocalFeatures.missing_inputs`: e.g. the kapture
     features of both image sets) that are absent, if an SfM paradigm or a ground truth matching
     features needs them."""
-    sfm_paradigms = any(PARADIGMS[name].uses_local_features for name in settings.paradigms.enabled())
+    sfm_paradigms = bool(settings.paradigms.sfm_stages())
     sfm_groundtruth = any(definition.uses_sfm for definition in groundtruths.parsed().values())
     if not (sfm_paradigms or sfm_groundtruth):
         return []
@@ -216,8 +215,7 @@ def paradigm_inputs(settings: BenchmarkSettings) -> list[str]:
     return [
         f"paradigms.{name}.{problem}"
         for name in settings.paradigms.enabled()
-        if PARADIGMS[name].missing_inputs is not None
-        for problem in PARADIGMS[name].missing_inputs(getattr(settings.paradigms, name))
+        for problem in getattr(settings.paradigms, name).missing_inputs()
     ]
 
 
@@ -225,10 +223,9 @@ def global_map_points(scene: Scene, settings: BenchmarkSettings, cache_dir: Path
     """The points (world, metres) of the first enabled paradigm's map that was built
     (`Paradigm.map_points`), else ``None``."""
     for name in settings.paradigms.enabled():
-        if PARADIGMS[name].map_points is not None:
-            points = PARADIGMS[name].map_points(scene, getattr(settings.paradigms, name), settings.sfm, cache_dir)
-            if points is not None:
-                return points
+        points = getattr(settings.paradigms, name).map_points(scene, settings.sfm, cache_dir)
+        if points is not None:
+            return points
     return None
 
 

@@ -9,11 +9,11 @@ import helpers
 import numpy as np
 import pytest
 
-from locretrieval.benchmark import BenchmarkSettings, sfm_paradigms, sfm_plan
-from locretrieval.localization.pipeline import run_sfm
-from locretrieval.localization.plan import ParadigmWork, SfmPlan, UnitCosts, Work, forecast_sample
-from locretrieval.localization.workers import MIN_TASKS_PER_WORKER
+from locretrieval.benchmark import BenchmarkSettings, sfm_plan
 from locretrieval.retrieval import Ranking
+from locretrieval.sfm.pipeline import run_sfm
+from locretrieval.sfm.plan import ParadigmWork, SfmPlan, UnitCosts, Work, forecast_sample
+from locretrieval.sfm.workers import MIN_TASKS_PER_WORKER
 
 SCENE = {"width": 160, "height": 120, "num_database": 24, "num_queries": 6, "texture_size": 64, "length": 20.0,
          "workers": 2, "seed": 4}  # fmt: skip
@@ -97,14 +97,12 @@ def test_forecast_and_run_name_the_same_stages_and_the_units_come_from_the_pipel
     )
     rankings = [Ranking("nearest", order[:, :8], -np.arange(8.0)[None].repeat(len(order), 0), "groundtruth")]
     calls = []
-    monkeypatch.setattr(
-        "locretrieval.localization.pipeline.run_sfm", lambda *a, **k: calls.append(a) or run_sfm(*a, **k)
-    )
+    monkeypatch.setattr("locretrieval.sfm.pipeline.run_sfm", lambda *a, **k: calls.append(a) or run_sfm(*a, **k))
     plan = sfm_plan(scene, rankings, settings, tmp_path / "cache")
     assert len(calls) == 2 and calls[0][0].name.endswith("(forecast sample)")  # the sample: built, then registered
     assert not list((tmp_path / "cache").glob(".forecast*"))  # its scratch folder is gone
     measured = {}
-    run_sfm(scene, rankings, sfm_paradigms(settings), settings.sfm, tmp_path / "cache", measured)
+    run_sfm(scene, rankings, settings.paradigms.sfm_stages(), settings.sfm, tmp_path / "cache", measured)
     assert set(plan.forecast()) == set(measured)
     assert all(value >= 0 for value in plan.forecast().values())
 

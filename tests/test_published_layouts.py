@@ -21,13 +21,13 @@ from PIL import Image
 
 from locretrieval.config import ConfigError, built
 from locretrieval.evaluation import evaluate
-from locretrieval.localization.features import extract_features
-from locretrieval.localization.pairs import database_pairs
 from locretrieval.retrieval.pairs_file import FileOrder, PairOrder, PairsFileRanking, ScoreOrder
 from locretrieval.scene import ImageSet
 from locretrieval.scene.datasets import instantiate_scene
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
+from locretrieval.sfm.features import extract_features
+from locretrieval.sfm.pairs import database_pairs
 
 SCENE = {"width": 192, "height": 144, "num_database": 12, "num_queries": 4, "texture_size": 64, "length": 20.0,
          "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,

@@ -20,7 +20,6 @@ from locretrieval.benchmark import (
     build_rankings,
     relevances,
     run_sfm_shard,
-    sfm_paradigms,
 )
 from locretrieval.config import require
 from locretrieval.groundtruth import GroundTruth, RelevanceScope
@@ -61,13 +60,14 @@ def metric_rows(result: BenchmarkResult, ranking: str, retrieval_ks: Collection[
 
 
 def every_validation_settings(settings: BenchmarkSettings) -> BenchmarkSettings:
-    """``settings`` with only the paradigms that run at every validation (cost ``cheap``)."""
-    return dataclasses.replace(settings, paradigms=settings.paradigms.only(lambda paradigm: paradigm.cost == "cheap"))
+    """``settings`` with only the paradigms that run at every validation (those without SfM,
+    `Paradigm.uses_sfm`)."""
+    return dataclasses.replace(settings, paradigms=settings.paradigms.only(lambda paradigm: not paradigm.uses_sfm))
 
 
 def every_validation_metrics(settings: BenchmarkSettings, groundtruths: Collection[str]) -> list[str]:
     """The `metric_rows` keys logged at every validation (those a checkpoint or early stopping may
-    monitor): the cheap paradigms' localization per method, k and threshold, and the retrieval
+    monitor): the localization of the paradigms without SfM per method, k and threshold, and the retrieval
     metrics against each ground truth in ``groundtruths`` at every k within the ranking depth."""
     return validation_metrics(settings, groundtruths, with_sfm=False)
 
@@ -163,7 +163,7 @@ class LocalizationValidation(L.Callback):
         self._thumbnails = None
 
     def _settings(self, with_sfm: bool) -> BenchmarkSettings:
-        """The benchmark settings of a validation: every paradigm, or the cheap ones (`Paradigm.cost`)."""
+        """The benchmark settings of a validation: every paradigm, or those without SfM (`Paradigm.uses_sfm`)."""
         return self.settings if with_sfm else every_validation_settings(self.settings)
 
     def _references(self, ranks: Ranks) -> list[Ranking]:
@@ -185,7 +185,7 @@ class LocalizationValidation(L.Callback):
     def _run_sfm_shards(self, rankings: list[Ranking], settings: BenchmarkSettings, ranks: Ranks) -> None:
         """Under DDP, each rank's share of the SfM paradigms' work on ``rankings`` (``sfm.shard``:
         its rank of all), into the cache the benchmark then reads it from."""
-        if ranks.count == 1 or not sfm_paradigms(settings):
+        if ranks.count == 1 or not settings.paradigms.sfm_stages():
             return
         sfm = dataclasses.replace(settings.sfm, shard=str(ranks.shard))
         ranks.gather(

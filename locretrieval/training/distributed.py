@@ -23,11 +23,11 @@ from typing import Any, TypeVar
 import numpy as np
 import torch
 
-from locretrieval.localization.sfm import Shard
 from locretrieval.models.base import GlobalDescriptor
 from locretrieval.models.extraction import size_batches
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 from locretrieval.scene import ImageSet
+from locretrieval.sfm.inputs import Shard
 
 Result = TypeVar("Result")
 

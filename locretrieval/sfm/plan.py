@@ -31,17 +31,16 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from locretrieval.cache import temporary_folder
-from locretrieval.localization.features import IMAGES_PER_SHARD
-from locretrieval.localization.matching import PAIRS_PER_SHARD, pair_key
-from locretrieval.localization.sfm import QueryTask, SfmInputs, SfmSettings
-from locretrieval.localization.workers import runs_here, start_workers, task_size, workers_started
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
+from locretrieval.sfm.features import IMAGES_PER_SHARD
+from locretrieval.sfm.inputs import QueryTask, SfmInputs, SfmSettings
+from locretrieval.sfm.matching import PAIRS_PER_SHARD, pair_key
+from locretrieval.sfm.workers import runs_here, start_workers, task_size, workers_started
 from locretrieval.threads import single_threaded
 
 if TYPE_CHECKING:
-    from locretrieval.localization.paradigm import ParadigmSettings
-    from locretrieval.localization.pipeline import SfmStages
+    from locretrieval.sfm.pipeline import SfmStages
 
 log = logging.getLogger(__name__)
 
@@ -348,17 +347,17 @@ def forecast_sample(scene: Scene, depth: int, queries: int = SAMPLE_QUERIES) -> 
     return sample, ranking
 
 
-def sample_depth(scene: Scene, paradigms: Mapping[str, tuple[SfmStages, ParadigmSettings]]) -> int:
+def sample_depth(scene: Scene, paradigms: Mapping[str, SfmStages]) -> int:
     """Database images of `measure_unit_costs`' sample: the paradigms' deepest k within the
     `SAMPLE_DATABASE` bounds (and the database)."""
-    deepest = max(max(paradigm_settings.k) for _, paradigm_settings in paradigms.values())
+    deepest = max(max(stages.k) for stages in paradigms.values())
     return min(len(scene.database), max(SAMPLE_DATABASE[0], min(deepest, SAMPLE_DATABASE[1])))
 
 
 def measure_unit_costs(
     scene: Scene,
     settings: SfmSettings,
-    paradigms: Mapping[str, tuple[SfmStages, ParadigmSettings]],
+    paradigms: Mapping[str, SfmStages],
     cache_dir: Path,
 ) -> UnitCosts:
     """Unit costs of the SfM stages, measured by `run_sfm` itself on `forecast_sample` (a
@@ -368,17 +367,14 @@ def measure_unit_costs(
     afterwards): the sample's seconds per stage over its units (its `SfmPlan`). The per-query
     stage runs twice, the second time with the maps cached, which separates the triangulation
     of a query's maps from its registrations."""
-    from locretrieval.localization.pipeline import run_sfm  # (the pipeline's stages import this module)
+    from locretrieval.sfm.pipeline import run_sfm  # (the pipeline's stages import this module)
 
     sample, ranking = forecast_sample(scene, sample_depth(scene, paradigms))
     one_process = dataclasses.replace(settings, workers=1, shard=None)
     load = os.getloadavg()[0]
     with temporary_folder(cache_dir, "forecast") as folder, single_threaded(), _quiet():
         inputs = SfmInputs.prepare(sample, one_process, folder, extract=False)
-        work = {
-            name: stages.plan(sample, [ranking], paradigm_settings, one_process, folder, 0)
-            for name, (stages, paradigm_settings) in paradigms.items()
-        }
+        work = {name: stages.plan(sample, [ranking], one_process, folder, 0) for name, stages in paradigms.items()}
         plan = SfmPlan(feature_work(inputs), list(work.values()), True, 1)
         built, registered = {}, {}
         run_sfm(sample, [ranking], paradigms, one_process, folder, built)
@@ -410,11 +406,13 @@ def _per(seconds: float, units: float) -> float:
 
 @contextlib.contextmanager
 def _quiet() -> Iterator[None]:
-    """The pipeline's log below warnings while it runs on a sample (its lines are not the run's)."""
-    logger = logging.getLogger("locretrieval.localization")
-    level = logger.level
-    logger.setLevel(logging.WARNING)
+    """The pipeline's and the paradigms' log below warnings while they run on a sample (its lines are not the run's)."""
+    loggers = [logging.getLogger(name) for name in ("locretrieval.sfm", "locretrieval.paradigms")]
+    levels = [logger.level for logger in loggers]
+    for logger in loggers:
+        logger.setLevel(logging.WARNING)
     try:
         yield
     finally:
-        logger.setLevel(level)
+        for logger, level in zip(loggers, levels):
+            logger.setLevel(level)

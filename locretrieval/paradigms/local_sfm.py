@@ -35,27 +35,17 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from math import comb
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
 from locretrieval.cache import config_key
 from locretrieval.config import part
-from locretrieval.localization.estimates import PoseEstimates
-from locretrieval.localization.paradigm import ParadigmSettings
-from locretrieval.localization.pipeline import SfmStages, run_sfm
-from locretrieval.localization.plan import (
-    ParadigmWork,
-    Work,
-    database_pair_work,
-    queries_to_register,
-    query_pair_work,
-    registration_bound,
-    registration_work,
-)
-from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
-from locretrieval.localization.pose_cache import PoseCache
-from locretrieval.localization.sfm import (
+from locretrieval.estimates import PoseEstimates
+from locretrieval.paradigms.base import SfmParadigm
+from locretrieval.retrieval import EMPTY, Ranking
+from locretrieval.scene import Scene
+from locretrieval.sfm.inputs import (
     SFM_METHOD,
     Outcome,
     QueryTask,
@@ -66,11 +56,20 @@ from locretrieval.localization.sfm import (
     register_query,
     run_queries,
 )
-from locretrieval.localization.sparse_map import SparseMap
-from locretrieval.localization.triangulation import MapInput
-from locretrieval.localization.verification import VerificationBatch
-from locretrieval.retrieval import EMPTY, Ranking
-from locretrieval.scene import Scene
+from locretrieval.sfm.plan import (
+    ParadigmWork,
+    Work,
+    database_pair_work,
+    queries_to_register,
+    query_pair_work,
+    registration_bound,
+    registration_work,
+)
+from locretrieval.sfm.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
+from locretrieval.sfm.pose_cache import PoseCache
+from locretrieval.sfm.sparse_map import SparseMap
+from locretrieval.sfm.triangulation import MapInput
+from locretrieval.sfm.verification import VerificationBatch
 
 #: Bump when the meaning of cached local maps changes.
 CACHE_VERSION = 1
@@ -174,110 +173,93 @@ class QueryMapMatches(MapMatches):
 
 
 @dataclass
-class LocalSfmSettings(ParadigmSettings):
-    """``map_matches``: where the matches among a local map's images come from (a `MapMatches`,
-    chosen by its ``_target_``: ``paradigms/local_sfm/map_matches=database|query``)."""
+class LocalSfm(SfmParadigm):
+    """Paradigm 2a (``configs/paradigms/local_sfm.yaml``). ``map_matches``: where the matches among
+    a local map's images come from (a `MapMatches`, chosen by its ``_target_``:
+    ``paradigms/local_sfm/map_matches=database|query``). Its stages: no shared map, each query's
+    maps triangulated with its registration."""
 
     map_matches: Any = part(MapMatches, "paradigms/local_sfm/map_matches")
+    label: ClassVar[str] = "local_sfm"
+    has_shared_map: ClassVar[bool] = False
+    query_work: ClassVar[str] = "triangulate + register"
 
     def method_names(self) -> list[str]:
         return [SFM_METHOD]
 
+    def query_map_pairs(
+        self,
+        inputs: SfmInputs,
+        rankings: Sequence[Ranking],
+        ks: Sequence[Sequence[int]],
+        queries: Sequence[int] | None,
+    ) -> list[tuple[str, str]]:
+        """The database pairs (names) every local map of ``queries`` (None: all) needs matched first
+        (`MapMatches.database_pairs`)."""
+        names = inputs.scene.database.names
+        return [(names[a], names[b]) for a, b in self.map_matches.database_pairs(rankings, ks, queries)]
 
-def run(
-    scene: Scene, rankings: Sequence[Ranking], settings: LocalSfmSettings, sfm: SfmSettings, cache_dir: Path | None
-) -> list[PoseEstimates] | None:
-    """Paradigm entry point: the pose of every query for every ranking and every ``settings.k``
-    (through the SfM pipeline, `run_sfm`, with this paradigm alone)."""
-    estimates = run_sfm(scene, rankings, {"local_sfm": (STAGES, settings)}, sfm, cache_dir)
-    return None if estimates is None else estimates["local_sfm"]
+    def localize(
+        self,
+        inputs: SfmInputs,
+        rankings: Sequence[Ranking],
+        ks: Sequence[list[int]],
+        cache_dir: Path,
+        queries: Sequence[int] | None,
+    ) -> list[PoseEstimates] | None:
+        """Triangulate and register: each query's local maps built and the query registered in each
+        (`localize_query`, in worker processes), outcomes cached."""
+        shared = (inputs, self.map_matches, cache_dir / "local_maps")
+        cache = _pose_cache(inputs, self, cache_dir)
+        return run_queries(self.label, rankings, ks, localize_query, shared, inputs.settings.processes, cache, queries)
 
-
-def shared_map_pairs(inputs: SfmInputs, settings: LocalSfmSettings) -> list[tuple[str, str]]:
-    """None: every local map is its query's."""
-    return []
-
-
-def query_map_pairs(
-    inputs: SfmInputs,
-    rankings: Sequence[Ranking],
-    ks: Sequence[Sequence[int]],
-    settings: LocalSfmSettings,
-    queries: Sequence[int] | None,
-) -> list[tuple[str, str]]:
-    """The database pairs (names) every local map of ``queries`` (None: all) needs matched first
-    (`MapMatches.database_pairs`)."""
-    names = inputs.scene.database.names
-    return [(names[a], names[b]) for a, b in settings.map_matches.database_pairs(rankings, ks, queries)]
-
-
-def localize(
-    inputs: SfmInputs,
-    rankings: Sequence[Ranking],
-    ks: Sequence[list[int]],
-    settings: LocalSfmSettings,
-    cache_dir: Path,
-    queries: Sequence[int] | None,
-) -> list[PoseEstimates] | None:
-    """Triangulate and register: each query's local maps built and the query registered in each
-    (`localize_query`, in worker processes), outcomes cached."""
-    shared = (inputs, settings.map_matches, cache_dir / "local_maps")
-    cache = _pose_cache(inputs, settings, cache_dir)
-    return run_queries("local_sfm", rankings, ks, localize_query, shared, inputs.settings.processes, cache, queries)
-
-
-def plan(
-    scene: Scene,
-    rankings: Sequence[Ranking] | None,
-    settings: LocalSfmSettings,
-    sfm: SfmSettings,
-    cache_dir: Path,
-    num_rankings: int,
-) -> ParadigmWork:
-    """The work of `run` (`ParadigmWork`), without doing any: exact for ``rankings``, upper
-    bounds for ``num_rankings`` rankings not computed yet (``None``)."""
-    inputs = SfmInputs.prepare(scene, sfm, cache_dir, extract=False)
-    query_pairs = query_pair_work(inputs, rankings, settings.k, num_rankings)
-    pairs_per_map = float(np.mean([comb(min(k, len(scene.database)), 2) for k in settings.k if k >= 2] or [0]))
-    if rankings is None:
-        queries, depth = len(scene.queries), min(max(settings.k), len(scene.database))
-        bound = settings.map_matches.pair_bound(comb(depth, 2), queries, num_rankings, len(scene.database))
-        maps = num_rankings * queries * sum(1 for k in settings.k if k >= 2)
+    def plan(
+        self,
+        scene: Scene,
+        rankings: Sequence[Ranking] | None,
+        sfm: SfmSettings,
+        cache_dir: Path,
+        num_rankings: int,
+    ) -> ParadigmWork:
+        k = self.k
+        inputs = SfmInputs.prepare(scene, sfm, cache_dir, extract=False)
+        query_pairs = query_pair_work(inputs, rankings, k, num_rankings)
+        pairs_per_map = float(np.mean([comb(min(size, len(scene.database)), 2) for size in k if size >= 2] or [0]))
+        if rankings is None:
+            queries, depth = len(scene.queries), min(max(k), len(scene.database))
+            bound = self.map_matches.pair_bound(comb(depth, 2), queries, num_rankings, len(scene.database))
+            maps = num_rankings * queries * sum(1 for size in k if size >= 2)
+            return ParadigmWork(
+                self.label,
+                query_pairs,
+                Work(bound, bound),
+                Work(maps, maps),
+                pairs_per_map,
+                *registration_bound(queries, len(scene.database), k, num_rankings),
+                Work(queries, queries),
+            )
+        ks = [ranking.clamp_ks(k) for ranking in rankings]
+        database_pairs = database_pair_work(inputs, self.query_map_pairs(inputs, rankings, ks, None))
+        tasks = query_tasks(rankings, ks, _pose_cache(inputs, self, cache_dir))
+        maps = {
+            _map_key(inputs, self.map_matches, task.query, images)
+            for task in tasks
+            for images in task.image_sets()
+            if len(images) >= 2
+        }
+        new_maps = {key for key in maps if not (cache_dir / "local_maps" / f"{key}.npz").is_file()}
         return ParadigmWork(
-            "local_sfm",
+            self.label,
             query_pairs,
-            Work(bound, bound),
-            Work(maps, maps),
+            database_pairs,
+            Work(len(maps), len(new_maps)),
             pairs_per_map,
-            *registration_bound(queries, len(scene.database), settings.k, num_rankings),
-            Work(queries, queries),
+            *registration_work(tasks),
+            queries_to_register(tasks),
         )
-    ks = [ranking.clamp_ks(settings.k) for ranking in rankings]
-    database_pairs = database_pair_work(inputs, query_map_pairs(inputs, rankings, ks, settings, None))
-    tasks = query_tasks(rankings, ks, _pose_cache(inputs, settings, cache_dir))
-    maps = {
-        _map_key(inputs, settings.map_matches, task.query, images)
-        for task in tasks
-        for images in task.image_sets()
-        if len(images) >= 2
-    }
-    new_maps = {key for key in maps if not (cache_dir / "local_maps" / f"{key}.npz").is_file()}
-    return ParadigmWork(
-        "local_sfm",
-        query_pairs,
-        database_pairs,
-        Work(len(maps), len(new_maps)),
-        pairs_per_map,
-        *registration_work(tasks),
-        queries_to_register(tasks),
-    )
 
 
-#: This paradigm's stages of the SfM pipeline: no shared map, each query's maps triangulated with its registration.
-STAGES = SfmStages(shared_map_pairs, query_map_pairs, None, localize, "triangulate + register", plan)
-
-
-def _pose_cache(inputs: SfmInputs, settings: LocalSfmSettings, cache_dir: Path) -> PoseCache:
+def _pose_cache(inputs: SfmInputs, settings: LocalSfm, cache_dir: Path) -> PoseCache:
     """The registration outcomes, keyed by what the local maps are keyed by."""
     maps = [
         CACHE_VERSION,

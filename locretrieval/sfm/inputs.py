@@ -21,18 +21,18 @@ import numpy as np
 
 from locretrieval.cache import config_key
 from locretrieval.config import part, require
-from locretrieval.localization.estimates import LOCALIZED, PoseEstimates
-from locretrieval.localization.features import FeatureStore, LocalFeatures, extract_features, feature_store
-from locretrieval.localization.matching import MatchingSettings, PairMatcher
-from locretrieval.localization.pairs import PairSelection
-from locretrieval.localization.pnp import NO_KEYPOINTS, TOO_FEW_MATCHES, PnPSettings, estimate_absolute_pose
-from locretrieval.localization.pose_cache import Outcome, PoseCache
-from locretrieval.localization.sparse_map import SparseMap
-from locretrieval.localization.triangulation import Triangulation
-from locretrieval.localization.verification import PairVerification
-from locretrieval.localization.workers import parallel_map, resolve_workers
+from locretrieval.estimates import LOCALIZED, PoseEstimates
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import Scene
+from locretrieval.sfm.features import FeatureStore, LocalFeatures, extract_features, feature_store
+from locretrieval.sfm.matching import MatchingSettings, PairMatcher
+from locretrieval.sfm.pairs import PairSelection
+from locretrieval.sfm.pnp import NO_KEYPOINTS, TOO_FEW_MATCHES, PnPSettings, estimate_absolute_pose
+from locretrieval.sfm.pose_cache import Outcome, PoseCache
+from locretrieval.sfm.sparse_map import SparseMap
+from locretrieval.sfm.triangulation import Triangulation
+from locretrieval.sfm.verification import PairVerification
+from locretrieval.sfm.workers import parallel_map, resolve_workers
 
 log = logging.getLogger(__name__)
 

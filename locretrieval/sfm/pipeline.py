@@ -7,7 +7,7 @@ The stages hand each other their results through the caches:
    pairs of the maps every query shares (the global map), then, per chunk of queries, each
    query with its top ``max(k)`` images of every ranking (verified per
    ``sfm.query_verification``) and the database pairs of its local maps (pose-verified);
-3. **triangulate** a map every query shares (the global map, `SfmStages.shared_map`: once, in
+3. **triangulate** a map every query shares (the global map, `SfmStages.triangulate_shared_map`: once, in
    this process), then **register** (`SfmStages.localize`): per query in worker processes (a
    local map is triangulated and the query registered in it at once), outcomes cached.
 
@@ -27,22 +27,24 @@ safe for concurrent writers, so a plain run afterwards finds every pair, map and
 
 from __future__ import annotations
 
+import abc
 import contextlib
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
-from locretrieval.localization.estimates import PoseEstimates
-from locretrieval.localization.features import extract_features
-from locretrieval.localization.paradigm import ParadigmSettings
-from locretrieval.localization.sfm import SfmInputs, SfmSettings
+from locretrieval.estimates import PoseEstimates
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
+from locretrieval.sfm.features import extract_features
+from locretrieval.sfm.inputs import SfmInputs, SfmSettings
+
+if TYPE_CHECKING:
+    from locretrieval.sfm.plan import ParadigmWork
 
 log = logging.getLogger(__name__)
 
@@ -51,46 +53,75 @@ Pair = tuple[str, str]
 QUERIES_PER_CHUNK = 512
 
 
-@dataclass(frozen=True)
-class SfmStages:
-    """What an SfM paradigm adds to the pipeline (its module's functions):
+class SfmStages(abc.ABC):
+    """What an SfM paradigm adds to the pipeline: a `locretrieval.paradigms.SfmParadigm`
+    implements these with its settings (``k`` among them):
 
-    - ``shared_map_pairs(inputs, settings) -> [pair]``: the database pairs of maps every query
-      uses (the global map), to be matched and pose-verified;
-    - ``query_map_pairs(inputs, rankings, ks, settings, queries) -> [pair]``: those of maps built
-      per query, for ``queries`` (None: all);
-    - ``shared_map(inputs, settings, cache_dir)``: triangulates (and caches) the map every query
-      uses, in this process, once its pairs are matched (the stage ``<paradigm>: triangulate``);
-      None when the paradigm has none;
-    - ``localize(inputs, rankings, ks, settings, cache_dir, queries) -> [PoseEstimates]``: its
-      per-query stage (``<paradigm>: <query_work>``, e.g. ``triangulate + register`` when each
-      query has maps of its own); with ``queries`` (a shard's) those are localised and cached
-      only, and None is returned;
-    - ``plan(scene, rankings or None, settings, sfm, cache_dir, num_rankings) -> ParadigmWork``:
-      its work, counted without doing any (`locretrieval.localization.plan`).
+    - `shared_map_pairs`: the database pairs of maps every query uses (the global map), to be
+      matched and pose-verified;
+    - `query_map_pairs`: those of maps built per query;
+    - `triangulate_shared_map`: triangulates (and caches) the map every query uses, in this
+      process, once its pairs are matched (the stage ``<paradigm>: triangulate``), when the
+      paradigm has one (`has_shared_map`);
+    - `localize`: its per-query stage (``<paradigm>: <query_work>``, e.g. ``triangulate +
+      register`` when each query has maps of its own);
+    - `plan`: its work, counted without doing any (`locretrieval.sfm.plan`).
     """
 
-    shared_map_pairs: Callable[[SfmInputs, Any], list[Pair]]
-    query_map_pairs: Callable[[SfmInputs, Sequence[Ranking], list[list[int]], Any, Sequence[int] | None], list[Pair]]
-    shared_map: Callable[[SfmInputs, Any, Path], None] | None
-    localize: Callable[..., list[PoseEstimates] | None]
-    query_work: str
-    plan: Callable[..., Any]
+    #: The numbers of top-ranked images the paradigm localizes from (its settings').
+    k: list[int]
+    #: Whether it has a map every query shares (`triangulate_shared_map`).
+    has_shared_map: ClassVar[bool]
+    #: What its per-query stage does, in the stage's name.
+    query_work: ClassVar[str]
+
+    def shared_map_pairs(self, inputs: SfmInputs) -> list[Pair]:
+        """The database pairs of the maps every query uses (default: none)."""
+        return []
+
+    def query_map_pairs(
+        self, inputs: SfmInputs, rankings: Sequence[Ranking], ks: list[list[int]], queries: Sequence[int] | None
+    ) -> list[Pair]:
+        """The database pairs of the maps built per query, for ``queries`` (None: all; default: none)."""
+        return []
+
+    def triangulate_shared_map(self, inputs: SfmInputs, cache_dir: Path) -> None:
+        """Triangulate (and cache) the map every query uses (`has_shared_map` only)."""
+        raise NotImplementedError(f"{type(self).__name__} has no shared map")
+
+    @abc.abstractmethod
+    def localize(
+        self,
+        inputs: SfmInputs,
+        rankings: Sequence[Ranking],
+        ks: Sequence[list[int]],
+        cache_dir: Path,
+        queries: Sequence[int] | None,
+    ) -> list[PoseEstimates] | None:
+        """The per-query stage: with ``queries`` (a chunk, or a shard's) those are localised and
+        cached only, and None is returned; with None every outcome (cached by then) is gathered."""
+
+    @abc.abstractmethod
+    def plan(
+        self, scene: Scene, rankings: Sequence[Ranking] | None, sfm: SfmSettings, cache_dir: Path, num_rankings: int
+    ) -> ParadigmWork:
+        """Its work (`ParadigmWork`), without doing any: exact for ``rankings``, upper bounds for
+        ``num_rankings`` rankings not computed yet (``None``)."""
 
     def stage_names(self, paradigm: str) -> list[str]:
         """The names of this paradigm's stages as `run_sfm` times them."""
-        return [f"{paradigm}: triangulate"] * (self.shared_map is not None) + [f"{paradigm}: {self.query_work}"]
+        return [f"{paradigm}: triangulate"] * self.has_shared_map + [f"{paradigm}: {self.query_work}"]
 
 
 def run_sfm(
     scene: Scene,
     rankings: Sequence[Ranking],
-    paradigms: Mapping[str, tuple[SfmStages, ParadigmSettings]],
+    paradigms: Mapping[str, SfmStages],
     sfm: SfmSettings,
     cache_dir: str | Path | None,
     timings: dict[str, float] | None = None,
 ) -> dict[str, list[PoseEstimates]] | None:
-    """Every SfM paradigm of ``paradigms`` (name -> its stages and settings) on every ranking:
+    """Every SfM paradigm of ``paradigms`` (name -> its `SfmStages`) on every ranking:
     the pose estimates by paradigm, or None for a job of ``sfm.shard`` (its share cached only).
 
     The queries are streamed in chunks of `QUERIES_PER_CHUNK`: while one chunk is triangulated
@@ -102,20 +133,18 @@ def run_sfm(
     cache_dir = Path(cache_dir)
     shard = sfm.job_shard
     inputs = SfmInputs.prepare(scene, sfm, cache_dir, extract=False)
-    ks = {name: [ranking.clamp_ks(settings.k) for ranking in rankings] for name, (_, settings) in paradigms.items()}
+    ks = {name: [ranking.clamp_ks(stages.k) for ranking in rankings] for name, stages in paradigms.items()}
     deepest = [[max(max(ks[name][r]) for name in paradigms)] for r in range(len(rankings))]
     queries = list(range(len(scene.queries))) if shard is None else shard.take(range(len(scene.queries)))
 
     def query_map_pairs(chunk: Sequence[int] | None) -> list[Pair]:
         return [
             pair
-            for name, (stages, settings) in paradigms.items()
-            for pair in stages.query_map_pairs(inputs, rankings, ks[name], settings, chunk)
+            for name, stages in paradigms.items()
+            for pair in stages.query_map_pairs(inputs, rankings, ks[name], chunk)
         ]
 
-    shared_pairs = [
-        pair for stages, settings in paradigms.values() for pair in stages.shared_map_pairs(inputs, settings)
-    ]
+    shared_pairs = [pair for stages in paradigms.values() for pair in stages.shared_map_pairs(inputs)]
     if shard is not None:  # every database pair of any map, split among the jobs
         all_pairs = inputs.database_pairs.canonical([*shared_pairs, *query_map_pairs(None)])
         log.info(
@@ -138,16 +167,16 @@ def run_sfm(
         )
     with clock("match + verify"):
         match_stage(inputs, [], shared_pairs)
-    for name, (stages, settings) in paradigms.items():
-        if stages.shared_map is not None:
+    for name, stages in paradigms.items():
+        if stages.has_shared_map:
             with clock(f"{name}: triangulate"):
-                stages.shared_map(inputs, settings, cache_dir)
+                stages.triangulate_shared_map(inputs, cache_dir)
 
     def localize(chunk: Sequence[int] | None) -> dict[str, list[PoseEstimates] | None]:
         found = {}
-        for name, (stages, settings) in paradigms.items():
+        for name, stages in paradigms.items():
             with clock(f"{name}: {stages.query_work}"):
-                found[name] = stages.localize(inputs, rankings, ks[name], settings, cache_dir, chunk)
+                found[name] = stages.localize(inputs, rankings, ks[name], cache_dir, chunk)
         return found
 
     with ThreadPoolExecutor(1, thread_name_prefix="sfm-localize") as background:
