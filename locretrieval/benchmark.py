@@ -40,6 +40,7 @@ from locretrieval.scene import Scene
 from locretrieval.sfm.inputs import SfmInputs, SfmSettings
 from locretrieval.sfm.pipeline import run_sfm
 from locretrieval.sfm.plan import SfmPlan, UnitCosts, feature_work, measure_unit_costs, prepare_workers
+from locretrieval.shard import Shard
 
 log = logging.getLogger(__name__)
 
@@ -199,20 +200,24 @@ def sfm_plan(
 
 
 def run_sfm_shard(
-    scene: Scene, rankings: Sequence[Ranking], settings: BenchmarkSettings, cache_dir: str | Path | None
+    scene: Scene,
+    rankings: Sequence[Ranking],
+    settings: BenchmarkSettings,
+    cache_dir: str | Path | None,
+    shard: Shard,
 ) -> None:
-    """This job's share (``sfm.shard``) of the enabled SfM paradigms' work, into the shared cache
-    (`locretrieval.sfm.pipeline`); the run without ``sfm.shard`` then finds all of it."""
+    """This job's ``shard`` of the enabled SfM paradigms' work, into the shared cache
+    (`locretrieval.sfm.pipeline`); the run without a shard then finds all of it."""
     check_supported(scene, settings.paradigms.enabled())
     paradigms = settings.paradigms.sfm_stages()
     if not paradigms:
-        log.info("sfm.shard=%s: no SfM paradigm is enabled, nothing to do", settings.sfm.shard)
+        log.info("shard=%s: no SfM paradigm is enabled, nothing to do", shard)
         return
-    run_sfm(scene, rankings, paradigms, settings.sfm, cache_dir)
+    run_sfm(scene, rankings, paradigms, settings.sfm, cache_dir, shard=shard)
     log.info(
-        "sfm.shard=%s: this job's share of %s is in %s; once every shard has run, the same command without "
-        "sfm.shard writes the results",
-        settings.sfm.shard,
+        "shard=%s: this job's share of %s is in %s; once every shard has run, the same command without "
+        "shard writes the results",
+        shard,
         " and ".join(paradigms),
         cache_dir,
     )
@@ -236,11 +241,6 @@ def benchmark(
     check_supported(scene, settings.paradigms.enabled())
     warn_shallow_rankings(rankings, settings.paradigms.ks())
     depths = {ranking.name: ranking.depth for ranking in rankings}
-    if settings.sfm.job_shard is not None:
-        raise ValueError(
-            f"sfm.shard={settings.sfm.shard}: a shard's job computes its share of the SfM work (run_sfm_shard), "
-            "not results; run without sfm.shard to assemble them"
-        )
     plan = sfm_plan(scene, rankings, settings, cache_dir)
     if plan is not None:
         log.info("%s", plan.describe())

@@ -117,8 +117,8 @@ class ConfigError(ValueError):
     """A configuration value of the wrong type or range; the message names the full key."""
 
 
-#: Keys that moved when their value became an object chosen by ``_target_`` (0.12): the old key ->
-#: its new spelling. An override of an old key is refused naming the new one, on the command line
+#: Keys that moved (their value became an object chosen by ``_target_``, or a key of the job): the
+#: old key -> its new spelling. An override of an old key is refused naming the new one, on the command line
 #: (`refuse_moved_keys`) and where a section is checked (an unknown key, `validated`).
 MOVED_KEYS = {
     "paradigms.approximation.alpha": "paradigms.approximation.weights.csi.alpha",
@@ -127,6 +127,7 @@ MOVED_KEYS = {
     "subsets.mask_source": "subsets.dynamic_masks, the names of subsets.mask_sources tried in order "
     "(auto: [masks,maskrcnn], masks: [masks], maskrcnn: [maskrcnn], none: [])",
     "data.ltvl_name_style": "data/ltvl_names=full|basename|strip_prefix",
+    "sfm.shard": "shard, a key of the job: python evaluate.py -m 'shard=0/4,1/4,2/4,3/4'",
     **{
         f"subsets.maskrcnn_{key}": f"subsets.mask_sources.maskrcnn.{key}"
         for key in ("weights", "min_size", "score_threshold", "mask_threshold")

@@ -35,6 +35,7 @@ from locretrieval.retrieval.descriptors import DescriptorSearch
 from locretrieval.scene import Scene
 from locretrieval.scene.datasets import instantiate_scene
 from locretrieval.scene.ltvl import write_ltvl
+from locretrieval.shard import Shard
 
 log = logging.getLogger(__name__)
 
@@ -48,12 +49,13 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     ``groundtruth_statistics.csv``, ``subsets.csv``, ``estimated_poses.csv.gz``), the rankings, what galleries read
     (``images.csv``, ``relevance/``), LTVL exports, ``summary.json``, the 3D view (``scene_3d.html``, unless
     ``report.scene_view.enabled`` is false) and the report built from those files. Returns the localization table.
-    With ``sfm.shard=i/n`` the run is one job of a sharded evaluation: it computes the rankings and
+    With ``shard=i/n`` the run is one job of a sharded evaluation: it computes the rankings and
     its share of the SfM work into the cache (`run_sfm_shard`), writes nothing else and returns an
     empty table.
     """
     started = time.perf_counter()
     settings = BenchmarkSettings.from_config(cfg)
+    shard = Shard.parse(cfg.shard, "shard")
     groundtruth_settings = validated(GroundTruthSettings, cfg.groundtruth, "groundtruth")
     subset_settings = validated(SubsetSettings, cfg.subsets, "subsets")
     gallery_settings = validated(GallerySettings, cfg.report.gallery, "report.gallery")
@@ -81,8 +83,8 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
         )
     random_seed = int(cfg.seed) if cfg.baselines.random else None
     rankings = build_rankings(scene, {}, groundtruths, settings.retrieval, random_seed, given)
-    if settings.sfm.job_shard is not None:  # one job of a sharded evaluation: its SfM work, no results
-        run_sfm_shard(scene, rankings, settings, cache_dir)
+    if shard is not None:  # one job of a sharded evaluation: its SfM work, no results
+        run_sfm_shard(scene, rankings, settings, cache_dir, shard)
         return pd.DataFrame()
     subsets, subset_table = scene_subsets(scene, subset_settings, cache_dir)
     if cfg.report.figure_formats:

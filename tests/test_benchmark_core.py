@@ -200,6 +200,7 @@ LAYERS = [
         "threads",
         "errors",
         "estimates",
+        "shard",
     },
     {"models"},
     {"retrieval"},

@@ -422,9 +422,9 @@ class RecordedChunks(LocalSfm):
 
     chunks: list = dataclasses.field(default_factory=list)
 
-    def localize(self, inputs, rankings, ks, cache_dir, queries):
+    def register(self, inputs, rankings, ks, cache_dir, queries):
         self.chunks.append(queries)
-        return super().localize(inputs, rankings, ks, cache_dir, queries)
+        return super().register(inputs, rankings, ks, cache_dir, queries)
 
 
 def test_queries_streamed_in_chunks_give_the_results_of_one_pass(scene, cache, rankings, monkeypatch, tmp_path):
@@ -445,7 +445,8 @@ def test_queries_streamed_in_chunks_give_the_results_of_one_pass(scene, cache, r
     assert set(timings) == {
         "features",
         "match + verify",
-        "local_sfm: triangulate + register",
+        "local_sfm: triangulate",  # each chunk's local maps, in the workers
+        "local_sfm: register",
         "global_sfm: triangulate",  # the global map, once
         "global_sfm: register",
     }

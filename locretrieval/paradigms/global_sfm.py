@@ -78,7 +78,6 @@ class GlobalSfm(SfmParadigm):
     colmap_model: str | None
     label: ClassVar[str] = "global_sfm"
     has_shared_map: ClassVar[bool] = True
-    query_work: ClassVar[str] = "register"
 
     def method_names(self) -> list[str]:
         return [SFM_METHOD]
@@ -101,7 +100,7 @@ class GlobalSfm(SfmParadigm):
         """The global map triangulated (or read) and cached once, before any query is registered."""
         global_map(inputs, self.colmap_model, cache_dir)
 
-    def localize(
+    def register(
         self,
         inputs: SfmInputs,
         rankings: Sequence[Ranking],
@@ -113,7 +112,14 @@ class GlobalSfm(SfmParadigm):
         sparse_map = global_map(inputs, self.colmap_model, cache_dir)
         cache = _pose_cache(inputs, self, cache_dir)
         return run_queries(
-            self.label, rankings, ks, localize_query, (inputs, sparse_map), inputs.settings.processes, cache, queries
+            self.label,
+            rankings,
+            ks,
+            register_query_in_map,
+            (inputs, sparse_map),
+            inputs.settings.processes,
+            cache,
+            queries,
         )
 
     def plan(
@@ -213,7 +219,7 @@ def map_cache_path(inputs: SfmInputs, cache_dir: Path) -> Path:
     return cache_dir / "maps" / f"{key}.npz"
 
 
-def localize_query(shared: tuple[SfmInputs, SparseMap], task: QueryTask) -> list[list[Outcome]]:
+def register_query_in_map(shared: tuple[SfmInputs, SparseMap], task: QueryTask) -> list[list[Outcome]]:
     """Outcomes ``[ranking][k]`` of one query registered in the global map, once per distinct
     set of top-k images whose outcome is not known (the correspondences depend on the set only)."""
     inputs, sparse_map = shared

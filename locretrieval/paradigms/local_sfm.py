@@ -70,6 +70,7 @@ from locretrieval.sfm.pose_cache import PoseCache
 from locretrieval.sfm.sparse_map import SparseMap
 from locretrieval.sfm.triangulation import MapInput
 from locretrieval.sfm.verification import VerificationBatch
+from locretrieval.sfm.workers import parallel_map
 
 #: Bump when the meaning of cached local maps changes.
 CACHE_VERSION = 1
@@ -177,12 +178,11 @@ class LocalSfm(SfmParadigm):
     """Paradigm 2a (``configs/paradigms/local_sfm.yaml``). ``map_matches``: where the matches among
     a local map's images come from (a `MapMatches`, chosen by its ``_target_``:
     ``paradigms/local_sfm/map_matches=database|query``). Its stages: no shared map, each query's
-    maps triangulated with its registration."""
+    maps triangulated (in worker processes) before it is registered in them."""
 
     map_matches: Any = part(MapMatches, "paradigms/local_sfm/map_matches")
     label: ClassVar[str] = "local_sfm"
     has_shared_map: ClassVar[bool] = False
-    query_work: ClassVar[str] = "triangulate + register"
 
     def method_names(self) -> list[str]:
         return [SFM_METHOD]
@@ -199,7 +199,28 @@ class LocalSfm(SfmParadigm):
         names = inputs.scene.database.names
         return [(names[a], names[b]) for a, b in self.map_matches.database_pairs(rankings, ks, queries)]
 
-    def localize(
+    def triangulate_query_maps(
+        self,
+        inputs: SfmInputs,
+        rankings: Sequence[Ranking],
+        ks: Sequence[list[int]],
+        cache_dir: Path,
+        queries: Sequence[int],
+    ) -> None:
+        """The local maps of each query of ``queries`` whose registration is not cached and whose
+        map is not either, triangulated and cached (`triangulate_query`, in worker processes)."""
+        shared = (inputs, self.map_matches, cache_dir / "local_maps")
+        tasks = [
+            task
+            for task in query_tasks(rankings, ks, _pose_cache(inputs, self, cache_dir), queries)
+            if _new_maps(shared, task)
+        ]
+        for _ in parallel_map(
+            triangulate_query, tasks, inputs.settings.processes, f"{self.label}: triangulate", shared
+        ):
+            pass
+
+    def register(
         self,
         inputs: SfmInputs,
         rankings: Sequence[Ranking],
@@ -207,11 +228,13 @@ class LocalSfm(SfmParadigm):
         cache_dir: Path,
         queries: Sequence[int] | None,
     ) -> list[PoseEstimates] | None:
-        """Triangulate and register: each query's local maps built and the query registered in each
-        (`localize_query`, in worker processes), outcomes cached."""
+        """Each query registered in its local maps (`register_query_in_maps`, in worker
+        processes), outcomes cached."""
         shared = (inputs, self.map_matches, cache_dir / "local_maps")
         cache = _pose_cache(inputs, self, cache_dir)
-        return run_queries(self.label, rankings, ks, localize_query, shared, inputs.settings.processes, cache, queries)
+        return run_queries(
+            self.label, rankings, ks, register_query_in_maps, shared, inputs.settings.processes, cache, queries
+        )
 
     def plan(
         self,
@@ -291,56 +314,70 @@ def local_map_pairs(
     return np.unique(np.concatenate(pairs), axis=0)
 
 
-def localize_query(shared: tuple[SfmInputs, MapMatches, Path], task: QueryTask) -> list[list[Outcome]]:
-    """Outcomes ``[ranking][k]`` of one query; its maps (the image sets whose outcome is not
-    known) are read from ``maps`` (the cache folder) or triangulated, all of them in one call of
-    the triangulation, and the query registered in each once, whichever rankings, ks and orders
-    select its images."""
+#: What every task of a query's local maps reads: the cached inputs, the map matches, the maps' folder.
+LocalMaps = tuple[SfmInputs, MapMatches, Path]
+
+
+def _map_paths(shared: LocalMaps, task: QueryTask) -> dict[tuple[int, ...], Path]:
+    """Where the query's maps (its image sets whose outcome is not known, of 2 images or more) are cached."""
     inputs, map_matches, maps = shared
-    database = inputs.scene.database
-    pending = task.pending()
-    images = sorted({i for selected in pending for i in selected})
-    query_keypoints, query_matches = inputs.query_matches(task.query, images)
-    keypoints = inputs.database_features.keypoints([database.names[i] for i in images])
-    pairs = sorted({(a, b) for selected in pending for a in selected for b in selected if a < b})
-    map_pairs = map_matches.matches(pairs, QueryMaps(inputs, task.query, query_keypoints, query_matches, keypoints))
-    paths = {
+    return {
         selected: maps / f"{_map_key(inputs, map_matches, task.query, selected)}.npz"
-        for selected in sorted(pending)
+        for selected in sorted(task.pending())
         if len(selected) >= 2
     }
-    built = [selected for selected, path in paths.items() if not path.is_file()]
-    sparse_maps = dict(
-        zip(
-            built,
-            inputs.settings.triangulation.triangulate_many(
-                [
-                    MapInput(
-                        [database.cameras[i] for i in selected],
-                        database.qvec[list(selected)],
-                        database.tvec[list(selected)],
-                        [keypoints[database.names[i]] for i in selected],
-                        {
-                            (s, t): map_pairs[(a, b)]
-                            for s, a in enumerate(selected)
-                            for t, b in enumerate(selected)
-                            if a < b
-                        },
-                    )
-                    for selected in built
-                ]
-            ),
-        )
+
+
+def _new_maps(shared: LocalMaps, task: QueryTask) -> list[tuple[int, ...]]:
+    """The query's maps not cached yet."""
+    return [selected for selected, path in _map_paths(shared, task).items() if not path.is_file()]
+
+
+def triangulate_query(shared: LocalMaps, task: QueryTask) -> int:
+    """The query's maps not cached yet (`_new_maps`), triangulated in one call of the
+    triangulation from their pose-verified map matches and cached; returns how many."""
+    inputs, map_matches, _ = shared
+    database = inputs.scene.database
+    paths, built = _map_paths(shared, task), _new_maps(shared, task)
+    images = sorted({i for selected in built for i in selected})
+    query_keypoints, query_matches = inputs.query_matches(task.query, images)
+    keypoints = inputs.database_features.keypoints([database.names[i] for i in images])
+    pairs = sorted({(a, b) for selected in built for a in selected for b in selected if a < b})
+    map_pairs = map_matches.matches(pairs, QueryMaps(inputs, task.query, query_keypoints, query_matches, keypoints))
+    sparse_maps = inputs.settings.triangulation.triangulate_many(
+        [
+            MapInput(
+                [database.cameras[i] for i in selected],
+                database.qvec[list(selected)],
+                database.tvec[list(selected)],
+                [keypoints[database.names[i]] for i in selected],
+                {(s, t): map_pairs[(a, b)] for s, a in enumerate(selected) for t, b in enumerate(selected) if a < b},
+            )
+            for selected in built
+        ]
     )
-    for selected in built:
-        sparse_maps[selected].save(paths[selected])
+    for selected, sparse_map in zip(built, sparse_maps):
+        sparse_map.save(paths[selected])
+    return len(built)
+
+
+def register_query_in_maps(shared: LocalMaps, task: QueryTask) -> list[list[Outcome]]:
+    """Outcomes ``[ranking][k]`` of one query, registered once in each of its maps (the image sets
+    whose outcome is not known, read from the cache: `triangulate_query` built any missing, here
+    too when another job's share left one out), whichever rankings, ks and orders select its images."""
+    inputs = shared[0]
+    if _new_maps(shared, task):
+        triangulate_query(shared, task)
+    paths = _map_paths(shared, task)
+    images = sorted({i for selected in task.pending() for i in selected})
+    query_keypoints, query_matches = inputs.query_matches(task.query, images)
 
     def localize(selected: tuple[int, ...]) -> Outcome:
         if not selected:
             return EMPTY_RETRIEVAL
         if len(selected) < 2:
             return TOO_FEW_IMAGES
-        sparse_map = sparse_maps[selected] if selected in sparse_maps else SparseMap.load(paths[selected])
+        sparse_map = SparseMap.load(paths[selected])
         if not sparse_map.num_points:
             return NO_3D_POINTS
         slots = {i: s for s, i in enumerate(selected)}

@@ -7,22 +7,26 @@ The stages hand each other their results through the caches:
    pairs of the maps every query shares (the global map), then, per chunk of queries, each
    query with its top ``max(k)`` images of every ranking (verified per
    ``sfm.query_verification``) and the database pairs of its local maps (pose-verified);
-3. **triangulate** a map every query shares (the global map, `SfmStages.triangulate_shared_map`: once, in
-   this process), then **register** (`SfmStages.localize`): per query in worker processes (a
-   local map is triangulated and the query registered in it at once), outcomes cached.
+3. **triangulate** (``<paradigm>: triangulate``): a map every query shares (the global map,
+   `SfmStages.triangulate_shared_map`) once, in this process, before any query; the maps of each
+   query (local maps, `SfmStages.triangulate_query_maps`) per chunk, in worker processes; both
+   cached;
+4. **register** (``<paradigm>: register``, `SfmStages.register`): each query of a chunk in its
+   maps, in worker processes, outcomes cached.
 
 `run_sfm` is the driver: it streams the queries in chunks, so that while one chunk is
 triangulated and registered the next one is matched (on a GPU the two stages then overlap), and
 gathers every outcome from the cache at the end. The paradigms say what they need
 (`SfmStages`) and never match anything themselves, so one evaluation matches each pair once.
 
-**Shards** (``sfm.shard=i/n``, e.g. a Hydra multirun over ``0/n,...,n-1/n`` on the joblib or
-submitit launcher): job ``i`` does every ``n``-th item of each stage's sorted work (images,
-database pairs, queries with their pairs, maps and registrations), then computes whatever of its
-own later stages' inputs is still missing (another job's share that has not been written yet:
-computed twice, never wrong). A map all queries share (the global map) is built by the first job
-that needs it, under a file lock, and read by the others. The caches are content-addressed and
-safe for concurrent writers, so a plain run afterwards finds every pair, map and pose in them.
+**Shards** (the job's ``shard=i/n``, `locretrieval.shard.Shard`; e.g. a Hydra multirun over
+``0/n,...,n-1/n`` on the joblib or submitit launcher): job ``i`` does every ``n``-th item of
+each stage's sorted work (images, database pairs, queries with their pairs, maps and
+registrations), then computes whatever of its own later stages' inputs is still missing (another
+job's share that has not been written yet: computed twice, never wrong). A map all queries share
+(the global map) is built by the first job that needs it, under a file lock, and read by the
+others. The caches are content-addressed and safe for concurrent writers, so a plain run
+afterwards finds every pair, map and pose in them.
 """
 
 from __future__ import annotations
@@ -35,13 +39,14 @@ import time
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 from locretrieval.estimates import PoseEstimates
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
 from locretrieval.sfm.features import extract_features
 from locretrieval.sfm.inputs import SfmInputs, SfmSettings
+from locretrieval.shard import Shard
 
 if TYPE_CHECKING:
     from locretrieval.sfm.plan import ParadigmWork
@@ -60,20 +65,19 @@ class SfmStages(abc.ABC):
     - `shared_map_pairs`: the database pairs of maps every query uses (the global map), to be
       matched and pose-verified;
     - `query_map_pairs`: those of maps built per query;
-    - `triangulate_shared_map`: triangulates (and caches) the map every query uses, in this
-      process, once its pairs are matched (the stage ``<paradigm>: triangulate``), when the
-      paradigm has one (`has_shared_map`);
-    - `localize`: its per-query stage (``<paradigm>: <query_work>``, e.g. ``triangulate +
-      register`` when each query has maps of its own);
+    - the stage ``<paradigm>: triangulate``: `triangulate_shared_map` triangulates (and caches)
+      the map every query uses, in this process, once its pairs are matched, when the paradigm
+      has one (`has_shared_map`); else `triangulate_query_maps` triangulates (and caches) the
+      maps of each query of a chunk, in worker processes;
+    - the stage ``<paradigm>: register``: `register` registers each query of a chunk in its
+      maps (in worker processes), outcomes cached, and gathers them at the end;
     - `plan`: its work, counted without doing any (`locretrieval.sfm.plan`).
     """
 
     #: The numbers of top-ranked images the paradigm localizes from (its settings').
     k: list[int]
-    #: Whether it has a map every query shares (`triangulate_shared_map`).
+    #: Whether it has a map every query shares (`triangulate_shared_map`), else maps of each query.
     has_shared_map: ClassVar[bool]
-    #: What its per-query stage does, in the stage's name.
-    query_work: ClassVar[str]
 
     def shared_map_pairs(self, inputs: SfmInputs) -> list[Pair]:
         """The database pairs of the maps every query uses (default: none)."""
@@ -89,8 +93,20 @@ class SfmStages(abc.ABC):
         """Triangulate (and cache) the map every query uses (`has_shared_map` only)."""
         raise NotImplementedError(f"{type(self).__name__} has no shared map")
 
+    def triangulate_query_maps(
+        self,
+        inputs: SfmInputs,
+        rankings: Sequence[Ranking],
+        ks: Sequence[list[int]],
+        cache_dir: Path,
+        queries: Sequence[int],
+    ) -> None:
+        """Triangulate (and cache) the maps of ``queries`` whose registrations are not cached
+        (without `has_shared_map` only)."""
+        raise NotImplementedError(f"{type(self).__name__} has no maps of its own per query")
+
     @abc.abstractmethod
-    def localize(
+    def register(
         self,
         inputs: SfmInputs,
         rankings: Sequence[Ranking],
@@ -98,8 +114,9 @@ class SfmStages(abc.ABC):
         cache_dir: Path,
         queries: Sequence[int] | None,
     ) -> list[PoseEstimates] | None:
-        """The per-query stage: with ``queries`` (a chunk, or a shard's) those are localised and
-        cached only, and None is returned; with None every outcome (cached by then) is gathered."""
+        """With ``queries`` (a chunk, or a shard's), register those in their maps (triangulated
+        by then) and cache the outcomes only, returning None; with None, gather every outcome
+        (cached by then) as estimates."""
 
     @abc.abstractmethod
     def plan(
@@ -108,9 +125,10 @@ class SfmStages(abc.ABC):
         """Its work (`ParadigmWork`), without doing any: exact for ``rankings``, upper bounds for
         ``num_rankings`` rankings not computed yet (``None``)."""
 
-    def stage_names(self, paradigm: str) -> list[str]:
-        """The names of this paradigm's stages as `run_sfm` times them."""
-        return [f"{paradigm}: triangulate"] * self.has_shared_map + [f"{paradigm}: {self.query_work}"]
+
+def stage_names(paradigm: str) -> tuple[str, str]:
+    """The names `run_sfm` times a paradigm's triangulation and registration under."""
+    return f"{paradigm}: triangulate", f"{paradigm}: register"
 
 
 def run_sfm(
@@ -120,9 +138,10 @@ def run_sfm(
     sfm: SfmSettings,
     cache_dir: str | Path | None,
     timings: dict[str, float] | None = None,
+    shard: Shard | None = None,
 ) -> dict[str, list[PoseEstimates]] | None:
     """Every SfM paradigm of ``paradigms`` (name -> its `SfmStages`) on every ranking:
-    the pose estimates by paradigm, or None for a job of ``sfm.shard`` (its share cached only).
+    the pose estimates by paradigm, or None for a job of a ``shard`` (its share cached only).
 
     The queries are streamed in chunks of `QUERIES_PER_CHUNK`: while one chunk is triangulated
     and registered (a thread driving the worker processes), the next chunk's pairs are matched
@@ -131,7 +150,6 @@ def run_sfm(
     if cache_dir is None:
         raise ValueError(f"{' and '.join(paradigms)} need a cache directory for their features, matches and maps")
     cache_dir = Path(cache_dir)
-    shard = sfm.job_shard
     inputs = SfmInputs.prepare(scene, sfm, cache_dir, extract=False)
     ks = {name: [ranking.clamp_ks(stages.k) for ranking in rankings] for name, stages in paradigms.items()}
     deepest = [[max(max(ks[name][r]) for name in paradigms)] for r in range(len(rankings))]
@@ -169,14 +187,23 @@ def run_sfm(
         match_stage(inputs, [], shared_pairs)
     for name, stages in paradigms.items():
         if stages.has_shared_map:
-            with clock(f"{name}: triangulate"):
+            with clock(stage_names(name)[0]):
                 stages.triangulate_shared_map(inputs, cache_dir)
 
-    def localize(chunk: Sequence[int] | None) -> dict[str, list[PoseEstimates] | None]:
+    def localize(chunk: Sequence[int]) -> None:
+        for name, stages in paradigms.items():
+            triangulate, register = stage_names(name)
+            if not stages.has_shared_map:
+                with clock(triangulate):
+                    stages.triangulate_query_maps(inputs, rankings, ks[name], cache_dir, chunk)
+            with clock(register):
+                stages.register(inputs, rankings, ks[name], cache_dir, chunk)
+
+    def gather() -> dict[str, list[PoseEstimates]]:
         found = {}
         for name, stages in paradigms.items():
-            with clock(f"{name}: {stages.query_work}"):
-                found[name] = stages.localize(inputs, rankings, ks[name], cache_dir, chunk)
+            with clock(stage_names(name)[1]):
+                found[name] = stages.register(inputs, rankings, ks[name], cache_dir, None)
         return found
 
     with ThreadPoolExecutor(1, thread_name_prefix="sfm-localize") as background:
@@ -190,7 +217,7 @@ def run_sfm(
             localizing = background.submit(localize, chunk)
         if localizing is not None:
             localizing.result()
-    estimates = None if shard is not None else localize(None)  # every outcome is cached now: gathered
+    estimates = None if shard is not None else gather()  # every outcome is cached now
     log.info("SfM stages: %s", ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in clock.seconds.items()))
     return estimates
 
@@ -216,7 +243,7 @@ class StageClock:
 def extract_stage(
     inputs: SfmInputs,
     cache_dir: Path,
-    shard: Any,
+    shard: Shard | None,
     query_pairs: Sequence[Pair],
     database_pairs: Sequence[Pair],
     whole_sets: bool = True,

@@ -105,7 +105,7 @@ class LocalizationValidation(L.Callback):
 
     Under DDP every rank takes part (`locretrieval.training.distributed`): each describes a share
     of the images and every rank holds all descriptors; each does its share of the SfM paradigms'
-    work (``sfm.shard``) into the shared cache; rank 0 then runs the benchmark (the SfM results
+    work (`Ranks.shard`) into the shared cache; rank 0 then runs the benchmark (the SfM results
     read from the cache), logs the gallery and prints, and every rank logs its metrics. The
     reference models are described by rank 0 (once per run, cached). The metrics equal a single
     process's; a rank whose share raises ends every rank with its error."""
@@ -183,14 +183,11 @@ class LocalizationValidation(L.Callback):
         return build_rankings(self.scene, {TRAINED: described}, {}, self.settings.retrieval, random_seed=None)[0]
 
     def _run_sfm_shards(self, rankings: list[Ranking], settings: BenchmarkSettings, ranks: Ranks) -> None:
-        """Under DDP, each rank's share of the SfM paradigms' work on ``rankings`` (``sfm.shard``:
+        """Under DDP, each rank's share of the SfM paradigms' work on ``rankings`` (`Ranks.shard`:
         its rank of all), into the cache the benchmark then reads it from."""
         if ranks.count == 1 or not settings.paradigms.sfm_stages():
             return
-        sfm = dataclasses.replace(settings.sfm, shard=str(ranks.shard))
-        ranks.gather(
-            lambda: run_sfm_shard(self.scene, rankings, dataclasses.replace(settings, sfm=sfm), self.cache_dir)
-        )
+        ranks.gather(lambda: run_sfm_shard(self.scene, rankings, settings, self.cache_dir, ranks.shard))
 
     def _benchmark(
         self, rankings: list[Ranking], with_sfm: bool, ranks: Ranks, report: Callable[[BenchmarkResult], Reported]
