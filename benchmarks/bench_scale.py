@@ -48,6 +48,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from scipy.spatial.transform import Rotation
 from sfm_world import FeatureWorld
@@ -58,6 +59,7 @@ from locretrieval.config import validated
 from locretrieval.groundtruth import frustum_groundtruth, groundtruth_from_scores, relative_pose_groundtruth
 from locretrieval.metrics.localization import localization_table, query_error_table
 from locretrieval.metrics.retrieval import retrieval_tables
+from locretrieval.paradigms.approximation import PoseApproximation
 from locretrieval.paradigms.base import Paradigms
 from locretrieval.retrieval import random_ranking
 from locretrieval.retrieval.index import search
@@ -183,7 +185,10 @@ def scene_rankings(
     """The five rankings of a run (faiss on the descriptors, the relative-pose, frustum and
     synthetic co-observation ground truths, random) and the ground truths; ``timed(label, f, ...)`` calls each step."""
     database, queries = scene.database, scene.queries
-    ranking = timed("retrieval (faiss, top 50)", search, query_descriptors, database_descriptors, DEPTH)
+    chunk_size = OmegaConf.load(CONFIGS / "retrieval" / "default.yaml").chunk_size  # evaluate.py's
+    ranking = timed(
+        "retrieval (faiss, top 50)", search, query_descriptors, database_descriptors, DEPTH, "descriptor", chunk_size
+    )
     groundtruths = {
         "relative_pose": timed(
             "ground truth: relative pose (25 m, 45 deg)",
@@ -193,6 +198,7 @@ def scene_rankings(
             depth=DEPTH,
             position_threshold=25.0,
             rotation_threshold=45.0,
+            ranked="within_thresholds",
         ),
         "frustum": timed(
             "ground truth: frustum (0.1-50 m)",
@@ -281,7 +287,7 @@ def run_size(args: argparse.Namespace) -> None:
 
     tracemalloc.start()
     rankings, groundtruths = scene_rankings(scene, database_descriptors, query_descriptors, rng, args.seed, measure)
-    approximation = default_paradigms().approximation
+    approximation = approximation_paradigm()
     estimates = measure("paradigm 1: descriptor (ewb, bdi, csi)", approximation.run, scene, rankings[:1], None, None)
     estimates += measure("paradigm 1: ground truths + random (ewb)", approximation.run, scene, rankings[1:], None, None)
     subsets = {"all": np.ones(num_queries, dtype=bool)}
@@ -292,7 +298,8 @@ def run_size(args: argparse.Namespace) -> None:
             query_error_table(args.size, estimates, queries),
         ),
     )
-    relevance = measure("relevance in the top 50", relevances, groundtruths)
+    scope = instantiate(evaluate_config([]).groundtruth.relevance)  # evaluate.py's: the top-50 ranking's
+    relevance = measure("relevance in the top 50", relevances, groundtruths, scope)
     tables = measure(
         "retrieval metrics (P/R/mAP@1..50)",
         retrieval_tables,
@@ -319,26 +326,32 @@ def run_size(args: argparse.Namespace) -> None:
     sfm_at_scale(scene, rankings, descriptors_of, args, rng)
 
 
+def evaluate_config(overrides: list[str]):
+    """``configs/evaluate.yaml`` composed with ``overrides``: what ``python evaluate.py`` runs."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return compose(config_name="evaluate", overrides=overrides)
+
+
 def dataset_sfm(size: str) -> SfmSettings:
     """The ``sfm`` settings of ``python evaluate.py data=<size>`` (its preset and ``sfm`` section)."""
-    from hydra import compose, initialize_config_dir
-
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        cfg = compose(config_name="evaluate", overrides=[f"data={size}"])
-    return validated(SfmSettings, cfg.sfm, "sfm")
+    return validated(SfmSettings, evaluate_config([f"data={size}"]).sfm, "sfm")
 
 
-def default_paradigms() -> Paradigms:
-    """The paradigms of ``configs/paradigms/default.yaml``."""
-    from hydra import compose, initialize_config_dir
+def default_paradigms(overrides: list[str]) -> Paradigms:
+    """The paradigms ``python evaluate.py`` runs with ``overrides`` (``configs/paradigms/``)."""
+    return validated(Paradigms, evaluate_config(overrides).paradigms, "paradigms")
 
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        return validated(Paradigms, compose(config_name="evaluate").paradigms, "paradigms")
+
+def approximation_paradigm() -> PoseApproximation:
+    """Paradigm 1 as ``python evaluate.py`` runs it (every method, its weights), at the k of `KS`."""
+    return default_paradigms([f"paradigms.approximation.k=[{','.join(map(str, KS))}]"]).approximation
 
 
 def sfm_paradigms() -> dict[str, SfmStages]:
-    """The SfM paradigms of ``configs/paradigms/default.yaml``: name -> their stages."""
-    return default_paradigms().sfm_stages()
+    """The SfM paradigms ``python evaluate.py`` runs: name -> their stages."""
+    return default_paradigms([]).sfm_stages()
 
 
 def sfm_plan(scene: Scene, rankings, sfm: SfmSettings, cache: Path) -> SfmPlan:

@@ -49,7 +49,6 @@ rm -rf "$run" "$gaps"
 
 # every scene rendered on the CPU's cores; the ground truths of docs/results.md's five-scene table
 scenes="data.render={$render} model.extraction.num_workers=$extraction_workers
-    groundtruth.definitions.co_observation.min_shared=1 groundtruth.definitions.co_observation.query_pairs=50
     groundtruth.enabled=[relative_pose,co_observation]"
 listed=""
 for scene in "seed:1" "seed:2" "seed:0,environment:street" "seed:1,environment:street"; do

@@ -121,6 +121,10 @@ class ConfigError(ValueError):
 #: old key -> its new spelling. An override of an old key is refused naming the new one, on the command line
 #: (`refuse_moved_keys`) and where a section is checked (an unknown key, `validated`).
 MOVED_KEYS = {
+    "training.frozen": "module.frozen",
+    "training.freeze_batch_norm": "module.freeze_batch_norm",
+    "train_relevance.unrelated_rotation": "train_relevance.negatives.max_rotation",
+    "train_relevance.far": "train_relevance.negatives.far",
     "paradigms.approximation.alpha": "paradigms.approximation.weights.csi.alpha",
     "sfm.matching.max_epipolar_error": "sfm.database_verification.max_epipolar_error",
     "train_relevance.negatives.rule": "train_relevance/negatives=unrelated|not_relevant",
