@@ -123,7 +123,7 @@ def bare_images_per_second(cfg, data, module, steps: int) -> float:
 
     device = torch.device("cuda" if cfg.trainer.accelerator == "gpu" else "cpu")
     batch = [tensor.to(device) for tensor in next(iter(data.train_dataloader()))]
-    images, relevance, negatives, _ = batch
+    images, relevance, negatives, indices = batch
     if data.augmentation is not None:
         images = data.augmentation.augment(images)
     module.to(device).train()
@@ -134,7 +134,7 @@ def bare_images_per_second(cfg, data, module, steps: int) -> float:
     for _ in range(steps):
         start = time.perf_counter()
         with torch.autocast(device.type, dtype=torch.float16, enabled=mixed):
-            loss = module.loss(module(images), relevance, negatives)
+            loss = module.batch_loss((images, relevance, negatives, indices))  # the module's loss (and memory)
         optimizer.zero_grad(set_to_none=True)
         scaler.scale(loss).backward()
         scaler.step(optimizer)

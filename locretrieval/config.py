@@ -117,8 +117,9 @@ class ConfigError(ValueError):
     """A configuration value of the wrong type or range; the message names the full key."""
 
 
-#: Keys that moved (their value became an object chosen by ``_target_``, or a key of the job): the
-#: old key -> its new spelling. An override of an old key is refused naming the new one, on the command line
+#: Keys that moved (0.12) when their value became an object chosen by ``_target_``, a part of the
+#: training module (the loss, optimizer, scheduler and memory nest under ``module``) or a key of the
+#: job (``shard``): the old key -> its new spelling. An override of an old key is refused naming the new one, on the command line
 #: (`refuse_moved_keys`) and where a section is checked (an unknown key, `validated`).
 MOVED_KEYS = {
     "training.frozen": "module.frozen",
@@ -136,6 +137,18 @@ MOVED_KEYS = {
         f"subsets.maskrcnn_{key}": f"subsets.mask_sources.maskrcnn.{key}"
         for key in ("weights", "min_size", "score_threshold", "mask_threshold")
     },
+    # the training config nests as its objects do: the loss, optimizer and scheduler of the module
+    **{
+        f"{part}.{key}": f"module.{part}.{key}"
+        for part, keys in {
+            "loss": "temperature target_temperature bins margin max_triplets_per_anchor pos_margin neg_margin "
+            "loss loss.alpha loss.beta loss.base",
+            "optimizer": "lr weight_decay",
+            "scheduler": "T_max",
+        }.items()
+        for key in keys.split()
+    },
+    "module.memory_size": "memory=cross_batch module.memory.size",
 }
 
 

@@ -92,9 +92,12 @@ def train_steps(loss_name: str, pairs, batches, processes: int, **options):
     recorder, the module and its trainer."""
     import helpers
 
+    from locretrieval.training.memory import CrossBatchMemory
+
     loss = instantiate(OmegaConf.load(CONFIGS / "loss" / f"{loss_name}.yaml"))
+    memory = partial(CrossBatchMemory, size=MEMORY_SIZE)
     module = helpers.training_module(
-        network(), loss, partial(torch.optim.SGD, lr=0.5), pairs=pairs, memory_size=MEMORY_SIZE, **options
+        network(), loss, partial(torch.optim.SGD, lr=0.5), pairs=pairs, memory=memory, **options
     )
     recorder = Recorder()
     trainer = L.Trainer(
@@ -129,7 +132,7 @@ def main(scene_dir: Path, out: Path, processes: int) -> None:
             out / f"{loss_name}-rank{trainer.global_rank}.npz",
             losses=np.array(recorder.losses),
             parameters=np.stack(recorder.parameters),
-            memory=module.memory.indices.numpy(),
+            memory=module.loss.memory.indices.numpy(),
         )
     if processes > 1:  # today's per-rank losses, for comparison: each rank's of its own batch
         recorder, _, trainer = train_steps("listwise", pairs, batches, processes, global_batch=False)

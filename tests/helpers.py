@@ -33,7 +33,7 @@ def evaluate_config(*overrides: str) -> DictConfig:
 
 def training_module(network, loss=None, optimizer=None, scheduler=None, **options):
     """`RetrievalTraining` of ``network`` with ``configs/module/retrieval.yaml``'s options (Adam at
-    1e-3 unless ``optimizer``), ``options`` overriding them."""
+    1e-3 unless ``optimizer``; no memory), ``options`` overriding them."""
     from functools import partial
 
     import torch
@@ -42,17 +42,12 @@ def training_module(network, loss=None, optimizer=None, scheduler=None, **option
     from locretrieval.training.module import RetrievalTraining
 
     settings = OmegaConf.to_container(OmegaConf.load(CONFIGS / "module" / "retrieval.yaml"))
-    settings = {key: value for key, value in settings.items() if not key.startswith("_")}
+    parts = {"loss": loss, "optimizer": optimizer or partial(torch.optim.Adam, lr=1e-3), "scheduler": scheduler}
+    settings = {key: value for key, value in settings.items() if not key.startswith("_") and key not in parts}
     return RetrievalTraining(
-        network,
-        Preprocessing(max_side=None, scales=(1.0,)),
-        loss,
-        optimizer or partial(torch.optim.Adam, lr=1e-3),
-        scheduler,
-        "gem",
-        {},
+        network, Preprocessing(max_side=None, scales=(1.0,)), model="gem", architecture={}, **parts,
         **{**settings, **options},
-    )
+    )  # fmt: skip
 
 
 def zoo_model(model: str, **options):

@@ -196,3 +196,80 @@ def test_moved_keys_are_refused_on_the_command_line_and_in_a_section():
         ConfigError, match=r"subsets.maskrcnn_weights: moved, now subsets.mask_sources.maskrcnn.weights"
     ):
         validated(SubsetSettings, cfg.subsets, "subsets")
+
+
+@pytest.mark.parametrize(
+    ("overrides", "loss", "optimizer"),
+    [
+        ([], "ListwiseLoss", "Adam"),
+        (["loss=ap", "optimizer=adamw"], "APLoss", "AdamW"),
+        (["loss=triplet", "memory=cross_batch", "module.memory.size=4"], "TripletLoss", "Adam"),
+        (["data=baidu", "loss=multi_similarity", "~scheduler"], "MetricLearningLoss", "Adam"),
+        (["finetune=salad", "module.frozen=[]", "loss=contrastive"], "ContrastiveLoss", "AdamW"),
+    ],
+)
+def test_the_training_groups_compose_under_the_module_and_instantiate_with_it(overrides, loss, optimizer):
+    """``python train.py data=baidu loss=ap``: the group names choose the module's parts, which
+    nest under it (module.loss, module.optimizer, module.scheduler, module.memory) as the objects
+    do, and Hydra builds them with it (`training_module`'s call), each with its YAML's values."""
+    import torch
+    from test_memory import random_pairs
+
+    from locretrieval.config import built
+    from locretrieval.models.extraction import Preprocessing
+    from locretrieval.models.networks import GeMPooling, RetrievalNet
+    from locretrieval.training.losses import PerAnchorMean
+    from locretrieval.training.memory import CrossBatchMemory
+
+    cfg = helpers.compose_config("train", "trainer.max_epochs=3", *overrides)
+    assert not {"loss", "optimizer", "scheduler", "memory"} & set(cfg)  # no sibling groups left
+    network = RetrievalNet(torch.nn.Sequential(torch.nn.Conv2d(3, 4, 3)), GeMPooling(4, 3.0, trainable=False), 4)
+    module = built(
+        cfg.module, "module", network=network, preprocessing=Preprocessing(max_side=None, scales=(1.0,)),
+        model="gem", architecture={}, pairs=random_pairs(8, 0),
+    )  # fmt: skip
+    memory = "memory=cross_batch" in overrides
+    wrapped = module.loss.loss if memory else module.loss
+    assert type(module.loss).__name__ == ("CrossBatchMemory" if memory else loss) and type(wrapped).__name__ == loss
+    if memory:
+        assert isinstance(module.loss, CrossBatchMemory) and module.loss.memory.size == 4
+    if loss in ("TripletLoss", "ContrastiveLoss"):  # pytorch-metric-learning's parts, injected from the YAML
+        assert type(wrapped.loss.distance).__name__ == "CosineSimilarity"
+        assert any(
+            isinstance(part, PerAnchorMean) for part in wrapped.loss.reducer.modules()
+        )  # contrastive: per pair kind
+    # the parts hold no state of their own: a checkpoint of before the nesting resumes (its state_dict)
+    assert all(key.startswith(("network.", "forward_network.")) for key in module.state_dict())
+    optimizers = module.configure_optimizers()
+    chosen = optimizers if "~scheduler" in overrides else optimizers["optimizer"]
+    assert type(chosen).__name__ == optimizer
+    assert chosen.param_groups[0]["lr"] == cfg.module.optimizer.lr and cfg.module.optimizer.lr > 0
+    if "~scheduler" not in overrides:
+        assert optimizers["lr_scheduler"].T_max == 3  # ${trainer.max_epochs}, resolved inside the module's node
+
+
+def test_an_old_spelling_of_a_training_key_is_refused_naming_the_nested_one(tmp_path):
+    """``python train.py loss.margin=0.2`` (before the nesting) is refused naming
+    ``module.loss.margin``; a config file's top-level ``optimizer:`` section, naming
+    ``module.optimizer``, before any work."""
+    from test_training import train_config
+
+    from locretrieval.training.run import train
+
+    completed = helpers.run_python(
+        "import sys; sys.argv = ['train.py', 'loss=triplet', 'loss.margin=0.2']; "
+        "import runpy; runpy.run_path('train.py', run_name='__main__')"
+    )
+    assert completed.returncode != 0
+    assert "ConfigError: loss.margin: moved, now module.loss.margin" in completed.stderr
+    for old, new in (("optimizer.lr", "module.optimizer.lr"), ("module.memory_size", "memory=cross_batch")):
+        with pytest.raises(ConfigError, match=rf"^{re.escape(old)}: moved, now {re.escape(new)}"):
+            refuse_moved_keys(["loss=ap", "optimizer=adamw", f"{old}=1"])
+    refuse_moved_keys(["loss=ap", "optimizer=adamw", "scheduler=cosine", "module.loss.bins=30"])  # the new keys pass
+    cfg = train_config(tmp_path, "+optimizer.momentum=0.9")  # as a config file of before the nesting sets it
+    with pytest.raises(ConfigError, match=r"^optimizer: moved, now module.optimizer "):
+        train(cfg, tmp_path / "run")
+    assert not (tmp_path / "run").exists()  # refused before any work
+    cfg = train_config(tmp_path, "+module.memory_size=16")
+    with pytest.raises(ConfigError, match=r"^module.memory_size: moved, now memory=cross_batch module.memory.size"):
+        train(cfg, tmp_path / "run")

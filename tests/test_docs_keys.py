@@ -29,17 +29,19 @@ def _paths(node, prefix: tuple[str, ...]):
 
 
 def config_keys() -> set[tuple[str, ...]]:
-    """Every key path any config file defines, under the package it lands in (its group's path,
-    or the root for ``@package _global_`` files and the primary configs), those of the composed
-    entry points (a default placed by its defaults list) and Hydra's own."""
+    """Every key path any config file defines, under the package it lands in (its group's path, the
+    package of its ``@package`` header, or the root for ``@package _global_`` files and the primary
+    configs), those of the composed entry points (a default placed by its defaults list) and Hydra's
+    own."""
     keys = set(_paths(OmegaConf.to_container(OmegaConf.structured(HydraConf)), ("hydra",)))
     for path in CONFIGS.rglob("*.yaml"):
         text = path.read_text()
         group = path.relative_to(CONFIGS).parent.parts
+        package = re.search(r"^# @package (\S+)", text, flags=re.M)  # the file's header: where it lands
         if "@package _global_" in text or not group:
             prefix: tuple[str, ...] = ()
-        elif group[0] == "hydra":
-            prefix = group
+        elif package:
+            prefix = tuple(package.group(1).split("."))  # e.g. module.loss
         else:
             prefix = group
         keys |= set(_paths(yaml.safe_load(text) or {}, prefix))
@@ -160,7 +162,7 @@ def test_a_family_of_keys_exists_when_one_key_starts_with_its_prefix():
 
 
 #: The groups a user picks an option of on the command line (``loss=ap``); ``default`` options aside.
-CHOSEN_GROUPS = ("model", "loss", "optimizer", "scheduler", "miner", "data", "finetune", "trainer", "debug")
+CHOSEN_GROUPS = ("model", "loss", "optimizer", "scheduler", "memory", "miner", "data", "finetune", "trainer", "debug")
 
 
 def test_every_option_of_the_command_line_groups_is_named_in_the_documents():

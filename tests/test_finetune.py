@@ -90,7 +90,7 @@ def test_every_preset_is_its_authors_recipe_on_its_published_architecture(hub_ca
     }
     for preset, (model, optimizer, lr, size, fixed_blocks) in expected.items():
         cfg = helpers.compose_config("train", f"finetune={preset}", "device=cpu", *PRESETS[preset][1])
-        assert (cfg.model.name, cfg.optimizer._target_, cfg.optimizer.lr) == (model, optimizer, lr)
+        assert (cfg.model.name, cfg.module.optimizer._target_, cfg.module.optimizer.lr) == (model, optimizer, lr)
         assert list(cfg.datamodule.image_size) == size
         network = instantiate(cfg.model).network
         frozen = set(freeze_parameters(network, list(cfg.module.frozen)))

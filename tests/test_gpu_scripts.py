@@ -115,7 +115,9 @@ def test_gpu_training_gain_rehearsal(rehearsals):
     table = (out / "training_gain.md").read_text()
     assert table in log
     rows = [line for line in table.splitlines() if line.startswith("| ")][1:]
-    assert [row.split("|")[1].strip() for row in rows] == [*SCENES, "mean"]
+    labels = [row.split("|")[1].strip() for row in rows]  # report.py's summary: one trial marked best
+    assert [label.removesuffix(" (best)") for label in labels] == [*SCENES, f"mean of {len(SCENES)}"]
+    assert sum(label.endswith(" (best)") for label in labels) == 1
     lines = step_lines(log)
     assert len(lines) == 3 and all(line.endswith("ok") for line in lines)
     budgets = sum(int(re.search(r"of +(\d+) s", line).group(1)) for line in lines)

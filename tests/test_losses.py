@@ -5,14 +5,17 @@ import math
 import numpy as np
 import pytest
 import torch
+from pytorch_metric_learning.distances import CosineSimilarity
 
-from locretrieval.training.losses import APLoss, ContrastiveLoss, ListwiseLoss, TripletLoss
+from locretrieval.training.losses import APLoss, ContrastiveLoss, ListwiseLoss, PerAnchorMean, TripletLoss
 
 LOSSES = {"ap": APLoss, "triplet": TripletLoss, "contrastive": ContrastiveLoss, "listwise": ListwiseLoss}
+#: The distance and reducer the pytorch-metric-learning losses are given (configs/loss/triplet.yaml's).
+PML = {"distance": CosineSimilarity(), "reducer": PerAnchorMean()}
 
-SETTINGS = [("ap", {"bins": 20}), ("triplet", {"margin": 0.1, "max_triplets_per_anchor": None}),
-            ("triplet", {"margin": 0.1, "max_triplets_per_anchor": 2}),
-            ("contrastive", {"pos_margin": 0.8, "neg_margin": 0.3}),
+SETTINGS = [("ap", {"bins": 20}), ("triplet", {"margin": 0.1, "max_triplets_per_anchor": None, **PML}),
+            ("triplet", {"margin": 0.1, "max_triplets_per_anchor": 2, **PML}),
+            ("contrastive", {"pos_margin": 0.8, "neg_margin": 0.3, **PML}),
             ("listwise", {"temperature": 0.05, "target_temperature": 0.5})]  # fmt: skip
 IDS = ["ap", "triplet", "triplet-hardest", "contrastive", "listwise"]
 
@@ -63,13 +66,13 @@ def test_triplet_is_the_mean_hinge_per_anchor_then_over_anchors():
     s = (descriptors @ descriptors.T).double().numpy()
     hinges = {a: [max(0.0, s[a, n] - s[a, p] + 0.1) for p in ps for n in ns] for a, (ps, ns) in ANCHORS.items()}
     expected = np.mean([np.mean(h) for h in hinges.values()])
-    assert TripletLoss(0.1, max_triplets_per_anchor=None)(descriptors, relevance, negatives).item() == pytest.approx(
-        expected, abs=1e-6
-    )
+    assert TripletLoss(0.1, max_triplets_per_anchor=None, **PML)(
+        descriptors, relevance, negatives
+    ).item() == pytest.approx(expected, abs=1e-6)
     hardest = np.mean([max(h) for h in hinges.values()])  # one triplet per anchor: its largest hinge
-    assert TripletLoss(0.1, max_triplets_per_anchor=1)(descriptors, relevance, negatives).item() == pytest.approx(
-        hardest, abs=1e-6
-    )
+    assert TripletLoss(0.1, max_triplets_per_anchor=1, **PML)(
+        descriptors, relevance, negatives
+    ).item() == pytest.approx(hardest, abs=1e-6)
 
 
 def test_contrastive_is_the_mean_positive_plus_negative_term_per_anchor():
@@ -77,7 +80,7 @@ def test_contrastive_is_the_mean_positive_plus_negative_term_per_anchor():
     s = (descriptors @ descriptors.T).double().numpy()
     per_anchor = [np.mean([max(0.0, 0.8 - s[a, p]) for p in ps]) + np.mean([max(0.0, s[a, n] - 0.3) for n in ns])
                   for a, (ps, ns) in ANCHORS.items()]  # fmt: skip
-    loss = ContrastiveLoss(0.8, 0.3)
+    loss = ContrastiveLoss(0.8, 0.3, **PML)
     assert loss(descriptors, relevance, negatives).item() == pytest.approx(np.mean(per_anchor), abs=1e-6)
     # a single pair of each kind (the library alone would return 0)
     single = torch.zeros(5, 5)
@@ -172,7 +175,7 @@ def test_shapes_and_settings_are_checked():
     with pytest.raises(ValueError, match="bins"):
         APLoss(1)
     with pytest.raises(ValueError, match="max_triplets_per_anchor"):
-        TripletLoss(0.1, max_triplets_per_anchor=0)
+        TripletLoss(0.1, max_triplets_per_anchor=0, **PML)
     with pytest.raises(ValueError, match="temperatures"):
         ListwiseLoss(0.1, 0.0)
 

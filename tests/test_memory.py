@@ -1,5 +1,7 @@
-"""Cross-batch memory (`module.memory_size`): what it remembers, the candidates it adds to a batch,
+"""Cross-batch memory (`memory=cross_batch`, a loss wrapper): what it remembers, the candidates it adds to a batch,
 the listwise loss it gives against a direct computation, and train.py with it."""
+
+from functools import partial
 
 import helpers
 import numpy as np
@@ -10,7 +12,7 @@ from test_training import train_config
 
 from locretrieval.models.networks import GeMPooling, RetrievalNet
 from locretrieval.training.losses import ListwiseLoss
-from locretrieval.training.memory import DescriptorMemory
+from locretrieval.training.memory import CrossBatchMemory, DescriptorMemory
 from locretrieval.training.relevance import TrainingPairs
 from locretrieval.training.run import train
 
@@ -41,7 +43,7 @@ def test_the_memory_keeps_the_newest_copy_of_the_last_images_it_was_given():
     trained = descriptors.clone().requires_grad_(True)
     memory.write(trained[:2], torch.tensor([0, 1]))
     assert not memory.descriptors.requires_grad  # no gradient flows into remembered images
-    with pytest.raises(ValueError, match="memory_size: must be >= 1"):
+    with pytest.raises(ValueError, match="size: must be >= 1"):
         DescriptorMemory(-1)
 
 
@@ -113,19 +115,36 @@ def test_training_steps_fill_the_memory_and_rank_against_it():
         calls.append((len(descriptors), descriptors.requires_grad))
         return descriptors.sum() * 0
 
-    module = helpers.training_module(network, recording_loss, memory_size=5, pairs=pairs)
+    memory = partial(CrossBatchMemory, size=5)
+    module = helpers.training_module(network, recording_loss, memory=memory, pairs=pairs)
     images = torch.randint(0, 255, (4, 3, 12, 12), dtype=torch.uint8)
     for batch in (np.array([0, 1, 2, 3]), np.array([3, 4, 5, 6])):
         relevance, negatives = (torch.from_numpy(block) for block in pairs.batch(batch))
         module.batch_loss((images, relevance, negatives, torch.from_numpy(batch)))
     assert calls == [(4, True), (4 + 3, True)]  # the second batch sees images 0, 1, 2 remembered (3 is in it)
-    assert module.memory.indices.tolist() == [2, 3, 4, 5, 6]  # the newest 5
-    with pytest.raises(ValueError, match="module.memory_size needs the training pairs"):
-        helpers.training_module(network, recording_loss, memory_size=5)
+    assert module.loss.memory.indices.tolist() == [2, 3, 4, 5, 6]  # the newest 5
+    with pytest.raises(ValueError, match="module.memory needs the training pairs"):
+        helpers.training_module(network, recording_loss, memory=memory)
 
 
 def test_train_py_trains_with_a_memory(tmp_path):
-    cfg = train_config(tmp_path, "module.memory_size=16", "sampler.batches_per_epoch=3")
+    cfg = train_config(tmp_path, "memory=cross_batch", "module.memory.size=16", "sampler.batches_per_epoch=3")
     validator = train(cfg, tmp_path / "run")
     assert [entry["epoch"] for entry in validator.history] == [-1, 0]
     assert np.isfinite(validator.history[-1]["val/approximation/ewb/k3/5m_10deg"])
+
+
+def test_a_memory_of_size_zero_is_the_loss_of_the_batch_alone():
+    """``module.memory.size=0`` (the sweep's "no memory"): the wrapped loss of each batch as it is,
+    nothing remembered; a negative size is refused naming the key."""
+    pairs = random_pairs(12, 5)
+    descriptors = unit(12, 5, 6)
+    loss = ListwiseLoss(temperature=0.1, target_temperature=0.2)
+    memory = CrossBatchMemory(loss, pairs, size=0)
+    for batch in (np.arange(6), np.arange(6, 12)):
+        relevance, negatives = (torch.from_numpy(block) for block in pairs.batch(batch))
+        value = memory(descriptors[batch], relevance, negatives, torch.from_numpy(batch))
+        assert value.item() == loss(descriptors[batch], relevance, negatives).item()
+    assert memory.memory is None
+    with pytest.raises(ValueError, match="size: must be >= 0"):
+        CrossBatchMemory(loss, pairs, size=-1)

@@ -136,10 +136,10 @@ def test_a_sweep_summary_and_its_optuna_figures_draw_with_their_own_scripts_only
     study = optuna.create_study(study_name="s", storage=f"sqlite:///{tmp_path / 'optuna.db'}", direction="maximize")
     for number, value in enumerate((10.0, 30.0, 20.0)):
         trial = study.ask()
-        trial.suggest_float("optimizer.lr", 1e-5, 1e-3, log=True)
+        trial.suggest_float("module.optimizer.lr", 1e-5, 1e-3, log=True)
         study.tell(trial, value)
         run = gap_run(tmp_path, f"{number}_job", value, [("approximation/ewb/k3/5m_10deg", 5.0, value, 10.0, 40.0)])
-        lr = f"optimizer.lr={trial.params['optimizer.lr']}"
+        lr = f"module.optimizer.lr={trial.params['module.optimizer.lr']}"
         OmegaConf.save(OmegaConf.create([lr, hostile]), run / ".hydra" / "overrides.yaml")
         OmegaConf.save(OmegaConf.create({"hydra": {"job": {"num": number}}}), run / ".hydra" / "hydra.yaml")
     sweeper = {"_target_": "hydra_plugins.hydra_optuna_sweeper.optuna_sweeper.OptunaSweeper", "study_name": "s"}

@@ -96,12 +96,14 @@ def test_a_study_started_by_another_command_is_refused_and_a_resumed_sampler_dra
     from locretrieval.training.sweeps import check_same_command, reseeded
 
     study = optuna.create_study(study_name="s", storage=f"sqlite:///{tmp_path / 'optuna.db'}", direction="maximize")
-    check_same_command(study, ["debug=quick", "seed=1"], {"optimizer.lr": "interval(0.1, 0.2)"})
-    check_same_command(study, ["seed=1", "debug=quick"], {"optimizer.lr": "interval(0.1, 0.2)"})  # the same command
+    check_same_command(study, ["debug=quick", "seed=1"], {"module.optimizer.lr": "interval(0.1, 0.2)"})
+    check_same_command(
+        study, ["seed=1", "debug=quick"], {"module.optimizer.lr": "interval(0.1, 0.2)"}
+    )  # the same command
     with pytest.raises(ValueError, match=r"study 's' was started by another command .*'seed=2'.*study_name="):
-        check_same_command(study, ["debug=quick", "seed=2"], {"optimizer.lr": "interval(0.1, 0.2)"})
+        check_same_command(study, ["debug=quick", "seed=2"], {"module.optimizer.lr": "interval(0.1, 0.2)"})
     with pytest.raises(ValueError, match=r"started by another command .*interval\(0.1, 0.3\)"):
-        check_same_command(study, ["debug=quick", "seed=1"], {"optimizer.lr": "interval(0.1, 0.3)"})
+        check_same_command(study, ["debug=quick", "seed=1"], {"module.optimizer.lr": "interval(0.1, 0.3)"})
     node = OmegaConf.create({"_target_": "optuna.samplers.TPESampler", "seed": 0})
     first = optuna.samplers.TPESampler(seed=0)
     resumed = reseeded(first, node, 2)  # two trials in the study: seed 2
@@ -163,7 +165,17 @@ def test_the_summary_of_runs_marks_the_best_closes_the_gap_of_the_means_and_says
 
 #: The documented sweep, three trials of the quick run, in parallel through the joblib launcher (its
 #: default workers), run where the tests cannot write: everything under the test's folder.
-SWEEP = ["-m", "hparams_search=localization", "debug=quick", "hydra/launcher=joblib_local", "hydra.sweeper.n_trials=3"]
+#: The documented study with the default workers, its trials quick runs of one epoch validated by paradigm 1 alone.
+SWEEP = [
+    "-m",
+    "hparams_search=localization",
+    "debug=quick",
+    "hydra/launcher=joblib_local",
+    "hydra.sweeper.n_trials=3",
+    "trainer.max_epochs=1",
+    "paradigms.local_sfm.enabled=false",
+    "paradigms.global_sfm.enabled=false",
+]
 
 
 def sweep(root: Path, log: Path) -> subprocess.Popen:
@@ -226,7 +238,7 @@ def test_an_optuna_sweep_killed_after_its_first_trial_resumes_without_running_it
     loaded = optuna.load_study(study_name="localization", storage=f"sqlite:///{folder / 'optuna.db'}")
     search = helpers.compose_config("train", "hparams_search=localization").loss_search_space
     for trial in loaded.trials:  # each trial drew its own loss's parameters and no other loss's
-        drawn = {key for key in trial.params if key.startswith("loss.")}
+        drawn = {key for key in trial.params if key.startswith("module.loss.")}
         assert drawn == set(search[trial.params["loss"]]), trial.params
 
     best = max((value, number) for number, state, value in study if state == "COMPLETE")[1]

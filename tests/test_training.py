@@ -564,11 +564,11 @@ def test_evaluation_mode_restores_each_layers_own_mode():
 def test_a_diverging_run_stops_at_the_step_naming_the_loss_and_the_learning_rate(tmp_path):
     from locretrieval.training.module import TrainingDiverged
 
-    cfg = train_config(tmp_path, "optimizer.lr=1e6", "trainer.max_epochs=3", "sampler.batches_per_epoch=3")
+    cfg = train_config(tmp_path, "module.optimizer.lr=1e6", "trainer.max_epochs=3", "sampler.batches_per_epoch=3")
     with pytest.raises(
         TrainingDiverged,
         match=r"training diverged at step \d+ \(epoch \d\): (the loss is nan|the loss is inf|the gradient "
-        r"of .* is not finite), learning rate \[.*\] \(optimizer.lr\); lower optimizer.lr",
+        r"of .* is not finite), learning rate \[.*\] \(module.optimizer.lr\); lower module.optimizer.lr",
     ):
         train(cfg, tmp_path / "run")
     for checkpoint in (tmp_path / "run" / "checkpoints").glob(

@@ -6,12 +6,18 @@ the 0/1 case). ``negatives``: boolean ``[B, B]``, pairs surely unrelated (a pair
 counts as relevant). Pairs that are neither are ambiguous and no loss looks at them; the
 diagonal is never used. Every loss is the mean over the anchors (rows) with at least one
 relevant and one surely unrelated partner, and 0 (with a gradient) when no anchor has both.
+
+The losses built on pytorch-metric-learning take its parts injected, as its own losses do: the
+``distance`` (cosine similarity: the descriptors are unit vectors) and the ``reducer``
+(`PerAnchorMean`, the mean per anchor above).
 """
 
 from __future__ import annotations
 
 import torch
-from pytorch_metric_learning import distances, losses, reducers
+from pytorch_metric_learning import losses
+from pytorch_metric_learning.distances import BaseDistance
+from pytorch_metric_learning.reducers import BaseReducer
 from torch import nn
 
 
@@ -41,6 +47,20 @@ def _mean_per_anchor(values: torch.Tensor, anchors: torch.Tensor, size: int) -> 
     sums = torch.zeros(size, dtype=values.dtype, device=values.device).index_add(0, anchors, values)
     present = counts > 0
     return (sums[present] / counts[present]).mean()
+
+
+class PerAnchorMean(BaseReducer):
+    """A pytorch-metric-learning reducer: the mean over anchors of the mean of each anchor's
+    triplet or pair losses (the anchor: the first index of each), so that an anchor with many
+    partners weighs as much as one with few. A loss of several kinds of pairs (contrastive: its
+    relevant and unrelated pairs) sums their reductions."""
+
+    def _reduce(
+        self, losses: torch.Tensor, loss_indices: tuple[torch.Tensor, ...], embeddings: torch.Tensor, labels: None
+    ) -> torch.Tensor:
+        return _mean_per_anchor(losses, loss_indices[0], len(embeddings))
+
+    triplet_reduction = pos_pair_reduction = neg_pair_reduction = _reduce
 
 
 class APLoss(nn.Module):
@@ -80,17 +100,18 @@ class TripletLoss(nn.Module):
     unrelated to a, given to it as ``indices_tuple`` (never class labels: PML 2.x accepts
     ``labels=None`` with an ``indices_tuple``). Mean over each anchor's triplets, then over
     anchors. ``max_triplets_per_anchor``: ``None`` keeps every triplet; a number keeps each
-    anchor's hardest ones (largest ``s(a, n) - s(a, p)``, chosen without gradient, ties by
-    index), a deterministic choice."""
+    anchor's hardest ones (largest ``s(a, n) - s(a, p)`` by the ``distance``, chosen without
+    gradient, ties by index), a deterministic choice. ``distance`` and ``reducer``: the PML loss's
+    (``distance``, e.g. ``CosineSimilarity``; ``reducer``, e.g. `PerAnchorMean`)."""
 
-    def __init__(self, margin: float, max_triplets_per_anchor: int | None) -> None:
+    def __init__(
+        self, margin: float, max_triplets_per_anchor: int | None, distance: BaseDistance, reducer: BaseReducer
+    ) -> None:
         super().__init__()
         if max_triplets_per_anchor is not None and max_triplets_per_anchor < 1:
             raise ValueError(f"max_triplets_per_anchor must be >= 1 or None, got {max_triplets_per_anchor}")
         self.max_triplets_per_anchor = max_triplets_per_anchor
-        self.loss = losses.TripletMarginLoss(
-            margin=margin, distance=distances.CosineSimilarity(), reducer=reducers.DoNothingReducer()
-        )
+        self.loss = losses.TripletMarginLoss(margin=margin, distance=distance, reducer=reducer)
 
     def forward(self, descriptors: torch.Tensor, relevance: torch.Tensor, negatives: torch.Tensor) -> torch.Tensor:
         positive, negative = _masks(descriptors, relevance, negatives)
@@ -99,8 +120,7 @@ class TripletLoss(nn.Module):
             return _zero(descriptors)
         valid = positive[rows, :, None] & negative[rows, None, :]  # [a, p, n]
         anchors, positives, unrelated = self._select(descriptors, rows, valid)
-        per_triplet = self.loss(descriptors, None, (rows[anchors], positives, unrelated))["loss"]["losses"]
-        return _mean_per_anchor(per_triplet, rows[anchors], len(descriptors))
+        return self.loss(descriptors, None, (rows[anchors], positives, unrelated))
 
     def _select(self, descriptors: torch.Tensor, rows: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """``(anchors, positives, negatives)``, anchors as positions in ``rows``: every valid triplet
@@ -109,7 +129,8 @@ class TripletLoss(nn.Module):
             return valid.nonzero(as_tuple=True)
         size = len(descriptors)
         with torch.no_grad():
-            similarity = descriptors[rows] @ descriptors.T
+            distance = self.loss.distance
+            similarity = distance(descriptors[rows], descriptors) * (1 if distance.is_inverted else -1)
             violation = (similarity[:, None, :] - similarity[:, :, None]).masked_fill(~valid, float("-inf"))
             keep = min(self.max_triplets_per_anchor, size * size)
             order = torch.sort(violation.view(len(rows), -1), dim=1, descending=True, stable=True).indices[:, :keep]
@@ -121,14 +142,14 @@ class ContrastiveLoss(nn.Module):
     """pytorch-metric-learning's ``ContrastiveLoss`` on cosine similarity, given the pairs as
     ``indices_tuple`` ``(a1, p, a2, n)`` (never class labels): per anchor, the mean over its
     relevant partners of ``max(0, pos_margin - s)`` plus the mean over its surely unrelated
-    ones of ``max(0, s - neg_margin)``; mean over anchors."""
+    ones of ``max(0, s - neg_margin)``; mean over anchors (by the ``reducer``, e.g. `PerAnchorMean`;
+    ``distance``: the PML loss's, e.g. ``CosineSimilarity``)."""
 
-    def __init__(self, pos_margin: float, neg_margin: float) -> None:
+    def __init__(self, pos_margin: float, neg_margin: float, distance: BaseDistance, reducer: BaseReducer) -> None:
         super().__init__()
         self.loss = losses.ContrastiveLoss(
-            pos_margin=pos_margin, neg_margin=neg_margin, distance=distances.CosineSimilarity(),
-            reducer=reducers.DoNothingReducer(),
-        )  # fmt: skip
+            pos_margin=pos_margin, neg_margin=neg_margin, distance=distance, reducer=reducer
+        )
 
     def forward(self, descriptors: torch.Tensor, relevance: torch.Tensor, negatives: torch.Tensor) -> torch.Tensor:
         positive, negative = _masks(descriptors, relevance, negatives)
@@ -137,10 +158,7 @@ class ContrastiveLoss(nn.Module):
         pairs = positive.nonzero(as_tuple=True) + negative.nonzero(as_tuple=True)
         if all(len(x) == 1 for x in pairs):  # PML returns 0 for a single pair of each kind:
             pairs = tuple(torch.cat([x, x]) for x in pairs)  # duplicated, the means are the same
-        per_pair = self.loss(descriptors, None, pairs)
-        size = len(descriptors)
-        return (_mean_per_anchor(per_pair["pos_loss"]["losses"], pairs[0], size)
-                + _mean_per_anchor(per_pair["neg_loss"]["losses"], pairs[2], size))  # fmt: skip
+        return self.loss(descriptors, None, pairs)
 
 
 class MetricLearningLoss(nn.Module):

@@ -1,10 +1,13 @@
 """Cross-batch memory (Wang et al., "Cross-Batch Memory for Embedding Learning", CVPR 2020): the
 descriptors of recently trained images, kept without gradient and ranked against each batch's
 anchors as extra candidates, so that an anchor is ranked against most of the training images
-rather than the few dozen of its batch. Every loss of `locretrieval.training.losses` takes them
-unchanged: the memory's images join the batch as candidates that are no anchor."""
+rather than the few dozen of its batch. `CrossBatchMemory` wraps a loss with one, as
+pytorch-metric-learning's ``CrossBatchMemory`` does: every loss of `locretrieval.training.losses`
+takes the memory's images unchanged, as candidates of the batch that are no anchor."""
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -20,7 +23,7 @@ class DescriptorMemory:
     per-rank losses its own batches."""
 
     def __init__(self, size: int) -> None:
-        require(size >= 1, "memory_size", f"must be >= 1 (0: no memory), got {size}")
+        require(size >= 1, "size", f"must be >= 1 (0: no memory), got {size}")
         self.size = size
         self.indices = torch.empty(0, dtype=torch.long)
         self.descriptors: torch.Tensor | None = None
@@ -70,3 +73,27 @@ class DescriptorMemory:
             self.indices = torch.cat([self.indices[older], new_indices])
             self.descriptors = torch.cat([self.descriptors[older.to(self.descriptors.device)], new_descriptors])
         self.indices, self.descriptors = self.indices[-self.size :], self.descriptors[-self.size :]
+
+
+class CrossBatchMemory(torch.nn.Module):
+    """``loss`` with a cross-batch memory of the last ``size`` training images (``module.memory``,
+    `DescriptorMemory`; 0: none, the loss of the batch alone): ``forward(descriptors, relevance,
+    negatives, indices)`` ranks the batch's anchors against its images and the remembered ones
+    outside it (their relevance read from the training ``pairs``), then remembers the batch.
+    The module gives it the loss and the pairs."""
+
+    def __init__(self, loss: Callable[..., torch.Tensor], pairs: TrainingPairs, *, size: int) -> None:
+        super().__init__()
+        require(size >= 0, "size", f"must be >= 0 (0: no memory), got {size}")
+        self.loss = loss
+        self.pairs = pairs
+        self.memory = DescriptorMemory(size) if size else None
+
+    def forward(
+        self, descriptors: torch.Tensor, relevance: torch.Tensor, negatives: torch.Tensor, indices: torch.Tensor
+    ) -> torch.Tensor:
+        if self.memory is None:
+            return self.loss(descriptors, relevance, negatives)
+        candidates, relevance, negatives = self.memory.extend(descriptors, relevance, negatives, indices, self.pairs)
+        self.memory.write(descriptors, indices)
+        return self.loss(candidates, relevance, negatives)

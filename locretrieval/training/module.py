@@ -16,7 +16,6 @@ from locretrieval.config import SettingError
 from locretrieval.models.extraction import Preprocessing, describe_batch
 from locretrieval.models.networks import RetrievalNet
 from locretrieval.models.weights import CHECKPOINT_FORMAT, EMBEDDED_CHECKPOINT_KEY, plain
-from locretrieval.training.memory import DescriptorMemory
 from locretrieval.training.relevance import TrainingPairs
 
 log = logging.getLogger(__name__)
@@ -76,9 +75,10 @@ class RetrievalTraining(L.LightningModule):
     ``lr_scales``: a learning rate per part of any network: ``{shell pattern of parameter names:
     factor}``, e.g. ``{'module.aggregation.*': 10}``; a parameter takes the factor of the first
     pattern it matches (before ``head_lr_scale``), each part follows the same schedule.
-    ``memory_size``: a cross-batch memory (`DescriptorMemory`) of the descriptors of the last this
-    many training images, every batch's anchors ranked against them too, their relevance read from
-    ``pairs``; 0: each anchor is ranked against its batch only.
+    ``memory``: a partial loss wrapper (Hydra ``_partial_``) taking the loss and the training
+    ``pairs``: the cross-batch memory (`training.memory.CrossBatchMemory`), which ranks every
+    batch's anchors against the last training images seen too; ``None``: each anchor is ranked
+    against its batch only.
     ``global_batch``: under DDP, each step's loss, and the memory, see the union of every rank's
     batch (in rank order, their relevance read from ``pairs``; the descriptors gathered with their
     gradients, so that the step is the one a single process takes on the union); false: each
@@ -95,12 +95,12 @@ class RetrievalTraining(L.LightningModule):
         model: str,
         architecture: Mapping[str, Any],
         *,
+        memory: Callable[..., torch.nn.Module] | None,
         compile_network: bool,
         freeze_batch_norm: bool,
         frozen: Sequence[str],
         head_lr_scale: float,
         lr_scales: Mapping[str, float] | None,
-        memory_size: int,
         global_batch: bool,
         pairs: TrainingPairs | None = None,
     ) -> None:
@@ -111,7 +111,10 @@ class RetrievalTraining(L.LightningModule):
         self.network = network
         self.forward_network = torch.compile(network) if compile_network else network
         self.preprocessing = preprocessing
-        self.loss = loss
+        if memory is not None and pairs is None:
+            raise ValueError("module.memory needs the training pairs (train.py gives them)")
+        self.remembers = memory is not None  # the loss takes the batch's indices (what it remembers)
+        self.loss = memory(loss=loss, pairs=pairs) if self.remembers else loss
         self.optimizer_factory, self.scheduler_factory = optimizer, scheduler
         self.model_name, self.architecture = model, plain(dict(architecture))
         self.freeze_batch_norm = freeze_batch_norm
@@ -127,9 +130,6 @@ class RetrievalTraining(L.LightningModule):
         check_patterns(network, self.lr_scales, "lr_scales")
         if any(not factor > 0 for factor in self.lr_scales.values()):
             raise ValueError(f"module.lr_scales factors must be positive, got {self.lr_scales}")
-        if memory_size and pairs is None:
-            raise ValueError("module.memory_size needs the training pairs (train.py gives them)")
-        self.memory = DescriptorMemory(int(memory_size)) if memory_size else None
         self.global_batch = bool(global_batch)
         self.pairs = pairs
 
@@ -156,17 +156,16 @@ class RetrievalTraining(L.LightningModule):
 
     def batch_loss(self, batch: tuple[torch.Tensor, ...]) -> torch.Tensor:
         """The loss of a batch ``(images, relevance, negatives, indices)`` (`training.data.collate`),
-        under DDP with ``global_batch`` the union of every rank's (`union_of_batches`), ranked against
-        the memory's images too when there is one, which then remembers the batch."""
+        under DDP with ``global_batch`` the union of every rank's (`union_of_batches`); a loss with a
+        memory also takes the batch's indices (it ranks against the remembered images, then
+        remembers the batch)."""
         images, relevance, negatives, indices = batch
         descriptors = self(images)
         if self.global_batch and _world_size() > 1:
             descriptors, relevance, negatives, indices = self.union_of_batches(descriptors, indices)
-        if self.memory is None:
-            return self.loss(descriptors, relevance, negatives)
-        candidates, relevance, negatives = self.memory.extend(descriptors, relevance, negatives, indices, self.pairs)
-        self.memory.write(descriptors, indices)
-        return self.loss(candidates, relevance, negatives)
+        if self.remembers:
+            return self.loss(descriptors, relevance, negatives, indices)
+        return self.loss(descriptors, relevance, negatives)
 
     def union_of_batches(
         self, descriptors: torch.Tensor, indices: torch.Tensor
@@ -209,7 +208,7 @@ class RetrievalTraining(L.LightningModule):
         rates = sorted({group["lr"] for optimizer in self.trainer.optimizers for group in optimizer.param_groups})
         return (
             f"training diverged at step {self.global_step} (epoch {self.current_epoch}): {what}, learning rate {rates} "
-            f"(optimizer.lr); lower optimizer.lr. The checkpoints in checkpoints/ are from before it."
+            f"(module.optimizer.lr); lower module.optimizer.lr. The checkpoints in checkpoints/ are from before it."
         )
 
     def configure_optimizers(self):

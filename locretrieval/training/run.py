@@ -184,8 +184,10 @@ def _without_queries(name: str, images: ImageSet, scene: Scene) -> Scene:
     return Scene(name, images, images.subset(np.arange(0)), ltvl_names=scene.ltvl_names, frustum_far=scene.frustum_far)
 
 
-#: The config nodes of the objects train.py builds (besides callbacks and loggers), checked first.
-OBJECT_NODES = ("sampler", "augmentation", "datamodule", "module", "miner", "loss", "optimizer", "scheduler", "trainer")
+#: The config nodes of the objects train.py builds (besides callbacks and loggers), checked first;
+#: the module's own parts (its loss, optimizer, scheduler and memory) are checked below it.
+OBJECT_NODES = ("sampler", "augmentation", "datamodule", "module", "miner", "trainer")
+MODULE_PARTS = ("loss", "optimizer", "scheduler", "memory")
 
 
 @dataclass
@@ -381,7 +383,13 @@ def checked_callbacks(
     """Check every object node (`check_node`: keys and types) and build the callbacks that need
     nothing from the run (checkpoints, ...), their monitors checked (`check_monitors`); the
     validation callback is built once the scene is there."""
+    for part in MODULE_PARTS:  # a config of before the nesting (a finetune or experiment file's `optimizer:`)
+        if part in cfg:
+            raise ConfigError(
+                f"{part}: moved, now module.{part} (the {part} group's package; a key of it: module.{part}.<key>)"
+            )
     nodes = {key: cfg[key] for key in OBJECT_NODES if cfg.get(key)}
+    nodes |= {f"module.{part}": cfg.module[part] for part in MODULE_PARTS if cfg.module.get(part)}
     nodes |= {f"callbacks.{name}": node for name, node in (cfg.get("callbacks") or {}).items() if node is not None}
     nodes |= {f"logger.{name}": node for name, node in (cfg.get("logger") or {}).items() if node is not None}
     nodes |= {f"validation_references.{name}": node for name, node in (cfg.get("validation_references") or {}).items()}
@@ -437,16 +445,13 @@ def training_parts(
 
 
 def training_module(cfg: DictConfig, descriptor: Any, pairs: TrainingPairs) -> Any:
-    """The LightningModule of ``cfg.module`` training the model's network with ``loss``,
-    ``optimizer`` and ``scheduler`` (none when the group is removed) on the training ``pairs``."""
+    """The LightningModule of ``cfg.module``, its nested loss, optimizer, scheduler and memory
+    instantiated with it by Hydra, training the model's network on the training ``pairs``."""
     return built(
         cfg.module,
         "module",
         network=descriptor.network.train(),
         preprocessing=descriptor.preprocessing,
-        loss=instantiate(cfg.loss),
-        optimizer=instantiate(cfg.optimizer),
-        scheduler=instantiate(cfg.scheduler) if cfg.get("scheduler") else None,
         model=descriptor.model,
         architecture=descriptor.architecture,
         pairs=pairs,
