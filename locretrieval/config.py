@@ -119,8 +119,9 @@ class ConfigError(ValueError):
 
 #: Keys that moved (0.12) when their value became an object chosen by ``_target_``, a part of the
 #: training module (the loss, optimizer, scheduler and memory nest under ``module``) or a key of the
-#: job (``shard``): the old key -> its new spelling. An override of an old key is refused naming the new one, on the command line
-#: (`refuse_moved_keys`) and where a section is checked (an unknown key, `validated`).
+#: job (``shard``): the old key -> its new spelling. An override of an old key is refused naming the
+#: new one, on the command line (`refuse_moved_keys`) and where a section is checked (an unknown
+#: key, `validated`).
 MOVED_KEYS = {
     "training.frozen": "module.frozen",
     "training.freeze_batch_norm": "module.freeze_batch_norm",
