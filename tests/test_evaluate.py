@@ -220,6 +220,8 @@ def test_paradigm_sections_are_checked():
         r"the sections are \['approximation', 'local_sfm', 'global_sfm', 'globl_sfm'\]",
     ):
         validated(Paradigms, paradigms, "paradigms")
+    with pytest.raises(ConfigError, match=r"^paradigms: one paradigm's YAML in place of the group"):
+        validated(Paradigms, evaluate_config("paradigms=local_sfm").paradigms, "paradigms")
 
 
 def test_rankings_sharing_a_name_are_an_error():

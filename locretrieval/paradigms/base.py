@@ -105,6 +105,11 @@ class Paradigms:
     def from_mapping(cls, mapping: Mapping[str, Any], key: str) -> "Paradigms":
         """Each section of ``mapping`` built as the `Paradigm` its ``_target_`` names; a section
         without one, or naming something else, is a `ConfigError` naming its key."""
+        if "_target_" in mapping:  # e.g. paradigms=local_sfm: one paradigm's YAML as the whole group
+            raise ConfigError(
+                f"{key}: one paradigm's YAML in place of the group; the group lists its paradigms "
+                f"(configs/paradigms/default.yaml), e.g. {key}.local_sfm.enabled=false switches one off"
+            )
         return cls({name: paradigm_of(section, f"{key}.{name}", list(mapping)) for name, section in mapping.items()})
 
     def __getattr__(self, name: str) -> Paradigm:
