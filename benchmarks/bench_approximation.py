@@ -17,8 +17,8 @@ from scipy.spatial.transform import Rotation
 
 import locretrieval  # noqa: F401
 from locretrieval import geometry
-from locretrieval.localization import approximation
-from locretrieval.localization.approximation import (
+from locretrieval.paradigms import approximation
+from locretrieval.paradigms.approximation import (
     BarycentricWeights,
     CosineSimilarityWeights,
     EqualWeights,

@@ -12,7 +12,7 @@ measured / forecast within [0.67, 1.5] per stage and in total on an otherwise id
   ``summary.json`` (``references``: the reference, ground-truth and random rankings, with the
   local features; ``epoch -1`` and ``epoch 0``: the trained network's).
 
-Each forecast is made by the run itself (`locretrieval.localization.plan`): unit costs measured
+Each forecast is made by the run itself (`locretrieval.sfm.plan`): unit costs measured
 on a sample of the scene just before, spread over the stages' worker processes. The machine's
 load average is printed before each run: the forecast assumes the machine stays as loaded.
 """

@@ -52,10 +52,10 @@ def render(root: Path, args: argparse.Namespace) -> None:
 def write_features(root: Path, keypoints: int) -> None:
     """Thumbnail global features and SIFT local features in each kapture folder's reconstruction/."""
     from locretrieval.config import validated
-    from locretrieval.localization.features import extract_features
-    from locretrieval.localization.sfm import SfmSettings
     from locretrieval.models import export_global_features
     from locretrieval.scene.kapture_io import load_kapture_scene
+    from locretrieval.sfm.features import extract_features
+    from locretrieval.sfm.inputs import SfmSettings
 
     defaults = OmegaConf.load(REPOSITORY / "configs" / "sfm" / "default.yaml")
     settings = validated(

@@ -37,16 +37,16 @@ from omegaconf import OmegaConf
 
 from locretrieval.config import validated
 from locretrieval.device import resolve_device
-from locretrieval.localization.features import SiftFeatures, feature_store
-from locretrieval.localization.matching import MatchingSettings, PairMatcher
-from locretrieval.localization.nearest_neighbours import (
+from locretrieval.scene import Camera, ImageSet
+from locretrieval.sfm.features import SiftFeatures, feature_store
+from locretrieval.sfm.matching import MatchingSettings, PairMatcher
+from locretrieval.sfm.nearest_neighbours import (
     CPU_BLOCK_BYTES,
     BatchedMatcher,
     NearestNeighbourMatcher,
     normalized_on_device,
 )
-from locretrieval.localization.verification import NoVerification
-from locretrieval.scene import Camera, ImageSet
+from locretrieval.sfm.verification import NoVerification
 
 DIMENSION = 128
 RATIO = 0.8

@@ -22,8 +22,8 @@ Then the SfM paradigms (2a, 2b) with the dataset config's settings (``sfm``, fro
 ``python evaluate.py data=<size>``) at the published local-feature count (``--keypoints``,
 20,000: the R2D2 features the data configs select), on the device a run would use:
 
-1. their work counted exactly (`local_sfm.plan`, `global_sfm.plan`) for these rankings and the k
-   lists of ``configs/paradigms/default.yaml``;
+1. their work counted exactly (`LocalSfm.plan`, `GlobalSfm.plan`) for these rankings and the k
+   lists of ``configs/paradigms/<name>.yaml``;
 2. unit costs measured by the product's own `measure_unit_costs` (the SfM pipeline run on its
    sample: a neighbourhood of database images and two queries) with the features of a generated
    world (`sfm_world.FeatureWorld`: points with descriptors, each image's features their
@@ -57,11 +57,16 @@ from locretrieval import geometry
 from locretrieval.benchmark import relevances
 from locretrieval.config import validated
 from locretrieval.groundtruth import frustum_groundtruth, groundtruth_from_scores, relative_pose_groundtruth
-from locretrieval.localization import approximation, global_sfm, local_sfm
-from locretrieval.localization.global_sfm import GlobalSfmSettings
-from locretrieval.localization.local_sfm import LocalSfmSettings
-from locretrieval.localization.pipeline import run_sfm
-from locretrieval.localization.plan import (
+from locretrieval.metrics.localization import localization_table, query_error_table
+from locretrieval.metrics.retrieval import retrieval_tables
+from locretrieval.paradigms.approximation import PoseApproximation
+from locretrieval.paradigms.base import Paradigms
+from locretrieval.retrieval import random_ranking
+from locretrieval.retrieval.index import search
+from locretrieval.scene import Camera, ImageSet, Scene
+from locretrieval.sfm.inputs import SfmSettings
+from locretrieval.sfm.pipeline import SfmStages, run_sfm
+from locretrieval.sfm.plan import (
     SfmPlan,
     UnitCosts,
     feature_work,
@@ -70,20 +75,14 @@ from locretrieval.localization.plan import (
     prepare_workers,
     sample_depth,
 )
-from locretrieval.localization.sfm import SfmSettings
-from locretrieval.localization.triangulation import BatchedTriangulation, MapInput
-from locretrieval.metrics.localization import localization_table, query_error_table
-from locretrieval.metrics.retrieval import retrieval_tables
-from locretrieval.retrieval import random_ranking
-from locretrieval.retrieval.index import search
-from locretrieval.scene import Camera, ImageSet, Scene
+from locretrieval.sfm.triangulation import BatchedTriangulation, MapInput
 
 CAMERA = Camera("PINHOLE", 1024, 1024, (500.0, 500.0, 512.0, 512.0))
 #: (database images, queries) of each dataset
 SIZES = {"baidu": (689, 2_292), "aachen": (6_697, 1_015), "robotcar": (20_862, 11_934)}
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 DEPTH = 50
-KS = [1, 2, 3, 5, 10, 20, 50]  # configs/paradigms/default.yaml, approximation
+KS = [1, 2, 3, 5, 10, 20, 50]  # configs/paradigms/approximation.yaml
 THRESHOLDS = [[0.25, 2.0], [0.5, 5.0], [5.0, 10.0]]  # configs/metrics/default.yaml (inclusive: <=)
 GIB = 2.0**30
 #: Database images of the map the triangulations are compared on.
@@ -288,9 +287,9 @@ def run_size(args: argparse.Namespace) -> None:
 
     tracemalloc.start()
     rankings, groundtruths = scene_rankings(scene, database_descriptors, query_descriptors, rng, args.seed, measure)
-    settings = approximation_settings()
-    estimates = measure("paradigm 1: descriptor (ewb, bdi, csi)", approximation.run, scene, rankings[:1], settings)
-    estimates += measure("paradigm 1: ground truths + random (ewb)", approximation.run, scene, rankings[1:], settings)
+    approximation = approximation_paradigm()
+    estimates = measure("paradigm 1: descriptor (ewb, bdi, csi)", approximation.run, scene, rankings[:1], None, None)
+    estimates += measure("paradigm 1: ground truths + random (ewb)", approximation.run, scene, rankings[1:], None, None)
     subsets = {"all": np.ones(num_queries, dtype=bool)}
     measure(
         "localization metrics (tables)",
@@ -340,26 +339,26 @@ def dataset_sfm(size: str) -> SfmSettings:
     return validated(SfmSettings, evaluate_config([f"data={size}"]).sfm, "sfm")
 
 
-def approximation_settings() -> approximation.ApproximationSettings:
+def default_paradigms(overrides: list[str]) -> Paradigms:
+    """The paradigms ``python evaluate.py`` runs with ``overrides`` (``configs/paradigms/``)."""
+    return validated(Paradigms, evaluate_config(overrides).paradigms, "paradigms")
+
+
+def approximation_paradigm() -> PoseApproximation:
     """Paradigm 1 as ``python evaluate.py`` runs it (every method, its weights), at the k of `KS`."""
-    section = evaluate_config([f"paradigms.approximation.k=[{','.join(map(str, KS))}]"]).paradigms.approximation
-    return validated(approximation.ApproximationSettings, section, "paradigms.approximation")
+    return default_paradigms([f"paradigms.approximation.k=[{','.join(map(str, KS))}]"]).approximation
 
 
-def sfm_paradigms() -> dict[str, tuple]:
-    """The SfM paradigms of ``configs/paradigms/default.yaml``: name -> (stages, settings)."""
-    paradigms = evaluate_config([]).paradigms
-    return {
-        "local_sfm": (local_sfm.STAGES, validated(LocalSfmSettings, paradigms.local_sfm, "paradigms.local_sfm")),
-        "global_sfm": (global_sfm.STAGES, validated(GlobalSfmSettings, paradigms.global_sfm, "paradigms.global_sfm")),
-    }
+def sfm_paradigms() -> dict[str, SfmStages]:
+    """The SfM paradigms ``python evaluate.py`` runs: name -> their stages."""
+    return default_paradigms([]).sfm_stages()
 
 
 def sfm_plan(scene: Scene, rankings, sfm: SfmSettings, cache: Path) -> SfmPlan:
     """The exact SfM work of both paradigms for ``rankings`` (no cost yet)."""
-    from locretrieval.localization.sfm import SfmInputs
+    from locretrieval.sfm.inputs import SfmInputs
 
-    work = [stages.plan(scene, rankings, settings, sfm, cache, 0) for stages, settings in sfm_paradigms().values()]
+    work = [stages.plan(scene, rankings, sfm, cache, 0) for stages in sfm_paradigms().values()]
     return SfmPlan(feature_work(SfmInputs.prepare(scene, sfm, cache, extract=False)), work, True, sfm.processes)
 
 

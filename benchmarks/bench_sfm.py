@@ -23,16 +23,16 @@ from hydra.utils import instantiate
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval.config import validated
 from locretrieval.groundtruth import relative_pose_groundtruth
-from locretrieval.localization import global_sfm, local_sfm
-from locretrieval.localization.features import extract_features
-from locretrieval.localization.global_sfm import GlobalSfmSettings
-from locretrieval.localization.local_sfm import DatabaseMapMatches, LocalSfmSettings
-from locretrieval.localization.matching import PairMatcher
-from locretrieval.localization.pose_cache import PoseCache
-from locretrieval.localization.sfm import SfmInputs, SfmSettings, query_tasks
-from locretrieval.localization.workers import resolve_workers
+from locretrieval.paradigms import global_sfm, local_sfm
+from locretrieval.paradigms.global_sfm import GlobalSfm
+from locretrieval.paradigms.local_sfm import DatabaseMapMatches, LocalSfm
 from locretrieval.retrieval import random_ranking
 from locretrieval.scene import Scene
+from locretrieval.sfm.features import extract_features
+from locretrieval.sfm.inputs import SfmInputs, SfmSettings, query_tasks
+from locretrieval.sfm.matching import PairMatcher
+from locretrieval.sfm.pose_cache import PoseCache
+from locretrieval.sfm.workers import resolve_workers
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 LOCAL_KS, GLOBAL_KS = [5, 10, 20], [1, 5, 10, 20, 50]
@@ -112,25 +112,28 @@ def benchmark(scene: Scene, base: Path, sfm: SfmSettings, workers: int) -> None:
     print(f"matching (mutual NN + ratio, 1 process): {1000 * elapsed / matched:.1f} ms/pair")
 
     paradigms = (
-        ("local_sfm", local_sfm, LOCAL_KS, lambda ks: LocalSfmSettings(True, ks, DatabaseMapMatches())),
-        ("global_sfm", global_sfm, GLOBAL_KS, lambda ks: GlobalSfmSettings(True, ks, None)),
+        ("local_sfm", LOCAL_KS, lambda ks: LocalSfm(True, ks, DatabaseMapMatches()), local_sfm.register_query_in_maps),
+        ("global_sfm", GLOBAL_KS, lambda ks: GlobalSfm(True, ks, None), global_sfm.register_query_in_map),
     )
-    for name, module, ks, settings in paradigms:
+    for name, ks, paradigm, register in paradigms:
         cache = fresh_cache(base)
-        sweep, _ = timed(module.run, scene, rankings, settings(ks), parallel, cache)
-        separate = sum(timed(module.run, scene, rankings, settings([k]), parallel, fresh_cache(base))[0] for k in ks)
+        sweep, _ = timed(paradigm(ks).run, scene, rankings, parallel, cache)
+        separate = sum(timed(paradigm([k]).run, scene, rankings, parallel, fresh_cache(base))[0] for k in ks)
         print(f"{name}: one sweep over k={ks}, 2 rankings: {sweep:.1f} s; separate runs per k: {separate:.1f} s in all")
 
         inputs = SfmInputs.prepare(scene, dataclasses.replace(sfm, workers=1), cache)
         k = 10 if name == "local_sfm" else 5
         maps = Path(tempfile.mkdtemp(dir=base.parent)) / "local_maps"  # triangulated again, not read
         shared = (
-            (inputs, "database", maps) if name == "local_sfm" else (inputs, global_sfm.global_map(inputs, None, cache))
+            (inputs, DatabaseMapMatches(), maps)
+            if name == "local_sfm"
+            else (inputs, global_sfm.global_map(inputs, None, cache))
         )
         tasks = query_tasks([groundtruth], [[k]], PoseCache(None, queries.names, database.names))
-        elapsed, _ = timed(lambda: [module.localize_query(shared, task) for task in tasks])
+        elapsed, _ = timed(lambda: [register(shared, task) for task in tasks])
         print(
-            f"{name}: {1000 * elapsed / len(tasks):.0f} ms per query at k={k} (cached features and matches, 1 process)"
+            f"{name}: {1000 * elapsed / len(tasks):.0f} ms per query at k={k} "
+            "(cached features and matches, 1 process; local maps triangulated)"
         )
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,122 +27,25 @@ from scipy import sparse
 
 from locretrieval.cache import config_key
 from locretrieval.config import ConfigError, validated
+from locretrieval.estimates import PoseEstimates
 from locretrieval.groundtruth import GroundTruth, RelevanceScope
-from locretrieval.localization import approximation, global_sfm, local_sfm
-from locretrieval.localization.approximation import ApproximationSettings
-from locretrieval.localization.estimates import PoseEstimates
-from locretrieval.localization.global_sfm import GlobalSfmSettings
-from locretrieval.localization.local_sfm import LocalSfmSettings
-from locretrieval.localization.paradigm import ParadigmSettings
-from locretrieval.localization.pipeline import SfmStages, run_sfm
-from locretrieval.localization.plan import SfmPlan, UnitCosts, feature_work, measure_unit_costs, prepare_workers
-from locretrieval.localization.sfm import SfmInputs, SfmSettings
 from locretrieval.metrics.localization import MetricsSettings, localization_table, query_error_table, query_subsets
 from locretrieval.metrics.retrieval import retrieval_tables
 from locretrieval.metrics.subsets import SubsetSettings, image_subsets
+from locretrieval.paradigms.base import Paradigms
 from locretrieval.retrieval import Ranking, random_ranking
 from locretrieval.retrieval.descriptors import SceneDescriptors
 from locretrieval.retrieval.index import RetrievalSettings, search
 from locretrieval.scene import Scene
+from locretrieval.sfm.inputs import SfmInputs, SfmSettings
+from locretrieval.sfm.pipeline import run_sfm
+from locretrieval.sfm.plan import SfmPlan, UnitCosts, feature_work, measure_unit_costs, prepare_workers
+from locretrieval.shard import Shard
 
 log = logging.getLogger(__name__)
 
-#: How often training validates a paradigm: every validation, or every ``sfm_every_n_epochs``.
-PARADIGM_COSTS = ("cheap", "sfm")
-
-
-@dataclass(frozen=True)
-class Paradigm:
-    """A localization paradigm: its ``settings`` schema (a `ParadigmSettings`, the section of
-    ``configs/paradigms`` of its name), its entry point ``run(scene, rankings, settings, sfm,
-    cache_dir) -> [PoseEstimates]``, and what it needs: ``uses_local_features`` (the ``sfm``
-    group's features and matches), ``missing_inputs(settings) -> [problem]`` (files it reads that are absent), ``cost``:
-    ``cheap`` (run at every training validation) or ``sfm`` (every ``sfm_every_n_epochs``), and
-    ``map_points(scene, settings, sfm, cache_dir) -> [P, 3] or None`` (the 3D points of a map it
-    built, for the report's 3D view). An SfM paradigm gives its ``stages`` of the SfM pipeline
-    (`SfmStages`, its work counted by their ``plan``): the benchmark runs every enabled one
-    through one pipeline (`run_sfm`)."""
-
-    settings: type[ParadigmSettings]
-    run: Callable[..., list[PoseEstimates]]
-    stages: SfmStages | None = None
-    missing_inputs: Callable[[Any], list[str]] | None = None
-    cost: str = "cheap"
-    map_points: Callable[..., np.ndarray | None] | None = None
-
-    @property
-    def uses_local_features(self) -> bool:
-        """Whether it reads the ``sfm`` group's local features and matches."""
-        return self.stages is not None
-
-    def __post_init__(self) -> None:
-        if self.cost not in PARADIGM_COSTS:
-            raise ValueError(f"paradigm {self.run.__module__}: cost must be one of {PARADIGM_COSTS}, got {self.cost!r}")
-
-
-#: The paradigms, in the order they run, by their section name in ``configs/paradigms``. A new
-#: paradigm is its module (settings schema, ``run``) and one entry here (and its YAML section).
-PARADIGMS: dict[str, Paradigm] = {
-    "approximation": Paradigm(ApproximationSettings, approximation.run),
-    "local_sfm": Paradigm(LocalSfmSettings, local_sfm.run, local_sfm.STAGES, cost="sfm"),
-    "global_sfm": Paradigm(
-        GlobalSfmSettings,
-        global_sfm.run,
-        global_sfm.STAGES,
-        missing_inputs=global_sfm.missing_inputs,
-        cost="sfm",
-        map_points=global_sfm.map_points,
-    ),
-}
 #: Unit costs measured in this process, by what they were measured on (`sfm_plan`).
 _unit_costs: dict[str, UnitCosts] = {}
-
-
-@dataclass
-class ParadigmsSettings:
-    """The ``paradigms`` config group: one checked section per `PARADIGMS` entry, read as an
-    attribute of its name (``settings.paradigms.local_sfm``)."""
-
-    sections: dict[str, ParadigmSettings]
-
-    @classmethod
-    def from_mapping(cls, mapping: Mapping[str, Any], key: str) -> "ParadigmsSettings":
-        """Each section of ``mapping`` checked by its paradigm's schema (`locretrieval.config.validated`);
-        an unknown or missing section is a `ConfigError` naming it."""
-        unknown = sorted(set(mapping) - set(PARADIGMS))
-        if unknown:
-            raise ConfigError(f"{key}.{unknown[0]}: unknown key; expected one of {list(PARADIGMS)}")
-        missing = [name for name in PARADIGMS if name not in mapping]
-        if missing:
-            raise ConfigError(
-                f"{key}.{missing[0]}: missing; every paradigm needs its section (enabled: false switches it off)"
-            )
-        return cls(
-            {name: validated(paradigm.settings, mapping[name], f"{key}.{name}") for name, paradigm in PARADIGMS.items()}
-        )
-
-    def __getattr__(self, name: str) -> ParadigmSettings:
-        sections = self.__dict__.get("sections", {})
-        if name in sections:
-            return sections[name]
-        raise AttributeError(f"no paradigm section {name!r}; known: {list(sections)}")
-
-    def enabled(self) -> list[str]:
-        """The enabled paradigms, in the order of `PARADIGMS`."""
-        return [name for name, section in self.sections.items() if section.enabled]
-
-    def ks(self) -> list[int]:
-        """Every k of an enabled paradigm, sorted."""
-        return sorted({k for name in self.enabled() for k in self.sections[name].k})
-
-    def only(self, keep: Callable[[Paradigm], bool]) -> "ParadigmsSettings":
-        """These settings with the paradigms ``keep`` refuses switched off."""
-        return ParadigmsSettings(
-            {
-                name: section if keep(PARADIGMS[name]) else dataclasses.replace(section, enabled=False)
-                for name, section in self.sections.items()
-            }
-        )
 
 
 @dataclass
@@ -150,7 +53,7 @@ class BenchmarkSettings:
     """What the benchmark core reads, each part checked under its own config key."""
 
     retrieval: RetrievalSettings
-    paradigms: ParadigmsSettings
+    paradigms: Paradigms
     sfm: SfmSettings
     metrics: MetricsSettings
 
@@ -159,7 +62,7 @@ class BenchmarkSettings:
         """The settings in a composed ``evaluate``/``train`` config (sections of the same names)."""
         return cls(
             retrieval=validated(RetrievalSettings, cfg.retrieval, "retrieval"),
-            paradigms=validated(ParadigmsSettings, cfg.paradigms, "paradigms"),
+            paradigms=validated(Paradigms, cfg.paradigms, "paradigms"),
             sfm=validated(SfmSettings, cfg.sfm, "sfm"),
             metrics=validated(MetricsSettings, cfg.metrics, "metrics"),
         )
@@ -272,14 +175,14 @@ def sfm_plan(
     computed yet (``None``). When there is new work, unit costs are measured on a sample of the
     scene (`measure_unit_costs`, once per scene and settings in a process) for the forecast, and
     the worker pool is started when a stage will need it."""
-    paradigms = sfm_paradigms(settings)
+    paradigms = settings.paradigms.sfm_stages()
     if not paradigms or cache_dir is None:
         return None
     cache_dir = Path(cache_dir)
     inputs = SfmInputs.prepare(scene, settings.sfm, cache_dir, extract=False)
     work = [
-        stages.plan(scene, rankings, paradigm_settings, settings.sfm, cache_dir, num_rankings)
-        for stages, paradigm_settings in paradigms.values()
+        dataclasses.replace(stages.plan(scene, rankings, settings.sfm, cache_dir, num_rankings), paradigm=name)
+        for name, stages in paradigms.items()
     ]
     plan = SfmPlan(feature_work(inputs), work, rankings is not None, settings.sfm.processes)
     if plan.has_new_work:
@@ -287,7 +190,7 @@ def sfm_plan(
             scene.database.fingerprint(),
             scene.queries.fingerprint(),
             repr(settings.sfm),  # the parts' classes too (two without fields have the same asdict)
-            {name: repr(paradigm_settings) for name, (_, paradigm_settings) in paradigms.items()},
+            {name: repr(stages) for name, stages in paradigms.items()},
         )
         if key not in _unit_costs:
             _unit_costs[key] = measure_unit_costs(scene, settings.sfm, paradigms, cache_dir)
@@ -296,30 +199,25 @@ def sfm_plan(
     return plan
 
 
-def sfm_paradigms(settings: BenchmarkSettings) -> dict[str, tuple[SfmStages, ParadigmSettings]]:
-    """The enabled SfM paradigms: name -> (their pipeline stages, their settings)."""
-    return {
-        name: (PARADIGMS[name].stages, getattr(settings.paradigms, name))
-        for name in settings.paradigms.enabled()
-        if PARADIGMS[name].stages is not None
-    }
-
-
 def run_sfm_shard(
-    scene: Scene, rankings: Sequence[Ranking], settings: BenchmarkSettings, cache_dir: str | Path | None
+    scene: Scene,
+    rankings: Sequence[Ranking],
+    settings: BenchmarkSettings,
+    cache_dir: str | Path | None,
+    shard: Shard,
 ) -> None:
-    """This job's share (``sfm.shard``) of the enabled SfM paradigms' work, into the shared cache
-    (`locretrieval.localization.pipeline`); the run without ``sfm.shard`` then finds all of it."""
+    """This job's ``shard`` of the enabled SfM paradigms' work, into the shared cache
+    (`locretrieval.sfm.pipeline`); the run without a shard then finds all of it."""
     check_supported(scene, settings.paradigms.enabled())
-    paradigms = sfm_paradigms(settings)
+    paradigms = settings.paradigms.sfm_stages()
     if not paradigms:
-        log.info("sfm.shard=%s: no SfM paradigm is enabled, nothing to do", settings.sfm.shard)
+        log.info("shard=%s: no SfM paradigm is enabled, nothing to do", shard)
         return
-    run_sfm(scene, rankings, paradigms, settings.sfm, cache_dir)
+    run_sfm(scene, rankings, paradigms, settings.sfm, cache_dir, shard=shard)
     log.info(
-        "sfm.shard=%s: this job's share of %s is in %s; once every shard has run, the same command without "
-        "sfm.shard writes the results",
-        settings.sfm.shard,
+        "shard=%s: this job's share of %s is in %s; once every shard has run, the same command without "
+        "shard writes the results",
+        shard,
         " and ".join(paradigms),
         cache_dir,
     )
@@ -343,31 +241,22 @@ def benchmark(
     check_supported(scene, settings.paradigms.enabled())
     warn_shallow_rankings(rankings, settings.paradigms.ks())
     depths = {ranking.name: ranking.depth for ranking in rankings}
-    if settings.sfm.job_shard is not None:
-        raise ValueError(
-            f"sfm.shard={settings.sfm.shard}: a shard's job computes its share of the SfM work (run_sfm_shard), "
-            "not results; run without sfm.shard to assemble them"
-        )
     plan = sfm_plan(scene, rankings, settings, cache_dir)
     if plan is not None:
         log.info("%s", plan.describe())
     measured: dict[str, float] = {}
-    sfm_estimates = (
-        run_sfm(scene, rankings, sfm_paradigms(settings), settings.sfm, cache_dir, measured)
-        if sfm_paradigms(settings)
-        else {}
-    )
+    sfm_paradigms = settings.paradigms.sfm_stages()
+    sfm_estimates = run_sfm(scene, rankings, sfm_paradigms, settings.sfm, cache_dir, measured) if sfm_paradigms else {}
     sfm_stages = stage_times(plan.forecast() if plan is not None and plan.costs else {}, measured)
     estimates: list[PoseEstimates] = []
-    for paradigm in settings.paradigms.enabled():
-        paradigm_settings = getattr(settings.paradigms, paradigm)
-        log.info("paradigm %s, k=%s", paradigm, paradigm_settings.k)
+    for name in settings.paradigms.enabled():
+        paradigm = getattr(settings.paradigms, name)
+        log.info("paradigm %s, k=%s", name, paradigm.k)
         computed = (
-            sfm_estimates[paradigm]
-            if paradigm in sfm_estimates
-            else PARADIGMS[paradigm].run(scene, rankings, paradigm_settings, settings.sfm, cache_dir)
+            sfm_estimates[name] if name in sfm_estimates else paradigm.run(scene, rankings, settings.sfm, cache_dir)
         )
-        estimates += [e.labelled(paradigm_settings.k, depths[e.ranking]) for e in computed]
+        # labelled by the section's name: a paradigm class may run under several names
+        estimates += [dataclasses.replace(e.labelled(paradigm.k, depths[e.ranking]), paradigm=name) for e in computed]
     thresholds = settings.metrics.thresholds
     localization = localization_table(
         scene.name, estimates, scene.queries, thresholds, subsets, settings.metrics.inclusive

@@ -117,10 +117,11 @@ class ConfigError(ValueError):
     """A configuration value of the wrong type or range; the message names the full key."""
 
 
-#: Keys that moved (0.12) when their value became an object chosen by ``_target_``, or a part of the
-#: training module (the loss, optimizer, scheduler and memory nest under ``module``): the old key ->
-#: its new spelling. An override of an old key is refused naming the new one, on the command line
-#: (`refuse_moved_keys`) and where a section is checked (an unknown key, `validated`).
+#: Keys that moved (0.12) when their value became an object chosen by ``_target_``, a part of the
+#: training module (the loss, optimizer, scheduler and memory nest under ``module``) or a key of the
+#: job (``shard``): the old key -> its new spelling. An override of an old key is refused naming the
+#: new one, on the command line (`refuse_moved_keys`) and where a section is checked (an unknown
+#: key, `validated`).
 MOVED_KEYS = {
     "training.frozen": "module.frozen",
     "training.freeze_batch_norm": "module.freeze_batch_norm",
@@ -132,6 +133,7 @@ MOVED_KEYS = {
     "subsets.mask_source": "subsets.dynamic_masks, the names of subsets.mask_sources tried in order "
     "(auto: [masks,maskrcnn], masks: [masks], maskrcnn: [maskrcnn], none: [])",
     "data.ltvl_name_style": "data/ltvl_names=full|basename|strip_prefix",
+    "sfm.shard": "shard, a key of the job: python evaluate.py -m 'shard=0/4,1/4,2/4,3/4'",
     **{
         f"subsets.maskrcnn_{key}": f"subsets.mask_sources.maskrcnn.{key}"
         for key in ("weights", "min_size", "score_threshold", "mask_threshold")

@@ -13,7 +13,6 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.benchmark import (
-    PARADIGMS,
     BenchmarkResult,
     BenchmarkSettings,
     benchmark,
@@ -26,8 +25,8 @@ from locretrieval.benchmark import (
 )
 from locretrieval.cache import safe_name, save_arrays
 from locretrieval.config import built, validated
+from locretrieval.estimates import estimated_pose_table
 from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths, statistics_table
-from locretrieval.localization.estimates import estimated_pose_table
 from locretrieval.metrics.localization import best_over_k, median_errors
 from locretrieval.metrics.subsets import SubsetSettings, missing_mask_inputs
 from locretrieval.report.gallery import GallerySettings, write_gallery_inputs
@@ -36,6 +35,7 @@ from locretrieval.retrieval.descriptors import DescriptorSearch
 from locretrieval.scene import Scene
 from locretrieval.scene.datasets import instantiate_scene
 from locretrieval.scene.ltvl import write_ltvl
+from locretrieval.shard import Shard
 
 log = logging.getLogger(__name__)
 
@@ -49,12 +49,13 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     ``groundtruth_statistics.csv``, ``subsets.csv``, ``estimated_poses.csv.gz``), the rankings, what galleries read
     (``images.csv``, ``relevance/``), LTVL exports, ``summary.json``, the 3D view (``scene_3d.html``, unless
     ``report.scene_view.enabled`` is false) and the report built from those files. Returns the localization table.
-    With ``sfm.shard=i/n`` the run is one job of a sharded evaluation: it computes the rankings and
+    With ``shard=i/n`` the run is one job of a sharded evaluation: it computes the rankings and
     its share of the SfM work into the cache (`run_sfm_shard`), writes nothing else and returns an
     empty table.
     """
     started = time.perf_counter()
     settings = BenchmarkSettings.from_config(cfg)
+    shard = Shard.parse(cfg.shard, "shard")
     groundtruth_settings = validated(GroundTruthSettings, cfg.groundtruth, "groundtruth")
     subset_settings = validated(SubsetSettings, cfg.subsets, "subsets")
     gallery_settings = validated(GallerySettings, cfg.report.gallery, "report.gallery")
@@ -82,8 +83,8 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
         )
     random_seed = int(cfg.seed) if cfg.baselines.random else None
     rankings = build_rankings(scene, {}, groundtruths, settings.retrieval, random_seed, given)
-    if settings.sfm.job_shard is not None:  # one job of a sharded evaluation: its SfM work, no results
-        run_sfm_shard(scene, rankings, settings, cache_dir)
+    if shard is not None:  # one job of a sharded evaluation: its SfM work, no results
+        run_sfm_shard(scene, rankings, settings, cache_dir, shard)
         return pd.DataFrame()
     subsets, subset_table = scene_subsets(scene, subset_settings, cache_dir)
     if cfg.report.figure_formats:
@@ -199,7 +200,7 @@ def local_feature_inputs(scene: Scene, settings: BenchmarkSettings, groundtruths
     """The files the local features read (`LocalFeatures.missing_inputs`: e.g. the kapture
     features of both image sets) that are absent, if an SfM paradigm or a ground truth matching
     features needs them."""
-    sfm_paradigms = any(PARADIGMS[name].uses_local_features for name in settings.paradigms.enabled())
+    sfm_paradigms = bool(settings.paradigms.sfm_stages())
     sfm_groundtruth = any(definition.uses_sfm for definition in groundtruths.parsed().values())
     if not (sfm_paradigms or sfm_groundtruth):
         return []
@@ -216,8 +217,7 @@ def paradigm_inputs(settings: BenchmarkSettings) -> list[str]:
     return [
         f"paradigms.{name}.{problem}"
         for name in settings.paradigms.enabled()
-        if PARADIGMS[name].missing_inputs is not None
-        for problem in PARADIGMS[name].missing_inputs(getattr(settings.paradigms, name))
+        for problem in getattr(settings.paradigms, name).missing_inputs()
     ]
 
 
@@ -225,10 +225,9 @@ def global_map_points(scene: Scene, settings: BenchmarkSettings, cache_dir: Path
     """The points (world, metres) of the first enabled paradigm's map that was built
     (`Paradigm.map_points`), else ``None``."""
     for name in settings.paradigms.enabled():
-        if PARADIGMS[name].map_points is not None:
-            points = PARADIGMS[name].map_points(scene, getattr(settings.paradigms, name), settings.sfm, cache_dir)
-            if points is not None:
-                return points
+        points = getattr(settings.paradigms, name).map_points(scene, settings.sfm, cache_dir)
+        if points is not None:
+            return points
     return None
 
 

@@ -21,8 +21,8 @@ import numpy as np
 import pandas as pd
 
 from locretrieval.groundtruth.relative_pose import relative_pose_scores
-from locretrieval.localization.approximation import EqualWeights, approximate_poses
 from locretrieval.metrics.localization import localized
+from locretrieval.paradigms.approximation import EqualWeights, approximate_poses
 from locretrieval.retrieval.ranking import EMPTY, Ranking
 from locretrieval.scene import Scene
 

@@ -10,10 +10,10 @@ from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.config import validated
-from locretrieval.localization.sfm import SfmSettings
 from locretrieval.scene import Scene
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import RenderSettings, render_synthetic_dataset
+from locretrieval.sfm.inputs import SfmSettings
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 #: Extraction overrides for tests: CPU, in this process, no progress bars.

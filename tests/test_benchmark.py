@@ -2,6 +2,7 @@
 leaves the network as it was, layers that import one way, and config sections checked by key."""
 
 import ast
+from dataclasses import dataclass
 from pathlib import Path
 
 import helpers
@@ -15,11 +16,13 @@ from torch import nn
 
 from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
 from locretrieval.config import ConfigError
+from locretrieval.estimates import PoseEstimates
 from locretrieval.evaluation import export_ltvl
 from locretrieval.groundtruth import RankedRelevance, compute_groundtruths
 from locretrieval.models import NetworkDescriptor
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing, extract_descriptors
 from locretrieval.models.networks import GeMPooling, RetrievalNet, l2_normalize
+from locretrieval.paradigms.base import Paradigm
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
@@ -196,10 +199,13 @@ LAYERS = [
         "processes",
         "threads",
         "errors",
+        "estimates",
+        "shard",
     },
     {"models"},
     {"retrieval"},
-    {"localization"},
+    {"sfm"},
+    {"paradigms"},
     {"groundtruth"},
     {"metrics"},
     {"benchmark"},
@@ -282,46 +288,39 @@ def test_config_values_of_the_wrong_type_or_range_name_the_full_key(override, me
         BenchmarkSettings.from_config(evaluate_config(override, "paths.root_dir=/nonexistent"))
 
 
-def test_a_new_paradigm_is_its_module_and_one_registry_entry(scene, monkeypatch):
-    """A paradigm registered in `PARADIGMS` with its YAML section runs on every ranking: here the
-    pose of the top-ranked database image, which must equal paradigm 1 (EWB) at k=1."""
-    from dataclasses import dataclass
+@dataclass
+class TopImage(Paradigm):
+    """A paradigm from outside the package: the pose of the top-ranked database image."""
 
-    from locretrieval.benchmark import PARADIGMS, Paradigm
-    from locretrieval.localization.estimates import PoseEstimates
-    from locretrieval.localization.paradigm import ParadigmSettings
+    def method_names(self):
+        return ["top_image"]
 
-    @dataclass
-    class TopImageSettings(ParadigmSettings):
-        def method_names(self):
-            return ["top_image"]
-
-    def top_image(scene, rankings, settings, sfm, cache_dir):
-        database, estimates = scene.database, []
+    def run(self, scene, rankings, sfm, cache_dir):
+        database, ks, estimates = scene.database, list(self.k), []
         for ranking in rankings:
             top = ranking.indices[:, 0]
-            qvec, tvec = (
-                database.qvec[top][None].repeat(len(settings.k), 0),
-                database.tvec[top][None].repeat(len(settings.k), 0),
-            )
-            failures = np.full((len(settings.k), len(top)), "", dtype=object)
+            qvec, tvec = database.qvec[top][None].repeat(len(ks), 0), database.tvec[top][None].repeat(len(ks), 0)
+            failures = np.full((len(ks), len(top)), "", dtype=object)
             estimates.append(
-                PoseEstimates(
-                    ranking.name, ranking.kind, "top_image", "top_image", list(settings.k), qvec, tvec, failures
-                )
+                PoseEstimates(ranking.name, ranking.kind, "top_image", "top_image", ks, qvec, tvec, failures)
             )
         return estimates
 
-    monkeypatch.setitem(PARADIGMS, "top_image", Paradigm(TopImageSettings, top_image))
+
+def test_a_new_paradigm_is_one_class_and_one_config_section(scene):
+    """A paradigm added through the config alone (its ``_target_``, a class of this module) runs on
+    every ranking, after the built-in ones, under its section's name: the pose of the top-ranked
+    database image, which must equal paradigm 1 (EWB) at k=1."""
     cfg = evaluate_config(
         "paradigms.local_sfm.enabled=false",
         "paradigms.global_sfm.enabled=false",
         "paradigms.approximation.k=[1]",
-        "+paradigms.top_image={enabled: true, k: [1]}",
+        f"+paradigms.top_image={{_target_: {__name__}.TopImage, enabled: true, k: [1]}}",
         "paths.root_dir=/nonexistent",
     )
     settings = BenchmarkSettings.from_config(cfg)
     assert settings.paradigms.enabled() == ["approximation", "top_image"]
+    assert not settings.paradigms.top_image.uses_sfm and settings.paradigms.local_sfm.uses_sfm
     groundtruths = compute_groundtruths(
         scene, helpers.groundtruth_section({"relative_pose": cfg.groundtruth.definitions.relative_pose}, depth=50)
     )
@@ -343,5 +342,13 @@ def test_a_new_paradigm_is_its_module_and_one_registry_entry(scene, monkeypatch)
     )
     assert len(mine) == 2 * len(settings.metrics.thresholds)  # random and the ground truth, each threshold
     pd.testing.assert_frame_equal(mine, ewb)
-    with pytest.raises(ConfigError, match=r"paradigms.top_image: missing; every paradigm needs its section"):
-        BenchmarkSettings.from_config(evaluate_config("paths.root_dir=/nonexistent"))
+    for section, message in (
+        ("{enabled: true, k: [1]}", r"paradigms.top_image: a paradigm section without _target_"),
+        (f"{{_target_: {__name__}.tiny_network, enabled: true}}", r"paradigms.top_image._target_: .* not a Paradigm"),
+        ("{_target_: no.such.Paradigm}", r"paradigms.top_image._target_: cannot import 'no.such.Paradigm'"),
+        (f"{{_target_: {__name__}.TopImage, enabled: true, k: [1], depth: 3}}", r"paradigms.top_image.depth: unknown"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            BenchmarkSettings.from_config(
+                evaluate_config(f"+paradigms.top_image={section}", "paths.root_dir=/nonexistent")
+            )

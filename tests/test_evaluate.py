@@ -13,9 +13,10 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 import locretrieval  # noqa: F401
-from locretrieval.benchmark import ParadigmsSettings, check_unique_names
+from locretrieval.benchmark import check_unique_names
 from locretrieval.config import ConfigError, validated
 from locretrieval.evaluation import evaluate
+from locretrieval.paradigms.base import Paradigms
 from locretrieval.report.markdown import md_text
 from locretrieval.retrieval import Ranking, random_ranking
 from locretrieval.scene.datasets import instantiate_scene
@@ -205,19 +206,22 @@ def test_every_missing_input_is_named_in_one_error_before_any_work(tmp_path):
 def test_paradigm_sections_are_checked():
     paradigms = evaluate_config("paths.root_dir=/nonexistent").paradigms  # configs/paradigms/default.yaml, composed
     OmegaConf.set_struct(paradigms, False)
-    assert validated(ParadigmsSettings, paradigms, "paradigms").enabled() == [
+    assert validated(Paradigms, paradigms, "paradigms").enabled() == [
         "approximation",
         "local_sfm",
         "global_sfm",
     ]
     paradigms.local_sfm.enabled = False
-    assert validated(ParadigmsSettings, paradigms, "paradigms").enabled() == ["approximation", "global_sfm"]
+    assert validated(Paradigms, paradigms, "paradigms").enabled() == ["approximation", "global_sfm"]
     paradigms.globl_sfm = {"enabled": True}
     with pytest.raises(
         ConfigError,
-        match=r"paradigms.globl_sfm: unknown key; expected one of \['approximation', 'local_sfm', 'global_sfm'\]",
+        match=r"paradigms.globl_sfm: a paradigm section without _target_ .*"
+        r"the sections are \['approximation', 'local_sfm', 'global_sfm', 'globl_sfm'\]",
     ):
-        validated(ParadigmsSettings, paradigms, "paradigms")
+        validated(Paradigms, paradigms, "paradigms")
+    with pytest.raises(ConfigError, match=r"^paradigms: one paradigm's YAML in place of the group"):
+        validated(Paradigms, evaluate_config("paradigms=local_sfm").paradigms, "paradigms")
 
 
 def test_rankings_sharing_a_name_are_an_error():

@@ -8,11 +8,11 @@ import helpers
 import numpy as np
 import pytest
 
-from locretrieval.localization.features import extract_features
 from locretrieval.report.markdown import md_text
 from locretrieval.scene import Camera, ImageSet
 from locretrieval.scene.feature_files import read_feature_array, read_feature_header
 from locretrieval.scene.kapture_io import KaptureFormatError
+from locretrieval.sfm.features import extract_features
 
 NAMES = ["cam/a.jpg", "cam/b.jpg"]
 
@@ -209,7 +209,7 @@ def test_workers_exit_when_their_parent_dies_while_they_start(tmp_path):
 
     script = (
         "import os\n"
-        "from locretrieval.localization.workers import _pools\n"
+        "from locretrieval.sfm.workers import _pools\n"
         "pool = _pools.get(2)\n"
         "pool.submit(os.getpid)\n"
         "pool.submit(os.getpid)\n"

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from locretrieval.localization import workers
 from locretrieval.processes import WorkerPoolError
+from locretrieval.sfm import workers
 
 
 def process_id(shared, task):

@@ -19,7 +19,7 @@ def test_the_benchmark_and_a_precomputed_model_import_no_heavy_library():
     assert {
         "locretrieval.evaluation",
         "locretrieval.models.precomputed",
-        "locretrieval.localization.matching",
+        "locretrieval.sfm.matching",
     } <= loaded
     assert not loaded & {*HEAVY, "torch"}  # precomputed descriptors and features are matched without torch
 
@@ -27,19 +27,19 @@ def test_the_benchmark_and_a_precomputed_model_import_no_heavy_library():
 def test_the_report_sfm_modules_and_synthetic_config_import_their_libraries_when_used():
     code = """
 from locretrieval.report import build_report
-from locretrieval.localization import colmap_model, pnp, store, triangulation
+from locretrieval.sfm import colmap_model, pnp, store, triangulation
 from locretrieval.scene.synthetic import RenderSettings
 """
     loaded = loaded_after(code)
     assert {
         "locretrieval.report.plots",
         "locretrieval.report.painters",
-        "locretrieval.localization.triangulation",
+        "locretrieval.sfm.triangulation",
         "locretrieval.scene.synthetic.config",
     } <= loaded
     assert not loaded & {*HEAVY, "locretrieval.scene.synthetic.dataset"}  # the renderer: only to render a scene
     assert "pycolmap" in loaded_after(
-        "from locretrieval.localization.colmap_model import to_rigid3d\nto_rigid3d([1, 0, 0, 0], [0, 0, 0])"
+        "from locretrieval.sfm.colmap_model import to_rigid3d\nto_rigid3d([1, 0, 0, 0], [0, 0, 0])"
     )
     assert "locretrieval.scene.synthetic.dataset" in loaded_after(
         "from locretrieval.scene.synthetic import render_synthetic_dataset"

@@ -18,7 +18,7 @@ from locretrieval.retrieval import EMPTY, Ranking, relevant_hits, top_k
 from locretrieval.scene import ImageSet, Scene
 
 if TYPE_CHECKING:
-    from locretrieval.localization.sfm import SfmSettings
+    from locretrieval.sfm.inputs import SfmSettings
 
 #: Query-database pairs scored at once; bounds the memory of every definition.
 PAIRS_PER_CHUNK = 1 << 17

@@ -4,7 +4,7 @@ A joint map of the database and the queries is triangulated with their known pos
 image pairs are chosen by frustum overlap (database pairs as for the global SfM map, and
 each query with its most overlapping database images), matched, verified against the
 epipolar geometry of the known poses and triangulated together with COLMAP's triangulator
-(`locretrieval.localization`). The score of (q, t) is the number of 3D points observed by
+(`locretrieval.sfm`). The score of (q, t) is the number of 3D points observed by
 both; pairs sharing none are not ranked, and a pair is relevant when it shares at least
 ``min_shared`` points (the paper: one).
 
@@ -25,13 +25,13 @@ from scipy import sparse
 
 from locretrieval.config import require
 from locretrieval.groundtruth.base import DefinitionContext, GradedRows, GroundTruth, groundtruth_from_scores
-from locretrieval.localization.features import extract_features
-from locretrieval.localization.global_sfm import global_map
-from locretrieval.localization.matching import PairMatcher
-from locretrieval.localization.pairs import database_pairs, overlapping_pairs
-from locretrieval.localization.sfm import SfmInputs, SfmSettings
-from locretrieval.localization.sparse_map import SparseMap
+from locretrieval.paradigms.global_sfm import global_map
 from locretrieval.scene import ImageSet, Scene
+from locretrieval.sfm.features import extract_features
+from locretrieval.sfm.inputs import SfmInputs, SfmSettings
+from locretrieval.sfm.matching import PairMatcher
+from locretrieval.sfm.pairs import database_pairs, overlapping_pairs
+from locretrieval.sfm.sparse_map import SparseMap
 
 
 @dataclass

@@ -15,9 +15,9 @@ from scipy import sparse
 from locretrieval.cache import cached_arrays, config_key, safe_name
 from locretrieval.config import ConfigError, part, require, validated
 from locretrieval.groundtruth.base import Definition, DefinitionContext, GroundTruth, RelevanceScope
-from locretrieval.localization.sfm import SfmSettings
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
+from locretrieval.sfm.inputs import SfmSettings
 
 log = logging.getLogger(__name__)
 

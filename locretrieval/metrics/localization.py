@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 
 from locretrieval.config import require
-from locretrieval.localization.estimates import LOCALIZED, PoseEstimates
+from locretrieval.estimates import LOCALIZED, PoseEstimates
 from locretrieval.scene import ImageSet
 
 #: Columns of the tidy localization table, one row per

@@ -16,8 +16,8 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
-from locretrieval.localization.workers import SpawnedPools, exit_with_parent, resolve_workers
 from locretrieval.report.plots import FigureFolder, pyplot
+from locretrieval.sfm.workers import SpawnedPools, exit_with_parent, resolve_workers
 
 
 class Painters:

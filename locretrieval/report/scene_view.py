@@ -36,7 +36,7 @@ log = logging.getLogger(__name__)
 
 #: The file `write_scene_view` writes into a run folder, linked from the report.
 SCENE_VIEW_FILE = "scene_3d.html"
-#: Columns of an estimated-pose table (`locretrieval.localization.estimates.estimated_pose_table`).
+#: Columns of an estimated-pose table (`locretrieval.estimates.estimated_pose_table`).
 SELECTION = ["ranking", "paradigm", "method", "k"]
 POSE_COLUMNS = ["qw", "qx", "qy", "qz", "tx", "ty", "tz"]
 #: `frustum_depth`: the neighbour whose median distance sets the frusta's size.

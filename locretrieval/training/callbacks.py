@@ -20,7 +20,6 @@ from locretrieval.benchmark import (
     build_rankings,
     relevances,
     run_sfm_shard,
-    sfm_paradigms,
 )
 from locretrieval.config import require
 from locretrieval.groundtruth import GroundTruth, RelevanceScope
@@ -61,13 +60,14 @@ def metric_rows(result: BenchmarkResult, ranking: str, retrieval_ks: Collection[
 
 
 def every_validation_settings(settings: BenchmarkSettings) -> BenchmarkSettings:
-    """``settings`` with only the paradigms that run at every validation (cost ``cheap``)."""
-    return dataclasses.replace(settings, paradigms=settings.paradigms.only(lambda paradigm: paradigm.cost == "cheap"))
+    """``settings`` with only the paradigms that run at every validation (those without SfM,
+    `Paradigm.uses_sfm`)."""
+    return dataclasses.replace(settings, paradigms=settings.paradigms.only(lambda paradigm: not paradigm.uses_sfm))
 
 
 def every_validation_metrics(settings: BenchmarkSettings, groundtruths: Collection[str]) -> list[str]:
     """The `metric_rows` keys logged at every validation (those a checkpoint or early stopping may
-    monitor): the cheap paradigms' localization per method, k and threshold, and the retrieval
+    monitor): the localization of the paradigms without SfM per method, k and threshold, and the retrieval
     metrics against each ground truth in ``groundtruths`` at every k within the ranking depth."""
     return validation_metrics(settings, groundtruths, with_sfm=False)
 
@@ -105,7 +105,7 @@ class LocalizationValidation(L.Callback):
 
     Under DDP every rank takes part (`locretrieval.training.distributed`): each describes a share
     of the images and every rank holds all descriptors; each does its share of the SfM paradigms'
-    work (``sfm.shard``) into the shared cache; rank 0 then runs the benchmark (the SfM results
+    work (`Ranks.shard`) into the shared cache; rank 0 then runs the benchmark (the SfM results
     read from the cache), logs the gallery and prints, and every rank logs its metrics. The
     reference models are described by rank 0 (once per run, cached). The metrics equal a single
     process's; a rank whose share raises ends every rank with its error."""
@@ -163,7 +163,7 @@ class LocalizationValidation(L.Callback):
         self._thumbnails = None
 
     def _settings(self, with_sfm: bool) -> BenchmarkSettings:
-        """The benchmark settings of a validation: every paradigm, or the cheap ones (`Paradigm.cost`)."""
+        """The benchmark settings of a validation: every paradigm, or those without SfM (`Paradigm.uses_sfm`)."""
         return self.settings if with_sfm else every_validation_settings(self.settings)
 
     def _references(self, ranks: Ranks) -> list[Ranking]:
@@ -183,14 +183,11 @@ class LocalizationValidation(L.Callback):
         return build_rankings(self.scene, {TRAINED: described}, {}, self.settings.retrieval, random_seed=None)[0]
 
     def _run_sfm_shards(self, rankings: list[Ranking], settings: BenchmarkSettings, ranks: Ranks) -> None:
-        """Under DDP, each rank's share of the SfM paradigms' work on ``rankings`` (``sfm.shard``:
+        """Under DDP, each rank's share of the SfM paradigms' work on ``rankings`` (`Ranks.shard`:
         its rank of all), into the cache the benchmark then reads it from."""
-        if ranks.count == 1 or not sfm_paradigms(settings):
+        if ranks.count == 1 or not settings.paradigms.sfm_stages():
             return
-        sfm = dataclasses.replace(settings.sfm, shard=str(ranks.shard))
-        ranks.gather(
-            lambda: run_sfm_shard(self.scene, rankings, dataclasses.replace(settings, sfm=sfm), self.cache_dir)
-        )
+        ranks.gather(lambda: run_sfm_shard(self.scene, rankings, settings, self.cache_dir, ranks.shard))
 
     def _benchmark(
         self, rankings: list[Ranking], with_sfm: bool, ranks: Ranks, report: Callable[[BenchmarkResult], Reported]

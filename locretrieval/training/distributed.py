@@ -6,7 +6,7 @@ holds what one process would have computed:
 
 - images are described in shards of whole extraction batches (`describe_across_ranks`: each
   batch is the one a single process would run, so the descriptors are the same);
-- the SfM paradigms' work is split with the evaluation's own sharding (``sfm.shard``, `Shard`)
+- the SfM paradigms' work is split with the evaluation's own sharding (`Shard`)
   into the shared cache, then assembled by rank 0;
 - every exchange carries each rank's outcome (`Ranks.gather`, `Ranks.first`): a rank whose work
   raised ends every rank with its error (`RankFailed`) instead of leaving the others waiting in
@@ -23,11 +23,11 @@ from typing import Any, TypeVar
 import numpy as np
 import torch
 
-from locretrieval.localization.sfm import Shard
 from locretrieval.models.base import GlobalDescriptor
 from locretrieval.models.extraction import size_batches
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 from locretrieval.scene import ImageSet
+from locretrieval.shard import Shard
 
 Result = TypeVar("Result")
 

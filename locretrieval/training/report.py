@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from locretrieval.benchmark import PARADIGMS, BenchmarkSettings
+from locretrieval.benchmark import BenchmarkSettings
 from locretrieval.config import require
 from locretrieval.training.callbacks import LocalizationValidation
 
@@ -42,7 +42,7 @@ class GapRow:
         section = sections[self.paradigm]
         if not section.enabled:
             return f"paradigms.{self.paradigm}.enabled is false"
-        if PARADIGMS[self.paradigm].cost == "sfm" and not sfm_validated:
+        if section.uses_sfm and not sfm_validated:
             return "the SfM paradigms are not validated (callbacks.localization_validation.sfm_every_n_epochs is null)"
         if self.method not in section.method_names():
             return f"{self.paradigm} has no method {self.method!r} (methods: {section.method_names()})"

@@ -12,14 +12,14 @@ from locretrieval.config import ConfigError
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.groundtruth import DefinitionContext, compute_groundtruths, frustum_groundtruth
 from locretrieval.groundtruth.co_observation import co_observation_groundtruth, database_co_observations, shared_points
-from locretrieval.localization import matching
-from locretrieval.localization import pairs as pairs_module
-from locretrieval.localization.features import extract_features
-from locretrieval.localization.global_sfm import global_map
-from locretrieval.localization.pairs import PairSelection, database_pairs, overlapping_pairs
-from locretrieval.localization.sfm import SfmInputs
+from locretrieval.paradigms.global_sfm import global_map
 from locretrieval.retrieval import EMPTY
 from locretrieval.scene import ImageSet, Scene
+from locretrieval.sfm import matching
+from locretrieval.sfm import pairs as pairs_module
+from locretrieval.sfm.features import extract_features
+from locretrieval.sfm.inputs import SfmInputs
+from locretrieval.sfm.pairs import PairSelection, database_pairs, overlapping_pairs
 from locretrieval.training.relevance import TrainingRelevanceSettings, UnrelatedNegatives, training_pairs
 
 SCENE = {

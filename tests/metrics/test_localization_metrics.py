@@ -4,7 +4,7 @@ from helpers import evaluate_config
 
 from locretrieval import geometry
 from locretrieval.config import validated
-from locretrieval.localization.estimates import PoseEstimates
+from locretrieval.estimates import PoseEstimates
 from locretrieval.metrics.localization import (
     MetricsSettings,
     localization_table,

@@ -6,8 +6,9 @@ from scipy.spatial.transform import Rotation
 from locretrieval import geometry
 from locretrieval.benchmark import BenchmarkSettings, benchmark
 from locretrieval.config import ConfigError
-from locretrieval.localization import approximation
-from locretrieval.localization.approximation import (
+from locretrieval.estimates import LOCALIZED
+from locretrieval.paradigms import approximation
+from locretrieval.paradigms.approximation import (
     DEGENERATE_BDI,
     EMPTY_RETRIEVAL,
     BarycentricWeights,
@@ -16,7 +17,6 @@ from locretrieval.localization.approximation import (
     PrefixWeights,
     approximate_poses,
 )
-from locretrieval.localization.estimates import LOCALIZED
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.retrieval.index import search
 from locretrieval.scene import Camera, ImageSet, Scene

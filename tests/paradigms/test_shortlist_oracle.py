@@ -8,8 +8,8 @@ import pytest
 from training_runs import SCENE
 
 from locretrieval.groundtruth.relative_pose import relative_pose_groundtruth
-from locretrieval.localization.approximation import EqualWeights, approximate_poses
 from locretrieval.metrics.localization import localized
+from locretrieval.paradigms.approximation import EqualWeights, approximate_poses
 from locretrieval.retrieval.ranking import EMPTY, Ranking, random_ranking
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset

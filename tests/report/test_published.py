@@ -159,7 +159,7 @@ def published_folder(directory: Path, rows: list[dict]) -> Path:
 
 
 R2D2 = {
-    "_target_": "locretrieval.localization.features.KaptureFeatures",
+    "_target_": "locretrieval.sfm.features.KaptureFeatures",
     "name": "r2d2_WASF-N8_20k",
     "max_keypoints": None,
 }
@@ -214,7 +214,7 @@ def test_the_report_shows_the_published_value_and_the_difference(tmp_path, monke
 
 @pytest.mark.parametrize(
     ("features", "described"),
-    [({"_target_": "locretrieval.localization.features.SiftFeatures"}, "local features sift;"),
+    [({"_target_": "locretrieval.sfm.features.SiftFeatures"}, "local features sift;"),
      ({**R2D2, "max_keypoints": 5000}, "local features kapture r2d2_WASF-N8_20k (best 5000);"),  # not the published 20k
      ({"type": "kapture", "kapture": {"name": "r2d2_WASF-N8_20k"}, "max_keypoints": 5000},  # a run of 0.10 or earlier
       "local features kapture r2d2_WASF-N8_20k (best 5000);")],

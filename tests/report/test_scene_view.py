@@ -13,8 +13,8 @@ from hydra.utils import instantiate
 from scipy.spatial.transform import Rotation
 
 from locretrieval.config import validated
+from locretrieval.estimates import ESTIMATED_POSE_COLUMNS, PoseEstimates, estimated_pose_table
 from locretrieval.evaluation import evaluate
-from locretrieval.localization.estimates import ESTIMATED_POSE_COLUMNS, PoseEstimates, estimated_pose_table
 from locretrieval.report.scene_view import SceneViewSettings, scene_figure, write_scene_view
 from locretrieval.scene import Camera, ImageSet, Scene
 

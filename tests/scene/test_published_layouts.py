@@ -16,12 +16,12 @@ from published_layouts import LAYOUTS, SCENE, install, split
 
 from locretrieval.config import ConfigError, built
 from locretrieval.evaluation import evaluate
-from locretrieval.localization.features import extract_features
-from locretrieval.localization.pairs import database_pairs
 from locretrieval.retrieval.pairs_file import FileOrder, PairOrder, PairsFileRanking, ScoreOrder
 from locretrieval.scene.datasets import instantiate_scene
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
+from locretrieval.sfm.features import extract_features
+from locretrieval.sfm.pairs import database_pairs
 
 
 @pytest.fixture(scope="module")

@@ -16,14 +16,17 @@ from scipy.spatial.transform import Rotation
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
 from locretrieval.config import ConfigError, validated
-from locretrieval.localization import features as features_module
-from locretrieval.localization import matching, nearest_neighbours
-from locretrieval.localization.features import FeatureStore, LocalFeatures, extract_features
-from locretrieval.localization.matching import PairMatcher
-from locretrieval.localization.nearest_neighbours import CPU_BLOCK_BYTES, BatchedMatcher, NearestNeighbourMatcher
-from locretrieval.localization.sfm import SfmInputs, SfmSettings
-from locretrieval.localization.store import ShardedStore
-from locretrieval.localization.verification import (
+from locretrieval.scene import Camera, ImageSet, Scene
+from locretrieval.scene.kapture_io import load_kapture_scene
+from locretrieval.scene.synthetic import render_synthetic_dataset
+from locretrieval.sfm import features as features_module
+from locretrieval.sfm import matching, nearest_neighbours
+from locretrieval.sfm.features import FeatureStore, LocalFeatures, extract_features
+from locretrieval.sfm.inputs import SfmInputs, SfmSettings
+from locretrieval.sfm.matching import PairMatcher
+from locretrieval.sfm.nearest_neighbours import CPU_BLOCK_BYTES, BatchedMatcher, NearestNeighbourMatcher
+from locretrieval.sfm.store import ShardedStore
+from locretrieval.sfm.verification import (
     NoVerification,
     PairVerification,
     PoseVerification,
@@ -33,9 +36,6 @@ from locretrieval.localization.verification import (
     sampson_errors,
     two_view_inliers,
 )
-from locretrieval.scene import Camera, ImageSet, Scene
-from locretrieval.scene.kapture_io import load_kapture_scene
-from locretrieval.scene.synthetic import render_synthetic_dataset
 
 SCENE = {
     "width": 256,
@@ -98,7 +98,7 @@ def test_sharded_store_round_trip_and_missing_keys(tmp_path, monkeypatch):
     with pytest.raises(KeyError, match="has no array 'z'"):
         partial.read(["a"], arrays=("z",))
     # over the memory budget, the least recently read arrays are dropped
-    monkeypatch.setattr("locretrieval.localization.store.CACHED_BYTES", 300)
+    monkeypatch.setattr("locretrieval.sfm.store.CACHED_BYTES", 300)
     partial.read(["a"], arrays=("y",))
     assert list(partial._cache) == [(first, "y")] and partial._cached_bytes == 3 * 128
     (tmp_path / "store" / ".0123.h5.tmp4af.h5").write_bytes(b"half-written by another process")
@@ -701,7 +701,7 @@ def test_local_features_and_a_verification_from_outside_the_package_are_chosen_b
     nodes = {
         "features": {"_target_": f"{__name__}.GridFeatures", "max_keypoints": 50, "step": 16},
         "query_verification": {
-            "_target_": "locretrieval.localization.verification.PoseVerification",
+            "_target_": "locretrieval.sfm.verification.PoseVerification",
             "max_epipolar_error": 2.0,
         },
     }
@@ -722,10 +722,10 @@ def test_local_features_and_a_verification_from_outside_the_package_are_chosen_b
         matcher.load([("a.jpg", "b.jpg")], settings.query_verification)[("a.jpg", "b.jpg")],
         np.tile(np.arange(50), (2, 1)).T,
     )
-    wrong = {**plain, "features": {"_target_": "locretrieval.localization.verification.NoVerification"}}
+    wrong = {**plain, "features": {"_target_": "locretrieval.sfm.verification.NoVerification"}}
     with pytest.raises(
         ConfigError,
-        match=r"sfm.features._target_: locretrieval.localization.verification.NoVerification "
+        match=r"sfm.features._target_: locretrieval.sfm.verification.NoVerification "
         r"does not build a LocalFeatures",
     ):
         validated(SfmSettings, wrong, "sfm")

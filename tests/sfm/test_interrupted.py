@@ -15,12 +15,13 @@ import pytest
 from locretrieval.cache import load_arrays
 
 ROOT = Path(__file__).resolve().parents[2]
-#: Enough local maps (128 queries x 3 rankings x k = 5, 10, 20) for local SfM to run several seconds.
+#: Enough registrations (256 queries x 3 rankings x k = 5, 10, 15, 20) for local SfM's register stage,
+#: which reads maps triangulated before it, to run several save intervals (`SAVE_SECONDS`).
 COMMAND = [
     "data.render.width=160",
     "data.render.height=120",
     "data.render.num_database=30",
-    "data.render.num_queries=128",
+    "data.render.num_queries=256",
     "data.render.texture_size=64",
     "data.render.length=24.0",
     "data.render.seed=3",
@@ -29,7 +30,7 @@ COMMAND = [
     "subsets.blur_width=160",
     "groundtruth.enabled=[relative_pose]",
     "paradigms.global_sfm.enabled=false",
-    "paradigms.local_sfm.k=[5,10,20]",
+    "paradigms.local_sfm.k=[5,10,15,20]",
     "output.ltvl=false",
     "report.figure_formats=[]",
     "report.scene_view.enabled=false",

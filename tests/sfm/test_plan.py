@@ -9,11 +9,11 @@ import helpers
 import numpy as np
 import pytest
 
-from locretrieval.benchmark import BenchmarkSettings, sfm_paradigms, sfm_plan
-from locretrieval.localization.pipeline import run_sfm
-from locretrieval.localization.plan import ParadigmWork, SfmPlan, UnitCosts, Work, forecast_sample
-from locretrieval.localization.workers import MIN_TASKS_PER_WORKER
+from locretrieval.benchmark import BenchmarkSettings, sfm_plan
 from locretrieval.retrieval import Ranking
+from locretrieval.sfm.pipeline import run_sfm
+from locretrieval.sfm.plan import ParadigmWork, SfmPlan, UnitCosts, Work, forecast_sample
+from locretrieval.sfm.workers import MIN_TASKS_PER_WORKER
 
 SCENE = {"width": 160, "height": 120, "num_database": 24, "num_queries": 6, "texture_size": 64, "length": 20.0,
          "workers": 2, "seed": 4}  # fmt: skip
@@ -56,19 +56,30 @@ def test_the_forecast_spreads_each_stage_over_the_processes_the_run_gives_it():
     assert stages["match + verify"] == pytest.approx((100 + 200 + 200) * 0.01)  # 4 tasks of 125: here too
     # 20 queries: enough tasks for the pool (MIN_TASKS_PER_WORKER * 4 = 16), spread over 4 workers
     assert 20 >= MIN_TASKS_PER_WORKER * 4
-    assert stages["local_sfm: triangulate + register"] == pytest.approx((30 * 45.0 * 0.002 + 400 * 0.003) / 4)
+    assert stages["local_sfm: triangulate"] == pytest.approx(30 * 45.0 * 0.002 / 4)  # 20 queries' maps
+    assert stages["local_sfm: register"] == pytest.approx(400 * 0.003 / 4)
     assert stages["global_sfm: triangulate"] == pytest.approx(30 * 45.0 * 0.004)  # one map, in this process
     assert stages["global_sfm: register"] == pytest.approx(400 * 0.005 / 4)
+    assert list(stages) == [  # the order run_sfm runs them in: the shared map before the queries' stages
+        "features",
+        "match + verify",
+        "global_sfm: triangulate",
+        "local_sfm: triangulate",
+        "local_sfm: register",
+        "global_sfm: register",
+    ]
     # a pool the run starts for its features (640 images: 20 tasks of 32) serves the small stages after it
     small = SfmPlan(Work(640, 640), [paradigm_work("local_sfm", 3, True)], True, 4, costs())
     assert small.forecast()["features"] == pytest.approx(640 * 0.1 / 4)
-    assert small.forecast()["local_sfm: triangulate + register"] == pytest.approx((30 * 45.0 * 0.002 + 400 * 0.003) / 3)
+    assert small.forecast()["local_sfm: triangulate"] == pytest.approx(30 * 45.0 * 0.002 / 3)
+    assert small.forecast()["local_sfm: register"] == pytest.approx(400 * 0.003 / 3)
     alone = SfmPlan(Work(64, 64), [paradigm_work("local_sfm", 3, True)], True, 4, costs())
-    assert alone.forecast()["local_sfm: triangulate + register"] == pytest.approx(30 * 45.0 * 0.002 + 400 * 0.003)
+    assert alone.forecast()["local_sfm: triangulate"] == pytest.approx(30 * 45.0 * 0.002)
+    assert alone.forecast()["local_sfm: register"] == pytest.approx(400 * 0.003)
     assert small.pool_needed() and not alone.pool_needed()
     # a few tasks that would take long in one process: the pool is started for them, and they are spread
     long = SfmPlan(Work(64, 0), [paradigm_work("local_sfm", 3, True)], True, 4, costs(pairs=0.05))
-    assert long.one_process_seconds()[1] == pytest.approx(300 * 0.05) and long.pool_needed()
+    assert long.one_process_seconds()["match + verify"] == pytest.approx(300 * 0.05) and long.pool_needed()
     long.costs = costs(pairs=0.05, worker_start=2.0)  # what `prepare_workers` records
     assert long.forecast()["match + verify"] == pytest.approx(300 * 0.05 / 4)
 
@@ -97,14 +108,12 @@ def test_forecast_and_run_name_the_same_stages_and_the_units_come_from_the_pipel
     )
     rankings = [Ranking("nearest", order[:, :8], -np.arange(8.0)[None].repeat(len(order), 0), "groundtruth")]
     calls = []
-    monkeypatch.setattr(
-        "locretrieval.localization.pipeline.run_sfm", lambda *a, **k: calls.append(a) or run_sfm(*a, **k)
-    )
+    monkeypatch.setattr("locretrieval.sfm.plan.run_sfm", lambda *a, **k: calls.append(a) or run_sfm(*a, **k))
     plan = sfm_plan(scene, rankings, settings, tmp_path / "cache")
-    assert len(calls) == 2 and calls[0][0].name.endswith("(forecast sample)")  # the sample: built, then registered
+    assert len(calls) == 1 and calls[0][0].name.endswith("(forecast sample)")  # the sample, one run of the stages
     assert not list((tmp_path / "cache").glob(".forecast*"))  # its scratch folder is gone
     measured = {}
-    run_sfm(scene, rankings, sfm_paradigms(settings), settings.sfm, tmp_path / "cache", measured)
+    run_sfm(scene, rankings, settings.paradigms.sfm_stages(), settings.sfm, tmp_path / "cache", measured)
     assert set(plan.forecast()) == set(measured)
     assert all(value >= 0 for value in plan.forecast().values())
 
@@ -130,9 +139,15 @@ def test_evaluate_writes_forecast_and_measured_seconds_per_stage_to_its_summary(
     )
     evaluate(config, tmp_path / "run")
     stages = json.loads((tmp_path / "run" / "summary.json").read_text())["SfM stages"]
-    assert {"features", "match + verify", "local_sfm: triangulate + register", "global_sfm: register", "total"} <= set(
-        stages
-    )
+    assert set(stages) == {
+        "features",
+        "match + verify",
+        "local_sfm: triangulate",
+        "local_sfm: register",
+        "global_sfm: triangulate",
+        "global_sfm: register",
+        "total",
+    }
     for times in stages.values():
         assert times["measured_s"] is not None and times["measured_s"] >= 0
         assert times["forecast_s"] is not None and times["forecast_s"] >= 0

@@ -4,8 +4,8 @@ import multiprocessing
 
 import numpy as np
 
-from locretrieval.localization import pose_cache
-from locretrieval.localization.pose_cache import PoseCache
+from locretrieval.sfm import pose_cache
+from locretrieval.sfm.pose_cache import PoseCache
 
 QUERIES = [f"query/{q:03d}.jpg" for q in range(50)]
 DATABASE = [f"db/{i:03d}.jpg" for i in range(64)]

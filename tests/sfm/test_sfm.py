@@ -16,28 +16,30 @@ from locretrieval import geometry
 from locretrieval.config import validated
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.groundtruth import relative_pose_groundtruth
-from locretrieval.localization import global_sfm, local_sfm, matching, pipeline
-from locretrieval.localization import triangulation as triangulation_module
-from locretrieval.localization.colmap_model import read_colmap_map, to_pycolmap_camera, to_rigid3d
-from locretrieval.localization.features import FeatureStore, extract_features
-from locretrieval.localization.global_sfm import GlobalSfmSettings, global_map, map_cache_path
-from locretrieval.localization.local_sfm import LocalSfmSettings, local_map_pairs
-from locretrieval.localization.pairs import PairSelection, database_pairs
-from locretrieval.localization.pipeline import run_sfm
-from locretrieval.localization.plan import Work
-from locretrieval.localization.pnp import (
+from locretrieval.paradigms import global_sfm, local_sfm
+from locretrieval.paradigms.base import Paradigms
+from locretrieval.paradigms.global_sfm import GlobalSfm, global_map, map_cache_path
+from locretrieval.paradigms.local_sfm import LocalSfm, local_map_pairs
+from locretrieval.retrieval import Ranking, random_ranking
+from locretrieval.scene import Camera
+from locretrieval.scene.kapture_io import load_kapture_scene
+from locretrieval.scene.synthetic import render_synthetic_dataset
+from locretrieval.sfm import matching, pipeline
+from locretrieval.sfm import triangulation as triangulation_module
+from locretrieval.sfm.colmap_model import read_colmap_map, to_pycolmap_camera, to_rigid3d
+from locretrieval.sfm.features import FeatureStore, extract_features
+from locretrieval.sfm.inputs import QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set
+from locretrieval.sfm.pairs import PairSelection, database_pairs
+from locretrieval.sfm.pipeline import run_sfm
+from locretrieval.sfm.plan import Work
+from locretrieval.sfm.pnp import (
     NO_3D_POINTS,
     NO_KEYPOINTS,
     TOO_FEW_IMAGES,
     TOO_FEW_MATCHES,
     estimate_absolute_pose,
 )
-from locretrieval.localization.sfm import QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set
-from locretrieval.localization.triangulation import BatchedTriangulation, MapInput
-from locretrieval.retrieval import Ranking, random_ranking
-from locretrieval.scene import Camera
-from locretrieval.scene.kapture_io import load_kapture_scene
-from locretrieval.scene.synthetic import render_synthetic_dataset
+from locretrieval.sfm.triangulation import BatchedTriangulation, MapInput
 
 SCENE = {
     "width": 256,
@@ -67,13 +69,12 @@ MAP_MATCHES = {"database": local_sfm.DatabaseMapMatches(), "query": local_sfm.Qu
 
 def run_local(scene, rankings, k, cache, map_matches="database", sfm=None):
     """Paradigm 2a with the given ks, its map matches by name (`MAP_MATCHES`)."""
-    settings = LocalSfmSettings(True, list(k), MAP_MATCHES[map_matches])
-    return local_sfm.run(scene, rankings, settings, sfm or sfm_settings(), cache)
+    return LocalSfm(True, list(k), MAP_MATCHES[map_matches]).run(scene, rankings, sfm or sfm_settings(), cache)
 
 
 def run_global(scene, rankings, k, cache, colmap_model=None, sfm=None):
     """Paradigm 2b with the given ks."""
-    return global_sfm.run(scene, rankings, GlobalSfmSettings(True, list(k), colmap_model), sfm or sfm_settings(), cache)
+    return GlobalSfm(True, list(k), colmap_model).run(scene, rankings, sfm or sfm_settings(), cache)
 
 
 @pytest.fixture(scope="module")
@@ -163,7 +164,7 @@ def test_the_global_map_cache_key_follows_what_the_map_depends_on(scene, cache):
     assert (
         path(
             query_verification={
-                "_target_": "locretrieval.localization.verification.TwoViewVerification",
+                "_target_": "locretrieval.sfm.verification.TwoViewVerification",
                 "max_error": 3.0,
                 "min_num_inliers": 15,
             }
@@ -260,18 +261,18 @@ def test_map_matches_from_outside_the_package_are_chosen_through_the_config(scen
         f"paradigms.local_sfm.map_matches._target_={__name__}.NoMapMatches",
         "paradigms.local_sfm.k=[1,5]",
     )
-    settings = validated(LocalSfmSettings, cfg.paradigms.local_sfm, "paradigms.local_sfm")
+    settings = validated(Paradigms, cfg.paradigms, "paradigms").local_sfm
     assert isinstance(settings.map_matches, NoMapMatches)
     calls = count_matcher_calls(monkeypatch)
-    estimates = local_sfm.run(scene, rankings[:1], settings, sfm_settings(), cache)[0]
+    estimates = settings.run(scene, rankings[:1], sfm_settings(), cache)[0]
     assert sum(calls) == len(scene.queries) * 5  # query pairs only: no database pair is matched
     assert (estimates.failures[0] == TOO_FEW_IMAGES).all() and (estimates.failures[1] == NO_3D_POINTS).all()
     for choice, kind in (
         ([], local_sfm.DatabaseMapMatches),
         (["paradigms/local_sfm/map_matches=query"], local_sfm.QueryMapMatches),
     ):
-        section = helpers.evaluate_config("paths.root_dir=/nonexistent", *choice).paradigms.local_sfm
-        assert type(validated(LocalSfmSettings, section, "paradigms.local_sfm").map_matches) is kind
+        paradigms = helpers.evaluate_config("paths.root_dir=/nonexistent", *choice).paradigms
+        assert type(validated(Paradigms, paradigms, "paradigms").local_sfm.map_matches) is kind
 
 
 def count_matcher_calls(monkeypatch) -> list[int]:
@@ -415,28 +416,37 @@ def test_results_do_not_depend_on_worker_processes_and_reruns_reuse_the_caches(s
         np.testing.assert_array_equal(a.failures, b.failures)
 
 
+@dataclasses.dataclass
+class RecordedChunks(LocalSfm):
+    """Local SfM recording the queries of each call of its per-query stage."""
+
+    chunks: list = dataclasses.field(default_factory=list)
+
+    def register(self, inputs, rankings, ks, cache_dir, queries):
+        self.chunks.append(queries)
+        return super().register(inputs, rankings, ks, cache_dir, queries)
+
+
 def test_queries_streamed_in_chunks_give_the_results_of_one_pass(scene, cache, rankings, monkeypatch, tmp_path):
     """Chunks of 3 of the 8 queries: each chunk's pairs matched while the last chunk is triangulated
     and registered (a thread and 2 workers), then the outcomes gathered: those of one pass."""
     paradigms = {
-        "local_sfm": (local_sfm.STAGES, LocalSfmSettings(True, [2, 4], MAP_MATCHES["database"])),
-        "global_sfm": (global_sfm.STAGES, GlobalSfmSettings(True, [1, 3], None)),
+        "local_sfm": RecordedChunks(True, [2, 4], MAP_MATCHES["database"]),
+        "global_sfm": GlobalSfm(True, [1, 3], None),
     }
     one_pass = run_sfm(scene, rankings, paradigms, sfm_settings(), cache)
     shutil.copytree(cache / "features", tmp_path / "streamed" / "features")
     monkeypatch.setattr(pipeline, "QUERIES_PER_CHUNK", 3)
-    chunks = []
-    recording = dataclasses.replace(
-        local_sfm.STAGES, localize=lambda *args: chunks.append(args[-1]) or local_sfm.localize(*args)
-    )
-    paradigms["local_sfm"] = (recording, paradigms["local_sfm"][1])
+    chunks = paradigms["local_sfm"].chunks
+    chunks.clear()
     timings = {}
     streamed = run_sfm(scene, rankings, paradigms, sfm_settings(workers=2), tmp_path / "streamed", timings)
     assert chunks == [[0, 1, 2], [3, 4, 5], [6, 7], None]  # three chunks, then every outcome gathered from the cache
     assert set(timings) == {
         "features",
         "match + verify",
-        "local_sfm: triangulate + register",
+        "local_sfm: triangulate",  # each chunk's local maps, in the workers
+        "local_sfm: register",
         "global_sfm: triangulate",  # the global map, once
         "global_sfm: register",
     }
@@ -584,12 +594,10 @@ def distinct_work(rankings, ks):
 
 def test_the_plan_counts_the_work_that_the_paradigms_then_do(scene, cache, rankings, monkeypatch):
     sfm = sfm_settings()
-    local, global_ = LocalSfmSettings(True, [3, 5], MAP_MATCHES["database"]), GlobalSfmSettings(True, [1, 5], None)
+    local, global_ = LocalSfm(True, [3, 5], MAP_MATCHES["database"]), GlobalSfm(True, [1, 5], None)
 
     def plans():
-        return local_sfm.plan(scene, rankings, local, sfm, cache, 0), global_sfm.plan(
-            scene, rankings, global_, sfm, cache, 0
-        )
+        return local.plan(scene, rankings, sfm, cache, 0), global_.plan(scene, rankings, sfm, cache, 0)
 
     local_work, global_work = plans()
     query_pairs, pairs_within, local_registrations, maps = distinct_work(rankings, [3, 5])
@@ -604,10 +612,10 @@ def test_the_plan_counts_the_work_that_the_paradigms_then_do(scene, cache, ranki
     assert global_work.registrations == Work(global_registrations, global_registrations)
     # the runs match exactly the new pairs the plans counted
     calls = count_matcher_calls(monkeypatch)
-    local_sfm.run(scene, rankings, local, sfm, cache)
+    local.run(scene, rankings, sfm, cache)
     assert sum(calls) == len(query_pairs) + len(pairs_within)
     calls.clear()
-    global_sfm.run(scene, rankings, global_, sfm, cache)
+    global_.run(scene, rankings, sfm, cache)
     already = len(
         {(min(a, b), max(a, b)) for a, b in database_pairs(scene.database, sfm.map_pairs.for_scene(scene))}
         & pairs_within

@@ -1,6 +1,7 @@
-"""One evaluation's SfM work sharded over the jobs of Hydra's launchers (joblib, submitit's local
-executor) as the README documents it, with the default worker counts, then assembled by a plain run:
-the tables equal those of one plain run from an empty cache, byte for byte."""
+"""The job's ``shard`` key, and one evaluation's SfM work sharded over the jobs of Hydra's
+launchers (joblib, submitit's local executor) as the README documents it, with the default
+worker counts, then assembled by a plain run: the tables equal those of one plain run from an
+empty cache, byte for byte."""
 
 import gzip
 import subprocess
@@ -8,6 +9,11 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import evaluate_config
+
+from locretrieval import evaluation
+from locretrieval.config import ConfigError, refuse_moved_keys
+from locretrieval.shard import Shard
 
 ROOT = Path(__file__).resolve().parents[2]
 #: A small scene; every worker count (rendering, SfM, figures) left at its default.
@@ -30,7 +36,23 @@ QUICK = [
     "report.scene_view.enabled=false",
 ]
 TABLES = ("results.csv", "query_errors.csv.gz", "estimated_poses.csv.gz", "median_errors.csv")
-pytestmark = pytest.mark.slow
+
+
+def test_the_shard_is_a_key_of_the_job_parsed_once_and_checked_before_any_work(tmp_path, monkeypatch):
+    assert Shard.parse("1/4", "shard") == Shard(1, 4) and Shard.parse(None, "shard") is None
+    assert Shard(1, 4).take(list(range(10))) == [1, 5, 9] and str(Shard(1, 4)) == "1/4"
+    for bad in ("4/4", "1-4", "a/4", 3):
+        with pytest.raises(ConfigError, match=rf"^shard: must be 'i/n' with 0 <= i < n .*got {bad!r}"):
+            Shard.parse(bad, "shard")
+    # evaluate.py refuses a bad shard before it renders, describes or matches anything
+    monkeypatch.setattr(evaluation, "instantiate_scene", lambda *args: pytest.fail("the scene was built"))
+    with pytest.raises(ConfigError, match=r"^shard: must be 'i/n'"):
+        evaluation.evaluate(evaluate_config("shard=2/2", f"paths.root_dir={tmp_path}"), tmp_path / "run")
+    # the old spelling, a key of the sfm group, is refused naming the new one
+    with pytest.raises(ConfigError, match=r"^sfm.shard: moved, now shard, a key of the job"):
+        refuse_moved_keys(["sfm.shard=0/2"])
+    with pytest.raises(ConfigError, match=r"^sfm.shard: moved, now shard"):
+        evaluation.evaluate(evaluate_config("+sfm.shard=0/2", f"paths.root_dir={tmp_path}"), tmp_path / "run")
 
 
 def evaluate(*overrides: str) -> str:
@@ -58,12 +80,13 @@ def unsharded(tmp_path_factory) -> Path:
     return root / "run"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("launcher", ["joblib_local", "submitit_local"])
 def test_shards_of_a_launcher_then_a_plain_run_equal_one_plain_run(tmp_path, unsharded, launcher):
     evaluate(
         "-m",
         f"hydra/launcher={launcher}",
-        "sfm.shard=0/2,1/2",
+        "shard=0/2,1/2",
         f"paths.root_dir={tmp_path}",
         f"hydra.sweep.dir={tmp_path / 'multirun'}",
     )

@@ -12,9 +12,9 @@ from training_runs import train_config
 
 from locretrieval.benchmark import BenchmarkSettings
 from locretrieval.config import ConfigError, validated
-from locretrieval.localization.features import extract_features
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
+from locretrieval.sfm.features import extract_features
 from locretrieval.training.relevance import TrainingRelevanceSettings
 from locretrieval.training.run import TrainingSettings, train, training_parts
 

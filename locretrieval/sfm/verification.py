@@ -159,7 +159,7 @@ class TwoViewVerification(PairVerification):
 def undistorted(camera: Camera, keypoints: np.ndarray) -> tuple[np.ndarray, float]:
     """Normalised, undistorted coordinates ``[n, 2]`` of pixel keypoints (COLMAP convention) and
     the camera's mean focal length (px)."""
-    from locretrieval.localization.colmap_model import to_pycolmap_camera
+    from locretrieval.sfm.colmap_model import to_pycolmap_camera
 
     converted = to_pycolmap_camera(camera)
     return converted.cam_from_img(np.asarray(keypoints, dtype=np.float64)).reshape(-1, 2), converted.mean_focal_length()
@@ -206,7 +206,7 @@ def two_view_inliers(
     unless the geometry is one of `GEOMETRIC_CONFIGURATIONS` with ``min_num_inliers``)."""
     import pycolmap
 
-    from locretrieval.localization.colmap_model import to_pycolmap_camera
+    from locretrieval.sfm.colmap_model import to_pycolmap_camera
 
     if len(matches) < settings.min_num_inliers:
         return np.empty(0, dtype=np.int32)

@@ -21,18 +21,18 @@ import numpy as np
 
 from locretrieval.cache import config_key
 from locretrieval.config import part, require
-from locretrieval.localization.estimates import LOCALIZED, PoseEstimates
-from locretrieval.localization.features import FeatureStore, LocalFeatures, extract_features, feature_store
-from locretrieval.localization.matching import MatchingSettings, PairMatcher
-from locretrieval.localization.pairs import PairSelection
-from locretrieval.localization.pnp import NO_KEYPOINTS, TOO_FEW_MATCHES, PnPSettings, estimate_absolute_pose
-from locretrieval.localization.pose_cache import Outcome, PoseCache
-from locretrieval.localization.sparse_map import SparseMap
-from locretrieval.localization.triangulation import Triangulation
-from locretrieval.localization.verification import PairVerification
-from locretrieval.localization.workers import parallel_map, resolve_workers
+from locretrieval.estimates import LOCALIZED, PoseEstimates
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import Scene
+from locretrieval.sfm.features import FeatureStore, LocalFeatures, extract_features, feature_store
+from locretrieval.sfm.matching import MatchingSettings, PairMatcher
+from locretrieval.sfm.pairs import PairSelection
+from locretrieval.sfm.pnp import NO_KEYPOINTS, TOO_FEW_MATCHES, PnPSettings, estimate_absolute_pose
+from locretrieval.sfm.pose_cache import Outcome, PoseCache
+from locretrieval.sfm.sparse_map import SparseMap
+from locretrieval.sfm.triangulation import Triangulation
+from locretrieval.sfm.verification import PairVerification
+from locretrieval.sfm.workers import parallel_map, resolve_workers
 
 log = logging.getLogger(__name__)
 
@@ -51,9 +51,9 @@ class SfmSettings:
     ``query_verification`` of query-database matches and the ``database_verification`` of
     database pairs (each a `PairVerification` chosen by ``_target_``), ``triangulation`` with
     known poses (a `Triangulation` chosen by ``_target_``), ``pnp``
-    registration, the database pairs of global maps (``map_pairs``, by frustum overlap), the
-    worker processes (``workers``: ``null`` or 0, one per core; 1, in this process) and this job's
-    ``shard`` of the work (``i/n``: the i-th of n jobs sharing the cache; null: all of it)."""
+    registration, the database pairs of global maps (``map_pairs``, by frustum overlap) and the
+    worker processes (``workers``: ``null`` or 0, one per core; 1, in this process). Which share
+    of the work a job does is the job's (`locretrieval.shard.Shard`), not a setting of this group."""
 
     features: Any = part(LocalFeatures, "sfm/features")
     matching: MatchingSettings
@@ -63,50 +63,14 @@ class SfmSettings:
     pnp: PnPSettings
     map_pairs: PairSelection
     workers: int | None
-    shard: str | None
 
     def __post_init__(self) -> None:
         require(self.workers is None or self.workers >= 0, "workers", f"must be >= 0 or null, got {self.workers}")
-        require(
-            self.shard is None or Shard.parse(self.shard) is not None,
-            "shard",
-            f"must be 'i/n' with 0 <= i < n (this job's share of the SfM work), or null, got {self.shard!r}",
-        )
-
-    @property
-    def job_shard(self) -> "Shard | None":
-        """This job's `Shard` of the SfM work, or None: all of it."""
-        return Shard.parse(self.shard) if self.shard is not None else None
 
     @property
     def processes(self) -> int:
         """Worker processes to use (`resolve_workers`)."""
         return resolve_workers(self.workers)
-
-
-@dataclass(frozen=True)
-class Shard:
-    """The ``index``-th of ``count`` jobs sharing one evaluation's SfM work (``sfm.shard=i/n``):
-    every list of work items, sorted, is split by taking every ``count``-th from ``index``."""
-
-    index: int
-    count: int
-
-    @classmethod
-    def parse(cls, text: str) -> "Shard | None":
-        """``"i/n"`` as a shard, None when it is not one."""
-        parts = str(text).split("/")
-        if len(parts) != 2 or not all(part.strip().isdigit() for part in parts):
-            return None
-        index, count = int(parts[0]), int(parts[1])
-        return cls(index, count) if 0 <= index < count else None
-
-    def take(self, items: Sequence[Any]) -> list[Any]:
-        """This shard's items of ``items`` (in a deterministic order)."""
-        return list(items[self.index :: self.count])
-
-    def __str__(self) -> str:
-        return f"{self.index}/{self.count}"
 
 
 @dataclass

@@ -35,27 +35,17 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from math import comb
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
 from locretrieval.cache import config_key
 from locretrieval.config import part
-from locretrieval.localization.estimates import PoseEstimates
-from locretrieval.localization.paradigm import ParadigmSettings
-from locretrieval.localization.pipeline import SfmStages, run_sfm
-from locretrieval.localization.plan import (
-    ParadigmWork,
-    Work,
-    database_pair_work,
-    queries_to_register,
-    query_pair_work,
-    registration_bound,
-    registration_work,
-)
-from locretrieval.localization.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
-from locretrieval.localization.pose_cache import PoseCache
-from locretrieval.localization.sfm import (
+from locretrieval.estimates import PoseEstimates
+from locretrieval.paradigms.base import SfmParadigm
+from locretrieval.retrieval import EMPTY, Ranking
+from locretrieval.scene import Scene
+from locretrieval.sfm.inputs import (
     SFM_METHOD,
     Outcome,
     QueryTask,
@@ -66,11 +56,21 @@ from locretrieval.localization.sfm import (
     register_query,
     run_queries,
 )
-from locretrieval.localization.sparse_map import SparseMap
-from locretrieval.localization.triangulation import MapInput
-from locretrieval.localization.verification import VerificationBatch
-from locretrieval.retrieval import EMPTY, Ranking
-from locretrieval.scene import Scene
+from locretrieval.sfm.plan import (
+    ParadigmWork,
+    Work,
+    database_pair_work,
+    queries_to_register,
+    query_pair_work,
+    registration_bound,
+    registration_work,
+)
+from locretrieval.sfm.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
+from locretrieval.sfm.pose_cache import PoseCache
+from locretrieval.sfm.sparse_map import SparseMap
+from locretrieval.sfm.triangulation import MapInput
+from locretrieval.sfm.verification import VerificationBatch
+from locretrieval.sfm.workers import parallel_map
 
 #: Bump when the meaning of cached local maps changes.
 CACHE_VERSION = 1
@@ -174,110 +174,115 @@ class QueryMapMatches(MapMatches):
 
 
 @dataclass
-class LocalSfmSettings(ParadigmSettings):
-    """``map_matches``: where the matches among a local map's images come from (a `MapMatches`,
-    chosen by its ``_target_``: ``paradigms/local_sfm/map_matches=database|query``)."""
+class LocalSfm(SfmParadigm):
+    """Paradigm 2a (``configs/paradigms/local_sfm.yaml``). ``map_matches``: where the matches among
+    a local map's images come from (a `MapMatches`, chosen by its ``_target_``:
+    ``paradigms/local_sfm/map_matches=database|query``). Its stages: no shared map, each query's
+    maps triangulated (in worker processes) before it is registered in them."""
 
     map_matches: Any = part(MapMatches, "paradigms/local_sfm/map_matches")
+    label: ClassVar[str] = "local_sfm"
+    has_shared_map: ClassVar[bool] = False
 
     def method_names(self) -> list[str]:
         return [SFM_METHOD]
 
+    def query_map_pairs(
+        self,
+        inputs: SfmInputs,
+        rankings: Sequence[Ranking],
+        ks: Sequence[Sequence[int]],
+        queries: Sequence[int] | None,
+    ) -> list[tuple[str, str]]:
+        """The database pairs (names) every local map of ``queries`` (None: all) needs matched first
+        (`MapMatches.database_pairs`)."""
+        names = inputs.scene.database.names
+        return [(names[a], names[b]) for a, b in self.map_matches.database_pairs(rankings, ks, queries)]
 
-def run(
-    scene: Scene, rankings: Sequence[Ranking], settings: LocalSfmSettings, sfm: SfmSettings, cache_dir: Path | None
-) -> list[PoseEstimates] | None:
-    """Paradigm entry point: the pose of every query for every ranking and every ``settings.k``
-    (through the SfM pipeline, `run_sfm`, with this paradigm alone)."""
-    estimates = run_sfm(scene, rankings, {"local_sfm": (STAGES, settings)}, sfm, cache_dir)
-    return None if estimates is None else estimates["local_sfm"]
+    def triangulate_query_maps(
+        self,
+        inputs: SfmInputs,
+        rankings: Sequence[Ranking],
+        ks: Sequence[list[int]],
+        cache_dir: Path,
+        queries: Sequence[int],
+    ) -> None:
+        """The local maps of each query of ``queries`` whose registration is not cached and whose
+        map is not either, triangulated and cached (`triangulate_query`, in worker processes)."""
+        shared = (inputs, self.map_matches, cache_dir / "local_maps")
+        tasks = [
+            task
+            for task in query_tasks(rankings, ks, _pose_cache(inputs, self, cache_dir), queries)
+            if _new_maps(shared, task)
+        ]
+        for _ in parallel_map(
+            triangulate_query, tasks, inputs.settings.processes, f"{self.label}: triangulate", shared
+        ):
+            pass
 
-
-def shared_map_pairs(inputs: SfmInputs, settings: LocalSfmSettings) -> list[tuple[str, str]]:
-    """None: every local map is its query's."""
-    return []
-
-
-def query_map_pairs(
-    inputs: SfmInputs,
-    rankings: Sequence[Ranking],
-    ks: Sequence[Sequence[int]],
-    settings: LocalSfmSettings,
-    queries: Sequence[int] | None,
-) -> list[tuple[str, str]]:
-    """The database pairs (names) every local map of ``queries`` (None: all) needs matched first
-    (`MapMatches.database_pairs`)."""
-    names = inputs.scene.database.names
-    return [(names[a], names[b]) for a, b in settings.map_matches.database_pairs(rankings, ks, queries)]
-
-
-def localize(
-    inputs: SfmInputs,
-    rankings: Sequence[Ranking],
-    ks: Sequence[list[int]],
-    settings: LocalSfmSettings,
-    cache_dir: Path,
-    queries: Sequence[int] | None,
-) -> list[PoseEstimates] | None:
-    """Triangulate and register: each query's local maps built and the query registered in each
-    (`localize_query`, in worker processes), outcomes cached."""
-    shared = (inputs, settings.map_matches, cache_dir / "local_maps")
-    cache = _pose_cache(inputs, settings, cache_dir)
-    return run_queries("local_sfm", rankings, ks, localize_query, shared, inputs.settings.processes, cache, queries)
-
-
-def plan(
-    scene: Scene,
-    rankings: Sequence[Ranking] | None,
-    settings: LocalSfmSettings,
-    sfm: SfmSettings,
-    cache_dir: Path,
-    num_rankings: int,
-) -> ParadigmWork:
-    """The work of `run` (`ParadigmWork`), without doing any: exact for ``rankings``, upper
-    bounds for ``num_rankings`` rankings not computed yet (``None``)."""
-    inputs = SfmInputs.prepare(scene, sfm, cache_dir, extract=False)
-    query_pairs = query_pair_work(inputs, rankings, settings.k, num_rankings)
-    pairs_per_map = float(np.mean([comb(min(k, len(scene.database)), 2) for k in settings.k if k >= 2] or [0]))
-    if rankings is None:
-        queries, depth = len(scene.queries), min(max(settings.k), len(scene.database))
-        bound = settings.map_matches.pair_bound(comb(depth, 2), queries, num_rankings, len(scene.database))
-        maps = num_rankings * queries * sum(1 for k in settings.k if k >= 2)
-        return ParadigmWork(
-            "local_sfm",
-            query_pairs,
-            Work(bound, bound),
-            Work(maps, maps),
-            pairs_per_map,
-            *registration_bound(queries, len(scene.database), settings.k, num_rankings),
-            Work(queries, queries),
+    def register(
+        self,
+        inputs: SfmInputs,
+        rankings: Sequence[Ranking],
+        ks: Sequence[list[int]],
+        cache_dir: Path,
+        queries: Sequence[int] | None,
+    ) -> list[PoseEstimates] | None:
+        """Each query registered in its local maps (`register_query_in_maps`, in worker
+        processes), outcomes cached."""
+        shared = (inputs, self.map_matches, cache_dir / "local_maps")
+        cache = _pose_cache(inputs, self, cache_dir)
+        return run_queries(
+            self.label, rankings, ks, register_query_in_maps, shared, inputs.settings.processes, cache, queries
         )
-    ks = [ranking.clamp_ks(settings.k) for ranking in rankings]
-    database_pairs = database_pair_work(inputs, query_map_pairs(inputs, rankings, ks, settings, None))
-    tasks = query_tasks(rankings, ks, _pose_cache(inputs, settings, cache_dir))
-    maps = {
-        _map_key(inputs, settings.map_matches, task.query, images)
-        for task in tasks
-        for images in task.image_sets()
-        if len(images) >= 2
-    }
-    new_maps = {key for key in maps if not (cache_dir / "local_maps" / f"{key}.npz").is_file()}
-    return ParadigmWork(
-        "local_sfm",
-        query_pairs,
-        database_pairs,
-        Work(len(maps), len(new_maps)),
-        pairs_per_map,
-        *registration_work(tasks),
-        queries_to_register(tasks),
-    )
+
+    def plan(
+        self,
+        scene: Scene,
+        rankings: Sequence[Ranking] | None,
+        sfm: SfmSettings,
+        cache_dir: Path,
+        num_rankings: int,
+    ) -> ParadigmWork:
+        k = self.k
+        inputs = SfmInputs.prepare(scene, sfm, cache_dir, extract=False)
+        query_pairs = query_pair_work(inputs, rankings, k, num_rankings)
+        pairs_per_map = float(np.mean([comb(min(size, len(scene.database)), 2) for size in k if size >= 2] or [0]))
+        if rankings is None:
+            queries, depth = len(scene.queries), min(max(k), len(scene.database))
+            bound = self.map_matches.pair_bound(comb(depth, 2), queries, num_rankings, len(scene.database))
+            maps = num_rankings * queries * sum(1 for size in k if size >= 2)
+            return ParadigmWork(
+                self.label,
+                query_pairs,
+                Work(bound, bound),
+                Work(maps, maps),
+                pairs_per_map,
+                *registration_bound(queries, len(scene.database), k, num_rankings),
+                Work(queries, queries),
+            )
+        ks = [ranking.clamp_ks(k) for ranking in rankings]
+        database_pairs = database_pair_work(inputs, self.query_map_pairs(inputs, rankings, ks, None))
+        tasks = query_tasks(rankings, ks, _pose_cache(inputs, self, cache_dir))
+        maps = {
+            _map_key(inputs, self.map_matches, task.query, images)
+            for task in tasks
+            for images in task.image_sets()
+            if len(images) >= 2
+        }
+        new_maps = {key for key in maps if not (cache_dir / "local_maps" / f"{key}.npz").is_file()}
+        return ParadigmWork(
+            self.label,
+            query_pairs,
+            database_pairs,
+            Work(len(maps), len(new_maps)),
+            pairs_per_map,
+            *registration_work(tasks),
+            queries_to_register(tasks),
+        )
 
 
-#: This paradigm's stages of the SfM pipeline: no shared map, each query's maps triangulated with its registration.
-STAGES = SfmStages(shared_map_pairs, query_map_pairs, None, localize, "triangulate + register", plan)
-
-
-def _pose_cache(inputs: SfmInputs, settings: LocalSfmSettings, cache_dir: Path) -> PoseCache:
+def _pose_cache(inputs: SfmInputs, settings: LocalSfm, cache_dir: Path) -> PoseCache:
     """The registration outcomes, keyed by what the local maps are keyed by."""
     maps = [
         CACHE_VERSION,
@@ -309,56 +314,70 @@ def local_map_pairs(
     return np.unique(np.concatenate(pairs), axis=0)
 
 
-def localize_query(shared: tuple[SfmInputs, MapMatches, Path], task: QueryTask) -> list[list[Outcome]]:
-    """Outcomes ``[ranking][k]`` of one query; its maps (the image sets whose outcome is not
-    known) are read from ``maps`` (the cache folder) or triangulated, all of them in one call of
-    the triangulation, and the query registered in each once, whichever rankings, ks and orders
-    select its images."""
+#: What every task of a query's local maps reads: the cached inputs, the map matches, the maps' folder.
+LocalMaps = tuple[SfmInputs, MapMatches, Path]
+
+
+def _map_paths(shared: LocalMaps, task: QueryTask) -> dict[tuple[int, ...], Path]:
+    """Where the query's maps (its image sets whose outcome is not known, of 2 images or more) are cached."""
     inputs, map_matches, maps = shared
-    database = inputs.scene.database
-    pending = task.pending()
-    images = sorted({i for selected in pending for i in selected})
-    query_keypoints, query_matches = inputs.query_matches(task.query, images)
-    keypoints = inputs.database_features.keypoints([database.names[i] for i in images])
-    pairs = sorted({(a, b) for selected in pending for a in selected for b in selected if a < b})
-    map_pairs = map_matches.matches(pairs, QueryMaps(inputs, task.query, query_keypoints, query_matches, keypoints))
-    paths = {
+    return {
         selected: maps / f"{_map_key(inputs, map_matches, task.query, selected)}.npz"
-        for selected in sorted(pending)
+        for selected in sorted(task.pending())
         if len(selected) >= 2
     }
-    built = [selected for selected, path in paths.items() if not path.is_file()]
-    sparse_maps = dict(
-        zip(
-            built,
-            inputs.settings.triangulation.triangulate_many(
-                [
-                    MapInput(
-                        [database.cameras[i] for i in selected],
-                        database.qvec[list(selected)],
-                        database.tvec[list(selected)],
-                        [keypoints[database.names[i]] for i in selected],
-                        {
-                            (s, t): map_pairs[(a, b)]
-                            for s, a in enumerate(selected)
-                            for t, b in enumerate(selected)
-                            if a < b
-                        },
-                    )
-                    for selected in built
-                ]
-            ),
-        )
+
+
+def _new_maps(shared: LocalMaps, task: QueryTask) -> list[tuple[int, ...]]:
+    """The query's maps not cached yet."""
+    return [selected for selected, path in _map_paths(shared, task).items() if not path.is_file()]
+
+
+def triangulate_query(shared: LocalMaps, task: QueryTask) -> int:
+    """The query's maps not cached yet (`_new_maps`), triangulated in one call of the
+    triangulation from their pose-verified map matches and cached; returns how many."""
+    inputs, map_matches, _ = shared
+    database = inputs.scene.database
+    paths, built = _map_paths(shared, task), _new_maps(shared, task)
+    images = sorted({i for selected in built for i in selected})
+    query_keypoints, query_matches = inputs.query_matches(task.query, images)
+    keypoints = inputs.database_features.keypoints([database.names[i] for i in images])
+    pairs = sorted({(a, b) for selected in built for a in selected for b in selected if a < b})
+    map_pairs = map_matches.matches(pairs, QueryMaps(inputs, task.query, query_keypoints, query_matches, keypoints))
+    sparse_maps = inputs.settings.triangulation.triangulate_many(
+        [
+            MapInput(
+                [database.cameras[i] for i in selected],
+                database.qvec[list(selected)],
+                database.tvec[list(selected)],
+                [keypoints[database.names[i]] for i in selected],
+                {(s, t): map_pairs[(a, b)] for s, a in enumerate(selected) for t, b in enumerate(selected) if a < b},
+            )
+            for selected in built
+        ]
     )
-    for selected in built:
-        sparse_maps[selected].save(paths[selected])
+    for selected, sparse_map in zip(built, sparse_maps):
+        sparse_map.save(paths[selected])
+    return len(built)
+
+
+def register_query_in_maps(shared: LocalMaps, task: QueryTask) -> list[list[Outcome]]:
+    """Outcomes ``[ranking][k]`` of one query, registered once in each of its maps (the image sets
+    whose outcome is not known, read from the cache: `triangulate_query` built any missing, here
+    too when another job's share left one out), whichever rankings, ks and orders select its images."""
+    inputs = shared[0]
+    if _new_maps(shared, task):
+        triangulate_query(shared, task)
+    paths = _map_paths(shared, task)
+    images = sorted({i for selected in task.pending() for i in selected})
+    query_keypoints, query_matches = inputs.query_matches(task.query, images)
 
     def localize(selected: tuple[int, ...]) -> Outcome:
         if not selected:
             return EMPTY_RETRIEVAL
         if len(selected) < 2:
             return TOO_FEW_IMAGES
-        sparse_map = sparse_maps[selected] if selected in sparse_maps else SparseMap.load(paths[selected])
+        sparse_map = SparseMap.load(paths[selected])
         if not sparse_map.num_points:
             return NO_3D_POINTS
         slots = {i: s for s, i in enumerate(selected)}

@@ -1,8 +1,8 @@
 """The match and verify stages of the SfM pipeline: matches of image pairs, verified, in per-pair caches.
 
 Matching is mutual nearest neighbours with Lowe's ratio test on L2-normalised descriptors
-(`locretrieval.localization.nearest_neighbours`). Matches ``int32 [m, 2]`` hold keypoint indices
-(first image, second image). Verification (`locretrieval.localization.verification`) keeps the
+(`locretrieval.sfm.nearest_neighbours`). Matches ``int32 [m, 2]`` hold keypoint indices
+(first image, second image). Verification (`locretrieval.sfm.verification`) keeps the
 geometrically consistent ones: ``sfm.query_verification`` of query-database pairs,
 ``sfm.database_verification`` of database pairs (against their known poses).
 
@@ -37,24 +37,24 @@ import numpy as np
 
 from locretrieval.cache import config_key
 from locretrieval.config import require
-from locretrieval.localization.features import FeatureStore
-from locretrieval.localization.nearest_neighbours import (
+from locretrieval.scene import ImageSet
+from locretrieval.sfm.features import FeatureStore
+from locretrieval.sfm.nearest_neighbours import (
     CPU_BLOCK_BYTES,
     PRECISIONS,
     BatchedMatcher,
     DeviceDescriptors,
     NearestNeighbourMatcher,
 )
-from locretrieval.localization.store import ShardedStore
-from locretrieval.localization.verification import (
+from locretrieval.sfm.store import ShardedStore
+from locretrieval.sfm.verification import (
     NoVerification,
     PairVerification,
     VerificationBatch,
     pair_indices,
     verify_pairs,
 )
-from locretrieval.localization.workers import parallel_map, resolve_workers, split, task_stream
-from locretrieval.scene import ImageSet
+from locretrieval.sfm.workers import parallel_map, resolve_workers, split, task_stream
 
 log = logging.getLogger(__name__)
 

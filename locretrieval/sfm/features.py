@@ -43,8 +43,6 @@ from PIL import Image
 
 from locretrieval.cache import config_key
 from locretrieval.config import require
-from locretrieval.localization.store import ShardedStore
-from locretrieval.localization.workers import parallel_map, resolve_workers, split
 from locretrieval.scene import ImageSet
 from locretrieval.scene.feature_files import (
     feature_file,
@@ -54,6 +52,8 @@ from locretrieval.scene.feature_files import (
     read_feature_header,
 )
 from locretrieval.scene.images import read_image
+from locretrieval.sfm.store import ShardedStore
+from locretrieval.sfm.workers import parallel_map, resolve_workers, split
 
 log = logging.getLogger(__name__)
 

@@ -32,9 +32,9 @@ import numpy as np
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval.config import require
-from locretrieval.localization.colmap_model import to_pycolmap_camera, to_rigid3d
-from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.scene import Camera
+from locretrieval.sfm.colmap_model import to_pycolmap_camera, to_rigid3d
+from locretrieval.sfm.sparse_map import SparseMap
 
 if TYPE_CHECKING:
     import pycolmap  # imported where it is used: a run without SfM does not load it
@@ -283,7 +283,7 @@ class _ViewGeometry:
 
     def __init__(self, maps: Sequence[MapInput], views, view: np.ndarray, keypoint: np.ndarray) -> None:
         from locretrieval import geometry
-        from locretrieval.localization.colmap_model import to_pycolmap_camera
+        from locretrieval.sfm.colmap_model import to_pycolmap_camera
 
         if maps is None:  # `subset`
             return

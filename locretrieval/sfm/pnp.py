@@ -9,8 +9,8 @@ import numpy as np
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval.config import require
-from locretrieval.localization.colmap_model import from_rigid3d, to_pycolmap_camera
 from locretrieval.scene import Camera
+from locretrieval.sfm.colmap_model import from_rigid3d, to_pycolmap_camera
 
 
 @dataclass

@@ -15,8 +15,8 @@ import numpy as np
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
-from locretrieval.localization.sparse_map import SparseMap
 from locretrieval.scene import Camera
+from locretrieval.sfm.sparse_map import SparseMap
 
 if TYPE_CHECKING:
     import pycolmap  # imported where it is used: a run without SfM does not load it

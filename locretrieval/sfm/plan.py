@@ -22,26 +22,21 @@ import dataclasses
 import logging
 import math
 import os
-import shutil
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from locretrieval.cache import temporary_folder
-from locretrieval.localization.features import IMAGES_PER_SHARD
-from locretrieval.localization.matching import PAIRS_PER_SHARD, pair_key
-from locretrieval.localization.sfm import QueryTask, SfmInputs, SfmSettings
-from locretrieval.localization.workers import runs_here, start_workers, task_size, workers_started
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
+from locretrieval.sfm.features import IMAGES_PER_SHARD
+from locretrieval.sfm.inputs import QueryTask, SfmInputs, SfmSettings
+from locretrieval.sfm.matching import PAIRS_PER_SHARD, pair_key
+from locretrieval.sfm.pipeline import SfmStages, run_sfm, stage_names
+from locretrieval.sfm.workers import runs_here, start_workers, task_size, workers_started
 from locretrieval.threads import single_threaded
-
-if TYPE_CHECKING:
-    from locretrieval.localization.paradigm import ParadigmSettings
-    from locretrieval.localization.pipeline import SfmStages
 
 log = logging.getLogger(__name__)
 
@@ -87,12 +82,11 @@ class ParadigmWork:
         """Matched pairs to triangulate into new maps."""
         return self.maps.new * self.pairs_per_map
 
-    def stages(self) -> tuple[str, str | None]:
-        """The names `run_sfm` times this paradigm's work under: its shared map's triangulation
-        (None: maps are per query) and its per-query stage."""
-        if self.parallel_maps:
-            return None, f"{self.paradigm}: triangulate + register"
-        return f"{self.paradigm}: triangulate", f"{self.paradigm}: register"
+    @property
+    def map_tasks(self) -> int:
+        """Tasks of its triangulation: one per query with a new map (at most as many as new maps
+        and as queries with a registration not cached), or the one map every query shares."""
+        return min(self.maps.new, self.queries.new) if self.parallel_maps else min(self.maps.new, 1)
 
 
 @dataclass(frozen=True)
@@ -148,33 +142,36 @@ class SfmPlan:
         process while it can be split."""
         single = self.one_process_seconds()
         return any(
-            tasks > 1 and (not runs_here(tasks, self.processes, started=False) or seconds > POOL_WORTH_SECONDS)
-            for tasks, seconds in zip(self._tasks(), single)
+            tasks > 1 and (not runs_here(tasks, self.processes, started=False) or single[stage] > POOL_WORTH_SECONDS)
+            for stage, tasks in self._tasks().items()
         )
 
-    def _tasks(self) -> list[int]:
-        """The tasks of each stage that may run in workers, in the order `run_sfm` runs them (as `split` cuts them)."""
+    def _tasks(self) -> dict[str, int]:
+        """The tasks of each stage, by its name (`stage_names`), in the order `run_sfm` runs
+        them (as `split` cuts them): features, match + verify, the maps every query shares, then
+        each paradigm's per-query triangulation and its registration."""
         pairs_cap = PAIRS_PER_SHARD if self.costs is None or self.costs.device == "cpu" else math.inf
-        return [
-            _task_count(self.features.new, IMAGES_PER_SHARD, self.processes),
-            _task_count(self.new_pairs(), pairs_cap, self.processes),
-            *(p.queries.new for p in self.paradigms),
-        ]
+        tasks = {
+            "features": _task_count(self.features.new, IMAGES_PER_SHARD, self.processes),
+            "match + verify": _task_count(self.new_pairs(), pairs_cap, self.processes),
+        }
+        tasks |= {stage_names(p.paradigm)[0]: p.map_tasks for p in self.paradigms if not p.parallel_maps}
+        for p in self.paradigms:
+            triangulate, register = stage_names(p.paradigm)
+            tasks |= {triangulate: p.map_tasks} if p.parallel_maps else {}
+            tasks[register] = p.queries.new
+        return tasks
 
-    def one_process_seconds(self) -> list[float]:
-        """Seconds of each stage of `_tasks` in one process (`costs` required): features, match +
-        verify, each paradigm's triangulation and registration."""
+    def one_process_seconds(self) -> dict[str, float]:
+        """Seconds of each stage of `_tasks` in one process (`costs` required)."""
         costs = self.costs
         assert costs is not None, "the stages' seconds need measured unit costs"
-        return [
-            self.features.new * costs.features,
-            self.new_pairs() * costs.pairs,
-            *(
-                p.new_map_pairs * costs.map_pairs[p.paradigm]
-                + p.registered_images.new * costs.registrations[p.paradigm]
-                for p in self.paradigms
-            ),
-        ]
+        seconds = {"features": self.features.new * costs.features, "match + verify": self.new_pairs() * costs.pairs}
+        for p in self.paradigms:
+            triangulate, register = stage_names(p.paradigm)
+            seconds[triangulate] = p.new_map_pairs * costs.map_pairs[p.paradigm]
+            seconds[register] = p.registered_images.new * costs.registrations[p.paradigm]
+        return seconds
 
     def forecast(self) -> dict[str, float]:
         """Seconds per stage for the new work (`costs` required), by the names `run_sfm` times
@@ -182,7 +179,7 @@ class SfmPlan:
         worker processes `run_sfm` gives it (`runs_here`: a small workload stays in this process
         until the pool is started, and the pool then serves every later stage); matching on a
         CPU over every core either way (workers, or this process's threads), on a GPU in one
-        process; a map every query shares in this process."""
+        process; a map every query shares in this process. Ordered as `run_sfm` runs the stages."""
         costs = self.costs
         assert costs is not None, "forecast needs measured unit costs"
         started = workers_started(self.processes) or costs.worker_start > 0
@@ -194,21 +191,14 @@ class SfmPlan:
             started = True
             return min(self.processes, tasks)
 
-        features_tasks, pair_tasks, *query_tasks = self._tasks()
-        stages = {"features": self.features.new * costs.features / spread(features_tasks)}
-        on_cpu = costs.device == "cpu"  # else one process matches on the device (the workers verify)
-        stages["match + verify"] = self.new_pairs() * costs.pairs / (spread(pair_tasks) if on_cpu else 1)
-        for work, tasks in zip(self.paradigms, query_tasks):
-            map_pairs, registrations = costs.map_pairs[work.paradigm], costs.registrations[work.paradigm]
-            shared, per_query = work.stages()
-            if shared is None:
-                stages[per_query] = (
-                    work.new_map_pairs * map_pairs + work.registered_images.new * registrations
-                ) / spread(tasks)
-            else:
-                stages[shared] = work.new_map_pairs * map_pairs
-                stages[per_query] = work.registered_images.new * registrations / spread(tasks)
-        return stages
+        single = self.one_process_seconds()
+        in_this_process = {stage_names(p.paradigm)[0] for p in self.paradigms if not p.parallel_maps}
+        if costs.device != "cpu":  # one process matches on the device (the workers verify)
+            in_this_process.add("match + verify")
+        return {
+            stage: single[stage] / (1 if stage in in_this_process else spread(tasks))
+            for stage, tasks in self._tasks().items()
+        }
 
     def describe(self) -> str:
         """The plan as log lines."""
@@ -348,53 +338,44 @@ def forecast_sample(scene: Scene, depth: int, queries: int = SAMPLE_QUERIES) -> 
     return sample, ranking
 
 
-def sample_depth(scene: Scene, paradigms: Mapping[str, tuple[SfmStages, ParadigmSettings]]) -> int:
+def sample_depth(scene: Scene, paradigms: Mapping[str, SfmStages]) -> int:
     """Database images of `measure_unit_costs`' sample: the paradigms' deepest k within the
     `SAMPLE_DATABASE` bounds (and the database)."""
-    deepest = max(max(paradigm_settings.k) for _, paradigm_settings in paradigms.values())
+    deepest = max(max(stages.k) for stages in paradigms.values())
     return min(len(scene.database), max(SAMPLE_DATABASE[0], min(deepest, SAMPLE_DATABASE[1])))
 
 
 def measure_unit_costs(
     scene: Scene,
     settings: SfmSettings,
-    paradigms: Mapping[str, tuple[SfmStages, ParadigmSettings]],
+    paradigms: Mapping[str, SfmStages],
     cache_dir: Path,
 ) -> UnitCosts:
     """Unit costs of the SfM stages, measured by `run_sfm` itself on `forecast_sample` (a
     neighbourhood of database images as deep as the paradigms' deepest k, between the
     `SAMPLE_DATABASE` bounds, and `SAMPLE_QUERIES` queries ranking it) with the run's
     paradigms, in one process with one thread, into a temporary folder of ``cache_dir`` (deleted
-    afterwards): the sample's seconds per stage over its units (its `SfmPlan`). The per-query
-    stage runs twice, the second time with the maps cached, which separates the triangulation
-    of a query's maps from its registrations."""
-    from locretrieval.localization.pipeline import run_sfm  # (the pipeline's stages import this module)
-
+    afterwards): the sample's seconds per stage (the pipeline's own stage clock, one run) over
+    its units (its `SfmPlan`)."""
     sample, ranking = forecast_sample(scene, sample_depth(scene, paradigms))
-    one_process = dataclasses.replace(settings, workers=1, shard=None)
+    one_process = dataclasses.replace(settings, workers=1)
     load = os.getloadavg()[0]
     with temporary_folder(cache_dir, "forecast") as folder, single_threaded(), _quiet():
         inputs = SfmInputs.prepare(sample, one_process, folder, extract=False)
-        work = {
-            name: stages.plan(sample, [ranking], paradigm_settings, one_process, folder, 0)
-            for name, (stages, paradigm_settings) in paradigms.items()
-        }
+        work = {name: stages.plan(sample, [ranking], one_process, folder, 0) for name, stages in paradigms.items()}
         plan = SfmPlan(feature_work(inputs), list(work.values()), True, 1)
-        built, registered = {}, {}
-        run_sfm(sample, [ranking], paradigms, one_process, folder, built)
-        shutil.rmtree(folder / "poses")
-        run_sfm(sample, [ranking], paradigms, one_process, folder, registered)
+        seconds: dict[str, float] = {}
+        run_sfm(sample, [ranking], paradigms, one_process, folder, seconds)
         inputs.database_features.store.refresh()  # written since the plan read it
         keypoints = inputs.database_features.keypoints(sample.database.names)
     map_pairs, registrations = {}, {}
     for name, paradigm_work in work.items():
-        shared, per_query = paradigm_work.stages()
-        triangulated = built[shared] if shared else built[per_query] - registered[per_query]
-        map_pairs[name] = _per(max(0.0, triangulated), paradigm_work.new_map_pairs)
-        registrations[name] = _per(registered[per_query], paradigm_work.registered_images.new)
+        triangulate, register = stage_names(name)
+        map_pairs[name] = _per(seconds[triangulate], paradigm_work.new_map_pairs)
+        registrations[name] = _per(seconds[register], paradigm_work.registered_images.new)
     return UnitCosts(
-        _per(built["features"], plan.features.new),
-        _per(built["match + verify"], plan.new_pairs()),
+        _per(seconds["features"], plan.features.new),
+        _per(seconds["match + verify"], plan.new_pairs()),
         map_pairs,
         registrations,
         float(np.mean([len(points) for points in keypoints.values()])),
@@ -410,11 +391,13 @@ def _per(seconds: float, units: float) -> float:
 
 @contextlib.contextmanager
 def _quiet() -> Iterator[None]:
-    """The pipeline's log below warnings while it runs on a sample (its lines are not the run's)."""
-    logger = logging.getLogger("locretrieval.localization")
-    level = logger.level
-    logger.setLevel(logging.WARNING)
+    """The pipeline's and the paradigms' log below warnings while they run on a sample (its lines are not the run's)."""
+    loggers = [logging.getLogger(name) for name in ("locretrieval.sfm", "locretrieval.paradigms")]
+    levels = [logger.level for logger in loggers]
+    for logger in loggers:
+        logger.setLevel(logging.WARNING)
     try:
         yield
     finally:
-        logger.setLevel(level)
+        for logger, level in zip(loggers, levels):
+            logger.setLevel(level)

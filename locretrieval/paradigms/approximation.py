@@ -34,11 +34,11 @@ import scipy.linalg
 
 from locretrieval import geometry
 from locretrieval.config import named_parts, require
-from locretrieval.localization.estimates import LOCALIZED, PoseEstimates
-from locretrieval.localization.paradigm import ParadigmSettings
-from locretrieval.localization.workers import resolve_workers
+from locretrieval.estimates import LOCALIZED, PoseEstimates
+from locretrieval.paradigms.base import Paradigm
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import ImageSet, Scene
+from locretrieval.sfm.workers import resolve_workers
 
 log = logging.getLogger(__name__)
 
@@ -161,9 +161,10 @@ class BarycentricWeights(ApproximationMethod):
 
 
 @dataclass
-class ApproximationSettings(ParadigmSettings):
-    """``methods``: the names of the methods computed, in this order, each a key of ``weights``:
-    name -> `ApproximationMethod` (chosen by its ``_target_``; ``configs/paradigms/approximation/weights/``)."""
+class PoseApproximation(Paradigm):
+    """Paradigm 1 (``configs/paradigms/approximation.yaml``). ``methods``: the names of the methods
+    computed, in this order, each a key of ``weights``: name -> `ApproximationMethod` (chosen by its
+    ``_target_``; ``configs/paradigms/approximation/weights/``)."""
 
     methods: list[str]
     weights: dict[str, Any] = named_parts(ApproximationMethod)
@@ -185,21 +186,14 @@ class ApproximationSettings(ParadigmSettings):
         """The methods computed, by name, in order."""
         return {name: self.weights[name] for name in self.methods}
 
-
-def run(
-    scene: Scene,
-    rankings: Sequence[Ranking],
-    settings: ApproximationSettings,
-    sfm: Any = None,
-    cache_dir: Path | None = None,
-) -> list[PoseEstimates]:
-    """Paradigm entry point: every method for every ranking and every ``settings.k`` (``sfm`` and
-    ``cache_dir`` are unused: pose approximation needs no local features)."""
-    return [
-        estimate
-        for ranking in rankings
-        for estimate in approximate_poses(scene.database, ranking, settings.k, settings.chosen())
-    ]
+    def run(self, scene: Scene, rankings: Sequence[Ranking], sfm: Any, cache_dir: Path | None) -> list[PoseEstimates]:
+        """Every method for every ranking and every ``k`` (``sfm`` and ``cache_dir`` are unused:
+        pose approximation needs no local features)."""
+        return [
+            estimate
+            for ranking in rankings
+            for estimate in approximate_poses(scene.database, ranking, self.k, self.chosen())
+        ]
 
 
 def approximate_poses(

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from locretrieval.cache import config_key, load_arrays, save_arrays
-from locretrieval.localization.estimates import LOCALIZED
+from locretrieval.estimates import LOCALIZED
 
 log = logging.getLogger(__name__)
 

@@ -71,7 +71,7 @@ def _initialize_worker(parent: int) -> None:
     # task would import: seconds a worker spends once, when the pool starts rather than in a stage
     import torch
 
-    import locretrieval.localization.pipeline  # noqa: F401
+    import locretrieval.sfm.pipeline  # noqa: F401
 
     torch.set_num_threads(1)
 

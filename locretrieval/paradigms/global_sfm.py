@@ -1,0 +1,239 @@
+"""Paradigm 2b, global SfM (paper Sec. 3.3 and 3.9): register queries in one map of the database.
+
+The global map is either
+
+- triangulated from the database with its known poses: database pairs selected by frustum
+  overlap (`database_pairs`: the pairs whose truncated frusta inscribe a sphere of radius
+  above ``sfm.map_pairs.min_radius`` metres, at most the ``max_per_image`` most overlapping per
+  image; the paper used radius >= 10 m, or the 50 most overlapping for dense sets), matched,
+  verified against the known poses' epipolar geometry and triangulated with COLMAP's
+  triangulator; built once per scene, features and options, and cached in
+  ``<cache_dir>/maps/``; or
+- an existing COLMAP model (``global_sfm.colmap_model``, e.g. the published ``colmap-sfm`` maps),
+  whose 2D points must be the configured features (`read_colmap_map`).
+
+Each query is matched to its top-k images (cached pairs, verified per
+``matching.query_verification``); the map points observed by the matched database keypoints
+give 2D-3D correspondences, and LO-RANSAC P3P with refinement gives its pose. Outcomes are
+cached in ``<cache_dir>/poses/`` by query and image set (`PoseCache`), keyed by the map, the
+query matches' store and the PnP settings.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+from filelock import FileLock
+
+from locretrieval.cache import config_key, tree_signature
+from locretrieval.estimates import PoseEstimates
+from locretrieval.paradigms.base import SfmParadigm
+from locretrieval.retrieval import Ranking
+from locretrieval.scene import Scene
+from locretrieval.sfm.colmap_model import missing_model_files, read_colmap_map
+from locretrieval.sfm.features import extract_features
+from locretrieval.sfm.inputs import (
+    SFM_METHOD,
+    Outcome,
+    QueryTask,
+    SfmInputs,
+    SfmSettings,
+    outcomes_per_image_set,
+    query_tasks,
+    register_query,
+    run_queries,
+)
+from locretrieval.sfm.pairs import database_pairs
+from locretrieval.sfm.plan import (
+    ParadigmWork,
+    Work,
+    database_pair_work,
+    queries_to_register,
+    query_pair_work,
+    registration_bound,
+    registration_work,
+)
+from locretrieval.sfm.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS
+from locretrieval.sfm.pose_cache import PoseCache
+from locretrieval.sfm.sparse_map import SparseMap
+
+log = logging.getLogger(__name__)
+
+#: Bump when the meaning of cached maps changes.
+CACHE_VERSION = 1
+
+
+@dataclass
+class GlobalSfm(SfmParadigm):
+    """Paradigm 2b (``configs/paradigms/global_sfm.yaml``). ``colmap_model``: an existing COLMAP
+    model folder built from the same features (e.g. a published ``colmap-sfm`` map), or ``None``:
+    triangulate the database pairs of ``sfm.map_pairs``. Its stages: the global map, then each
+    query registered in it."""
+
+    colmap_model: str | None
+    label: ClassVar[str] = "global_sfm"
+    has_shared_map: ClassVar[bool] = True
+
+    def method_names(self) -> list[str]:
+        return [SFM_METHOD]
+
+    def missing_inputs(self) -> list[str]:
+        """The files of ``colmap_model`` that are absent, if one is given."""
+        if not self.colmap_model:
+            return []
+        return [f"colmap_model: {problem}" for problem in missing_model_files(self.colmap_model)]
+
+    def shared_map_pairs(self, inputs: SfmInputs) -> list[tuple[str, str]]:
+        """The database pairs of the global map (`database_pairs` of ``sfm.map_pairs``), unless the
+        map is cached or an existing COLMAP model."""
+        if self.colmap_model or map_cache_path(inputs, inputs.cache_dir).exists():
+            return []
+        database = inputs.scene.database
+        return [(database.names[a], database.names[b]) for a, b in database_pairs(database, inputs.map_pairs)]
+
+    def triangulate_shared_map(self, inputs: SfmInputs, cache_dir: Path) -> None:
+        """The global map triangulated (or read) and cached once, before any query is registered."""
+        global_map(inputs, self.colmap_model, cache_dir)
+
+    def register(
+        self,
+        inputs: SfmInputs,
+        rankings: Sequence[Ranking],
+        ks: Sequence[list[int]],
+        cache_dir: Path,
+        queries: Sequence[int] | None,
+    ) -> list[PoseEstimates] | None:
+        """Register every query in the global map (in worker processes)."""
+        sparse_map = global_map(inputs, self.colmap_model, cache_dir)
+        cache = _pose_cache(inputs, self, cache_dir)
+        return run_queries(
+            self.label,
+            rankings,
+            ks,
+            register_query_in_map,
+            (inputs, sparse_map),
+            inputs.settings.processes,
+            cache,
+            queries,
+        )
+
+    def plan(
+        self,
+        scene: Scene,
+        rankings: Sequence[Ranking] | None,
+        sfm: SfmSettings,
+        cache_dir: Path,
+        num_rankings: int,
+    ) -> ParadigmWork:
+        """The map's database pairs are exact either way (from the known poses) unless the map is
+        cached or given."""
+        inputs = SfmInputs.prepare(scene, sfm, cache_dir, extract=False)
+        query_pairs = query_pair_work(inputs, rankings, self.k, num_rankings)
+        if self.colmap_model or map_cache_path(inputs, cache_dir).exists():
+            map_pairs, maps = Work(0, 0), Work(1, 0)
+        else:
+            pairs = database_pairs(scene.database, inputs.map_pairs)
+            names = scene.database.names
+            map_pairs = database_pair_work(inputs, [(names[a], names[b]) for a, b in pairs])
+            maps = Work(1, 1)
+        if rankings is None:
+            registrations = registration_bound(len(scene.queries), len(scene.database), self.k, num_rankings)
+            queries = Work(len(scene.queries), len(scene.queries))
+        else:
+            tasks = query_tasks(
+                rankings, [ranking.clamp_ks(self.k) for ranking in rankings], _pose_cache(inputs, self, cache_dir)
+            )
+            registrations, queries = registration_work(tasks), queries_to_register(tasks)
+        return ParadigmWork(
+            self.label, query_pairs, map_pairs, maps, map_pairs.total, *registrations, queries, parallel_maps=False
+        )
+
+    def map_points(self, scene: Scene, sfm: SfmSettings, cache_dir: Path) -> np.ndarray | None:
+        """The 3D points of the global map `run` used: the ``colmap_model``'s, or the triangulated
+        map cached in ``cache_dir``; ``None`` when it was not built."""
+        if self.colmap_model:
+            import pycolmap
+
+            model = pycolmap.Reconstruction(self.colmap_model)
+            return np.array([point.xyz for point in model.points3D.values()], dtype=np.float64).reshape(-1, 3)
+        path = map_cache_path(SfmInputs.prepare(scene, sfm, Path(cache_dir), extract=False), Path(cache_dir))
+        return SparseMap.load(path).points if path.exists() else None
+
+
+def _pose_cache(inputs: SfmInputs, settings: GlobalSfm, cache_dir: Path) -> PoseCache:
+    """The registration outcomes, keyed by the map (its cache file, or the COLMAP model's files)."""
+    model = settings.colmap_model
+    source = [model, tree_signature(model)] if model else map_cache_path(inputs, cache_dir).stem
+    return inputs.pose_cache("global_sfm", [CACHE_VERSION, source], cache_dir)
+
+
+def global_map(inputs: SfmInputs, colmap_model: str | None, cache_dir: Path) -> SparseMap:
+    """The database's map: an existing COLMAP model, or triangulated with known poses (cached)."""
+    database = inputs.scene.database
+    if colmap_model:
+        log.info("global map: COLMAP model %s", colmap_model)
+        keypoints = inputs.database_features.keypoints(database.names)
+        return read_colmap_map(colmap_model, database.names, [keypoints[n] for n in database.names])
+    path = map_cache_path(inputs, cache_dir)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with FileLock(f"{path}.lock"):  # one builder among the jobs sharing the cache (shards); the others wait and read it
+        if path.exists():
+            log.info("global map loaded from %s", path)
+            return SparseMap.load(path)
+        pairs = database_pairs(database, inputs.map_pairs)
+        named = [(database.names[a], database.names[b]) for a, b in pairs]
+        workers = inputs.settings.processes
+        extract_features(database, inputs.settings.features, cache_dir, workers)
+        inputs.database_pairs.ensure(named, workers, inputs.database_verification)
+        matches = inputs.database_pairs.load(named, inputs.database_verification)
+        keypoints = inputs.database_features.keypoints(database.names)
+        sparse_map = inputs.settings.triangulation.triangulate(
+            database.cameras,
+            database.qvec,
+            database.tvec,
+            [keypoints[n] for n in database.names],
+            {(int(a), int(b)): matches[pair] for (a, b), pair in zip(pairs, named)},
+        )
+        sparse_map.save(path)
+    log.info(
+        "global map: %d points from %d database images (%d pairs), saved to %s",
+        sparse_map.num_points,
+        len(database),
+        len(pairs),
+        path,
+    )
+    return sparse_map
+
+
+def map_cache_path(inputs: SfmInputs, cache_dir: Path) -> Path:
+    """Where the triangulated map is cached: keyed by its pose-verified matches' store (whose
+    name encodes the features, the ratio, the epipolar bound and the database poses), the
+    triangulation settings and the pair selection."""
+    matches = inputs.database_pairs.store(inputs.database_verification).folder.name
+    key = config_key(CACHE_VERSION, matches, inputs.settings.triangulation.identity(), asdict(inputs.map_pairs))
+    return cache_dir / "maps" / f"{key}.npz"
+
+
+def register_query_in_map(shared: tuple[SfmInputs, SparseMap], task: QueryTask) -> list[list[Outcome]]:
+    """Outcomes ``[ranking][k]`` of one query registered in the global map, once per distinct
+    set of top-k images whose outcome is not known (the correspondences depend on the set only)."""
+    inputs, sparse_map = shared
+    images = sorted({i for selected in task.pending() for i in selected})
+    query_keypoints, query_matches = inputs.query_matches(task.query, images)
+    slots = {i: i for i in images}
+
+    def localize(selected: tuple[int, ...]) -> Outcome:
+        if not selected:
+            return EMPTY_RETRIEVAL
+        if not any((sparse_map.observations[i] >= 0).any() for i in selected):
+            return NO_3D_POINTS
+        return register_query(
+            inputs, task.query, query_keypoints, {i: query_matches[i] for i in selected}, sparse_map, slots
+        )
+
+    return outcomes_per_image_set(task, localize)

@@ -1,0 +1,273 @@
+"""The SfM paradigms as one pipeline of explicit stages, driven once for every enabled SfM paradigm.
+
+The stages hand each other their results through the caches:
+
+1. **features**: local features of both image sets (`extract_features`, ``sfm.features``);
+2. **match + verify** (`PairMatcher.ensure`: CPU workers, or the GPU fed by them): the database
+   pairs of the maps every query shares (the global map), then, per chunk of queries, each
+   query with its top ``max(k)`` images of every ranking (verified per
+   ``sfm.query_verification``) and the database pairs of its local maps (pose-verified);
+3. **triangulate** (``<paradigm>: triangulate``): a map every query shares (the global map,
+   `SfmStages.triangulate_shared_map`) once, in this process, before any query; the maps of each
+   query (local maps, `SfmStages.triangulate_query_maps`) per chunk, in worker processes; both
+   cached;
+4. **register** (``<paradigm>: register``, `SfmStages.register`): each query of a chunk in its
+   maps, in worker processes, outcomes cached.
+
+`run_sfm` is the driver: it streams the queries in chunks, so that while one chunk is
+triangulated and registered the next one is matched (on a GPU the two stages then overlap), and
+gathers every outcome from the cache at the end. The paradigms say what they need
+(`SfmStages`) and never match anything themselves, so one evaluation matches each pair once.
+
+**Shards** (the job's ``shard=i/n``, `locretrieval.shard.Shard`; e.g. a Hydra multirun over
+``0/n,...,n-1/n`` on the joblib or submitit launcher): job ``i`` does every ``n``-th item of
+each stage's sorted work (images, database pairs, queries with their pairs, maps and
+registrations), then computes whatever of its own later stages' inputs is still missing (another
+job's share that has not been written yet: computed twice, never wrong). A map all queries share
+(the global map) is built by the first job that needs it, under a file lock, and read by the
+others. The caches are content-addressed and safe for concurrent writers, so a plain run
+afterwards finds every pair, map and pose in them.
+"""
+
+from __future__ import annotations
+
+import abc
+import contextlib
+import logging
+import threading
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import TYPE_CHECKING, ClassVar
+
+from locretrieval.estimates import PoseEstimates
+from locretrieval.retrieval import Ranking
+from locretrieval.scene import Scene
+from locretrieval.sfm.features import extract_features
+from locretrieval.sfm.inputs import SfmInputs, SfmSettings
+from locretrieval.shard import Shard
+
+if TYPE_CHECKING:
+    from locretrieval.sfm.plan import ParadigmWork
+
+log = logging.getLogger(__name__)
+
+Pair = tuple[str, str]
+#: Queries per chunk of the streamed stages (a chunk is triangulated and registered while the next is matched).
+QUERIES_PER_CHUNK = 512
+
+
+class SfmStages(abc.ABC):
+    """What an SfM paradigm adds to the pipeline: a `locretrieval.paradigms.SfmParadigm`
+    implements these with its settings (``k`` among them):
+
+    - `shared_map_pairs`: the database pairs of maps every query uses (the global map), to be
+      matched and pose-verified;
+    - `query_map_pairs`: those of maps built per query;
+    - the stage ``<paradigm>: triangulate``: `triangulate_shared_map` triangulates (and caches)
+      the map every query uses, in this process, once its pairs are matched, when the paradigm
+      has one (`has_shared_map`); else `triangulate_query_maps` triangulates (and caches) the
+      maps of each query of a chunk, in worker processes;
+    - the stage ``<paradigm>: register``: `register` registers each query of a chunk in its
+      maps (in worker processes), outcomes cached, and gathers them at the end;
+    - `plan`: its work, counted without doing any (`locretrieval.sfm.plan`).
+    """
+
+    #: The numbers of top-ranked images the paradigm localizes from (its settings').
+    k: list[int]
+    #: Whether it has a map every query shares (`triangulate_shared_map`), else maps of each query.
+    has_shared_map: ClassVar[bool]
+
+    def shared_map_pairs(self, inputs: SfmInputs) -> list[Pair]:
+        """The database pairs of the maps every query uses (default: none)."""
+        return []
+
+    def query_map_pairs(
+        self, inputs: SfmInputs, rankings: Sequence[Ranking], ks: list[list[int]], queries: Sequence[int] | None
+    ) -> list[Pair]:
+        """The database pairs of the maps built per query, for ``queries`` (None: all; default: none)."""
+        return []
+
+    def triangulate_shared_map(self, inputs: SfmInputs, cache_dir: Path) -> None:
+        """Triangulate (and cache) the map every query uses (`has_shared_map` only)."""
+        raise NotImplementedError(f"{type(self).__name__} has no shared map")
+
+    def triangulate_query_maps(
+        self,
+        inputs: SfmInputs,
+        rankings: Sequence[Ranking],
+        ks: Sequence[list[int]],
+        cache_dir: Path,
+        queries: Sequence[int],
+    ) -> None:
+        """Triangulate (and cache) the maps of ``queries`` whose registrations are not cached
+        (without `has_shared_map` only)."""
+        raise NotImplementedError(f"{type(self).__name__} has no maps of its own per query")
+
+    @abc.abstractmethod
+    def register(
+        self,
+        inputs: SfmInputs,
+        rankings: Sequence[Ranking],
+        ks: Sequence[list[int]],
+        cache_dir: Path,
+        queries: Sequence[int] | None,
+    ) -> list[PoseEstimates] | None:
+        """With ``queries`` (a chunk, or a shard's), register those in their maps (triangulated
+        by then) and cache the outcomes only, returning None; with None, gather every outcome
+        (cached by then) as estimates."""
+
+    @abc.abstractmethod
+    def plan(
+        self, scene: Scene, rankings: Sequence[Ranking] | None, sfm: SfmSettings, cache_dir: Path, num_rankings: int
+    ) -> ParadigmWork:
+        """Its work (`ParadigmWork`), without doing any: exact for ``rankings``, upper bounds for
+        ``num_rankings`` rankings not computed yet (``None``)."""
+
+
+def stage_names(paradigm: str) -> tuple[str, str]:
+    """The names `run_sfm` times a paradigm's triangulation and registration under."""
+    return f"{paradigm}: triangulate", f"{paradigm}: register"
+
+
+def run_sfm(
+    scene: Scene,
+    rankings: Sequence[Ranking],
+    paradigms: Mapping[str, SfmStages],
+    sfm: SfmSettings,
+    cache_dir: str | Path | None,
+    timings: dict[str, float] | None = None,
+    shard: Shard | None = None,
+) -> dict[str, list[PoseEstimates]] | None:
+    """Every SfM paradigm of ``paradigms`` (name -> its `SfmStages`) on every ranking:
+    the pose estimates by paradigm, or None for a job of a ``shard`` (its share cached only).
+
+    The queries are streamed in chunks of `QUERIES_PER_CHUNK`: while one chunk is triangulated
+    and registered (a thread driving the worker processes), the next chunk's pairs are matched
+    (on the GPU, or the workers). The seconds each stage worked are logged (stages overlap, so
+    they may add up to more than the run), and put in ``timings`` when it is given."""
+    if cache_dir is None:
+        raise ValueError(f"{' and '.join(paradigms)} need a cache directory for their features, matches and maps")
+    cache_dir = Path(cache_dir)
+    inputs = SfmInputs.prepare(scene, sfm, cache_dir, extract=False)
+    ks = {name: [ranking.clamp_ks(stages.k) for ranking in rankings] for name, stages in paradigms.items()}
+    deepest = [[max(max(ks[name][r]) for name in paradigms)] for r in range(len(rankings))]
+    queries = list(range(len(scene.queries))) if shard is None else shard.take(range(len(scene.queries)))
+
+    def query_map_pairs(chunk: Sequence[int] | None) -> list[Pair]:
+        return [
+            pair
+            for name, stages in paradigms.items()
+            for pair in stages.query_map_pairs(inputs, rankings, ks[name], chunk)
+        ]
+
+    shared_pairs = [pair for stages in paradigms.values() for pair in stages.shared_map_pairs(inputs)]
+    if shard is not None:  # every database pair of any map, split among the jobs
+        all_pairs = inputs.database_pairs.canonical([*shared_pairs, *query_map_pairs(None)])
+        log.info(
+            "SfM shard %s: %d of %d queries, %d of %d database pairs",
+            shard,
+            len(queries),
+            len(scene.queries),
+            len(shard.take(all_pairs)),
+            len(all_pairs),
+        )
+        shared_pairs = shard.take(all_pairs)
+    clock = StageClock(timings)
+    with clock("features"):
+        extract_stage(
+            inputs,
+            cache_dir,
+            shard,
+            inputs.ranked_pairs(rankings, deepest, queries),
+            [*shared_pairs, *query_map_pairs(queries)],
+        )
+    with clock("match + verify"):
+        match_stage(inputs, [], shared_pairs)
+    for name, stages in paradigms.items():
+        if stages.has_shared_map:
+            with clock(stage_names(name)[0]):
+                stages.triangulate_shared_map(inputs, cache_dir)
+
+    def localize(chunk: Sequence[int]) -> None:
+        for name, stages in paradigms.items():
+            triangulate, register = stage_names(name)
+            if not stages.has_shared_map:
+                with clock(triangulate):
+                    stages.triangulate_query_maps(inputs, rankings, ks[name], cache_dir, chunk)
+            with clock(register):
+                stages.register(inputs, rankings, ks[name], cache_dir, chunk)
+
+    def gather() -> dict[str, list[PoseEstimates]]:
+        found = {}
+        for name, stages in paradigms.items():
+            with clock(stage_names(name)[1]):
+                found[name] = stages.register(inputs, rankings, ks[name], cache_dir, None)
+        return found
+
+    with ThreadPoolExecutor(1, thread_name_prefix="sfm-localize") as background:
+        localizing = None
+        for start in range(0, len(queries), QUERIES_PER_CHUNK):
+            chunk = queries[start : start + QUERIES_PER_CHUNK]
+            with clock("match + verify"):
+                match_stage(inputs, inputs.ranked_pairs(rankings, deepest, chunk), query_map_pairs(chunk))
+            if localizing is not None:
+                localizing.result()  # one chunk localised at a time: the worker processes are its
+            localizing = background.submit(localize, chunk)
+        if localizing is not None:
+            localizing.result()
+    estimates = None if shard is not None else gather()  # every outcome is cached now
+    log.info("SfM stages: %s", ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in clock.seconds.items()))
+    return estimates
+
+
+class StageClock:
+    """Seconds each stage worked, summed over its calls: ``with clock(stage): ...`` (from several
+    threads), kept in ``timings`` when it is given."""
+
+    def __init__(self, timings: dict[str, float] | None) -> None:
+        self.seconds = timings if timings is not None else {}
+        self._lock = threading.Lock()
+
+    @contextlib.contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        started = time.perf_counter()
+        try:
+            yield
+        finally:
+            with self._lock:
+                self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - started
+
+
+def extract_stage(
+    inputs: SfmInputs,
+    cache_dir: Path,
+    shard: Shard | None,
+    query_pairs: Sequence[Pair],
+    database_pairs: Sequence[Pair],
+    whole_sets: bool = True,
+) -> None:
+    """Local features of every image of both sets (``whole_sets``; a shard's share of each), then
+    of the images of the (query, database) and (database, database) pairs still missing."""
+    scene, settings, workers = inputs.scene, inputs.settings, inputs.settings.processes
+    needed = (
+        (
+            scene.database,
+            sorted({name for _, name in query_pairs} | {name for pair in database_pairs for name in pair}),
+        ),
+        (scene.queries, sorted({query for query, _ in query_pairs})),
+    )
+    for images, names in needed:
+        if whole_sets:
+            extract_features(
+                images, settings.features, cache_dir, workers, None if shard is None else shard.take(images.names)
+            )
+        extract_features(images, settings.features, cache_dir, workers, names)
+
+
+def match_stage(inputs: SfmInputs, query_pairs: Sequence[Pair], database_pairs: Sequence[Pair]) -> None:
+    """Match and verify every query pair and every database pair (each store in one pass)."""
+    workers = inputs.settings.processes
+    inputs.query_pairs.ensure(query_pairs, workers, inputs.query_verification)
+    inputs.database_pairs.ensure(database_pairs, workers, inputs.database_verification)
