@@ -59,7 +59,8 @@ def latex_text(value: object) -> str:
 
 def markdown_table(frame: pd.DataFrame, **options) -> str:
     """``frame`` (index and columns flat) as a Markdown table, its string cells and labels `md_text`."""
-    escaped = frame.rename(columns=md_text).map(lambda value: md_text(value) if isinstance(value, str) else value)
+    labels = {"index": lambda label: md_text(label) if isinstance(label, str) else label, "columns": md_text}
+    escaped = frame.rename(**labels).map(lambda value: md_text(value) if isinstance(value, str) else value)
     return escaped.to_markdown(**options)
 
 

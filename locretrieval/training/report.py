@@ -1,4 +1,5 @@
-"""The training run's validation curves: ``validation.csv`` and ``report.md`` with one figure."""
+"""The training run's validation curves: ``validation.csv`` and ``report.md`` with one figure (every
+config or data string in it escaped as the evaluation report's, `locretrieval.report.markdown`)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import pandas as pd
 
 from locretrieval.benchmark import BenchmarkSettings
 from locretrieval.config import require
+from locretrieval.report.markdown import markdown_table, md_text
 from locretrieval.training.callbacks import LocalizationValidation
 
 
@@ -124,7 +126,7 @@ def gallery_lines(validation: LocalizationValidation, output_dir: Path) -> list[
             Image.fromarray(validation.galleries[key]).save(output_dir / file, quality=85)
             lines += [
                 f"Top {validation.gallery_k} of validation queries {caption} (query first; green: relevant, red: not, "
-                f"by the {validation.gallery_groundtruth} ground truth):",
+                f"by the {md_text(validation.gallery_groundtruth)} ground truth):",
                 "",
                 f"![gallery {caption}]({file})",
                 "",
@@ -151,7 +153,7 @@ def write_training_report(
     shown = [m for m in settings.metrics() if m in wide.columns]
     lines = ["# Training report", "", "% of validation queries localized (epoch -1: before training).", ""]
     if shown:
-        lines += [wide[shown].rename(columns=lambda m: m.removeprefix("val/")).to_markdown(floatfmt=".3g"), ""]
+        lines += [markdown_table(wide[shown].rename(columns=lambda m: m.removeprefix("val/")), floatfmt=".3g"), ""]
         figure, axes = plt.subplots(1, len(shown), figsize=(4.5 * len(shown), 3.2), squeeze=False)
         for axis, metric in zip(axes[0], shown):
             series = wide[metric].dropna()
@@ -170,14 +172,14 @@ def write_training_report(
     if len(gaps):
         lines += [
             f"What training bought, per paradigm (% localized; "
-            f"the share of the gap between {settings.baseline} and the "
+            f"the share of the gap between {md_text(settings.baseline)} and the "
             "ground truth that training closed):",
             "",
-            gaps.to_markdown(index=False, floatfmt=".3g"),
+            markdown_table(gaps, index=False, floatfmt=".3g"),
             "",
         ]
     lines += [
-        f"Requested row {metric.removeprefix('val/')} (report.gap) is not filled: {why}."
+        f"Requested row {md_text(metric.removeprefix('val/'))} (report.gap) is not filled: {md_text(why)}."
         for metric, why in unfilled.items()
     ]
     lines += [""] if unfilled else []
@@ -185,7 +187,7 @@ def write_training_report(
         name: {m: v for m, v in metrics.items() if m in shown} for name, metrics in validation.reference.items()
     }
     if references:
-        lines += ["Reference rankings:", "", pd.DataFrame(references).T.to_markdown(floatfmt=".3g"), ""]
+        lines += ["Reference rankings:", "", markdown_table(pd.DataFrame(references).T, floatfmt=".3g"), ""]
     lines += gallery_lines(validation, output_dir)
     (output_dir / "report.md").write_text("\n".join(lines))
     return table

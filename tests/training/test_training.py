@@ -977,3 +977,27 @@ def test_a_negatives_rule_from_outside_the_package_is_chosen_through_the_config(
     assert (distance > 15.0).any()
     chosen = train_config(tmp_path, "train_relevance/negatives=not_relevant").train_relevance
     assert validated(TrainingRelevanceSettings, chosen, "train_relevance").negatives == NotRelevantNegatives()
+
+
+def test_the_training_report_escapes_every_name_it_writes(tmp_path):
+    from types import SimpleNamespace
+
+    from locretrieval.training.report import TrainingReportSettings, write_training_report
+
+    hostile = "<img src=x onerror=alert(1)>"
+    metric = "val/approximation/ewb/k3/5m_10deg"
+    history = [{"epoch": -1, metric: 10.0}, {"epoch": 0, metric: 40.0}]
+    reference = {"densevlad": {metric: 20.0}, "gt_relative_pose": {metric: 60.0}, hostile: {metric: 30.0}}
+    validation = SimpleNamespace(
+        history_table=lambda: pd.DataFrame(
+            [(-1, metric, 10.0), (0, metric, 40.0)], columns=["epoch", "metric", "value"]
+        ),
+        history=history,
+        reference=reference,
+        galleries={},
+    )
+    report = validated(TrainingReportSettings, helpers.compose_config("train").report, "report")
+    write_training_report(validation, tmp_path, report, {"val/local_sfm/pnp/k10/0.25m_2deg": hostile})
+    text = (tmp_path / "report.md").read_text()
+    assert "<img" not in text and text.count("&#60;img src=x onerror=alert(1)&#62;") == 2  # reference row, unfilled
+    assert "| approximation/ewb/k3/5m_10deg |" in text  # names without markup unchanged
