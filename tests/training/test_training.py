@@ -13,7 +13,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from torchvision.transforms import v2
-from training_runs import SCENE, TINY_TRAINING, train_config
+from training_runs import METRIC, SCENE, TINY_TRAINING, train_config
 
 from locretrieval import geometry
 from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
@@ -700,9 +700,8 @@ def test_a_parallel_training_multirun_as_documented_shares_one_cache_without_cor
 
     # the multirun's summary (the Hydra callback at its end), and report.py's of the folder afterwards
     summary = pd.read_csv(tmp_path / "multirun" / "summary.csv")
-    objectives = [
-        pd.read_csv(job / "validation.csv").query("epoch >= 0 and metric == @METRIC")["value"].max() for job in jobs
-    ]
+    validations = [pd.read_csv(job / "validation.csv") for job in jobs]
+    objectives = [table[(table["epoch"] >= 0) & (table["metric"] == METRIC)]["value"].max() for table in validations]
     assert summary["objective"].tolist() == objectives and summary["state"].tolist() == ["finished", "finished"]
     assert summary["overrides"].str.contains("loss=ap").tolist() == [True, False]
     assert summary["best"].tolist() == [objectives[0] >= objectives[1], objectives[0] < objectives[1]]
