@@ -21,8 +21,8 @@ The local features are an object chosen by ``_target_`` (``sfm/features=sift|kap
   score (R2D2: ascending).
 
 ``max_keypoints`` (every kind; null: all) keeps each image's best keypoints: the best rows by
-score for kapture features, pycolmap's strongest detections for SIFT (`best_keypoints`). A new
-kind is a `LocalFeatures` subclass (``identity``, ``records``, ``keypoint_order``) and a YAML.
+score for kapture features, pycolmap's strongest detections for SIFT (`LocalFeatures.best_rows`).
+A new kind is a `LocalFeatures` subclass (``identity``, ``records``, ``best_rows``) and a YAML.
 
 Features live in ``<cache_dir>/features/<image set fingerprint>-<config key>/`` as HDF5
 shards (`ShardedStore`) keyed by image name, computed once and reused across runs.
@@ -77,10 +77,16 @@ class LocalFeatures(abc.ABC):
     def records(self) -> Callable[[str, Path], dict[str, np.ndarray]]:
         """``(image name, path) -> {"keypoints", "descriptors"}``, every keypoint (in a worker process)."""
 
-    @property
+    def best_rows(self, keypoints: np.ndarray) -> np.ndarray:
+        """Sorted row indices of the at most ``max_keypoints`` best of ``keypoints [n, >=2]``
+        (every row when the budget is None or not exceeded; `_best_rows` otherwise)."""
+        if self.max_keypoints is None or len(keypoints) <= self.max_keypoints:
+            return np.arange(len(keypoints))
+        return self._best_rows(keypoints, self.max_keypoints)
+
     @abc.abstractmethod
-    def keypoint_order(self) -> str | None:
-        """How `best_keypoints` finds the best rows (`SCORE_ORDERS`, ``sift``, or None: unknown)."""
+    def _best_rows(self, keypoints: np.ndarray, budget: int) -> np.ndarray:
+        """Sorted row indices of the ``budget`` best of more than ``budget`` ``keypoints``."""
 
     def missing_inputs(self, images: ImageSet) -> list[str]:
         """What reading the features of ``images`` would miss (files it reads)."""
@@ -126,9 +132,13 @@ class SiftFeatures(LocalFeatures):
         extract = _sift_extractor(self, self.max_keypoints)
         return lambda name, path: extract(path)
 
-    @property
-    def keypoint_order(self) -> str:
-        return "sift"
+    def _best_rows(self, keypoints: np.ndarray, budget: int) -> np.ndarray:
+        """pycolmap already kept its strongest detections (``max_num_features``), but a detection
+        with two orientations is two rows: each location's first row comes before the extra
+        orientations, in pycolmap's order."""
+        _, first = np.unique(keypoints[:, :2], axis=0, return_index=True)
+        extra_orientations = np.setdiff1d(np.arange(len(keypoints)), first)
+        return np.sort(np.concatenate([np.sort(first), extra_orientations])[:budget])
 
 
 #: How the rows of a kapture keypoints file are ordered by detector score (R2D2's
@@ -169,9 +179,11 @@ class KaptureFeatures(LocalFeatures):
     def records(self) -> Callable[[str, Path], dict[str, np.ndarray]]:
         return partial(_read_kapture_features, settings=self)
 
-    @property
-    def keypoint_order(self) -> str | None:
-        return self.score_order
+    def _best_rows(self, keypoints: np.ndarray, budget: int) -> np.ndarray:
+        """The rows are ordered by detector score (``score_order``): the best are the last
+        (ascending) or the first (descending)."""
+        start = len(keypoints) - budget if self.score_order == "ascending" else 0
+        return np.arange(start, start + budget)
 
     def missing_inputs(self, images: ImageSet) -> list[str]:
         return missing_kapture_features(images, self)
@@ -230,37 +242,15 @@ def _extract_shard(shared: tuple[str, LocalFeatures], images: list[tuple[str, st
 
 def read_or_extract(settings: LocalFeatures) -> Callable[[str, Path], dict[str, np.ndarray]]:
     """``(image name, path) -> {"keypoints", "descriptors"}`` of ``settings``, the best
-    ``max_keypoints`` of them (`best_keypoints`), in memory (nothing is cached)."""
-    source, order = settings.records(), settings.keypoint_order
+    ``max_keypoints`` of them (`LocalFeatures.best_rows`), in memory (nothing is cached)."""
+    source = settings.records()
 
     def features(name: str, path: Path) -> dict[str, np.ndarray]:
         record = source(name, path)
-        kept = best_keypoints(record["keypoints"], settings.max_keypoints, order)
+        kept = settings.best_rows(record["keypoints"])
         return {key: values[kept] for key, values in record.items()}
 
     return features
-
-
-def best_keypoints(keypoints: np.ndarray, budget: int | None, order: str | None) -> np.ndarray:
-    """Sorted row indices of the at most ``budget`` best of ``keypoints [n, >=2]`` (all: ``None``):
-
-    - ``ascending`` / ``descending``: the rows are ordered by detector score (`SCORE_ORDERS`),
-      the best are the last / first;
-    - ``sift``: pycolmap already kept its strongest detections (its ``max_num_features`` is the
-      budget), but a detection with two orientations is two rows: each location's first row
-      comes before the extra orientations.
-    """
-    if budget is None or len(keypoints) <= budget:
-        return np.arange(len(keypoints))
-    if order == "ascending":
-        return np.arange(len(keypoints) - budget, len(keypoints))
-    if order == "descending":
-        return np.arange(budget)
-    if order != "sift":
-        raise ValueError(f"unknown keypoint order {order!r}: expected one of {[*SCORE_ORDERS, 'sift']}")
-    _, first = np.unique(keypoints[:, :2], axis=0, return_index=True)
-    extra_orientations = np.setdiff1d(np.arange(len(keypoints)), first)
-    return np.sort(np.concatenate([np.sort(first), extra_orientations])[:budget])
 
 
 def _sift_extractor(settings: SiftFeatures, budget: int | None) -> Callable[[Path], dict[str, np.ndarray]]:

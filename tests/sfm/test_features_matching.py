@@ -229,11 +229,22 @@ def test_a_keypoint_budget_keeps_pycolmaps_strongest_sift_detections(scene, tmp_
         assert np.linalg.norm(kept[:, None] - all_points[None], axis=-1).min(axis=1).max() < 1e-3
 
 
-def test_best_keypoints_prefer_new_locations_to_extra_sift_orientations():
+def test_sift_budget_prefers_new_locations_to_extra_orientations():
     points = np.array([[1, 1], [1, 1], [2, 2], [3, 3], [3, 3], [4, 4]], dtype=np.float32)  # pycolmap's order
-    np.testing.assert_array_equal(features_module.best_keypoints(points, 4, "sift"), [0, 2, 3, 5])
-    np.testing.assert_array_equal(features_module.best_keypoints(points, 5, "sift"), [0, 1, 2, 3, 5])
-    np.testing.assert_array_equal(features_module.best_keypoints(points, None, "sift"), np.arange(6))
+
+    def sift(budget):
+        return features_module.SiftFeatures(budget, 1600, 0, 8192, 0.004)
+
+    np.testing.assert_array_equal(sift(4).best_rows(points), [0, 2, 3, 5])
+    np.testing.assert_array_equal(sift(5).best_rows(points), [0, 1, 2, 3, 5])
+    np.testing.assert_array_equal(sift(None).best_rows(points), np.arange(6))
+
+
+@pytest.mark.parametrize(("order", "expected"), [("ascending", [3, 4, 5]), ("descending", [0, 1, 2])])
+def test_kapture_budget_keeps_the_best_scored_rows_of_the_files_order(order, expected):
+    features = features_module.KaptureFeatures(3, "r2d2", 0.5, order)
+    np.testing.assert_array_equal(features.best_rows(np.zeros((6, 2), np.float32)), expected)
+    np.testing.assert_array_equal(features.best_rows(np.zeros((3, 2), np.float32)), [0, 1, 2])
 
 
 # ------------------------------------------------------------------------------------ matching
@@ -692,9 +703,8 @@ class GridFeatures(LocalFeatures):
 
         return record
 
-    @property
-    def keypoint_order(self) -> str:
-        return "descending"
+    def _best_rows(self, keypoints: np.ndarray, budget: int) -> np.ndarray:
+        return np.arange(budget)  # the grid's first cells
 
 
 def test_local_features_and_a_verification_from_outside_the_package_are_chosen_by_target(tmp_path):
