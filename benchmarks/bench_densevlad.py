@@ -28,7 +28,7 @@ from scipy.ndimage import gaussian_filter
 
 import locretrieval  # noqa: F401
 from locretrieval.models import DenseVLAD
-from locretrieval.models.vlad import kmeans_vocabulary, pca_whitening
+from locretrieval.models.published.vlad import kmeans_vocabulary, pca_whitening
 from locretrieval.retrieval.index import search
 from locretrieval.scene import Camera, ImageSet
 

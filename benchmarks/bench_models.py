@@ -26,20 +26,20 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "model"
 def build(name: str):
     """The model's network (random weights) and its config file."""
     if name == "netvlad":
-        from locretrieval.models.netvlad import build_netvlad_network
+        from locretrieval.models.published.netvlad import build_netvlad_network
 
         return build_netvlad_network(64, 4096), "netvlad.yaml"
     if name == "apgem":
-        from locretrieval.models.apgem import build_apgem_network
+        from locretrieval.models.published.apgem import build_apgem_network
 
         return build_apgem_network("resnet101", 2048), "apgem.yaml"
     if name == "delg":
-        from locretrieval.models.delg import build_delg_network
+        from locretrieval.models.published.delg import build_delg_network
 
         return build_delg_network(), "delg.yaml"
     if name == "gem":
-        from locretrieval.models.backbones import TorchvisionBackbone
         from locretrieval.models.networks import build_retrieval_net
+        from locretrieval.models.trainable.backbones import TorchvisionBackbone
 
         return build_retrieval_net(
             TorchvisionBackbone("resnet50"),

@@ -42,7 +42,7 @@ fi
 require_gpu
 versions
 step "CUDA tests" 45 "$PYTHON" -m pytest -q -p no:cacheprovider $collect_only \
-    tests/sfm/test_features_matching.py tests/models/test_densevlad.py -k "gpu or cuda or device"
+    tests/sfm/test_features_matching.py tests/models/published/test_densevlad.py -k "gpu or cuda or device"
 step "bench_matching" 60 "$PYTHON" benchmarks/bench_matching.py $matching
 step "bench_scale baidu" 120 "$PYTHON" benchmarks/bench_scale.py --size baidu $scale
 step "bench_training" 55 "$PYTHON" benchmarks/bench_training.py $training device=$DEVICE $scene

@@ -60,7 +60,7 @@ def with_gap_ks(cfg, report) -> None:
 def checkpoint_progress(checkpoint: Path) -> str:
     """``"<steps> steps, in epoch <epoch>"`` (counted from 1) of a Lightning checkpoint, read by the
     restricted unpickler: a run stopped by ``trainer.max_time`` ends within an epoch."""
-    from locretrieval.models.weights import load_torch_file
+    from locretrieval.models.files.weights import load_torch_file
 
     content = load_torch_file(checkpoint)
     return f"{content['global_step']} steps, in epoch {content['epoch'] + 1}"

@@ -11,7 +11,7 @@ reader, scikit-learn nor TensorFlow; point ``model.weights`` at it.
 DELG needs tensorflow to read the SavedModel (``pip install 'locretrieval[tensorflow]'``), or an
 ``.npz`` of its variables made by ``delg-variables --npz`` on a machine that has it.
 ``delg-variables`` prints every variable name and shape: check them against the naming
-`locretrieval.models.delg` assumes before trusting a conversion.
+`locretrieval.models.published.delg` assumes before trusting a conversion.
 """
 
 import argparse
@@ -19,9 +19,9 @@ import argparse
 import numpy as np
 
 import locretrieval  # noqa: F401
-from locretrieval.models.apgem import convert_apgem
-from locretrieval.models.delg import convert_delg, read_tf_variables
-from locretrieval.models.netvlad import convert_netvlad
+from locretrieval.models.published.apgem import convert_apgem
+from locretrieval.models.published.delg import convert_delg, read_tf_variables
+from locretrieval.models.published.netvlad import convert_netvlad
 
 
 def main() -> None:

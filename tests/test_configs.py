@@ -140,6 +140,6 @@ def test_every_group_is_found_with_its_nested_groups():
 
 
 def test_an_error_that_does_not_name_what_is_missing_fails():
-    broken = OmegaConf.create({"_target_": "locretrieval.models.weights.check_weights_file", "path": 1})
+    broken = OmegaConf.create({"_target_": "locretrieval.models.files.weights.check_weights_file", "path": 1})
     with pytest.raises(Exception):
         build(broken)

@@ -18,7 +18,7 @@ def test_the_benchmark_and_a_precomputed_model_import_no_heavy_library():
     loaded = loaded_after("import locretrieval.evaluation\nfrom locretrieval.models import PrecomputedDescriptor")
     assert {
         "locretrieval.evaluation",
-        "locretrieval.models.precomputed",
+        "locretrieval.models.files.precomputed",
         "locretrieval.sfm.matching",
     } <= loaded
     assert not loaded & {*HEAVY, "torch"}  # precomputed descriptors and features are matched without torch
@@ -70,8 +70,8 @@ if __name__ == "__main__":
 
 def test_models_are_imported_when_first_named():
     loaded = loaded_after("from locretrieval.models import DenseVLAD")
-    assert "locretrieval.models.densevlad" in loaded and "kornia" in loaded
-    assert not loaded & {"locretrieval.models.delg", "locretrieval.models.apgem", "torchvision"}
+    assert "locretrieval.models.published.densevlad" in loaded and "kornia" in loaded
+    assert not loaded & {"locretrieval.models.published.delg", "locretrieval.models.published.apgem", "torchvision"}
     assert "torchvision" in loaded_after("from locretrieval.models import DELGDescriptor")
 
 

@@ -1,5 +1,13 @@
 """Global image descriptors.
 
+Grouped by what they are: `published` (the descriptors of the paper's benchmark with their
+authors' weights: DenseVLAD and its parts, NetVLAD, AP-GeM, DELG), `trainable` (the networks
+train.py trains: `TrainableDescriptor`, its backbones and heads, DINOv2 and the heads published
+on it) and `files` (weight files, descriptor feature files); what they all share is here: `base`
+(the `GlobalDescriptor` interface), `networks` (`RetrievalNet`, the poolings, building and filling
+a network), `extraction` (the engine), `torch_descriptor`, and `external` (networks defined
+elsewhere). The module paths before this grouping keep working (`moved`).
+
 Each name is imported from its module on first use (PEP 562), so that importing one model does
 not import every backbone library (torchvision alone takes more than a second).
 """
@@ -11,26 +19,28 @@ from typing import TYPE_CHECKING, Any
 
 from omegaconf import OmegaConf
 
+from locretrieval.models import moved
+
 #: Public name -> module of `locretrieval.models` defining it.
 _MODULES = {
-    "APGeMDescriptor": "apgem",
-    "BoQDescriptor": "dinov2",
+    "APGeMDescriptor": "published.apgem",
+    "BoQDescriptor": "trainable.dinov2",
     "CallableDescriptor": "external",
-    "DELGDescriptor": "delg",
-    "DenseVLAD": "densevlad",
-    "DinoV2Descriptor": "dinov2",
+    "DELGDescriptor": "published.delg",
+    "DenseVLAD": "published.densevlad",
+    "DinoV2Descriptor": "trainable.dinov2",
     "GlobalDescriptor": "base",
     "HubDescriptor": "external",
-    "MegaLocDescriptor": "dinov2",
-    "MissingWeightsError": "weights",
-    "NetVLADDescriptor": "netvlad",
+    "MegaLocDescriptor": "trainable.dinov2",
+    "MissingWeightsError": "files.weights",
+    "NetVLADDescriptor": "published.netvlad",
     "NetworkDescriptor": "torch_descriptor",
-    "PrecomputedDescriptor": "precomputed",
-    "SALADDescriptor": "dinov2",
+    "PrecomputedDescriptor": "files.precomputed",
+    "SALADDescriptor": "trainable.dinov2",
     "TorchGlobalDescriptor": "torch_descriptor",
     "TrainableDescriptor": "trainable",
-    "export_global_features": "feature_io",
-    "read_hloc_global_descriptors": "feature_io",
+    "export_global_features": "files.feature_io",
+    "read_hloc_global_descriptors": "files.feature_io",
 }
 
 __all__ = [
@@ -58,7 +68,7 @@ __all__ = [
 def _package_weights(name: str) -> str:
     """The config resolver ``${package_weights:efficientnet_lite0}`` (`efficientnet.package_weights`;
     registered with the package, the model module loads when it resolves)."""
-    from locretrieval.models.efficientnet import package_weights
+    from locretrieval.models.trainable.efficientnet import package_weights
 
     return package_weights(name)
 
@@ -66,20 +76,22 @@ def _package_weights(name: str) -> str:
 if not OmegaConf.has_resolver("package_weights"):
     OmegaConf.register_new_resolver("package_weights", _package_weights)
 
+moved.install()  # the module paths before 0.12 (`locretrieval.models.netvlad`) import their modules of today
+
 
 if TYPE_CHECKING:
-    from locretrieval.models.apgem import APGeMDescriptor
     from locretrieval.models.base import GlobalDescriptor
-    from locretrieval.models.delg import DELGDescriptor
-    from locretrieval.models.densevlad import DenseVLAD
-    from locretrieval.models.dinov2 import BoQDescriptor, DinoV2Descriptor, MegaLocDescriptor, SALADDescriptor
     from locretrieval.models.external import CallableDescriptor, HubDescriptor
-    from locretrieval.models.feature_io import export_global_features, read_hloc_global_descriptors
-    from locretrieval.models.netvlad import NetVLADDescriptor
-    from locretrieval.models.precomputed import PrecomputedDescriptor
+    from locretrieval.models.files.feature_io import export_global_features, read_hloc_global_descriptors
+    from locretrieval.models.files.precomputed import PrecomputedDescriptor
+    from locretrieval.models.files.weights import MissingWeightsError
+    from locretrieval.models.published.apgem import APGeMDescriptor
+    from locretrieval.models.published.delg import DELGDescriptor
+    from locretrieval.models.published.densevlad import DenseVLAD
+    from locretrieval.models.published.netvlad import NetVLADDescriptor
     from locretrieval.models.torch_descriptor import NetworkDescriptor, TorchGlobalDescriptor
     from locretrieval.models.trainable import TrainableDescriptor
-    from locretrieval.models.weights import MissingWeightsError
+    from locretrieval.models.trainable.dinov2 import BoQDescriptor, DinoV2Descriptor, MegaLocDescriptor, SALADDescriptor
 
 
 def __getattr__(name: str) -> Any:

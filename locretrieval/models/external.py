@@ -26,9 +26,9 @@ import torch
 from torch import nn
 
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
+from locretrieval.models.files.weights import content_sha256, embedded_checkpoint, load_torch_file, settings_of
 from locretrieval.models.networks import WeightsInfo, l2_normalize
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
-from locretrieval.models.weights import content_sha256, embedded_checkpoint, load_torch_file, settings_of
 
 HUB_SOURCES = ("local", "github")
 #: ``(height, width)`` of the probe image that finds a network's output dimension.

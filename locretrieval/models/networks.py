@@ -3,11 +3,11 @@
 Tensors are ``[B, C, H, W]`` feature maps and ``[B, D]`` descriptors. Every model of the zoo
 (NetVLAD, AP-GeM, DELG, the trainable ``gem`` / ``netvlad_head`` models) and every network
 trained by `locretrieval.training` is a `RetrievalNet`: ``backbone -> pooling (GeM, GeM over a
-spatial pyramid, NetVLAD, or a head of `locretrieval.models.heads`: MixVPR, SALAD, BoQ) -> optional
+spatial pyramid, NetVLAD, or a head of `locretrieval.models.trainable.heads`: MixVPR, SALAD, BoQ) -> optional
 whitening (affine) -> L2``, plus an optional projection applied after multi-scale
 aggregation (AP-GeM's PCA). A pooling is any module class built as ``cls(channels, **options)``
 that sets ``output_dim``, chosen by ``_target_`` in ``configs/model/pooling/`` (`pooling_settings`).
-`build_retrieval_net` builds one on a backbone (`locretrieval.models.backbones`, chosen the same way in
+`build_retrieval_net` builds one on a backbone (`locretrieval.models.trainable.backbones`, chosen the same way in
 ``configs/model/backbone/``) and `load_weights` fills it from a state dict and records where the
 weights came from.
 """
@@ -28,7 +28,8 @@ import torch.nn.functional as F
 from hydra.utils import get_class
 from torch import nn
 
-from locretrieval.models.weights import content_sha256, plain
+from locretrieval.models.files.weights import content_sha256, plain
+from locretrieval.models.moved import current_path
 
 #: Guards divisions by the norm of all-zero vectors.
 NORM_EPS = 1e-12
@@ -202,7 +203,8 @@ def pooling_settings(pooling: Callable[..., nn.Module] | Mapping[str, Any]) -> d
         target = options.pop("_target_", None)
         if target is None:
             raise ValueError(f"model.pooling has no _target_ (choose one: model/pooling=gem): {options}")
-        cls = get_class(str(target))
+        target = current_path(str(target))  # a module path before 0.12 recorded as today's
+        cls = get_class(target)
     else:
         cls = pooling.func if isinstance(pooling, partial) else pooling
         options = dict(pooling.keywords) if isinstance(pooling, partial) else {}
@@ -231,11 +233,11 @@ LEGACY_POOLINGS: dict[str, tuple[str, dict[str, Any]]] = {
     "gem_pyramid": ("locretrieval.models.networks.SpatialPyramidGeM", {"levels": [[1, 1], [1, 3]]}),
     "netvlad": ("locretrieval.models.networks.NetVLADPooling", {}),
     "mixvpr": (
-        "locretrieval.models.heads.MixVPRHead",
+        "locretrieval.models.trainable.heads.MixVPRHead",
         {"grid": [7, 7], "blocks": 4, "mlp_ratio": 1, "out_channels": 256, "out_rows": 4},
     ),
     "salad": (
-        "locretrieval.models.heads.SALADHead",
+        "locretrieval.models.trainable.heads.SALADHead",
         {
             "clusters": 16,
             "cluster_dim": 32,
@@ -248,7 +250,7 @@ LEGACY_POOLINGS: dict[str, tuple[str, dict[str, Any]]] = {
         },
     ),
     "boq": (
-        "locretrieval.models.heads.BoQHead",
+        "locretrieval.models.trainable.heads.BoQHead",
         {"dim": 128, "queries": 16, "blocks": 2, "heads": 4, "rows": 8, "input_kernel": 1},
     ),
 }
@@ -280,7 +282,7 @@ def build_retrieval_net(
     backbone: Any, pooling: Mapping[str, Any], whiten_dim: int | None = None, projection_dim: int | None = None
 ) -> RetrievalNet:
     """The pooling of the settings ``pooling`` (`pooling_settings`) on the trunk ``backbone`` builds
-    (a `locretrieval.models.backbones.Backbone`), optional FC whitening to ``whiten_dim`` and final
+    (a `locretrieval.models.trainable.backbones.Backbone`), optional FC whitening to ``whiten_dim`` and final
     projection to ``projection_dim`` (applied after multi-scale aggregation), randomly initialised."""
     if pooling.get("token") == "class":
         raise ValueError(f"pooling token: class needs a trunk with a class token (model=dinov2), not {backbone!r}")

@@ -23,8 +23,8 @@ from locretrieval.models.extraction import (
     extract_descriptors,
     network_device,
 )
+from locretrieval.models.files.weights import plain, save_checkpoint
 from locretrieval.models.networks import RetrievalNet, WeightsInfo, state_sha256
-from locretrieval.models.weights import plain, save_checkpoint
 from locretrieval.scene import ImageSet
 
 log = logging.getLogger(__name__)

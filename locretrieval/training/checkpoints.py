@@ -11,7 +11,7 @@ import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 
 from locretrieval.cache import atomic_path
-from locretrieval.models.weights import EMBEDDED_CHECKPOINT_KEY, check_checkpoint, load_torch_file
+from locretrieval.models.files.weights import EMBEDDED_CHECKPOINT_KEY, check_checkpoint, load_torch_file
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):

@@ -14,8 +14,8 @@ import torch
 
 from locretrieval.config import SettingError
 from locretrieval.models.extraction import Preprocessing, describe_batch
+from locretrieval.models.files.weights import CHECKPOINT_FORMAT, EMBEDDED_CHECKPOINT_KEY, plain
 from locretrieval.models.networks import RetrievalNet
-from locretrieval.models.weights import CHECKPOINT_FORMAT, EMBEDDED_CHECKPOINT_KEY, plain
 from locretrieval.training.relevance import TrainingPairs
 
 log = logging.getLogger(__name__)

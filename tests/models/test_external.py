@@ -12,11 +12,11 @@ import torch
 from hydra.errors import InstantiationException
 
 from locretrieval.evaluation import evaluate
-from locretrieval.models.backbones import EfficientNetLiteBackbone
-from locretrieval.models.efficientnet import package_weights
 from locretrieval.models.extraction import Preprocessing
 from locretrieval.models.networks import build_retrieval_net
 from locretrieval.models.trainable import imagenet_weights
+from locretrieval.models.trainable.backbones import EfficientNetLiteBackbone
+from locretrieval.models.trainable.efficientnet import package_weights
 from locretrieval.retrieval.descriptors import describe_scene
 
 SCENE = {"width": 128, "height": 96, "num_database": 8, "num_queries": 3, "texture_size": 64, "length": 20.0,
@@ -27,9 +27,9 @@ from pathlib import Path
 
 import torch
 
-from locretrieval.models.efficientnet import package_weights
+from locretrieval.models.trainable.efficientnet import package_weights
 from locretrieval.models.networks import build_retrieval_net
-from locretrieval.models.backbones import EfficientNetLiteBackbone
+from locretrieval.models.trainable.backbones import EfficientNetLiteBackbone
 from locretrieval.models.trainable import imagenet_weights
 
 

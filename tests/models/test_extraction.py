@@ -19,11 +19,11 @@ from PIL import Image
 from locretrieval.cache import tree_signature
 from locretrieval.config import ConfigError
 from locretrieval.models import TrainableDescriptor
-from locretrieval.models.backbones import TorchvisionBackbone
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
+from locretrieval.models.files.weights import HASH_CACHE_ENV, MissingWeightsError, content_sha256
 from locretrieval.models.networks import l2_normalize
 from locretrieval.models.torch_descriptor import RANDOM_INIT_SUFFIX
-from locretrieval.models.weights import HASH_CACHE_ENV, MissingWeightsError, content_sha256
+from locretrieval.models.trainable.backbones import TorchvisionBackbone
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.scene import Camera, ImageSet, Scene
 

@@ -23,7 +23,7 @@ from lightning_utilities.core import rank_zero
 from omegaconf import OmegaConf
 from training_runs import SCENE, TINY_TRAINING
 
-from locretrieval.models.weights import load_torch_file
+from locretrieval.models.files.weights import load_torch_file
 from locretrieval.training.data import RelevanceBatchSampler, TrainingData, collate
 from locretrieval.training.distributed import Ranks
 

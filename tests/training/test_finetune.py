@@ -9,8 +9,8 @@ from hydra.utils import instantiate
 from training_runs import train_config
 
 from locretrieval.config import SettingError
+from locretrieval.models.files.weights import embedded_checkpoint, load_torch_file
 from locretrieval.models.networks import GeMPooling, RetrievalNet
-from locretrieval.models.weights import embedded_checkpoint, load_torch_file
 from locretrieval.training.module import freeze_parameters
 from locretrieval.training.run import train
 

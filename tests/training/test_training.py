@@ -480,7 +480,7 @@ def test_hard_negatives_are_the_highest_ranked_unrelated_images_by_the_current_n
 
 @pytest.mark.parametrize("frozen", [True, False])
 def test_frozen_batch_norm_keeps_the_pretrained_statistics_while_the_weights_learn(tmp_path, frozen):
-    from locretrieval.models.weights import EMBEDDED_CHECKPOINT_KEY
+    from locretrieval.models.files.weights import EMBEDDED_CHECKPOINT_KEY
 
     cfg = train_config(tmp_path, f"module.freeze_batch_norm={frozen}")
     train(cfg, tmp_path / "run")
@@ -496,7 +496,7 @@ def test_frozen_batch_norm_keeps_the_pretrained_statistics_while_the_weights_lea
 
 
 def test_frozen_parameters_keep_their_pretrained_values(tmp_path):
-    from locretrieval.models.weights import EMBEDDED_CHECKPOINT_KEY
+    from locretrieval.models.files.weights import EMBEDDED_CHECKPOINT_KEY
 
     patterns = "module.frozen=['backbone.timm.conv_stem.*','backbone.timm.blocks.[0-3].*']"
     cfg = train_config(tmp_path, patterns)

@@ -9,7 +9,7 @@ hand-written module of locretrieval 0.4.0 exactly (max difference 0.0 on a 97 x 
 which this module replaced; that module's checkpoints load through `upgrade_legacy_trunk`.
 
 Conventions, checked against the batch-norm running statistics the weights carry, on 99 crops
-(96 px) of matplotlib's photo grace_hopper.jpg (tests/models/test_efficientnet.py; mismatch per layer:
+(96 px) of matplotlib's photo grace_hopper.jpg (tests/models/trainable/test_efficientnet.py; mismatch per layer:
 mean over channels of ``(mean - running_mean)^2 / running_var + log(var / running_var)^2``):
 
 - Input ``(rgb - 127) / 128`` (`INPUT_MEAN`, `INPUT_STD`; TF-Lite's), not ImageNet's mean/std:
@@ -29,8 +29,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from locretrieval.models.timm_trunk import TimmTrunk
-from locretrieval.models.weights import MissingWeightsError, WeightSource
+from locretrieval.models.files.weights import MissingWeightsError, WeightSource
+from locretrieval.models.trainable.timm_trunk import TimmTrunk
 
 #: Backbone names with packaged ImageNet weights -> timm's TF-Lite model (TensorFlow ``SAME``
 #: padding, batch-norm eps 1e-3).

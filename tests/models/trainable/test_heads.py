@@ -13,8 +13,7 @@ import torch.nn.functional as F
 from omegaconf import OmegaConf
 from training_runs import train_config
 
-from locretrieval.models.backbones import TorchvisionBackbone
-from locretrieval.models.heads import BoQHead, MixVPRHead, SALADHead
+from locretrieval.models.files.weights import save_checkpoint
 from locretrieval.models.networks import (
     GeMPooling,
     build_pooling,
@@ -23,7 +22,8 @@ from locretrieval.models.networks import (
     pooling_settings,
     upgrade_legacy_pooling,
 )
-from locretrieval.models.weights import save_checkpoint
+from locretrieval.models.trainable.backbones import TorchvisionBackbone
+from locretrieval.models.trainable.heads import BoQHead, MixVPRHead, SALADHead
 from locretrieval.training.run import train
 
 RESNET18 = TorchvisionBackbone("resnet18")
@@ -139,7 +139,7 @@ def test_gem_pyramid_starts_from_the_pretrained_trunk_and_gems_initial_power():
 def test_a_pooling_refuses_options_it_does_not_take_or_lacks_naming_them():
     module = build_pooling(64, configured_pooling("mixvpr", out_rows=2))
     assert isinstance(module, MixVPRHead) and module.output_dim == 256 * 2
-    with pytest.raises(ValueError, match=r"model.pooling \(locretrieval.models.heads.BoQHead\): .*'bogus'"):
+    with pytest.raises(ValueError, match=r"model.pooling \(locretrieval.models.trainable.heads.BoQHead\): .*'bogus'"):
         configured_pooling("boq", bogus=1)
     with pytest.raises(ValueError, match=r"model.pooling \(.*MixVPRHead\): .*'p'.*it takes \['grid', 'blocks'"):
         configured_pooling("mixvpr", p=3.0)  # GeM's option on another head: refused, not ignored
@@ -151,7 +151,10 @@ def test_a_pooling_refuses_options_it_does_not_take_or_lacks_naming_them():
 
 def test_model_pooling_switches_the_head_with_its_own_options_and_refuses_anothers():
     config = helpers.evaluate_config("model=gem", "model/pooling=boq")
-    assert config.model.pooling._target_ == "locretrieval.models.heads.BoQHead" and "p" not in config.model.pooling
+    assert (
+        config.model.pooling._target_ == "locretrieval.models.trainable.heads.BoQHead"
+        and "p" not in config.model.pooling
+    )
     boq = helpers.zoo_model("gem", pooling=config.model.pooling, random_init=True, backbone=RESNET18)
     assert isinstance(boq.network.pooling, BoQHead) and boq.network.output_dim == 128 * 8
     with pytest.raises(ValueError, match=r"BoQHead\): got an unexpected keyword argument 'p'"):

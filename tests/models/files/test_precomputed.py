@@ -54,7 +54,7 @@ def test_single_folder_reads_back_what_kapture_wrote(tmp_path, caplog):
     model = helpers.precomputed(path=str(folder))
     assert model.name == "Resnet101-AP-GeM"  # from global_features.txt
     images = image_set(QUERIES + DATABASE[:2], tmp_path / "dataset" / "sensors" / "records_data")
-    with caplog.at_level(logging.INFO, logger="locretrieval.models.precomputed"):
+    with caplog.at_level(logging.INFO, logger="locretrieval.models.files.precomputed"):
         descriptors = model.describe(images)
     assert descriptors.dtype == np.float32 and descriptors.shape == (4, 16)
     np.testing.assert_allclose(descriptors, normalised(vectors, images.names), atol=1e-6)
@@ -177,7 +177,7 @@ def precomputed_config(tmp_path, *overrides):
     from hydra.core.global_hydra import GlobalHydra
 
     GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(Path(__file__).parents[2] / "configs"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(helpers.CONFIGS), version_base="1.3"):
         return compose(
             config_name="evaluate",
             overrides=["model=precomputed", f"paths.root_dir={tmp_path}", *overrides],

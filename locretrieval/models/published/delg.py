@@ -37,9 +37,7 @@ from torch import nn
 from torchvision.models.resnet import Bottleneck
 
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
-from locretrieval.models.networks import GeMPooling, RetrievalNet, load_weights
-from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
-from locretrieval.models.weights import (
+from locretrieval.models.files.weights import (
     WEIGHT_SOURCES,
     Weights,
     content_sha256,
@@ -47,6 +45,8 @@ from locretrieval.models.weights import (
     require_weights,
     save_checkpoint,
 )
+from locretrieval.models.networks import GeMPooling, RetrievalNet, load_weights
+from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 
 #: DELF config ``r101delg_gldv2clean_config.pbtxt``: scales 3, 4, 5 of its pyramid.
 DELG_SCALES = (0.70710677, 1.0, 1.4142135)

@@ -20,6 +20,7 @@ from omegaconf import OmegaConf
 
 from locretrieval.cache import atomic_path, tree_signature
 from locretrieval.errors import FIX_DATA_FILE, DataFileError
+from locretrieval.models.moved import current_targets
 from locretrieval.restricted_pickle import TORCH_NUMPY_GLOBALS, plain_data
 
 #: Environment variable naming the folder of the weight-hash cache (default ~/.cache/locretrieval).
@@ -277,11 +278,12 @@ def check_checkpoint(content: Mapping[str, Any], path: Path, model: str, archite
 
 
 def check_architecture(stored: Mapping[str, Any], path: Path, architecture: Mapping[str, Any]) -> None:
-    """Raise unless the settings a weight file holds (``stored``) equal the configured ``architecture``."""
-    stored = plain(dict(stored))
-    differing = {
-        key: (stored.get(key), value) for key, value in plain(dict(architecture)).items() if stored.get(key) != value
-    }
+    """Raise unless the settings a weight file holds (``stored``) equal the configured ``architecture``;
+    a class is compared by its module's path of today (`current_targets`: a checkpoint written before
+    0.12 names ``locretrieval.models.backbones.TorchvisionBackbone``)."""
+    stored = current_targets(plain(dict(stored)))
+    configured = current_targets(plain(dict(architecture)))
+    differing = {key: (stored.get(key), value) for key, value in configured.items() if stored.get(key) != value}
     if differing:
         details = ", ".join(f"{key}: file {a!r} vs config {b!r}" for key, (a, b) in differing.items())
         raise ValueError(f"{path}: architecture in the file differs from the configuration ({details})")

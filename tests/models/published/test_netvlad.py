@@ -9,9 +9,9 @@ import torch
 from helpers import zoo_model
 from PIL import Image
 
-from locretrieval.models.netvlad import convert_netvlad
+from locretrieval.models.files.weights import HASH_CACHE_ENV, MissingWeightsError
 from locretrieval.models.networks import NetVLADPooling
-from locretrieval.models.weights import HASH_CACHE_ENV, MissingWeightsError
+from locretrieval.models.published.netvlad import convert_netvlad
 from locretrieval.scene import Camera, ImageSet
 
 #: VGG16 up to conv5_3 in MatConvNet's layer order ("M": 2x2 max-pool).

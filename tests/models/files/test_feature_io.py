@@ -8,7 +8,7 @@ import kapture.io.features
 import numpy as np
 import pytest
 
-from locretrieval.models.feature_io import export_global_features, read_hloc_global_descriptors
+from locretrieval.models.files.feature_io import export_global_features, read_hloc_global_descriptors
 from locretrieval.scene import Camera, ImageSet
 
 NAMES = ["db/seq1/000.jpg", "db/seq1/001.jpg", "query/night/q.jpg"]

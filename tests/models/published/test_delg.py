@@ -10,8 +10,8 @@ import torch.nn.functional as F
 from helpers import zoo_model
 from PIL import Image
 
-from locretrieval.models.delg import convert_delg, delg_state_dict_from_tf, read_tf_variables
-from locretrieval.models.weights import HASH_CACHE_ENV, MissingWeightsError
+from locretrieval.models.files.weights import HASH_CACHE_ENV, MissingWeightsError
+from locretrieval.models.published.delg import convert_delg, delg_state_dict_from_tf, read_tf_variables
 from locretrieval.scene import Camera, ImageSet
 
 SCALES = (0.70710677, 1.0, 1.4142135)

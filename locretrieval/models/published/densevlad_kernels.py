@@ -5,7 +5,7 @@ residual sums of assigned descriptors.
 They replace chains of tensor operations that each pass over every pixel or descriptor (scatter
 of the orientation votes, two depthwise convolutions, gather of the 16 cells, window, L2 norm,
 clipping, L1 norm, square root, index_add) with one pass per stage that stays in cache.
-`locretrieval.models.densevlad` runs one image per thread with them; its torch code stays the
+`locretrieval.models.published.densevlad` runs one image per thread with them; its torch code stays the
 reference and the GPU path, and both agree within float32 rounding (tests). Indices in inner
 loops are unsigned so that numba emits no negative-index check and LLVM vectorises the loops;
 ``fastmath`` lets it reorder the sums (float32 rounding only). Compiled on first use, cached

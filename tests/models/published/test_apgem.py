@@ -12,8 +12,8 @@ import torchvision
 from helpers import ObjectPointerArray, error_in_subprocess, run_python, zoo_model
 from PIL import Image
 
-from locretrieval.models.apgem import convert_apgem
-from locretrieval.models.weights import HASH_CACHE_ENV, MissingWeightsError, save_checkpoint
+from locretrieval.models.files.weights import HASH_CACHE_ENV, MissingWeightsError, save_checkpoint
+from locretrieval.models.published.apgem import convert_apgem
 from locretrieval.scene import Camera, ImageSet
 
 MEAN, STD = [0.40, 0.50, 0.60], [0.20, 0.25, 0.30]
@@ -248,7 +248,7 @@ def test_a_crafted_numpy_dtype_in_a_dirtorch_file_is_refused_not_a_crash(tmp_pat
     path = tmp_path / "Resnet18-AP-GeM-crafted.pt"
     state = {"fc.weight": torch.zeros(4, 512), "fc.bias": torch.zeros(4), "adpool.p": torch.ones(1)}
     torch.save({"state_dict": state, "model_options": {"arch": "resnet18_rmac"}, "pca": {"x": pca}}, path)
-    process = error_in_subprocess("locretrieval.models.apgem.read_apgem_weights", path)
+    process = error_in_subprocess("locretrieval.models.published.apgem.read_apgem_weights", path)
     assert process.returncode == 0, process.stderr[-2000:]  # -11 (SIGSEGV) before the stand-ins
     assert process.stdout.startswith(f"{path}: refused to unpickle an object this loader does not allow")
     assert "refused dtype 'V8' with fields or a sub-array" in process.stdout
@@ -263,7 +263,7 @@ def test_a_crafted_numpy_dtype_in_a_dirtorch_file_is_refused_not_a_crash(tmp_pat
 
 
 def test_numpy_values_of_a_dirtorch_pca_arrive_as_plain_arrays(checkpoint):
-    from locretrieval.models.apgem import read_apgem_weights
+    from locretrieval.models.published.apgem import read_apgem_weights
 
     path, _, pca = checkpoint
     loaded = read_apgem_weights(path).pcas["Landmarks_clean"]

@@ -32,8 +32,15 @@ import scipy.io
 import torch
 from torch import nn
 
-from locretrieval.models.backbones import TorchvisionBackbone
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
+from locretrieval.models.files.weights import (
+    WEIGHT_SOURCES,
+    Weights,
+    content_sha256,
+    read_weights,
+    require_weights,
+    save_checkpoint,
+)
 from locretrieval.models.networks import (
     NetVLADPooling,
     RetrievalNet,
@@ -43,14 +50,7 @@ from locretrieval.models.networks import (
     torchvision_trunk,
 )
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
-from locretrieval.models.weights import (
-    WEIGHT_SOURCES,
-    Weights,
-    content_sha256,
-    read_weights,
-    require_weights,
-    save_checkpoint,
-)
+from locretrieval.models.trainable.backbones import TorchvisionBackbone
 
 #: MatConvNet layers of VGG16 up to conv5_3 (13 convolutions, 12 ReLUs, 4 max-pools).
 VGG16_TRUNK_LAYERS = 29

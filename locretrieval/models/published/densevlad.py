@@ -19,9 +19,9 @@ word's residual); vocabulary and PCA are learned on each database (the authors s
 learned on their own data), and the PCA is centred (their projection is applied to
 uncentred VLADs).
 
-The parts: dense RootSIFT in `locretrieval.models.dense_sift` (torch batches on a GPU, numba
+The parts: dense RootSIFT in `locretrieval.models.published.dense_sift` (torch batches on a GPU, numba
 kernels one image per thread on CPU), the vocabulary, VLAD and whitening in
-`locretrieval.models.vlad`; this module loads and batches the images and learns and applies the
+`locretrieval.models.published.vlad`; this module loads and batches the images and learns and applies the
 model on a database.
 """
 
@@ -40,8 +40,8 @@ from tqdm import tqdm
 
 from locretrieval.device import resolve_device
 from locretrieval.models.base import GlobalDescriptor
-from locretrieval.models.dense_sift import SIFT_DIM, cpu_lattice, cpu_rootsift, sift_lattice, window_weights
-from locretrieval.models.vlad import VladAccumulator, kmeans_vocabulary, normalize_vlad, pca_whitening
+from locretrieval.models.published.dense_sift import SIFT_DIM, cpu_lattice, cpu_rootsift, sift_lattice, window_weights
+from locretrieval.models.published.vlad import VladAccumulator, kmeans_vocabulary, normalize_vlad, pca_whitening
 from locretrieval.scene import ImageSet
 from locretrieval.scene.images import read_image
 from locretrieval.threads import map_single_threaded, torch_threads

@@ -26,11 +26,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from locretrieval.models.backbones import TorchvisionBackbone
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD, ExtractionSettings, Preprocessing
-from locretrieval.models.networks import GeMPooling, RetrievalNet, build_retrieval_net, load_weights, pooling_settings
-from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
-from locretrieval.models.weights import (
+from locretrieval.models.files.weights import (
     WEIGHT_SOURCES,
     Weights,
     content_sha256,
@@ -38,6 +35,9 @@ from locretrieval.models.weights import (
     require_weights,
     save_checkpoint,
 )
+from locretrieval.models.networks import GeMPooling, RetrievalNet, build_retrieval_net, load_weights, pooling_settings
+from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
+from locretrieval.models.trainable.backbones import TorchvisionBackbone
 
 #: dirtorch architectures (``model_options['arch']``) and their torchvision backbones.
 DIRTORCH_BACKBONES = {

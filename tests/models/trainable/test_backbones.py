@@ -9,7 +9,11 @@ import pytest
 import torch
 from torch import nn
 
-from locretrieval.models.backbones import (
+from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
+from locretrieval.models.files.weights import WeightSource
+from locretrieval.models.networks import l2_normalize
+from locretrieval.models.trainable import imagenet_weights
+from locretrieval.models.trainable.backbones import (
     EfficientNetLiteBackbone,
     TimmBackbone,
     TorchvisionBackbone,
@@ -17,11 +21,7 @@ from locretrieval.models.backbones import (
     backbone_settings,
     upgrade_legacy_backbone,
 )
-from locretrieval.models.efficientnet import INPUT_MEAN, INPUT_STD
-from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
-from locretrieval.models.networks import l2_normalize
-from locretrieval.models.trainable import imagenet_weights
-from locretrieval.models.weights import WeightSource
+from locretrieval.models.trainable.efficientnet import INPUT_MEAN, INPUT_STD
 
 
 def test_model_backbone_chooses_the_family_and_its_name():
@@ -118,6 +118,6 @@ def test_0_11_backbone_names_read_as_their_families():
     )
     assert upgrade_legacy_backbone("timm:convnext_atto") == backbone_settings(TimmBackbone("convnext_atto"))
     assert backbone_settings(TimmBackbone("convnext_atto")) == {
-        "_target_": "locretrieval.models.backbones.TimmBackbone",
+        "_target_": "locretrieval.models.trainable.backbones.TimmBackbone",
         "name": "convnext_atto",
     }

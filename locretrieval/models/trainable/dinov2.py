@@ -6,7 +6,7 @@ they are benchmarked and fine-tuned (``train.py finetune=salad``) like any train
   own code runs it (`dinov2_position_embedding`), with the final LayerNorm optional (BoQ reads the
   last block's output) and the class token returned beside the map when a head uses it (SALAD,
   MegaLoc).
-- `DinoV2Descriptor`: a head of `locretrieval.models.heads` (or GeM) on that trunk; its weights are
+- `DinoV2Descriptor`: a head of `locretrieval.models.trainable.heads` (or GeM) on that trunk; its weights are
   our checkpoint or DINOv2's published backbone file (the head then needs ``random_init``).
   `SALADDescriptor`, `BoQDescriptor` and `MegaLocDescriptor` read their authors' released file
   whole: each `KeyMapping` renames every key to its place here, and refuses a file with keys it
@@ -29,11 +29,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from locretrieval.models.backbones import Normalization
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD, ExtractionSettings
+from locretrieval.models.files.weights import Weights, WeightSource
 from locretrieval.models.networks import RetrievalNet, build_pooling, upgrade_legacy_pooling
 from locretrieval.models.trainable import TrainableDescriptor
-from locretrieval.models.weights import Weights, WeightSource
+from locretrieval.models.trainable.backbones import Normalization
 
 #: DINOv2's patch side in pixels: every image side is a multiple of it.
 PATCH = 14
@@ -189,7 +189,7 @@ def salad_columns(clusters: int, cluster_dim: int, token_dim: int) -> torch.Tens
 
 
 class DinoV2Descriptor(TrainableDescriptor):
-    """``pooling`` (a head of `locretrieval.models.heads`, or GeM) on a DINOv2 ``backbone`` (a timm
+    """``pooling`` (a head of `locretrieval.models.trainable.heads`, or GeM) on a DINOv2 ``backbone`` (a timm
     ``vit_*_patch14_dinov2`` name), the final LayerNorm when ``final_norm``, optional whitening
     to ``whiten_dim``; images resized to ``size`` (``[width, height]``, or shrunk to
     ``max_side``), sides rounded to multiples of 14, normalised with ImageNet's mean and std.

@@ -16,9 +16,11 @@ from omegaconf import OmegaConf
 from PIL import Image
 
 from locretrieval.groundtruth import relative_pose_groundtruth
-from locretrieval.models import MissingWeightsError, TrainableDescriptor, efficientnet
-from locretrieval.models.backbones import EfficientNetLiteBackbone, TorchvisionBackbone
-from locretrieval.models.efficientnet import (
+from locretrieval.models import MissingWeightsError, TrainableDescriptor
+from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
+from locretrieval.models.trainable import efficientnet
+from locretrieval.models.trainable.backbones import EfficientNetLiteBackbone, TorchvisionBackbone
+from locretrieval.models.trainable.efficientnet import (
     VARIANTS,
     lite_trunk,
     package_weights,
@@ -27,7 +29,6 @@ from locretrieval.models.efficientnet import (
     upgrade_legacy_trunk,
     variant_of,
 )
-from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 from locretrieval.scene.synthetic.dataset import single_torch_thread

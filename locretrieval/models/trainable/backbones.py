@@ -20,11 +20,11 @@ import torch
 from hydra.utils import get_class
 from torch import nn
 
-from locretrieval.models import efficientnet
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
+from locretrieval.models.files.weights import WeightSource, plain, torchvision_source
 from locretrieval.models.networks import torchvision_trunk
-from locretrieval.models.timm_trunk import TimmTrunk
-from locretrieval.models.weights import WeightSource, plain, torchvision_source
+from locretrieval.models.trainable import efficientnet
+from locretrieval.models.trainable.timm_trunk import TimmTrunk
 
 #: Input normalisation ``(mean, std)`` per RGB channel: ``(rgb / 255 - mean) / std``.
 Normalization = tuple[tuple[float, ...], tuple[float, ...]]
