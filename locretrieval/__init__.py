@@ -12,7 +12,9 @@ import zlib  # noqa: F401
 # the one it loads: not about the run.
 logging.getLogger("faiss.loader").setLevel(logging.WARNING)
 
-from locretrieval import config, models  # noqa: F401,E402  (register the config resolvers)
+from locretrieval import config, models, moved  # noqa: F401,E402  (register the config resolvers)
+
+moved.install()  # the module paths before 0.12 (`locretrieval.models.netvlad`) import their modules of today
 
 __version__ = "0.11.0"
 

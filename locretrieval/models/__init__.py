@@ -6,7 +6,7 @@ train.py trains: `TrainableDescriptor`, its backbones and heads, DINOv2 and the 
 on it) and `files` (weight files, descriptor feature files); what they all share is here: `base`
 (the `GlobalDescriptor` interface), `networks` (`RetrievalNet`, the poolings, building and filling
 a network), `extraction` (the engine), `torch_descriptor`, and `external` (networks defined
-elsewhere). The module paths before this grouping keep working (`moved`).
+elsewhere). The module paths before this grouping keep working (`locretrieval.moved`).
 
 Each name is imported from its module on first use (PEP 562), so that importing one model does
 not import every backbone library (torchvision alone takes more than a second).
@@ -18,8 +18,6 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 from omegaconf import OmegaConf
-
-from locretrieval.models import moved
 
 #: Public name -> module of `locretrieval.models` defining it.
 _MODULES = {
@@ -75,8 +73,6 @@ def _package_weights(name: str) -> str:
 
 if not OmegaConf.has_resolver("package_weights"):
     OmegaConf.register_new_resolver("package_weights", _package_weights)
-
-moved.install()  # the module paths before 0.12 (`locretrieval.models.netvlad`) import their modules of today
 
 
 if TYPE_CHECKING:

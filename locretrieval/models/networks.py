@@ -29,7 +29,7 @@ from hydra.utils import get_class
 from torch import nn
 
 from locretrieval.models.files.weights import content_sha256, plain
-from locretrieval.models.moved import current_path
+from locretrieval.moved import current_path
 
 #: Guards divisions by the norm of all-zero vectors.
 NORM_EPS = 1e-12

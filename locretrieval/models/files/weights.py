@@ -20,7 +20,7 @@ from omegaconf import OmegaConf
 
 from locretrieval.cache import atomic_path, tree_signature
 from locretrieval.errors import FIX_DATA_FILE, DataFileError
-from locretrieval.models.moved import current_targets
+from locretrieval.moved import current_targets
 from locretrieval.restricted_pickle import TORCH_NUMPY_GLOBALS, plain_data
 
 #: Environment variable naming the folder of the weight-hash cache (default ~/.cache/locretrieval).

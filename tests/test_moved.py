@@ -1,4 +1,5 @@
-"""The module paths of `locretrieval.models` before its grouping (0.12) keep working: imports, Hydra's
+"""The module paths before 0.12 keep working (`locretrieval.moved`): those of `locretrieval.models`
+before its grouping and of ``locretrieval.localization`` before its split, through imports, Hydra's
 ``_target_``, pickle's references, a saved run config and a checkpoint that name them."""
 
 import importlib
@@ -15,13 +16,14 @@ from hydra.utils import get_class, instantiate
 from omegaconf import OmegaConf
 
 import locretrieval.models
-from locretrieval.config import built
+from locretrieval.config import built, validated
 from locretrieval.models.files.weights import EMBEDDED_CHECKPOINT_KEY, HASH_CACHE_ENV, load_torch_file, save_checkpoint
-from locretrieval.models.moved import MOVED_MODULES, current_path
+from locretrieval.moved import MOVED_MODULES, current_path
 from locretrieval.models.networks import pooling_settings
 from locretrieval.models.published.netvlad import NetVLADDescriptor
 from locretrieval.models.trainable.backbones import TorchvisionBackbone
 from locretrieval.models.trainable.heads import MixVPRHead
+from locretrieval.sfm.inputs import SfmSettings
 from locretrieval.training.checkpoints import check_resume_checkpoint
 
 PACKAGE = Path(locretrieval.models.__file__).parent
@@ -29,6 +31,11 @@ PACKAGE = Path(locretrieval.models.__file__).parent
 FLAT_MODULES = (
     "apgem backbones base delg dense_sift densevlad densevlad_kernels dinov2 efficientnet external extraction "
     "feature_io heads netvlad networks precomputed timm_trunk torch_descriptor trainable vlad weights"
+).split()
+#: The modules of locretrieval/localization/ before its split (as at commit c50e4f8^).
+LOCALIZATION_MODULES = (
+    "approximation colmap_model estimates features global_sfm local_sfm matching nearest_neighbours pairs "
+    "paradigm pipeline plan pnp pose_cache sfm sparse_map store triangulation verification workers"
 ).split()
 #: The classes a trainable model's architecture recorded before the grouping (0.11 to 0.12).
 OLD_BACKBONE = "locretrieval.models.backbones.TorchvisionBackbone"
@@ -43,9 +50,37 @@ def is_module_here(dotted: str) -> bool:
 
 def test_the_alias_table_names_exactly_the_modules_that_moved_each_at_its_new_place():
     moved = {f"locretrieval.models.{name}" for name in FLAT_MODULES if not is_module_here(name)}
-    assert set(MOVED_MODULES) == moved and len(moved) == 15
-    for old, new in MOVED_MODULES.items():
+    models = {old: new for old, new in MOVED_MODULES.items() if old.startswith("locretrieval.models.")}
+    assert set(models) == moved and len(moved) == 15
+    for old, new in models.items():
         assert is_module_here(new) and new.rsplit(".", 1)[1] == old.rsplit(".", 1)[1]  # the same file, moved
+    split = {f"locretrieval.localization.{name}" for name in LOCALIZATION_MODULES} | {"locretrieval.localization"}
+    assert set(MOVED_MODULES) == set(models) | split
+    assert not (PACKAGE.parent / "localization").exists()
+
+
+@pytest.mark.parametrize("name", LOCALIZATION_MODULES)
+def test_every_module_of_the_split_localization_package_imports_its_successor(name):
+    old, new = f"locretrieval.localization.{name}", MOVED_MODULES[f"locretrieval.localization.{name}"]
+    module = importlib.import_module(new)
+    assert importlib.import_module(old) is module and module.__name__ == new
+    assert importlib.import_module("locretrieval.localization") is importlib.import_module("locretrieval.paradigms")
+
+
+def test_a_saved_sfm_section_naming_the_localization_package_builds_todays_parts():
+    """A run of 0.11 saved ``sfm.features._target_: locretrieval.localization.features.SiftFeatures``
+    and the like: its section validates into the settings of today's paths, equal to them."""
+    today = OmegaConf.to_container(helpers.compose_config("evaluate").sfm, resolve=True)
+    saved = OmegaConf.create(today)
+    renamed = 0
+    for part in ("features", "query_verification", "database_verification", "triangulation"):
+        target = saved[part]["_target_"]
+        assert target.startswith("locretrieval.sfm.")
+        saved[part]["_target_"] = target.replace("locretrieval.sfm.", "locretrieval.localization.")
+        renamed += 1
+    settings = validated(SfmSettings, saved, "sfm")
+    assert renamed == 4 and settings == validated(SfmSettings, OmegaConf.create(today), "sfm")
+    assert type(settings.features).__module__ == "locretrieval.sfm.features"
 
 
 @pytest.mark.parametrize("name", FLAT_MODULES)

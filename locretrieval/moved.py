@@ -1,9 +1,11 @@
-"""The module paths `locretrieval.models` had before 0.12 grouped its modules (#52), kept working.
+"""The module paths before 0.12 (#52) kept working: `locretrieval.models` grouped its modules, and
+``locretrieval.localization`` was split into `locretrieval.paradigms` and `locretrieval.sfm`.
 
 Saved run configs (``config.yaml``, ``.hydra/config.yaml``), checkpoints' architectures and code of
 other packages name modules such as ``locretrieval.models.netvlad`` or classes such as
-``locretrieval.models.heads.MixVPRHead``. `MovedModuleFinder`, on ``sys.meta_path`` from the
-moment `locretrieval.models` is imported, answers each old name of `MOVED_MODULES` with the module
+``locretrieval.models.heads.MixVPRHead``; a saved run's ``sfm`` section names
+``locretrieval.localization.features.SiftFeatures``. `MovedModuleFinder`, on ``sys.meta_path`` from
+the moment `locretrieval` is imported, answers each old name of `MOVED_MODULES` with the module
 at its new path itself (one module object under two names, never a copy): ``import``,
 ``hydra.utils.get_class``, Hydra's ``_target_`` and pickle's class references all resolve through
 it, with a `DeprecationWarning` naming the new path. A path recorded as data, such as the
@@ -21,18 +23,41 @@ import warnings
 from types import ModuleType
 from typing import Any
 
-#: Modules that moved (0.12) into the groups of `locretrieval.models`: the old dotted name -> the new.
-#: ``published``: the descriptors of the paper's benchmark with their authors' weights (DenseVLAD and
-#: its parts, NetVLAD, AP-GeM, DELG); ``trainable``: the networks train.py trains (trunks, heads,
-#: DINOv2); ``files``: weight files and descriptor feature files.
+#: Modules that moved (0.12): the old dotted name -> the new.
+#: ``models.published``: the descriptors of the paper's benchmark with their authors' weights
+#: (DenseVLAD and its parts, NetVLAD, AP-GeM, DELG); ``models.trainable``: the networks train.py
+#: trains (trunks, heads, DINOv2); ``models.files``: weight files and descriptor feature files.
+#: ``localization``: the paradigms (and their base, once ``paradigm``) to `locretrieval.paradigms`, the
+#: SfM pipeline's modules to `locretrieval.sfm` (``sfm`` is now ``sfm.inputs``), ``estimates`` up.
 MOVED_MODULES = {
-    f"locretrieval.models.{name}": f"locretrieval.models.{group}.{name}"
-    for group, names in {
-        "published": "densevlad dense_sift densevlad_kernels vlad netvlad apgem delg",
-        "trainable": "backbones timm_trunk efficientnet heads dinov2",
-        "files": "weights feature_io precomputed",
-    }.items()
-    for name in names.split()
+    **{
+        f"locretrieval.models.{name}": f"locretrieval.models.{group}.{name}"
+        for group, names in {
+            "published": "densevlad dense_sift densevlad_kernels vlad netvlad apgem delg",
+            "trainable": "backbones timm_trunk efficientnet heads dinov2",
+            "files": "weights feature_io precomputed",
+        }.items()
+        for name in names.split()
+    },
+    "locretrieval.localization": "locretrieval.paradigms",
+    **{
+        f"locretrieval.localization.{old}": f"locretrieval.{new}"
+        for old, new in {
+            "approximation": "paradigms.approximation",
+            "local_sfm": "paradigms.local_sfm",
+            "global_sfm": "paradigms.global_sfm",
+            "paradigm": "paradigms.base",
+            "estimates": "estimates",
+            "sfm": "sfm.inputs",
+            **{
+                name: f"sfm.{name}"
+                for name in (
+                    "colmap_model features matching nearest_neighbours pairs pipeline plan pnp pose_cache "
+                    "sparse_map store triangulation verification workers"
+                ).split()
+            },
+        }.items()
+    },
 }
 
 
