@@ -18,11 +18,11 @@ from omegaconf import OmegaConf
 import locretrieval.models
 from locretrieval.config import built, validated
 from locretrieval.models.files.weights import EMBEDDED_CHECKPOINT_KEY, HASH_CACHE_ENV, load_torch_file, save_checkpoint
-from locretrieval.moved import MOVED_MODULES, current_path
 from locretrieval.models.networks import pooling_settings
 from locretrieval.models.published.netvlad import NetVLADDescriptor
 from locretrieval.models.trainable.backbones import TorchvisionBackbone
 from locretrieval.models.trainable.heads import MixVPRHead
+from locretrieval.moved import MOVED_MODULES, current_path
 from locretrieval.sfm.inputs import SfmSettings
 from locretrieval.training.checkpoints import check_resume_checkpoint
 
