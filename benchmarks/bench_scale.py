@@ -379,7 +379,7 @@ def measured_unit_costs(
     """`measure_unit_costs` on the scene, the images of its sample given generated features
     (`FeatureWorld`) at ``keypoints``, written as kapture files under ``folder``."""
     paradigms, scene = sfm_paradigms(), with_kapture_root(scene, folder)
-    sample, _ = forecast_sample(scene, sample_depth(scene, paradigms))
+    sample, _ = forecast_sample(scene, sample_depth(scene))
     world = FeatureWorld(np.concatenate([sample.database.centers, sample.queries.centers]), scene.frustum_far, rng)
     for images in (sample.database, sample.queries):
         world.write(images, range(len(images)), keypoints, scene.frustum_far, sfm.features.name)
