@@ -173,7 +173,8 @@ def sfm_plan(
     """The work of the enabled SfM paradigms (`SfmPlan`; ``None`` when none is enabled or there
     is no cache): exact for ``rankings``, or upper bounds for ``num_rankings`` rankings not
     computed yet (``None``). When there is new work, unit costs are measured on a sample of the
-    scene (`measure_unit_costs`, once per scene and settings in a process) for the forecast, and
+    scene (`measure_unit_costs`, with the ``rankings`` when given, once per scene and settings in a
+    process) for the forecast, and
     the worker pool is started when a stage will need it."""
     paradigms = settings.paradigms.sfm_stages()
     if not paradigms or cache_dir is None:
@@ -193,7 +194,7 @@ def sfm_plan(
             {name: repr(stages) for name, stages in paradigms.items()},
         )
         if key not in _unit_costs:
-            _unit_costs[key] = measure_unit_costs(scene, settings.sfm, paradigms, cache_dir)
+            _unit_costs[key] = measure_unit_costs(scene, settings.sfm, paradigms, cache_dir, rankings)
         plan.costs = _unit_costs[key]
         prepare_workers(plan)
     return plan

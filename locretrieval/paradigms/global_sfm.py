@@ -188,7 +188,7 @@ def global_map(inputs: SfmInputs, colmap_model: str | None, cache_dir: Path) -> 
         pairs = database_pairs(database, inputs.map_pairs)
         named = [(database.names[a], database.names[b]) for a, b in pairs]
         workers = inputs.settings.processes
-        extract_features(database, inputs.settings.features, cache_dir, workers)
+        extract_features(database, inputs.settings.features, inputs.cache_dir, workers)  # where the inputs read them
         inputs.database_pairs.ensure(named, workers, inputs.database_verification)
         matches = inputs.database_pairs.load(named, inputs.database_verification)
         keypoints = inputs.database_features.keypoints(database.names)

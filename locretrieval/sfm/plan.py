@@ -22,6 +22,7 @@ import dataclasses
 import logging
 import math
 import os
+import time
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,9 +33,10 @@ from locretrieval.cache import temporary_folder
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
 from locretrieval.sfm.features import IMAGES_PER_SHARD
-from locretrieval.sfm.inputs import QueryTask, SfmInputs, SfmSettings
-from locretrieval.sfm.matching import PAIRS_PER_SHARD, pair_key
+from locretrieval.sfm.inputs import QueryTask, SfmInputs, SfmSettings, query_tasks
+from locretrieval.sfm.matching import PAIRS_PER_SHARD, PairMatcher, pair_key
 from locretrieval.sfm.pipeline import SfmStages, run_sfm, stage_names
+from locretrieval.sfm.pose_cache import PoseCache
 from locretrieval.sfm.workers import runs_here, start_workers, task_size, workers_started
 from locretrieval.threads import single_threaded
 
@@ -48,6 +50,8 @@ SAMPLE_QUERIES = 2
 #: map's fixed costs (a tenth of a second) over a sample of 10 images made the unit per map pair 3.5x
 #: that of 1,487 pairs, over 50 images 0.8x (training validation, 300 keypoints, 2-core machine).
 SAMPLE_DATABASE = 50
+#: Queries whose registrations in the whole map every query shares are timed, when its inputs are cached.
+MAP_SAMPLE_QUERIES = 6
 
 
 @dataclass(frozen=True)
@@ -100,7 +104,9 @@ class UnitCosts:
     map and matches included).
     ``keypoints``: mean per image of the sample, ``sample``: what it was, ``load``: the
     machine's one-minute load average when measured, ``worker_start``: seconds the worker pool
-    took to start for the run (0: none needed or already running)."""
+    took to start for the run (0: none needed or already running); ``registrations_on_map``: the
+    paradigms whose registration unit was timed on their whole map with the run's rankings
+    (`registration_unit_on_map`), by name, with what it was measured on."""
 
     features: float
     pairs: float
@@ -111,6 +117,7 @@ class UnitCosts:
     sample: str
     load: float
     worker_start: float = 0.0
+    registrations_on_map: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass
@@ -216,6 +223,7 @@ class SfmPlan:
             units = ", ".join(
                 f"{name} {c.map_pairs[name] * 1e3:.2f} ms/map pair and "
                 f"{c.registrations[name] * 1e3:.2f} ms/registered image"
+                + (f" (timed on {c.registrations_on_map[name]})" if name in c.registrations_on_map else "")
                 for name in c.map_pairs
             )
             lines.append(
@@ -350,12 +358,15 @@ def measure_unit_costs(
     settings: SfmSettings,
     paradigms: Mapping[str, SfmStages],
     cache_dir: Path,
+    rankings: Sequence[Ranking] | None = None,
 ) -> UnitCosts:
     """Unit costs of the SfM stages, measured by `run_sfm` itself on `forecast_sample` (a
     neighbourhood of `SAMPLE_DATABASE` database images and `SAMPLE_QUERIES` queries ranking it) with the run's
     paradigms, in one process with one thread, into a temporary folder of ``cache_dir`` (deleted
     afterwards): the sample's seconds per stage (the pipeline's own stage clock, one run) over
-    its units (its `SfmPlan`)."""
+    its units (its `SfmPlan`). With the run's ``rankings``, a paradigm's registrations in a map
+    every query shares are timed on that map instead, where it is cheap to build
+    (`registration_unit_on_map`)."""
     sample, ranking = forecast_sample(scene, sample_depth(scene))
     one_process = dataclasses.replace(settings, workers=1)
     load = os.getloadavg()[0]
@@ -372,6 +383,13 @@ def measure_unit_costs(
         triangulate, register = stage_names(name)
         map_pairs[name] = _per(seconds[triangulate], paradigm_work.new_map_pairs)
         registrations[name] = _per(seconds[register], paradigm_work.registered_images.new)
+    on_map = {}
+    for name, stages in paradigms.items():
+        measured = (
+            None if rankings is None else registration_unit_on_map(scene, one_process, stages, cache_dir, rankings)
+        )
+        if measured is not None:
+            registrations[name], on_map[name] = measured
     return UnitCosts(
         _per(seconds["features"], plan.features.new),
         _per(seconds["match + verify"], plan.new_pairs()),
@@ -381,7 +399,52 @@ def measure_unit_costs(
         settings.matching.matcher().device,
         f"{len(sample.database)} database images and {len(sample.queries)} queries",
         load,
+        registrations_on_map=on_map,
     )
+
+
+def registration_unit_on_map(
+    scene: Scene, settings: SfmSettings, stages: SfmStages, cache_dir: Path, rankings: Sequence[Ranking]
+) -> tuple[float, str] | None:
+    """Seconds per registered image of ``stages``' registrations in its map every query shares
+    (`SfmStages.has_shared_map`), timed on that map and the run's ``rankings`` for
+    `MAP_SAMPLE_QUERIES` queries spread over the scene, in one process with one thread, with what
+    it was measured on; None when the paradigm has no such map, or when building it would need
+    features or matches that are not cached (a cold run: the sample's unit stands).
+
+    PnP's LO-RANSAC runs until its inliers are likely found, so its time per correspondence grows
+    as the inlier ratio falls: a neighbourhood's map ranked by distance gave half the run's time per
+    image (docs/performance.md). The map is built from the cached database features and matches
+    into a temporary folder, and the chosen queries are matched there: nothing is written to the
+    run's cache, whose work this measurement does not do."""
+    if not stages.has_shared_map or not len(scene.queries):
+        return None
+    inputs = SfmInputs.prepare(scene, settings, cache_dir, extract=False)
+    queries = np.unique(np.linspace(0, len(scene.queries) - 1, MAP_SAMPLE_QUERIES).round().astype(int)).tolist()
+    if inputs.database_features.store.missing(scene.database.names) or inputs.query_features.store.missing(
+        [scene.queries.names[q] for q in queries]
+    ):
+        return None
+    ks = [ranking.clamp_ks(stages.k) for ranking in rankings]
+    _, images = registration_work(
+        query_tasks(rankings, ks, PoseCache(None, scene.queries.names, scene.database.names), queries)
+    )
+    if not images.new:
+        return None
+    with temporary_folder(cache_dir, "forecast") as folder, single_threaded(), _quiet():
+        matcher = PairMatcher(
+            scene.queries, inputs.query_features, scene.database, inputs.database_features, settings.matching, folder
+        )
+        measuring = dataclasses.replace(inputs, query_pairs=matcher)
+        # the map's pairs as if it were not built (it is built in `folder`): all cached, or no measurement
+        if database_pair_work(inputs, stages.shared_map_pairs(dataclasses.replace(measuring, cache_dir=folder))).new:
+            return None
+        matcher.ensure(sorted(inputs.ranked_pairs(rankings, ks, queries)), 1, inputs.query_verification)
+        stages.triangulate_shared_map(measuring, folder)
+        started = time.perf_counter()
+        stages.register(measuring, rankings, ks, folder, queries)
+        seconds = time.perf_counter() - started
+    return seconds / images.new, f"{len(queries)} queries and the run's rankings ({len(rankings)}) on the whole map"
 
 
 def _per(seconds: float, units: float) -> float:

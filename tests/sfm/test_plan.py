@@ -12,7 +12,15 @@ import pytest
 from locretrieval.benchmark import BenchmarkSettings, sfm_plan
 from locretrieval.retrieval import Ranking
 from locretrieval.sfm.pipeline import run_sfm
-from locretrieval.sfm.plan import ParadigmWork, SfmPlan, UnitCosts, Work, forecast_sample
+from locretrieval.sfm.plan import (
+    MAP_SAMPLE_QUERIES,
+    ParadigmWork,
+    SfmPlan,
+    UnitCosts,
+    Work,
+    forecast_sample,
+    measure_unit_costs,
+)
 from locretrieval.sfm.workers import MIN_TASKS_PER_WORKER
 
 SCENE = {"width": 160, "height": 120, "num_database": 24, "num_queries": 6, "texture_size": 64, "length": 20.0,
@@ -153,3 +161,53 @@ def test_evaluate_writes_forecast_and_measured_seconds_per_stage_to_its_summary(
         assert times["forecast_s"] is not None and times["forecast_s"] >= 0
     total = stages["total"]
     assert total["ratio"] == pytest.approx(total["measured_s"] / total["forecast_s"])
+
+
+def file_states(folder) -> dict:
+    return {str(path): (path.stat().st_size, path.stat().st_mtime_ns) for path in folder.rglob("*")}
+
+
+def test_with_the_maps_inputs_cached_the_global_registrations_are_timed_on_the_whole_map(tmp_path, monkeypatch):
+    """The registration unit of a map every query shares depends on the rankings and on the map
+    (LO-RANSAC's time per correspondence grows as the inlier ratio falls): with the run's rankings
+    and the map's features and matches cached, it is timed on that map, without writing to the cache."""
+    scene = dataclasses.replace(helpers.rendered_scene(tmp_path / "scene", SCENE), frustum_far=25.0)
+    config = helpers.evaluate_config("paradigms.local_sfm.k=[3,5]", "paradigms.global_sfm.k=[1,3]", "device=cpu")
+    settings = BenchmarkSettings.from_config(config)
+    paradigms, cache = settings.paradigms.sfm_stages(), tmp_path / "cache"
+    order = np.argsort(
+        np.linalg.norm(scene.queries.centers[:, None] - scene.database.centers[None], axis=2), axis=1, kind="stable"
+    )
+    nearest = Ranking("nearest", order[:, :8], -np.arange(8.0)[None].repeat(len(order), 0), "groundtruth")
+    cold = measure_unit_costs(scene, settings.sfm, paradigms, cache, [nearest])
+    assert cold.registrations_on_map == {}  # nothing cached: the sample's unit stands
+    run_sfm(scene, [nearest], paradigms, settings.sfm, cache)  # features, map pairs (and map) cached now
+
+    shuffled = Ranking("far first", order[:, ::-1][:, :8].copy(), -np.arange(8.0)[None].repeat(6, 0), "descriptor")
+    registered = []
+    global_stages = type(paradigms["global_sfm"])
+    original = global_stages.register
+    monkeypatch.setattr(
+        global_stages,
+        "register",
+        lambda self, inputs, rankings, ks, folder, queries: (
+            registered.append((folder, queries and list(queries), ks))
+            or original(self, inputs, rankings, ks, folder, queries)
+        ),
+    )
+    before = file_states(cache)
+    costs = measure_unit_costs(scene, settings.sfm, paradigms, cache, [nearest, shuffled])
+    assert file_states(cache) == before  # the cache is read, never written
+    assert set(costs.registrations_on_map) == {"global_sfm"}  # local maps are per query: the sample's unit
+    assert costs.registrations_on_map["global_sfm"] == "6 queries and the run's rankings (2) on the whole map"
+    assert costs.registrations["global_sfm"] > 0
+    sample_calls = [call for call in registered if call[1] != list(range(MAP_SAMPLE_QUERIES))]
+    ((folder, queries, ks),) = [call for call in registered if call not in sample_calls]
+    assert queries == list(range(len(scene.queries))) and ks == [[1, 3], [1, 3]]  # spread: all 6 of them
+    assert not folder.is_relative_to(cache) or folder.name.startswith(".forecast")  # a scratch folder
+    assert (
+        "timed on 6 queries and the run's rankings (2) on the whole map"
+        in SfmPlan(Work(0, 0), [], True, 2, costs).describe()
+    )
+    without_rankings = measure_unit_costs(scene, settings.sfm, paradigms, cache)  # dry_run: no rankings yet
+    assert without_rankings.registrations_on_map == {}
