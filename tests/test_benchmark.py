@@ -201,6 +201,7 @@ LAYERS = [
         "errors",
         "estimates",
         "shard",
+        "moved",
     },
     {"models"},
     {"retrieval"},
