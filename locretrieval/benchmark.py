@@ -174,18 +174,23 @@ def sfm_plan(
     is no cache): exact for ``rankings``, or upper bounds for ``num_rankings`` rankings not
     computed yet (``None``). When there is new work, unit costs are measured on a sample of the
     scene (`measure_unit_costs`, with the ``rankings`` when given, once per scene and settings in a
-    process) for the forecast, and
+    process; timing registrations on a whole map does some of the run's own work, which the plan
+    then leaves out) for the forecast, and
     the worker pool is started when a stage will need it."""
     paradigms = settings.paradigms.sfm_stages()
     if not paradigms or cache_dir is None:
         return None
     cache_dir = Path(cache_dir)
-    inputs = SfmInputs.prepare(scene, settings.sfm, cache_dir, extract=False)
-    work = [
-        dataclasses.replace(stages.plan(scene, rankings, settings.sfm, cache_dir, num_rankings), paradigm=name)
-        for name, stages in paradigms.items()
-    ]
-    plan = SfmPlan(feature_work(inputs), work, rankings is not None, settings.sfm.processes)
+
+    def counted() -> SfmPlan:
+        inputs = SfmInputs.prepare(scene, settings.sfm, cache_dir, extract=False)
+        work = [
+            dataclasses.replace(stages.plan(scene, rankings, settings.sfm, cache_dir, num_rankings), paradigm=name)
+            for name, stages in paradigms.items()
+        ]
+        return SfmPlan(feature_work(inputs), work, rankings is not None, settings.sfm.processes)
+
+    plan = counted()
     if plan.has_new_work:
         key = config_key(
             scene.database.fingerprint(),
@@ -195,6 +200,8 @@ def sfm_plan(
         )
         if key not in _unit_costs:
             _unit_costs[key] = measure_unit_costs(scene, settings.sfm, paradigms, cache_dir, rankings)
+            if _unit_costs[key].registrations_on_map:
+                plan = counted()  # without what that measurement did of the run's own work
         plan.costs = _unit_costs[key]
         prepare_workers(plan)
     return plan

@@ -77,7 +77,6 @@ class GlobalSfm(SfmParadigm):
 
     colmap_model: str | None
     label: ClassVar[str] = "global_sfm"
-    has_shared_map: ClassVar[bool] = True
 
     def method_names(self) -> list[str]:
         return [SFM_METHOD]

@@ -182,7 +182,6 @@ class LocalSfm(SfmParadigm):
 
     map_matches: Any = part(MapMatches, "paradigms/local_sfm/map_matches")
     label: ClassVar[str] = "local_sfm"
-    has_shared_map: ClassVar[bool] = False
 
     def method_names(self) -> list[str]:
         return [SFM_METHOD]

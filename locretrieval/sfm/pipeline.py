@@ -7,7 +7,7 @@ The stages hand each other their results through the caches:
    pairs of the maps every query shares (the global map), then, per chunk of queries, each
    query with its top ``max(k)`` images of every ranking (verified per
    ``sfm.query_verification``) and the database pairs of its local maps (pose-verified);
-3. **triangulate** (``<paradigm>: triangulate``): a map every query shares (the global map,
+3. **triangulate** (``<paradigm>: triangulate``): the maps every query shares (the global map,
    `SfmStages.triangulate_shared_map`) once, in this process, before any query; the maps of each
    query (local maps, `SfmStages.triangulate_query_maps`) per chunk, in worker processes; both
    cached;
@@ -39,7 +39,7 @@ import time
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING
 
 from locretrieval.estimates import PoseEstimates
 from locretrieval.retrieval import Ranking
@@ -66,9 +66,9 @@ class SfmStages(abc.ABC):
       matched and pose-verified;
     - `query_map_pairs`: those of maps built per query;
     - the stage ``<paradigm>: triangulate``: `triangulate_shared_map` triangulates (and caches)
-      the map every query uses, in this process, once its pairs are matched, when the paradigm
-      has one (`has_shared_map`); else `triangulate_query_maps` triangulates (and caches) the
-      maps of each query of a chunk, in worker processes;
+      the maps every query uses, in this process, once their pairs are matched and before any
+      query; `triangulate_query_maps` those of each query of a chunk, in worker processes (each
+      a no-op for a paradigm without such maps);
     - the stage ``<paradigm>: register``: `register` registers each query of a chunk in its
       maps (in worker processes), outcomes cached, and gathers them at the end;
     - `plan`: its work, counted without doing any (`locretrieval.sfm.plan`).
@@ -76,8 +76,6 @@ class SfmStages(abc.ABC):
 
     #: The numbers of top-ranked images the paradigm localizes from (its settings').
     k: list[int]
-    #: Whether it has a map every query shares (`triangulate_shared_map`), else maps of each query.
-    has_shared_map: ClassVar[bool]
 
     def shared_map_pairs(self, inputs: SfmInputs) -> list[Pair]:
         """The database pairs of the maps every query uses (default: none)."""
@@ -90,8 +88,7 @@ class SfmStages(abc.ABC):
         return []
 
     def triangulate_shared_map(self, inputs: SfmInputs, cache_dir: Path) -> None:
-        """Triangulate (and cache) the map every query uses (`has_shared_map` only)."""
-        raise NotImplementedError(f"{type(self).__name__} has no shared map")
+        """Triangulate (and cache) the maps every query uses (default: there are none)."""
 
     def triangulate_query_maps(
         self,
@@ -101,9 +98,8 @@ class SfmStages(abc.ABC):
         cache_dir: Path,
         queries: Sequence[int],
     ) -> None:
-        """Triangulate (and cache) the maps of ``queries`` whose registrations are not cached
-        (without `has_shared_map` only)."""
-        raise NotImplementedError(f"{type(self).__name__} has no maps of its own per query")
+        """Triangulate (and cache) the maps of each of ``queries`` whose registrations are not
+        cached (default: there are none)."""
 
     @abc.abstractmethod
     def register(
@@ -186,16 +182,14 @@ def run_sfm(
     with clock("match + verify"):
         match_stage(inputs, [], shared_pairs)
     for name, stages in paradigms.items():
-        if stages.has_shared_map:
-            with clock(stage_names(name)[0]):
-                stages.triangulate_shared_map(inputs, cache_dir)
+        with clock(stage_names(name)[0]):
+            stages.triangulate_shared_map(inputs, cache_dir)
 
     def localize(chunk: Sequence[int]) -> None:
         for name, stages in paradigms.items():
             triangulate, register = stage_names(name)
-            if not stages.has_shared_map:
-                with clock(triangulate):
-                    stages.triangulate_query_maps(inputs, rankings, ks[name], cache_dir, chunk)
+            with clock(triangulate):
+                stages.triangulate_query_maps(inputs, rankings, ks[name], cache_dir, chunk)
             with clock(register):
                 stages.register(inputs, rankings, ks[name], cache_dir, chunk)
 

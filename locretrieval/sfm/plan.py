@@ -33,10 +33,9 @@ from locretrieval.cache import temporary_folder
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
 from locretrieval.sfm.features import IMAGES_PER_SHARD
-from locretrieval.sfm.inputs import QueryTask, SfmInputs, SfmSettings, query_tasks
-from locretrieval.sfm.matching import PAIRS_PER_SHARD, PairMatcher, pair_key
+from locretrieval.sfm.inputs import QueryTask, SfmInputs, SfmSettings
+from locretrieval.sfm.matching import PAIRS_PER_SHARD, pair_key
 from locretrieval.sfm.pipeline import SfmStages, run_sfm, stage_names
-from locretrieval.sfm.pose_cache import PoseCache
 from locretrieval.sfm.workers import runs_here, start_workers, task_size, workers_started
 from locretrieval.threads import single_threaded
 
@@ -366,7 +365,7 @@ def measure_unit_costs(
     afterwards): the sample's seconds per stage (the pipeline's own stage clock, one run) over
     its units (its `SfmPlan`). With the run's ``rankings``, a paradigm's registrations in a map
     every query shares are timed on that map instead, where it is cheap to build
-    (`registration_unit_on_map`)."""
+    (`registration_unit_on_map`: it does some of the run's own work, in ``cache_dir``)."""
     sample, ranking = forecast_sample(scene, sample_depth(scene))
     one_process = dataclasses.replace(settings, workers=1)
     load = os.getloadavg()[0]
@@ -406,18 +405,19 @@ def measure_unit_costs(
 def registration_unit_on_map(
     scene: Scene, settings: SfmSettings, stages: SfmStages, cache_dir: Path, rankings: Sequence[Ranking]
 ) -> tuple[float, str] | None:
-    """Seconds per registered image of ``stages``' registrations in its map every query shares
-    (`SfmStages.has_shared_map`), timed on that map and the run's ``rankings`` for
-    `MAP_SAMPLE_QUERIES` queries spread over the scene, in one process with one thread, with what
-    it was measured on; None when the paradigm has no such map, or when building it would need
+    """Seconds per registered image of ``stages``' registrations in the map every query shares
+    (its `ParadigmWork` without ``parallel_maps``), timed on that map with the run's ``rankings``
+    for `MAP_SAMPLE_QUERIES` queries spread over the scene, in one process with one thread, with
+    what it was measured on; None when the paradigm has no such map, or when the map would need
     features or matches that are not cached (a cold run: the sample's unit stands).
 
     PnP's LO-RANSAC runs until its inliers are likely found, so its time per correspondence grows
     as the inlier ratio falls: a neighbourhood's map ranked by distance gave half the run's time per
-    image (docs/performance.md). The map is built from the cached database features and matches
-    into a temporary folder, and the chosen queries are matched there: nothing is written to the
-    run's cache, whose work this measurement does not do."""
-    if not stages.has_shared_map or not len(scene.queries):
+    image (docs/performance.md). What it does is the run's own work, in the run's cache: the map
+    (from cached features and matches), those queries' matches and registrations, none of which the
+    run then does again (count the plan after it)."""
+    work = stages.plan(scene, rankings, settings, cache_dir, 0)
+    if work.parallel_maps or work.database_pairs.new or not work.registered_images.new:
         return None
     inputs = SfmInputs.prepare(scene, settings, cache_dir, extract=False)
     queries = np.unique(np.linspace(0, len(scene.queries) - 1, MAP_SAMPLE_QUERIES).round().astype(int)).tolist()
@@ -426,25 +426,16 @@ def registration_unit_on_map(
     ):
         return None
     ks = [ranking.clamp_ks(stages.k) for ranking in rankings]
-    _, images = registration_work(
-        query_tasks(rankings, ks, PoseCache(None, scene.queries.names, scene.database.names), queries)
-    )
-    if not images.new:
-        return None
-    with temporary_folder(cache_dir, "forecast") as folder, single_threaded(), _quiet():
-        matcher = PairMatcher(
-            scene.queries, inputs.query_features, scene.database, inputs.database_features, settings.matching, folder
-        )
-        measuring = dataclasses.replace(inputs, query_pairs=matcher)
-        # the map's pairs as if it were not built (it is built in `folder`): all cached, or no measurement
-        if database_pair_work(inputs, stages.shared_map_pairs(dataclasses.replace(measuring, cache_dir=folder))).new:
-            return None
-        matcher.ensure(sorted(inputs.ranked_pairs(rankings, ks, queries)), 1, inputs.query_verification)
-        stages.triangulate_shared_map(measuring, folder)
+    with single_threaded(), _quiet():
+        inputs.query_pairs.ensure(sorted(inputs.ranked_pairs(rankings, ks, queries)), 1, inputs.query_verification)
+        stages.triangulate_shared_map(inputs, cache_dir)
         started = time.perf_counter()
-        stages.register(measuring, rankings, ks, folder, queries)
+        stages.register(inputs, rankings, ks, cache_dir, queries)
         seconds = time.perf_counter() - started
-    return seconds / images.new, f"{len(queries)} queries and the run's rankings ({len(rankings)}) on the whole map"
+    registered = work.registered_images.new - stages.plan(scene, rankings, settings, cache_dir, 0).registered_images.new
+    if not registered:
+        return None
+    return seconds / registered, f"{len(queries)} queries and the run's rankings ({len(rankings)}) on the whole map"
 
 
 def _per(seconds: float, units: float) -> float:
