@@ -186,7 +186,8 @@ def test_an_optuna_sweep_killed_after_its_first_trial_resumes_without_running_it
     assert "Joblib.Parallel(n_jobs=2" in log and "is launching 2 jobs" in log
     started = trials(folder / "optuna.db")
     finished = {path: path.stat().st_mtime_ns for path in folder.glob("*/summary.json")}
-    assert len(started) == 2 and len(finished) >= 1  # the first batch: a trial finished, maybe both
+    # the first batch: a trial finished, maybe both, and then the next batch's trial may have begun
+    assert len(started) >= 2 and len(finished) >= 1
     jobs = {int(path.name.split("_")[0]): path for path in folder.iterdir() if path.is_dir()}
     (first_start, first_end), (second_start, second_end) = logged_interval(jobs[0]), logged_interval(jobs[1])
     assert first_start < second_end and second_start < first_end  # the two trials of the batch ran at once
