@@ -64,7 +64,7 @@ from locretrieval.paradigms.base import Paradigms
 from locretrieval.retrieval import random_ranking
 from locretrieval.retrieval.index import search
 from locretrieval.scene import Camera, ImageSet, Scene
-from locretrieval.sfm.inputs import SfmSettings
+from locretrieval.sfm.inputs import SfmInputs, SfmSettings
 from locretrieval.sfm.pipeline import SfmStages, run_sfm
 from locretrieval.sfm.plan import (
     SfmPlan,
@@ -356,8 +356,6 @@ def sfm_paradigms() -> dict[str, SfmStages]:
 
 def sfm_plan(scene: Scene, rankings, sfm: SfmSettings, cache: Path) -> SfmPlan:
     """The exact SfM work of both paradigms for ``rankings`` (no cost yet)."""
-    from locretrieval.sfm.inputs import SfmInputs
-
     work = [stages.plan(scene, rankings, sfm, cache, 0) for stages in sfm_paradigms().values()]
     return SfmPlan(feature_work(SfmInputs.prepare(scene, sfm, cache, extract=False)), work, True, sfm.processes)
 
@@ -429,7 +427,7 @@ def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Ge
             world.write(images, range(len(images)), keypoints, scene.frustum_far, sfm.features.name)
         slice_plan = sfm_plan(slice_scene, slice_rankings, sfm, folder / "slice_cache")
         slice_plan.costs = measure_unit_costs(slice_scene, sfm, sfm_paradigms(), folder / "slice_cache")
-        prepare_workers(slice_plan)
+        prepare_workers(slice_plan, SfmInputs.prepare(slice_scene, sfm, folder / "slice_cache", extract=False))
         forecast = sum(slice_plan.forecast().values())
         print(
             f"slice: {len(slice_scene.queries)} queries ({100 * fraction:g} %) "

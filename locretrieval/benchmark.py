@@ -203,7 +203,7 @@ def sfm_plan(
             if _unit_costs[key].registrations_on_map:
                 plan = counted()  # without what that measurement did of the run's own work
         plan.costs = _unit_costs[key]
-        prepare_workers(plan)
+        prepare_workers(plan, SfmInputs.prepare(scene, settings.sfm, cache_dir, extract=False))
     return plan
 
 

@@ -11,7 +11,10 @@ running the pipeline's own stages (`run_sfm`, into a temporary cache) on a sampl
 (`measure_unit_costs`: a neighbourhood of database images and a few queries ranking it), in one
 process with one thread as a worker runs them, so that reading and writing the stores, the work
 per map and per query are in the units; it then spreads each stage over the processes that
-`run_sfm` will give it (`runs_here`, the worker pool started now when a stage will need it).
+`run_sfm` will give it (`runs_here`, the worker pool started now when a stage will need it), and
+adds each stage's cost per call (finding its new work in the stores, handing it out, writing
+it), which the sample's runs with more and more queries tell apart from the cost per unit, and
+where the pool runs a stage, the cost of a call of the pool (timed on the run's inputs).
 It assumes the machine stays as loaded as it was when measured (the log gives that load).
 """
 
@@ -36,15 +39,21 @@ from locretrieval.sfm.features import IMAGES_PER_SHARD
 from locretrieval.sfm.inputs import QueryTask, SfmInputs, SfmSettings
 from locretrieval.sfm.matching import PAIRS_PER_SHARD, pair_key
 from locretrieval.sfm.pipeline import SfmStages, run_sfm, stage_names
-from locretrieval.sfm.workers import runs_here, start_workers, task_size, workers_started
+from locretrieval.sfm.workers import parallel_map, runs_here, start_workers, task_size, workers_started
 from locretrieval.threads import single_threaded
 
 log = logging.getLogger(__name__)
 
 #: Seconds of a stage in one process above which the worker pool is started before the run.
 POOL_WORTH_SECONDS = 10.0
-#: Queries of the sample that unit costs are measured on.
-SAMPLE_QUERIES = 2
+#: Queries of the sample's runs, each run adding its new ones (`SAMPLE_RUNS`).
+SAMPLE_QUERIES = 8
+#: The sample's queries in each of its runs: the first with the database's work, then one more query
+#: (its stages little more than their cost per call), then six more (new work: theirs alone), so that
+#: each stage's units differ enough between the runs to tell its cost per call from its cost per unit
+#: (`_per_call_and_unit`). With three more, a run's stage of tens of milliseconds varied by 10 ms
+#: between identical runs, as much as three queries' local maps added: units from 0.04 to 0.14 ms.
+SAMPLE_RUNS = (1, 2, SAMPLE_QUERIES)
 #: Database images of the sample (or the whole database when smaller), whatever the paradigms' k: a
 #: map's fixed costs (a tenth of a second) over a sample of 10 images made the unit per map pair 3.5x
 #: that of 1,487 pairs, over 50 images 0.8x (training validation, 300 keypoints, 2-core machine).
@@ -105,7 +114,13 @@ class UnitCosts:
     machine's one-minute load average when measured, ``worker_start``: seconds the worker pool
     took to start for the run (0: none needed or already running); ``registrations_on_map``: the
     paradigms whose registration unit was timed on their whole map with the run's rankings
-    (`registration_unit_on_map`), by name, with what it was measured on."""
+    (`registration_unit_on_map`), by name, with what it was measured on; ``per_call``: the seconds
+    a stage with new work takes beyond its units, by stage name (`stage_names`): finding its new
+    work in the stores, handing it out and writing it, which a per-unit cost measured on a small
+    sample would spread over few units (a run with more of them then took 0.3-0.7x its forecast,
+    one with fewer up to 3.4x); ``pool_call``: the seconds a call of the started worker pool
+    takes beyond its tasks' work (`pool_call_seconds`, on the run's inputs; 0: no pool), which the
+    sample, run in one process, never pays."""
 
     features: float
     pairs: float
@@ -117,6 +132,8 @@ class UnitCosts:
     load: float
     worker_start: float = 0.0
     registrations_on_map: dict[str, str] = field(default_factory=dict)
+    per_call: dict[str, float] = field(default_factory=dict)
+    pool_call: float = 0.0
 
 
 @dataclass
@@ -170,16 +187,24 @@ class SfmPlan:
             tasks[register] = p.queries.new
         return tasks
 
-    def one_process_seconds(self) -> dict[str, float]:
-        """Seconds of each stage of `_tasks` in one process (`costs` required)."""
-        costs = self.costs
-        assert costs is not None, "the stages' seconds need measured unit costs"
-        seconds = {"features": self.features.new * costs.features, "match + verify": self.new_pairs() * costs.pairs}
+    def units(self) -> dict[str, float]:
+        """The new units of each stage of `_tasks` (what `UnitCosts` are per): images, pairs, then
+        per paradigm map pairs to triangulate and images registered against."""
+        units = {"features": float(self.features.new), "match + verify": float(self.new_pairs())}
         for p in self.paradigms:
             triangulate, register = stage_names(p.paradigm)
-            seconds[triangulate] = p.new_map_pairs * costs.map_pairs[p.paradigm]
-            seconds[register] = p.registered_images.new * costs.registrations[p.paradigm]
-        return seconds
+            units[triangulate], units[register] = p.new_map_pairs, float(p.registered_images.new)
+        return units
+
+    def one_process_seconds(self) -> dict[str, float]:
+        """Seconds of the units of each stage of `_tasks` in one process (`costs` required)."""
+        costs = self.costs
+        assert costs is not None, "the stages' seconds need measured unit costs"
+        per_unit = {"features": costs.features, "match + verify": costs.pairs}
+        for p in self.paradigms:
+            triangulate, register = stage_names(p.paradigm)
+            per_unit[triangulate], per_unit[register] = costs.map_pairs[p.paradigm], costs.registrations[p.paradigm]
+        return {stage: units * per_unit[stage] for stage, units in self.units().items()}
 
     def forecast(self) -> dict[str, float]:
         """Seconds per stage for the new work (`costs` required), by the names `run_sfm` times
@@ -187,7 +212,9 @@ class SfmPlan:
         worker processes `run_sfm` gives it (`runs_here`: a small workload stays in this process
         until the pool is started, and the pool then serves every later stage); matching on a
         CPU over every core either way (workers, or this process's threads), on a GPU in one
-        process; a map every query shares in this process. Ordered as `run_sfm` runs the stages."""
+        process; a map every query shares in this process; plus the stage's cost per call
+        (`UnitCosts.per_call`) where it has new work, and a call of the pool's (``pool_call``)
+        where the pool runs it. Ordered as `run_sfm` runs the stages."""
         costs = self.costs
         assert costs is not None, "forecast needs measured unit costs"
         started = workers_started(self.processes) or costs.worker_start > 0
@@ -203,10 +230,12 @@ class SfmPlan:
         in_this_process = {stage_names(p.paradigm)[0] for p in self.paradigms if not p.parallel_maps}
         if costs.device != "cpu":  # one process matches on the device (the workers verify)
             in_this_process.add("match + verify")
-        return {
-            stage: single[stage] / (1 if stage in in_this_process else spread(tasks))
-            for stage, tasks in self._tasks().items()
-        }
+        seconds = {}
+        for stage, tasks in self._tasks().items():
+            processes = 1 if stage in in_this_process else spread(tasks)
+            seconds[stage] = single[stage] / processes + (costs.per_call.get(stage, 0.0) if tasks else 0.0)
+            seconds[stage] += costs.pool_call if processes > 1 else 0.0
+        return seconds
 
     def describe(self) -> str:
         """The plan as log lines."""
@@ -225,12 +254,16 @@ class SfmPlan:
                 + (f" (timed on {c.registrations_on_map[name]})" if name in c.registrations_on_map else "")
                 for name in c.map_pairs
             )
+            per_call = ", ".join(f"{stage} {seconds * 1e3:.0f} ms" for stage, seconds in c.per_call.items())
             lines.append(
                 f"  unit costs measured just now by running the pipeline on {c.sample} of the scene "
                 f"({c.keypoints:.0f} keypoints per image, matching on {c.device}), in one process with one thread, "
                 f"while the machine's load average was {c.load:.1f}: features {c.features:.3f} s/image, "
-                f"match + verify {c.pairs * 1e3:.1f} ms/pair, {units}; spread over {self.processes} worker "
-                f"process(es){f' (their pool started in {c.worker_start:.1f} s)' if c.worker_start else ''}; "
+                f"match + verify {c.pairs * 1e3:.1f} ms/pair, {units}"
+                + (f"; per stage call with new work: {per_call}" if per_call else "")
+                + f"; spread over {self.processes} worker "
+                f"process(es){f' (their pool started in {c.worker_start:.1f} s)' if c.worker_start else ''}"
+                f"{f', {c.pool_call * 1e3:.0f} ms per call of their pool' if c.pool_call else ''}; "
                 "a machine busier than when measured takes longer"
             )
             stages = self.forecast()
@@ -243,12 +276,35 @@ class SfmPlan:
         return "\n".join(lines)
 
 
-def prepare_workers(plan: SfmPlan) -> SfmPlan:
-    """``plan`` with the worker pool started now when it is worth it (`SfmPlan.pool_needed`), and
-    the seconds that took in its costs."""
-    if plan.costs is not None and not workers_started(plan.processes) and plan.pool_needed():
+def prepare_workers(plan: SfmPlan, inputs: SfmInputs) -> SfmPlan:
+    """``plan`` with the worker pool started now when it is worth it (`SfmPlan.pool_needed`), the
+    seconds that took in its costs, and those of a call of the pool on the run's ``inputs``
+    (`pool_call_seconds`) when the run will use it."""
+    if plan.costs is None:
+        return plan
+    if not workers_started(plan.processes) and plan.pool_needed():
         plan.costs = dataclasses.replace(plan.costs, worker_start=start_workers(plan.processes))
+    if workers_started(plan.processes):
+        plan.costs = dataclasses.replace(plan.costs, pool_call=pool_call_seconds(inputs, plan.processes))
     return plan
+
+
+def pool_call_seconds(inputs: SfmInputs, workers: int) -> float:
+    """Seconds a call of the started pool of ``workers`` takes beyond its tasks' work, timed with
+    the run's ``inputs`` as every stage hands them out: pickled once, loaded by each worker (the
+    stores' indexes with them, their in-memory shards empty: `ShardedStore.__getstate__`), the
+    answers gathered. (Reading a record of each store too counted, at 40-90 ms, what the tasks'
+    own reads are already measured with: the trained network's validations then took 0.6-0.7 of
+    their forecast.)"""
+    started = time.perf_counter()
+    for _ in parallel_map(_database_size, range(workers), workers, "forecast: a pool call", inputs):
+        pass
+    return time.perf_counter() - started
+
+
+def _database_size(inputs: SfmInputs, task: int) -> int:
+    """A task of a pool call that only loads the call's ``inputs``."""
+    return len(inputs.scene.database)
 
 
 def _task_count(items: int, cap: float, workers: int) -> int:
@@ -360,56 +416,100 @@ def measure_unit_costs(
     rankings: Sequence[Ranking] | None = None,
 ) -> UnitCosts:
     """Unit costs of the SfM stages, measured by `run_sfm` itself on `forecast_sample` (a
-    neighbourhood of `SAMPLE_DATABASE` database images and `SAMPLE_QUERIES` queries ranking it) with the run's
-    paradigms, in one process with one thread, into a temporary folder of ``cache_dir`` (deleted
-    afterwards): the sample's seconds per stage (the pipeline's own stage clock, one run) over
-    its units (its `SfmPlan`). With the run's ``rankings``, a paradigm's registrations in a map
-    every query shares are timed on that map instead, where it is cheap to build
+    neighbourhood of `SAMPLE_DATABASE` database images ranked by `SAMPLE_QUERIES` queries)
+    with the run's paradigms, in one process with one thread, into a temporary folder of
+    ``cache_dir`` (deleted afterwards): runs with the first queries (`SAMPLE_RUNS`), each adding
+    new ones, each stage's seconds (the pipeline's own stage clock) and new units (their
+    `SfmPlan`) in every run split into a cost per call and one per unit (`_per_call_and_unit`).
+    With the run's ``rankings``, a paradigm's registrations in a map every query shares are
+    timed on that map instead, where it is cheap to build
     (`registration_unit_on_map`: it does some of the run's own work, in ``cache_dir``)."""
     sample, ranking = forecast_sample(scene, sample_depth(scene))
+    parts = [
+        (
+            dataclasses.replace(sample, queries=sample.queries.subset(np.arange(queries))),
+            Ranking(ranking.name, ranking.indices[:queries], ranking.scores[:queries], ranking.kind),
+        )
+        for queries in sorted({min(queries, len(sample.queries)) for queries in SAMPLE_RUNS})
+    ]
     one_process = dataclasses.replace(settings, workers=1)
     load = os.getloadavg()[0]
     with temporary_folder(cache_dir, "forecast") as folder, single_threaded(), _quiet():
+        runs = [_timed_run(part, [part_ranking], paradigms, one_process, folder) for part, part_ranking in parts]
         inputs = SfmInputs.prepare(sample, one_process, folder, extract=False)
-        work = {name: stages.plan(sample, [ranking], one_process, folder, 0) for name, stages in paradigms.items()}
-        plan = SfmPlan(feature_work(inputs), list(work.values()), True, 1)
-        seconds: dict[str, float] = {}
-        run_sfm(sample, [ranking], paradigms, one_process, folder, seconds)
-        inputs.database_features.store.refresh()  # written since the plan read it
         keypoints = inputs.database_features.keypoints(sample.database.names)
+    per_call, per_unit = {}, {}
+    for stage in runs[0]:
+        per_call[stage], per_unit[stage] = _per_call_and_unit([run[stage] for run in runs])
     map_pairs, registrations = {}, {}
-    for name, paradigm_work in work.items():
+    for name in paradigms:
         triangulate, register = stage_names(name)
-        map_pairs[name] = _per(seconds[triangulate], paradigm_work.new_map_pairs)
-        registrations[name] = _per(seconds[register], paradigm_work.registered_images.new)
+        map_pairs[name], registrations[name] = per_unit[triangulate], per_unit[register]
     on_map = {}
     for name, stages in paradigms.items():
-        measured = (
-            None if rankings is None else registration_unit_on_map(scene, one_process, stages, cache_dir, rankings)
+        register = stage_names(name)[1]
+        measured = rankings and registration_unit_on_map(
+            scene, one_process, stages, cache_dir, rankings, per_call[register]
         )
-        if measured is not None:
+        if measured:
             registrations[name], on_map[name] = measured
     return UnitCosts(
-        _per(seconds["features"], plan.features.new),
-        _per(seconds["match + verify"], plan.new_pairs()),
+        per_unit["features"],
+        per_unit["match + verify"],
         map_pairs,
         registrations,
         float(np.mean([len(points) for points in keypoints.values()])),
         settings.matching.matcher().device,
-        f"{len(sample.database)} database images and {len(sample.queries)} queries",
+        f"{len(sample.database)} database images and {' then '.join(str(len(part.queries)) for part, _ in parts)} "
+        "of its queries",
         load,
         registrations_on_map=on_map,
+        per_call={stage: seconds for stage, seconds in per_call.items() if seconds},
     )
 
 
+def _timed_run(
+    scene: Scene, rankings: Sequence[Ranking], paradigms: Mapping[str, SfmStages], settings: SfmSettings, folder: Path
+) -> dict[str, tuple[float, float]]:
+    """Per stage of `run_sfm` on ``scene`` into ``folder``: its new units (`SfmPlan.units`, counted
+    before) and the seconds it took."""
+    inputs = SfmInputs.prepare(scene, settings, folder, extract=False)
+    work = [stages.plan(scene, rankings, settings, folder, 0) for stages in paradigms.values()]
+    work = [dataclasses.replace(w, paradigm=name) for w, name in zip(work, paradigms)]
+    units = SfmPlan(feature_work(inputs), work, True, 1).units()
+    seconds: dict[str, float] = {}
+    run_sfm(scene, rankings, paradigms, settings, folder, seconds)
+    return {stage: (count, seconds.get(stage, 0.0)) for stage, count in units.items()}
+
+
+def _per_call_and_unit(runs: Sequence[tuple[float, float]]) -> tuple[float, float]:
+    """A stage's seconds per call (with new work) and per unit from the sample's runs' (new
+    units, seconds): the least-squares line through the runs with new units, its intercept kept
+    within [0, the shortest of their seconds], then the seconds left over their units; with one
+    unit count only, no cost per call (a run without new units only looked for work)."""
+    with_units = np.array([run for run in runs if run[0]], dtype=float).reshape(-1, 2)
+    if not len(with_units):
+        return 0.0, 0.0
+    units, seconds = with_units.T
+    intercept = np.polyfit(units, seconds, 1)[1] if np.ptp(units) else 0.0
+    per_call = float(np.clip(intercept, 0.0, seconds.min()))
+    return per_call, float((seconds - per_call).sum() / units.sum())
+
+
 def registration_unit_on_map(
-    scene: Scene, settings: SfmSettings, stages: SfmStages, cache_dir: Path, rankings: Sequence[Ranking]
+    scene: Scene,
+    settings: SfmSettings,
+    stages: SfmStages,
+    cache_dir: Path,
+    rankings: Sequence[Ranking],
+    per_call: float = 0.0,
 ) -> tuple[float, str] | None:
     """Seconds per registered image of ``stages``' registrations in the map every query shares
     (its `ParadigmWork` without ``parallel_maps``), timed on that map with the run's ``rankings``
-    for `MAP_SAMPLE_QUERIES` queries spread over the scene, in one process with one thread, with
-    what it was measured on; None when the paradigm has no such map, or when the map would need
-    features or matches that are not cached (a cold run: the sample's unit stands).
+    for `MAP_SAMPLE_QUERIES` queries spread over the scene, in one process with one thread, less
+    the stage's seconds ``per_call``, with what it was measured on; None when the paradigm has no
+    such map, or when the map would need features or matches that are not cached (a cold run:
+    the sample's unit stands).
 
     PnP's LO-RANSAC runs until its inliers are likely found, so its time per correspondence grows
     as the inlier ratio falls: a neighbourhood's map ranked by distance gave half the run's time per
@@ -435,11 +535,9 @@ def registration_unit_on_map(
     registered = work.registered_images.new - stages.plan(scene, rankings, settings, cache_dir, 0).registered_images.new
     if not registered:
         return None
-    return seconds / registered, f"{len(queries)} queries and the run's rankings ({len(rankings)}) on the whole map"
-
-
-def _per(seconds: float, units: float) -> float:
-    return seconds / units if units else 0.0
+    return max(
+        seconds - per_call, 0.0
+    ) / registered, f"{len(queries)} queries and the run's rankings ({len(rankings)}) on the whole map"
 
 
 @contextlib.contextmanager

@@ -4,6 +4,7 @@ measured seconds per stage."""
 
 import dataclasses
 import json
+import time
 
 import helpers
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 
 from locretrieval.benchmark import BenchmarkSettings, sfm_plan
 from locretrieval.retrieval import Ranking
+from locretrieval.sfm.inputs import SfmInputs
 from locretrieval.sfm.pipeline import run_sfm
 from locretrieval.sfm.plan import (
     MAP_SAMPLE_QUERIES,
@@ -18,8 +20,11 @@ from locretrieval.sfm.plan import (
     SfmPlan,
     UnitCosts,
     Work,
+    _database_size,
+    _per_call_and_unit,
     forecast_sample,
     measure_unit_costs,
+    prepare_workers,
 )
 from locretrieval.sfm.workers import MIN_TASKS_PER_WORKER
 
@@ -92,6 +97,101 @@ def test_the_forecast_spreads_each_stage_over_the_processes_the_run_gives_it():
     assert long.forecast()["match + verify"] == pytest.approx(300 * 0.05 / 4)
 
 
+def test_each_stage_adds_its_cost_per_call_where_it_has_new_work():
+    per_call = {"match + verify": 0.5, "local_sfm: register": 0.2, "local_sfm: triangulate": 0.3}
+    local = paradigm_work("local_sfm", 20, True)
+    plan = SfmPlan(Work(100, 64), [local], True, 4, costs(per_call=per_call))
+    stages = plan.forecast()
+    assert stages["match + verify"] == pytest.approx((100 + 200) * 0.01 + 0.5)
+    assert stages["local_sfm: register"] == pytest.approx(400 * 0.003 / 4 + 0.2)
+    assert stages["features"] == pytest.approx(64 * 0.1)  # no cost per call measured for it
+    cached = dataclasses.replace(local, maps=Work(40, 0), registrations=Work(90, 0), registered_images=Work(500, 0),
+                                 queries=Work(20, 0))  # fmt: skip
+    nothing_new = SfmPlan(Work(100, 0), [cached], True, 4, costs(per_call=per_call)).forecast()
+    assert nothing_new["local_sfm: triangulate"] == 0 and nothing_new["local_sfm: register"] == 0
+    assert "per stage call with new work: match + verify 500 ms" in plan.describe()
+
+
+def test_the_stages_the_pool_runs_add_a_call_of_the_pool():
+    local, shared = paradigm_work("local_sfm", 20, True), paradigm_work("global_sfm", 20, False)
+    plain = SfmPlan(Work(100, 64), [local, shared], True, 4, costs()).forecast()
+    pooled = SfmPlan(Work(100, 64), [local, shared], True, 4, costs(pool_call=0.03)).forecast()
+    # features and matching: 4 tasks each, in this process (the pool is not started for them);
+    # the map every query shares: in this process; the per-query stages: 20 tasks, in the pool
+    assert {stage: pooled[stage] - plain[stage] for stage in plain} == pytest.approx(
+        {
+            "features": 0,
+            "match + verify": 0,
+            "global_sfm: triangulate": 0,
+            "local_sfm: triangulate": 0.03,
+            "local_sfm: register": 0.03,
+            "global_sfm: register": 0.03,
+        }  # fmt: skip
+    )
+
+
+def test_a_call_of_the_pool_is_timed_in_its_workers_on_the_run_inputs(tmp_path, monkeypatch):
+    """`prepare_workers` times a call of the pool when the run will use it: its two workers load
+    the run's inputs."""
+    from locretrieval.sfm import workers
+
+    pools = workers.SpawnedPools(workers._pools.initializer)
+    monkeypatch.setattr(workers, "_pools", pools)
+    scene = helpers.rendered_scene(tmp_path / "scene", SCENE)
+    settings = helpers.sfm_settings({"workers": 2})
+    inputs = SfmInputs.prepare(scene, settings, tmp_path / "cache")  # both sets' features extracted
+    alone = prepare_workers(SfmPlan(Work(30, 0), [], True, 2, costs()), inputs)
+    assert alone.costs.pool_call == 0 and not pools.pools  # no stage needs the pool: not started, not timed
+    try:
+        needs_pool = SfmPlan(Work(640, 640), [], True, 2, costs())
+        assert needs_pool.pool_needed()
+        timed = prepare_workers(needs_pool, inputs).costs
+        assert timed.worker_start > 0 and 0 < timed.pool_call < timed.worker_start
+        assert list(workers.parallel_map(_database_size, range(4), 2, "a call", inputs)) == [len(scene.database)] * 4
+    finally:
+        pools.shutdown()
+
+
+def test_the_cost_per_call_is_the_line_through_the_sample_runs():
+    assert _per_call_and_unit([(10, 1.2), (30, 3.2)]) == pytest.approx((0.2, 0.1))
+    assert _per_call_and_unit([(30, 3.2), (10, 1.2), (20, 2.2)]) == pytest.approx((0.2, 0.1))  # any order
+    # least squares: residuals 0.02, -0.04, 0.02 about 0.2 + 0.1 n cancel (the line through two would miss)
+    assert _per_call_and_unit([(10, 1.22), (20, 2.16), (30, 3.22)]) == pytest.approx((0.2, 0.1))
+    assert _per_call_and_unit([(10, 1.22), (20, 2.16)]) == pytest.approx((0.28, (3.38 - 0.56) / 30))
+    # noise that puts the intercept below zero: none, and the unit over every run
+    assert _per_call_and_unit([(10, 1.0), (30, 3.3)]) == pytest.approx((0.0, 4.3 / 40))
+    # or above the shortest run (more units in less time): at most that run's seconds, the rest per unit
+    assert _per_call_and_unit([(10, 0.6), (30, 0.5)]) == pytest.approx((0.5, 0.1 / 40))
+    # runs without new units (the map every query shares, built once) only looked for work: left out
+    assert _per_call_and_unit([(579, 0.06), (0, 0.002), (0, 0.001)]) == pytest.approx((0.0, 0.06 / 579))
+    assert _per_call_and_unit([(0, 0.0), (0, 0.001)]) == (0.0, 0.0)
+
+
+def test_the_sample_tells_a_stage_cost_per_call_from_its_cost_per_unit(tmp_path, monkeypatch):
+    """A register stage made 0.3 s slower per call (each run of the sample registers its new queries in one call):
+    the measured cost per call grows by 0.3 s, the cost per registered image stays."""
+    scene = dataclasses.replace(helpers.rendered_scene(tmp_path / "scene", SCENE), frustum_far=25.0)
+    config = helpers.evaluate_config("paradigms.local_sfm.k=[3,5]", "paradigms.global_sfm.enabled=false", "device=cpu")
+    settings = BenchmarkSettings.from_config(config)
+    paradigms = settings.paradigms.sfm_stages()
+    before = measure_unit_costs(scene, settings.sfm, paradigms, tmp_path / "before")
+    local_stages = type(paradigms["local_sfm"])
+    original = local_stages.register
+
+    def slower_per_call(self, inputs, rankings, ks, folder, queries):
+        if queries is not None:  # a chunk's registrations, not the gathering
+            time.sleep(0.3)
+        return original(self, inputs, rankings, ks, folder, queries)
+
+    monkeypatch.setattr(local_stages, "register", slower_per_call)
+    after = measure_unit_costs(scene, settings.sfm, paradigms, tmp_path / "after")
+    register = "local_sfm: register"
+    assert after.per_call[register] - before.per_call.get(register, 0.0) == pytest.approx(0.3, abs=0.1)
+    # 8 registered images per query (k 3 and 5), 48 in the three runs: their 0.9 s would be 19 ms each
+    assert after.registrations["local_sfm"] == pytest.approx(before.registrations["local_sfm"], abs=5e-3)
+    assert after.sample == "24 database images and 1 then 2 then 6 of its queries"  # the scene has 6
+
+
 def test_the_sample_is_a_neighbourhood_ranked_by_its_queries(tmp_path):
     scene = helpers.rendered_scene(tmp_path, SCENE)
     sample, ranking = forecast_sample(scene, 10, 2)
@@ -118,7 +218,10 @@ def test_forecast_and_run_name_the_same_stages_and_the_units_come_from_the_pipel
     calls = []
     monkeypatch.setattr("locretrieval.sfm.plan.run_sfm", lambda *a, **k: calls.append(a) or run_sfm(*a, **k))
     plan = sfm_plan(scene, rankings, settings, tmp_path / "cache")
-    assert len(calls) == 1 and calls[0][0].name.endswith("(forecast sample)")  # the sample, one run of the stages
+    # the sample's runs of the stages: its first query, then one more, then every one (the cost per call apart)
+    assert [(call[0].name.endswith("(forecast sample)"), len(call[0].queries)) for call in calls] == [
+        (True, 1), (True, 2), (True, 6)]  # fmt: skip
+    assert calls[0][0].queries.names == calls[1][0].queries.names[:1] == calls[2][0].queries.names[:1]
     assert not list((tmp_path / "cache").glob(".forecast*"))  # its scratch folder is gone
     measured = {}
     run_sfm(scene, rankings, settings.paradigms.sfm_stages(), settings.sfm, tmp_path / "cache", measured)
@@ -200,9 +303,9 @@ def test_with_the_maps_inputs_cached_the_global_registrations_are_timed_on_the_w
     assert set(costs.registrations_on_map) == {"global_sfm"}  # local maps are per query: the sample's unit
     assert costs.registrations_on_map["global_sfm"] == "6 queries and the run's rankings (2) on the whole map"
     assert costs.registrations["global_sfm"] > 0
-    # the sample's run registers its 2 queries (by chunk, then gathers); the map's measurement 6 of 6
-    ((folder, queries, ks),) = [call for call in registered if call[1] == list(range(MAP_SAMPLE_QUERIES))]
-    assert folder == cache and len(scene.queries) == MAP_SAMPLE_QUERIES and ks == [[1, 3], [1, 3]]
+    # the sample's runs register theirs in its temporary folder; the map's measurement 6 of 6 in the run's cache
+    ((queries, ks),) = [(call[1], call[2]) for call in registered if call[0] == cache]
+    assert queries == list(range(MAP_SAMPLE_QUERIES)) == list(range(len(scene.queries))) and ks == [[1, 3], [1, 3]]
     # what it did is the run's own work: the plan, counted after it, has no global registration left
     work = {paradigm.paradigm: paradigm for paradigm in plan.paradigms}
     assert work["global_sfm"].registrations.new == 0 and work["global_sfm"].maps.new == 0
