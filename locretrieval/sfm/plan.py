@@ -116,9 +116,8 @@ class UnitCosts:
     paradigms whose registration unit was timed on their whole map with the run's rankings
     (`registration_unit_on_map`), by name, with what it was measured on; ``per_call``: the seconds
     a stage with new work takes beyond its units, by stage name (`stage_names`): finding its new
-    work in the stores, handing it out and writing it, which a per-unit cost measured on a small
-    sample would spread over few units (a run with more of them then took 0.3-0.7x its forecast,
-    one with fewer up to 3.4x); ``pool_call``: the seconds a call of the started worker pool
+    work in the stores, handing it out and writing it (a per-unit cost alone would spread it over
+    the sample's few units); ``pool_call``: the seconds a call of the started worker pool
     takes beyond its tasks' work (`pool_call_seconds`, on the run's inputs; 0: no pool), which the
     sample, run in one process, never pays."""
 
@@ -293,9 +292,7 @@ def pool_call_seconds(inputs: SfmInputs, workers: int) -> float:
     """Seconds a call of the started pool of ``workers`` takes beyond its tasks' work, timed with
     the run's ``inputs`` as every stage hands them out: pickled once, loaded by each worker (the
     stores' indexes with them, their in-memory shards empty: `ShardedStore.__getstate__`), the
-    answers gathered. (Reading a record of each store too counted, at 40-90 ms, what the tasks'
-    own reads are already measured with: the trained network's validations then took 0.6-0.7 of
-    their forecast.)"""
+    answers gathered. The tasks' own reads are in their units already, so the probe reads nothing."""
     started = time.perf_counter()
     for _ in parallel_map(_database_size, range(workers), workers, "forecast: a pool call", inputs):
         pass
@@ -448,10 +445,12 @@ def measure_unit_costs(
     on_map = {}
     for name, stages in paradigms.items():
         register = stage_names(name)[1]
-        measured = rankings and registration_unit_on_map(
-            scene, one_process, stages, cache_dir, rankings, per_call[register]
+        measured = (
+            None
+            if rankings is None
+            else registration_unit_on_map(scene, one_process, stages, cache_dir, rankings, per_call[register])
         )
-        if measured:
+        if measured is not None:
             registrations[name], on_map[name] = measured
     return UnitCosts(
         per_unit["features"],
