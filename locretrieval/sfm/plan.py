@@ -13,8 +13,10 @@ process with one thread as a worker runs them, so that reading and writing the s
 per map and per query are in the units; it then spreads each stage over the processes that
 `run_sfm` will give it (`runs_here`, the worker pool started now when a stage will need it), and
 adds each stage's cost per call (finding its new work in the stores, handing it out, writing
-it), which the sample's runs with more and more queries tell apart from the cost per unit, and
-where the pool runs a stage, the cost of a call of the pool (timed on the run's inputs).
+it) and, for the stages with a task per query, its cost per query (reading the query's matches
+and its maps' images, once for all its maps), which the sample's runs with more and more queries,
+then more rankings, tell apart from the cost per unit, and where the pool runs a stage, the cost
+of a call of the pool (timed on the run's inputs).
 It assumes the machine stays as loaded as it was when measured (the log gives that load).
 """
 
@@ -31,6 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import lsq_linear
 
 from locretrieval.cache import temporary_folder
 from locretrieval.retrieval import Ranking
@@ -51,9 +54,17 @@ SAMPLE_QUERIES = 8
 #: The sample's queries in each of its runs: the first with the database's work, then one more query
 #: (its stages little more than their cost per call), then six more (new work: theirs alone), so that
 #: each stage's units differ enough between the runs to tell its cost per call from its cost per unit
-#: (`_per_call_and_unit`). With three more, a run's stage of tens of milliseconds varied by 10 ms
+#: (`_stage_costs`). With three more, a run's stage of tens of milliseconds varied by 10 ms
 #: between identical runs, as much as three queries' local maps added: units from 0.04 to 0.14 ms.
 SAMPLE_RUNS = (1, 2, SAMPLE_QUERIES)
+#: More rankings of the sample's last run: its queries ranked again in random orders of the
+#: neighbourhood (`_more_rankings`), each query with as many more new maps, so that a query's cost in
+#: its stages is told apart from its maps' (`_stage_costs`). With one ranking per query the sample
+#: spread a query's reads over 2 maps, while the training validation's four reference rankings spread
+#: them over 8: its local maps took 0.50-0.64 of their forecast, its local registrations 0.45-0.84.
+#: Random orders, not rankings as good as the first: those left the registrations' unit at the best
+#: maps' (PnP's LO-RANSAC takes longer on worse-ranked maps), `evaluate.py`'s took 1.46-1.59x.
+SAMPLE_MORE_RANKINGS = 3
 #: Database images of the sample (or the whole database when smaller), whatever the paradigms' k: a
 #: map's fixed costs (a tenth of a second) over a sample of 10 images made the unit per map pair 3.5x
 #: that of 1,487 pairs, over 50 images 0.8x (training validation, 300 keypoints, 2-core machine).
@@ -117,7 +128,10 @@ class UnitCosts:
     (`registration_unit_on_map`), by name, with what it was measured on; ``per_call``: the seconds
     a stage with new work takes beyond its units, by stage name (`stage_names`): finding its new
     work in the stores, handing it out and writing it (a per-unit cost alone would spread it over
-    the sample's few units); ``pool_call``: the seconds a call of the started worker pool
+    the sample's few units); ``per_task``: the seconds of each task of the stages with one task
+    per query (`SfmPlan.query_tasks`), beyond its units, by stage name: reading the query's
+    matches and its maps' images once for all its maps; ``idle``: the seconds of a stage without
+    new work (looking for it in the stores), by stage name; ``pool_call``: the seconds a call of the started worker pool
     takes beyond its tasks' work (`pool_call_seconds`, on the run's inputs; 0: no pool), which the
     sample, run in one process, never pays."""
 
@@ -132,6 +146,8 @@ class UnitCosts:
     worker_start: float = 0.0
     registrations_on_map: dict[str, str] = field(default_factory=dict)
     per_call: dict[str, float] = field(default_factory=dict)
+    per_task: dict[str, float] = field(default_factory=dict)
+    idle: dict[str, float] = field(default_factory=dict)
     pool_call: float = 0.0
 
 
@@ -180,6 +196,12 @@ class SfmPlan:
             "match + verify": _task_count(self.new_pairs(), pairs_cap, self.processes),
         }
         tasks |= {stage_names(p.paradigm)[0]: p.map_tasks for p in self.paradigms if not p.parallel_maps}
+        return tasks | self.query_tasks()
+
+    def query_tasks(self) -> dict[str, int]:
+        """The tasks of the stages with one task per query, by stage name, in the order `run_sfm`
+        runs them: each paradigm's triangulation of its queries' own maps and its registration."""
+        tasks = {}
         for p in self.paradigms:
             triangulate, register = stage_names(p.paradigm)
             tasks |= {triangulate: p.map_tasks} if p.parallel_maps else {}
@@ -196,24 +218,30 @@ class SfmPlan:
         return units
 
     def one_process_seconds(self) -> dict[str, float]:
-        """Seconds of the units of each stage of `_tasks` in one process (`costs` required)."""
+        """Seconds of the units of each stage of `_tasks` in one process, and of its tasks where
+        they have a cost of their own (`UnitCosts.per_task`; `costs` required)."""
         costs = self.costs
         assert costs is not None, "the stages' seconds need measured unit costs"
         per_unit = {"features": costs.features, "match + verify": costs.pairs}
         for p in self.paradigms:
             triangulate, register = stage_names(p.paradigm)
             per_unit[triangulate], per_unit[register] = costs.map_pairs[p.paradigm], costs.registrations[p.paradigm]
-        return {stage: units * per_unit[stage] for stage, units in self.units().items()}
+        tasks = self.query_tasks()
+        return {
+            stage: units * per_unit[stage] + tasks.get(stage, 0) * costs.per_task.get(stage, 0.0)
+            for stage, units in self.units().items()
+        }
 
     def forecast(self) -> dict[str, float]:
         """Seconds per stage for the new work (`costs` required), by the names `run_sfm` times
-        its stages under: each stage's units in one process (`UnitCosts`), spread over the
+        its stages under: each stage's units and tasks in one process (`one_process_seconds`), spread over the
         worker processes `run_sfm` gives it (`runs_here`: a small workload stays in this process
         until the pool is started, and the pool then serves every later stage); matching on a
         CPU over every core either way (workers, or this process's threads), on a GPU in one
         process; a map every query shares in this process; plus the stage's cost per call
         (`UnitCosts.per_call`) where it has new work, and a call of the pool's (``pool_call``)
-        where the pool runs it. Ordered as `run_sfm` runs the stages."""
+        where the pool runs it; a stage without new work its seconds looking for it
+        (`UnitCosts.idle`). Ordered as `run_sfm` runs the stages."""
         costs = self.costs
         assert costs is not None, "forecast needs measured unit costs"
         started = workers_started(self.processes) or costs.worker_start > 0
@@ -232,7 +260,10 @@ class SfmPlan:
         seconds = {}
         for stage, tasks in self._tasks().items():
             processes = 1 if stage in in_this_process else spread(tasks)
-            seconds[stage] = single[stage] / processes + (costs.per_call.get(stage, 0.0) if tasks else 0.0)
+            if not tasks:
+                seconds[stage] = costs.idle.get(stage, 0.0)
+                continue
+            seconds[stage] = single[stage] / processes + costs.per_call.get(stage, 0.0)
             seconds[stage] += costs.pool_call if processes > 1 else 0.0
         return seconds
 
@@ -254,12 +285,14 @@ class SfmPlan:
                 for name in c.map_pairs
             )
             per_call = ", ".join(f"{stage} {seconds * 1e3:.0f} ms" for stage, seconds in c.per_call.items())
+            per_task = ", ".join(f"{stage} {seconds * 1e3:.1f} ms" for stage, seconds in c.per_task.items())
             lines.append(
                 f"  unit costs measured just now by running the pipeline on {c.sample} of the scene "
                 f"({c.keypoints:.0f} keypoints per image, matching on {c.device}), in one process with one thread, "
                 f"while the machine's load average was {c.load:.1f}: features {c.features:.3f} s/image, "
                 f"match + verify {c.pairs * 1e3:.1f} ms/pair, {units}"
                 + (f"; per stage call with new work: {per_call}" if per_call else "")
+                + (f"; per query: {per_task}" if per_task else "")
                 + f"; spread over {self.processes} worker "
                 f"process(es){f' (their pool started in {c.worker_start:.1f} s)' if c.worker_start else ''}"
                 f"{f', {c.pool_call * 1e3:.0f} ms per call of their pool' if c.pool_call else ''}; "
@@ -416,8 +449,10 @@ def measure_unit_costs(
     neighbourhood of `SAMPLE_DATABASE` database images ranked by `SAMPLE_QUERIES` queries)
     with the run's paradigms, in one process with one thread, into a temporary folder of
     ``cache_dir`` (deleted afterwards): runs with the first queries (`SAMPLE_RUNS`), each adding
-    new ones, each stage's seconds (the pipeline's own stage clock) and new units (their
-    `SfmPlan`) in every run split into a cost per call and one per unit (`_per_call_and_unit`).
+    new ones, then one with `SAMPLE_MORE_RANKINGS` more rankings of them (`_more_rankings`),
+    each stage's seconds (the pipeline's own stage clock), new tasks and new units (their
+    `SfmPlan`) in every run split into a cost per call, per task and per unit (`_stage_costs`);
+    the mean seconds of its runs without new work are its seconds looking for work (``idle``).
     With the run's ``rankings``, a paradigm's registrations in a map every query shares are
     timed on that map instead, where it is cheap to build
     (`registration_unit_on_map`: it does some of the run's own work, in ``cache_dir``)."""
@@ -425,19 +460,23 @@ def measure_unit_costs(
     parts = [
         (
             dataclasses.replace(sample, queries=sample.queries.subset(np.arange(queries))),
-            Ranking(ranking.name, ranking.indices[:queries], ranking.scores[:queries], ranking.kind),
+            [Ranking(ranking.name, ranking.indices[:queries], ranking.scores[:queries], ranking.kind)],
         )
         for queries in sorted({min(queries, len(sample.queries)) for queries in SAMPLE_RUNS})
     ]
+    parts.append((sample, [ranking, *_more_rankings(ranking, SAMPLE_MORE_RANKINGS)]))
     one_process = dataclasses.replace(settings, workers=1)
     load = os.getloadavg()[0]
     with temporary_folder(cache_dir, "forecast") as folder, single_threaded(), _quiet():
-        runs = [_timed_run(part, [part_ranking], paradigms, one_process, folder) for part, part_ranking in parts]
+        runs = [_timed_run(part, part_rankings, paradigms, one_process, folder) for part, part_rankings in parts]
         inputs = SfmInputs.prepare(sample, one_process, folder, extract=False)
         keypoints = inputs.database_features.keypoints(sample.database.names)
-    per_call, per_unit = {}, {}
+    per_call, per_task, per_unit, idle = {}, {}, {}, {}
     for stage in runs[0]:
-        per_call[stage], per_unit[stage] = _per_call_and_unit([run[stage] for run in runs])
+        per_call[stage], per_task[stage], per_unit[stage] = _stage_costs([run[stage] for run in runs])
+        idle[stage] = float(
+            np.mean([seconds for _, units, seconds in (run[stage] for run in runs) if not units] or [0.0])
+        )
     map_pairs, registrations = {}, {}
     for name in paradigms:
         triangulate, register = stage_names(name)
@@ -448,7 +487,9 @@ def measure_unit_costs(
         measured = (
             None
             if rankings is None
-            else registration_unit_on_map(scene, one_process, stages, cache_dir, rankings, per_call[register])
+            else registration_unit_on_map(
+                scene, one_process, stages, cache_dir, rankings, per_call[register], per_task[register]
+            )
         )
         if measured is not None:
             registrations[name], on_map[name] = measured
@@ -459,40 +500,72 @@ def measure_unit_costs(
         registrations,
         float(np.mean([len(points) for points in keypoints.values()])),
         settings.matching.matcher().device,
-        f"{len(sample.database)} database images and {' then '.join(str(len(part.queries)) for part, _ in parts)} "
-        "of its queries",
+        f"{len(sample.database)} database images and {' then '.join(str(len(part.queries)) for part, _ in parts[:-1])} "
+        f"of its queries, then those by {len(parts[-1][1]) - 1} more rankings",
         load,
         registrations_on_map=on_map,
         per_call={stage: seconds for stage, seconds in per_call.items() if seconds},
+        per_task={stage: seconds for stage, seconds in per_task.items() if seconds},
+        idle={stage: seconds for stage, seconds in idle.items() if seconds},
     )
+
+
+def _more_rankings(ranking: Ranking, count: int) -> list[Ranking]:
+    """``count`` rankings of ``ranking``'s queries, each a random order of its images (seeded):
+    other maps for each query, of lower quality, as a run's rankings give it."""
+    generator = np.random.default_rng(0)
+    return [
+        Ranking(
+            f"{ranking.name}, shuffled {number}",
+            generator.permuted(ranking.indices, axis=1),
+            ranking.scores,
+            "baseline",
+        )
+        for number in range(1, count + 1)
+    ]
 
 
 def _timed_run(
     scene: Scene, rankings: Sequence[Ranking], paradigms: Mapping[str, SfmStages], settings: SfmSettings, folder: Path
-) -> dict[str, tuple[float, float]]:
-    """Per stage of `run_sfm` on ``scene`` into ``folder``: its new units (`SfmPlan.units`, counted
-    before) and the seconds it took."""
+) -> dict[str, tuple[float, float, float]]:
+    """Per stage of `run_sfm` on ``scene`` into ``folder``: its new tasks where it has one per query
+    (`SfmPlan.query_tasks`, else 0), its new units (`SfmPlan.units`), both counted before, and the
+    seconds it took."""
     inputs = SfmInputs.prepare(scene, settings, folder, extract=False)
     work = [stages.plan(scene, rankings, settings, folder, 0) for stages in paradigms.values()]
     work = [dataclasses.replace(w, paradigm=name) for w, name in zip(work, paradigms)]
-    units = SfmPlan(feature_work(inputs), work, True, 1).units()
+    plan = SfmPlan(feature_work(inputs), work, True, 1)
+    units, tasks = plan.units(), plan.query_tasks()
     seconds: dict[str, float] = {}
     run_sfm(scene, rankings, paradigms, settings, folder, seconds)
-    return {stage: (count, seconds.get(stage, 0.0)) for stage, count in units.items()}
+    return {stage: (tasks.get(stage, 0), count, seconds.get(stage, 0.0)) for stage, count in units.items()}
 
 
-def _per_call_and_unit(runs: Sequence[tuple[float, float]]) -> tuple[float, float]:
-    """A stage's seconds per call (with new work) and per unit from the sample's runs' (new
-    units, seconds): the least-squares line through the runs with new units, its intercept kept
-    within [0, the shortest of their seconds], then the seconds left over their units; with one
-    unit count only, no cost per call (a run without new units only looked for work)."""
-    with_units = np.array([run for run in runs if run[0]], dtype=float).reshape(-1, 2)
+def _stage_costs(runs: Sequence[tuple[float, float, float]]) -> tuple[float, float, float]:
+    """A stage's seconds per call (with new work), per task and per unit from the sample's runs'
+    (new tasks, new units, seconds): the least-squares plane through the runs with new units in
+    relative terms (each run's residual over its seconds: the forecast is judged by its ratio to
+    the time taken, and the sample's largest run would otherwise fit the small ones badly), all
+    three at least 0 and the cost per call at most the shortest run's seconds (scipy's bounded
+    least squares); without tasks, or with fewer distinct runs than costs, the line through them
+    without a cost per task, then without a cost per call (a run without new units only looked
+    for work: left out)."""
+    with_units = np.array([run for run in runs if run[1]], dtype=float).reshape(-1, 3)
     if not len(with_units):
-        return 0.0, 0.0
-    units, seconds = with_units.T
-    intercept = np.polyfit(units, seconds, 1)[1] if np.ptp(units) else 0.0
-    per_call = float(np.clip(intercept, 0.0, seconds.min()))
-    return per_call, float((seconds - per_call).sum() / units.sum())
+        return 0.0, 0.0, 0.0
+    tasks, units, seconds = with_units.T
+    columns = np.column_stack([np.ones_like(units), tasks, units])
+    for kept in ([0, 1, 2], [0, 2], [2]):
+        scale = np.abs(columns[:, kept]).max(axis=0)
+        scaled = columns[:, kept] / np.where(scale > 0, scale, 1.0)
+        if np.linalg.matrix_rank(scaled, tol=1e-6) == len(kept):
+            break
+    upper = np.array([seconds.min(), np.inf, np.inf])[kept]
+    fitted = np.zeros(3)
+    weights = 1.0 / np.maximum(seconds, 1e-6)[:, None]
+    fitted[kept] = lsq_linear(columns[:, kept] * weights, np.ones_like(seconds), bounds=(np.zeros(len(kept)), upper)).x
+    per_call, per_task, per_unit = (float(value) for value in fitted)
+    return per_call, per_task, per_unit
 
 
 def registration_unit_on_map(
@@ -502,13 +575,14 @@ def registration_unit_on_map(
     cache_dir: Path,
     rankings: Sequence[Ranking],
     per_call: float = 0.0,
+    per_task: float = 0.0,
 ) -> tuple[float, str] | None:
     """Seconds per registered image of ``stages``' registrations in the map every query shares
     (its `ParadigmWork` without ``parallel_maps``), timed on that map with the run's ``rankings``
     for `MAP_SAMPLE_QUERIES` queries spread over the scene, in one process with one thread, less
-    the stage's seconds ``per_call``, with what it was measured on; None when the paradigm has no
-    such map, or when the map would need features or matches that are not cached (a cold run:
-    the sample's unit stands).
+    the stage's seconds ``per_call`` and ``per_task`` per query, with what it was measured on;
+    None when the paradigm has no such map, or when the map would need features or matches that
+    are not cached (a cold run: the sample's unit stands).
 
     PnP's LO-RANSAC runs until its inliers are likely found, so its time per correspondence grows
     as the inlier ratio falls: a neighbourhood's map ranked by distance gave half the run's time per
@@ -535,7 +609,7 @@ def registration_unit_on_map(
     if not registered:
         return None
     return max(
-        seconds - per_call, 0.0
+        seconds - per_call - per_task * len(queries), 0.0
     ) / registered, f"{len(queries)} queries and the run's rankings ({len(rankings)}) on the whole map"
 
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from locretrieval.benchmark import BenchmarkSettings, sfm_plan
+from locretrieval.paradigms import local_sfm
 from locretrieval.retrieval import Ranking
 from locretrieval.sfm.inputs import SfmInputs
 from locretrieval.sfm.pipeline import run_sfm
@@ -21,7 +22,7 @@ from locretrieval.sfm.plan import (
     UnitCosts,
     Work,
     _database_size,
-    _per_call_and_unit,
+    _stage_costs,
     forecast_sample,
     measure_unit_costs,
     prepare_workers,
@@ -109,7 +110,33 @@ def test_each_stage_adds_its_cost_per_call_where_it_has_new_work():
                                  queries=Work(20, 0))  # fmt: skip
     nothing_new = SfmPlan(Work(100, 0), [cached], True, 4, costs(per_call=per_call)).forecast()
     assert nothing_new["local_sfm: triangulate"] == 0 and nothing_new["local_sfm: register"] == 0
+    # a stage without new work: its seconds looking for it, as the sample's runs without new units took
+    idle = {"features": 0.004, "local_sfm: triangulate": 0.002}
+    looking = SfmPlan(Work(100, 0), [cached], True, 4, costs(per_call=per_call, idle=idle)).forecast()
+    assert looking == {"features": 0.004, "match + verify": nothing_new["match + verify"],  # its pairs are new
+                       "local_sfm: triangulate": 0.002, "local_sfm: register": 0.0}  # fmt: skip
     assert "per stage call with new work: match + verify 500 ms" in plan.describe()
+
+
+def test_the_stages_with_a_task_per_query_add_their_cost_per_task_spread_over_their_processes():
+    per_task = {"local_sfm: triangulate": 0.01, "local_sfm: register": 0.02, "global_sfm: register": 0.03}
+    local, shared = paradigm_work("local_sfm", 20, True), paradigm_work("global_sfm", 20, False)
+    plain = SfmPlan(Work(100, 64), [local, shared], True, 4, costs()).forecast()
+    plan = SfmPlan(Work(100, 64), [local, shared], True, 4, costs(per_task=per_task))
+    assert plan.query_tasks() == {"local_sfm: triangulate": 20, "local_sfm: register": 20, "global_sfm: register": 20}
+    # 20 queries with new work (the local maps: 20 of their 30 new maps' queries), over 4 workers
+    assert {stage: seconds - plain[stage] for stage, seconds in plan.forecast().items()} == pytest.approx(
+        {
+            "features": 0,
+            "match + verify": 0,
+            "global_sfm: triangulate": 0,
+            "local_sfm: triangulate": 20 * 0.01 / 4,
+            "local_sfm: register": 20 * 0.02 / 4,
+            "global_sfm: register": 20 * 0.03 / 4,
+        }  # fmt: skip
+    )
+    assert plan.one_process_seconds()["local_sfm: register"] == pytest.approx(400 * 0.003 + 20 * 0.02)
+    assert "per query: local_sfm: triangulate 10.0 ms, local_sfm: register 20.0 ms" in plan.describe()
 
 
 def test_the_stages_the_pool_runs_add_a_call_of_the_pool():
@@ -152,24 +179,40 @@ def test_a_call_of_the_pool_is_timed_in_its_workers_on_the_run_inputs(tmp_path, 
         pools.shutdown()
 
 
-def test_the_cost_per_call_is_the_line_through_the_sample_runs():
-    assert _per_call_and_unit([(10, 1.2), (30, 3.2)]) == pytest.approx((0.2, 0.1))
-    assert _per_call_and_unit([(30, 3.2), (10, 1.2), (20, 2.2)]) == pytest.approx((0.2, 0.1))  # any order
-    # least squares: residuals 0.02, -0.04, 0.02 about 0.2 + 0.1 n cancel (the line through two would miss)
-    assert _per_call_and_unit([(10, 1.22), (20, 2.16), (30, 3.22)]) == pytest.approx((0.2, 0.1))
-    assert _per_call_and_unit([(10, 1.22), (20, 2.16)]) == pytest.approx((0.28, (3.38 - 0.56) / 30))
-    # noise that puts the intercept below zero: none, and the unit over every run
-    assert _per_call_and_unit([(10, 1.0), (30, 3.3)]) == pytest.approx((0.0, 4.3 / 40))
-    # or above the shortest run (more units in less time): at most that run's seconds, the rest per unit
-    assert _per_call_and_unit([(10, 0.6), (30, 0.5)]) == pytest.approx((0.5, 0.1 / 40))
+def test_the_costs_per_call_task_and_unit_are_the_plane_through_the_sample_runs():
+    """(tasks, units, seconds) of runs: seconds = per call + tasks * per task + units * per unit."""
+    exact = [(1, 10, 0.2 + 0.05 + 1.0), (1, 12, 0.2 + 0.05 + 1.2), (6, 60, 0.2 + 0.3 + 6.0), (8, 240, 0.2 + 0.4 + 24.0)]
+    assert _stage_costs(exact) == pytest.approx((0.2, 0.05, 0.1))
+    assert _stage_costs(exact[::-1]) == pytest.approx((0.2, 0.05, 0.1))  # any order
+    # without tasks (features, matching): the line through (units, seconds)
+    assert _stage_costs([(0, 10, 1.2), (0, 30, 3.2)]) == pytest.approx((0.2, 0.0, 0.1))
+    # least squares of the residuals relative to each run's seconds (numpy's weighted line here)
+    noisy = [(0, 10, 1.22), (0, 20, 2.16), (0, 30, 3.22)]
+    units, seconds = np.array(noisy, dtype=float)[:, 1:].T
+    slope, intercept = np.polyfit(units, seconds, 1, w=1 / seconds)
+    assert _stage_costs(noisy) == pytest.approx((intercept, 0.0, slope))
+    assert _stage_costs(noisy) != pytest.approx(tuple(np.polyfit(units, seconds, 1)[::-1]))  # not absolute
+    # tasks in proportion to the units cannot be told from them, nor one task per run from a call: a line
+    assert _stage_costs([(1, 10, 1.2), (3, 30, 3.2)]) == pytest.approx((0.2, 0.0, 0.1))
+    assert _stage_costs([(1, 10, 1.2), (1, 30, 3.2)]) == pytest.approx((0.2, 0.0, 0.1))
+    # noise that puts the intercept below zero: none, and the unit through the origin (relative least squares)
+    relative_slope = (10 / 1.0 + 30 / 3.3) / (10**2 / 1.0**2 + 30**2 / 3.3**2)
+    assert _stage_costs([(0, 10, 1.0), (0, 30, 3.3)]) == pytest.approx((0.0, 0.0, relative_slope), abs=1e-9)
+    # or above the shortest run (more units in less time): at most that run's seconds, the unit at least 0
+    per_call, _, per_unit = _stage_costs([(0, 10, 0.6), (0, 30, 0.5)])
+    assert per_call == pytest.approx(0.5) and 0 <= per_unit < 1e-3
+    # a negative cost per task (noise) is none, the others fitted without it
+    slope, intercept = np.polyfit([10, 10, 30], [1.3, 1.2, 3.2], 1, w=[1 / 1.3, 1 / 1.2, 1 / 3.2])
+    assert _stage_costs([(1, 10, 1.3), (2, 10, 1.2), (2, 30, 3.2)]) == pytest.approx((intercept, 0.0, slope))
     # runs without new units (the map every query shares, built once) only looked for work: left out
-    assert _per_call_and_unit([(579, 0.06), (0, 0.002), (0, 0.001)]) == pytest.approx((0.0, 0.06 / 579))
-    assert _per_call_and_unit([(0, 0.0), (0, 0.001)]) == (0.0, 0.0)
+    assert _stage_costs([(0, 579, 0.06), (0, 0, 0.002), (0, 0, 0.001)]) == pytest.approx((0.0, 0.0, 0.06 / 579))
+    assert _stage_costs([(0, 0, 0.0), (0, 0, 0.001)]) == (0.0, 0.0, 0.0)
 
 
-def test_the_sample_tells_a_stage_cost_per_call_from_its_cost_per_unit(tmp_path, monkeypatch):
-    """A register stage made 0.3 s slower per call (each run of the sample registers its new queries in one call):
-    the measured cost per call grows by 0.3 s, the cost per registered image stays."""
+def test_the_sample_tells_a_stage_cost_per_call_and_per_query_from_its_cost_per_unit(tmp_path, monkeypatch):
+    """A register stage made 0.3 s slower per call (each run of the sample registers its new queries in one call)
+    and 0.1 s per query: the measured cost per call grows by 0.3 s, per query by 0.1 s, the cost per registered
+    image stays."""
     scene = dataclasses.replace(helpers.rendered_scene(tmp_path / "scene", SCENE), frustum_far=25.0)
     config = helpers.evaluate_config("paradigms.local_sfm.k=[3,5]", "paradigms.global_sfm.enabled=false", "device=cpu")
     settings = BenchmarkSettings.from_config(config)
@@ -183,13 +226,22 @@ def test_the_sample_tells_a_stage_cost_per_call_from_its_cost_per_unit(tmp_path,
             time.sleep(0.3)
         return original(self, inputs, rankings, ks, folder, queries)
 
+    original_query = local_sfm.register_query_in_maps
+
+    def slower_per_query(shared, task):
+        time.sleep(0.1)
+        return original_query(shared, task)
+
     monkeypatch.setattr(local_stages, "register", slower_per_call)
+    monkeypatch.setattr(local_sfm, "register_query_in_maps", slower_per_query)
     after = measure_unit_costs(scene, settings.sfm, paradigms, tmp_path / "after")
     register = "local_sfm: register"
     assert after.per_call[register] - before.per_call.get(register, 0.0) == pytest.approx(0.3, abs=0.1)
-    # 8 registered images per query (k 3 and 5), 48 in the three runs: their 0.9 s would be 19 ms each
-    assert after.registrations["local_sfm"] == pytest.approx(before.registrations["local_sfm"], abs=5e-3)
-    assert after.sample == "24 database images and 1 then 2 then 6 of its queries"  # the scene has 6
+    assert after.per_task[register] - before.per_task.get(register, 0.0) == pytest.approx(0.1, abs=0.04)
+    # 8 registered images per query and ranking (k 3 and 5), 192 in the four runs (1, 1, 4 new queries, then 6
+    # queries by 3 more rankings): 4 runs' 1.2 s per call would be 6 ms each, 12 queries' 1.2 s 6 ms each
+    assert after.registrations["local_sfm"] == pytest.approx(before.registrations["local_sfm"], abs=3e-3)
+    assert after.sample == "24 database images and 1 then 2 then 6 of its queries, then those by 3 more rankings"
 
 
 def test_the_sample_is_a_neighbourhood_ranked_by_its_queries(tmp_path):
@@ -218,11 +270,19 @@ def test_forecast_and_run_name_the_same_stages_and_the_units_come_from_the_pipel
     calls = []
     monkeypatch.setattr("locretrieval.sfm.plan.run_sfm", lambda *a, **k: calls.append(a) or run_sfm(*a, **k))
     plan = sfm_plan(scene, rankings, settings, tmp_path / "cache")
-    # the sample's runs of the stages: its first query, then one more, then every one (the cost per call apart)
-    assert [(call[0].name.endswith("(forecast sample)"), len(call[0].queries)) for call in calls] == [
-        (True, 1), (True, 2), (True, 6)]  # fmt: skip
+    # the sample's runs of the stages: its first query, then one more, then every one (the cost per call apart),
+    # then every one by three more rankings, random orders of its images (the cost per query apart)
+    assert [(call[0].name.endswith("(forecast sample)"), len(call[0].queries), len(call[1])) for call in calls] == [
+        (True, 1, 1), (True, 2, 1), (True, 6, 1), (True, 6, 4)]  # fmt: skip
     assert calls[0][0].queries.names == calls[1][0].queries.names[:1] == calls[2][0].queries.names[:1]
+    assert calls[3][0].queries.names == calls[2][0].queries.names
+    first, *more = calls[3][1]
+    assert np.array_equal(first.indices, calls[2][1][0].indices)
+    assert all(np.array_equal(np.sort(ranking.indices, axis=1), np.sort(first.indices, axis=1)) for ranking in more)
+    assert len({first.indices.tobytes(), *(ranking.indices.tobytes() for ranking in more)}) == 4
     assert not list((tmp_path / "cache").glob(".forecast*"))  # its scratch folder is gone
+    # the global map is built in the first run: the others only looked for its work
+    assert plan.costs.idle["global_sfm: triangulate"] > 0 and "global_sfm: triangulate" not in plan.costs.per_call
     measured = {}
     run_sfm(scene, rankings, settings.paradigms.sfm_stages(), settings.sfm, tmp_path / "cache", measured)
     assert set(plan.forecast()) == set(measured)
