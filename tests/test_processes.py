@@ -24,6 +24,39 @@ def test_a_small_workload_runs_in_this_process_without_starting_workers(monkeypa
     assert workers._pools.pools == {}  # no worker was spawned
 
 
+def store_cache_size(store, task):
+    return store, len(store._cache)
+
+
+#: What `record_cache_size` saw (a task of `task_stream` returns nothing).
+SEEN = []
+
+
+def record_cache_size(store, task):
+    SEEN.append(store_cache_size(store, task))
+
+
+def test_calls_run_here_can_start_from_their_inputs_as_a_worker_loads_them(tmp_path, monkeypatch):
+    """`as_workers_load_it` (the SfM forecast's sample): each call's tasks get one copy of the shared
+    inputs, its stores' in-memory shards empty; outside it, the inputs themselves."""
+    from locretrieval.sfm.store import ShardedStore
+
+    monkeypatch.setattr(workers, "_pools", workers.SpawnedPools(workers._pools.initializer))
+    store = ShardedStore(tmp_path)
+    store._cache[(tmp_path / "shard", "data")] = {"key": None}  # a shard read before
+    plain = list(workers.parallel_map(store_cache_size, [0, 1], 1, "test", store))
+    assert plain == [(store, 1), (store, 1)]
+    with workers.as_workers_load_it():
+        fresh = list(workers.parallel_map(store_cache_size, [0, 1], 1, "test", store))
+        SEEN.clear()
+        with workers.task_stream(record_cache_size, 2, 1, "test", store) as submit:
+            submit(0)
+            submit(1)
+    assert [size for _, size in fresh] == [0, 0] and fresh[0][0] is fresh[1][0] is not store
+    assert [size for _, size in SEEN] == [0, 0] and SEEN[0][0] is SEEN[1][0] is not store
+    assert len(store._cache) == 1 and not workers._fresh_shared and workers._pools.pools == {}
+
+
 def killed_in_a_worker(task):
     if task == 3:
         os.kill(os.getpid(), signal.SIGKILL)  # as the out-of-memory killer ends a process

@@ -42,7 +42,14 @@ from locretrieval.sfm.features import IMAGES_PER_SHARD
 from locretrieval.sfm.inputs import QueryTask, SfmInputs, SfmSettings
 from locretrieval.sfm.matching import PAIRS_PER_SHARD, pair_key
 from locretrieval.sfm.pipeline import SfmStages, run_sfm, stage_names
-from locretrieval.sfm.workers import parallel_map, runs_here, start_workers, task_size, workers_started
+from locretrieval.sfm.workers import (
+    as_workers_load_it,
+    parallel_map,
+    runs_here,
+    start_workers,
+    task_size,
+    workers_started,
+)
 from locretrieval.threads import single_threaded
 
 log = logging.getLogger(__name__)
@@ -447,7 +454,8 @@ def measure_unit_costs(
 ) -> UnitCosts:
     """Unit costs of the SfM stages, measured by `run_sfm` itself on `forecast_sample` (a
     neighbourhood of `SAMPLE_DATABASE` database images ranked by `SAMPLE_QUERIES` queries)
-    with the run's paradigms, in one process with one thread, into a temporary folder of
+    with the run's paradigms, in one process with one thread, each stage's call starting from its
+    inputs loaded afresh as a worker's does (`as_workers_load_it`), into a temporary folder of
     ``cache_dir`` (deleted afterwards): runs with the first queries (`SAMPLE_RUNS`), each adding
     new ones, then one with `SAMPLE_MORE_RANKINGS` more rankings of them (`_more_rankings`),
     each stage's seconds (the pipeline's own stage clock), new tasks and new units (their
@@ -467,7 +475,7 @@ def measure_unit_costs(
     parts.append((sample, [ranking, *_more_rankings(ranking, SAMPLE_MORE_RANKINGS)]))
     one_process = dataclasses.replace(settings, workers=1)
     load = os.getloadavg()[0]
-    with temporary_folder(cache_dir, "forecast") as folder, single_threaded(), _quiet():
+    with temporary_folder(cache_dir, "forecast") as folder, single_threaded(), as_workers_load_it(), _quiet():
         runs = [_timed_run(part, part_rankings, paradigms, one_process, folder) for part, part_rankings in parts]
         inputs = SfmInputs.prepare(sample, one_process, folder, extract=False)
         keypoints = inputs.database_features.keypoints(sample.database.names)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import copy
 import math
 import multiprocessing.util
 import os
@@ -39,6 +40,8 @@ PARENT_CHECK_SECONDS = 1.0
 MIN_TASKS_PER_WORKER = 4
 #: In a worker: (file, object) of the shared data of the call in progress.
 _shared: tuple[str, Any] | None = None
+#: Whether the calls run in this process start from their shared inputs loaded afresh (`as_workers_load_it`).
+_fresh_shared = False
 
 
 def resolve_workers(workers: int | None) -> int:
@@ -197,6 +200,7 @@ def parallel_map(
     progress: Any = tqdm(total=len(tasks), desc=description, unit="task", disable=None, leave=False)
     with progress:
         if runs_here(len(tasks), workers):
+            shared = _loaded_here(shared) if len(tasks) else shared
             for task in tasks:
                 with single_threaded():  # as a worker runs it: threads are slower than one on such tasks
                     result = function(task) if shared is None else function(shared, task)
@@ -213,6 +217,27 @@ def parallel_map(
 
 
 @contextlib.contextmanager
+def as_workers_load_it() -> Iterator[None]:
+    """Within it, each `parallel_map` or `task_stream` call run in this process starts from a copy
+    of its ``shared`` inputs made by their pickling state, as every worker loads them at each call
+    (the stores' in-memory shards empty: `ShardedStore.__getstate__`), so that a call's cost in a
+    worker is timed here (the SfM forecast's sample, run in one process)."""
+    global _fresh_shared
+    previous, _fresh_shared = _fresh_shared, True
+    try:
+        yield
+    finally:
+        _fresh_shared = previous
+
+
+def _loaded_here(shared: Any) -> Any:
+    """``shared`` as a worker loads it (`as_workers_load_it`), else itself."""
+    if not _fresh_shared or shared is None:
+        return shared
+    return copy.deepcopy(shared)  # by `__getstate__`, as pickle: no unpickling of bytes
+
+
+@contextlib.contextmanager
 def task_stream(
     function: Callable[..., Any], tasks: int, workers: int | None, description: str, shared: Any = None
 ) -> Iterator[Callable[[Any], None]]:
@@ -226,6 +251,7 @@ def task_stream(
     progress: Any = tqdm(total=tasks, desc=description, unit="task", disable=None, leave=False)
     with progress:
         if runs_here(tasks, workers):
+            shared = _loaded_here(shared) if tasks else shared
 
             def run_here(task: Any) -> None:
                 with single_threaded():
