@@ -266,10 +266,10 @@ class SfmPlan:
             in_this_process.add("match + verify")
         seconds = {}
         for stage, tasks in self._tasks().items():
-            processes = 1 if stage in in_this_process else spread(tasks)
             if not tasks:
                 seconds[stage] = costs.idle.get(stage, 0.0)
                 continue
+            processes = 1 if stage in in_this_process else spread(tasks)
             seconds[stage] = single[stage] / processes + costs.per_call.get(stage, 0.0)
             seconds[stage] += costs.pool_call if processes > 1 else 0.0
         return seconds
@@ -332,7 +332,9 @@ def pool_call_seconds(inputs: SfmInputs, workers: int) -> float:
     """Seconds a call of the started pool of ``workers`` takes beyond its tasks' work, timed with
     the run's ``inputs`` as every stage hands them out: pickled once, loaded by each worker (the
     stores' indexes with them, their in-memory shards empty: `ShardedStore.__getstate__`), the
-    answers gathered. The tasks' own reads are in their units already, so the probe reads nothing."""
+    answers gathered. The tasks' own reads are in their units already, so the probe reads nothing;
+    one load of the inputs is in the sample's cost per call too (`as_workers_load_it`): a few
+    milliseconds counted twice, left in rather than timed apart."""
     started = time.perf_counter()
     for _ in parallel_map(_database_size, range(workers), workers, "forecast: a pool call", inputs):
         pass
@@ -616,9 +618,8 @@ def registration_unit_on_map(
     registered = work.registered_images.new - stages.plan(scene, rankings, settings, cache_dir, 0).registered_images.new
     if not registered:
         return None
-    return max(
-        seconds - per_call - per_task * len(queries), 0.0
-    ) / registered, f"{len(queries)} queries and the run's rankings ({len(rankings)}) on the whole map"
+    unit = max(seconds - per_call - per_task * len(queries), 0.0) / registered
+    return unit, f"{len(queries)} queries and the run's rankings ({len(rankings)}) on the whole map"
 
 
 @contextlib.contextmanager
