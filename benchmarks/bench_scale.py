@@ -22,17 +22,17 @@ Then the SfM paradigms (2a, 2b) with the dataset config's settings (``sfm``, fro
 ``python evaluate.py data=<size>``) at the published local-feature count (``--keypoints``,
 20,000: the R2D2 features the data configs select), on the device a run would use:
 
-1. their work counted exactly (`LocalSfm.plan`, `GlobalSfm.plan`) for these rankings and the k
-   lists of ``configs/paradigms/<name>.yaml``;
-2. unit costs measured by the product's own `measure_unit_costs` (the SfM pipeline run on its
-   sample: a neighbourhood of database images and two queries) with the features of a generated
-   world (`sfm_world.FeatureWorld`: points with descriptors, each image's features their
-   projections plus clutter, written as R2D2 kapture files and read back);
-3. the full sweep's forecast (`SfmPlan.forecast`, what ``evaluate.py`` logs) per stage;
+1. their work counted exactly (`count_work`) for these rankings and the k lists of
+   ``configs/paradigms/<name>.yaml``;
+2. unit costs measured by the dry run's own `calibrate` (the SfM pipeline run on a neighbourhood
+   of database images and a few queries) with the features of a generated world
+   (`sfm_world.FeatureWorld`: points with descriptors, each image's features their projections
+   plus clutter, written as R2D2 kapture files and read back);
+3. the full sweep's forecast (`locretrieval.sfm.forecast.forecast`, what ``dry_run=true`` logs) per stage;
 4. **the forecast checked**: a slice of the work (the ``--slice`` share of the queries with the
    smallest x and the database images within 25 m of them, their own rankings, features of
    the generated world at ``--slice-keypoints``) forecast the same way, then run end to end
-   through the SfM pipeline (`run_sfm`, both paradigms) and timed.
+   through the SfM pipeline (`run_sfm`, both paradigms) and timed against the band the forecast claims.
 """
 
 from __future__ import annotations
@@ -64,18 +64,11 @@ from locretrieval.paradigms.base import Paradigms
 from locretrieval.retrieval import random_ranking
 from locretrieval.retrieval.index import search
 from locretrieval.scene import Camera, ImageSet, Scene
+from locretrieval.sfm.forecast import BAND, Calibration, calibrate, calibration_sample, forecast
 from locretrieval.sfm.inputs import SfmInputs, SfmSettings
-from locretrieval.sfm.pipeline import SfmStages, run_sfm
-from locretrieval.sfm.plan import (
-    SfmPlan,
-    UnitCosts,
-    feature_work,
-    forecast_sample,
-    measure_unit_costs,
-    prepare_workers,
-    sample_depth,
-)
+from locretrieval.sfm.pipeline import SfmStages, count_work, run_sfm
 from locretrieval.sfm.triangulation import BatchedTriangulation, MapInput
+from locretrieval.sfm.work import SfmPlan
 
 CAMERA = Camera("PINHOLE", 1024, 1024, (500.0, 500.0, 512.0, 512.0))
 #: (database images, queries) of each dataset
@@ -355,9 +348,8 @@ def sfm_paradigms() -> dict[str, SfmStages]:
 
 
 def sfm_plan(scene: Scene, rankings, sfm: SfmSettings, cache: Path) -> SfmPlan:
-    """The exact SfM work of both paradigms for ``rankings`` (no cost yet)."""
-    work = [stages.plan(scene, rankings, sfm, cache, 0) for stages in sfm_paradigms().values()]
-    return SfmPlan(feature_work(SfmInputs.prepare(scene, sfm, cache, extract=False)), work, True, sfm.processes)
+    """The exact SfM work of both paradigms for ``rankings``."""
+    return count_work(SfmInputs.prepare(scene, sfm, cache, extract=False), rankings, sfm_paradigms())
 
 
 def with_kapture_root(scene: Scene, root: Path) -> Scene:
@@ -373,15 +365,15 @@ def with_kapture_root(scene: Scene, root: Path) -> Scene:
 
 def measured_unit_costs(
     scene: Scene, sfm: SfmSettings, keypoints: int, rng: np.random.Generator, folder: Path
-) -> UnitCosts:
-    """`measure_unit_costs` on the scene, the images of its sample given generated features
+) -> Calibration:
+    """`calibrate` on the scene, the images of its neighbourhood given generated features
     (`FeatureWorld`) at ``keypoints``, written as kapture files under ``folder``."""
     paradigms, scene = sfm_paradigms(), with_kapture_root(scene, folder)
-    sample, _ = forecast_sample(scene, sample_depth(scene))
+    sample, _ = calibration_sample(scene)
     world = FeatureWorld(np.concatenate([sample.database.centers, sample.queries.centers]), scene.frustum_far, rng)
     for images in (sample.database, sample.queries):
         world.write(images, range(len(images)), keypoints, scene.frustum_far, sfm.features.name)
-    return measure_unit_costs(scene, sfm, paradigms, folder / "cache")
+    return calibrate(scene, sfm, paradigms, folder / "cache")
 
 
 def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Generator) -> None:
@@ -396,7 +388,7 @@ def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Ge
                 f"  {w.paradigm}: query pairs {w.query_pairs.total:,}, database pairs {w.database_pairs.total:,}, "
                 f"maps {w.maps.total:,} (~{w.pairs_per_map:,.0f} pairs each), registrations {w.registrations.total:,}"
             )
-        plan.costs = measure(
+        costs = measure(
             f"unit costs at {args.keypoints:,} keypoints",
             measured_unit_costs,
             scene,
@@ -405,18 +397,20 @@ def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Ge
             rng,
             folder / "units",
         )
-        print(unit_cost_line(plan.costs))
-        print(forecast_line(f"projected full SfM sweep ({args.size}, {args.keypoints:,} keypoints", plan, processes))
+        device = sfm.matching.matcher().device
+        print(unit_cost_line(costs, args.keypoints, device))
+        label = f"projected full SfM sweep ({args.size}, {args.keypoints:,} keypoints"
+        print(forecast_line(label, forecast(plan, costs, processes, device), processes))
         ratio = measure(
             "batched against COLMAP triangulation", batched_triangulation_ratio, scene, sfm, args.keypoints, rng
         )
-        scaled = {name: seconds * ratio for name, seconds in plan.costs.map_pairs.items()}
-        batched = dataclasses.replace(plan, costs=dataclasses.replace(plan.costs, map_pairs=scaled))
+        scaled = {name: seconds * ratio for name, seconds in costs.map_pairs.items()}
+        batched = forecast(plan, dataclasses.replace(costs, map_pairs=scaled), processes, device)
         print(
             forecast_line(f"  with sfm/triangulation=batched ({ratio:.2f} of COLMAP's time per map", batched, processes)
         )
 
-        on_gpu = plan.costs.device.startswith("cuda")
+        on_gpu = device.startswith("cuda")
         fraction = args.slice if args.slice is not None else (0.02 if on_gpu else 0.005)
         keypoints = args.slice_keypoints or (args.keypoints if on_gpu else 1000)
         slice_scene, slice_rankings = scene_slice(scene, descriptors_of, fraction, args.seed, folder / "slice")
@@ -426,9 +420,8 @@ def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Ge
         for images in (slice_scene.database, slice_scene.queries):
             world.write(images, range(len(images)), keypoints, scene.frustum_far, sfm.features.name)
         slice_plan = sfm_plan(slice_scene, slice_rankings, sfm, folder / "slice_cache")
-        slice_plan.costs = measure_unit_costs(slice_scene, sfm, sfm_paradigms(), folder / "slice_cache")
-        prepare_workers(slice_plan, SfmInputs.prepare(slice_scene, sfm, folder / "slice_cache", extract=False))
-        forecast = sum(slice_plan.forecast().values())
+        slice_costs = calibrate(slice_scene, sfm, sfm_paradigms(), folder / "slice_cache")
+        slice_forecast = forecast(slice_plan, slice_costs, processes, device)
         print(
             f"slice: {len(slice_scene.queries)} queries ({100 * fraction:g} %) "
             f"and {len(slice_scene.database)} database images at "
@@ -437,15 +430,16 @@ def sfm_at_scale(scene: Scene, rankings, descriptors_of, args, rng: np.random.Ge
             f"{sum(w.registrations.new for w in slice_plan.paradigms):,} registrations"
         )
         # printed before the run: one cut short by a time limit still shows its forecast
-        print(forecast_line("  slice forecast", slice_plan, processes), flush=True)
-        stages: dict[str, float] = {}
-        started = time.perf_counter()
-        run_sfm(slice_scene, slice_rankings, sfm_paradigms(), sfm, folder / "slice_cache", stages)
-        measured = time.perf_counter() - started
+        print(forecast_line("  slice forecast", slice_forecast, processes), flush=True)
+        inputs = SfmInputs.prepare(slice_scene, sfm, folder / "slice_cache", extract=False)
+        run = run_sfm(inputs, slice_rankings, sfm_paradigms())
+        total = sum(slice_forecast.values())
+        ratio = run.seconds / total
         print(
-            f"  slice measured end to end: {measured:.1f} s ("
-            + ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in stages.items())
-            + f") against {forecast:.1f} s forecast: measured / forecast {measured / forecast:.2f}"
+            f"  slice measured end to end: {run.seconds:.1f} s ("
+            + ", ".join(f"{stage} {record.seconds:.1f} s" for stage, record in run.stages.items())
+            + f") against {total:.1f} s forecast: measured / forecast {ratio:.2f} "
+            f"({'within' if BAND[0] <= ratio <= BAND[1] else 'outside'} its band x{BAND[0]:g}-{BAND[1]:g})"
         )
 
 
@@ -473,21 +467,20 @@ def batched_triangulation_ratio(scene: Scene, sfm: SfmSettings, keypoints: int, 
     return seconds[1] / seconds[0]
 
 
-def unit_cost_line(costs: UnitCosts) -> str:
+def unit_cost_line(costs: Calibration, keypoints: int, device: str) -> str:
     units = ", ".join(
         f"{name}: triangulate {costs.map_pairs[name] * 1e3:.2f} ms/map pair, register "
-        f"{costs.registrations[name] * 1e3:.2f} ms/image"
+        f"{costs.registered_images[name] * 1e3:.2f} ms/image"
         for name in costs.map_pairs
     )
     return (
-        f"  per unit in one process ({costs.keypoints:,.0f} keypoints, matching on {costs.device}, "
+        f"  per unit in one process ({keypoints:,} keypoints, matching on {device}, "
         f"measured on {costs.sample}): features {costs.features:.4f} s/image, "
         f"match + verify {costs.pairs * 1e3:.2f} ms/pair, {units}"
     )
 
 
-def forecast_line(label: str, plan: SfmPlan, processes: int) -> str:
-    stages = plan.forecast()
+def forecast_line(label: str, stages: dict[str, float], processes: int) -> str:
     total = sum(stages.values())
     return (
         f"{label}, {processes} processes): {_hours(total)} ("

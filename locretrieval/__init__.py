@@ -3,6 +3,7 @@
 import atexit
 import gc
 import logging  # noqa: E402
+import os
 
 # pycolmap exports its own deflate/inflate symbols: importing zlib first keeps later
 # compression calls (numpy savez_compressed, PNG writers) from crashing the process.
@@ -11,6 +12,9 @@ import zlib  # noqa: F401
 # faiss's loader logs at INFO each CPU-specific library it fails to find (AVX-512, AVX2) before
 # the one it loads: not about the run.
 logging.getLogger("faiss.loader").setLevel(logging.WARNING)
+# pycolmap's glog writes INFO lines to stderr (one per SIFT extractor it creates): warnings and above
+# only, in this process and the workers it starts, unless GLOG_minloglevel is set (0: everything).
+os.environ.setdefault("GLOG_minloglevel", "2")
 
 from locretrieval import config, models, moved  # noqa: F401,E402  (register the config resolvers)
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +26,6 @@ import numpy as np
 import pandas as pd
 from scipy import sparse
 
-from locretrieval.cache import config_key
 from locretrieval.config import ConfigError, validated
 from locretrieval.estimates import PoseEstimates
 from locretrieval.groundtruth import GroundTruth, RelevanceScope
@@ -37,15 +37,11 @@ from locretrieval.retrieval import Ranking, random_ranking
 from locretrieval.retrieval.descriptors import SceneDescriptors
 from locretrieval.retrieval.index import RetrievalSettings, search
 from locretrieval.scene import Scene
-from locretrieval.sfm.inputs import SfmInputs, SfmSettings
-from locretrieval.sfm.pipeline import run_sfm
-from locretrieval.sfm.plan import SfmPlan, UnitCosts, feature_work, measure_unit_costs, prepare_workers
+from locretrieval.sfm.inputs import SfmSettings
+from locretrieval.sfm.pipeline import run_sfm, sfm_inputs
 from locretrieval.shard import Shard
 
 log = logging.getLogger(__name__)
-
-#: Unit costs measured in this process, by what they were measured on (`sfm_plan`).
-_unit_costs: dict[str, UnitCosts] = {}
 
 
 @dataclass
@@ -75,7 +71,8 @@ class BenchmarkResult:
     ``localization``: % localised per subset x ranking x paradigm x method x k x threshold
     (`RESULT_COLUMNS`); ``query_errors``: per query; ``retrieval`` / ``query_retrieval``:
     P@k, R@k, mAP@k of every ranking against every ground truth (empty without ground truth);
-    ``sfm_stages``: per SfM stage, its forecast and measured seconds (`stage_times`).
+    ``sfm_stages``: per SfM stage, its seconds, work done and unit (`StageRecord`); ``sfm_seconds``:
+    the SfM paradigms' wall-clock seconds.
     """
 
     dataset: str
@@ -85,7 +82,8 @@ class BenchmarkResult:
     query_errors: pd.DataFrame
     retrieval: pd.DataFrame
     query_retrieval: pd.DataFrame
-    sfm_stages: dict[str, dict[str, float | None]] = dataclasses.field(default_factory=dict)
+    sfm_stages: dict[str, dict[str, float | int | str]] = dataclasses.field(default_factory=dict)
+    sfm_seconds: float = 0.0
 
 
 def build_rankings(
@@ -163,50 +161,6 @@ def scene_subsets(
     return tag_masks | image_masks, table
 
 
-def sfm_plan(
-    scene: Scene,
-    rankings: Sequence[Ranking] | None,
-    settings: BenchmarkSettings,
-    cache_dir: str | Path | None,
-    num_rankings: int = 0,
-) -> SfmPlan | None:
-    """The work of the enabled SfM paradigms (`SfmPlan`; ``None`` when none is enabled or there
-    is no cache): exact for ``rankings``, or upper bounds for ``num_rankings`` rankings not
-    computed yet (``None``). When there is new work, unit costs are measured on a sample of the
-    scene (`measure_unit_costs`, with the ``rankings`` when given, once per scene and settings in a
-    process; timing registrations on a whole map does some of the run's own work, which the plan
-    then leaves out) for the forecast, and
-    the worker pool is started when a stage will need it."""
-    paradigms = settings.paradigms.sfm_stages()
-    if not paradigms or cache_dir is None:
-        return None
-    cache_dir = Path(cache_dir)
-
-    def counted() -> SfmPlan:
-        inputs = SfmInputs.prepare(scene, settings.sfm, cache_dir, extract=False)
-        work = [
-            dataclasses.replace(stages.plan(scene, rankings, settings.sfm, cache_dir, num_rankings), paradigm=name)
-            for name, stages in paradigms.items()
-        ]
-        return SfmPlan(feature_work(inputs), work, rankings is not None, settings.sfm.processes)
-
-    plan = counted()
-    if plan.has_new_work:
-        key = config_key(
-            scene.database.fingerprint(),
-            scene.queries.fingerprint(),
-            repr(settings.sfm),  # the parts' classes too (two without fields have the same asdict)
-            {name: repr(stages) for name, stages in paradigms.items()},
-        )
-        if key not in _unit_costs:
-            _unit_costs[key] = measure_unit_costs(scene, settings.sfm, paradigms, cache_dir, rankings)
-            if _unit_costs[key].registrations_on_map:
-                plan = counted()  # without what that measurement did of the run's own work
-        plan.costs = _unit_costs[key]
-        prepare_workers(plan, SfmInputs.prepare(scene, settings.sfm, cache_dir, extract=False))
-    return plan
-
-
 def run_sfm_shard(
     scene: Scene,
     rankings: Sequence[Ranking],
@@ -221,7 +175,7 @@ def run_sfm_shard(
     if not paradigms:
         log.info("shard=%s: no SfM paradigm is enabled, nothing to do", shard)
         return
-    run_sfm(scene, rankings, paradigms, settings.sfm, cache_dir, shard=shard)
+    run_sfm(sfm_inputs(scene, settings.sfm, cache_dir, paradigms), rankings, paradigms, shard=shard)
     log.info(
         "shard=%s: this job's share of %s is in %s; once every shard has run, the same command without "
         "shard writes the results",
@@ -229,6 +183,35 @@ def run_sfm_shard(
         " and ".join(paradigms),
         cache_dir,
     )
+
+
+def sfm_within_budget(
+    scene: Scene,
+    rankings: Sequence[Ranking],
+    settings: BenchmarkSettings,
+    cache_dir: str | Path | None,
+    order: Sequence[int],
+    seconds: float,
+) -> tuple[int, float]:
+    """The enabled SfM paradigms' work on ``rankings`` for the queries in ``order``, until ``seconds``
+    are spent: how many of them were reached, and the seconds it took. Chunks of queries grow with
+    the throughput measured so far: one query first, then as many as the time left holds (at most
+    twice the last chunk), so the budget is overrun by one chunk at most. All queries at once
+    without an SfM paradigm (the rest of a validation is vectorised: seconds at most)."""
+    paradigms = settings.paradigms.sfm_stages()
+    started = time.perf_counter()
+    if not paradigms:
+        return len(order), 0.0
+    inputs = sfm_inputs(scene, settings.sfm, cache_dir, paradigms)
+    reached, chunk = 0, 1
+    while reached < len(order):
+        run_sfm(inputs, rankings, paradigms, queries=order[reached : reached + chunk])
+        reached = min(len(order), reached + chunk)
+        spent = time.perf_counter() - started
+        if spent >= seconds:
+            break
+        chunk = max(1, min(2 * chunk, int((seconds - spent) / (spent / reached))))
+    return reached, time.perf_counter() - started
 
 
 def benchmark(
@@ -249,13 +232,12 @@ def benchmark(
     check_supported(scene, settings.paradigms.enabled())
     warn_shallow_rankings(rankings, settings.paradigms.ks())
     depths = {ranking.name: ranking.depth for ranking in rankings}
-    plan = sfm_plan(scene, rankings, settings, cache_dir)
-    if plan is not None:
-        log.info("%s", plan.describe())
-    measured: dict[str, float] = {}
     sfm_paradigms = settings.paradigms.sfm_stages()
-    sfm_estimates = run_sfm(scene, rankings, sfm_paradigms, settings.sfm, cache_dir, measured) if sfm_paradigms else {}
-    sfm_stages = stage_times(plan.forecast() if plan is not None and plan.costs else {}, measured)
+    sfm_estimates, sfm_stages, sfm_seconds = {}, {}, 0.0
+    if sfm_paradigms:
+        run = run_sfm(sfm_inputs(scene, settings.sfm, cache_dir, sfm_paradigms), rankings, sfm_paradigms)
+        sfm_estimates, sfm_seconds = run.estimates or {}, run.seconds
+        sfm_stages = {stage: dataclasses.asdict(record) for stage, record in run.stages.items()}
     estimates: list[PoseEstimates] = []
     for name in settings.paradigms.enabled():
         paradigm = getattr(settings.paradigms, name)
@@ -282,33 +264,13 @@ def benchmark(
             settings.paradigms.ks(),
         )
     return BenchmarkResult(
-        scene.name, list(rankings), estimates, localization, query_errors, retrieval, query_retrieval, sfm_stages
+        scene.name,
+        list(rankings),
+        estimates,
+        localization,
+        query_errors,
+        retrieval,
+        query_retrieval,
+        sfm_stages,
+        sfm_seconds,
     )
-
-
-def stage_times(forecast: Mapping[str, float], measured: Mapping[str, float]) -> dict[str, dict[str, float | None]]:
-    """Per SfM stage (and ``total``), its ``forecast_s`` and ``measured_s`` seconds (None where
-    one is missing) and their ``ratio`` (measured / forecast), logged."""
-    stages = {
-        stage: {"forecast_s": forecast.get(stage), "measured_s": measured.get(stage)}
-        for stage in dict.fromkeys([*forecast, *measured])
-    }
-    if forecast and measured:
-        stages["total"] = {"forecast_s": sum(forecast.values()), "measured_s": sum(measured.values())}
-    for times in stages.values():
-        known = times["forecast_s"] is not None and times["measured_s"] is not None and times["forecast_s"] > 0
-        times["ratio"] = times["measured_s"] / times["forecast_s"] if known else None
-    if stages:
-        log.info(
-            "SfM stages, forecast -> measured: %s",
-            ", ".join(
-                f"{stage} {_seconds(times['forecast_s'])} -> {_seconds(times['measured_s'])}"
-                + (f" ({times['ratio']:.2f}x)" if times["ratio"] is not None else "")
-                for stage, times in stages.items()
-            ),
-        )
-    return stages
-
-
-def _seconds(value: float | None) -> str:
-    return "-" if value is None else f"{value:.1f} s"

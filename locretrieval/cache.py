@@ -165,12 +165,21 @@ def cached_arrays(
 ) -> tuple[dict[str, np.ndarray], bool]:
     """``(arrays, hit)``: the arrays stored at ``path``, else ``compute()`` saved there.
 
+    Processes sharing the cache (the jobs of a sharded evaluation or a multirun) compute it once:
+    the first holds ``<path>.lock`` while it computes, the others wait and read what it saved.
     ``path=None`` disables caching (always computes, ``hit`` False).
     """
-    if path is not None and Path(path).is_file():
+    if path is None:
+        return dict(compute()), False
+    if Path(path).is_file():
         return load_arrays(path), True
-    arrays = dict(compute())
-    if path is not None:
+    from filelock import FileLock
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with FileLock(f"{path}.lock"):
+        if Path(path).is_file():  # computed by another process while this one waited
+            return load_arrays(path), True
+        arrays = dict(compute())
         save_arrays(path, arrays)
     return arrays, False
 

@@ -21,16 +21,17 @@ from locretrieval.benchmark import (
     relevances,
     run_sfm_shard,
     scene_subsets,
-    sfm_plan,
 )
 from locretrieval.cache import safe_name, save_arrays
 from locretrieval.config import built, validated
 from locretrieval.estimates import estimated_pose_table
 from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths, statistics_table
+from locretrieval.groundtruth.compute import groundtruth_sfm_pairs
 from locretrieval.metrics.localization import best_over_k, median_errors
 from locretrieval.metrics.subsets import SubsetSettings, missing_mask_inputs
 from locretrieval.report.gallery import GallerySettings, write_gallery_inputs
 from locretrieval.report.scene_view import SCENE_VIEW_FILE, SceneViewSettings, write_scene_view
+from locretrieval.report.tables import SFM_STAGES
 from locretrieval.retrieval.descriptors import DescriptorSearch
 from locretrieval.scene import Scene
 from locretrieval.scene.datasets import instantiate_scene
@@ -44,7 +45,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     """Run the benchmark configured by ``cfg`` and write every output into ``output_dir``.
 
     Every config section, then every input file the run needs (`check_inputs`), is checked
-    before any work; with ``dry_run`` the SfM work is only planned and logged (`log_plan`). Writes the tidy tables
+    before any work; with ``dry_run`` the SfM work is only counted and forecast (`dry_run`). Writes the tidy tables
     (``results.csv``, ``query_errors.csv.gz``, ``median_errors.csv``, ``retrieval.csv``, ``query_retrieval.csv.gz``,
     ``groundtruth_statistics.csv``, ``subsets.csv``, ``estimated_poses.csv.gz``), the rankings, what galleries read
     (``images.csv``, ``relevance/``), LTVL exports, ``summary.json``, the 3D view (``scene_3d.html``, unless
@@ -68,19 +69,20 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     model = None if missing_weights else built(cfg.model, "model")  # a weight file is read as the model is built
     check_inputs(scene, model, settings, groundtruth_settings, subset_settings, missing_weights)
     if cfg.dry_run:
-        log_plan(cfg, scene, settings, groundtruth_settings, cache_dir)
+        dry_run(cfg, scene, settings, groundtruth_settings, cache_dir)
         return pd.DataFrame()
     output_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, output_dir / "config.yaml", resolve=True)  # as run; .hydra/ keeps the interpolations
 
     given = model.rankings(scene, DescriptorSearch(settings.retrieval, cache_dir))  # descriptors or a pairs file
-    groundtruths = {}
+    groundtruths, groundtruth_started = {}, time.perf_counter()
     if scene.queries.has_pose.any():
         groundtruths = compute_groundtruths(scene, groundtruth_settings, settings.sfm, cache_dir)
     else:
         log.warning(
             "no query has a reference pose: ground truth and metrics are skipped, poses are only exported (ltvl/)"
         )
+    groundtruth_seconds = time.perf_counter() - groundtruth_started
     random_seed = int(cfg.seed) if cfg.baselines.random else None
     rankings = build_rankings(scene, {}, groundtruths, settings.retrieval, random_seed, given)
     if shard is not None:  # one job of a sharded evaluation: its SfM work, no results
@@ -116,7 +118,9 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
         "paradigms": ", ".join(f"{p} (k={getattr(settings.paradigms, p).k})" for p in settings.paradigms.enabled()),
         "LTVL exports": f"{exported} files in ltvl/",
         "run time": f"{time.perf_counter() - started:.1f} s",
-        "SfM stages": result.sfm_stages,  # forecast and measured seconds per stage
+        "ground truth seconds": round(groundtruth_seconds, 2),
+        "SfM seconds": round(result.sfm_seconds, 2),
+        SFM_STAGES: result.sfm_stages,  # per stage: seconds, work done, its unit
     }
     (output_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     from locretrieval.report import build_report  # here: matplotlib is imported when figures are drawn
@@ -137,27 +141,31 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     return results
 
 
-def log_plan(
+def dry_run(
     cfg: DictConfig, scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings, cache_dir: Path
 ) -> None:
-    """``dry_run``: log the SfM paradigms' work and its forecast (`sfm_plan`: upper bounds, since
-    no ranking is computed) and nothing else: no descriptor, feature, match or file is written."""
-    groundtruth_rankings = len(groundtruths.parsed()) if scene.queries.has_pose.any() else 0
-    num_rankings = 1 + groundtruth_rankings + int(bool(cfg.baselines.random))
-    plan = sfm_plan(scene, None, settings, cache_dir, num_rankings)
-    if plan is None:
+    """``dry_run``: log the SfM work (upper bounds: no ranking is computed) and its forecast
+    (`locretrieval.sfm.forecast`, a few seconds of calibration); no descriptor, ground truth or file
+    of the run is computed or written."""
+    paradigms = settings.paradigms.sfm_stages()
+    if not paradigms:
         log.info("dry run: no SfM paradigm is enabled, nothing to match")
-    else:
-        log.info(
-            "dry run over %d rankings (the model's, %d of the ground truth, %d random); nothing is computed. The SfM "
-            "paradigms' work (the co-observation ground truth, "
-            "when enabled, first matches pairs of its own, not counted "
-            "here):\n%s",
-            num_rankings,
-            groundtruth_rankings,
-            int(bool(cfg.baselines.random)),
-            plan.describe(),
-        )
+        return
+    from locretrieval.sfm.forecast import dry_run_forecast
+
+    posed = bool(scene.queries.has_pose.any())
+    groundtruth_rankings = len(groundtruths.parsed()) if posed else 0
+    num_rankings = 1 + groundtruth_rankings + int(bool(cfg.baselines.random))
+    pairs = groundtruth_sfm_pairs(scene, groundtruths, settings.sfm) if posed else (set(), set())
+    _, _, lines = dry_run_forecast(scene, settings.sfm, paradigms, cache_dir, num_rankings, pairs)
+    log.info(
+        "dry run over %d rankings (the model's, %d of the ground truth, %d random); nothing of the run is "
+        "computed:\n%s",
+        num_rankings,
+        groundtruth_rankings,
+        int(bool(cfg.baselines.random)),
+        lines,
+    )
 
 
 def check_inputs(

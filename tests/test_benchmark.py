@@ -197,6 +197,7 @@ LAYERS = [
         "chebyshev",
         "restricted_pickle",
         "processes",
+        "pool",
         "threads",
         "errors",
         "estimates",
@@ -247,6 +248,92 @@ def test_no_module_imports_from_a_layer_above_it():
     assert imported_parts(
         ast.parse("from locretrieval.metrics import x\ndef f():\n    import locretrieval.report.plots")
     ) == {"metrics", "report"}
+
+
+def module_imports(sources: dict[str, str]) -> dict[str, set[str]]:
+    """``module -> the locretrieval modules it imports`` (anywhere in it, type-checking blocks
+    included), from the modules' ``sources``: ``from package import name`` is an import of the
+    submodule ``package.name`` where there is one, else of the package."""
+    graph = {}
+    for module, source in sources.items():
+        package = module if module.endswith("__init__") else module.rpartition(".")[0]
+        package = package.removesuffix(".__init__")
+        imported = set()
+        for node in ast.walk(ast.parse(source)):
+            if isinstance(node, ast.Import):
+                imported.update(alias.name for alias in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    parts = package.split(".")
+                    base = ".".join(parts[: len(parts) - node.level + 1] + ([node.module] if node.module else []))
+                for alias in node.names:
+                    name = f"{base}.{alias.name}"
+                    imported.add(name if {name, f"{name}.__init__"} & sources.keys() else base)
+        graph[module] = set()
+        for name in imported:
+            while name and not ({name, f"{name}.__init__"} & sources.keys()):
+                name = name.rpartition(".")[0]
+            target = name if name in sources else f"{name}.__init__"
+            if name.startswith("locretrieval") and target != module:
+                graph[module].add(target)
+    return graph
+
+
+def import_circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm, iterative)."""
+    index, low, stack, on_stack, circles = {}, {}, [], set(), []
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, successors = work[-1]
+            for successor in successors:
+                if successor not in index:
+                    index[successor] = low[successor] = len(index)
+                    stack.append(successor)
+                    on_stack.add(successor)
+                    work.append((successor, iter(sorted(graph[successor]))))
+                    break
+                if successor in on_stack:
+                    low[node] = min(low[node], index[successor])
+            else:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[node])
+                if low[node] == index[node]:
+                    component = []
+                    while True:
+                        member = stack.pop()
+                        on_stack.discard(member)
+                        component.append(member)
+                        if member == node:
+                            break
+                    if len(component) > 1:
+                        circles.append(sorted(component))
+    return circles
+
+
+def test_no_import_circle_among_the_modules():
+    """Each package reads top-down: no module imports, even inside a function or for type checking
+    only, a module that (through others) imports it."""
+    sources = {
+        ".".join(path.relative_to(PACKAGE.parent).with_suffix("").parts): path.read_text()
+        for path in PACKAGE.rglob("*.py")
+    }
+    assert len(sources) > 100
+    assert import_circles(module_imports(sources)) == []
+    planted = {  # the scan finds a circle through a function-level import and a package's re-export
+        "locretrieval.a": "from locretrieval.b import f",
+        "locretrieval.b": "def f():\n    from locretrieval.pkg import g",
+        "locretrieval.pkg.__init__": "from locretrieval.pkg.c import g",
+        "locretrieval.pkg.c": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from locretrieval import a",
+    }
+    assert import_circles(module_imports(planted)) == [sorted(planted)]
 
 
 @pytest.mark.parametrize(

@@ -264,3 +264,35 @@ def test_a_model_from_outside_the_package_is_evaluated_through_the_config(tmp_pa
     np.testing.assert_array_equal(saved["indices"], np.argsort(distance, axis=1, kind="stable"))
     results = pd.read_csv(tmp_path / "run" / "results.csv")
     assert set(results["ranking"]) == {"oracle"} and set(results["method"]) == {"ewb"}
+
+
+def test_the_summary_and_the_report_hold_each_sfm_stage_with_its_work_counted(run):
+    """Each stage's seconds and work done, in its units: the global registrations are the distinct
+    (query, top-k images) of every ranking and k, counted here from the saved rankings."""
+    import json
+
+    _, output = run
+    stages = json.loads((output / "summary.json").read_text())["SfM stages"]
+    assert list(stages) == [
+        "features",
+        "match + verify",
+        "local_sfm: triangulate",
+        "local_sfm: register",
+        "global_sfm: triangulate",
+        "global_sfm: register",
+    ]
+    assert all(record["seconds"] >= 0 for record in stages.values())
+    registrations = set()
+    for path in (output / "rankings").glob("*.npz"):
+        with np.load(path) as ranking:
+            indices = ranking["indices"]
+        for k in sorted(K_PER_PARADIGM["global_sfm"]):
+            registrations |= {(q, tuple(sorted(i for i in row[:k] if i >= 0))) for q, row in enumerate(indices)}
+    assert stages["global_sfm: register"] == {
+        "seconds": stages["global_sfm: register"]["seconds"],
+        "done": len(registrations),
+        "unit": "registrations",
+    }
+    assert stages["global_sfm: triangulate"]["done"] == 1 and stages["global_sfm: triangulate"]["unit"] == "maps"
+    report = (output / "report.md").read_text()
+    assert "SfM stages: seconds of work" in report and "{'" not in report  # a table, no Python repr

@@ -209,11 +209,11 @@ def test_workers_exit_when_their_parent_dies_while_they_start(tmp_path):
 
     script = (
         "import os\n"
-        "from locretrieval.sfm.workers import _pools\n"
-        "pool = _pools.get(2)\n"
+        "from locretrieval.sfm.workers import SFM_WORKERS\n"
+        "pool = SFM_WORKERS.executor(2)\n"
         "pool.submit(os.getpid)\n"
         "pool.submit(os.getpid)\n"
-        "print(' '.join(str(pid) for pid in pool._processes), flush=True)\n"
+        "print(' '.join(str(pid) for pid in pool._processes), flush=True)\n"  # loky's workers, by pid
         "os._exit(0)\n"  # the parent dies while its workers import torch and pycolmap
     )
     pids = tmp_path / "workers.txt"

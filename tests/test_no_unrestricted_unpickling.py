@@ -10,9 +10,9 @@ SOURCES = sorted(
     [*ROOT.glob("locretrieval/**/*.py"), *ROOT.glob("scripts/*.py"), *ROOT.glob("benchmarks/*.py"), *ROOT.glob("*.py")]
 )
 
-#: (file, enclosing function) of the unrestricted loads of files the project wrote itself: the SfM
-#: workers' shared state, pickled by `parallel_map` into its own temporary folder.
-OWN_TEMPORARY_FILES = {("locretrieval/sfm/workers.py", "_call")}
+#: (file, enclosing function) of the unrestricted loads of files the project wrote itself: the worker
+#: pools' shared state of a call, pickled by `WorkerPool.map` into its own temporary folder.
+OWN_TEMPORARY_FILES = {("locretrieval/pool.py", "_call")}
 
 UNRESTRICTED = {
     ("pickle", "load"),
@@ -112,5 +112,5 @@ def test_no_module_unpickles_anything_but_its_own_temporary_files():
                 offending.append(f"{relative}:{line} ({function}): {what}")
     assert offending == []
     # the one allowed load is still where the allow-list says (an entry cannot outlive its call)
-    workers = unsafe_loads((ROOT / "locretrieval/sfm/workers.py").read_text())
-    assert {("locretrieval/sfm/workers.py", function) for function, _, _ in workers} == OWN_TEMPORARY_FILES
+    workers = unsafe_loads((ROOT / "locretrieval/pool.py").read_text())
+    assert {("locretrieval/pool.py", function) for function, _, _ in workers} == OWN_TEMPORARY_FILES

@@ -114,6 +114,10 @@ class GroundTruth:
     def name(self) -> str:
         return self.ranking.name
 
+    def of_queries(self, rows: np.ndarray) -> "GroundTruth":
+        """The ground truth of the queries ``rows`` (indices), in that order."""
+        return GroundTruth(self.ranking.of_queries(rows), self.relevance[rows], self.query_has_pose[rows])
+
     def relevance_in_ranking(self) -> sparse.csr_matrix:
         """``relevance`` restricted to the images of the top-``depth`` ranking: the paper reduces
         the ground-truth rankings to the top 50 (Sec. 3.6.3), and so its relevance."""

@@ -70,6 +70,16 @@ class CoObservationDefinition:
 
         return groundtruth_from_scores(name, database, queries, depth, score_block)
 
+    def sfm_pairs(
+        self, database: ImageSet, queries: ImageSet, context: DefinitionContext
+    ) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
+        """The database pairs and the (query, database) pairs (names) `groundtruth` matches."""
+        database_rows, query_rows = joint_map_pairs(database, queries, context.sfm, self.query_pairs)
+        return (
+            [(database.names[a], database.names[b]) for a, b in database_rows],
+            [(queries.names[q], database.names[t]) for q, t in query_rows],
+        )
+
     def graded(self, images: ImageSet, context: DefinitionContext) -> GradedRows:
         """The share of each row image's 3D points that the other image observes too, where they
         share at least ``min_shared``; else 0. The points are those of the known-pose map of
@@ -121,9 +131,7 @@ def shared_points(
     database_matcher = PairMatcher(database, database_features, database, database_features, sfm.matching, cache_dir)
     query_matcher = PairMatcher(queries, query_features, database, database_features, sfm.matching, cache_dir)
 
-    database_pair_rows = database_pairs(database, sfm.map_pairs)
-    query_selection = dataclasses.replace(sfm.map_pairs, max_per_image=query_pairs)
-    query_pair_rows = overlapping_pairs(queries, database, query_selection, exclude_self=False)
+    database_pair_rows, query_pair_rows = joint_map_pairs(database, queries, sfm, query_pairs)
     named_database = [(database.names[a], database.names[b]) for a, b in database_pair_rows]
     named_queries = [(queries.names[q], database.names[t]) for q, t in query_pair_rows]
     verification = sfm.database_verification  # queries with a reference pose: verified by it too
@@ -155,6 +163,19 @@ def shared_points(
     observed = _incidence(joint.observed_points(), joint.num_points)
     counts = (observed[offset:] @ observed[:offset].T).tocoo()
     return sparse.csr_matrix((counts.data, (posed[counts.row], counts.col)), shape=(len(queries), len(database)))
+
+
+def joint_map_pairs(
+    database: ImageSet, queries: ImageSet, sfm: SfmSettings, query_pairs: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The image pairs of the joint map, by index: database pairs ``[m, 2]`` (those of the global
+    map, ``sfm.map_pairs``) and (query, database) pairs ``[n, 2]``, each posed query with its
+    ``query_pairs`` most overlapping database images."""
+    query_selection = dataclasses.replace(sfm.map_pairs, max_per_image=query_pairs)
+    return (
+        database_pairs(database, sfm.map_pairs),
+        overlapping_pairs(queries, database, query_selection, exclude_self=False),
+    )
 
 
 def database_co_observations(scene: Scene, sfm: SfmSettings, cache_dir: Path) -> sparse.csr_matrix:

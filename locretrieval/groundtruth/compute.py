@@ -97,32 +97,20 @@ def compute_groundtruths(
     fingerprints = (database.fingerprint(), queries.fingerprint()) if cache_dir is not None else ()
     groundtruths = {}
     for name, definition in settings.parsed().items():
+        context = definition_context(scene, name, definition, sfm, cache_dir)
         produced_by: dict[str, Any] = {
             **dataclasses.asdict(definition),
             "scene_far": scene.frustum_far,
         }  # far: null is the scene's
-        context = DefinitionContext(
-            scene.frustum_far,
-            cache_dir=Path(cache_dir) if cache_dir is not None else None,
-            key=f"groundtruth.definitions.{name}",
-            scene=scene.name,
-        )
-        if definition.uses_sfm:
-            if sfm is None:
-                raise ConfigError(
-                    f"groundtruth.definitions.{name}: {definition_type(definition)} needs the sfm settings"
-                )
-            context = dataclasses.replace(
-                context, sfm=dataclasses.replace(sfm, map_pairs=sfm.map_pairs.for_scene(scene))
-            )
-            sfm = context.sfm
+        if context.sfm is not None:
+            used = context.sfm
             produced_by["sfm"] = {
-                "features": sfm.features.identity(),
-                "triangulation": sfm.triangulation.identity(),
-                "map_pairs": dataclasses.asdict(sfm.map_pairs),
+                "features": used.features.identity(),
+                "triangulation": used.triangulation.identity(),
+                "map_pairs": dataclasses.asdict(used.map_pairs),
+                "matching": used.matching.identity(),
+                "database_verification": repr(used.database_verification),
             }
-            produced_by["sfm"]["matching"] = context.sfm.matching.identity()
-            produced_by["sfm"]["database_verification"] = repr(sfm.database_verification)
         path = None
         if cache_dir is not None:
             key = config_key(CACHE_VERSION, definition_type(definition), produced_by, settings.depth, *fingerprints)
@@ -138,6 +126,44 @@ def compute_groundtruths(
             log.info("ground truth %s loaded from %s", name, path)
         groundtruths[name] = _from_arrays(arrays, f"gt_{name}")
     return groundtruths
+
+
+def definition_context(
+    scene: Scene, name: str, definition: Definition, sfm: SfmSettings | None, cache_dir: str | Path | None
+) -> DefinitionContext:
+    """Where definition ``name`` is evaluated on ``scene`` (`DefinitionContext`): the SfM settings,
+    their ``map_pairs`` far plane the scene's where left null, for a definition that uses them."""
+    context = DefinitionContext(
+        scene.frustum_far,
+        cache_dir=Path(cache_dir) if cache_dir is not None else None,
+        key=f"groundtruth.definitions.{name}",
+        scene=scene.name,
+    )
+    if not definition.uses_sfm:
+        return context
+    if sfm is None:
+        raise ConfigError(f"groundtruth.definitions.{name}: {definition_type(definition)} needs the sfm settings")
+    return dataclasses.replace(context, sfm=dataclasses.replace(sfm, map_pairs=sfm.map_pairs.for_scene(scene)))
+
+
+def groundtruth_sfm_pairs(
+    scene: Scene, settings: GroundTruthSettings, sfm: SfmSettings
+) -> tuple[set[tuple[str, str]], set[tuple[str, str]]]:
+    """The database pairs and (query, database) pairs (names) that the enabled definitions using
+    SfM match (their ``sfm_pairs``), for a dry run's count; a definition without ``sfm_pairs`` is
+    left out with a warning."""
+    database_pairs, query_pairs = set(), set()
+    for name, definition in settings.parsed().items():
+        if not definition.uses_sfm:
+            continue
+        if not hasattr(definition, "sfm_pairs"):
+            log.warning("groundtruth.definitions.%s states no sfm_pairs: its matching is not counted", name)
+            continue
+        context = definition_context(scene, name, definition, sfm, None)
+        found = definition.sfm_pairs(scene.database, scene.queries, context)
+        database_pairs.update(found[0])
+        query_pairs.update(found[1])
+    return database_pairs, query_pairs
 
 
 def definition_class(target: str, key: str) -> type[Definition]:

@@ -36,9 +36,9 @@ from locretrieval import geometry
 from locretrieval.config import named_parts, require
 from locretrieval.estimates import LOCALIZED, PoseEstimates
 from locretrieval.paradigms.base import Paradigm
+from locretrieval.pool import resolve_workers
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import ImageSet, Scene
-from locretrieval.sfm.workers import resolve_workers
 
 log = logging.getLogger(__name__)
 

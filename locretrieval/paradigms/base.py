@@ -4,7 +4,7 @@
 keys of its YAML, ``configs/paradigms/<name>.yaml``), `Paradigm.run` computes its pose estimates,
 and it says what it needs (`Paradigm.missing_inputs`, `Paradigm.uses_sfm`) and what map it built
 (`Paradigm.map_points`). An SfM paradigm (`SfmParadigm`) is also the `SfmStages` the SfM pipeline
-drives, and counts its work (`SfmStages.plan`). `Paradigms` is the ``paradigms`` config group: the
+drives, and counts its work (`SfmStages.count`). `Paradigms` is the ``paradigms`` config group: the
 set and order of the paradigms are its sections', so a new paradigm is one class (in any package)
 and one section (``+paradigms.mine={_target_: my.module.Mine, enabled: true, k: [1, 5]}``).
 """
@@ -25,7 +25,7 @@ from locretrieval.estimates import PoseEstimates
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
 from locretrieval.sfm.inputs import SfmSettings
-from locretrieval.sfm.pipeline import SfmStages, run_sfm
+from locretrieval.sfm.pipeline import SfmStages, run_sfm, sfm_inputs
 
 
 @dataclass
@@ -89,7 +89,7 @@ class SfmParadigm(Paradigm, SfmStages):
     def run(
         self, scene: Scene, rankings: Sequence[Ranking], sfm: SfmSettings, cache_dir: Path | None
     ) -> list[PoseEstimates] | None:
-        estimates = run_sfm(scene, rankings, {self.label: self}, sfm, cache_dir)
+        estimates = run_sfm(sfm_inputs(scene, sfm, cache_dir, [self.label]), rankings, {self.label: self}).estimates
         return None if estimates is None else estimates[self.label]
 
 

@@ -49,7 +49,10 @@ from locretrieval.sfm.inputs import (
     run_queries,
 )
 from locretrieval.sfm.pairs import database_pairs
-from locretrieval.sfm.plan import (
+from locretrieval.sfm.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS
+from locretrieval.sfm.pose_cache import PoseCache
+from locretrieval.sfm.sparse_map import SparseMap
+from locretrieval.sfm.work import (
     ParadigmWork,
     Work,
     database_pair_work,
@@ -58,9 +61,6 @@ from locretrieval.sfm.plan import (
     registration_bound,
     registration_work,
 )
-from locretrieval.sfm.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS
-from locretrieval.sfm.pose_cache import PoseCache
-from locretrieval.sfm.sparse_map import SparseMap
 
 log = logging.getLogger(__name__)
 
@@ -121,17 +121,10 @@ class GlobalSfm(SfmParadigm):
             queries,
         )
 
-    def plan(
-        self,
-        scene: Scene,
-        rankings: Sequence[Ranking] | None,
-        sfm: SfmSettings,
-        cache_dir: Path,
-        num_rankings: int,
-    ) -> ParadigmWork:
+    def count(self, inputs: SfmInputs, rankings: Sequence[Ranking] | None, num_rankings: int) -> ParadigmWork:
         """The map's database pairs are exact either way (from the known poses) unless the map is
         cached or given."""
-        inputs = SfmInputs.prepare(scene, sfm, cache_dir, extract=False)
+        scene, cache_dir = inputs.scene, inputs.cache_dir
         query_pairs = query_pair_work(inputs, rankings, self.k, num_rankings)
         if self.colmap_model or map_cache_path(inputs, cache_dir).exists():
             map_pairs, maps = Work(0, 0), Work(1, 0)
@@ -149,7 +142,7 @@ class GlobalSfm(SfmParadigm):
             )
             registrations, queries = registration_work(tasks), queries_to_register(tasks)
         return ParadigmWork(
-            self.label, query_pairs, map_pairs, maps, map_pairs.total, *registrations, queries, parallel_maps=False
+            self.label, query_pairs, map_pairs, maps, map_pairs.total, *registrations, queries, shared_map=True
         )
 
     def map_points(self, scene: Scene, sfm: SfmSettings, cache_dir: Path) -> np.ndarray | None:

@@ -44,19 +44,22 @@ from locretrieval.config import part
 from locretrieval.estimates import PoseEstimates
 from locretrieval.paradigms.base import SfmParadigm
 from locretrieval.retrieval import EMPTY, Ranking
-from locretrieval.scene import Scene
 from locretrieval.sfm.inputs import (
     SFM_METHOD,
     Outcome,
     QueryTask,
     SfmInputs,
-    SfmSettings,
     outcomes_per_image_set,
     query_tasks,
     register_query,
     run_queries,
 )
-from locretrieval.sfm.plan import (
+from locretrieval.sfm.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
+from locretrieval.sfm.pose_cache import PoseCache
+from locretrieval.sfm.sparse_map import SparseMap
+from locretrieval.sfm.triangulation import MapInput
+from locretrieval.sfm.verification import VerificationBatch
+from locretrieval.sfm.work import (
     ParadigmWork,
     Work,
     database_pair_work,
@@ -65,12 +68,7 @@ from locretrieval.sfm.plan import (
     registration_bound,
     registration_work,
 )
-from locretrieval.sfm.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
-from locretrieval.sfm.pose_cache import PoseCache
-from locretrieval.sfm.sparse_map import SparseMap
-from locretrieval.sfm.triangulation import MapInput
-from locretrieval.sfm.verification import VerificationBatch
-from locretrieval.sfm.workers import parallel_map
+from locretrieval.sfm.workers import SFM_WORKERS
 
 #: Bump when the meaning of cached local maps changes.
 CACHE_VERSION = 1
@@ -209,13 +207,19 @@ class LocalSfm(SfmParadigm):
         """The local maps of each query of ``queries`` whose registration is not cached and whose
         map is not either, triangulated and cached (`triangulate_query`, in worker processes)."""
         shared = (inputs, self.map_matches, cache_dir / "local_maps")
-        tasks = [
-            task
-            for task in query_tasks(rankings, ks, _pose_cache(inputs, self, cache_dir), queries)
-            if _new_maps(shared, task)
-        ]
-        for _ in parallel_map(
-            triangulate_query, tasks, inputs.settings.processes, f"{self.label}: triangulate", shared
+        tasks, owned, counted = [], {}, set()
+        for task in query_tasks(rankings, ks, _pose_cache(inputs, self, cache_dir), queries):
+            new = {path for path in _map_paths(shared, task).values() if not path.is_file()}
+            if new:  # its progress counts the maps no earlier task of the call builds (queries share maps)
+                tasks.append(task)
+                owned[task.query], counted = len(new - counted), counted | new
+        for _ in SFM_WORKERS.map(
+            triangulate_query,
+            tasks,
+            inputs.settings.processes,
+            f"{self.label}: triangulate",
+            shared,
+            units=lambda task: owned[task.query],
         ):
             pass
 
@@ -235,16 +239,8 @@ class LocalSfm(SfmParadigm):
             self.label, rankings, ks, register_query_in_maps, shared, inputs.settings.processes, cache, queries
         )
 
-    def plan(
-        self,
-        scene: Scene,
-        rankings: Sequence[Ranking] | None,
-        sfm: SfmSettings,
-        cache_dir: Path,
-        num_rankings: int,
-    ) -> ParadigmWork:
-        k = self.k
-        inputs = SfmInputs.prepare(scene, sfm, cache_dir, extract=False)
+    def count(self, inputs: SfmInputs, rankings: Sequence[Ranking] | None, num_rankings: int) -> ParadigmWork:
+        k, scene, cache_dir = self.k, inputs.scene, inputs.cache_dir
         query_pairs = query_pair_work(inputs, rankings, k, num_rankings)
         pairs_per_map = float(np.mean([comb(min(size, len(scene.database)), 2) for size in k if size >= 2] or [0]))
         if rankings is None:

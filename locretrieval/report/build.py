@@ -18,7 +18,7 @@ from locretrieval.report.html import write_html
 from locretrieval.report.markdown import md_code, md_text
 from locretrieval.report.painters import Painters
 from locretrieval.report.published import published_section
-from locretrieval.report.tables import RunTables, load_runs
+from locretrieval.report.tables import SFM_STAGES, RunTables, load_runs
 
 log = logging.getLogger(__name__)
 
@@ -145,9 +145,27 @@ def overview(writer: markdown.ReportWriter, tables: RunTables, groundtruth: str 
             "ground truth of the correlation analysis": md_text(groundtruth or "none"),
         }
     )
-    for run, summary in tables.summaries.items():
+    for number, (run, summary) in enumerate(tables.summaries.items()):
         writer.heading(f"Run {md_code(run)}", 3)
-        writer.bullets({md_text(key): md_text(value) for key, value in summary.items()})
+        stages = summary.get(SFM_STAGES)
+        writer.bullets({md_text(key): md_text(value) for key, value in summary.items() if key != SFM_STAGES})
+        if isinstance(stages, dict) and stages:
+            caption = "SfM stages: seconds of work (stages overlap) and work done, in each stage's units."
+            writer.table(sfm_stage_table(stages), f"sfm_stages_{number}", caption, ".1f")
+
+
+def sfm_stage_table(stages: dict) -> pd.DataFrame:
+    """One row per SfM stage of a summary's ``stages``: its seconds, work done and unit."""
+    rows = {
+        str(stage): {
+            "seconds": float(record.get("seconds", float("nan"))),
+            "work done": int(record.get("done", 0)),
+            "unit": str(record.get("unit", "")),
+        }
+        for stage, record in stages.items()
+        if isinstance(record, dict)
+    }
+    return pd.DataFrame.from_dict(rows, orient="index").rename_axis("stage")
 
 
 def groundtruth_section(writer: markdown.ReportWriter, tables: RunTables) -> None:

@@ -1,23 +1,20 @@
 """A report's figures drawn in worker processes.
 
 matplotlib draws on one core and a report's figures are independent, so `Painters.draw` hands
-each plotting call to a pool of spawned workers (one per core, started on first use and kept
+each plotting call to a pool of workers (one per core, started on first use and kept
 for the process) and returns a future of the files it writes; `ReportWriter.write` waits for
 them. Workers import matplotlib, pandas and the plotting module only (about a second).
 """
 
 from __future__ import annotations
 
-import os
-import threading
 from collections.abc import Callable
 from concurrent.futures import Future
-from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
+from locretrieval.pool import WorkerPool, resolve_workers
 from locretrieval.report.plots import FigureFolder, pyplot
-from locretrieval.sfm.workers import SpawnedPools, exit_with_parent, resolve_workers
 
 
 class Painters:
@@ -37,26 +34,14 @@ class Painters:
             done: Future = Future()
             done.set_result(plot(*args, **kwargs) if self.figures.formats else [])
             return done
-        try:
-            return _painters.get(self.workers).submit(plot, *args, **kwargs)
-        except BrokenProcessPool:  # a worker died in an earlier report: start a new pool
-            _painters.discard(self.workers, "figures")
-            return _painters.get(self.workers).submit(plot, *args, **kwargs)
+        return _painters.submit(self.workers, plot, *args, **kwargs)
 
 
 def start_painters(workers: int | None = None) -> None:
     """Start the figure workers now (``workers`` as in `Painters`), e.g. while a run computes
     what its report will draw: each spends about a second importing matplotlib."""
-    workers = resolve_workers(workers)
-    if workers > 1 and not _painters.started(workers):
-        for _ in range(workers):
-            _painters.get(workers).submit(os.getpid)
+    _painters.start(resolve_workers(workers))
 
 
-def _start_painter(parent: int) -> None:
-    threading.Thread(target=exit_with_parent, args=(parent,), daemon=True).start()
-    pyplot()
-
-
-#: The figure workers of this process.
-_painters = SpawnedPools(_start_painter)
+#: The figure workers of this process: each imports matplotlib's pyplot as it starts.
+_painters = WorkerPool("figures", initializer=pyplot)

@@ -57,6 +57,8 @@ TEXT_COLUMNS = {
 
 #: Optional free-form summary of a run (``{"label": value}``), shown in the report.
 SUMMARY_FILE = "summary.json"
+#: The key of `SUMMARY_FILE` holding each SfM stage's seconds, work done and unit (`StageRecord`).
+SFM_STAGES = "SfM stages"
 
 
 @dataclass

@@ -84,6 +84,17 @@ class Ranking:
             self.database_descriptors,
         )
 
+    def of_queries(self, rows: np.ndarray) -> "Ranking":
+        """The ranking of the queries ``rows`` (indices), in that order."""
+        return Ranking(
+            self.name,
+            self.indices[rows],
+            self.scores[rows],
+            self.kind,
+            None if self.query_descriptors is None else self.query_descriptors[rows],
+            self.database_descriptors,
+        )
+
     def clamp_ks(self, ks: list[int]) -> list[int]:
         """The distinct ``ks`` limited to the ranking depth, sorted: the ks a paradigm computes
         (`locretrieval.benchmark` warns once and labels results by the requested k)."""

@@ -22,6 +22,7 @@ import numpy as np
 from locretrieval.cache import config_key
 from locretrieval.config import part, require
 from locretrieval.estimates import LOCALIZED, PoseEstimates
+from locretrieval.pool import resolve_workers
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import Scene
 from locretrieval.sfm.features import FeatureStore, LocalFeatures, extract_features, feature_store
@@ -32,7 +33,7 @@ from locretrieval.sfm.pose_cache import Outcome, PoseCache
 from locretrieval.sfm.sparse_map import SparseMap
 from locretrieval.sfm.triangulation import Triangulation
 from locretrieval.sfm.verification import PairVerification
-from locretrieval.sfm.workers import parallel_map, resolve_workers
+from locretrieval.sfm.workers import SFM_WORKERS
 
 log = logging.getLogger(__name__)
 
@@ -244,6 +245,11 @@ def query_tasks(
     return tasks
 
 
+def _pending_count(task: QueryTask) -> int:
+    """A query's units of work in the registration stage's progress: its registrations not cached."""
+    return len(task.pending())
+
+
 def _never(images: tuple[int, ...]) -> Outcome:
     raise AssertionError(f"image set {images} of a complete task has no known outcome")
 
@@ -272,7 +278,7 @@ def run_queries(
             len(tasks) - len(pending),
             len(tasks),
         )
-    computed = iter(parallel_map(localize, pending, workers, paradigm, shared))
+    computed = iter(SFM_WORKERS.map(localize, pending, workers, paradigm, shared, _pending_count))
     outcomes = []
     try:
         for task in tasks:

@@ -37,6 +37,7 @@ import numpy as np
 
 from locretrieval.cache import config_key
 from locretrieval.config import require
+from locretrieval.pool import resolve_workers, split
 from locretrieval.scene import ImageSet
 from locretrieval.sfm.features import FeatureStore
 from locretrieval.sfm.nearest_neighbours import (
@@ -54,7 +55,7 @@ from locretrieval.sfm.verification import (
     pair_indices,
     verify_pairs,
 )
-from locretrieval.sfm.workers import parallel_map, resolve_workers, split, task_stream
+from locretrieval.sfm.workers import SFM_WORKERS
 
 log = logging.getLogger(__name__)
 
@@ -179,13 +180,25 @@ class PairMatcher:
                 raise KeyError(f"pair {(name0, name1)} is not an image pair of these sets")
         return sorted(stored)
 
-    def ensure(self, pairs: Iterable[Pair], workers: int | None, verification: PairVerification) -> int:
-        """Match and verify the pairs not yet cached; returns how many pairs were matched."""
+    def todo(self, pairs: Iterable[Pair], verification: PairVerification) -> tuple[list[Pair], set[str], set[str]]:
+        """The distinct ``pairs`` (stored forms) whose raw or ``verification``'s matches are not
+        cached, and the keys of each kind missing."""
         pairs = self.canonical(pairs)
         verified = self.store(verification)
+        for store in {id(self.raw): self.raw, id(verified): verified}.values():
+            store.refresh()  # pairs other processes sharing the cache (shards) have matched since are not redone
         missing_raw = set(self.raw.missing(map(pair_key, pairs)))
         missing_verified = set(verified.missing(map(pair_key, pairs))) if verified is not self.raw else set()
-        todo = [pair for pair in pairs if pair_key(pair) in missing_raw | missing_verified]
+        return (
+            [pair for pair in pairs if pair_key(pair) in missing_raw | missing_verified],
+            missing_raw,
+            missing_verified,
+        )
+
+    def ensure(self, pairs: Iterable[Pair], workers: int | None, verification: PairVerification) -> int:
+        """Match and verify the pairs not yet cached; returns how many pairs were matched."""
+        todo, missing_raw, missing_verified = self.todo(pairs, verification)
+        verified = self.store(verification)
         if not todo:
             return 0
         matcher = self.settings.matcher()
@@ -211,7 +224,7 @@ class PairMatcher:
         if on_device:
             self._ensure_on_device(matcher, tasks, workers)
         else:
-            for _ in parallel_map(_match_shard, tasks, workers, "matching", shared=self):
+            for _ in SFM_WORKERS.map(_match_shard, tasks, workers, "matching", shared=self, units=_pair_count):
                 pass
         self.raw.refresh()
         verified.refresh()
@@ -242,7 +255,7 @@ class PairMatcher:
 
         with (
             ThreadPoolExecutor(1) as reader,
-            task_stream(_store_shard, len(tasks), workers, "verifying", shared=self) as submit,
+            SFM_WORKERS.stream(_store_shard, len(tasks), workers, "verifying", self, _pair_count) as submit,
         ):
             upcoming = reader.submit(read, tasks[0])
             for number, task in enumerate(tasks):
@@ -338,4 +351,9 @@ def _match_shard(matcher: PairMatcher, task: ShardTask) -> int:
 def _store_shard(matcher: PairMatcher, task: ShardTask) -> int:
     """CPU worker fed by the device: verify and store a shard whose raw matches came from the GPU."""
     matcher.verify_and_store(task, task.matched or {})
+    return len(task.pairs)
+
+
+def _pair_count(task: ShardTask) -> int:
+    """A shard's units of work in the stage's progress: its pairs."""
     return len(task.pairs)

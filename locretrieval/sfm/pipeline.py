@@ -33,23 +33,26 @@ from __future__ import annotations
 
 import abc
 import contextlib
+import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any
+
+from tqdm import tqdm
 
 from locretrieval.estimates import PoseEstimates
+from locretrieval.pool import progress_to
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
 from locretrieval.sfm.features import extract_features
 from locretrieval.sfm.inputs import SfmInputs, SfmSettings
+from locretrieval.sfm.work import FEATURES, MATCHING, ParadigmWork, SfmPlan, feature_work, stage_names
 from locretrieval.shard import Shard
-
-if TYPE_CHECKING:
-    from locretrieval.sfm.plan import ParadigmWork
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +74,7 @@ class SfmStages(abc.ABC):
       a no-op for a paradigm without such maps);
     - the stage ``<paradigm>: register``: `register` registers each query of a chunk in its
       maps (in worker processes), outcomes cached, and gathers them at the end;
-    - `plan`: its work, counted without doing any (`locretrieval.sfm.plan`).
+    - `count`: its work, counted without doing any (`locretrieval.sfm.work`).
     """
 
     #: The numbers of top-ranked images the paradigm localizes from (its settings').
@@ -115,41 +118,143 @@ class SfmStages(abc.ABC):
         (cached by then) as estimates."""
 
     @abc.abstractmethod
-    def plan(
-        self, scene: Scene, rankings: Sequence[Ranking] | None, sfm: SfmSettings, cache_dir: Path, num_rankings: int
-    ) -> ParadigmWork:
+    def count(self, inputs: SfmInputs, rankings: Sequence[Ranking] | None, num_rankings: int) -> ParadigmWork:
         """Its work (`ParadigmWork`), without doing any: exact for ``rankings``, upper bounds for
         ``num_rankings`` rankings not computed yet (``None``)."""
 
 
-def stage_names(paradigm: str) -> tuple[str, str]:
-    """The names `run_sfm` times a paradigm's triangulation and registration under."""
-    return f"{paradigm}: triangulate", f"{paradigm}: register"
+def sfm_inputs(scene: Scene, sfm: SfmSettings, cache_dir: str | Path | None, paradigms: Iterable[str]) -> SfmInputs:
+    """The caches the SfM ``paradigms`` of a run share (`SfmInputs`), named once for the run."""
+    if cache_dir is None:
+        raise ValueError(f"{' and '.join(paradigms)} need a cache directory for their features, matches and maps")
+    return SfmInputs.prepare(scene, sfm, Path(cache_dir), extract=False)
+
+
+def count_work(
+    inputs: SfmInputs,
+    rankings: Sequence[Ranking] | None,
+    paradigms: Mapping[str, SfmStages],
+    num_rankings: int = 0,
+) -> SfmPlan:
+    """The work of ``paradigms`` (`SfmPlan`), counted without doing any: exact for ``rankings``,
+    upper bounds for ``num_rankings`` rankings not computed yet (``None``)."""
+    work = [
+        dataclasses.replace(stages.count(inputs, rankings, num_rankings), paradigm=name)
+        for name, stages in paradigms.items()
+    ]
+    plan = SfmPlan(feature_work(inputs), work, rankings is not None)
+    if rankings is not None:
+        ks, deepest = ranked_ks(rankings, paradigms)
+        query_pairs = inputs.ranked_pairs(rankings, deepest)
+        database_pairs = [
+            *(pair for stages in paradigms.values() for pair in stages.shared_map_pairs(inputs)),
+            *(
+                pair
+                for name, stages in paradigms.items()
+                for pair in stages.query_map_pairs(inputs, rankings, ks[name], None)
+            ),
+        ]
+        plan.pairs_to_match = len(inputs.query_pairs.todo(query_pairs, inputs.query_verification)[0]) + len(
+            inputs.database_pairs.todo(database_pairs, inputs.database_verification)[0]
+        )
+    return plan
+
+
+def ranked_ks(
+    rankings: Sequence[Ranking], paradigms: Mapping[str, SfmStages]
+) -> tuple[dict[str, list[list[int]]], list[list[int]]]:
+    """Each paradigm's ks per ranking (limited to its depth), and per ranking the deepest of them
+    (each query's pairs to match: its top max(k) of every ranking)."""
+    ks = {name: [ranking.clamp_ks(stages.k) for ranking in rankings] for name, stages in paradigms.items()}
+    deepest = [[max(max(ks[name][r]) for name in paradigms)] for r in range(len(rankings))]
+    return ks, deepest
+
+
+@dataclass
+class StageRecord:
+    """What a stage did in a run: its ``seconds`` of work (summed over its calls; stages overlap,
+    so a run's records may add up to more than its time) and its ``done`` work in its ``unit``."""
+
+    seconds: float = 0.0
+    done: int = 0
+    unit: str = ""
+
+    def __str__(self) -> str:
+        rate = f", {self.done / self.seconds:,.1f}/s" if self.done and self.seconds > 0 else ""
+        return f"{self.done:,} {self.unit} in {self.seconds:.1f} s{rate}"
+
+
+class StageMeter:
+    """Times each stage where it runs and shows its progress in its own units: ``with meter(stage):
+    ...`` (from several threads) adds the block's seconds to the stage's record, and the tasks its
+    worker pools finish to the stage's bar (tqdm: rate and time left from the stage's throughput so
+    far) of the ``planned`` work (stage -> (units, unit name), `SfmPlan.stage_units`)."""
+
+    def __init__(self, planned: Mapping[str, tuple[int, str]]) -> None:
+        self.planned = dict(planned)
+        self.records = {stage: StageRecord(unit=unit) for stage, (_, unit) in self.planned.items()}
+        self._bars: dict[str, Any] = {}
+        self._lock = threading.Lock()
+
+    def advance(self, stage: str, units: int) -> None:
+        """Count ``units`` of ``stage``'s work done (e.g. a map built in this process)."""
+        with self._lock:
+            record = self.records.setdefault(stage, StageRecord())
+            record.done += units
+            if stage not in self._bars:
+                total, unit = self.planned.get(stage, (None, "tasks"))
+                self._bars[stage] = tqdm(total=total, desc=stage, unit=f" {unit}", disable=None, leave=False)
+            self._bars[stage].update(units)
+
+    @contextlib.contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        started = time.perf_counter()
+        try:
+            with progress_to(lambda units: self.advance(stage, units)):
+                yield
+        finally:
+            with self._lock:
+                self.records.setdefault(stage, StageRecord()).seconds += time.perf_counter() - started
+
+    def close(self) -> dict[str, StageRecord]:
+        """Close the bars; every stage's record."""
+        for bar in self._bars.values():
+            bar.close()
+        return self.records
+
+
+@dataclass
+class SfmRun:
+    """What `run_sfm` returns: the pose ``estimates`` by paradigm (None for a share of the queries),
+    the ``plan`` it counted first, each stage's `StageRecord` and the run's ``seconds`` (wall clock)."""
+
+    estimates: dict[str, list[PoseEstimates]] | None
+    plan: SfmPlan
+    stages: dict[str, StageRecord]
+    seconds: float
 
 
 def run_sfm(
-    scene: Scene,
+    inputs: SfmInputs,
     rankings: Sequence[Ranking],
     paradigms: Mapping[str, SfmStages],
-    sfm: SfmSettings,
-    cache_dir: str | Path | None,
-    timings: dict[str, float] | None = None,
     shard: Shard | None = None,
-) -> dict[str, list[PoseEstimates]] | None:
-    """Every SfM paradigm of ``paradigms`` (name -> its `SfmStages`) on every ranking:
-    the pose estimates by paradigm, or None for a job of a ``shard`` (its share cached only).
+    queries: Sequence[int] | None = None,
+) -> SfmRun:
+    """Every SfM paradigm of ``paradigms`` (name -> its `SfmStages`) on every ranking; the pose
+    estimates by paradigm, or None for a job of a ``shard`` or a run of some ``queries`` only
+    (their share cached only).
 
-    The queries are streamed in chunks of `QUERIES_PER_CHUNK`: while one chunk is triangulated
-    and registered (a thread driving the worker processes), the next chunk's pairs are matched
-    (on the GPU, or the workers). The seconds each stage worked are logged (stages overlap, so
-    they may add up to more than the run), and put in ``timings`` when it is given."""
-    if cache_dir is None:
-        raise ValueError(f"{' and '.join(paradigms)} need a cache directory for their features, matches and maps")
-    cache_dir = Path(cache_dir)
-    inputs = SfmInputs.prepare(scene, sfm, cache_dir, extract=False)
-    ks = {name: [ranking.clamp_ks(stages.k) for ranking in rankings] for name, stages in paradigms.items()}
-    deepest = [[max(max(ks[name][r]) for name in paradigms)] for r in range(len(rankings))]
-    queries = list(range(len(scene.queries))) if shard is None else shard.take(range(len(scene.queries)))
+    The work is counted first (`count_work`, logged). The queries are streamed in chunks of
+    `QUERIES_PER_CHUNK`: while one chunk is triangulated and registered (a thread driving the
+    worker processes), the next chunk's pairs are matched (on the GPU, or the workers). Each
+    stage shows its progress and is timed where it runs (`StageMeter`); the records are logged."""
+    started, scene, cache_dir = time.perf_counter(), inputs.scene, inputs.cache_dir
+    plan = count_work(inputs, rankings, paradigms)
+    log.log(logging.INFO if queries is None else logging.DEBUG, "%s", plan.describe())
+    ks, deepest = ranked_ks(rankings, paradigms)
+    chosen = list(range(len(scene.queries))) if queries is None else list(queries)
+    chosen = chosen if shard is None else shard.take(chosen)
 
     def query_map_pairs(chunk: Sequence[int] | None) -> list[Pair]:
         return [
@@ -164,74 +269,59 @@ def run_sfm(
         log.info(
             "SfM shard %s: %d of %d queries, %d of %d database pairs",
             shard,
-            len(queries),
+            len(chosen),
             len(scene.queries),
             len(shard.take(all_pairs)),
             len(all_pairs),
         )
         shared_pairs = shard.take(all_pairs)
-    clock = StageClock(timings)
-    with clock("features"):
+    meter = StageMeter(plan.stage_units())
+    with meter(FEATURES):
         extract_stage(
             inputs,
             cache_dir,
             shard,
-            inputs.ranked_pairs(rankings, deepest, queries),
-            [*shared_pairs, *query_map_pairs(queries)],
+            inputs.ranked_pairs(rankings, deepest, chosen),
+            [*shared_pairs, *query_map_pairs(chosen)],
         )
-    with clock("match + verify"):
+    with meter(MATCHING):
         match_stage(inputs, [], shared_pairs)
-    for name, stages in paradigms.items():
-        with clock(stage_names(name)[0]):
+    for work, (name, stages) in zip(plan.paradigms, paradigms.items()):
+        with meter(stage_names(name)[0]):
             stages.triangulate_shared_map(inputs, cache_dir)
+        if work.shared_map and work.maps.new:
+            meter.advance(stage_names(name)[0], work.maps.new)
 
     def localize(chunk: Sequence[int]) -> None:
         for name, stages in paradigms.items():
             triangulate, register = stage_names(name)
-            with clock(triangulate):
+            with meter(triangulate):
                 stages.triangulate_query_maps(inputs, rankings, ks[name], cache_dir, chunk)
-            with clock(register):
+            with meter(register):
                 stages.register(inputs, rankings, ks[name], cache_dir, chunk)
 
     def gather() -> dict[str, list[PoseEstimates]]:
         found = {}
         for name, stages in paradigms.items():
-            with clock(stage_names(name)[1]):
+            with meter(stage_names(name)[1]):
                 found[name] = stages.register(inputs, rankings, ks[name], cache_dir, None)
         return found
 
     with ThreadPoolExecutor(1, thread_name_prefix="sfm-localize") as background:
         localizing = None
-        for start in range(0, len(queries), QUERIES_PER_CHUNK):
-            chunk = queries[start : start + QUERIES_PER_CHUNK]
-            with clock("match + verify"):
+        for start in range(0, len(chosen), QUERIES_PER_CHUNK):
+            chunk = chosen[start : start + QUERIES_PER_CHUNK]
+            with meter(MATCHING):
                 match_stage(inputs, inputs.ranked_pairs(rankings, deepest, chunk), query_map_pairs(chunk))
             if localizing is not None:
                 localizing.result()  # one chunk localised at a time: the worker processes are its
             localizing = background.submit(localize, chunk)
         if localizing is not None:
             localizing.result()
-    estimates = None if shard is not None else gather()  # every outcome is cached now
-    log.info("SfM stages: %s", ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in clock.seconds.items()))
-    return estimates
-
-
-class StageClock:
-    """Seconds each stage worked, summed over its calls: ``with clock(stage): ...`` (from several
-    threads), kept in ``timings`` when it is given."""
-
-    def __init__(self, timings: dict[str, float] | None) -> None:
-        self.seconds = timings if timings is not None else {}
-        self._lock = threading.Lock()
-
-    @contextlib.contextmanager
-    def __call__(self, stage: str) -> Iterator[None]:
-        started = time.perf_counter()
-        try:
-            yield
-        finally:
-            with self._lock:
-                self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - started
+    estimates = None if shard is not None or queries is not None else gather()  # every outcome is cached now
+    stages, seconds = meter.close(), time.perf_counter() - started
+    log.info("SfM in %.1f s: %s", seconds, "; ".join(f"{stage} {record}" for stage, record in stages.items()))
+    return SfmRun(estimates, plan, stages, seconds)
 
 
 def extract_stage(
@@ -258,6 +348,8 @@ def extract_stage(
                 images, settings.features, cache_dir, workers, None if shard is None else shard.take(images.names)
             )
         extract_features(images, settings.features, cache_dir, workers, names)
+    for store in (inputs.database_features, inputs.query_features):
+        store.store.refresh()  # the run's stores, counted before: their indexes now hold the new features
 
 
 def match_stage(inputs: SfmInputs, query_pairs: Sequence[Pair], database_pairs: Sequence[Pair]) -> None:

@@ -43,6 +43,7 @@ class ShardedStore:
     def __init__(self, folder: str | Path) -> None:
         self.folder = Path(folder)
         self._index: dict[str, Path] | None = None
+        self._stale = False
         self._array_names: dict[Path, list[str]] = {}
         self._cache: OrderedDict[tuple[Path, str], Column] = OrderedDict()
         self._cached_bytes = 0
@@ -53,21 +54,26 @@ class ShardedStore:
 
     @property
     def index(self) -> dict[str, Path]:
-        """Key -> shard holding it, read from the shard files on first use (see `refresh`)."""
-        if self._index is None:
-            index = {}
+        """Key -> shard holding it, read from the shard files on first use, then from the shards
+        written since when asked to (`refresh`)."""
+        if self._index is None or self._stale:
+            index = self._index or {}
             # "[!.]": not the hidden temporary files of shards being written (`atomic_path`)
             shards = sorted(self.folder.glob(f"[!.]*{SHARD_SUFFIX}")) if self.folder.is_dir() else []
+            if not set(self._array_names) <= set(shards):  # shards deleted (the cache cleared): read all again
+                index, self._array_names = {}, {}
             for shard in shards:
+                if shard in self._array_names:  # read before: shards are never modified
+                    continue
                 with _open(shard) as file:
                     index.update((key, shard) for key in file["keys"].asstr()[()])
                     self._array_names[shard] = sorted(file["data"])
-            self._index = index
+            self._index, self._stale = index, False
         return self._index
 
     def refresh(self) -> None:
-        """Forget the index so that shards written by other processes are seen."""
-        self._index = None
+        """See the shards written since the index was read (by this or other processes)."""
+        self._stale = True
 
     def __contains__(self, key: str) -> bool:
         return key in self.index

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 from collections.abc import Callable, Collection, Mapping, Sequence
 from pathlib import Path
 from typing import TypeVar
@@ -20,8 +21,9 @@ from locretrieval.benchmark import (
     build_rankings,
     relevances,
     run_sfm_shard,
+    sfm_within_budget,
 )
-from locretrieval.config import require
+from locretrieval.config import ConfigError, require
 from locretrieval.groundtruth import GroundTruth, RelevanceScope
 from locretrieval.metrics.retrieval import METRICS
 from locretrieval.models import GlobalDescriptor, NetworkDescriptor
@@ -127,6 +129,8 @@ class LocalizationValidation(L.Callback):
         gallery_size: int,
         reference_models: Mapping[str, GlobalDescriptor] | None = None,
         headline: Sequence[str] = (),
+        budget_minutes: float | None = None,
+        budget_seed: int = 0,
     ) -> None:
         require(every_n_epochs >= 1, "every_n_epochs", f"must be >= 1, got {every_n_epochs}")
         require(
@@ -140,6 +144,7 @@ class LocalizationValidation(L.Callback):
             f"must be >= 0 queries of gallery_k >= 1 images, got {gallery_queries}, {gallery_k}",
         )
         self.scene, self.groundtruths, self.settings = scene, dict(groundtruths), settings
+        self.relevance_scope = relevance_scope
         self.relevance = relevances(self.groundtruths, relevance_scope)
         self.preprocessing, self.extraction = preprocessing, extraction
         self.every_n_epochs, self.sfm_every_n_epochs = every_n_epochs, sfm_every_n_epochs
@@ -147,12 +152,11 @@ class LocalizationValidation(L.Callback):
         self.subsets = {"all": np.ones(len(scene.queries), dtype=bool)}
         self.history: list[dict[str, float]] = []
         self.reference: dict[str, dict[str, float]] = {}
-        self.sfm_stages: dict[str, dict] = {}  # per validation with SfM: its stages' forecast and measured seconds
-        posed = np.flatnonzero(scene.queries.has_pose)  # a fixed set: the same queries at every validation
-        self.gallery_rows = np.sort(
-            np.random.default_rng(0).choice(posed, size=min(gallery_queries, len(posed)), replace=False)
-        )
-        self.gallery_k, self.gallery_size = gallery_k, gallery_size
+        self.sfm_stages: dict[str, dict] = {}  # per validation with SfM: its stages' seconds and work
+        self.gallery_queries, self.gallery_k, self.gallery_size = gallery_queries, gallery_k, gallery_size
+        self.gallery_rows = self._gallery_rows()
+        self.budget_minutes, self.budget_seed = budget_minutes, budget_seed
+        self.validated_queries: list[str] | None = None  # with a budget: the queries every validation uses
         # relevance marks by relative pose, else the first ground truth there is
         self.gallery_groundtruth = (
             "relative_pose" if "relative_pose" in self.relevance else next(iter(self.relevance), None)
@@ -161,6 +165,57 @@ class LocalizationValidation(L.Callback):
         self.reference_models = dict(reference_models or {})
         self.headline = list(headline)
         self._thumbnails = None
+
+    def _gallery_rows(self) -> np.ndarray:
+        """A fixed set of ``gallery_queries`` posed queries: the same at every validation."""
+        posed = np.flatnonzero(self.scene.queries.has_pose)
+        return np.sort(
+            np.random.default_rng(0).choice(posed, size=min(self.gallery_queries, len(posed)), replace=False)
+        )
+
+    def _keep_queries(self, rows: np.ndarray) -> None:
+        """Validate on the queries ``rows`` only (sorted indices), from now on."""
+        self.scene = dataclasses.replace(self.scene, queries=self.scene.queries.subset(rows))
+        self.groundtruths = {name: groundtruth.of_queries(rows) for name, groundtruth in self.groundtruths.items()}
+        self.relevance = relevances(self.groundtruths, self.relevance_scope)
+        self.subsets = {"all": np.ones(len(rows), dtype=bool)}
+        self.gallery_rows = self._gallery_rows()
+        self.validated_queries = list(self.scene.queries.names)
+
+    def _settle_queries(self, rankings: list[Ranking], ranks: Ranks, started: float) -> np.ndarray:
+        """With ``budget_minutes``: the first validation's SfM work on ``rankings``, its queries in an
+        order drawn with ``budget_seed``, until the budget (counted from ``started``) is spent
+        (`sfm_within_budget`); the queries it reached, sorted, which every validation then uses. A
+        `ConfigError` when the budget is spent before one query is localized."""
+        budget = float(self.budget_minutes) * 60
+        order = np.random.default_rng(self.budget_seed).permutation(len(self.scene.queries))
+        settings = self._settings(self.sfm_every_n_epochs is not None)
+        described = time.perf_counter() - started
+
+        def localize() -> tuple[int, float]:
+            return sfm_within_budget(self.scene, rankings, settings, self.cache_dir, order, budget - described)
+
+        reached, seconds = ranks.first(localize)
+        if described + seconds > budget and reached <= 1:
+            raise ConfigError(
+                f"training.validation.budget_minutes: {self.budget_minutes:g} min cannot hold one validation query: "
+                f"describing the {len(self.scene.database) + len(self.scene.queries):,} validation images took "
+                f"{described:.1f} s and localizing {reached} query {seconds:.1f} s. Raise the budget, lower "
+                "training.validation.sfm_max_keypoints, or validate without the SfM paradigms "
+                "(callbacks.localization_validation.sfm_every_n_epochs=null)"
+            )
+        rows = np.sort(order[:reached])
+        log.info(
+            "validation budget of %g min: %d of %d queries reached (describing %.1f s, their SfM work %.1f s, "
+            "%.2f s a query); every validation localizes them",
+            self.budget_minutes,
+            reached,
+            len(order),
+            described,
+            seconds,
+            seconds / max(reached, 1),
+        )
+        return rows
 
     def _settings(self, with_sfm: bool) -> BenchmarkSettings:
         """The benchmark settings of a validation: every paradigm, or those without SfM (`Paradigm.uses_sfm`)."""
@@ -204,10 +259,16 @@ class LocalizationValidation(L.Callback):
         return self.sfm_every_n_epochs is not None and (epoch < 0 or (epoch + 1) % self.sfm_every_n_epochs == 0)
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if self.history:  # resumed: the curve goes on
+        if self.history:  # resumed: the curve goes on (on the queries it was validated on)
             return
         ranks = Ranks.of(trainer)
-        rankings = self._references(ranks)
+        rankings, trained = self._references(ranks), None
+        if self.budget_minutes is not None:
+            started = time.perf_counter()
+            trained = self._trained_ranking(pl_module.network, ranks)
+            rows = self._settle_queries([*rankings, trained], ranks, started)
+            self._keep_queries(rows)
+            rankings, trained = [r.of_queries(rows) for r in rankings], trained.of_queries(rows)
         if rankings:
 
             def report(result: BenchmarkResult) -> dict[str, dict[str, float]]:
@@ -223,7 +284,7 @@ class LocalizationValidation(L.Callback):
                     trainer.logger.log_metrics(
                         {k.replace("val/", f"reference/{name}/"): v for k, v in metrics.items()}, step=0
                     )
-        metrics = self._record(trainer, pl_module, epoch=-1)
+        metrics = self._record(trainer, pl_module, epoch=-1, ranking=trained)
         if trainer.logger is not None:  # before training: no pl_module.log outside the loop
             trainer.logger.log_metrics(metrics, step=trainer.global_step)
 
@@ -234,11 +295,14 @@ class LocalizationValidation(L.Callback):
         for key, value in self._record(trainer, pl_module, epoch).items():  # every rank: checkpointing monitors them
             pl_module.log(key, value)
 
-    def _record(self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int) -> dict[str, float]:
-        """Validate the module's network after ``epoch`` (-1: before training), keep the metrics
-        (every rank) and, on rank 0, print them and log the gallery of the fixed validation queries."""
+    def _record(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int, ranking: Ranking | None = None
+    ) -> dict[str, float]:
+        """Validate the module's network after ``epoch`` (-1: before training; its ``ranking`` when
+        computed already), keep the metrics (every rank) and, on rank 0, print them and log the
+        gallery of the fixed validation queries."""
         ranks = Ranks.of(trainer)
-        ranking = self._trained_ranking(pl_module.network, ranks)
+        ranking = ranking if ranking is not None else self._trained_ranking(pl_module.network, ranks)
 
         def report(result: BenchmarkResult) -> dict[str, float]:
             if result.sfm_stages:
@@ -291,12 +355,21 @@ class LocalizationValidation(L.Callback):
         galleries = {
             key: torch.from_numpy(image) for key, image in self.galleries.items()
         }  # tensors: a safe load reads them
-        return {"history": self.history, "reference": self.reference, "galleries": galleries}
+        state = {"history": self.history, "reference": self.reference, "galleries": galleries}
+        return state | ({"validated_queries": self.validated_queries} if self.validated_queries is not None else {})
 
     def load_state_dict(self, state_dict: dict) -> None:
         self.history = list(state_dict["history"])
         self.reference = dict(state_dict["reference"])
         self.galleries = {key: image.numpy() for key, image in state_dict.get("galleries", {}).items()}
+        if state_dict.get("validated_queries") is not None:  # a run with a budget goes on with its queries
+            position = {name: row for row, name in enumerate(self.scene.queries.names)}
+            missing = [name for name in state_dict["validated_queries"] if name not in position]
+            if missing:
+                raise ValueError(
+                    f"the checkpoint was validated on queries the validation scene does not have: {missing[:5]}"
+                )
+            self._keep_queries(np.sort([position[name] for name in state_dict["validated_queries"]]))
 
 
 def headline_line(metrics: Mapping[str, float], keys: Sequence[str]) -> str:

@@ -15,16 +15,13 @@ from typing import Any
 
 import lightning as L
 import numpy as np
-import torch
 from hydra.utils import instantiate
 from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
-from locretrieval.benchmark import BenchmarkSettings, sfm_plan
+from locretrieval.benchmark import BenchmarkSettings
 from locretrieval.config import ConfigError, built, check_node, require, validated
-from locretrieval.device import resolve_device
 from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, compute_groundtruths
-from locretrieval.models import NetworkDescriptor
 from locretrieval.scene import ImageSet, Scene
 from locretrieval.scene.datasets import instantiate_scene, load_synthetic_dataset
 from locretrieval.scene.kapture_io import concatenate_image_sets
@@ -46,8 +43,9 @@ class ValidationScope:
     """How much of the validation scene each validation localizes, so that it fits a large scene:
     ``max_queries`` (a fixed subset drawn with ``seed``; null: every query), the SfM paradigms'
     local features capped at ``sfm_max_keypoints`` per image (null: ``sfm.features``' own), and
-    ``budget_minutes``: a validation forecast to take longer (describing its images and its SfM
-    work, `check_validation_budget`) is refused before training starts (null: no bound)."""
+    ``budget_minutes``: the first validation (before training) localizes its queries in an order
+    drawn with ``seed`` until that many minutes are spent, and every validation then uses the queries
+    it reached (`LocalizationValidation`; null: no bound)."""
 
     max_queries: int | None
     seed: int
@@ -226,9 +224,6 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
         check_resume_checkpoint(cfg.ckpt_path, descriptor.model, descriptor.architecture)
     scene: Scene = instantiate_scene(cfg.data)
     validation_scene, validation_settings = training.validation.scene(scene), training.validation.settings(settings)
-    check_validation_budget(
-        cfg, validation_scene, validation_settings, groundtruth_settings, training.validation, cache_dir, descriptor
-    )
     parts = training_parts(cfg, scene, descriptor.preprocessing, settings, relevance, training)
     groundtruths = compute_groundtruths(validation_scene, groundtruth_settings, validation_settings.sfm, cache_dir)
     validator = built(
@@ -244,6 +239,8 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
         relevance_scope=groundtruth_settings.relevance,
         reference_models={name: instantiate(node) for name, node in (cfg.get("validation_references") or {}).items()},
         headline=report.metrics(),
+        budget_minutes=training.validation.budget_minutes,
+        budget_seed=training.validation.seed,
     )
     callbacks = {"localization_validation": validator, **callbacks}  # first: early stopping reads what it logged
     if cfg.get("miner"):
@@ -298,83 +295,6 @@ def unfilled_report_rows(
     for metric, why in unfilled.items():
         log.warning("report.gap row %s cannot be filled: %s", metric.removeprefix("val/"), why)
     return unfilled
-
-
-def check_validation_budget(
-    cfg: DictConfig,
-    scene: Scene,
-    settings: BenchmarkSettings,
-    groundtruths: GroundTruthSettings,
-    scope: ValidationScope,
-    cache_dir: Path,
-    descriptor: Any,
-) -> None:
-    """Log the SfM work of the first (largest) validation with its forecast (`sfm_plan`: upper
-    bounds for the trained ranking, the reference models', the ground truths' and random's);
-    with ``scope.budget_minutes``, add the trained network's description of every validation
-    image (`extraction_seconds`) and raise `ConfigError` naming the keys to change when the
-    validation exceeds the budget."""
-    plan = None
-    if cfg.callbacks.localization_validation.get("sfm_every_n_epochs") is not None and scene.queries.has_pose.any():
-        rankings = (
-            1
-            + len(cfg.get("validation_references") or {})
-            + len(groundtruths.parsed())
-            + int(bool(cfg.baselines.random))
-        )
-        plan = sfm_plan(scene, None, settings, cache_dir, rankings)
-    if plan is not None:
-        log.info(
-            "SfM work of the first validation (%d queries, %d rankings; "
-            "later ones: the trained ranking's new pairs only):\n%s",
-            len(scene.queries),
-            rankings,
-            plan.describe(),
-        )
-    if scope.budget_minutes is None:
-        return
-    images = len(scene.database) + len(scene.queries)
-    describing = images * extraction_seconds(descriptor, scene.queries, resolve_device(str(cfg.device)))
-    sfm_seconds = sum(plan.forecast().values()) if plan is not None and plan.costs is not None else 0.0
-    log.info(
-        "one validation is forecast at %.1f min: describing its %d images %.1f s, its SfM work %.1f s "
-        "(the reference models' descriptors are computed once, before training)",
-        (describing + sfm_seconds) / 60,
-        images,
-        describing,
-        sfm_seconds,
-    )
-    minutes = (describing + sfm_seconds) / 60
-    if minutes > scope.budget_minutes:
-        keypoints = settings.sfm.features.max_keypoints or (
-            f"{plan.costs.keypoints:.0f} (measured)" if plan is not None and plan.costs is not None else "all"
-        )
-        raise ConfigError(
-            f"training.validation.budget_minutes: one validation is forecast at {minutes:.1f} min, above the budget "
-            f"of {scope.budget_minutes:g} min: describing its {images:,} images takes {describing / 60:.1f} min and "
-            f"its SfM work {sfm_seconds / 60:.1f} min ({len(scene.queries)} queries, "
-            f"{plan.new_pairs() if plan is not None else 0:,} pairs to match at {keypoints} keypoints per image, "
-            f"{sum(w.registrations.total for w in plan.paradigms) if plan is not None else 0:,} registrations; the "
-            "forecast is logged above). Lower training.validation.max_queries or "
-            "training.validation.sfm_max_keypoints, lower paradigms.local_sfm.k / paradigms.global_sfm.k, "
-            "or validate without the SfM paradigms (callbacks.localization_validation.sfm_every_n_epochs=null)"
-        )
-
-
-def extraction_seconds(descriptor: Any, images: ImageSet, device: torch.device, sample: int = 4) -> float:
-    """Seconds per image of the model's network describing ``images`` (``sample`` of them, after
-    one to warm up) on ``device``, as each validation describes the validation scene."""
-    network = descriptor.network
-    previous = next(network.parameters()).device
-    model = NetworkDescriptor("budget", network.to(device), descriptor.preprocessing, descriptor.settings)
-    try:
-        model.describe(images.subset(np.arange(min(1, len(images)))))
-        chosen = images.subset(np.arange(min(sample, len(images))))
-        started = time.perf_counter()
-        model.describe(chosen)
-        return (time.perf_counter() - started) / len(chosen)
-    finally:
-        network.to(previous)
 
 
 def checked_callbacks(

@@ -21,7 +21,7 @@ from locretrieval.scene.datasets import instantiate_scene
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 from locretrieval.sfm.features import extract_features
-from locretrieval.sfm.pairs import database_pairs
+from locretrieval.sfm.pairs import database_pairs, overlapping_pairs
 
 
 @pytest.fixture(scope="module")
@@ -114,26 +114,26 @@ def test_a_dry_run_logs_the_plan_and_its_forecast_and_writes_nothing(rendered, t
         assert evaluate(cfg, tmp_path / "run").empty
     assert {path for path in tmp_path.rglob("*")} == before  # no output folder, no cache: nothing but the log
     plan = next(record.getMessage() for record in caplog.records if "SfM plan" in record.getMessage())
-    # 5 rankings (the model, 3 ground truths, random), 12 database images, 4 queries, each ranking's top 3 apart
+    # 5 rankings (the model, 3 ground truths, random), 12 database images, 4 queries, each ranking's top 3 apart;
+    # the co-observation ground truth matches the global map's pairs and each query's overlapping images first
     rankings, queries, images = 5, 4, 12
     query_pairs = min(rankings * queries * 3, queries * images)
-    map_pairs = len(
-        database_pairs(
-            scene.database, replace(helpers.sfm_settings().map_pairs, far=50.0, min_radius=10.0, max_per_image=None)
-        )
-    )
-    assert map_pairs > 0 and "local features of 16 (16 new) images" in plan
+    selection = replace(helpers.sfm_settings().map_pairs, far=50.0, min_radius=10.0, max_per_image=None)
+    map_pairs = len(database_pairs(scene.database, selection))
+    joint = len(overlapping_pairs(scene.queries, scene.database, replace(selection, max_per_image=50), False))
+    assert map_pairs > 0 and joint > 0 and "local features of 16 (16 new) images" in plan
+    local_pairs = rankings * queries * 3
     assert (
-        f"local_sfm: query pairs {query_pairs} ({query_pairs} new), "
-        f"database pairs {rankings * queries * 3} ({rankings * queries * 3} new), "
-        f"maps {rankings * queries} ({rankings * queries} new) (~3 pairs each), registrations {rankings * queries}"
+        f"local_sfm: query pairs {query_pairs} ({min(query_pairs, queries * images - joint)} new), "
+        f"database pairs {local_pairs} ({min(local_pairs, 66 - map_pairs)} new), "
+        f"maps {rankings * queries} ({rankings * queries} new), registrations {rankings * queries}"
     ) in plan
     assert (
-        f"global_sfm: query pairs {query_pairs} ({query_pairs} new), "
-        f"database pairs {map_pairs} ({map_pairs} new), maps 1 (1 new)"
-        f" (~{map_pairs} pairs each), registrations {rankings * queries * 2}"
+        f"global_sfm: query pairs {query_pairs} ({min(query_pairs, queries * images - joint)} new), "
+        f"database pairs {map_pairs} (0 new), maps 1 (1 new), registrations {rankings * queries * 2}"
     ) in plan
-    assert "matching on cpu" in plan and "forecast: features" in plan and "at most" in plan
+    assert f"ground truth: pairs {map_pairs + joint} ({map_pairs + joint} new), matched first" in plan
+    assert "calibrated in" in plan and "forecast: features" in plan and "(x0.5-2)" in plan
 
 
 def test_rankings_from_pairs_files_give_the_poses_of_the_ranking_they_came_from(rendered, tmp_path):

@@ -780,3 +780,20 @@ def test_a_database_verification_from_outside_the_package_is_chosen_through_the_
     assert default == PoseVerification(
         OmegaConf.load(helpers.CONFIGS / "sfm/database_verification/poses.yaml").max_epipolar_error
     )
+
+
+@pytest.mark.parametrize("level, shown", [(None, False), ("0", True)])
+def test_pycolmap_logs_below_warnings_only_when_glog_is_asked_to(level, shown):
+    """The project's processes set glog's default level to warnings (``GLOG_minloglevel=2``): no
+    ``Creating SIFT CPU feature extractor`` line per extractor, unless the environment asks."""
+    import os
+    import subprocess
+    import sys
+
+    environment = {key: value for key, value in os.environ.items() if key != "GLOG_minloglevel"}
+    if level is not None:
+        environment["GLOG_minloglevel"] = level
+    script = "import locretrieval, pycolmap\npycolmap.FeatureExtractor.create(pycolmap.FeatureExtractionOptions())"
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=environment, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert ("Creating SIFT CPU feature extractor" in done.stderr) == shown

@@ -31,7 +31,6 @@ from locretrieval.sfm.features import FeatureStore, extract_features
 from locretrieval.sfm.inputs import QueryTask, SfmInputs, SfmSettings, outcomes_per_image_set
 from locretrieval.sfm.pairs import PairSelection, database_pairs
 from locretrieval.sfm.pipeline import run_sfm
-from locretrieval.sfm.plan import Work
 from locretrieval.sfm.pnp import (
     NO_3D_POINTS,
     NO_KEYPOINTS,
@@ -40,6 +39,7 @@ from locretrieval.sfm.pnp import (
     estimate_absolute_pose,
 )
 from locretrieval.sfm.triangulation import BatchedTriangulation, MapInput
+from locretrieval.sfm.work import Work
 
 SCENE = {
     "width": 256,
@@ -434,15 +434,16 @@ def test_queries_streamed_in_chunks_give_the_results_of_one_pass(scene, cache, r
         "local_sfm": RecordedChunks(True, [2, 4], MAP_MATCHES["database"]),
         "global_sfm": GlobalSfm(True, [1, 3], None),
     }
-    one_pass = run_sfm(scene, rankings, paradigms, sfm_settings(), cache)
+    one_pass = run_sfm(SfmInputs.prepare(scene, sfm_settings(), cache, extract=False), rankings, paradigms).estimates
     shutil.copytree(cache / "features", tmp_path / "streamed" / "features")
     monkeypatch.setattr(pipeline, "QUERIES_PER_CHUNK", 3)
     chunks = paradigms["local_sfm"].chunks
     chunks.clear()
-    timings = {}
-    streamed = run_sfm(scene, rankings, paradigms, sfm_settings(workers=2), tmp_path / "streamed", timings)
+    inputs = SfmInputs.prepare(scene, sfm_settings(workers=2), tmp_path / "streamed", extract=False)
+    run = run_sfm(inputs, rankings, paradigms)
+    streamed = run.estimates
     assert chunks == [[0, 1, 2], [3, 4, 5], [6, 7], None]  # three chunks, then every outcome gathered from the cache
-    assert set(timings) == {
+    assert set(run.stages) == {
         "features",
         "match + verify",
         "local_sfm: triangulate",  # each chunk's local maps, in the workers
@@ -450,6 +451,9 @@ def test_queries_streamed_in_chunks_give_the_results_of_one_pass(scene, cache, r
         "global_sfm: triangulate",  # the global map, once
         "global_sfm: register",
     }
+    planned = {stage: units for stage, (units, _) in run.plan.stage_units().items()}
+    assert planned["match + verify"] and planned["local_sfm: register"] and planned["global_sfm: triangulate"] == 1
+    assert {stage: record.done for stage, record in run.stages.items()} == planned  # each stage's progress, counted
     for name in paradigms:
         for a, b in zip(one_pass[name], streamed[name]):
             np.testing.assert_array_equal(a.qvec, b.qvec)
@@ -597,7 +601,8 @@ def test_the_plan_counts_the_work_that_the_paradigms_then_do(scene, cache, ranki
     local, global_ = LocalSfm(True, [3, 5], MAP_MATCHES["database"]), GlobalSfm(True, [1, 5], None)
 
     def plans():
-        return local.plan(scene, rankings, sfm, cache, 0), global_.plan(scene, rankings, sfm, cache, 0)
+        inputs = SfmInputs.prepare(scene, sfm, cache, extract=False)
+        return local.count(inputs, rankings, 0), global_.count(inputs, rankings, 0)
 
     local_work, global_work = plans()
     query_pairs, pairs_within, local_registrations, maps = distinct_work(rankings, [3, 5])

@@ -849,24 +849,84 @@ def test_validation_on_a_seeded_subset_of_the_queries_with_capped_sfm_features(t
     assert ValidationScope(None, 0, None, None).scene(full) is full
 
 
-def test_a_validation_forecast_above_its_budget_is_refused_before_training(tmp_path):
+class FakeClock:
+    """A clock that SfM work advances by ``per_query`` seconds a query (and describing by nothing):
+    `sfm_within_budget`'s chunks as a machine of that throughput would cut them."""
+
+    def __init__(self, per_query: float) -> None:
+        self.now, self.per_query, self.chunks = 0.0, per_query, []
+
+    def __call__(self) -> float:
+        return self.now
+
+    def install(self, monkeypatch) -> None:
+        import locretrieval.benchmark as core
+        import locretrieval.training.callbacks as callbacks
+
+        real = core.run_sfm
+
+        def run_sfm(inputs, rankings, paradigms, shard=None, queries=None):
+            if queries is not None:  # a chunk of the budgeted validation
+                self.chunks.append(list(queries))
+                self.now += self.per_query * len(queries)
+            return real(inputs, rankings, paradigms, shard, queries)
+
+        monkeypatch.setattr(core, "run_sfm", run_sfm)
+        monkeypatch.setattr(core.time, "perf_counter", self)
+        monkeypatch.setattr(callbacks.time, "perf_counter", self)
+
+
+@pytest.mark.parametrize("minutes, reached", [(0.5, 3), (0.9, 6)])
+def test_the_first_validation_settles_the_queries_the_budget_holds_and_every_validation_keeps_them(
+    tmp_path, monkeypatch, minutes, reached
+):
+    """10 s a query (a fake clock): 0.5 min reach 1, then 2 more (the 20 s left hold 2) = 30 s; 0.9 min
+    reach 1, then 2 (at most twice the last chunk), 2 (24 s left), 1 (4 s left: one at least) = all 6."""
+    clock = FakeClock(per_query=10.0)
+    clock.install(monkeypatch)
+    import locretrieval.training.callbacks as callbacks
+
+    validated_on = []
+    real_benchmark = callbacks.benchmark
+    monkeypatch.setattr(
+        callbacks,
+        "benchmark",
+        lambda scene, *args: validated_on.append(scene.queries.names) or real_benchmark(scene, *args),
+    )
     cfg = train_config(
-        tmp_path, "callbacks.localization_validation.sfm_every_n_epochs=1", "training.validation.budget_minutes=0.001"
+        tmp_path,
+        "callbacks.localization_validation.sfm_every_n_epochs=1",
+        f"training.validation.budget_minutes={minutes}",
+        "training.validation.seed=7",
+        "paradigms.local_sfm.k=[2]",
+        "paradigms.global_sfm.k=[1]",
+        "trainer.max_epochs=2",
+    )
+    validator = train(cfg, tmp_path / "run")
+    order = np.random.default_rng(7).permutation(6)
+    sizes = [len(chunk) for chunk in clock.chunks]
+    assert sizes == ([1, 2] if reached == 3 else [1, 2, 2, 1]) and [q for c in clock.chunks for q in c] == list(
+        order[:reached]
+    )
+    names = [instantiate(cfg.data).queries.names[q] for q in np.sort(order[:reached])]
+    assert validator.scene.queries.names == validator.validated_queries == names
+    # references, then epochs -1, 0 and 1: every validation on the same queries
+    assert len(validated_on) == 4 and all(queries == names for queries in validated_on)
+    assert sorted({entry["epoch"] for entry in validator.history}) == [-1, 0, 1]
+
+
+def test_a_budget_too_small_for_one_validation_query_is_a_clear_error(tmp_path, monkeypatch):
+    FakeClock(per_query=10.0).install(monkeypatch)
+    cfg = train_config(
+        tmp_path, "callbacks.localization_validation.sfm_every_n_epochs=1", "training.validation.budget_minutes=0.1"
     )
     with pytest.raises(
         ConfigError,
-        match=r"training.validation.budget_minutes: one validation is forecast at [\d.]+ min, above the budget of "
-        r"0.001 min: describing its 30 images takes [\d.]+ min and its SfM work [\d.]+ min \(6 queries, [\d,]+ pairs "
-        r"to match .*training.validation.max_queries",
+        match=r"training.validation.budget_minutes: 0.1 min cannot hold one validation query: describing the 30 "
+        r"validation images took 0.0 s and localizing 1 query 10.0 s",
     ):
         train(cfg, tmp_path / "run")
-    assert not (tmp_path / "run" / "checkpoints").exists()  # refused before any step
-
-
-def test_the_validation_budget_counts_describing_the_images_without_sfm(tmp_path):
-    cfg = train_config(tmp_path, "training.validation.budget_minutes=0.00001")  # no SfM validation: describing only
-    with pytest.raises(ConfigError, match=r"describing its 30 images takes [\d.]+ min and its SfM work 0.0 min"):
-        train(cfg, tmp_path / "run")
+    assert not (tmp_path / "run" / "checkpoints").exists()  # before any training step
 
 
 class TemperatureLoss(torch.nn.Module):

@@ -9,8 +9,6 @@ import os
 import shutil
 import tempfile
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,7 +19,7 @@ from tqdm import tqdm
 from locretrieval.cache import process_alive
 from locretrieval.config import validated
 from locretrieval.device import resolve_device
-from locretrieval.processes import broken_pool_error, spawn_context
+from locretrieval.pool import WorkerPool
 from locretrieval.scene.synthetic.camera import PinholeCamera
 from locretrieval.scene.synthetic.conditions import add_sensor_noise, exposure_path, sample_conditions
 from locretrieval.scene.synthetic.config import CONDITIONS, RenderSettings
@@ -206,17 +204,20 @@ class _RenderContext:
         write_image_files(self.staging / plan.folder, plan.name, rgb, depth, mask)
 
 
+#: In a rendering worker: what renders the images of the render in progress.
 _WORKER_CONTEXT: list[_RenderContext] = []
+#: The rendering workers of this process (stopped when a render ends: the SfM workers follow).
+_RENDER_WORKERS = WorkerPool("rendering")
 
 
-def _start_worker(config: RenderSettings, staging: Path) -> None:
-    torch.set_num_threads(1)
-    environment = build_environment(config)
-    renderer = Renderer(environment, resolve_device(str(config.device)))
-    _WORKER_CONTEXT.append(_RenderContext(config, environment, renderer, staging))
-
-
-def _render_in_worker(plan: ImagePlan) -> None:
+def _render_in_worker(shared: tuple[RenderSettings, Path], plan: ImagePlan) -> None:
+    """Render one image; the worker builds the scene's renderer once per render."""
+    config, staging = shared
+    if not _WORKER_CONTEXT or _WORKER_CONTEXT[0].staging != staging:
+        torch.set_num_threads(1)
+        environment = build_environment(config)
+        renderer = Renderer(environment, resolve_device(str(config.device)))
+        _WORKER_CONTEXT[:] = [_RenderContext(config, environment, renderer, staging)]
     _WORKER_CONTEXT[0](plan)
 
 
@@ -258,20 +259,17 @@ def _render(config: RenderSettings, output_dir: Path) -> None:
     with tempfile.TemporaryDirectory(dir=output_dir, prefix=f"{STAGING_PREFIX}{os.getpid()}-") as staging:
         staging = Path(staging)
         workers = int(config.workers)
-        progress = {"desc": f"rendering synthetic {environment.name}", "unit": "image", "total": len(plans)}
+        description = f"rendering synthetic {environment.name}"
         if workers == 1:
             context = _RenderContext(config, environment, renderer, staging)
-            for plan in tqdm(plans, **progress):
+            for plan in tqdm(plans, desc=description, unit="image"):
                 context(plan)
         else:
-            with ProcessPoolExecutor(
-                workers, mp_context=spawn_context(), initializer=_start_worker, initargs=(config, staging)
-            ) as pool:
-                try:
-                    for _ in tqdm(pool.map(_render_in_worker, plans), **progress):
-                        pass
-                except BrokenProcessPool as error:
-                    raise broken_pool_error(pool, f"rendering synthetic {environment.name}") from error
+            try:
+                for _ in _RENDER_WORKERS.map(_render_in_worker, plans, workers, description, (config, staging)):
+                    pass
+            finally:
+                _RENDER_WORKERS.shutdown()
         write_kapture_lists(staging / "mapping", [database_camera], _written(database))
         write_kapture_lists(staging / "query", query_cameras, _written(queries))
         (staging / "synthetic_config.json").write_text(json.dumps(config.record(), indent=2, sort_keys=True) + "\n")
