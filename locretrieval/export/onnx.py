@@ -1,0 +1,257 @@
+"""A torch descriptor's network as ONNX (`export_onnx`), checked against torch under onnxruntime.
+
+The graph is `DescriptorNetwork`'s: input ``images`` ``float32 [batch, 3, height, width]``, RGB
+normalised as ``(rgb / 255 - mean) / std``; output ``descriptors`` ``float32 [batch, D]``, unit
+L2 norm. The batch dimension is always dynamic; height and width are dynamic too unless the
+input has a fixed size (``onnx.size``, else the model's ``size``, e.g. DINOv2's 322 x 322). The
+file's metadata (``metadata_props``) holds the preprocessing (``mean``, ``std``, ``max_side``,
+``size``, ``multiple_of``, ``scales``), the descriptor size and the check's largest difference.
+
+Two of torch's exporters (``onnx.exporter``):
+
+- ``torchscript``: ``torch.onnx.export(dynamo=False)``, tracing; needs only ``onnx``. Measured on
+  this project's 2-core CPU: EfficientNet-Lite0 + GeM with a dynamic image size in 1.5 s. Torch
+  marks it deprecated. Adaptive pooling to a grid (MixVPR, the GeM pyramid) does not export with a
+  dynamic image size: give ``onnx.size``.
+- ``dynamo``: ``torch.onnx.export(dynamo=True)``, ``torch.export``; needs ``onnxscript``. It exports
+  adaptive pooling with dynamic sizes, but took 634 s for EfficientNet-Lite0 with a dynamic image
+  size (18 s with a fixed one), and it may fix a dimension declared dynamic without an error.
+
+Either way the file is only kept when it passes the check: onnxruntime's descriptors of random
+images equal torch's within ``onnx.atol`` at the example size with a batch of 2 and, with a
+dynamic size, at another size (portrait instead of landscape) with a batch of 3. Otherwise the
+error says what differed and what to change.
+"""
+
+from __future__ import annotations
+
+import copy
+import importlib.util
+import json
+import logging
+import time
+import warnings
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from locretrieval import __version__
+from locretrieval.cache import atomic_path
+from locretrieval.config import require
+from locretrieval.export.network import DescriptorNetwork
+from locretrieval.models.base import GlobalDescriptor
+from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
+
+log = logging.getLogger(__name__)
+
+#: Exporter -> the packages it needs besides torch.
+EXPORTERS = {"torchscript": ("onnx", "onnxruntime"), "dynamo": ("onnx", "onnxruntime", "onnxscript")}
+#: The example image a dynamic-size export traces, before the model's resize: 4:3 landscape.
+EXAMPLE_SIZE = (640, 480)
+#: Seed of the random check images.
+CHECK_SEED = 0
+
+
+class OnnxExportError(RuntimeError):
+    """An export that failed, or whose graph disagrees with torch; no file was kept."""
+
+
+@dataclass
+class OnnxSettings:
+    """The ``onnx`` config section: the ``exporter`` (`EXPORTERS`), the ONNX ``opset``, a fixed input
+    ``size`` (``[width, height]``; ``None``: the model's ``size`` if it has one, else any height and
+    width), ``atol``: the largest difference between onnxruntime's and torch's descriptors accepted."""
+
+    exporter: str
+    opset: int
+    size: list[int] | None
+    atol: float
+
+    def __post_init__(self) -> None:
+        require(self.exporter in EXPORTERS, "exporter", f"must be one of {list(EXPORTERS)}, got {self.exporter!r}")
+        lowest = 18 if self.exporter == "dynamo" else 14  # dynamo writes opset 18 and fails converting down
+        require(
+            self.opset >= lowest, "opset", f"must be >= {lowest} with the {self.exporter} exporter, got {self.opset}"
+        )
+        require(
+            self.size is None or (len(self.size) == 2 and min(self.size) > 0),
+            "size",
+            f"must be [width, height] in pixels or null, got {self.size}",
+        )
+        require(self.atol > 0, "atol", f"must be > 0, got {self.atol}")
+
+    def check_packages(self) -> None:
+        """Raise `ModuleNotFoundError` saying what to install when a package the exporter needs is missing."""
+        missing = [name for name in EXPORTERS[self.exporter] if importlib.util.find_spec(name) is None]
+        if missing:
+            raise ModuleNotFoundError(
+                f"onnx (exporter {self.exporter}) needs {', '.join(missing)}: pip install 'locretrieval[export]' "
+                f"(or pip install {' '.join(missing)})"
+            )
+
+
+def torch_network(model: GlobalDescriptor) -> TorchGlobalDescriptor:
+    """``model`` if it is computed by a torch network; a ``TypeError`` saying so otherwise."""
+    if not isinstance(model, TorchGlobalDescriptor):
+        raise TypeError(
+            f"onnx: model {model.name!r} ({type(model).__name__}) is not a torch network; ONNX export takes a "
+            "trainable model (model=checkpoint, gem, lite0_gem, timm, dinov2_*), a zoo network or a hub/callable module"
+        )
+    return model
+
+
+def export_onnx(model: TorchGlobalDescriptor, path: str | Path, settings: OnnxSettings) -> Path:
+    """``model``'s `DescriptorNetwork` (a copy, on the CPU) as the ONNX file ``path``, kept only when
+    onnxruntime's descriptors equal torch's (see the module's docstring); returns ``path``."""
+    settings.check_packages()
+    network = DescriptorNetwork(copy.deepcopy(model.network).float().cpu(), model.preprocessing).eval()
+    fixed = fixed_size(model, settings)
+    example = model.preprocessing.target_size(*EXAMPLE_SIZE) if fixed is None else fixed
+    checks = [(2, *example)]
+    checks.append((3, *model.preprocessing.target_size(*reversed(EXAMPLE_SIZE))) if fixed is None else (3, *fixed))
+    if len(model.preprocessing.scales) > 1:
+        log.warning(
+            "%s sums %d scales %s; the ONNX graph computes one (the caller sums them)",
+            model.name,
+            len(model.preprocessing.scales),
+            list(model.preprocessing.scales),
+        )
+    started = time.perf_counter()
+    with atomic_path(path) as temporary:
+        trace(network, temporary, example, fixed is None, settings)
+        exported_s = time.perf_counter() - started
+        difference = check(network, temporary, checks, settings, dynamic=fixed is None)
+        describe(temporary, model, network, fixed, difference)
+    log.info(
+        "%s: ONNX (%s exporter, opset %d, %s) in %.1f s, onnxruntime within %.2g of torch: %s",
+        model.name,
+        settings.exporter,
+        settings.opset,
+        "dynamic batch and image size" if fixed is None else f"dynamic batch, {fixed[0]} x {fixed[1]} images",
+        exported_s,
+        difference,
+        path,
+    )
+    return Path(path)
+
+
+def fixed_size(model: TorchGlobalDescriptor, settings: OnnxSettings) -> tuple[int, int] | None:
+    """The fixed input ``(width, height)`` (``settings.size``, else the model's ``size``, in steps of
+    its ``multiple_of``), or ``None`` for a dynamic one."""
+    size = settings.size if settings.size is not None else model.preprocessing.size
+    if size is None:
+        return None
+    return replace(model.preprocessing, size=tuple(size)).target_size(*size)
+
+
+def trace(
+    network: DescriptorNetwork, path: Path, size: tuple[int, int], dynamic_size: bool, settings: OnnxSettings
+) -> None:
+    """Export ``network`` traced on a batch of 2 images of ``size`` (``(width, height)``) to ``path``."""
+    width, height = size
+    example = torch.zeros(2, 3, height, width)
+    options = {"input_names": ["images"], "output_names": ["descriptors"], "opset_version": settings.opset}
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*legacy TorchScript-based ONNX export.*")
+            warnings.filterwarnings("ignore", message="The feature will be removed.*")
+            warnings.filterwarnings(
+                "ignore", category=torch.jit.TracerWarning
+            )  # sizes read as numbers: the check catches what they fix
+            if settings.exporter == "torchscript":
+                axes = {0: "batch", 2: "height", 3: "width"} if dynamic_size else {0: "batch"}
+                torch.onnx.export(
+                    network,
+                    (example,),
+                    str(path),
+                    dynamo=False,
+                    dynamic_axes={"images": axes, "descriptors": {0: "batch"}},
+                    **options,
+                )
+            else:
+                dims = {0: torch.export.Dim("batch", min=1)}
+                if dynamic_size:
+                    dims |= {2: torch.export.Dim("height", min=16), 3: torch.export.Dim("width", min=16)}
+                torch.onnx.export(
+                    network, (example,), str(path), dynamo=True, dynamic_shapes={"images": dims}, external_data=False,
+                    verbose=False, **options,
+                )  # fmt: skip
+    except Exception as error:  # any exporter failure: name the exporter and what to try
+        reason = f"{type(error).__name__}: {str(error).splitlines()[0][:300]}"
+        raise OnnxExportError(
+            f"onnx: the {settings.exporter} exporter failed ({reason})"
+            + (f"; {hint(settings)}" if dynamic_size else "")
+        ) from error
+
+
+def hint(settings: OnnxSettings) -> str:
+    """What to try when a network does not export with a dynamic image size."""
+    other = "dynamo" if settings.exporter == "torchscript" else "torchscript"
+    return f"set onnx.size=[width,height] for a fixed image size, or try onnx.exporter={other}"
+
+
+def check(
+    network: DescriptorNetwork, path: Path, sizes: list[tuple[int, int, int]], settings: OnnxSettings, dynamic: bool
+) -> float:
+    """The largest difference between onnxruntime's and torch's descriptors of random images of
+    ``sizes`` (``(batch, width, height)``); `OnnxExportError` when a run fails or exceeds ``atol``."""
+    import onnxruntime
+
+    options = onnxruntime.SessionOptions()
+    options.log_severity_level = 4  # its errors are raised below, with what to change
+    session = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    generator = torch.Generator().manual_seed(CHECK_SEED)
+    largest = 0.0
+    for batch, width, height in sizes:
+        images = torch.randn(batch, 3, height, width, generator=generator)
+        shape = f"{batch} x 3 x {height} x {width}"
+        try:
+            got = session.run(["descriptors"], {"images": images.numpy()})[0]
+        except Exception as error:  # onnxruntime's own errors: a fixed dimension, a reshape baked in
+            raise OnnxExportError(
+                f"onnx: the exported graph fails on a {shape} batch under onnxruntime "
+                f"({str(error).splitlines()[0][:300]}); "
+                + (hint(settings) if dynamic else f"the {settings.exporter} exporter fixed the batch size")
+            ) from None
+        with torch.no_grad():
+            expected = network(images).numpy()
+        if got.shape != expected.shape:
+            raise OnnxExportError(
+                f"onnx: descriptors of a {shape} batch are {got.shape} under onnxruntime, {expected.shape} in torch"
+            )
+        difference = float(np.abs(got - expected).max())
+        if not difference <= settings.atol:
+            raise OnnxExportError(
+                f"onnx: on a {shape} batch onnxruntime's descriptors differ from torch's by {difference:.3g} "
+                f"(> onnx.atol={settings.atol}); "
+                + (hint(settings) if dynamic else "raise onnx.atol if that is float noise")
+            )
+        largest = max(largest, difference)
+    return largest
+
+
+def describe(
+    path: Path,
+    model: TorchGlobalDescriptor,
+    network: DescriptorNetwork,
+    fixed: tuple[int, int] | None,
+    difference: float,
+) -> None:
+    """Write the preprocessing, the descriptor size and the check's difference into the file's metadata."""
+    import onnx
+
+    graph = onnx.load(str(path))
+    preprocessing = asdict(model.preprocessing)
+    properties = {
+        "producer": f"locretrieval {__version__}",
+        "model": model.name,
+        "input": "images: float32 [batch, 3, height, width], RGB normalised as (rgb / 255 - mean) / std",
+        "output": f"descriptors: float32 [batch, {network.output_dim}], unit L2 norm",
+        "input_size": "dynamic" if fixed is None else json.dumps(list(fixed)),
+        **{key: json.dumps(value) for key, value in preprocessing.items()},
+        "max_abs_difference_onnxruntime_torch": f"{difference:.3g}",
+    }
+    onnx.helper.set_model_props(graph, properties)
+    onnx.save(graph, str(path))
