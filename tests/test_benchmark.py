@@ -213,6 +213,7 @@ LAYERS = [
     {"report"},
     {"evaluation"},
     {"training"},
+    {"export"},
 ]
 
 

@@ -7,20 +7,16 @@ input has a fixed size (``onnx.size``, else the model's ``size``, e.g. DINOv2's 
 file's metadata (``metadata_props``) holds the preprocessing (``mean``, ``std``, ``max_side``,
 ``size``, ``multiple_of``, ``scales``), the descriptor size and the check's largest difference.
 
-Two of torch's exporters (``onnx.exporter``):
+The exporter is torch's TorchScript one (``torch.onnx.export(dynamo=False)``, tracing), which needs
+only the ``onnx`` package. Torch marks it deprecated in favour of its ``torch.export``-based one,
+which needs ``onnxscript`` and, on a 2-core CPU, took 634 s for EfficientNet-Lite0 + GeM with a
+dynamic image size (18 s with a fixed one) where this one takes 1.5 s. Adaptive pooling to a grid
+(MixVPR, the GeM pyramid) does not export with a dynamic image size: give ``onnx.size``.
 
-- ``torchscript``: ``torch.onnx.export(dynamo=False)``, tracing; needs only ``onnx``. Measured on
-  this project's 2-core CPU: EfficientNet-Lite0 + GeM with a dynamic image size in 1.5 s. Torch
-  marks it deprecated. Adaptive pooling to a grid (MixVPR, the GeM pyramid) does not export with a
-  dynamic image size: give ``onnx.size``.
-- ``dynamo``: ``torch.onnx.export(dynamo=True)``, ``torch.export``; needs ``onnxscript``. It exports
-  adaptive pooling with dynamic sizes, but took 634 s for EfficientNet-Lite0 with a dynamic image
-  size (18 s with a fixed one), and it may fix a dimension declared dynamic without an error.
-
-Either way the file is only kept when it passes the check: onnxruntime's descriptors of random
-images equal torch's within ``onnx.atol`` at the example size with a batch of 2 and, with a
-dynamic size, at another size (portrait instead of landscape) with a batch of 3. Otherwise the
-error says what differed and what to change.
+The file is kept only when it passes the check: onnxruntime's descriptors of random images equal
+torch's within ``onnx.atol`` at the example size with a batch of 2 and at another with a batch
+of 3 (with a dynamic size: portrait instead of landscape). A graph that fixed what it should not
+(a reshape traced at the example's batch) is refused, saying what to change.
 """
 
 from __future__ import annotations
@@ -37,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from locretrieval import __version__
+import locretrieval
 from locretrieval.cache import atomic_path
 from locretrieval.config import require
 from locretrieval.export.network import DescriptorNetwork
@@ -46,12 +42,14 @@ from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 
 log = logging.getLogger(__name__)
 
-#: Exporter -> the packages it needs besides torch.
-EXPORTERS = {"torchscript": ("onnx", "onnxruntime"), "dynamo": ("onnx", "onnxruntime", "onnxscript")}
+#: The packages an export needs besides torch: the graph's writer and the check's runtime.
+PACKAGES = ("onnx", "onnxruntime")
 #: The example image a dynamic-size export traces, before the model's resize: 4:3 landscape.
 EXAMPLE_SIZE = (640, 480)
 #: Seed of the random check images.
 CHECK_SEED = 0
+#: What to try when a network does not export with a dynamic image size.
+SIZE_HINT = "set onnx.size=[width,height] for a fixed image size"
 
 
 class OnnxExportError(RuntimeError):
@@ -60,21 +58,16 @@ class OnnxExportError(RuntimeError):
 
 @dataclass
 class OnnxSettings:
-    """The ``onnx`` config section: the ``exporter`` (`EXPORTERS`), the ONNX ``opset``, a fixed input
-    ``size`` (``[width, height]``; ``None``: the model's ``size`` if it has one, else any height and
-    width), ``atol``: the largest difference between onnxruntime's and torch's descriptors accepted."""
+    """The ``onnx`` config section: the ONNX ``opset``, a fixed input ``size`` (``[width, height]``;
+    ``None``: the model's ``size`` if it has one, else any height and width), ``atol``: the largest
+    difference between onnxruntime's and torch's descriptors accepted."""
 
-    exporter: str
     opset: int
     size: list[int] | None
     atol: float
 
     def __post_init__(self) -> None:
-        require(self.exporter in EXPORTERS, "exporter", f"must be one of {list(EXPORTERS)}, got {self.exporter!r}")
-        lowest = 18 if self.exporter == "dynamo" else 14  # dynamo writes opset 18 and fails converting down
-        require(
-            self.opset >= lowest, "opset", f"must be >= {lowest} with the {self.exporter} exporter, got {self.opset}"
-        )
+        require(14 <= self.opset <= 20, "opset", f"must be between 14 and 20 (the exporter's), got {self.opset}")
         require(
             self.size is None or (len(self.size) == 2 and min(self.size) > 0),
             "size",
@@ -83,11 +76,11 @@ class OnnxSettings:
         require(self.atol > 0, "atol", f"must be > 0, got {self.atol}")
 
     def check_packages(self) -> None:
-        """Raise `ModuleNotFoundError` saying what to install when a package the exporter needs is missing."""
-        missing = [name for name in EXPORTERS[self.exporter] if importlib.util.find_spec(name) is None]
+        """Raise `ModuleNotFoundError` saying what to install when a package an export needs is missing."""
+        missing = [name for name in PACKAGES if importlib.util.find_spec(name) is None]
         if missing:
             raise ModuleNotFoundError(
-                f"onnx (exporter {self.exporter}) needs {', '.join(missing)}: pip install 'locretrieval[export]' "
+                f"onnx: the export needs {' and '.join(missing)}: pip install 'locretrieval[export]' "
                 f"(or pip install {' '.join(missing)})"
             )
 
@@ -125,9 +118,8 @@ def export_onnx(model: TorchGlobalDescriptor, path: str | Path, settings: OnnxSe
         difference = check(network, temporary, checks, settings, dynamic=fixed is None)
         describe(temporary, model, network, fixed, difference)
     log.info(
-        "%s: ONNX (%s exporter, opset %d, %s) in %.1f s, onnxruntime within %.2g of torch: %s",
+        "%s: ONNX (opset %d, %s) in %.1f s, onnxruntime within %.2g of torch: %s",
         model.name,
-        settings.exporter,
         settings.opset,
         "dynamic batch and image size" if fixed is None else f"dynamic batch, {fixed[0]} x {fixed[1]} images",
         exported_s,
@@ -151,45 +143,27 @@ def trace(
 ) -> None:
     """Export ``network`` traced on a batch of 2 images of ``size`` (``(width, height)``) to ``path``."""
     width, height = size
-    example = torch.zeros(2, 3, height, width)
-    options = {"input_names": ["images"], "output_names": ["descriptors"], "opset_version": settings.opset}
+    axes = {0: "batch", 2: "height", 3: "width"} if dynamic_size else {0: "batch"}
     try:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*legacy TorchScript-based ONNX export.*")
             warnings.filterwarnings("ignore", message="The feature will be removed.*")
-            warnings.filterwarnings(
-                "ignore", category=torch.jit.TracerWarning
-            )  # sizes read as numbers: the check catches what they fix
-            if settings.exporter == "torchscript":
-                axes = {0: "batch", 2: "height", 3: "width"} if dynamic_size else {0: "batch"}
-                torch.onnx.export(
-                    network,
-                    (example,),
-                    str(path),
-                    dynamo=False,
-                    dynamic_axes={"images": axes, "descriptors": {0: "batch"}},
-                    **options,
-                )
-            else:
-                dims = {0: torch.export.Dim("batch", min=1)}
-                if dynamic_size:
-                    dims |= {2: torch.export.Dim("height", min=16), 3: torch.export.Dim("width", min=16)}
-                torch.onnx.export(
-                    network, (example,), str(path), dynamo=True, dynamic_shapes={"images": dims}, external_data=False,
-                    verbose=False, **options,
-                )  # fmt: skip
-    except Exception as error:  # any exporter failure: name the exporter and what to try
+            warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)  # the check catches what they fix
+            torch.onnx.export(
+                network,
+                (torch.zeros(2, 3, height, width),),
+                str(path),
+                dynamo=False,
+                input_names=["images"],
+                output_names=["descriptors"],
+                dynamic_axes={"images": axes, "descriptors": {0: "batch"}},
+                opset_version=settings.opset,
+            )
+    except Exception as error:  # any exporter failure: say what failed and what to try
         reason = f"{type(error).__name__}: {str(error).splitlines()[0][:300]}"
         raise OnnxExportError(
-            f"onnx: the {settings.exporter} exporter failed ({reason})"
-            + (f"; {hint(settings)}" if dynamic_size else "")
+            f"onnx: the export failed ({reason})" + (f"; {SIZE_HINT}" if dynamic_size else "")
         ) from error
-
-
-def hint(settings: OnnxSettings) -> str:
-    """What to try when a network does not export with a dynamic image size."""
-    other = "dynamo" if settings.exporter == "torchscript" else "torchscript"
-    return f"set onnx.size=[width,height] for a fixed image size, or try onnx.exporter={other}"
 
 
 def check(
@@ -213,7 +187,7 @@ def check(
             raise OnnxExportError(
                 f"onnx: the exported graph fails on a {shape} batch under onnxruntime "
                 f"({str(error).splitlines()[0][:300]}); "
-                + (hint(settings) if dynamic else f"the {settings.exporter} exporter fixed the batch size")
+                + (SIZE_HINT if dynamic else "the exporter fixed the batch size (a reshape traced at the example's)")
             ) from None
         with torch.no_grad():
             expected = network(images).numpy()
@@ -226,7 +200,7 @@ def check(
             raise OnnxExportError(
                 f"onnx: on a {shape} batch onnxruntime's descriptors differ from torch's by {difference:.3g} "
                 f"(> onnx.atol={settings.atol}); "
-                + (hint(settings) if dynamic else "raise onnx.atol if that is float noise")
+                + (SIZE_HINT if dynamic else "raise onnx.atol if that is float noise")
             )
         largest = max(largest, difference)
     return largest
@@ -245,7 +219,7 @@ def describe(
     graph = onnx.load(str(path))
     preprocessing = asdict(model.preprocessing)
     properties = {
-        "producer": f"locretrieval {__version__}",
+        "producer": f"locretrieval {locretrieval.__version__}",
         "model": model.name,
         "input": "images: float32 [batch, 3, height, width], RGB normalised as (rgb / 255 - mean) / std",
         "output": f"descriptors: float32 [batch, {network.output_dim}], unit L2 norm",

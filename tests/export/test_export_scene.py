@@ -158,7 +158,7 @@ def test_descriptor_files_are_laid_out_as_kapture_and_hloc_read_them(exported):
         (["pairs.k=51"], r"pairs.k: 51 is more than retrieval.depth=50"),
         (["pairs.formats=[colmap]"], r"pairs.formats: unknown \['colmap'\]"),
         (["descriptors.formats=[npy]"], r"descriptors.formats: unknown \['npy'\]"),
-        (["export=[onnx]", "onnx.exporter=tflite"], r"onnx.exporter: must be one of"),
+        (["export=[onnx]", "onnx.opset=9"], r"onnx.opset: must be between 14 and 20"),
     ],
 )
 def test_export_checks_its_settings_before_any_work(tmp_path, overrides, message):
