@@ -15,7 +15,7 @@ from locretrieval.config import ConfigError, built, validated
 from locretrieval.evaluation import weight_inputs
 from locretrieval.export.onnx import OnnxSettings, export_onnx, torch_network
 from locretrieval.export.pairs import PairsSettings
-from locretrieval.export.scene import DescriptorSettings, export_scene
+from locretrieval.export.scene import DescriptorSettings, check_scene_names, export_scene
 from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths
 from locretrieval.retrieval.descriptors import DescriptorSearch
 from locretrieval.retrieval.index import RetrievalSettings
@@ -32,10 +32,10 @@ EXPORTS = ("pairs", "descriptors", "onnx")
 
 def export(cfg: DictConfig, output_dir: Path) -> list[Path]:
     """Write what ``cfg.export`` lists into ``output_dir`` (files named in docs/export.md): ``pairs``
-    (`PairsSettings`: the model's rankings and those of the ground truth ``groundtruth`` enables), ``descriptors``
-    (`DescriptorSettings`: the model's global descriptors), ``onnx`` (`OnnxSettings`: the model's
-    network). Every section, the model's inputs and the packages ONNX needs are checked before any
-    work. Returns the files and folders written."""
+    (`PairsSettings`: the model's rankings and those of the ground truth ``groundtruth`` enables),
+    ``descriptors`` (`DescriptorSettings`: the model's global descriptors), ``onnx`` (`OnnxSettings`:
+    the model's network). Every section, the packages ONNX needs, the model's inputs and the scene's
+    image names are checked before any work. Returns the files and folders written."""
     started = time.perf_counter()
     wanted = list(cfg.export)
     unknown = sorted(set(wanted) - set(EXPORTS))
@@ -45,6 +45,7 @@ def export(cfg: DictConfig, output_dir: Path) -> list[Path]:
     descriptors = validated(DescriptorSettings, cfg.descriptors, "descriptors") if "descriptors" in wanted else None
     onnx = validated(OnnxSettings, cfg.onnx, "onnx") if "onnx" in wanted else None
     retrieval = validated(RetrievalSettings, cfg.retrieval, "retrieval")
+    groundtruth = validated(GroundTruthSettings, cfg.groundtruth, "groundtruth") if pairs is not None else None
     if pairs is not None and pairs.k > retrieval.depth:
         raise ConfigError(f"pairs.k: {pairs.k} is more than retrieval.depth={retrieval.depth}, the rankings' depth")
     if onnx is not None:
@@ -54,34 +55,40 @@ def export(cfg: DictConfig, output_dir: Path) -> list[Path]:
         raise FileNotFoundError(f"nothing was exported: {missing[0]}")
     model = built(cfg.model, "model")
     network = torch_network(model) if onnx is not None else None
-    written = []
-    if pairs is not None or descriptors is not None:
-        scene = instantiate_scene(cfg.data)
+    scene = instantiate_scene(cfg.data) if pairs is not None or descriptors is not None else None
+    if scene is not None:
+        check_scene_names(scene)
         problems = model.missing_inputs(scene)
         if problems:
             raise FileNotFoundError("nothing was exported: " + "; ".join(f"model.{p}" for p in problems))
-        rankings = list(model.rankings(scene, DescriptorSearch(retrieval, Path(cfg.paths.cache_dir))))
-        if pairs is not None:
-            rankings += groundtruth_rankings(cfg, scene)
+        if groundtruth is not None:
+            check_supported(scene, list(groundtruth.parsed()))
+    output_dir.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(cfg, output_dir / "config.yaml", resolve=True)  # as run; .hydra/ keeps the interpolations
+    written = []
+    if scene is not None:
+        cache_dir = Path(cfg.paths.cache_dir)
+        rankings = list(model.rankings(scene, DescriptorSearch(retrieval, cache_dir)))
+        if groundtruth is not None:
+            rankings += groundtruth_rankings(scene, groundtruth, cfg, cache_dir)
         check_unique_names(rankings)
         written += export_scene(scene, rankings, output_dir, pairs, descriptors)
     if network is not None:
         written.append(export_onnx(network, output_dir / f"{safe_name(model.name)}.onnx", onnx))
-    output_dir.mkdir(parents=True, exist_ok=True)
-    OmegaConf.save(cfg, output_dir / "config.yaml", resolve=True)
     log.info("exported %d files and folders in %.1f s to %s", len(written), time.perf_counter() - started, output_dir)
     return written
 
 
-def groundtruth_rankings(cfg: DictConfig, scene: Scene) -> list[Ranking]:
-    """The rankings of the ground truth ``groundtruth`` enables (cached under ``paths.cache_dir``, as
-    evaluate.py computes them); none when no query has a reference pose."""
-    settings = validated(GroundTruthSettings, cfg.groundtruth, "groundtruth")
+def groundtruth_rankings(
+    scene: Scene, settings: GroundTruthSettings, cfg: DictConfig, cache_dir: Path
+) -> list[Ranking]:
+    """The rankings of the ground truth ``settings`` enables (cached in ``cache_dir``, as evaluate.py
+    computes them; co-observation with ``cfg.sfm``'s local features); none when no query has a
+    reference pose."""
     if not settings.parsed():
         return []
     if not scene.queries.has_pose.any():
         log.warning("no query has a reference pose: no ground-truth pairs")
         return []
-    check_supported(scene, list(settings.parsed()))
     sfm = validated(SfmSettings, cfg.sfm, "sfm")
-    return [truth.ranking for truth in compute_groundtruths(scene, settings, sfm, Path(cfg.paths.cache_dir)).values()]
+    return [truth.ranking for truth in compute_groundtruths(scene, settings, sfm, cache_dir).values()]

@@ -56,8 +56,7 @@ def export_scene(
     """The pairs files of every ranking (``pairs``) and the descriptor files of every ranking that
     holds descriptors (``descriptors``) in ``folder``; returns the files and folders written. The
     scene's image names are checked before anything is written."""
-    check_exported_names(scene.database.names, f"scene {scene.name}: database")
-    check_exported_names(scene.queries.names, f"scene {scene.name}: queries")
+    check_scene_names(scene)
     written = []
     if pairs is not None:
         for ranking in rankings:
@@ -69,6 +68,12 @@ def export_scene(
         for ranking in described:
             written += export_descriptors(scene, ranking, folder, descriptors)
     return written
+
+
+def check_scene_names(scene: Scene) -> None:
+    """Raise ``ValueError`` naming the first image name of ``scene`` that the exports cannot write."""
+    check_exported_names(scene.database.names, f"scene {scene.name}: database")
+    check_exported_names(scene.queries.names, f"scene {scene.name}: queries")
 
 
 def export_descriptors(scene: Scene, ranking: Ranking, folder: Path, settings: DescriptorSettings) -> list[Path]:

@@ -49,7 +49,7 @@ def check_exported_names(names: Sequence[str], what: str) -> None:
     for name in names:
         problem = exported_name_problem(name)
         if problem:
-            raise ValueError(f"{what}: image name {name[:200]!r} {problem}; nothing was written for it")
+            raise ValueError(f"{what}: image name {name[:200]!r} {problem}; nothing was exported")
     repeated = [name for name, count in Counter(names).items() if count > 1]
     if repeated:
         raise ValueError(f"{what}: image name {repeated[0][:200]!r} appears twice")

@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from helpers import HOSTILE_IMAGE, HOSTILE_MODEL, compose_config, evaluate_config
+from hydra import compose, initialize_config_dir
 
 from locretrieval.config import ConfigError
 from locretrieval.evaluation import evaluate
@@ -244,3 +245,11 @@ def test_ranked_pairs_keep_each_querys_order_and_leave_out_empty_slots():
     pairs = ranked_pairs(ranking, 2, ["q0", "q1", "q2"], ["d0", "d1", "d2"])
     assert [(q, d) for q, d, _ in pairs] == [("q0", "d2"), ("q0", "d0"), ("q2", "d1"), ("q2", "d2")]
     assert [s for _, _, s in pairs] == [float(np.float32(v)) for v in (0.9, 0.5, 0.7, 0.6)]
+
+
+def test_the_export_run_folder_keeps_names_inside_outputs():
+    with initialize_config_dir(config_dir=str(helpers.CONFIGS), version_base="1.3"):
+        config = compose("export", overrides=[f"model.name='{HOSTILE_MODEL}'"], return_hydra_config=True)
+    run_dir = config.hydra.run.dir
+    assert run_dir.startswith("outputs/export/synthetic_mall/") and ".." not in run_dir.split("/")
+    assert run_dir.count("/") == 4  # outputs/export/<dataset>/<model>/<date>
