@@ -7,6 +7,6 @@
 Nothing is downloaded: ``weights`` is a local file (`locretrieval.export.network.locretrieval`).
 """
 
-dependencies = ["torch", "timm", "hydra", "omegaconf"]
+dependencies = ["torch", "timm", "numpy", "PIL", "hydra", "omegaconf"]  # what building a network imports
 
 from locretrieval.export.network import locretrieval  # noqa: E402, F401

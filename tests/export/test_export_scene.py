@@ -101,6 +101,14 @@ def test_pairs_files_read_back_give_the_rankings_and_results_of_the_run(exported
     read = PairsFileRanking(name="kapture", path=str(kapture_pairs), order=ScoreOrder()).ranking(scene, K)
     np.testing.assert_array_equal(read.indices, ranked["indices"])
     np.testing.assert_array_equal(read.scores, ranked["scores"])
+    with open(kapture_pairs) as stream:  # as kapture-localization's get_pairs_from_file reads it
+        rows = kapture.io.csv.table_from_file(stream)
+    assert rows[0] == [
+        scene.queries.names[0],
+        scene.database.names[ranked["indices"][0, 0]],
+        repr(float(ranked["scores"][0, 0])),
+    ]
+    assert len(rows) == (ranked["indices"] >= 0).sum()
 
 
 def test_ground_truth_pairs_hold_the_ground_truth_ranking(exported):
