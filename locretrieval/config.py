@@ -33,9 +33,12 @@ Schema = TypeVar("Schema")
 def folder_label(folders: Sequence[str | os.PathLike]) -> str:
     """The feature names of ``folders``, distinct ones joined by ``+``: their last component
     (``.../reconstruction/global_features/AP-GeM-LM18`` -> ``AP-GeM-LM18``), the one before in
-    the downloader's layout (``.../global_features/AP-GeM-LM18/global_features`` -> ``AP-GeM-LM18``)."""
+    the downloader's layout (``.../global_features/AP-GeM-LM18/global_features`` -> ``AP-GeM-LM18``),
+    an hloc file's name without its suffix (``global-feats-netvlad.h5`` -> ``global-feats-netvlad``)."""
 
     def label(folder: Path) -> str:
+        if folder.suffix.lower() in (".h5", ".hdf5"):  # an hloc features file: its name without the suffix
+            return folder.stem
         return (
             folder.parent.name
             if folder.name == "global_features" and folder.parent.parent.name == "global_features"

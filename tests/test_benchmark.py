@@ -214,6 +214,7 @@ LAYERS = [
     {"report"},
     {"evaluation"},
     {"training"},
+    {"export"},
 ]
 
 

@@ -30,6 +30,7 @@ from PIL import Image, UnidentifiedImageError
 from locretrieval import geometry
 from locretrieval.errors import FIX_DATA_FILE, DataFileError
 from locretrieval.scene.ltvl import KaptureNames, LtvlNames
+from locretrieval.scene.names import records_name_problem
 from locretrieval.scene.types import CAMERA_MODELS, Camera, ImageSet, Scene
 
 log = logging.getLogger(__name__)
@@ -241,24 +242,10 @@ def _check_records(path: Path, sensors: dict[str, CsvRow], sensor_types: tuple[s
             raise row.error(
                 f"sensor {row.fields[1]!r} is of type {sensor.fields[2]!r}, expected {' or '.join(sensor_types)}"
             )
-        problem = _name_problem(row.fields[2])
+        problem = records_name_problem(row.fields[2])
         if problem:
             raise row.error(f"file name {row.fields[2][:200]!r} {problem}")
     return rows
-
-
-def _name_problem(name: str) -> str | None:
-    """Why ``name`` cannot be a file below its kapture folder's ``records_data`` (``None``: it can):
-    empty, absolute, with a ``..`` component, a backslash or a control character."""
-    if not name:
-        return "is empty"
-    if name.startswith("/") or re.match(r"[A-Za-z]:", name):
-        return "is absolute; names are relative to sensors/records_data"
-    if ".." in name.split("/"):
-        return "has a '..' component; names must stay inside sensors/records_data"
-    if "\\" in name or any(ord(character) < 32 or ord(character) == 127 for character in name):
-        return "has a backslash or a control character"
-    return None
 
 
 def _check_camera_supported(sensor: CsvRow) -> None:

@@ -1,16 +1,19 @@
-"""Global descriptors read from kapture global-features folders (e.g. those NAVER publishes).
+"""Global descriptors read from kapture global-features folders (e.g. those NAVER publishes) or
+from hloc's global-features HDF5 files.
 
 A folder (kapture >= 1.1 layout, ``<kapture>/reconstruction/global_features/<name>``, or the
 downloader's ``<dataset>/global_features/<name>/global_features``) holds
 ``global_features.txt`` (``name, dtype, dsize, metric_type``) and one raw ``.gfeat`` file
-per image at ``<folder>/<image name relative to records_data>.gfeat``.
+per image at ``<folder>/<image name relative to records_data>.gfeat``. An hloc file
+(``global-feats-netvlad.h5``) holds a ``global_descriptor`` dataset in the group of each image
+name (`locretrieval.models.files.feature_io`).
 """
 
 from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +37,8 @@ log = logging.getLogger(__name__)
 
 KIND = "global_features"
 CONFIG_FILENAME = f"{KIND}.txt"
+#: Suffixes of hloc's feature files: a ``model.path`` ending so is read as one.
+HLOC_SUFFIXES = (".h5", ".hdf5")
 
 
 def read_config(folder: Path, allow_integer: bool = False) -> FeatureHeader:
@@ -85,6 +90,8 @@ def missing_feature_folders(
 ) -> list[str]:
     """What the features of `PrecomputedDescriptor` lack: the header of each ``path`` folder, or
     (``path`` None) any folder of ``feature_name`` among the ``sources``."""
+    if path is not None and is_hloc(as_folders(path)):
+        return [f"hloc global features {file} not found" for file in as_folders(path) if not file.is_file()]
     if path is not None:
         headers = [folder / CONFIG_FILENAME for folder in as_folders(path)]
         return [f"global features {header} not found" for header in headers if not header.is_file()]
@@ -95,12 +102,21 @@ def missing_feature_folders(
     return []
 
 
+def is_hloc(paths: Sequence[Path]) -> bool:
+    """Whether ``model.path`` names hloc files (`HLOC_SUFFIXES`), not kapture folders; both at once are refused."""
+    hloc = [path.suffix.lower() in HLOC_SUFFIXES for path in paths]
+    if any(hloc) and not all(hloc):
+        raise ValueError(f"model.path mixes hloc files and kapture folders: {[str(path) for path in paths]}")
+    return bool(hloc) and all(hloc)
+
+
 class PrecomputedDescriptor(GlobalDescriptor):
     """Reads published global descriptors instead of computing them.
 
     ``path``: one folder or a list (e.g. the mapping's and the query's
-    ``reconstruction/global_features/<name>``); each image is read from the first folder
-    holding its file. When ``path`` is ``None``, `bind_scene` finds the folders of
+    ``reconstruction/global_features/<name>``), or one hloc file or a list (`HLOC_SUFFIXES`, e.g.
+    the database's and the queries'); each image is read from the first folder or file holding
+    it. When ``path`` is ``None``, `bind_scene` finds the folders of
     ``feature_name`` for every ``Scene.sources`` entry (`find_feature_folders`: kapture's
     layout or the downloader's). Without ``name`` or ``feature_name``, the ranking is named after
     the folders (`folder_label`, e.g. ``AP-GeM-LM18``). Descriptors are converted to
@@ -123,12 +139,13 @@ class PrecomputedDescriptor(GlobalDescriptor):
         self.feature_name = feature_name
         self._folders: list[Path] | None = None
         self._paths = None if path is None else as_folders(path)
+        self._hloc_files = self._paths if self._paths is not None and is_hloc(self._paths) else None
         if self._paths is not None:
             if not self._paths:
                 raise ValueError("model.path is an empty list; give at least one global-features folder")
             if not self._named:
                 self.name = folder_label(self._paths)
-            if all((folder / CONFIG_FILENAME).is_file() for folder in self._paths):
+            if self._hloc_files is None and all((folder / CONFIG_FILENAME).is_file() for folder in self._paths):
                 self._set_folders(self._paths)
 
     def missing_inputs(self, scene: Scene) -> list[str]:
@@ -175,6 +192,14 @@ class PrecomputedDescriptor(GlobalDescriptor):
             self._set_folders(find_feature_folders(scene.sources, self.feature_name))
 
     def identity(self) -> dict[str, Any]:
+        if self._hloc_files is not None:
+            files = self._hloc_files
+            signature = config_key([tree_signature(file) for file in files])
+            return {
+                "model": "precomputed",
+                "hloc_files": [str(file.resolve()) for file in files],
+                "signature": signature,
+            }
         folders = [str(folder.resolve()) for folder in self.folders]
         # The files' names, sizes and times, hashed: the key changes when a feature file does.
         signature = config_key([tree_signature(folder) for folder in self.folders])
@@ -191,6 +216,12 @@ class PrecomputedDescriptor(GlobalDescriptor):
         )
 
     def describe(self, images: ImageSet) -> np.ndarray:
+        if self._hloc_files is not None:
+            from locretrieval.models.files.feature_io import read_hloc_global_descriptors  # h5py: for hloc files only
+
+            files = ", ".join(str(file) for file in self._hloc_files)
+            descriptors = read_hloc_global_descriptors(self._hloc_files, images.names)
+            return self._unit_rows(descriptors, images.names, lambda name: f"{files}: image {name!r}")
         folders = self.folders
         header = self._config
         descriptors = np.empty((len(images), header.dsize), dtype=np.float32)
@@ -201,14 +232,18 @@ class PrecomputedDescriptor(GlobalDescriptor):
                 raise ValueError(
                     f"{path}: {actual_bytes} bytes, expected {expected_bytes} ({header.dsize} x {header.dtype})"
                 )
-            vector = read_feature_array(path, header)
-            if not np.isfinite(vector).all():
-                raise ValueError(f"{path}: global feature holds non-finite values")
-            descriptors[row] = vector.reshape(-1)
+            descriptors[row] = read_feature_array(path, header).reshape(-1)
+        return self._unit_rows(descriptors, images.names, lambda name: str(self._feature_path(name, folders)))
+
+    def _unit_rows(self, descriptors: np.ndarray, names: Sequence[str], where: Callable[[str], str]) -> np.ndarray:
+        """``descriptors`` (``float32``, a row per image of ``names``) L2-normalised; a row that is not
+        finite or is all zeros is an error naming ``where(image name)``."""
+        finite = np.isfinite(descriptors).all(axis=1)
+        if not finite.all():
+            raise ValueError(f"{where(names[int(np.argmin(finite))])}: global feature holds non-finite values")
         norms = np.linalg.norm(descriptors, axis=1)
         if len(norms) and not norms.all():
-            zero = self._feature_path(images.names[int(np.argmin(norms))], folders)
-            raise ValueError(f"{zero}: global feature is all zeros")
+            raise ValueError(f"{where(names[int(np.argmin(norms))])}: global feature is all zeros")
         off = np.abs(norms - 1.0) > NORM_TOLERANCE
         if off.any():
             log.info(

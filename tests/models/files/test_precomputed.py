@@ -213,3 +213,37 @@ def test_a_feature_folder_names_the_ranking_unless_a_name_is_given(tmp_path):
         PrecomputedDescriptor(name=None, path=folders["NetVLAD"], feature_name=None, allow_integer=False).name
         == "NetVLAD"
     )  # the Python API names it alike
+
+
+def write_hloc(path: Path, vectors: dict[str, np.ndarray]) -> Path:
+    """hloc's global-features file: a ``global_descriptor`` in the group of each image name."""
+    import h5py
+
+    with h5py.File(path, "w") as file:
+        for name, vector in vectors.items():
+            file.create_group(name).create_dataset("global_descriptor", data=vector)
+    return path
+
+
+def test_hloc_files_are_read_by_image_name_from_the_first_file_holding_it(tmp_path):
+    database, queries = random_vectors(DATABASE, 8, seed=1), random_vectors(QUERIES, 8, seed=2, dtype=np.float16)
+    files = [write_hloc(tmp_path / "global-feats-netvlad-db.h5", database),
+             write_hloc(tmp_path / "global-feats-netvlad-query.h5", queries)]  # fmt: skip
+    model = helpers.precomputed(path=[str(file) for file in files])
+    assert model.name == "global-feats-netvlad-db+global-feats-netvlad-query"  # the files' names, without .h5
+    images = image_set(QUERIES + DATABASE, tmp_path)
+    np.testing.assert_allclose(model.describe(images), normalised({**database, **queries}, images.names), atol=1e-6)
+    assert model.identity()["hloc_files"] == [str(file.resolve()) for file in files]
+    scene = Scene("s", image_set(DATABASE, tmp_path), image_set(QUERIES, tmp_path))
+    assert model.missing_inputs(scene) == []
+    with pytest.raises(
+        KeyError, match=r"global-feats-netvlad-db.h5, .*-query.h5: no global_descriptor for image 'x.jpg'"
+    ):
+        model.describe(image_set(["x.jpg"], tmp_path))
+    absent = helpers.precomputed(path=str(tmp_path / "absent.h5"))
+    assert absent.missing_inputs(scene) == [f"path: hloc global features {tmp_path / 'absent.h5'} not found"]
+    with pytest.raises(ValueError, match="model.path mixes hloc files and kapture folders"):
+        helpers.precomputed(path=[str(files[0]), str(tmp_path)])
+    write_hloc(tmp_path / "zeros.h5", {name: np.zeros(8, np.float32) for name in DATABASE})
+    with pytest.raises(ValueError, match=r"zeros.h5: image 'mapping/cam0/0001.jpg': global feature is all zeros"):
+        helpers.precomputed(path=str(tmp_path / "zeros.h5")).describe(image_set(DATABASE, tmp_path))

@@ -1,0 +1,112 @@
+"""A trained network out of locretrieval: as ONNX (``export.py 'export=[onnx]'``), its descriptors
+under onnxruntime equal to torch's, and through the ``locretrieval`` torch.hub entry point."""
+
+from pathlib import Path
+
+import helpers
+import numpy as np
+import onnx
+import onnxruntime
+import pytest
+import torch
+from helpers import compose_config
+from hydra.utils import instantiate
+
+from locretrieval.export.onnx import OnnxExportError, OnnxSettings, export_onnx
+from locretrieval.export.run import export
+from locretrieval.models.files.weights import EMBEDDED_CHECKPOINT_KEY, load_torch_file
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def lightning_checkpoint(descriptor, path: Path) -> Path:
+    """``descriptor``'s network as train.py's Lightning checkpoint embeds it (`EMBEDDED_CHECKPOINT_KEY`)."""
+    plain = path.with_suffix(".plain")
+    descriptor.save_checkpoint(plain)
+    torch.save({EMBEDDED_CHECKPOINT_KEY: load_torch_file(plain), "state_dict": {}, "epoch": 3}, path)
+    return path
+
+
+def trained_lite0(path: Path):
+    """train.py's default model (EfficientNet-Lite0 + GeM, the package's ImageNet weights) with a
+    trained GeM exponent, and its checkpoint at ``path``."""
+    model = helpers.zoo_model("lite0_gem")
+    with torch.no_grad():
+        model.network.pooling.p.fill_(3.7)
+    return model, lightning_checkpoint(model, path)
+
+
+def descriptors(model, images: torch.Tensor) -> np.ndarray:
+    """The model's own descriptors of a normalised batch (one scale, then its final projection)."""
+    with torch.no_grad():
+        return model.network.finalize(model.network.eval()(images)).numpy()
+
+
+def test_a_trained_checkpoint_exports_with_a_dynamic_batch_and_image_size(tmp_path):
+    model, checkpoint = trained_lite0(tmp_path / "last.ckpt")
+    cfg = compose_config(
+        "export", "export=[onnx]", "model=checkpoint", f"model.weights={checkpoint}", f"paths.root_dir={tmp_path}",
+        *helpers.QUIET_EXTRACTION,
+    )  # fmt: skip
+    (path,) = export(cfg, tmp_path / "out")
+    assert path == tmp_path / "out" / "trained.onnx" and not list((tmp_path / "out").glob(".*partial*"))
+    graph = onnx.load(str(path))
+    dims = [d.dim_param or d.dim_value for d in graph.graph.input[0].type.tensor_type.shape.dim]
+    assert dims == ["batch", 3, "height", "width"]
+    metadata = {entry.key: entry.value for entry in graph.metadata_props}
+    assert metadata["mean"] == str([127 / 255] * 3) and metadata["max_side"] == "320"
+    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    generator = torch.Generator().manual_seed(1)
+    images = torch.randn(5, 3, 160, 256, generator=generator)  # neither the traced batch nor size, nor the check's
+    got = session.run(None, {"images": images.numpy()})[0]
+    np.testing.assert_allclose(got, descriptors(model, images), atol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-5)
+
+
+def small_model(pooling: str):
+    """A random network on timm's test ResNet with ``pooling``, 128 px."""
+    cfg = helpers.evaluate_config(
+        "model=timm", "model.name=test_resnet", f"model/pooling={pooling}", "model.random_init=true",
+        "model.max_side=128", *helpers.QUIET_EXTRACTION,
+    )  # fmt: skip
+    return instantiate(cfg.model)
+
+
+def test_a_network_without_a_dynamic_image_size_exports_at_a_fixed_one(tmp_path):
+    model = small_model("mixvpr")  # adaptive pooling to its grid: traced, the grid needs the input's size
+    with pytest.raises(OnnxExportError, match=r"adaptive_avg_pool2d.*set onnx.size=\[width,height\]"):
+        export_onnx(model, tmp_path / "mixvpr.onnx", OnnxSettings(18, None, 1e-4))
+    assert not any(tmp_path.iterdir())
+    path = export_onnx(model, tmp_path / "mixvpr.onnx", OnnxSettings(18, [224, 224], 1e-4))  # a 7 x 7 map: its grid
+    images = torch.randn(4, 3, 224, 224, generator=torch.Generator().manual_seed(2))
+    got = onnxruntime.InferenceSession(str(path)).run(None, {"images": images.numpy()})[0]
+    np.testing.assert_allclose(got, descriptors(model, images), atol=1e-5)
+
+
+def test_a_graph_that_fixed_the_batch_is_refused_and_not_kept(tmp_path):
+    model = small_model("boq")  # its attention reshapes traced at the example's batch of 2
+    with pytest.raises(OnnxExportError, match=r"fails on a 3 x 3 x 96 x 128 batch .*fixed the batch size"):
+        export_onnx(model, tmp_path / "boq.onnx", OnnxSettings(18, [128, 96], 1e-4))
+    assert not any(tmp_path.iterdir())
+
+
+def test_onnx_export_refuses_a_model_that_is_not_a_torch_network(tmp_path):
+    cfg = compose_config("export", "export=[onnx]", f"paths.root_dir={tmp_path}")  # DenseVLAD
+    with pytest.raises(TypeError, match=r"model 'densevlad' \(DenseVLAD\) is not a torch network"):
+        export(cfg, tmp_path / "out")
+
+
+def test_torch_hub_loads_a_trained_checkpoint_from_the_repository(tmp_path):
+    model = small_model("gem")
+    checkpoint = lightning_checkpoint(model, tmp_path / "last.ckpt")
+    network = torch.hub.load(str(ROOT), "locretrieval", weights=str(checkpoint), source="local")
+    assert not network.training and network.preprocessing == model.preprocessing
+    images = torch.randn(3, 3, 96, 128, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        np.testing.assert_array_equal(network(images).numpy(), descriptors(model, images))
+    (tmp_path / "weights.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match=r"weights.pt: not a readable PyTorch file"):
+        torch.hub.load(str(ROOT), "locretrieval", weights=str(tmp_path / "weights.pt"), source="local")
+    torch.save({"state_dict": {}}, tmp_path / "state.pt")
+    with pytest.raises(ValueError, match=r"state.pt: not a locretrieval checkpoint"):
+        torch.hub.load(str(ROOT), "locretrieval", weights=str(tmp_path / "state.pt"), source="local")
