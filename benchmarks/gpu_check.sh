@@ -5,7 +5,7 @@
 #   bash benchmarks/gpu_check.sh              # on the GPU machine; figures also in $OUT/gpu_check.txt
 #   bash benchmarks/gpu_check.sh --rehearse   # the same steps at a tiny size on the CPU (tests/test_gpu_scripts.py)
 # A GPU machine without a package index: run here, once, from the project's root,
-#   GPU_EXTRA_PACKAGES="nh3" bash ../shared/tools/gpu/bundle.sh
+#   GPU_EXTRA_PACKAGES="nh3 loky" bash ../shared/tools/gpu/bundle.sh
 # (nh3: report.html's sanitizer, a runtime dependency the bundle's list predates; the machine's image
 # has threadpoolctl, numba, tabulate, markdown, jinja2, h5py, timm, tensorboard), copy the git-ignored
 # .gpu/ along with the checkout, and there: source .gpu/env.sh && bash benchmarks/gpu_check.sh

@@ -7,7 +7,7 @@
 #   bash benchmarks/gpu_training_gain.sh              # on the GPU machine; $OUT/gpu_training_gain.txt, training_gain.md
 #   bash benchmarks/gpu_training_gain.sh --rehearse   # the same steps at a tiny size on the CPU (tests/test_gpu_scripts.py)
 # A GPU machine without a package index: as benchmarks/gpu_check.sh says (the .gpu/ bundle with
-# GPU_EXTRA_PACKAGES="nh3"), then: source .gpu/env.sh && bash benchmarks/gpu_training_gain.sh
+# GPU_EXTRA_PACKAGES="nh3 loky"), then: source .gpu/env.sh && bash benchmarks/gpu_training_gain.sh
 # Run it right after gpu_check.sh on the same machine: the mall seed 0 scene is then rendered already.
 #
 # Training images (one model): the five scenes' databases (mall seed 0 is the validation scene,
