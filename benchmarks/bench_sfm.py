@@ -26,13 +26,13 @@ from locretrieval.groundtruth import relative_pose_groundtruth
 from locretrieval.paradigms import global_sfm, local_sfm
 from locretrieval.paradigms.global_sfm import GlobalSfm
 from locretrieval.paradigms.local_sfm import DatabaseMapMatches, LocalSfm
+from locretrieval.pool import resolve_workers
 from locretrieval.retrieval import random_ranking
 from locretrieval.scene import Scene
 from locretrieval.sfm.features import extract_features
 from locretrieval.sfm.inputs import SfmInputs, SfmSettings, query_tasks
 from locretrieval.sfm.matching import PairMatcher
 from locretrieval.sfm.pose_cache import PoseCache
-from locretrieval.sfm.workers import resolve_workers
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 LOCAL_KS, GLOBAL_KS = [5, 10, 20], [1, 5, 10, 20, 50]

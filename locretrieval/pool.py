@@ -343,3 +343,26 @@ def _shared_file(shared: Any) -> Iterator[str | None]:
         with open(shared_file, "wb") as stream:
             pickle.dump(shared, stream, protocol=pickle.HIGHEST_PROTOCOL)
         yield shared_file
+
+
+def _one_thread_worker() -> None:
+    """A compute worker's start: BLAS and torch on one thread (the processes already use every
+    core), and no final garbage collection at exit (seconds over the caches' objects)."""
+    import threadpoolctl
+    import torch
+
+    import locretrieval
+
+    locretrieval.exit_without_final_collection()
+    threadpoolctl.threadpool_limits(1)
+    torch.set_num_threads(1)
+
+
+#: The compute workers of this process, shared by the renderer and the SfM stages (one pool: a
+#: worker's start, seconds of imports, is paid once per run). Each imports, as it starts, what their
+#: first tasks would: locretrieval (zlib before pycolmap), pycolmap, torch and the SfM stages' modules.
+WORKERS = WorkerPool(
+    "workers",
+    preload=("locretrieval", "pycolmap", "torch", "locretrieval.sfm.pipeline"),
+    initializer=_one_thread_worker,
+)

@@ -209,8 +209,8 @@ def test_workers_exit_when_their_parent_dies_while_they_start(tmp_path):
 
     script = (
         "import os\n"
-        "from locretrieval.sfm.workers import SFM_WORKERS\n"
-        "pool = SFM_WORKERS.executor(2)\n"
+        "from locretrieval.pool import WORKERS\n"
+        "pool = WORKERS.executor(2)\n"
         "pool.submit(os.getpid)\n"
         "pool.submit(os.getpid)\n"
         "print(' '.join(str(pid) for pid in pool._processes), flush=True)\n"  # loky's workers, by pid

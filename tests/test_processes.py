@@ -70,9 +70,9 @@ def test_a_worker_killed_mid_stage_is_an_error_naming_the_stage_and_the_signal()
 
 def pool_results_in_a_job():
     """Two workers' results, from a process of joblib's loky executor (a job of Hydra's joblib launcher)."""
-    from locretrieval.sfm.workers import SFM_WORKERS
+    from locretrieval.pool import WORKERS
 
-    return os.getpid(), list(SFM_WORKERS.map(process_id, list(range(8)), 2, "in a joblib job", shared="s"))
+    return os.getpid(), list(WORKERS.map(process_id, list(range(8)), 2, "in a joblib job", shared="s"))
 
 
 JOBLIB_JOB = """
@@ -87,8 +87,8 @@ print("done")
 """
 
 
-def test_the_sfm_workers_run_inside_a_job_of_joblibs_loky_executor_and_let_it_exit():
-    """The SfM pool starts in a loky process (whose start method a spawned child would not know),
+def test_the_compute_workers_run_inside_a_job_of_joblibs_loky_executor_and_let_it_exit():
+    """The compute pool starts in a loky process (whose start method a spawned child would not know),
     and the job's process exits afterwards."""
     done = subprocess.run(
         [sys.executable, "-c", JOBLIB_JOB, str(Path(__file__).parent)], capture_output=True, text=True, timeout=180

@@ -43,6 +43,7 @@ from locretrieval.cache import config_key
 from locretrieval.config import part
 from locretrieval.estimates import PoseEstimates
 from locretrieval.paradigms.base import SfmParadigm
+from locretrieval.pool import WORKERS
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.sfm.inputs import (
     SFM_METHOD,
@@ -68,7 +69,6 @@ from locretrieval.sfm.work import (
     registration_bound,
     registration_work,
 )
-from locretrieval.sfm.workers import SFM_WORKERS
 
 #: Bump when the meaning of cached local maps changes.
 CACHE_VERSION = 1
@@ -213,7 +213,7 @@ class LocalSfm(SfmParadigm):
             if new:  # its progress counts the maps no earlier task of the call builds (queries share maps)
                 tasks.append(task)
                 owned[task.query], counted = len(new - counted), counted | new
-        for _ in SFM_WORKERS.map(
+        for _ in WORKERS.map(
             triangulate_query,
             tasks,
             inputs.settings.processes,

@@ -43,7 +43,7 @@ from PIL import Image
 
 from locretrieval.cache import config_key
 from locretrieval.config import require
-from locretrieval.pool import resolve_workers, split
+from locretrieval.pool import WORKERS, resolve_workers, split
 from locretrieval.scene import ImageSet
 from locretrieval.scene.feature_files import (
     feature_file,
@@ -54,7 +54,6 @@ from locretrieval.scene.feature_files import (
 )
 from locretrieval.scene.images import read_image
 from locretrieval.sfm.store import ShardedStore
-from locretrieval.sfm.workers import SFM_WORKERS
 
 log = logging.getLogger(__name__)
 
@@ -227,7 +226,7 @@ def extract_features(
         chunks = split(missing, IMAGES_PER_SHARD, resolve_workers(workers))
         tasks = [[(name, str(paths[name])) for name in chunk] for chunk in chunks]
         shared = (str(store.folder), settings)
-        for _ in SFM_WORKERS.map(
+        for _ in WORKERS.map(
             _extract_shard, tasks, workers, f"features ({type(settings).__name__})", shared, units=len
         ):
             pass

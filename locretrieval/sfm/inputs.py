@@ -22,7 +22,7 @@ import numpy as np
 from locretrieval.cache import config_key
 from locretrieval.config import part, require
 from locretrieval.estimates import LOCALIZED, PoseEstimates
-from locretrieval.pool import resolve_workers
+from locretrieval.pool import WORKERS, resolve_workers
 from locretrieval.retrieval import EMPTY, Ranking
 from locretrieval.scene import Scene
 from locretrieval.sfm.features import FeatureStore, LocalFeatures, extract_features, feature_store
@@ -33,7 +33,6 @@ from locretrieval.sfm.pose_cache import Outcome, PoseCache
 from locretrieval.sfm.sparse_map import SparseMap
 from locretrieval.sfm.triangulation import Triangulation
 from locretrieval.sfm.verification import PairVerification
-from locretrieval.sfm.workers import SFM_WORKERS
 
 log = logging.getLogger(__name__)
 
@@ -278,7 +277,7 @@ def run_queries(
             len(tasks) - len(pending),
             len(tasks),
         )
-    computed = iter(SFM_WORKERS.map(localize, pending, workers, paradigm, shared, _pending_count))
+    computed = iter(WORKERS.map(localize, pending, workers, paradigm, shared, _pending_count))
     outcomes = []
     try:
         for task in tasks:

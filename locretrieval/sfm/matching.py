@@ -37,7 +37,7 @@ import numpy as np
 
 from locretrieval.cache import config_key
 from locretrieval.config import require
-from locretrieval.pool import resolve_workers, split
+from locretrieval.pool import WORKERS, resolve_workers, split
 from locretrieval.scene import ImageSet
 from locretrieval.sfm.features import FeatureStore
 from locretrieval.sfm.nearest_neighbours import (
@@ -55,7 +55,6 @@ from locretrieval.sfm.verification import (
     pair_indices,
     verify_pairs,
 )
-from locretrieval.sfm.workers import SFM_WORKERS
 
 log = logging.getLogger(__name__)
 
@@ -224,7 +223,7 @@ class PairMatcher:
         if on_device:
             self._ensure_on_device(matcher, tasks, workers)
         else:
-            for _ in SFM_WORKERS.map(_match_shard, tasks, workers, "matching", shared=self, units=_pair_count):
+            for _ in WORKERS.map(_match_shard, tasks, workers, "matching", shared=self, units=_pair_count):
                 pass
         self.raw.refresh()
         verified.refresh()
@@ -255,7 +254,7 @@ class PairMatcher:
 
         with (
             ThreadPoolExecutor(1) as reader,
-            SFM_WORKERS.stream(_store_shard, len(tasks), workers, "verifying", self, _pair_count) as submit,
+            WORKERS.stream(_store_shard, len(tasks), workers, "verifying", self, _pair_count) as submit,
         ):
             upcoming = reader.submit(read, tasks[0])
             for number, task in enumerate(tasks):

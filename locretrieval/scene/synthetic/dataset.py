@@ -19,7 +19,7 @@ from tqdm import tqdm
 from locretrieval.cache import process_alive
 from locretrieval.config import validated
 from locretrieval.device import resolve_device
-from locretrieval.pool import WorkerPool
+from locretrieval.pool import WORKERS
 from locretrieval.scene.synthetic.camera import PinholeCamera
 from locretrieval.scene.synthetic.conditions import add_sensor_noise, exposure_path, sample_conditions
 from locretrieval.scene.synthetic.config import CONDITIONS, RenderSettings
@@ -206,8 +206,6 @@ class _RenderContext:
 
 #: In a rendering worker: what renders the images of the render in progress.
 _WORKER_CONTEXT: list[_RenderContext] = []
-#: The rendering workers of this process (stopped when a render ends: the SfM workers follow).
-_RENDER_WORKERS = WorkerPool("rendering")
 
 
 def _render_in_worker(shared: tuple[RenderSettings, Path], plan: ImagePlan) -> None:
@@ -265,11 +263,8 @@ def _render(config: RenderSettings, output_dir: Path) -> None:
             for plan in tqdm(plans, desc=description, unit="image"):
                 context(plan)
         else:
-            try:
-                for _ in _RENDER_WORKERS.map(_render_in_worker, plans, workers, description, (config, staging)):
-                    pass
-            finally:
-                _RENDER_WORKERS.shutdown()
+            for _ in WORKERS.map(_render_in_worker, plans, workers, description, (config, staging)):
+                pass
         write_kapture_lists(staging / "mapping", [database_camera], _written(database))
         write_kapture_lists(staging / "query", query_cameras, _written(queries))
         (staging / "synthetic_config.json").write_text(json.dumps(config.record(), indent=2, sort_keys=True) + "\n")
