@@ -190,7 +190,7 @@ class StageMeter:
     worker pools finish to the stage's bar (tqdm: rate and time left from the stage's throughput so
     far) of the ``planned`` work (stage -> (units, unit name), `SfmPlan.stage_units`)."""
 
-    def __init__(self, planned: Mapping[str, tuple[int, str]]) -> None:
+    def __init__(self, planned: Mapping[str, tuple[int | None, str]]) -> None:
         self.planned = dict(planned)
         self.records = {stage: StageRecord(unit=unit) for stage, (_, unit) in self.planned.items()}
         self._bars: dict[str, Any] = {}
@@ -275,7 +275,10 @@ def run_sfm(
             len(all_pairs),
         )
         shared_pairs = shard.take(all_pairs)
-    meter = StageMeter(plan.stage_units())
+    planned = plan.stage_units()
+    if shard is not None or queries is not None:  # a share of the work: its bars count without a total
+        planned = {stage: (None, unit) for stage, (_, unit) in planned.items()}
+    meter = StageMeter(planned)
     with meter(FEATURES):
         extract_stage(
             inputs,
