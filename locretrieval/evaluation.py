@@ -118,6 +118,8 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
         "run time": f"{time.perf_counter() - started:.1f} s",
         "SfM stages": result.sfm_stages,  # forecast and measured seconds per stage
     }
+    if scene.quality is not None:  # a reconstruction's poses: how good that pseudo ground truth is
+        summary["pseudo ground truth"] = scene.quality.summary()
     (output_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     from locretrieval.report import build_report  # here: matplotlib is imported when figures are drawn
 

@@ -106,7 +106,10 @@ def compute_groundtruths(
             cache_dir=Path(cache_dir) if cache_dir is not None else None,
             key=f"groundtruth.definitions.{name}",
             scene=scene.name,
+            observations=scene.observations,
         )
+        if scene.observations is not None:  # a reconstruction's tracks
+            produced_by["observations"] = scene.observations.fingerprint()
         if definition.uses_sfm:
             if sfm is None:
                 raise ConfigError(

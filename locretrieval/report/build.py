@@ -147,7 +147,15 @@ def overview(writer: markdown.ReportWriter, tables: RunTables, groundtruth: str 
     )
     for run, summary in tables.summaries.items():
         writer.heading(f"Run {md_code(run)}", 3)
-        writer.bullets({md_text(key): md_text(value) for key, value in summary.items()})
+        writer.bullets({md_text(key): md_text(summary_text(value)) for key, value in summary.items()})
+
+
+def summary_text(value: object) -> str:
+    """A value of a run's summary in words: a mapping (a run's SfM stages, a reconstruction's quality) as
+    ``key: value`` pairs, its empty entries left out."""
+    if isinstance(value, dict):
+        return "; ".join(f"{key}: {item}" for key, item in value.items() if item is not None)
+    return str(value)
 
 
 def groundtruth_section(writer: markdown.ReportWriter, tables: RunTables) -> None:
