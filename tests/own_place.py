@@ -35,9 +35,11 @@ class Walk:
         return geometry.camera_centers(self.qvec, self.tvec)
 
 
-def render_walk(folder: Path, count: int, width: int, height: int, gps: bool, seed: int = 0) -> Walk:
-    """``count`` photos of a walk along the mall's corridor (2 m from its middle, 1.6 m high, from
-    x = 2 to 17 m), turned 25 degrees either side of the shops across it: a phone's capture of one
+def render_walk(
+    folder: Path, count: int, width: int, height: int, gps: bool, length: float = 15.0, seed: int = 0
+) -> Walk:
+    """``count`` photos of a walk along the mall's corridor (2 m from its middle, 1.6 m high, ``length``
+    metres from x = 2 m), turned 25 degrees either side of the shops across it: a phone's capture of one
     side. JPEG files ``walk/NNN.jpg`` of ``folder``; with ``gps``, each with its camera centre as
     a GPS position (the world's x, y, z as east, north, up about `GPS_ORIGIN`)."""
     import pycolmap
@@ -55,7 +57,7 @@ def render_walk(folder: Path, count: int, width: int, height: int, gps: bool, se
     names, rotations, centres = [], [], []
     (folder / "walk").mkdir(parents=True, exist_ok=True)
     with single_torch_thread():
-        for index, x in enumerate(np.linspace(2.0, 17.0, count)):
+        for index, x in enumerate(np.linspace(2.0, 2.0 + length, count)):
             centre = np.array([x, -2.0 + rng.normal(0.0, 0.2), 1.6 + rng.normal(0.0, 0.05)])
             view = Viewpoint(centre, 90.0 + 25.0 * np.sin(1.3 * index), rng.normal(0.0, 3.0), rng.normal(0.0, 2.0))
             rgb = renderer.render(camera, view.rotation, view.center, environment.day).rgb
@@ -133,3 +135,22 @@ def project(camera: Camera, qvec: np.ndarray, tvec: np.ndarray, point: np.ndarra
     fx, fy, cx, cy = camera.pinhole
     x, y, z = geometry.quaternion_to_matrix(qvec) @ point + tvec
     return np.array([fx * x / z + cx, fy * y / z + cy])
+
+
+def write_truth_kapture(walk: Walk, root: Path, rows: dict[str, list[int]]) -> dict[str, Path]:
+    """Kapture folders of the walk's photos at their true poses: ``rows`` maps a folder name
+    (``mapping``, ``query``) to the indices of its photos; returns the folders."""
+    import shutil
+
+    import kapture
+    from kapture_folders import write_kapture
+
+    camera = kapture.Camera(kapture.CameraType.PINHOLE, [walk.camera.width, walk.camera.height, *walk.camera.params])
+    folders = {}
+    for folder, indices in rows.items():
+        records = {(i, "phone"): walk.names[i] for i in indices}
+        poses = {(i, "phone"): kapture.PoseTransform(walk.qvec[i], walk.tvec[i]) for i in indices}
+        folders[folder] = write_kapture(root / folder, {"phone": camera}, records, poses)
+        for i in indices:  # the photos themselves, where write_kapture put grey images
+            shutil.copy(walk.folder / walk.names[i], root / folder / "sensors" / "records_data" / walk.names[i])
+    return folders

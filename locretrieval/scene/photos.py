@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from filelock import FileLock
+from PIL import ExifTags, Image
 from tqdm import tqdm
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
@@ -52,7 +53,8 @@ class ReconstructionSettings:
     `MATCHING`; ``auto``: every pair up to ``exhaustive_max_images`` images, else the
     ``spatial_neighbours`` nearest by the photos' GPS, else the vocabulary tree ``vocab_tree``),
     ``sequential_overlap`` (the following images each frame of a video is matched with), the cameras
-    (``camera_mode``, one of `CAMERA_MODES`; ``camera_model``, a COLMAP model), SIFT's
+    (``camera_mode``, one of `CAMERA_MODES`: ``auto`` shares one camera among the photos of the same
+    EXIF make, model, focal length and size; ``camera_model``, a COLMAP model), SIFT's
     ``max_image_size`` (pixels, longer side), ``max_num_features`` and ``first_octave`` (-1 doubles the
     image first: more features in small images), ``min_registered`` (fewer registered images are an
     error), the ``seed`` and the ``device`` (``auto``: pycolmap's GPU where it has one)."""
@@ -200,6 +202,7 @@ def reconstruction_folder(
 
     images = [(name, *file_signature(folder / name)) for name in names]
     record = {**dataclasses.asdict(settings), "device": device}
+    del record["min_registered"]  # a check of the result, not a setting of the reconstruction
     return cache_dir / "photos" / config_key(CACHE_VERSION, record, pycolmap.__version__, images)
 
 
@@ -209,7 +212,6 @@ def extract(folder: Path, names: Sequence[str], settings: ReconstructionSettings
     (images with features already are skipped by pycolmap: an interrupted run resumes)."""
     import pycolmap
 
-    mode = pycolmap.CameraMode.__members__[settings.camera_mode.upper()]
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = settings.camera_model
     options = pycolmap.FeatureExtractionOptions()
@@ -217,12 +219,33 @@ def extract(folder: Path, names: Sequence[str], settings: ReconstructionSettings
     options.sift.max_num_features = settings.max_num_features
     options.sift.first_octave = settings.first_octave
     pycolmap.Database.open(database).close()  # creates it
-    pycolmap.import_images(database, folder, mode, list(names), reader)
+    if (
+        settings.camera_mode == "auto"
+    ):  # one camera per group of photos with the same camera (pycolmap's auto: each its own)
+        mode = pycolmap.CameraMode.SINGLE
+        for group in camera_groups(folder, names):
+            pycolmap.import_images(database, folder, mode, group, reader)  # images already there are kept
+    else:
+        mode = pycolmap.CameraMode.__members__[settings.camera_mode.upper()]
+        pycolmap.import_images(database, folder, mode, list(names), reader)
     with tqdm(total=len(names), desc="photos: features", unit="image") as progress:
         for start in range(0, len(names), IMAGES_PER_STEP):
             step = list(names[start : start + IMAGES_PER_STEP])
             pycolmap.extract_features(database, folder, step, mode, reader, options, device)
             progress.update(len(step))
+
+
+def camera_groups(folder: Path, names: Sequence[str]) -> list[list[str]]:
+    """The photos grouped by the camera that took them: the same EXIF make, model and focal length
+    and the same size (photos without EXIF: by size alone)."""
+    groups: dict[tuple, list[str]] = {}
+    for name in names:
+        with Image.open(folder / name) as image:
+            exif = image.getexif()
+            focal = exif.get_ifd(ExifTags.IFD.Exif).get(ExifTags.Base.FocalLength)
+            key = (exif.get(ExifTags.Base.Make), exif.get(ExifTags.Base.Model), str(focal), image.size)
+        groups.setdefault(key, []).append(name)
+    return list(groups.values())
 
 
 def match(database: Path, settings: ReconstructionSettings, device: Any) -> None:
@@ -231,13 +254,17 @@ def match(database: Path, settings: ReconstructionSettings, device: Any) -> None
     import pycolmap
 
     pairs = image_pairs(database, settings)
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = settings.seed
     with tqdm(total=len(pairs), desc="photos: matching", unit="pair") as progress:
         for start in range(0, len(pairs), PAIRS_PER_STEP):
             step = pairs[start : start + PAIRS_PER_STEP]
             with atomic_path(database.parent / "pairs.txt") as path:
                 path.write_text("".join(f"{a} {b}\n" for a, b in step))
                 options = pycolmap.ImportedPairingOptions(match_list_path=str(path))
-                pycolmap.match_image_pairs(database, pairing_options=options, device=device)
+                pycolmap.match_image_pairs(
+                    database, pairing_options=options, verification_options=verification, device=device
+                )
             progress.update(len(step))
 
 
