@@ -19,8 +19,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-#: File name extensions (lower case) of the images a folder of photos is read for.
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
+#: File name extensions (lower case) of the images a folder of photos is read for (those pycolmap decodes).
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 
 
 def read_image(path: str | Path, grayscale: bool = False, max_side: int | None = None) -> np.ndarray:

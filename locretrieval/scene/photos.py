@@ -30,7 +30,7 @@ from locretrieval.config import require, validated
 from locretrieval.errors import DELETE_CACHE_FILE, DataFileError
 from locretrieval.scene.colmap import read_model, reconstruction_scene, scene_parts
 from locretrieval.scene.images import IMAGE_EXTENSIONS, check_distinct_images, check_names, image_files, image_size
-from locretrieval.scene.types import CAMERA_MODELS, Scene
+from locretrieval.scene.types import CAMERA_MODEL_PARAMS, CAMERA_MODELS, Scene
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +54,10 @@ class ReconstructionSettings:
     ``spatial_neighbours`` nearest by the photos' GPS, else the vocabulary tree ``vocab_tree``),
     ``sequential_overlap`` (the following images each frame of a video is matched with), the cameras
     (``camera_mode``, one of `CAMERA_MODES`: ``auto`` shares one camera among the photos of the same
-    EXIF make, model, focal length and size; ``camera_model``, a COLMAP model), SIFT's
+    EXIF make, model, focal length and size; ``camera_model``, a COLMAP model; ``camera_params``, its
+    parameters in pixels when they are known, a starting point refined by the mapping: frames of a
+    video have no EXIF focal length, and the default guess, 1.2 x the longer side, can keep a
+    forward-moving sequence from initializing), SIFT's
     ``max_image_size`` (pixels, longer side), ``max_num_features`` and ``first_octave`` (-1 doubles the
     image first: more features in small images), ``min_registered`` (fewer registered images are an
     error), the ``seed`` and the ``device`` (``auto``: pycolmap's GPU where it has one)."""
@@ -66,6 +69,7 @@ class ReconstructionSettings:
     vocab_tree: str | None
     camera_mode: str
     camera_model: str
+    camera_params: list[float] | None
     max_image_size: int
     max_num_features: int
     first_octave: int
@@ -80,6 +84,12 @@ class ReconstructionSettings:
             self.camera_model in CAMERA_MODELS,
             "camera_model",
             f"must be a COLMAP model locretrieval reads: {sorted(CAMERA_MODELS)}, got {self.camera_model!r}",
+        )
+        expected = CAMERA_MODEL_PARAMS.get(self.camera_model)
+        require(
+            self.camera_params is None or len(self.camera_params) == expected,
+            "camera_params",
+            f"{self.camera_model} takes {expected} parameters, got {self.camera_params}",
         )
         for key in ("exhaustive_max_images", "sequential_overlap", "spatial_neighbours", "max_image_size"):
             require(getattr(self, key) >= 1, key, f"must be >= 1, got {getattr(self, key)}")
@@ -214,6 +224,8 @@ def extract(folder: Path, names: Sequence[str], settings: ReconstructionSettings
 
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = settings.camera_model
+    if settings.camera_params is not None:
+        reader.camera_params = ",".join(repr(float(value)) for value in settings.camera_params)
     options = pycolmap.FeatureExtractionOptions()
     options.max_image_size = settings.max_image_size
     options.sift.max_num_features = settings.max_num_features
