@@ -2,9 +2,10 @@
 matching, incremental mapping) into the run's cache, as Aachen's and InLoc's reference poses were
 made, and the largest model is read as a COLMAP model (`locretrieval.scene.colmap`).
 
-The reconstruction is cached under ``<cache_dir>/photos/<key>/``, keyed by the images (names,
-sizes, modification times), the reconstruction settings, the device and pycolmap's version.
-Each stage resumes where an interrupted run left it: features already in the database are not
+The reconstruction is cached under ``<cache_dir>/photos/<key>/`` (`reconstruction_folders`): a
+database of features and matches keyed by the images (names, sizes, modification times), their
+settings, the device and pycolmap's version, and below it a folder per mapping's settings. Each
+stage resumes where an interrupted run left it: features already in the database are not
 extracted again, pairs already matched are not matched again, and the model is written once
 mapping is done. Every stage shows its progress.
 """
@@ -43,8 +44,11 @@ CAMERA_MODES = ("auto", "single", "per_folder", "per_image")
 #: Images per call of pycolmap's feature extraction, pairs per call of its matching (a step of the progress bars).
 IMAGES_PER_STEP = 32
 PAIRS_PER_STEP = 1000
-#: The files of a finished reconstruction in its cache folder.
-MODEL_DIR, MODELS_FILE, DATABASE_FILE = "model", "models.json", "database.db"
+#: The files of a reconstruction in its cache folder: the database, the mark of its matching done, and
+#: in each mapping's folder the largest model and the number of images of every model (the mark of its end).
+DATABASE_FILE, MATCHED_FILE, MODEL_DIR, MODELS_FILE = "database.db", "matched.txt", "model", "models.json"
+#: The settings of the mapping alone (`reconstruction_folders`).
+MAPPING_KEYS = ("init_min_tri_angle",)
 
 
 @dataclass
@@ -59,8 +63,10 @@ class ReconstructionSettings:
     video have no EXIF focal length, and the default guess, 1.2 x the longer side, can keep a
     forward-moving sequence from initializing), SIFT's
     ``max_image_size`` (pixels, longer side), ``max_num_features`` and ``first_octave`` (-1 doubles the
-    image first: more features in small images), ``min_registered`` (fewer registered images are an
-    error), the ``seed`` and the ``device`` (``auto``: pycolmap's GPU where it has one)."""
+    image first: more features in small images), the mapping's ``init_min_tri_angle`` (degrees: the
+    triangulation angle its first pair needs; forward-moving frames see small ones), ``min_registered``
+    (fewer registered images are an error), the ``seed`` and the ``device`` (``auto``: pycolmap's GPU
+    where it has one)."""
 
     matching: str
     exhaustive_max_images: int
@@ -73,6 +79,7 @@ class ReconstructionSettings:
     max_image_size: int
     max_num_features: int
     first_octave: int
+    init_min_tri_angle: float
     min_registered: int
     seed: int
     device: str
@@ -95,6 +102,11 @@ class ReconstructionSettings:
             require(getattr(self, key) >= 1, key, f"must be >= 1, got {getattr(self, key)}")
         require(self.max_num_features >= 16, "max_num_features", f"must be >= 16, got {self.max_num_features}")
         require(self.first_octave in (-1, 0, 1), "first_octave", f"must be -1, 0 or 1, got {self.first_octave}")
+        require(
+            0 < self.init_min_tri_angle < 90,
+            "init_min_tri_angle",
+            f"must be degrees in (0, 90), got {self.init_min_tri_angle}",
+        )
         require(self.min_registered >= 3, "min_registered", f"must be >= 3 images, got {self.min_registered}")
         require(self.device in ("auto", "cpu", "cuda"), "device", f"must be auto, cpu or cuda, got {self.device!r}")
         require(
@@ -164,25 +176,28 @@ def checked_photos(folder: Path) -> list[str]:
 
 def reconstruct(folder: Path, names: Sequence[str], settings: ReconstructionSettings, cache_dir: Path) -> Path:
     """The folder of the model pycolmap reconstructed from the images ``names`` of ``folder``: the
-    largest of its models (cached, `reconstruction_folder`); raises when it registers fewer than
+    largest of its models (cached, `reconstruction_folders`); raises when it registers fewer than
     ``settings.min_registered`` images."""
     import pycolmap
 
     device = settings.pycolmap_device()
-    work = reconstruction_folder(folder, names, settings, device.name, cache_dir)
+    work, mapping = reconstruction_folders(folder, names, settings, device.name, cache_dir)
     work.parent.mkdir(parents=True, exist_ok=True)
     with FileLock(work.parent / f".{work.name}.lock"):  # one process reconstructs, the others wait for it
-        if (work / MODELS_FILE).is_file():
-            log.info("reconstruction of %s cached in %s", folder, work)
+        if (mapping / MODELS_FILE).is_file():
+            log.info("reconstruction of %s cached in %s", folder, mapping)
         else:
             work.mkdir(exist_ok=True)
             log.info("reconstructing %d photos of %s with pycolmap (%s) into %s", len(names), folder, device.name, work)
             pycolmap.logging.minloglevel = 2  # its progress is ours
             database = work / DATABASE_FILE
-            extract(folder, names, settings, database, device)
-            match(database, settings, device)
-            build_models(folder, names, database, settings, work)
-    sizes = read_models_file(work / MODELS_FILE)
+            if not (work / MATCHED_FILE).is_file():
+                extract(folder, names, settings, database, device)
+                match(database, settings, device)
+                with atomic_path(work / MATCHED_FILE) as path:
+                    path.write_text("features and matches of every pair are in the database\n")
+            build_models(folder, names, database, settings, mapping)
+    sizes = read_models_file(mapping / MODELS_FILE)
     registered = max(sizes, default=0)
     if registered < settings.min_registered:
         raise ValueError(
@@ -190,7 +205,8 @@ def reconstruct(folder: Path, names: Sequence[str], settings: ReconstructionSett
             f"({len(sizes)} model(s) of {sorted(sizes, reverse=True)} images; at least "
             f"data.reconstruction.min_registered={settings.min_registered} needed): too few overlapping images to "
             "reconstruct. Photos of one place taken a few steps apart, each sharing much of its view with others, "
-            "reconstruct; data.reconstruction.matching=exhaustive matches every pair"
+            "reconstruct; data.reconstruction.matching=exhaustive matches every pair; frames of a forward-moving "
+            "video may need their camera_params and a smaller init_min_tri_angle"
         )
     if len(sizes) > 1:
         log.warning(
@@ -200,20 +216,25 @@ def reconstruct(folder: Path, names: Sequence[str], settings: ReconstructionSett
             folder,
             sorted(sizes, reverse=True),
         )
-    return work / MODEL_DIR
+    return mapping / MODEL_DIR
 
 
-def reconstruction_folder(
+def reconstruction_folders(
     folder: Path, names: Sequence[str], settings: ReconstructionSettings, device: str, cache_dir: Path
-) -> Path:
-    """``<cache_dir>/photos/<key>``: the key hashes the images (names, sizes, modification times), the
-    settings (the device as resolved) and pycolmap's version."""
+) -> tuple[Path, Path]:
+    """``<cache_dir>/photos/<key>``, the database of features and matches, and its subfolder
+    ``mapping-<key>``, the models: the first key hashes the images (names, sizes, modification
+    times), the settings of the features and the matching, the device as resolved and pycolmap's
+    version; the second the settings of the mapping (another mapping of the same photos reuses
+    their features and matches)."""
     import pycolmap
 
     images = [(name, *file_signature(folder / name)) for name in names]
     record = {**dataclasses.asdict(settings), "device": device}
     del record["min_registered"]  # a check of the result, not a setting of the reconstruction
-    return cache_dir / "photos" / config_key(CACHE_VERSION, record, pycolmap.__version__, images)
+    mapping = {key: record.pop(key) for key in MAPPING_KEYS}
+    work = cache_dir / "photos" / config_key(CACHE_VERSION, record, pycolmap.__version__, images)
+    return work, work / f"mapping-{config_key(mapping, record['seed'])}"
 
 
 def extract(folder: Path, names: Sequence[str], settings: ReconstructionSettings, database: Path, device: Any) -> None:
@@ -231,9 +252,7 @@ def extract(folder: Path, names: Sequence[str], settings: ReconstructionSettings
     options.sift.max_num_features = settings.max_num_features
     options.sift.first_octave = settings.first_octave
     pycolmap.Database.open(database).close()  # creates it
-    if (
-        settings.camera_mode == "auto"
-    ):  # one camera per group of photos with the same camera (pycolmap's auto: each its own)
+    if settings.camera_mode == "auto":  # one camera per group of photos (pycolmap's auto gives each its own)
         mode = pycolmap.CameraMode.SINGLE
         for group in camera_groups(folder, names):
             pycolmap.import_images(database, folder, mode, group, reader)  # images already there are kept
@@ -268,15 +287,15 @@ def match(database: Path, settings: ReconstructionSettings, device: Any) -> None
     pairs = image_pairs(database, settings)
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = settings.seed
+    pairs_file = database.parent / "pairs.txt"
+    pairing = pycolmap.ImportedPairingOptions(match_list_path=str(pairs_file))
     with tqdm(total=len(pairs), desc="photos: matching", unit="pair") as progress:
         for start in range(0, len(pairs), PAIRS_PER_STEP):
             step = pairs[start : start + PAIRS_PER_STEP]
-            with atomic_path(database.parent / "pairs.txt") as path:
-                path.write_text("".join(f"{a} {b}\n" for a, b in step))
-                options = pycolmap.ImportedPairingOptions(match_list_path=str(path))
-                pycolmap.match_image_pairs(
-                    database, pairing_options=options, verification_options=verification, device=device
-                )
+            pairs_file.write_text("".join(f"{a} {b}\n" for a, b in step))  # the step's pairs, for pycolmap
+            pycolmap.match_image_pairs(
+                database, pairing_options=pairing, verification_options=verification, device=device
+            )
             progress.update(len(step))
 
 
@@ -332,10 +351,12 @@ def build_models(
 ) -> None:
     """Incremental mapping of the matched ``database``; the largest model goes to ``work/model`` and
     the number of images of every model to ``work/models.json`` (written last: the stage is done)."""
+    work.mkdir(exist_ok=True)
     import pycolmap
 
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = settings.seed
+    options.mapper.init_min_tri_angle = settings.init_min_tri_angle
     pycolmap.set_random_seed(settings.seed)
     with (
         temporary_folder(work, "mapping") as scratch,
