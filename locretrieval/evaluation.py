@@ -122,6 +122,8 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
         "SfM seconds": round(result.sfm_seconds, 2),
         SFM_STAGES: result.sfm_stages,  # per stage: seconds, work done, its unit
     }
+    if scene.quality is not None:  # a reconstruction's poses: how good that pseudo ground truth is
+        summary["pseudo ground truth"] = scene.quality.summary()
     (output_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     from locretrieval.report import build_report  # here: matplotlib is imported when figures are drawn
 

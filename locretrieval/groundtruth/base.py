@@ -16,6 +16,7 @@ from tqdm import tqdm
 from locretrieval.config import ConfigError
 from locretrieval.retrieval import EMPTY, Ranking, relevant_hits, top_k
 from locretrieval.scene import ImageSet, Scene
+from locretrieval.scene.reconstruction import Observations
 
 if TYPE_CHECKING:
     from locretrieval.sfm.inputs import SfmSettings
@@ -38,7 +39,9 @@ class DefinitionContext:
     whose definition leaves it ``None`` (the scene's); the SfM paradigms' ``sfm`` settings and
     ``cache_dir`` (for definitions that match local features, ``uses_sfm``); for training relevance,
     the ``world`` whose database images are graded (co-observation reads its known-pose map);
-    ``key``: the config key of the definition and the ``scene``'s name, named in errors."""
+    ``key``: the config key of the definition and the ``scene``'s name, named in errors;
+    ``observations``: the 3D points each image of the scene observes when a reconstruction gave
+    them (``data=colmap``, ``data=photos``; co-observation counts them instead of an SfM of ours)."""
 
     far: float | None = None
     sfm: "SfmSettings | None" = None
@@ -46,6 +49,7 @@ class DefinitionContext:
     world: Scene | None = None
     key: str = "groundtruth.definitions"
     scene: str = ""
+    observations: Observations | None = None
 
     def far_plane(self, far: float | None) -> float:
         """``far`` (metres), or the scene's ``far`` where it is ``None``; a `ConfigError` naming

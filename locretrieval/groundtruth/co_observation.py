@@ -9,7 +9,10 @@ both; pairs sharing none are not ranked, and a pair is relevant when it shares a
 ``min_shared`` points (the paper: one).
 
 Features, matches and the database part of the pair selection are those of the SfM
-paradigms (the same caches when the settings agree).
+paradigms (the same caches when the settings agree). A scene read from a reconstruction
+(``data=colmap``, ``data=photos``) brings its own tracks (`Scene.observations`): the shared points
+are counted from them, with no SfM of ours (as the paper's Aachen and InLoc ground truth comes
+from their reference models).
 """
 
 from __future__ import annotations
@@ -55,7 +58,11 @@ class CoObservationDefinition:
         ``context.sfm``: the SfM paradigms' settings; its ``map_pairs`` (whose ``far`` must be set)
         select the database pairs, and each query is paired with its ``query_pairs`` most
         overlapping database images with the same frusta. Features and matches are cached under
-        ``context.cache_dir`` (a temporary folder when None)."""
+        ``context.cache_dir`` (a temporary folder when None). With ``context.observations`` (a
+        reconstruction's tracks), the points they share are counted instead."""
+        if context.observations is not None:
+            counts = context.observations.shared(queries.names, database.names)
+            return groundtruth_from_scores(name, database, queries, depth, self._score_block(counts))
         if context.sfm is None:
             raise ValueError(f"ground truth {name!r}: co-observation needs the sfm settings")
         if context.cache_dir is None:
@@ -63,17 +70,25 @@ class CoObservationDefinition:
                 in_folder = dataclasses.replace(context, cache_dir=Path(folder))
                 return self.groundtruth(database, queries, depth, name, in_folder)
         shared = shared_points(database, queries, Path(context.cache_dir), context.sfm, self.query_pairs)
+        return groundtruth_from_scores(name, database, queries, depth, self._score_block(shared))
+
+    def _score_block(self, shared: sparse.csr_matrix):
+        """The `ScoreBlock` of ``shared`` ``[Q, N]`` point counts: ranked by them where > 0, relevant
+        from ``min_shared``."""
 
         def score_block(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             counts = shared[rows].toarray().astype(np.float64)
             return counts, counts > 0, counts >= self.min_shared
 
-        return groundtruth_from_scores(name, database, queries, depth, score_block)
+        return score_block
 
     def sfm_pairs(
         self, database: ImageSet, queries: ImageSet, context: DefinitionContext
     ) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
-        """The database pairs and the (query, database) pairs (names) `groundtruth` matches."""
+        """The database pairs and the (query, database) pairs (names) `groundtruth` matches: none
+        with a reconstruction's tracks (``context.observations``)."""
+        if context.observations is not None:
+            return [], []
         database_rows, query_rows = joint_map_pairs(database, queries, context.sfm, self.query_pairs)
         return (
             [(database.names[a], database.names[b]) for a, b in database_rows],
@@ -82,17 +97,21 @@ class CoObservationDefinition:
 
     def graded(self, images: ImageSet, context: DefinitionContext) -> GradedRows:
         """The share of each row image's 3D points that the other image observes too, where they
-        share at least ``min_shared``; else 0. The points are those of the known-pose map of
-        ``context.world`` (`database_co_observations`; ``images``: its database)."""
+        share at least ``min_shared``; else 0. The points are those of ``context.world``'s
+        reconstruction (`Scene.observations`) when it has one, else of its known-pose map
+        (`database_co_observations`; ``images``: its database)."""
         world = context.world
-        if world is None or context.sfm is None or context.cache_dir is None:
+        if world is not None and world.observations is not None:
+            counts = world.observations.shared(images.names, images.names)
+        elif world is None or context.sfm is None or context.cache_dir is None:
             raise ValueError(
                 f"{context.key}: co-observation training relevance needs the world's known-pose map "
                 "(DefinitionContext world, sfm and cache_dir)"
             )
-        if list(world.database.names) != list(images.names):
+        elif list(world.database.names) != list(images.names):
             raise ValueError(f"{context.key}: the images graded are not the database of scene {world.name!r}")
-        counts = database_co_observations(world, context.sfm, context.cache_dir)
+        else:
+            counts = database_co_observations(world, context.sfm, context.cache_dir)
 
         def grade(rows: np.ndarray) -> np.ndarray:
             shared = counts[rows].toarray().astype(np.float64)

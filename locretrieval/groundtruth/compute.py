@@ -102,6 +102,8 @@ def compute_groundtruths(
             **dataclasses.asdict(definition),
             "scene_far": scene.frustum_far,
         }  # far: null is the scene's
+        if scene.observations is not None:  # a reconstruction's tracks
+            produced_by["observations"] = scene.observations.fingerprint()
         if context.sfm is not None:
             used = context.sfm
             produced_by["sfm"] = {
@@ -138,6 +140,7 @@ def definition_context(
         cache_dir=Path(cache_dir) if cache_dir is not None else None,
         key=f"groundtruth.definitions.{name}",
         scene=scene.name,
+        observations=scene.observations,
     )
     if not definition.uses_sfm:
         return context
@@ -159,7 +162,7 @@ def groundtruth_sfm_pairs(
         if not hasattr(definition, "sfm_pairs"):
             log.warning("groundtruth.definitions.%s states no sfm_pairs: its matching is not counted", name)
             continue
-        context = definition_context(scene, name, definition, sfm, None)
+        context = definition_context(scene, name, definition, sfm, None)  # with the scene's tracks, if any
         found = definition.sfm_pairs(scene.database, scene.queries, context)
         database_pairs.update(found[0])
         query_pairs.update(found[1])

@@ -148,7 +148,9 @@ def overview(writer: markdown.ReportWriter, tables: RunTables, groundtruth: str 
     for number, (run, summary) in enumerate(tables.summaries.items()):
         writer.heading(f"Run {md_code(run)}", 3)
         stages = summary.get(SFM_STAGES)
-        writer.bullets({md_text(key): md_text(value) for key, value in summary.items() if key != SFM_STAGES})
+        writer.bullets(
+            {md_text(key): md_text(summary_text(value)) for key, value in summary.items() if key != SFM_STAGES}
+        )
         if isinstance(stages, dict) and stages:
             caption = "SfM stages: seconds of work (stages overlap) and work done, in each stage's units."
             writer.table(sfm_stage_table(stages), f"sfm_stages_{number}", caption, ".1f")
@@ -166,6 +168,14 @@ def sfm_stage_table(stages: dict) -> pd.DataFrame:
         if isinstance(record, dict)
     }
     return pd.DataFrame.from_dict(rows, orient="index").rename_axis("stage")
+
+
+def summary_text(value: object) -> str:
+    """A value of a run's summary in words: a mapping (a reconstruction's quality) as
+    ``key: value`` pairs, its empty entries left out."""
+    if isinstance(value, dict):
+        return "; ".join(f"{key}: {item}" for key, item in value.items() if item is not None)
+    return str(value)
 
 
 def groundtruth_section(writer: markdown.ReportWriter, tables: RunTables) -> None:

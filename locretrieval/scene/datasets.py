@@ -17,7 +17,7 @@ from typing import Any
 from filelock import FileLock
 
 from locretrieval.cache import config_key
-from locretrieval.config import ConfigError, build_part, validated
+from locretrieval.config import build_part, validated
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.ltvl import LtvlNames
 from locretrieval.scene.types import Scene
@@ -167,16 +167,17 @@ RENDER_ONLY_KEYS = ("workers",)
 
 
 def instantiate_scene(node: Any) -> Scene:
-    """The scene of a data config node (Hydra's `instantiate`); a missing dataset's error and a
-    `ConfigError` are raised as themselves, so that their lines (the path expected, how to get the
-    dataset; the key) are printed once and as written, not inside Hydra's one-line
-    `InstantiationException`."""
+    """The scene of a data config node (Hydra's `instantiate`); a missing dataset's error, a missing
+    file's and a value refused (a `ConfigError`, a `DataFileError` naming the file, a photo folder
+    that does not reconstruct) are raised as themselves, so that their lines (the path expected, how
+    to get the dataset; the key; the file) are printed once and as written, not inside Hydra's
+    one-line `InstantiationException`."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
     try:
         return instantiate(node)
     except InstantiationException as error:
-        if isinstance(error.__cause__, (DatasetNotFoundError, ConfigError)):
+        if isinstance(error.__cause__, (FileNotFoundError, ValueError)):
             raise error.__cause__ from None
         raise

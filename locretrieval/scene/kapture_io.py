@@ -25,10 +25,10 @@ import kapture
 import kapture.io.csv as kapture_csv
 import numpy as np
 import quaternion
-from PIL import Image, UnidentifiedImageError
 
 from locretrieval import geometry
-from locretrieval.errors import FIX_DATA_FILE, DataFileError
+from locretrieval.errors import DataFileError
+from locretrieval.scene.images import check_image_sizes, check_names
 from locretrieval.scene.ltvl import KaptureNames, LtvlNames
 from locretrieval.scene.names import records_name_problem
 from locretrieval.scene.types import CAMERA_MODELS, Camera, ImageSet, Scene
@@ -385,33 +385,6 @@ def _check_files_exist(folder: Path, names: Sequence[str], what: str) -> None:
         )
 
 
-def _check_image_sizes(
-    folder: Path, names: Sequence[str], cameras: Sequence[Camera], camera_ids: Sequence[str]
-) -> None:
-    """Raise unless every image file (its header only) has its camera's width and height:
-    keypoints of a resized image would be read in the wrong pixel frame."""
-    for name, camera, camera_id in zip(names, cameras, camera_ids):
-        path = folder / name
-        try:
-            with Image.open(path) as image:
-                size = image.size
-        except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as error:
-            raise DataFileError(path, f"not a readable image ({error})", FIX_DATA_FILE) from None
-        if size != (camera.width, camera.height):
-            raise DataFileError(
-                path,
-                f"image is {size[0]}x{size[1]} pixels but its camera {camera_id!r} in {SENSORS_FILE} is "
-                f"{camera.width}x{camera.height}; resize the image or scale that camera's intrinsics to the image",
-            )
-
-
-def _check_names(path: Path, names: Sequence[str]) -> None:
-    """Image names are written space-separated in LTVL submissions: refuse whitespace at load time."""
-    spaced = [name for name in names if any(character.isspace() for character in name)]
-    if spaced:
-        raise DataFileError(path, f"image names with whitespace cannot be exported for LTVL: {spaced[:3]}")
-
-
 def _depth_paths(root: Path, keys: Sequence[tuple[int, str]], sensors: dict[str, CsvRow]) -> list[Path | None] | None:
     """Depth map of each image (``records_depth.txt``, sensor ``<camera>_depth`` at its
     timestamp), or ``None`` without any. Depth is side data the benchmark does not use: entries
@@ -477,11 +450,11 @@ def load_image_set(kapture_root: str | Path, tag: str | None = None) -> ImageSet
     duplicates = sorted(name for name, count in Counter(names).items() if count > 1)
     if duplicates:
         raise DataFileError(root / RECORDS_CAMERA_FILE, f"image file(s) listed more than once: {duplicates[:3]}")
-    _check_names(root / RECORDS_CAMERA_FILE, names)
+    check_names(root / RECORDS_CAMERA_FILE, names)
     image_root = root / RECORDS_DATA_DIR
     _check_files_exist(image_root, names, "image")
     cameras = {camera: _camera(sensors[camera]) for camera in {c for _, c in keys}}
-    _check_image_sizes(image_root, names, [cameras[c] for _, c in keys], [c for _, c in keys])
+    check_image_sizes(image_root, names, [cameras[c] for _, c in keys], [f"{c!r} in {SENSORS_FILE}" for _, c in keys])
     qvec, tvec = _image_poses(keys, trajectories, rigs)
 
     depth_paths = _depth_paths(root, keys, sensors)

@@ -13,6 +13,7 @@ from locretrieval import geometry
 from locretrieval.cache import file_signature
 from locretrieval.config import ConfigError, require_part
 from locretrieval.scene.ltvl import KaptureNames, LtvlNames
+from locretrieval.scene.reconstruction import Observations, ReconstructionQuality
 
 #: COLMAP camera models and the indices of (fx, fy, cx, cy) in their parameter vectors.
 #: Single-focal models repeat the focal length.
@@ -213,7 +214,9 @@ class Scene:
     names unless given) and ``frustum_far`` (metres, the far plane of the frustum ground truth and of
     global-map pair selection where their config leaves ``far`` null; ``None``: unset) and
     ``unsupported`` (paradigm or ground-truth name -> why this dataset cannot run it, e.g.
-    InLoc's global SfM, which the paper builds from depth scans).
+    InLoc's global SfM, which the paper builds from depth scans). A scene read from a reconstruction
+    (``data=colmap``, ``data=photos``) holds the 3D points its images observe (``observations``, the
+    co-observation ground truth's, with no SfM of ours) and its ``quality`` as a pseudo ground truth.
     """
 
     name: str
@@ -223,9 +226,15 @@ class Scene:
     ltvl_names: LtvlNames = field(default_factory=KaptureNames)
     frustum_far: float | None = None
     unsupported: dict[str, str] = field(default_factory=dict)
+    observations: Observations | None = None
+    quality: ReconstructionQuality | None = None
 
     def __post_init__(self) -> None:
         self.check_facts(self.name, self.ltvl_names, self.frustum_far)
+        if self.observations is not None:
+            missing = self.observations.missing([*self.database.names, *self.queries.names])
+            if missing:
+                raise ValueError(f"scene {self.name!r}: images without observations: {missing[:5]}")
         if len(self.database) == 0:
             raise ValueError(f"scene {self.name!r} has an empty database")
         if not self.database.has_pose.all():

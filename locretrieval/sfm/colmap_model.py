@@ -1,72 +1,24 @@
-"""Conversions to pycolmap objects, and existing COLMAP models as `SparseMap`s.
-
-Poses cross this boundary as world-to-camera ``(q wxyz, t)`` on our side and
-``Rigid3d(Rotation3d(xyzw), t)`` (``cam_from_world``) on pycolmap's. Cameras keep COLMAP's
-model, parameters and pixel convention, so they are copied as they are.
-"""
+"""Existing COLMAP models as `SparseMap`s; the conversions to pycolmap objects are
+`locretrieval.scene.colmap`'s (imported here for the SfM modules)."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-import locretrieval  # noqa: F401  (imports zlib before pycolmap)
-from locretrieval import geometry
-from locretrieval.scene import Camera
+from locretrieval.scene.colmap import (  # noqa: F401  (the SfM modules' conversions)
+    MODEL_FILES,
+    from_rigid3d,
+    missing_model_files,
+    to_pycolmap_camera,
+    to_rigid3d,
+)
 from locretrieval.sfm.sparse_map import SparseMap
-
-if TYPE_CHECKING:
-    import pycolmap  # imported where it is used: a run without SfM does not load it
 
 #: Largest distance (px) between a model's 2D point and the feature keypoint of the same index.
 KEYPOINT_TOLERANCE = 0.01
-
-
-def to_pycolmap_camera(camera: Camera, camera_id: int | None = None) -> pycolmap.Camera:
-    """The same camera as a ``pycolmap.Camera`` (model, size and parameters copied)."""
-    import pycolmap
-
-    converted = pycolmap.Camera(
-        model=camera.model, width=camera.width, height=camera.height, params=list(camera.params)
-    )
-    if camera_id is not None:
-        converted.camera_id = camera_id
-    return converted
-
-
-def to_rigid3d(qvec: np.ndarray, tvec: np.ndarray) -> pycolmap.Rigid3d:
-    """``cam_from_world`` of a world-to-camera pose (q wxyz, t)."""
-    import pycolmap
-
-    w, x, y, z = np.asarray(qvec, dtype=np.float64)
-    return pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([x, y, z, w])), np.asarray(tvec, dtype=np.float64))
-
-
-def from_rigid3d(cam_from_world: pycolmap.Rigid3d) -> tuple[np.ndarray, np.ndarray]:
-    """World-to-camera ``(q wxyz with w >= 0, t)`` of a pycolmap ``cam_from_world``."""
-    x, y, z, w = cam_from_world.rotation.quat
-    return geometry.normalize_quaternions(np.array([w, x, y, z])), np.asarray(
-        cam_from_world.translation, dtype=np.float64
-    )
-
-
-#: The files of a COLMAP model folder, each ``<name>.bin`` or ``<name>.txt``.
-MODEL_FILES = ("cameras", "images", "points3D")
-
-
-def missing_model_files(folder: str | Path) -> list[str]:
-    """What a COLMAP model ``folder`` lacks: the folder itself, or each of `MODEL_FILES`."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        return [f"COLMAP model folder {folder} not found"]
-    return [
-        f"{folder / name}.bin (or .txt) not found"
-        for name in MODEL_FILES
-        if not any((folder / f"{name}{suffix}").is_file() for suffix in (".bin", ".txt"))
-    ]
 
 
 def read_colmap_map(path: str | Path, names: Sequence[str], keypoints: Sequence[np.ndarray]) -> SparseMap:

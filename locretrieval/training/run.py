@@ -178,8 +178,15 @@ def composed_data(name: str) -> DictConfig:
 
 
 def _without_queries(name: str, images: ImageSet, scene: Scene) -> Scene:
-    """A scene of ``images`` as its database, no queries, ``scene``'s dataset facts."""
-    return Scene(name, images, images.subset(np.arange(0)), ltvl_names=scene.ltvl_names, frustum_far=scene.frustum_far)
+    """A scene of ``images`` as its database, no queries, ``scene``'s dataset facts (and a reconstruction's tracks)."""
+    return Scene(
+        name,
+        images,
+        images.subset(np.arange(0)),
+        ltvl_names=scene.ltvl_names,
+        frustum_far=scene.frustum_far,
+        observations=scene.observations,
+    )
 
 
 #: The config nodes of the objects train.py builds (besides callbacks and loggers), checked first;

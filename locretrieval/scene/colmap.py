@@ -1,0 +1,284 @@
+"""COLMAP models: a model and its image folder as a `Scene` (``data=colmap``), and the conversions
+between our cameras and poses and pycolmap's.
+
+Poses cross this boundary as world-to-camera ``(q wxyz, t)`` on our side and
+``Rigid3d(Rotation3d(xyzw), t)`` (``cam_from_world``) on pycolmap's. Cameras keep COLMAP's
+model, parameters and pixel convention, so they are copied as they are.
+
+A scene read from a model holds its registered images (unregistered ones are reported and left
+out), split into database and queries by ``data.split`` (`locretrieval.scene.split`), scaled to
+metres (`locretrieval.scene.scale`), with the 3D points each image observes (the model's tracks:
+the co-observation ground truth needs no SfM of ours) and the quality of the model as a pseudo
+ground truth (`ReconstructionQuality`), logged here and written into the run's summary.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from scipy import sparse
+
+import locretrieval  # noqa: F401  (imports zlib before pycolmap)
+from locretrieval import geometry
+from locretrieval.config import build_part, validated
+from locretrieval.errors import FIX_DATA_FILE, DataFileError
+from locretrieval.scene.images import check_distinct_images, check_image_sizes, check_names, image_files
+from locretrieval.scene.ltvl import LtvlNames
+from locretrieval.scene.reconstruction import Observations, ReconstructionQuality
+from locretrieval.scene.scale import KnownDistance, ScaleSettings, metric_alignment
+from locretrieval.scene.split import SceneSplit
+from locretrieval.scene.types import CAMERA_MODELS, Camera, ImageSet, Scene
+
+if TYPE_CHECKING:
+    import pycolmap  # imported where it is used: a run without a COLMAP model does not load it
+
+log = logging.getLogger(__name__)
+
+#: The files of a COLMAP model folder, each ``<name>.bin`` or ``<name>.txt``.
+MODEL_FILES = ("cameras", "images", "points3D")
+#: The tag of the query images a split chooses.
+QUERY_TAG = "query"
+
+
+def to_pycolmap_camera(camera: Camera, camera_id: int | None = None) -> pycolmap.Camera:
+    """The same camera as a ``pycolmap.Camera`` (model, size and parameters copied)."""
+    import pycolmap
+
+    converted = pycolmap.Camera(
+        model=camera.model, width=camera.width, height=camera.height, params=list(camera.params)
+    )
+    if camera_id is not None:
+        converted.camera_id = camera_id
+    return converted
+
+
+def to_rigid3d(qvec: np.ndarray, tvec: np.ndarray) -> pycolmap.Rigid3d:
+    """``cam_from_world`` of a world-to-camera pose (q wxyz, t)."""
+    import pycolmap
+
+    w, x, y, z = np.asarray(qvec, dtype=np.float64)
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([x, y, z, w])), np.asarray(tvec, dtype=np.float64))
+
+
+def from_rigid3d(cam_from_world: pycolmap.Rigid3d) -> tuple[np.ndarray, np.ndarray]:
+    """World-to-camera ``(q wxyz with w >= 0, t)`` of a pycolmap ``cam_from_world``."""
+    x, y, z, w = cam_from_world.rotation.quat
+    return geometry.normalize_quaternions(np.array([w, x, y, z])), np.asarray(
+        cam_from_world.translation, dtype=np.float64
+    )
+
+
+def missing_model_files(folder: str | Path) -> list[str]:
+    """What a COLMAP model ``folder`` lacks: the folder itself, or each of `MODEL_FILES`."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return [f"COLMAP model folder {folder} not found"]
+    return [
+        f"{folder / name}.bin (or .txt) not found"
+        for name in MODEL_FILES
+        if not any((folder / f"{name}{suffix}").is_file() for suffix in (".bin", ".txt"))
+    ]
+
+
+def load_colmap_dataset(
+    name: str,
+    root: str | Path,
+    model: str | Path,
+    images: str | Path,
+    *,
+    split: Any,
+    metres_per_unit: float | None,
+    known_distance: Any,
+    unitless: bool,
+    gps_max_error: float,
+    frustum_far: float | None,
+    ltvl_names: Any,
+    unsupported: dict[str, str] | None,
+) -> Scene:
+    """The `Scene` of the COLMAP ``model`` folder (``cameras``, ``images``, ``points3D``, binary or
+    text) whose image names are relative to the ``images`` folder (both relative to ``root`` or
+    absolute). ``split`` (a `SceneSplit` or its ``data.split`` node) chooses the queries; the scale
+    keys are `ScaleSettings`'; ``frustum_far`` (metres), ``ltvl_names`` and ``unsupported`` are
+    dataset facts kept on the `Scene`, as for kapture data."""
+    from locretrieval.scene.datasets import DatasetNotFoundError
+
+    parts = scene_parts(name, split, metres_per_unit, known_distance, unitless, gps_max_error, ltvl_names, frustum_far)
+    model_folder, image_folder = Path(root).expanduser() / model, Path(root).expanduser() / images
+    missing = missing_model_files(model_folder) + ([] if image_folder.is_dir() else [f"image folder {image_folder}"])
+    if missing:
+        raise DatasetNotFoundError(
+            "COLMAP model or images not found:\n"
+            + "\n".join(f"  {problem}" for problem in missing)
+            + "\ndata.model is the folder of cameras, images and points3D (.bin or .txt, e.g. sparse/0), "
+            "data.images the folder its image names are relative to; relative paths start at the data root "
+            f"{root} ($LOCRETRIEVAL_DATA or paths.data_dir)."
+        )
+    reconstruction = read_model(model_folder)
+    return reconstruction_scene(reconstruction, str(model_folder), image_folder, parts, unsupported)
+
+
+def read_model(folder: Path) -> pycolmap.Reconstruction:
+    """The COLMAP model of ``folder``; a `DataFileError` naming it when pycolmap cannot read it."""
+    import pycolmap
+
+    try:
+        return pycolmap.Reconstruction(folder)
+    except Exception as error:  # pycolmap raises its own types (and ValueError, RuntimeError) for bad files
+        raise DataFileError(folder, f"pycolmap cannot read this COLMAP model ({error})", FIX_DATA_FILE) from None
+
+
+def scene_parts(
+    name: str,
+    split: Any,
+    metres_per_unit: float | None,
+    known_distance: Any,
+    unitless: bool,
+    gps_max_error: float,
+    ltvl_names: Any,
+    frustum_far: float | None,
+) -> dict[str, Any]:
+    """The checked parts of a reconstruction's scene, before any file is read: its ``name``, the
+    ``split`` (`SceneSplit`), the ``scale`` (`ScaleSettings`, keys ``data.<key>``), ``ltvl_names``
+    and ``frustum_far``."""
+    ltvl_names = build_part(LtvlNames, ltvl_names, "data.ltvl_names", "data/ltvl_names")
+    Scene.check_facts(name, ltvl_names, frustum_far)
+    scale = validated(
+        ScaleSettings,
+        {
+            "metres_per_unit": metres_per_unit,
+            "known_distance": None,
+            "unitless": unitless,
+            "gps_max_error": gps_max_error,
+        },
+        "data",
+    )
+    if known_distance is not None:  # a section of its own (a nested optional one stays a mapping in `validated`)
+        scale = dataclasses.replace(
+            scale, known_distance=validated(KnownDistance, known_distance, "data.known_distance")
+        )
+    return {
+        "name": name,
+        "split": build_part(SceneSplit, split, "data.split", "data/split"),
+        "scale": scale,
+        "ltvl_names": ltvl_names,
+        "frustum_far": frustum_far,
+    }
+
+
+def reconstruction_scene(
+    reconstruction: pycolmap.Reconstruction,
+    model: str,
+    image_folder: Path,
+    parts: dict[str, Any],
+    unsupported: dict[str, str] | None,
+) -> Scene:
+    """The `Scene` of a pycolmap ``reconstruction`` (transformed to metres in place) whose images
+    are files of ``image_folder``; ``model`` names it in errors and in the quality report;
+    ``parts``: `scene_parts`."""
+    folder_images = image_files(image_folder)
+    by_name = {image.name: image for image in reconstruction.images.values()}
+    registered = sorted(image.name for image in by_name.values() if image.has_pose)
+    if not registered:
+        raise DataFileError(model, "the model has no registered image")
+    absent = sorted(set(registered) - set(folder_images))
+    if absent:
+        raise DataFileError(
+            model,
+            f"{len(absent)} of its {len(registered)} registered images are missing from the image folder "
+            f"{image_folder}, e.g. {absent[:3]}; data.images must be the folder the model's image names are "
+            "relative to",
+        )
+    found = sorted(set(folder_images) | set(by_name))
+    unregistered = sorted(set(found) - set(registered))
+    if unregistered:
+        log.warning(
+            "%s: %d of %d images are not registered in %s and are left out, e.g. %s",
+            image_folder,
+            len(unregistered),
+            len(found),
+            model,
+            unregistered[:5],
+        )
+    check_names(Path(model), registered)
+    check_distinct_images(image_folder, registered)
+    alignment = metric_alignment(reconstruction, image_folder, registered, parts["scale"], model)
+    reconstruction.transform(alignment.new_from_old)
+    images = registered_images(reconstruction, [by_name[name] for name in registered], image_folder, model)
+    queries = parts["split"].split(registered, folder_images)
+    query_set = images.subset(queries)
+    query_set.tags = [frozenset({QUERY_TAG}) for _ in query_set.names]
+    residuals = alignment.gps_residuals
+    quality = ReconstructionQuality(
+        source=model,
+        images=len(found),
+        registered=len(registered),
+        points=reconstruction.num_points3D(),
+        mean_track_length=float(reconstruction.compute_mean_track_length()),
+        mean_reprojection_error_px=float(reconstruction.compute_mean_reprojection_error()),
+        scale_source=alignment.source,
+        metres_per_unit=alignment.metres_per_unit,
+        gps_images=alignment.gps_images,
+        gps_residual_median_m=None if residuals is None else float(np.median(residuals)),
+        gps_residual_rms_m=None if residuals is None else float(np.sqrt(np.mean(residuals**2))),
+    )
+    log.info("%s", quality.describe())
+    return Scene(
+        parts["name"],
+        images.subset(~queries),
+        query_set,
+        sources=[Path(model), image_folder],
+        ltvl_names=parts["ltvl_names"],
+        frustum_far=parts["frustum_far"],
+        unsupported=dict(unsupported or {}),
+        observations=track_observations(reconstruction, registered),
+        quality=quality,
+    )
+
+
+def registered_images(
+    reconstruction: pycolmap.Reconstruction, images: Sequence[pycolmap.Image], folder: Path, model: str
+) -> ImageSet:
+    """The `ImageSet` of registered ``images`` (their cameras checked against the files' sizes)."""
+    cameras = {}
+    for camera_id, camera in reconstruction.cameras.items():
+        model_name = camera.model.name
+        if model_name not in CAMERA_MODELS:
+            raise DataFileError(
+                model,
+                f"camera {camera_id} has model {model_name}, which locretrieval cannot use; supported "
+                f"(calibrated COLMAP) models: {sorted(CAMERA_MODELS)}",
+            )
+        cameras[camera_id] = Camera(model_name, int(camera.width), int(camera.height), tuple(map(float, camera.params)))
+    names = [image.name for image in images]
+    image_cameras = [cameras[image.camera_id] for image in images]
+    check_image_sizes(folder, names, image_cameras, [f"{image.camera_id} in {model}" for image in images])
+    poses = [from_rigid3d(image.cam_from_world()) for image in images]
+    return ImageSet(
+        names=names,
+        image_root=folder,
+        cameras=image_cameras,
+        qvec=np.array([q for q, _ in poses]).reshape(-1, 4),
+        tvec=np.array([t for _, t in poses]).reshape(-1, 3),
+    )
+
+
+def track_observations(reconstruction: pycolmap.Reconstruction, names: Sequence[str]) -> Observations:
+    """The 3D points each of the images ``names`` observes, from the model's tracks."""
+    row_of_id = {image.image_id: row for row, image in enumerate(reconstruction.find_image_with_name(n) for n in names)}
+    rows, columns = [], []
+    for column, point in enumerate(reconstruction.points3D.values()):
+        for element in point.track.elements:
+            row = row_of_id.get(element.image_id)
+            if row is not None:
+                rows.append(row)
+                columns.append(column)
+    incidence = sparse.csr_matrix(
+        (np.ones(len(rows), dtype=bool), (rows, columns)), shape=(len(names), reconstruction.num_points3D())
+    )
+    incidence.sum_duplicates()  # a point observed twice in one image counts once
+    return Observations(list(names), incidence)
