@@ -166,7 +166,7 @@ def cached_arrays(
     """``(arrays, hit)``: the arrays stored at ``path``, else ``compute()`` saved there.
 
     Processes sharing the cache (the jobs of a sharded evaluation or a multirun) compute it once:
-    the first holds ``<path>.lock`` while it computes, the others wait and read what it saved.
+    the first holds the hidden ``.<name>.lock`` beside it while it computes, the others wait and read what it saved.
     ``path=None`` disables caching (always computes, ``hit`` False).
     """
     if path is None:
@@ -176,7 +176,7 @@ def cached_arrays(
     from filelock import FileLock
 
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    with FileLock(f"{path}.lock"):
+    with FileLock(Path(path).parent / f".{Path(path).name}.lock"):
         if Path(path).is_file():  # computed by another process while this one waited
             return load_arrays(path), True
         arrays = dict(compute())
