@@ -99,9 +99,9 @@ def test_a_study_started_by_another_command_is_refused_and_a_resumed_sampler_dra
         check_same_command(study, ["debug=quick", "seed=2"], {"module.optimizer.lr": "interval(0.1, 0.2)"})
     with pytest.raises(ValueError, match=r"started by another command .*interval\(0.1, 0.3\)"):
         check_same_command(study, ["debug=quick", "seed=1"], {"module.optimizer.lr": "interval(0.1, 0.3)"})
-    node = OmegaConf.create({"_target_": "optuna.samplers.TPESampler", "seed": 0})
+    node = {"_target_": "optuna.samplers.TPESampler", "seed": 0}
     first = optuna.samplers.TPESampler(seed=0)
-    resumed = reseeded(first, node, 2)  # two trials in the study: seed 2
+    resumed = reseeded(node, 2)  # two trials in the study: seed 2
     draws = [
         optuna.create_study(sampler=sampler).ask().suggest_float("x", 0, 1)
         for sampler in (first, resumed, optuna.samplers.TPESampler(seed=2))
@@ -232,3 +232,74 @@ def test_an_optuna_sweep_killed_after_its_first_trial_resumes_without_running_it
     )
     assert regenerated.returncode == 0, regenerated.stderr[-3000:]
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "report" / "summary.csv"), summary)
+
+
+def positions(distribution, count: int) -> list:
+    """``count`` values of an Optuna ``distribution`` spanning it: its bounds and, between them, a point
+    that is no round number (a float range's middle would show a float drawn where an integer is
+    needed); a categorical's choices in turn."""
+    from optuna.distributions import CategoricalDistribution, IntDistribution
+
+    if isinstance(distribution, CategoricalDistribution):
+        return [distribution.choices[index % len(distribution.choices)] for index in range(count)]
+    low, high, inner = distribution.low, distribution.high, math.sqrt(2) - 1
+    middle = low * (high / low) ** inner if distribution.log else low + (high - low) * inner
+    values = [low, round(middle) if isinstance(distribution, IntDistribution) else middle, high]
+    return [values[index % 3] for index in range(count)]
+
+
+def check_training_config(cfg, root: Path) -> None:
+    """What train.py checks before preparing the scene, and every drawn object built as it builds them."""
+    from training_runs import random_pairs
+
+    from locretrieval.benchmark import BenchmarkSettings
+    from locretrieval.config import built, validated
+    from locretrieval.groundtruth import GroundTruthSettings
+    from locretrieval.training.run import checked_callbacks
+
+    checked_callbacks(cfg, BenchmarkSettings.from_config(cfg), validated(GroundTruthSettings, cfg.groundtruth, "g"))
+    pairs = random_pairs(64, seed=0)
+    loss = built(cfg.module.loss, "module.loss")
+    if cfg.module.get("memory"):
+        built(cfg.module.memory, "module.memory", loss=loss, pairs=pairs)
+    built(cfg.sampler, "sampler", pairs=pairs)
+    built(cfg.augmentation, "augmentation")
+
+
+@pytest.mark.parametrize("search", sorted(path.stem for path in (helpers.CONFIGS / "hparams_search").glob("*.yaml")))
+def test_every_range_of_a_search_space_draws_values_its_training_config_accepts(search, tmp_path):
+    """The bounds and an inner value of every range, each choice, for every loss the study draws (its
+    own parameters too), drawn as the sweeper draws them (Optuna's trial, the custom search space):
+    each composed training config passes train.py's checks and builds its objects."""
+    import optuna
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import get_object
+
+    from locretrieval.training.folders import trial_overrides
+    from locretrieval.training.sweeps import SearchSpace, suggest
+
+    fixed = [f"hparams_search={search}", f"paths.root_dir={tmp_path}", f"output_dir={tmp_path}/run"]
+    with initialize_config_dir(config_dir=str(helpers.CONFIGS), version_base="1.3"):
+        sweep = compose(config_name="train", overrides=fixed, return_hydra_config=True)
+        space = SearchSpace.parse([f"{key}={value}" for key, value in sweep.hydra.sweeper.params.items()])
+        custom = sweep.hydra.sweeper.custom_search_space
+        losses = space.distributions["loss"].choices if "loss" in space.distributions else [None]
+        study, checked = optuna.create_study(), 0
+        for loss in losses:
+            ranges = (sweep.get("loss_search_space") or {}).get(loss) or {}
+            own = SearchSpace.parse([f"{key}={value}" for key, value in ranges.items()]).distributions
+            distributions = {name: d for name, d in space.distributions.items() if name != "loss"} | own
+            count = max([3, *(len(d.choices) for d in distributions.values() if hasattr(d, "choices"))])
+            for index in range(count):
+                params = {name: positions(d, count)[index] for name, d in distributions.items()}
+                study.enqueue_trial(params | ({"loss": loss} if loss else {}))
+                trial = study.ask()
+                for name, distribution in space.distributions.items():
+                    suggest(trial, name, distribution)
+                if custom:
+                    get_object(custom)(sweep, trial)
+                assert trial.params == params | ({"loss": loss} if loss else {})
+                cfg = compose(config_name="train", overrides=[*fixed, *trial_overrides(trial.params)])
+                check_training_config(cfg, tmp_path)
+                checked += 1
+    assert checked >= 3 * len(losses)
