@@ -221,6 +221,7 @@ def study_storage(config: DictConfig) -> Any:
     if storage is None:
         return None
     if storage == "journal":
+        sweep_dir.mkdir(parents=True, exist_ok=True)
         return JournalStorage(JournalFileBackend(str(sweep_dir / STORAGE_FILES["journal"])))
     if storage == "sqlite":
         return f"sqlite:///{(sweep_dir / STORAGE_FILES['sqlite']).resolve()}"
@@ -265,6 +266,7 @@ def optimize(config: DictConfig, arguments: list[str], launch: Callable[..., Any
     )
     check_same_command(study, arguments, settings.params)
     conclude_running_trials(study, sweep_dir)
+    check_same_distributions(study, space)
     retry_failed_trials(study, space, settings.max_retries)
     held = len(study.get_trials(deepcopy=False))
     study = optuna.load_study(study_name=study.study_name, storage=storage, sampler=reseeded(settings.sampler, held))
@@ -297,9 +299,13 @@ def drew(study: Any, trial: Any, space: SearchSpace, extend: Callable[[Any], Any
         for name, distribution in space.distributions.items():
             suggest(trial, name, distribution)
         extend(trial)
-    except (ValueError, TypeError) as error:  # Optuna's refusal of a fixed value outside a distribution
-        trial.set_user_attr(FAILURE, f"{NOT_RUN}: its parameters do not fit the search space ({error})")
+        misfit = space.misfit(trial.params)  # an enqueued number out of its range: Optuna only warns
+    except (ValueError, TypeError) as error:  # Optuna's refusal of an enqueued choice it does not hold
+        misfit = str(error)
+    if misfit is not None:
+        trial.set_user_attr(FAILURE, f"{NOT_RUN}: its parameters do not fit the search space ({misfit})")
         study.tell(trial, state=TrialState.FAIL)
+        log.warning("trial %d is not run: %s", trial.number, trial.user_attrs[FAILURE])
         return False
     return True
 
@@ -392,6 +398,28 @@ def check_same_command(study: Any, arguments: list[str], params: Any) -> None:
             f"{command['params']}): rerun that command to resume it, or name a new study "
             "(hydra.sweeper.study_name=...) in another sweep folder (hydra.sweep.dir=...)"
         )
+
+
+def check_same_distributions(study: Any, space: SearchSpace) -> None:
+    """Raise `ConfigError` when a parameter of ``space`` was drawn by a trial of ``study`` from
+    another kind of distribution (integer, float, log scale) or other choices: Optuna keeps them for
+    the whole study, so no trial could draw it."""
+    from optuna.distributions import CategoricalDistribution
+
+    for trial in study.get_trials(deepcopy=False):
+        for name, held in trial.distributions.items():
+            drawn = space.distributions.get(name)
+            if drawn is None:
+                continue
+            same = type(held) is type(drawn) and (
+                held.choices == drawn.choices if isinstance(held, CategoricalDistribution) else held.log == drawn.log
+            )
+            if not same:
+                raise ConfigError(
+                    f"hydra.sweeper.params.{name}: {drawn} differs from {held}, from which trial {trial.number} of "
+                    f"the study {study.study_name!r} drew it; Optuna keeps a parameter's kind and choices for a whole "
+                    "study: name a new one (hydra.sweeper.study_name=...) in another sweep folder (hydra.sweep.dir=...)"
+                )
 
 
 def conclude_running_trials(study: Any, sweep_dir: Path) -> None:
