@@ -31,6 +31,7 @@ def shared_sweep(folder: Path, storage: str, overrides: list[str], **job) -> Pat
     return folder
 
 
+@pytest.mark.smoke
 def test_a_shared_sweeps_summary_shows_its_values_as_written_and_opens_nothing_outside_it(tmp_path, monkeypatch):
     """Its overrides and config name environment variables (``${oc.env:...}``) and its multirun.yaml a
     database elsewhere: the summary shows the text as written, no value of the environment, makes no
@@ -61,6 +62,7 @@ def test_a_shared_sweeps_summary_shows_its_values_as_written_and_opens_nothing_o
     assert pd.read_csv(output / "summary.csv")["objective"].tolist()[1:] == [-3.0] * 5
 
 
+@pytest.mark.smoke
 def test_a_sweeps_own_study_is_read_without_changing_it(tmp_path):
     import optuna
 

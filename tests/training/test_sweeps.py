@@ -268,6 +268,7 @@ def check_drawn_objects(cfg, keys) -> None:
     built(cfg.augmentation, "augmentation")
 
 
+@pytest.mark.smoke
 @pytest.mark.parametrize("search", sorted(path.stem for path in (helpers.CONFIGS / "hparams_search").glob("*.yaml")))
 def test_every_range_of_a_search_space_draws_values_its_training_config_accepts(search, tmp_path):
     """The bounds and an inner value of every range, each choice, for every loss the study draws (its
@@ -355,6 +356,7 @@ hydra:
 """
 
 
+@pytest.mark.smoke
 def test_a_failed_trial_records_why_and_the_rerun_of_the_sweep_runs_it_again(tmp_path):
     """The project's sweeper through Hydra with the joblib launcher (2 jobs at once): job 1 fails on
     purpose, its reason is stored in the study and shown in the summary's state, another trial takes
