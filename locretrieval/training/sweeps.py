@@ -67,7 +67,8 @@ class SweepSettings:
 
     def __post_init__(self) -> None:
         require(self.direction in ("minimize", "maximize"), "direction", f"{self.direction!r}; minimize or maximize")
-        require(self.n_trials >= 0 and self.n_jobs >= 1, "n_trials", "n_trials >= 0 and n_jobs >= 1")
+        require(self.n_trials >= 0, "n_trials", f"{self.n_trials} < 0")
+        require(self.n_jobs >= 1, "n_jobs", f"{self.n_jobs} < 1")
         require(0 <= self.max_failure_rate <= 1, "max_failure_rate", f"{self.max_failure_rate} is not in [0, 1]")
         require(self.max_retries >= 0, "max_retries", f"{self.max_retries} < 0")
         require(self.keep_checkpoints is None or self.keep_checkpoints >= 0, "keep_checkpoints", "null or >= 0")
@@ -94,7 +95,8 @@ class SearchSpace:
         fixed: dict[str, str] = {}
         for override in OverridesParser.create().parse_overrides(list(overrides)):  # a later one replaces
             key = override.get_key_element()
-            distributions.pop(key, None), fixed.pop(key, None)
+            distributions.pop(key, None)
+            fixed.pop(key, None)
             if override.is_sweep_override():
                 distributions[key] = distribution(override)
             else:
@@ -124,12 +126,7 @@ def distribution(override: Any) -> Any:
             return IntDistribution(sweep.start, sweep.end, log=log_scale)
         return FloatDistribution(float(sweep.start), float(sweep.end), log=log_scale)
     values = list(override.sweep_iterator(transformer=Transformer.encode))
-    integers = (
-        all(isinstance(v, int) and not isinstance(v, bool) for v in (sweep.start, sweep.stop, sweep.step))
-        if (isinstance(sweep, RangeSweep))
-        else False
-    )
-    if integers and not sweep.shuffle and values:
+    if isinstance(sweep, RangeSweep) and not sweep.shuffle and values and all(type(v) is int for v in values):
         return IntDistribution(min(values), max(values), step=abs(sweep.step))
     return CategoricalDistribution(values)
 
@@ -184,10 +181,8 @@ def write_sweep_summary(config: DictConfig) -> Path:
 
     folder = Path(config.hydra.sweep.dir)
     storage = study_storage(config) if config.hydra.sweeper.get("_target_") == SWEEPER else None
-    outside = (
-        storage if isinstance(storage, str) and study_file(folder)[0] is None else None
-    )  # named on the command line
-    markdown = write_summary([folder], folder, storage=outside)
+    named = storage if isinstance(storage, str) and study_file(folder)[0] is None else None  # outside the folder
+    markdown = write_summary([folder], folder, storage=named)
     log.info("summary of the sweep: %s", markdown)
     return markdown
 
@@ -262,14 +257,21 @@ def optimize(config: DictConfig, arguments: list[str], launch: Callable[..., Any
     space = SearchSpace.parse([f"{key}={value}" for key, value in (settings.params or {}).items()] + arguments)
     storage = study_storage(config)
     study = optuna.create_study(
-        study_name=settings.study_name, storage=storage, direction=settings.direction, load_if_exists=True
+        study_name=settings.study_name,
+        storage=storage,
+        sampler=reseeded(settings.sampler, 0),
+        direction=settings.direction,
+        load_if_exists=True,
     )
     check_same_command(study, arguments, settings.params)
     conclude_running_trials(study, sweep_dir)
     check_same_distributions(study, space)
     retry_failed_trials(study, space, settings.max_retries)
     held = len(study.get_trials(deepcopy=False))
-    study = optuna.load_study(study_name=study.study_name, storage=storage, sampler=reseeded(settings.sampler, held))
+    if held and storage is not None:  # a resumed study: its sampler seeded past the trials it holds
+        study = optuna.load_study(
+            study_name=study.study_name, storage=storage, sampler=reseeded(settings.sampler, held)
+        )
     extend = None  # a function of the multirun's config and a trial, which suggests more parameters
     if settings.custom_search_space:
         node = OmegaConf.create({"_target_": settings.custom_search_space, "_partial_": True})
