@@ -130,8 +130,8 @@ def study_file(folder: Path) -> tuple[Path | None, str]:
     ``hydra.sweeper.storage`` as written): a name of `STORAGE_FILES`, or a SQLite URL whose file
     name is looked up in the folder (a moved folder keeps its study). ``(None, why)`` when there is
     none in the folder: another storage is never opened from a folder's files."""
-    sweeper = written_value(folder / MULTIRUN_FILE, "hydra.sweeper") or {}
-    if "optuna" not in str(sweeper.get("_target_", "")).lower():
+    sweeper = written_value(folder / MULTIRUN_FILE, "hydra.sweeper")
+    if not isinstance(sweeper, dict) or "optuna" not in str(sweeper.get("_target_", "")).lower():
         return None, "not an Optuna sweep"
     storage = sweeper.get("storage")
     if storage is None:
