@@ -123,11 +123,21 @@ def validated_sections() -> list[tuple[type, str]]:
     return list(dict.fromkeys(sections))
 
 
+def sweep_config() -> DictConfig:
+    """train.py's config of an Optuna study, with its Hydra node (hydra.sweeper: the sweeper's keys)."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(helpers.CONFIGS), version_base="1.3"):
+        overrides = ["hparams_search=localization", "paths.root_dir=/nonexistent"]
+        return compose(config_name="train", overrides=overrides, return_hydra_config=True)
+
+
 def test_no_schema_or_constructor_built_from_yaml_has_a_default_the_yaml_also_sets(monkeypatch):
     """A default lives in the YAML alone: no schema checked by `validated` (nested sections and
     parts included) and no class or function a ``_target_`` names (in any YAML file, or in the
     entry points' composed configs) has a default for a key its YAML node sets."""
     composed = {name: helpers.compose_config(name, "paths.root_dir=/nonexistent") for name in ENTRY_POINTS}
+    composed["train -m hparams_search=localization"] = sweep_config()  # the sweeper's section, hydra.sweeper
     files = {str(path.relative_to(helpers.CONFIGS)): OmegaConf.load(path) for path in helpers.CONFIGS.rglob("*.yaml")}
     violations = [
         f"{source}:{key or '<root>'}: {node._target_} defaults {repeated(get_object(node._target_), node)}"
@@ -147,6 +157,8 @@ def test_no_schema_or_constructor_built_from_yaml_has_a_default_the_yaml_also_se
             node = OmegaConf.select(config, key)
             if node is None:
                 continue
+            if isinstance(node, DictConfig) and "_target_" in node:  # a Hydra plugin's node: its own keys
+                node = {name: value for name, value in node.items() if not name.startswith("_")}
             try:
                 validated(schema, node, key)
             except ConfigError:  # another entry point's section of that name

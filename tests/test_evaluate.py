@@ -63,6 +63,7 @@ def expected_methods():
     return approximation | {(p, r, "pnp") for p in ("local_sfm", "global_sfm") for r in RANKINGS}
 
 
+@pytest.mark.smoke
 def test_result_table_has_one_row_per_paradigm_method_k_threshold_and_subset(run):
     _, output = run
     results = pd.read_csv(output / "results.csv")
@@ -77,6 +78,7 @@ def test_result_table_has_one_row_per_paradigm_method_k_threshold_and_subset(run
     assert (results.loc[results["subset"] == "all", "num_queries"] == 16).all()
 
 
+@pytest.mark.smoke
 def test_ground_truth_beats_random(run):
     _, output = run
     results = pd.read_csv(output / "results.csv")
@@ -87,6 +89,7 @@ def test_ground_truth_beats_random(run):
     assert local_sfm["gt_co_observation"] > local_sfm["random"]
 
 
+@pytest.mark.smoke
 def test_run_writes_every_output(run):
     _, output = run
     for name in (

@@ -1,17 +1,33 @@
-"""The Optuna sweeper of hydra-optuna-sweeper, resumable: ``hparams_search=localization``'s
-``hydra.sweeper._target_``. What it adds is `locretrieval.training.sweeps.resume_study`."""
+"""The project's Hydra sweeper: an Optuna study of what train.py returns, on Optuna's ask-and-tell
+interface (``hydra/sweeper=optuna``, configs/hydra/sweeper/optuna.yaml; ``hparams_search=localization``).
+Rerunning the command of a killed or failed sweep goes on with its study: `locretrieval.training.sweeps.optimize`.
 
-from typing import List
+Hydra imports this module at every start (its plugin scan): the study's modules only when it sweeps.
+"""
 
-from hydra_plugins.hydra_optuna_sweeper.optuna_sweeper import OptunaSweeper
+from typing import Any, List
+
+from hydra.core.plugins import Plugins
+from hydra.plugins.sweeper import Sweeper
+from hydra.types import HydraContext, TaskFunction
+from omegaconf import DictConfig
 
 
-class ResumableOptunaSweeper(OptunaSweeper):
-    """Rerunning the command of a killed sweep goes on with its study (stored in SQLite in the
-    sweep folder): the finished trials are kept, the interrupted ones run again, ``n_trials`` in all."""
+class ResumableOptunaSweeper(Sweeper):
+    """Trials in batches of ``hydra.sweeper.n_jobs`` through the configured launcher, until
+    ``hydra.sweeper.n_trials`` completed; its keys are `locretrieval.training.sweeps.SweepSettings`."""
+
+    def __init__(self, **settings: Any) -> None:  # read from the config in `sweep`, checked there
+        self.config: DictConfig | None = None
+        self.launcher: Any = None
+
+    def setup(self, *, hydra_context: HydraContext, task_function: TaskFunction, config: DictConfig) -> None:
+        self.config = config
+        self.launcher = Plugins.instance().instantiate_launcher(
+            hydra_context=hydra_context, task_function=task_function, config=config
+        )
 
     def sweep(self, arguments: List[str]) -> None:
-        from locretrieval.training.sweeps import resume_study
+        from locretrieval.training.sweeps import optimize
 
-        resume_study(self.sweeper, arguments)
-        return self.sweeper.sweep(arguments)
+        optimize(self.config, list(arguments), self.launcher.launch)

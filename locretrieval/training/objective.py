@@ -6,11 +6,9 @@ from __future__ import annotations
 import math
 from collections.abc import Collection
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import pandas as pd
-from omegaconf import OmegaConf
 
 from locretrieval.config import ConfigError
 
@@ -30,11 +28,12 @@ class Objective:
 
     @classmethod
     def from_config(cls, cfg: Any) -> Objective:
-        """The ``optimized_metric`` and ``optimized_validation`` of a train.py config."""
-        validation = str(cfg.optimized_validation)
+        """The ``optimized_metric`` and ``optimized_validation`` of a train.py config (a config node
+        or the plain mapping of a folder's file)."""
+        validation = str(cfg["optimized_validation"])
         if validation not in VALIDATIONS:
             raise ConfigError(f"optimized_validation: {validation!r}; expected one of {list(VALIDATIONS)}")
-        return cls(str(cfg.optimized_metric), validation)
+        return cls(str(cfg["optimized_metric"]), validation)
 
     def check(self, logged: Collection[str]) -> None:
         """Raise `ConfigError` unless ``metric`` is among the metrics validation can log (``logged``)."""
@@ -64,11 +63,3 @@ class Objective:
                 )
         chosen = rows.loc[rows["value"].idxmax()] if self.validation == "best" else rows.iloc[-1]
         return int(chosen["epoch"]), float(chosen["value"])
-
-
-def run_objective(folder: Path) -> float:
-    """The objective of the finished train.py run in ``folder``: the `Objective` of the
-    ``config.yaml`` it wrote, from its ``validation.csv``; `ValueError` as `Objective.value`."""
-    return Objective.from_config(OmegaConf.load(folder / "config.yaml")).value(pd.read_csv(folder / "validation.csv"))[
-        1
-    ]

@@ -27,6 +27,7 @@ from locretrieval.scene.datasets import instantiate_scene, load_synthetic_datase
 from locretrieval.scene.kapture_io import concatenate_image_sets
 from locretrieval.training.callbacks import LocalizationValidation, every_validation_metrics, validation_metrics
 from locretrieval.training.checkpoints import check_resume_checkpoint
+from locretrieval.training.folders import CONFIG_FILE, FINISHED_FILE
 from locretrieval.training.objective import Objective
 from locretrieval.training.relevance import TrainingPairs, TrainingRelevanceSettings, combined_pairs
 from locretrieval.training.report import TrainingReportSettings, write_training_report
@@ -223,7 +224,7 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     sfm_validated = cfg.callbacks.localization_validation.get("sfm_every_n_epochs") is not None
     Objective.from_config(cfg).check(validation_metrics(settings, list(groundtruth_settings.parsed()), sfm_validated))
     output_dir.mkdir(parents=True, exist_ok=True)
-    OmegaConf.save(cfg, output_dir / "config.yaml", resolve=True)
+    OmegaConf.save(cfg, output_dir / CONFIG_FILE, resolve=True)
     cache_dir = Path(cfg.paths.cache_dir)
 
     descriptor = instantiate(cfg.model)  # the zoo model: network, preprocessing, weights checked
@@ -272,7 +273,7 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
             "seconds": round(time.perf_counter() - started, 1),  # the whole run: the sweep summary's time
             "SfM stages per validation": validator.sfm_stages,  # forecast and measured seconds per stage
         }
-        (output_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        (output_dir / FINISHED_FILE).write_text(json.dumps(summary, indent=2))  # last: the run finished
     return validator
 
 

@@ -11,6 +11,7 @@ the report) and, for a study, ``optuna.html`` (Optuna's plotly figures, plotly.j
 
 from __future__ import annotations
 
+import csv
 import html
 import json
 import math
@@ -21,28 +22,51 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
-from omegaconf import OmegaConf
 
+from locretrieval.errors import DataFileError
 from locretrieval.report.html import with_script_policy, write_html
 from locretrieval.report.markdown import markdown_table, md_code, md_link, md_text
-from locretrieval.training.objective import Objective, run_objective
-from locretrieval.training.sweeps import FINISHED_FILE, finished_job, job_folders, job_overrides, trial_overrides
+from locretrieval.training.folders import (
+    CONFIG_FILE,
+    FAILURE,
+    FINISHED_FILE,
+    GAP_FILE,
+    INTERRUPTED,
+    MULTIRUN_FILE,
+    RETRY_OF,
+    finished_job,
+    interrupted,
+    is_training_folder,
+    job_folders,
+    job_overrides,
+    load_named_study,
+    open_study,
+    read_as_written,
+    run_objective,
+    study_file,
+    trial_job,
+    trial_note,
+    trial_overrides,
+    written_value,
+)
+from locretrieval.training.objective import Objective
 
-#: What Hydra's sweepers write at the top of a sweep folder (the resumable Optuna sweeper too).
-MULTIRUN_FILE = "multirun.yaml"
 #: The files of the summary in its folder.
 FILES = {"csv": "summary.csv", "markdown": "summary.md", "html": "summary.html", "figures": "optuna.html"}
 #: The values of a gap row (``gap.csv``) after the baseline's, whose column is named after ``report.baseline``.
 GAP_VALUES = ("untrained", "trained", "groundtruth_value")
 #: ``gap.csv``'s columns other than the baseline's.
 GAP_COLUMNS = ("metric", *GAP_VALUES, "groundtruth", "gap_closed_pct")
+#: How a CSV cell that a spreadsheet runs as a formula starts (OWASP, "CSV Injection").
+FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
 
 
 @dataclass
 class TrialRow:
     """One trial: its ``label`` (the job's or trial's number, or a run folder's name), the run
     ``folder`` (None: none), ``state`` (``finished``/``not finished``, or Optuna's state in lower
-    case), ``objective`` (None: ``note`` says why), ``overrides``, ``seconds`` and ``gap`` (its ``gap.csv``)."""
+    case, a failed trial's with its reason: ``fail: <why>``), ``objective`` (None: ``note`` says
+    why), ``overrides`` (as written), ``seconds`` and ``gap`` (its ``gap.csv``)."""
 
     label: str
     folder: Path | None
@@ -56,13 +80,15 @@ class TrialRow:
 
 @dataclass
 class Study:
-    """The Optuna study of a sweep folder: its ``name``, ``storage`` URL, ``direction`` and ``trials``."""
+    """The Optuna study of a sweep folder: its ``name``, ``storage`` (where it was read), ``direction``,
+    ``trials`` and the notes of its trials (the study's user attributes, `trial_note`)."""
 
     name: str
     storage: str
     direction: str
     trials: list[Any]
     optuna_study: Any = field(repr=False)
+    notes: dict[str, Any] = field(default_factory=dict, repr=False)
 
     def complete(self) -> list[Any]:
         return [trial for trial in self.trials if trial.state.name == "COMPLETE"]
@@ -71,13 +97,14 @@ class Study:
 @dataclass
 class Summary:
     """The ``rows`` of the summarised ``folders``, the `Objective` they ran with (None: unknown),
-    whether it is maximized, and their Optuna ``studies``."""
+    whether it is maximized, their Optuna ``studies`` and why a sweep's study was not read (``unread``)."""
 
     rows: list[TrialRow]
     objective: Objective | None
     maximize: bool
     studies: list[Study]
     folders: list[Path]
+    unread: list[str] = field(default_factory=list)
 
     def best(self) -> TrialRow | None:
         """The row of the best finite objective (the first of equals), None without one."""
@@ -85,33 +112,29 @@ class Summary:
         return (max if self.maximize else min)(scored, key=lambda row: row.objective) if scored else None
 
 
-def is_training_folder(path: Path) -> bool:
-    """Whether ``path`` is a train.py run (``validation.csv``) or a train.py multirun (`MULTIRUN_FILE`)."""
-    if (path / "validation.csv").is_file():
-        return True
-    multirun = path / MULTIRUN_FILE
-    return multirun.is_file() and OmegaConf.load(multirun).hydra.job.name == "train"
-
-
-def summarize(paths: Sequence[Path]) -> Summary:
+def summarize(paths: Sequence[Path], storage: str | None = None) -> Summary:
     """The `Summary` of train.py runs and multiruns (`is_training_folder`); with several folders a
-    multirun's labels start with its folder's name."""
+    multirun's labels start with its folder's name. ``storage``: the study's storage URL of the one
+    sweep folder where it is not a file inside it (the running sweep's, named on its command line)."""
     rows: list[TrialRow] = []
     studies: list[Study] = []
+    unread: list[str] = []
     for path in paths:
         if not is_training_folder(path):
             raise FileNotFoundError(f"{path}: neither a train.py run (validation.csv) nor a train.py multirun")
         if (path / MULTIRUN_FILE).is_file():
-            study = stored_study(path)
+            study, why = stored_study(path, storage if len(paths) == 1 else None)
             rows += multirun_rows(path, study, prefix=f"{path.name}/" if len(paths) > 1 else "")
             studies += [study] if study is not None else []
+            unread += [f"{path.name}: {why}"] if why else []
         else:
             rows.append(run_row(path, path.name, job_overrides(path)))
-    configs = [row.folder / "config.yaml" for row in rows if row.folder is not None]
-    config = next((OmegaConf.load(path) for path in configs if path.is_file()), None)
-    objective = Objective.from_config(config) if config is not None and "optimized_metric" in config else None
+    configs = [row.folder / CONFIG_FILE for row in rows if row.folder is not None]
+    config = next((read_as_written(path) for path in configs if path.is_file()), None)
+    known = isinstance(config, dict) and {"optimized_metric", "optimized_validation"} <= set(config)
+    objective = Objective.from_config(config) if known else None
     maximize = all(study.direction == "maximize" for study in studies)
-    return Summary(rows, objective, maximize, studies, list(paths))
+    return Summary(rows, objective, maximize, studies, list(paths), unread)
 
 
 def run_row(folder: Path, label: str, overrides: list[str]) -> TrialRow:
@@ -119,8 +142,10 @@ def run_row(folder: Path, label: str, overrides: list[str]) -> TrialRow:
     if not finished_job(folder):
         return TrialRow(label, folder, "not finished", None, overrides, note=f"no {FINISHED_FILE}: it did not finish")
     seconds = json.loads((folder / FINISHED_FILE).read_text()).get("seconds")
-    gap = pd.read_csv(folder / "gap.csv") if (folder / "gap.csv").is_file() else None
-    row = TrialRow(label, folder, "finished", None, overrides, seconds, gap)
+    gap = pd.read_csv(folder / GAP_FILE) if (folder / GAP_FILE).is_file() else None
+    row = TrialRow(
+        label, folder, "finished", None, overrides, seconds if isinstance(seconds, (int, float)) else None, gap
+    )
     try:
         row.objective = run_objective(folder)
     except (OSError, ValueError) as error:
@@ -130,56 +155,61 @@ def run_row(folder: Path, label: str, overrides: list[str]) -> TrialRow:
 
 def multirun_rows(folder: Path, study: Study | None, prefix: str) -> list[TrialRow]:
     """The rows of a multirun: one per job, or with a ``study`` one per trial (its state and the
-    value the sweeper was told; its job is the folder of its number, `resume_study`)."""
+    value the sweeper was told; its job is the folder of its number, `trial_job`)."""
     jobs = job_folders(folder)
     if study is None:
         return [run_row(job, f"{prefix}{number}", job_overrides(job)) for number, job in sorted(jobs.items())]
-    rows = []
-    for trial in study.trials:
-        job = jobs.get(trial.number)
-        if job is not None and not set(trial_overrides(trial.params)) <= set(job_overrides(job)):
-            job = None  # the folder of a job of another study
-        retry = next((t.number for t in study.trials if t.number > trial.number and t.params == trial.params), None)
-        rows.append(study_row(trial, job, f"{prefix}{trial.number}", retry))
-    return rows
+    retries = {trial.user_attrs.get(RETRY_OF): trial.number for trial in study.trials}
+    return [
+        study_row(study, trial, trial_job(trial, jobs), f"{prefix}{trial.number}", retries.get(trial.number))
+        for trial in study.trials
+    ]
 
 
-def study_row(trial: Any, job: Path | None, label: str, retry: int | None) -> TrialRow:
+def study_row(study: Study, trial: Any, job: Path | None, label: str, retry: int | None) -> TrialRow:
     """The row of an Optuna ``trial`` run in ``job`` (None: no folder); ``retry``: the trial that
-    ran its parameters again after it was interrupted."""
+    ran its parameters again. A failed trial's state says why it failed."""
     overrides = job_overrides(job) if job is not None else trial_overrides(trial.params)
     row = run_row(job, label, overrides) if job is not None else TrialRow(label, None, "", None, overrides)
     row.state, row.objective = trial.state.name.lower(), trial.value
-    if trial.user_attrs.get("interrupted"):
-        row.note = "interrupted when the sweep was killed" + (
-            f"; run again as trial {retry}" if retry is not None else ""
-        )
-    elif trial.user_attrs.get("recovered"):
-        row.note = f"finished before the sweep was killed; its objective {trial.user_attrs['recovered']}"
-    elif row.state == "fail":
-        row.note = "failed" + (f": see {job.name}/train.log" if job is not None else "")
+    note = trial_note(study.notes, trial.number)
+    notes = [f"runs again the parameters of trial {trial.user_attrs[RETRY_OF]}"] if RETRY_OF in trial.user_attrs else []
+    if row.state == "fail":
+        reason = trial.user_attrs.get(FAILURE) or (INTERRUPTED if interrupted(study.notes, trial) else None)
+        row.state = f"fail: {reason or 'no reason recorded'}"
+        if retry is not None:
+            notes.append(f"run again as trial {retry}")
+        elif note.get("not_retried"):
+            notes.append(f"not run again: {note['not_retried']}")
+        if job is not None:
+            notes.append(f"its log: {job.name}/train.log")
+    elif note.get("recovered"):
+        notes.append(f"finished before the sweep was killed; its objective {note['recovered']}")
     elif row.state in ("running", "waiting"):
-        row.note = f"{row.state} when the sweep stopped: rerun its command to go on"
+        notes.append(f"{row.state} when the sweep stopped: rerun its command to go on")
     elif job is None:
-        row.note = "no job folder"
+        notes.append("no job folder")
+    row.note = "; ".join(notes)
     return row
 
 
-def stored_study(folder: Path) -> Study | None:
-    """The Optuna study of a sweep folder (its `MULTIRUN_FILE`'s ``hydra.sweeper``: ``storage``,
-    ``study_name``); a SQLite file of that name inside the folder is read there (a moved folder
-    keeps its study). None for another sweeper or a study kept in memory."""
-    sweeper = OmegaConf.load(folder / MULTIRUN_FILE).hydra.sweeper
-    if "optuna" not in str(sweeper.get("_target_", "")).lower() or sweeper.get("storage") is None:
-        return None
-    import optuna
-
-    storage = str(OmegaConf.to_container(sweeper, resolve=False)["storage"])
-    inside = folder / Path(storage).name
-    if storage.startswith("sqlite:///") and inside.is_file():
-        storage = f"sqlite:///{inside.resolve()}"
-    study = optuna.load_study(study_name=str(sweeper.study_name), storage=storage)
-    return Study(study.study_name, storage, study.direction.name.lower(), study.get_trials(deepcopy=False), study)
+def stored_study(folder: Path, storage: str | None = None) -> tuple[Study | None, str]:
+    """The Optuna study of a sweep folder, from its file in the folder (`study_file`, opened
+    read-only) or from ``storage`` (a URL the running sweep was given on its command line);
+    ``(None, why)`` when there is none or it cannot be read."""
+    study_name = written_value(folder / MULTIRUN_FILE, "hydra.sweeper.study_name")
+    try:
+        if storage is not None:
+            study, where = load_named_study(storage, study_name), storage
+        else:
+            path, why = study_file(folder)
+            if path is None:
+                return None, why if why != "not an Optuna sweep" else ""
+            study, where = open_study(path, study_name), str(path)
+    except (DataFileError, RuntimeError, OSError, ValueError, LookupError) as error:  # e.g. an older Optuna's schema
+        return None, f"its Optuna study could not be read: {error}"
+    trials = study.get_trials(deepcopy=False)
+    return Study(study.study_name, where, study.direction.name.lower(), trials, study, study.user_attrs), ""
 
 
 def gap_text(reference: float, trained: float, truth: float, baseline: str) -> str:
@@ -323,6 +353,7 @@ def markdown_lines(summary: Summary, output_dir: Path) -> list[str]:
         f"- **best trial**: {md_text(best.label)}, objective {best.objective:.4g}"
         if best
         else "- **best trial**: none",
+        *(f"- **study not read**: {md_text(why)}" for why in summary.unread),
         "",
         "## Trials",
         "",
@@ -358,8 +389,8 @@ def study_lines(study: Study, output_dir: Path) -> list[str]:
     else:
         lines += [
             "",
-            "Parameter importances (Optuna's mean decrease in impurity of a random forest fitted to the finished "
-            "trials):",
+            "Parameter importances (Optuna's fANOVA: the share of the objective's variance each parameter explains "
+            "in a random forest fitted to the completed trials):",
             "",
             markdown_table(importances.to_frame().reset_index(), index=False, floatfmt=".3f"),
         ]
@@ -370,18 +401,25 @@ def study_lines(study: Study, output_dir: Path) -> list[str]:
 
 
 def parameter_importances(study: Study) -> tuple[pd.Series | None, str]:
-    """The importances of the parameters, or None and why there are none. Optuna's seeded
-    ``MeanDecreaseImpurityImportanceEvaluator``: its default, fANOVA, fails on the trees of the
-    scikit-learn installed here under optuna 2.10 (the version hydra-optuna-sweeper supports)."""
-    from optuna.importance import MeanDecreaseImpurityImportanceEvaluator, get_param_importances
+    """The importances of the parameters, or None and why there are none: Optuna's default
+    evaluator, fANOVA, seeded (`importance_evaluator`)."""
+    from optuna.importance import get_param_importances
 
     complete = study.complete()
     if len(complete) < 2:
         return None, f"they need 2 finished trials, the study has {len(complete)}"
     if len({trial.value for trial in complete}) < 2:
         return None, f"the objective took one value ({complete[0].value:.4g}) over the finished trials"
-    importances = get_param_importances(study.optuna_study, evaluator=MeanDecreaseImpurityImportanceEvaluator(seed=0))
+    importances = get_param_importances(study.optuna_study, evaluator=importance_evaluator())
     return pd.Series(importances, name="importance").rename_axis("parameter"), ""
+
+
+def importance_evaluator() -> Any:
+    """Optuna's fANOVA importance evaluator (its default: a random forest fitted to the completed
+    trials, the variance each parameter explains), seeded: the same study gives the same importances."""
+    from optuna.importance import FanovaImportanceEvaluator
+
+    return FanovaImportanceEvaluator(seed=0)
 
 
 def write_study_figures(study: Study, with_importances: bool, path: Path) -> Path | None:
@@ -389,14 +427,12 @@ def write_study_figures(study: Study, with_importances: bool, path: Path) -> Pat
     plotly.js embedded once, nothing fetched, its own scripts only (`with_script_policy`); None (no
     file) without a finished trial."""
     import optuna.visualization as visualization
-    from optuna.importance import MeanDecreaseImpurityImportanceEvaluator
 
     if not study.complete():
         return None
     figures = [visualization.plot_optimization_history(study.optuna_study)]
     if with_importances:
-        evaluator = MeanDecreaseImpurityImportanceEvaluator(seed=0)
-        figures.append(visualization.plot_param_importances(study.optuna_study, evaluator=evaluator))
+        figures.append(visualization.plot_param_importances(study.optuna_study, evaluator=importance_evaluator()))
     parts = [figure.to_html(full_html=False, include_plotlyjs=index == 0) for index, figure in enumerate(figures)]
     title = html.escape(f"Optuna study {study.name}")
     page = f'<!DOCTYPE html>\n<html lang="en">\n<head><meta charset="utf-8"><title>{title}</title></head>\n<body>\n'
@@ -405,13 +441,22 @@ def write_study_figures(study: Study, with_importances: bool, path: Path) -> Pat
     return path
 
 
-def write_summary(paths: Sequence[Path], output_dir: Path) -> Path:
+def spreadsheet_safe(table: pd.DataFrame) -> pd.DataFrame:
+    """``table`` with each text cell that a spreadsheet would read as a formula (one starting with
+    ``= + - @``, a tab or a carriage return) prefixed by ``'``, as OWASP's CSV injection guidance says;
+    numbers are left as they are."""
+    return table.map(lambda value: f"'{value}" if isinstance(value, str) and value[:1] in FORMULA_STARTS else value)
+
+
+def write_summary(paths: Sequence[Path], output_dir: Path, storage: str | None = None) -> Path:
     """Write ``summary.csv``, ``summary.md``, ``summary.html`` (and ``optuna.html`` for a study)
-    of the train.py runs and multiruns ``paths`` into ``output_dir``; returns ``summary.md``'s path."""
+    of the train.py runs and multiruns ``paths`` into ``output_dir`` (`summarize`, its ``storage``);
+    returns ``summary.md``'s path. The CSV's text cells are quoted and `spreadsheet_safe`."""
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
-    summary = summarize([Path(path) for path in paths])
-    trial_table(summary).to_csv(output_dir / FILES["csv"], index=False)
+    summary = summarize([Path(path) for path in paths], storage)
+    table = spreadsheet_safe(trial_table(summary))
+    table.to_csv(output_dir / FILES["csv"], index=False, quoting=csv.QUOTE_NONNUMERIC)
     markdown = output_dir / FILES["markdown"]
     markdown.write_text("\n".join(markdown_lines(summary, output_dir)).rstrip() + "\n")
     write_html(markdown, output_dir / FILES["html"])

@@ -99,9 +99,9 @@ def test_a_study_started_by_another_command_is_refused_and_a_resumed_sampler_dra
         check_same_command(study, ["debug=quick", "seed=2"], {"module.optimizer.lr": "interval(0.1, 0.2)"})
     with pytest.raises(ValueError, match=r"started by another command .*interval\(0.1, 0.3\)"):
         check_same_command(study, ["debug=quick", "seed=1"], {"module.optimizer.lr": "interval(0.1, 0.3)"})
-    node = OmegaConf.create({"_target_": "optuna.samplers.TPESampler", "seed": 0})
+    node = {"_target_": "optuna.samplers.TPESampler", "seed": 0}
     first = optuna.samplers.TPESampler(seed=0)
-    resumed = reseeded(first, node, 2)  # two trials in the study: seed 2
+    resumed = reseeded(node, 2)  # two trials in the study: seed 2
     draws = [
         optuna.create_study(sampler=sampler).ask().suggest_float("x", 0, 1)
         for sampler in (first, resumed, optuna.samplers.TPESampler(seed=2))
@@ -232,3 +232,281 @@ def test_an_optuna_sweep_killed_after_its_first_trial_resumes_without_running_it
     )
     assert regenerated.returncode == 0, regenerated.stderr[-3000:]
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "report" / "summary.csv"), summary)
+
+
+def positions(distribution, count: int) -> list:
+    """``count`` values of an Optuna ``distribution`` spanning it: its bounds and, between them, a point
+    that is no round number (a float range's middle would show a float drawn where an integer is
+    needed); a categorical's choices in turn."""
+    from optuna.distributions import CategoricalDistribution, IntDistribution
+
+    if isinstance(distribution, CategoricalDistribution):
+        return [distribution.choices[index % len(distribution.choices)] for index in range(count)]
+    low, high, inner = distribution.low, distribution.high, math.sqrt(2) - 1
+    middle = low * (high / low) ** inner if distribution.log else low + (high - low) * inner
+    values = [low, round(middle) if isinstance(distribution, IntDistribution) else middle, high]
+    return [values[index % 3] for index in range(count)]
+
+
+def check_drawn_objects(cfg, keys) -> None:
+    """The objects a trial's drawn ``keys`` configure, checked as train.py checks them before any
+    work (`check_node`: keys and types) and built as it builds them (a range check of theirs too)."""
+    from training_runs import random_pairs
+
+    from locretrieval.config import built, check_node
+
+    nodes = {"module.loss" if key == "loss" else key.rsplit(".", 1)[0] for key in keys}
+    for key in sorted(nodes):
+        while "_target_" not in OmegaConf.select(cfg, key):  # the object node a key belongs to
+            key = key.rsplit(".", 1)[0]
+        check_node(OmegaConf.select(cfg, key), key)
+    pairs = random_pairs(64, seed=0)
+    loss = built(cfg.module.loss, "module.loss")
+    if cfg.module.get("memory"):
+        built(cfg.module.memory, "module.memory", loss=loss, pairs=pairs)
+    built(cfg.sampler, "sampler", pairs=pairs)
+    built(cfg.augmentation, "augmentation")
+
+
+@pytest.mark.smoke
+@pytest.mark.parametrize("search", sorted(path.stem for path in (helpers.CONFIGS / "hparams_search").glob("*.yaml")))
+def test_every_range_of_a_search_space_draws_values_its_training_config_accepts(search, tmp_path):
+    """The bounds and an inner value of every range, each choice, for every loss the study draws (its
+    own parameters too), drawn as the sweeper draws them (Optuna's trial, the custom search space):
+    the training config with the drawn values passes train.py's checks of what they configure and
+    builds those objects. Composed once per loss, the values set as Hydra sets a value override."""
+    import optuna
+    from hydra import compose, initialize_config_dir
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.utils import get_object
+
+    from locretrieval.training.folders import trial_overrides
+    from locretrieval.training.sweeps import SearchSpace, suggest
+
+    fixed = [f"hparams_search={search}", f"paths.root_dir={tmp_path}", f"output_dir={tmp_path}/run"]
+    with initialize_config_dir(config_dir=str(helpers.CONFIGS), version_base="1.3"):
+        sweep = compose(config_name="train", overrides=fixed, return_hydra_config=True)
+        space = SearchSpace.parse([f"{key}={value}" for key, value in sweep.hydra.sweeper.params.items()])
+        custom = sweep.hydra.sweeper.custom_search_space
+        losses = space.distributions["loss"].choices if "loss" in space.distributions else [None]
+        study, checked = optuna.create_study(), 0
+        for loss in losses:
+            loss_choice = [f"loss={loss}"] if loss and loss != sweep.hydra.runtime.choices.loss else []
+            composed = compose(config_name="train", overrides=[*fixed, *loss_choice]) if loss_choice else sweep
+            ranges = (sweep.get("loss_search_space") or {}).get(loss) or {}
+            own = SearchSpace.parse([f"{key}={value}" for key, value in ranges.items()]).distributions
+            distributions = {name: d for name, d in space.distributions.items() if name != "loss"} | own
+            count = max([3, *(len(d.choices) for d in distributions.values() if hasattr(d, "choices"))])
+            for index in range(count):
+                params = {name: positions(d, count)[index] for name, d in distributions.items()}
+                study.enqueue_trial(params | ({"loss": loss} if loss else {}))
+                trial = study.ask()
+                for name, distribution in space.distributions.items():
+                    suggest(trial, name, distribution)
+                if custom:
+                    get_object(custom)(sweep, trial)
+                assert trial.params == params | ({"loss": loss} if loss else {})
+                cfg = composed.copy()
+                overrides = [item for item in trial_overrides(trial.params) if not item.startswith("loss=")]
+                for override in OverridesParser.create().parse_overrides(overrides):
+                    OmegaConf.update(cfg, override.key_or_group, override.value(), merge=True)
+                check_drawn_objects(cfg, trial.params)
+                checked += 1
+    assert checked >= 3 * len(losses)
+
+
+#: A task of the project's sweeper, as cheap as a task gets: it returns its ``x`` and fails on purpose
+#: as job 1 while the file ``fail_marker`` exists. Its jobs are named ``train`` (the summary's sweeps;
+#: summarized once by the test, not by the callback at the end of each run).
+SWEEP_APP = """
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="config")
+def main(cfg):
+    if HydraConfig.get().job.num == 1 and Path(cfg.fail_marker).exists():
+        raise ValueError("failing on purpose")
+    return cfg.x
+
+
+if __name__ == "__main__":
+    main()
+"""
+SWEEP_APP_CONFIG = """
+defaults:
+  - override hydra/sweeper: optuna
+  - override hydra/launcher: joblib_local
+  - _self_
+x: 0.5
+y: a
+fail_marker: {marker}
+hydra:
+  searchpath: [file://{configs}]
+  job: {{name: train}}
+  sweep: {{dir: {sweep}, subdir: "${{hydra.job.num}}"}}
+  sweeper:
+    study_name: app
+    n_trials: 3
+    max_failure_rate: 0.5
+    sampler: {{seed: 0}}
+    params: {{x: "interval(0, 1)", y: "choice(a, b)"}}
+"""
+
+
+@pytest.mark.smoke
+def test_a_failed_trial_records_why_and_the_rerun_of_the_sweep_runs_it_again(tmp_path):
+    """The project's sweeper through Hydra with the joblib launcher (2 jobs at once): job 1 fails on
+    purpose, its reason is stored in the study and shown in the summary's state, another trial takes
+    its place; rerunning the command runs its parameters again as a new trial."""
+    import optuna
+
+    from locretrieval.training.summary import write_summary
+
+    marker, sweep = tmp_path / "fail", tmp_path / "sweep"
+    (tmp_path / "conf").mkdir()
+    (tmp_path / "conf" / "config.yaml").write_text(
+        SWEEP_APP_CONFIG.format(marker=marker, configs=helpers.CONFIGS, sweep=sweep)
+    )
+    (tmp_path / "app.py").write_text(SWEEP_APP)
+    marker.touch()
+    done = subprocess.run([sys.executable, "app.py", "-m"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and "is launching 2 jobs" in done.stdout, done.stderr[-3000:]
+    assert [state for _, state, _ in trials(sweep / "optuna.db")] == ["COMPLETE", "FAIL", "COMPLETE", "COMPLETE"]
+    marker.unlink()
+    done = subprocess.run([sys.executable, "app.py", "-m"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and "is launching 1 jobs" in done.stdout, done.stderr[-3000:]
+    study = optuna.load_study(study_name="app", storage=f"sqlite:///{sweep / 'optuna.db'}")
+    failed, retry = study.trials[1], study.trials[4]
+    assert failed.user_attrs["failure"] == "ValueError: failing on purpose"
+    assert retry.state.name == "COMPLETE" and retry.params == failed.params and retry.user_attrs["retry_of"] == 1
+    assert retry.value == failed.params["x"]  # what the task returned
+    rows = pd.read_csv(write_summary([sweep], sweep).with_suffix(".csv")).set_index("trial")
+    assert rows.loc[1, "state"] == "fail: ValueError: failing on purpose"
+    assert rows.loc[1, "note"].startswith("run again as trial 4") and rows.loc[4, "state"] == "complete"
+
+
+def sweep_config(folder: Path, *command_line: str, **sweeper) -> OmegaConf:
+    """A multirun's config as the project's sweeper gets it: configs/hydra/sweeper/optuna.yaml with the
+    random sampler, ``sweeper`` keys replacing its own, the Hydra overrides of ``command_line``."""
+    node = OmegaConf.load(helpers.CONFIGS / "hydra" / "sweeper" / "optuna.yaml")
+    node.pop("defaults")
+    node.sampler = OmegaConf.load(helpers.CONFIGS / "hydra" / "sweeper" / "sampler" / "random.yaml")
+    node.sampler.seed, node.params = 0, sweeper.pop("params", {"x": "interval(0, 1)"})
+    hydra = {"sweep": {"dir": str(folder)}, "job": {"name": "train"}, "runtime": {"choices": {}}}
+    hydra |= {"overrides": {"hydra": list(command_line), "task": []}}
+    return OmegaConf.create({"hydra": {**hydra, "sweeper": OmegaConf.merge(node, sweeper)}})
+
+
+class Jobs:
+    """Hydra's launcher, in this process: each job's folder as Hydra writes it (its number, overrides
+    and a checkpoint) and its `JobReturn`, the value of ``objective(params)`` or the error it raises."""
+
+    def __init__(self, folder: Path, objective):
+        self.folder, self.objective, self.launched = folder, objective, []
+
+    def launch(self, overrides, initial_job_idx):
+        from hydra.core.utils import JobReturn, JobStatus
+
+        returns = []
+        for number, items in enumerate(overrides, start=initial_job_idx):
+            job = self.folder / str(number)
+            (job / ".hydra").mkdir(parents=True)
+            OmegaConf.save(OmegaConf.create({"hydra": {"job": {"num": number}}}), job / ".hydra" / "hydra.yaml")
+            OmegaConf.save(OmegaConf.create(list(items)), job / ".hydra" / "overrides.yaml")
+            (job / "checkpoints").mkdir()
+            (job / "checkpoints" / "last.ckpt").write_bytes(b"weights")
+            self.launched.append(number)
+            try:
+                value = self.objective(dict(item.split("=", 1) for item in items))
+                returns.append(JobReturn(overrides=list(items), status=JobStatus.COMPLETED, _return_value=value))
+            except Exception as error:
+                returns.append(JobReturn(overrides=list(items), status=JobStatus.FAILED, _return_value=error))
+        return returns
+
+
+def test_failures_beyond_the_failure_rate_stop_the_study_with_their_reasons_and_a_summary(tmp_path):
+    from locretrieval.training.sweeps import SweepStopped, optimize
+
+    def diverging(params):
+        raise FloatingPointError("the loss diverged")
+
+    with pytest.raises(SweepStopped, match=r"2 of the 2 trials .* trial 0: FloatingPointError: the loss diverged"):
+        optimize(sweep_config(tmp_path, max_failure_rate=0.5), [], Jobs(tmp_path, diverging).launch)
+    table = pd.read_csv(tmp_path / "summary.csv")
+    assert table["state"].tolist() == ["fail: FloatingPointError: the loss diverged"] * 2
+
+
+def test_only_the_best_trials_keep_their_checkpoints(tmp_path):
+    from locretrieval.training.sweeps import optimize
+
+    jobs = Jobs(tmp_path, lambda params: float(params["x"]))
+    optimize(sweep_config(tmp_path, n_trials=4, keep_checkpoints=1), [], jobs.launch)
+    values = {number: value for number, _, value in trials(tmp_path / "optuna.db")}
+    best = max(values, key=values.get)
+    assert jobs.launched == [0, 1, 2, 3]
+    assert [number for number in values if (tmp_path / str(number) / "checkpoints").exists()] == [best]
+
+
+def test_a_running_trial_outside_the_search_space_is_concluded_with_its_reason_not_run_again(tmp_path):
+    """A study whose trial was left running with a value the search space no longer holds: the rerun
+    tells it failed and does not enqueue it (it would fail every rerun), says why in the summary, and
+    runs the study; a trial left enqueued with such a value is told failed without being launched."""
+    import optuna
+
+    from locretrieval.training.sweeps import optimize, write_sweep_summary
+
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    left = optuna.create_study(study_name="sweep", storage=storage, direction="maximize")
+    left.set_user_attr("command", {"overrides": [], "params": {"x": "interval(0, 1)"}})
+    left.enqueue_trial({"x": 7.5})
+    left.ask().suggest_float("x", 0, 10)  # running when its sweep was killed: x=7.5
+    left.enqueue_trial({"x": 9.0})  # waiting, the same
+    jobs = Jobs(tmp_path, lambda params: float(params["x"]))
+    for _ in range(2):  # the second rerun has nothing left to do
+        optimize(sweep_config(tmp_path, n_trials=2, max_failure_rate=0.5), [], jobs.launch)
+    study = optuna.load_study(study_name="sweep", storage=storage)
+    assert [trial.state.name for trial in study.trials] == ["FAIL", "FAIL", "COMPLETE", "COMPLETE"]
+    assert jobs.launched == [2, 3]
+    assert study.trials[1].user_attrs["failure"] == (
+        "not run: its parameters do not fit the search space (x=9.0 is outside [0.0, 1.0])"
+    )
+    rows = pd.read_csv(write_sweep_summary(sweep_config(tmp_path)).with_suffix(".csv")).set_index("trial")
+    assert rows.loc[0, "state"] == "fail: interrupted: the sweep stopped while it ran"
+    assert rows.loc[0, "note"] == "not run again: x=7.5 is outside [0.0, 1.0]"
+
+
+def test_a_study_whose_trials_drew_a_parameter_from_other_choices_is_refused_by_name(tmp_path):
+    """Optuna keeps a categorical parameter's choices for a whole study: a rerun whose ``loss`` has
+    other choices than a trial left running drew it from is refused naming the parameter and what to do."""
+    import optuna
+
+    from locretrieval.config import ConfigError
+    from locretrieval.training.sweeps import optimize
+
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    left = optuna.create_study(study_name="sweep", storage=storage, direction="maximize")
+    left.set_user_attr("command", {"overrides": [], "params": {"loss": "choice(ap, listwise)"}})
+    left.ask().suggest_categorical("loss", ["removed", "ap"])
+    config = sweep_config(tmp_path, params={"loss": "choice(ap, listwise)"})
+    for _ in range(2):  # the same named error each time, the running trial told failed once
+        with pytest.raises(ConfigError, match=r"hydra.sweeper.params.loss: .* trial 0 of the study 'sweep' .*"):
+            optimize(config, [], Jobs(tmp_path, lambda params: 1.0).launch)
+    assert [trial.state.name for trial in optuna.load_study(study_name="sweep", storage=storage).trials] == ["FAIL"]
+
+
+def test_the_study_stays_in_the_sweep_folder_unless_the_command_line_names_another_storage(tmp_path):
+    from locretrieval.config import ConfigError
+    from locretrieval.training.sweeps import study_storage
+
+    elsewhere = f"sqlite:///{tmp_path / 'elsewhere' / 'x.db'}"
+    assert study_storage(sweep_config(tmp_path / "sweep")) == f"sqlite:///{tmp_path / 'sweep' / 'optuna.db'}"
+    assert study_storage(sweep_config(tmp_path / "sweep", storage=f"sqlite:///{tmp_path}/sweep/a.db")).endswith("a.db")
+    with pytest.raises(ConfigError, match=r"hydra.sweeper.storage: .*x.db' is not a file in the sweep folder"):
+        study_storage(sweep_config(tmp_path / "sweep", storage=elsewhere))  # a multirun.yaml's, say
+    named = sweep_config(tmp_path / "sweep", f"hydra.sweeper.storage={elsewhere}", storage=elsewhere)
+    assert study_storage(named) == elsewhere
+    assert type(study_storage(sweep_config(tmp_path / "sweep", storage="journal"))).__name__ == "JournalStorage"
+    assert not (tmp_path / "elsewhere").exists()

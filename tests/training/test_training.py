@@ -261,6 +261,7 @@ def test_images_of_different_training_scenes_are_unrelated(scene):
     assert not graded[:12, 12:].any() and not related[:12, 12:].any() and not related[12:, :12].any()
 
 
+@pytest.mark.smoke
 def test_fast_dev_run_of_train_py_through_hydra_compose(tmp_path):
     cfg = train_config(tmp_path, "+trainer.fast_dev_run=true")
     validator = train(cfg, tmp_path / "run")

@@ -44,6 +44,7 @@ def test_export_refuses_mismatched_names(tmp_path):
         export_global_features(NAMES[:2], unit_rows(3, 4), tmp_path, "x")
 
 
+@pytest.mark.smoke
 def test_hloc_global_descriptors_are_read_by_image_name(tmp_path):
     descriptors = unit_rows(len(NAMES), 16, seed=1).astype(np.float16)
     path = tmp_path / "global-feats-netvlad.h5"
