@@ -205,7 +205,7 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     checked without the scene (the sections and object nodes, the resumed checkpoint, the metrics
     checkpoints monitor, the ``optimized_metric``) is checked before it is prepared."""
     started = time.perf_counter()
-    L.seed_everything(int(cfg.seed), workers=True)
+    L.seed_everything(int(cfg.seed), workers=True, verbose=False)  # the seed is in config.yaml
     settings = BenchmarkSettings.from_config(cfg)
     training = validated(TrainingSettings, cfg.training, "training")
     relevance = validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance")
@@ -266,7 +266,28 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
             "SfM stages per validation": validator.sfm_stages,  # forecast and measured seconds per stage
         }
         (output_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        for line in outputs_lines(output_dir, trainer):
+            log.info("%s", line)
     return validator
+
+
+def outputs_lines(output_dir: Path, trainer: L.Trainer) -> list[str]:
+    """What a finished run wrote, train.py's last lines: its folder, each checkpoint it keeps (a
+    `ModelCheckpoint`'s best by its monitor, with the value, or its latest) and its report."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    lines = [f"run folder: {output_dir}"]
+    for callback in trainer.checkpoint_callbacks:
+        if isinstance(callback, ModelCheckpoint) and callback.best_model_path:
+            score = callback.best_model_score
+            kind = (
+                f"best by {callback.monitor} ({float(score):.4g})" if callback.monitor and score is not None else "last"
+            )
+            lines.append(f"checkpoint, {kind}: {callback.best_model_path}")
+    if len(lines) == 1:
+        lines.append("checkpoint: none (no ModelCheckpoint among the callbacks)")
+    lines.append(f"report: {output_dir / 'report.md'}")
+    return lines
 
 
 def optimized_value(cfg: DictConfig, validator: LocalizationValidation) -> float | None:
