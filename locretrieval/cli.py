@@ -115,9 +115,9 @@ def unknown_override_keys(config_dir: Path, config_name: str, arguments: Sequenc
     an ``interval`` sweep not at all. Whatever else Hydra would refuse is left to Hydra's message.
 
     Composing costs about half a second of CPU, which every run would pay: it is done only when a
-    value override's key has a part that no file of ``config_dir`` holds (`config_words`: a typo, or
-    a parameter no YAML sets). A key whose parts are all elsewhere in the configs but not in this
-    composition (``module.loss.bins`` of ``loss=ap`` without it) is left to Hydra's refusal."""
+    value override's key is surely absent (`plausible_key`: a typo, or a parameter no YAML sets). A
+    key whose parts are all elsewhere in the configs but not in this composition
+    (``module.loss.bins`` of ``loss=ap`` without it) is left to Hydra's refusal."""
     from hydra._internal.utils import get_args_parser  # what @hydra.main parses the command line with
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
@@ -131,9 +131,11 @@ def unknown_override_keys(config_dir: Path, config_name: str, arguments: Sequenc
         overrides = OverridesParser.create().parse_overrides(parsed.overrides)
     except HydraException:  # a syntax error: Hydra's message says where
         return []
-    words = config_words(config_dir)
-    if not any(sets_a_value(override, config_dir) and not set(override.key_or_group.split(".")) <= words
-               for override in overrides):  # fmt: skip
+    top_level, words = config_names(config_dir, parsed.config_name or config_name)
+    if not any(
+        sets_a_value(override, config_dir) and not plausible_key(override.key_or_group, top_level, words)
+        for override in overrides
+    ):
         return []
     composable = [line for override in overrides if (line := composable_override(override)) is not None]
     refused: dict[str, str] = {}  # key -> the override that set it
@@ -151,15 +153,30 @@ def unknown_override_keys(config_dir: Path, config_name: str, arguments: Sequenc
         return [unknown_override_message(config, key, line) for key, line in refused.items()]
 
 
-def config_words(config_dir: Path) -> set[str]:
-    """Every name in the config files of ``config_dir``: the words of their text (keys, packages,
-    values) and the names of the files and folders (about 20 ms for 120 files)."""
+def config_names(config_dir: Path, config_name: str) -> tuple[set[str], set[str]]:
+    """``(top-level keys, words)`` of the configs in ``config_dir``: the unindented keys and the
+    packages (``model@validation_references.x``) of the primary config ``config_name`` and of the
+    ``@package _global_`` files, and the config groups;
+    every word of the files' text (keys, packages, values) and the names of files and folders.
+    About 20 ms for 120 files."""
+    top_level = {path.name for path in config_dir.iterdir() if path.is_dir()}
     words = set()
     for path in config_dir.rglob("*"):
         words.add(path.stem)
         if path.suffix == ".yaml":
-            words.update(re.findall(r"[A-Za-z_][\w-]*", path.read_text()))
-    return words
+            text = path.read_text()
+            words.update(re.findall(r"[A-Za-z_][\w-]*", text))
+            if path == config_dir / f"{config_name}.yaml" or re.search(r"^# @package _global_", text, re.M):
+                top_level.update(re.findall(r"^([A-Za-z_][\w-]*):", text, re.M))
+                top_level.update(re.findall(r"\w@([A-Za-z_][\w-]*)", text))
+    return top_level, words
+
+
+def plausible_key(key: str, top_level: set[str], words: set[str]) -> bool:
+    """Whether ``key`` (``a.b.c``) may be in the composed config: its first part a top-level key
+    and every other part a word of the configs (`config_names`); one that is not is surely absent."""
+    first, *rest = key.split(".")
+    return first in top_level and set(rest) <= words
 
 
 def composable_override(override: Any) -> str | None:
