@@ -109,15 +109,15 @@ def check_command_line(config_dir: Path, config_name: str, arguments: Sequence[s
 
 def unknown_override_keys(config_dir: Path, config_name: str, arguments: Sequence[str]) -> list[str]:
     """The errors of the overrides in ``arguments`` (a command line as Hydra's parser reads it) that
-    set a key the config, composed with the other overrides, lacks: each names the key, the keys
-    beside it and the nearest ones (`unknown_key`). Composes the config only when an override sets
-    a value (not a config group's option, not Hydra's own keys); sweeps count with their first value,
-    an ``interval`` sweep not at all. Whatever else Hydra would refuse is left to Hydra's message.
+    set a key the config, composed with the other overrides, lacks (`unknown_override_message`);
+    a sweep counts with its first value, an ``interval`` or glob sweep not at all. Whatever else
+    Hydra would refuse is left to Hydra's message.
 
-    Composing costs about half a second of CPU, which every run would pay: it is done only when a
-    value override's key is surely absent (`plausible_key`: a typo, or a parameter no YAML sets). A
-    key whose parts are all elsewhere in the configs but not in this composition
-    (``module.loss.bins`` of ``loss=ap`` without it) is left to Hydra's refusal."""
+    Composing costs about half a second of CPU, which every run would pay: the config is composed
+    only when an override sets a value (`sets_a_value`: not a group's option) of a key that is
+    surely absent (`plausible_key`: a typo, a parameter no YAML sets). A key whose parts are all
+    elsewhere in the configs but not in this composition (``module.loss.bins`` without ``loss=ap``)
+    is left to Hydra's refusal."""
     from hydra._internal.utils import get_args_parser  # what @hydra.main parses the command line with
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
@@ -154,11 +154,10 @@ def unknown_override_keys(config_dir: Path, config_name: str, arguments: Sequenc
 
 
 def config_names(config_dir: Path, config_name: str) -> tuple[set[str], set[str]]:
-    """``(top-level keys, words)`` of the configs in ``config_dir``: the unindented keys and the
-    packages (``model@validation_references.x``) of the primary config ``config_name`` and of the
-    ``@package _global_`` files, and the config groups;
-    every word of the files' text (keys, packages, values) and the names of files and folders.
-    About 20 ms for 120 files."""
+    """``(top-level keys, words)`` of the configs in ``config_dir``: the config groups, and the
+    unindented keys and packages (``model@validation_references.x``) of the primary config
+    ``config_name`` and of the ``@package _global_`` files; every word of the files' text (keys,
+    packages, values) and the names of files and folders. About 20 ms for 120 files."""
     top_level = {path.name for path in config_dir.iterdir() if path.is_dir()}
     words = set()
     for path in config_dir.rglob("*"):
