@@ -13,16 +13,18 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 import locretrieval  # registers the config resolvers; imports zlib before pycolmap
+from locretrieval.cli import check_command_line, reported_mistakes
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="evaluate")
 def main(cfg: DictConfig) -> None:
-    from locretrieval.evaluation import evaluate  # here, so that `--help` imports none of the heavy modules
+    with reported_mistakes():  # a mistake of the user's: its message, no traceback
+        from locretrieval.evaluation import evaluate  # here, so that `--help` imports none of the heavy modules
 
-    evaluate(cfg, Path(HydraConfig.get().runtime.output_dir))
+        evaluate(cfg, Path(HydraConfig.get().runtime.output_dir))
 
 
 if __name__ == "__main__":
     locretrieval.exit_without_final_collection()
-    locretrieval.config.refuse_moved_keys(sys.argv[1:])  # a key of before 0.12, named with its new spelling
+    check_command_line(Path(__file__).parent / "configs", "evaluate", sys.argv[1:])  # keys Hydra would refuse
     main()

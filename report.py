@@ -16,6 +16,7 @@ import logging
 from pathlib import Path
 
 import locretrieval  # imports zlib before pycolmap; see locretrieval/__init__.py
+from locretrieval.cli import reported_mistakes
 from locretrieval.report import build_report
 from locretrieval.report.gallery import run_gallery_settings
 from locretrieval.report.tables import find_run_dirs
@@ -58,4 +59,5 @@ def main() -> None:
 
 if __name__ == "__main__":
     locretrieval.exit_without_final_collection()
-    main()
+    with reported_mistakes():  # a folder that is not a run, a damaged table: its message, no traceback
+        main()

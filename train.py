@@ -15,17 +15,19 @@ import hydra
 from omegaconf import DictConfig
 
 import locretrieval  # registers the config resolvers; imports zlib before pycolmap
+from locretrieval.cli import check_command_line, reported_mistakes
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="train")
 def main(cfg: DictConfig) -> float | None:
     """Train; returns the ``optimized_metric`` (the objective of ``-m hparams_search=localization``)."""
-    from locretrieval.training.run import optimized_value, train  # here: `--help` imports no heavy module
+    with reported_mistakes():  # a mistake of the user's: its message, no traceback
+        from locretrieval.training.run import optimized_value, train  # here: `--help` imports no heavy module
 
-    return optimized_value(cfg, train(cfg, Path(cfg.output_dir)))
+        return optimized_value(cfg, train(cfg, Path(cfg.output_dir)))
 
 
 if __name__ == "__main__":
     locretrieval.exit_without_final_collection()
-    locretrieval.config.refuse_moved_keys(sys.argv[1:])  # a key of before 0.12, named with its new spelling
+    check_command_line(Path(__file__).parent / "configs", "train", sys.argv[1:])  # keys Hydra would refuse
     main()

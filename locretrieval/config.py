@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import collections.abc
 import dataclasses
+import difflib
 import hashlib
 import inspect
 import os
@@ -26,6 +27,7 @@ from omegaconf import Container, DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
 
 from locretrieval.cache import safe_name
+from locretrieval.errors import DataFileError
 
 Schema = TypeVar("Schema")
 
@@ -157,10 +159,14 @@ MOVED_KEYS = {
 
 
 def unknown_key(full_key: str, known: Sequence[str]) -> str:
-    """The error of an unknown ``full_key`` (the keys ``known`` there; a moved key's new spelling)."""
+    """The error of an unknown ``full_key``: the keys ``known`` there and the nearest of them
+    (difflib's close matches of its last part); a moved key's new spelling."""
     if full_key in MOVED_KEYS:
         return f"{full_key}: moved, now {MOVED_KEYS[full_key]}"
-    return f"{full_key}: unknown key; expected one of {list(known)}"
+    near = difflib.get_close_matches(full_key.rsplit(".", 1)[-1], [str(key) for key in known])
+    return f"{full_key}: unknown key; expected one of {list(known)}" + (
+        f"; did you mean {' or '.join(near)}?" if near else ""
+    )
 
 
 def refuse_moved_keys(overrides: Sequence[str]) -> None:
@@ -377,7 +383,8 @@ def built(node: Any, key: str, **runtime: Any) -> Any:
     A ``_partial_`` node is called with the ``runtime`` objects only the running code has (the
     scene, the training pairs, the network, ...); giving them to a node that is not partial is an
     error naming the key. A value its constructor refuses (a `SettingError` of a range check) is a
-    `ConfigError` naming the full key."""
+    `ConfigError` naming the full key; its own `ConfigError`, `DataFileError` or `FileNotFoundError`
+    (a weight file it reads) is raised as it is, not inside Hydra's `InstantiationException`."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
@@ -391,6 +398,6 @@ def built(node: Any, key: str, **runtime: Any) -> Any:
     except InstantiationException as error:
         if isinstance(error.__cause__, SettingError):
             raise ConfigError(f"{key}.{error.__cause__}") from None
-        if isinstance(error.__cause__, ConfigError):  # a part of it refused (naming its own key)
-            raise error.__cause__ from None
+        if isinstance(error.__cause__, (ConfigError, DataFileError, FileNotFoundError)):
+            raise error.__cause__ from None  # a part of it refused (naming its own key), or a file it reads
         raise

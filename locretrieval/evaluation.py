@@ -62,12 +62,11 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     gallery_settings = validated(GallerySettings, cfg.report.gallery, "report.gallery")
     scene_view_settings = validated(SceneViewSettings, cfg.report.scene_view, "report.scene_view")
     cache_dir = Path(cfg.paths.cache_dir)
+    model = built(cfg.model, "model")  # before the scene: a missing weight file is named with where to get it
     scene: Scene = instantiate_scene(cfg.data)
     log.info("scene %s: %d database images, %d queries", scene.name, len(scene.database), len(scene.queries))
     check_supported(scene, [*settings.paradigms.enabled(), *groundtruth_settings.parsed()])
-    missing_weights = weight_inputs(cfg.model)
-    model = None if missing_weights else built(cfg.model, "model")  # a weight file is read as the model is built
-    check_inputs(scene, model, settings, groundtruth_settings, subset_settings, missing_weights)
+    check_inputs(scene, model, settings, groundtruth_settings, subset_settings)
     if cfg.dry_run:
         dry_run(cfg, scene, settings, groundtruth_settings, cache_dir)
         return pd.DataFrame()
@@ -171,21 +170,15 @@ def dry_run(
 
 
 def check_inputs(
-    scene: Scene,
-    model: Any,
-    settings: BenchmarkSettings,
-    groundtruths: GroundTruthSettings,
-    subsets: SubsetSettings,
-    missing_weights: list[str],
+    scene: Scene, model: Any, settings: BenchmarkSettings, groundtruths: GroundTruthSettings, subsets: SubsetSettings
 ) -> None:
     """Stop before the first expensive stage when inputs the run needs are missing: one
-    `FileNotFoundError` names them all (``missing_weights``, the model's inputs,
-    `GlobalDescriptor.missing_inputs`: feature folders or a pairs file; kapture local features,
-    the COLMAP model, dynamic-object masks or their Mask R-CNN weights). ``model``: ``None``
-    when it could not be built for its missing weights."""
+    `FileNotFoundError` names them all (the model's inputs, `GlobalDescriptor.missing_inputs`:
+    feature folders or a pairs file; kapture local features, the COLMAP model, dynamic-object masks
+    or their Mask R-CNN weights). The model's weight file is checked as it is built, before the
+    scene is loaded (`MissingWeightsError`: where its authors publish it)."""
     missing = [
-        *missing_weights,
-        *([f"model.{problem}" for problem in model.missing_inputs(scene)] if model is not None else []),
+        *(f"model.{problem}" for problem in model.missing_inputs(scene)),
         *local_feature_inputs(scene, settings, groundtruths),
         *paradigm_inputs(settings),
         *missing_mask_inputs(scene.queries, subsets),
@@ -194,16 +187,6 @@ def check_inputs(
         raise FileNotFoundError(
             f"{len(missing)} missing input(s); nothing was computed:\n" + "\n".join(f"- {m}" for m in missing)
         )
-
-
-def weight_inputs(model: DictConfig) -> list[str]:
-    """The model's weight file (``model.weights``, read when the model is built), if it is absent."""
-    weights = model.get("weights")
-    return (
-        [f"model.weights: weight file {weights} not found"]
-        if weights is not None and not Path(weights).exists()
-        else []
-    )
 
 
 def local_feature_inputs(scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings) -> list[str]:

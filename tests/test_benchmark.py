@@ -203,6 +203,7 @@ LAYERS = [
         "estimates",
         "shard",
         "moved",
+        "cli",
     },
     {"models"},
     {"retrieval"},

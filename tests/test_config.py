@@ -199,9 +199,9 @@ def test_moved_keys_are_refused_on_the_command_line_and_in_a_section():
         "import sys; sys.argv = ['evaluate.py', 'paradigms.approximation.alpha=4']; "
         "import runpy; runpy.run_path('evaluate.py', run_name='__main__')"
     )
-    assert completed.returncode != 0
-    assert "ConfigError: paradigms.approximation.alpha: moved, now paradigms.approximation.weights.csi.alpha" in (
-        completed.stderr
+    assert completed.returncode == 1 and "Traceback" not in completed.stderr  # a mistake: its message alone
+    assert completed.stderr.startswith(
+        "paradigms.approximation.alpha: moved, now paradigms.approximation.weights.csi.alpha"
     )
     cfg = helpers.evaluate_config("paths.root_dir=/nonexistent", "+subsets.maskrcnn_weights=/w.pth")
     with pytest.raises(
@@ -272,8 +272,7 @@ def test_an_old_spelling_of_a_training_key_is_refused_naming_the_nested_one(tmp_
         "import sys; sys.argv = ['train.py', 'loss=triplet', 'loss.margin=0.2']; "
         "import runpy; runpy.run_path('train.py', run_name='__main__')"
     )
-    assert completed.returncode != 0
-    assert "ConfigError: loss.margin: moved, now module.loss.margin" in completed.stderr
+    assert completed.returncode == 1 and completed.stderr.startswith("loss.margin: moved, now module.loss.margin")
     for old, new in (("optimizer.lr", "module.optimizer.lr"), ("module.memory_size", "memory=cross_batch")):
         with pytest.raises(ConfigError, match=rf"^{re.escape(old)}: moved, now {re.escape(new)}"):
             refuse_moved_keys(["loss=ap", "optimizer=adamw", f"{old}=1"])

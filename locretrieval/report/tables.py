@@ -11,6 +11,7 @@ from pathlib import Path
 import pandas as pd
 from omegaconf import OmegaConf
 
+from locretrieval.errors import DataFileError
 from locretrieval.metrics.localization import QUERY_ERROR_COLUMNS, RESULT_COLUMNS
 from locretrieval.metrics.retrieval import QUERY_RETRIEVAL_COLUMNS, RETRIEVAL_COLUMNS
 from locretrieval.metrics.revisited import REVISITED_COLUMNS
@@ -91,7 +92,8 @@ def find_run_dirs(paths: Sequence[str | Path]) -> list[Path]:
 
 
 def read_table(path: Path, spec: TableSpec) -> pd.DataFrame:
-    """One table file; a missing optional file or a header-only file gives an empty table."""
+    """One table file; a missing optional file or a header-only file gives an empty table, one
+    without the spec's columns a `DataFileError`."""
     if not path.is_file():
         return pd.DataFrame(columns=spec.columns)
     try:
@@ -100,7 +102,7 @@ def read_table(path: Path, spec: TableSpec) -> pd.DataFrame:
         return pd.DataFrame(columns=spec.columns)
     missing = [c for c in spec.columns if c not in header and c not in spec.derived]
     if missing:
-        raise ValueError(f"{path}: missing columns {missing} (found {header})")
+        raise DataFileError(path, f"missing columns {missing} (found {header})")
     text = [c for c in header if c in TEXT_COLUMNS]
     table = pd.read_csv(
         path,

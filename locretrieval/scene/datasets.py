@@ -33,9 +33,12 @@ def _as_list(folders: str | Path | Sequence[str | Path]) -> list[str]:
     return [str(folders)] if isinstance(folders, (str, Path)) else [str(folder) for folder in folders]
 
 
-def resolve_folders(root: Path, entries: Sequence[str], missing_message: str) -> list[list[Path]]:
-    """The folders of each entry (a path or glob pattern relative to ``root``; absolute paths
-    stay as they are), sorted; raises `DatasetNotFoundError` for an entry matching none."""
+def resolve_folders(root: Path, entries: Sequence[str], what: str, missing_message: str | None) -> list[list[Path]]:
+    """The folders of each entry (a path or glob pattern relative to ``root``; absolute paths stay
+    as they are), sorted; raises `DatasetNotFoundError` for an entry matching none: its path, then
+    ``missing_message`` (where a published dataset is expected and how to get it), or for a user's
+    own data (``None``) ``what`` the entry is (``dataset 'kapture', its mapping``) and, for a
+    relative entry, the data root it is under."""
     resolved = []
     for entry in entries:
         target = root / Path(entry).expanduser()
@@ -44,7 +47,10 @@ def resolve_folders(root: Path, entries: Sequence[str], missing_message: str) ->
         else:
             matches = [target] if target.is_dir() else []
         if not matches:
-            raise DatasetNotFoundError(f"kapture folder not found: {target}\n{missing_message}")
+            if missing_message is not None:
+                raise DatasetNotFoundError(f"kapture folder not found: {target}\n{missing_message}")
+            under = "" if Path(entry).expanduser().is_absolute() else f" {entry!r} under the data root {root}"
+            raise DatasetNotFoundError(f"kapture folder not found: {target} ({what}{under})")
         resolved.append(matches)
     return resolved
 
@@ -52,11 +58,9 @@ def resolve_folders(root: Path, entries: Sequence[str], missing_message: str) ->
 def _missing_message(name: str, root: Path, mapping: list[str], queries: list[str], install: str) -> str:
     return "\n".join(
         [
-            f"Dataset {name!r} expects, under the data root {root}:",
-            f"  mapping: {', '.join(mapping)}",
-            f"  queries: {', '.join(queries)}",
-            "The data root is $LOCRETRIEVAL_DATA if set, else paths.data_dir "
-            "(e.g. `python evaluate.py paths.data_dir=/datasets`).",
+            f"Dataset {name!r} expects, under the data root {root} ($LOCRETRIEVAL_DATA if set, else paths.data_dir, "
+            f"e.g. `python evaluate.py paths.data_dir=/datasets`): mapping {', '.join(mapping)}; "
+            f"queries {', '.join(queries)}",
             f"To obtain the dataset (run from {root}):",
             *(f"  {line}" for line in install.strip().splitlines()),
         ]
@@ -73,7 +77,7 @@ def load_dataset(
     frustum_far: float | None,
     query_tags: Sequence[str] | None,
     name_tags: Mapping[str, str] | None,
-    install: str,
+    install: str | None,
     unsupported: Mapping[str, str] | None,
 ) -> Scene:
     """A `Scene` from kapture folders under ``root``.
@@ -83,7 +87,8 @@ def load_dataset(
     ``name_tags``: ``{tag: regex}`` on image names (e.g. RobotCar's day/night conditions).
     ``ltvl_names`` (an `LtvlNames`, or its config node: ``data.ltvl_names``) and ``frustum_far``
     (metres) are dataset facts kept on the `Scene` (checked before any folder is read).
-    ``install``: the commands that obtain the dataset, shown when a folder is missing.
+    ``install``: the commands that obtain a published dataset, shown when a folder is missing
+    (``None`` or empty: a user's own data, whose missing folder is named with its key only).
     ``unsupported``: paradigm or ground-truth name -> why the dataset cannot run it (kept on the
     `Scene`; enabling one is an error at start-up).
     """
@@ -96,9 +101,9 @@ def load_dataset(
             f"dataset {name!r}: {len(query_tags)} query_tags {list(query_tags)} "
             f"for {len(query_entries)} query entries {query_entries}"
         )
-    message = _missing_message(name, root, mapping_entries, query_entries, install)
-    mapping_matches = resolve_folders(root, mapping_entries, message)
-    query_matches = resolve_folders(root, query_entries, message)
+    message = _missing_message(name, root, mapping_entries, query_entries, install) if install else None
+    mapping_matches = resolve_folders(root, mapping_entries, f"dataset {name!r}, its mapping", message)
+    query_matches = resolve_folders(root, query_entries, f"dataset {name!r}, its queries", message)
     mapping_folders = [folder for matches in mapping_matches for folder in matches]
     query_folders = [folder for matches in query_matches for folder in matches]
     tags = None
@@ -157,7 +162,7 @@ def load_synthetic_dataset(
         frustum_far=frustum_far,
         query_tags=["query"],
         name_tags=None,
-        install="",  # rendered above
+        install=None,  # rendered above
         unsupported=None,
     )
 

@@ -292,8 +292,10 @@ class LocalizationValidation(L.Callback):
         epoch = trainer.current_epoch
         if (epoch + 1) % self.every_n_epochs:
             return
-        for key, value in self._record(trainer, pl_module, epoch).items():  # every rank: checkpointing monitors them
-            pl_module.log(key, value)
+        # logged by every rank, where checkpointing monitors them; each rank holds rank 0's values
+        # (`Ranks.first`), so their maximum over the ranks is that value, exactly (a mean might round)
+        for key, value in self._record(trainer, pl_module, epoch).items():
+            pl_module.log(key, value, sync_dist=True, reduce_fx="max")
 
     def _record(
         self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int, ranking: Ranking | None = None

@@ -252,6 +252,7 @@ class RetrievalTraining(L.LightningModule):
             "model": self.model_name,
             "architecture": self.architecture,
             "preprocessing": plain(asdict(self.preprocessing)),
-            "state_dict": {key: value.detach().cpu().clone() for key, value in self.network.state_dict().items()},
+            # the tensors of the Lightning checkpoint's own state_dict: torch.save writes each storage once
+            "state_dict": dict(self.network.state_dict()),
             "extra": {},
         }

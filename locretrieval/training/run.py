@@ -213,7 +213,7 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     checked without the scene (the sections and object nodes, the resumed checkpoint, the metrics
     checkpoints monitor, the ``optimized_metric``) is checked before it is prepared."""
     started = time.perf_counter()
-    L.seed_everything(int(cfg.seed), workers=True)
+    L.seed_everything(int(cfg.seed), workers=True, verbose=False)  # the seed is in config.yaml
     settings = BenchmarkSettings.from_config(cfg)
     training = validated(TrainingSettings, cfg.training, "training")
     relevance = validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance")
@@ -271,10 +271,31 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
         write_training_report(validator, output_dir, report, unfilled)
         summary = {
             "seconds": round(time.perf_counter() - started, 1),  # the whole run: the sweep summary's time
-            "SfM stages per validation": validator.sfm_stages,  # forecast and measured seconds per stage
+            "SfM stages per validation": validator.sfm_stages,  # per stage: seconds, work done, its unit
         }
         (output_dir / FINISHED_FILE).write_text(json.dumps(summary, indent=2))  # last: the run finished
+        for line in outputs_lines(output_dir, trainer):
+            log.info("%s", line)
     return validator
+
+
+def outputs_lines(output_dir: Path, trainer: L.Trainer) -> list[str]:
+    """What a finished run wrote, train.py's last lines: its folder, each checkpoint it keeps (a
+    `ModelCheckpoint`'s best by its monitor, with the value, or its latest) and its report."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    lines = [f"run folder: {output_dir}"]
+    for callback in trainer.checkpoint_callbacks:
+        if isinstance(callback, ModelCheckpoint) and callback.best_model_path:
+            score = callback.best_model_score
+            kind = (
+                f"best by {callback.monitor} ({float(score):.4g})" if callback.monitor and score is not None else "last"
+            )
+            lines.append(f"checkpoint, {kind}: {callback.best_model_path}")
+    if len(lines) == 1:
+        lines.append("checkpoint: none (no ModelCheckpoint among the callbacks)")
+    lines.append(f"report: {output_dir / 'report.md'}")
+    return lines
 
 
 def optimized_value(cfg: DictConfig, validator: LocalizationValidation) -> float | None:

@@ -189,13 +189,15 @@ def test_with_one_process_the_work_runs_here_and_its_error_is_raised_unchanged()
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
-    """train.py's first epoch of a 2-epoch run, on two ranks and on one (separate caches)."""
+    """train.py's first epoch of a 2-epoch run, on two ranks and on one (separate caches): the
+    runs' folder, their console output and the last lines of its standard output (the log)."""
     root = tmp_path_factory.mktemp("ddp_runs")
-    logs = {
-        processes: succeeded(train_py(root / f"ranks{processes}", "run", processes, *RESNET_WITH_SFM, *FIRST_EPOCH))
+    done = {
+        processes: train_py(root / f"ranks{processes}", "run", processes, *RESNET_WITH_SFM, *FIRST_EPOCH)
         for processes in (2, 1)
     }
-    return root, logs
+    logs = {processes: succeeded(run) for processes, run in done.items()}
+    return root, logs, {processes: run.stdout.splitlines()[-4:] for processes, run in done.items()}
 
 
 def validation(run: Path) -> pd.DataFrame:
@@ -203,7 +205,7 @@ def validation(run: Path) -> pd.DataFrame:
 
 
 def test_validation_on_two_ranks_equals_one_process_exactly(runs):
-    root, logs = runs
+    root, logs, _ = runs
     two, one = root / "ranks2" / "run", root / "ranks1" / "run"
     before = [validation(run).query("epoch == -1").set_index("metric")["value"] for run in (two, one)]
     assert any(metric.startswith("val/global_sfm/") for metric in before[0].index)
@@ -221,11 +223,26 @@ def test_validation_on_two_ranks_equals_one_process_exactly(runs):
     assert "trained: 12 images" in logs[2] and "trained: 24 images" not in logs[2] and "trained: 24 images" in logs[1]
     assert "SfM shard 0/2: 3 of 6 queries" in logs[2] and "SfM shard 1/2: 3 of 6 queries" in logs[2]
     assert logs[2].count("validation after epoch -1") == 1  # printed by rank 0 only
+    # the epoch metrics, equal on every rank, are logged synchronised: no Lightning warning per metric
+    assert "sync_dist" not in logs[2]
+
+
+@pytest.mark.parametrize("processes", [2, 1])
+def test_train_py_ends_naming_its_run_folder_checkpoints_and_report(runs, processes):
+    root, _, last_lines = runs
+    run = root / f"ranks{processes}" / "run"
+    shown = [line.split(" - ", 1)[1] for line in last_lines[processes]]  # after Hydra's time and logger name
+    assert shown[0] == f"run folder: {run}" and shown[-1] == f"report: {run / 'report.md'}", last_lines
+    best = next(run.glob("checkpoints/best-*.ckpt"))
+    assert shown[1].startswith("checkpoint, best by val/approximation/ewb/k3/5m_10deg (") and shown[1].endswith(
+        f": {best}"
+    )
+    assert shown[2] == f"checkpoint, last: {run / 'checkpoints' / 'last.ckpt'}"
 
 
 @pytest.mark.parametrize(("trained", "resumed"), [(2, 1), (1, 2)])
 def test_a_checkpoint_resumes_on_another_number_of_ranks(runs, trained, resumed):
-    root, _ = runs
+    root, *_ = runs
     run = root / f"ranks{trained}"
     checkpoint = load_torch_file(run / "run" / "checkpoints" / "last.ckpt")
     steps_per_epoch = {1: 4, 2: 2}  # batches_per_epoch=4: a step of each rank per pair of batches

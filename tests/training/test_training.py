@@ -279,24 +279,60 @@ def test_fast_dev_run_of_train_py_through_hydra_compose(tmp_path):
     assert set(validator.history[1]) - {"epoch"} == set(expected)  # what checkpoints may monitor is what is logged
 
 
-def test_the_gallery_of_fixed_validation_queries_is_logged_to_tensorboard_and_the_report_at_each_validation(tmp_path):
-    validator = train(train_config(tmp_path), tmp_path / "run")
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    """``python train.py debug=quick`` (its checkpoint and logging choices) on the tiny scene, with
+    every gallery query: ``(validation callback, run folder, its log lines)``."""
+    import logging
+
+    root = tmp_path_factory.mktemp("quick")
+    records, logger = [], logging.getLogger("locretrieval")
+    handler, level = logging.Handler(), logger.level
+    handler.emit = lambda record: records.append(record.getMessage())
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        cfg = train_config(root, "debug=quick", "callbacks.localization_validation.gallery_queries=8")
+        validator = train(cfg, root / "run")
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+    return validator, root / "run", records
+
+
+def test_the_gallery_of_fixed_validation_queries_is_logged_to_tensorboard_and_the_report_at_each_validation(
+    quick_run,
+):
+    validator, run, _ = quick_run
     # the gallery of the same validation queries at each validation, in TensorBoard and the report
     from io import BytesIO
 
     from PIL import Image
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    events = EventAccumulator(str(tmp_path / "run" / "tensorboard" / "version_0"), size_guidance={"images": 0})
+    events = EventAccumulator(str(run / "tensorboard" / "version_0"), size_guidance={"images": 0})
     events.Reload()
     logged = events.Images("val/gallery")
     assert len(logged) == 2  # before training and after the batch
     last = np.asarray(Image.open(BytesIO(logged[-1].encoded_image_string)).convert("RGB"))
     np.testing.assert_array_equal(last, validator.galleries["last"])
-    assert (
-        len(validator.gallery_rows) == 6 and (tmp_path / "run" / "gallery_before.jpg").exists()
-    )  # the 6 queries of the tiny scene
-    assert "![gallery at the last validation](gallery_last.jpg)" in (tmp_path / "run" / "report.md").read_text()
+    assert len(validator.gallery_rows) == 6 and (run / "gallery_before.jpg").exists()  # the 6 queries of the tiny scene
+    assert "![gallery at the last validation](gallery_last.jpg)" in (run / "report.md").read_text()
+
+
+def test_a_quick_run_keeps_one_checkpoint_in_a_few_tens_of_megabytes_and_ends_naming_what_it_wrote(quick_run):
+    """debug=quick keeps last.ckpt only (EfficientNet-Lite0, its Adam state and the validation's
+    galleries: 44 MB, its weights stored once); caches stay in paths.cache_dir, none is copied in."""
+    _, run, records = quick_run
+    sizes = {path.relative_to(run).as_posix(): path.stat().st_size for path in run.rglob("*") if path.is_file()}
+    assert [name for name in sizes if name.startswith("checkpoints/")] == ["checkpoints/last.ckpt"]
+    assert sum(sizes.values()) < 50e6, sorted(sizes.items(), key=lambda item: -item[1])[:5]
+    assert max(size for name, size in sizes.items() if name != "checkpoints/last.ckpt") < 5e6
+    assert records[-3:] == [
+        f"run folder: {run}",
+        f"checkpoint, last: {run / 'checkpoints' / 'last.ckpt'}",
+        f"report: {run / 'report.md'}",
+    ]
 
 
 def test_a_checkpoint_monitoring_a_metric_never_logged_fails_at_start_up_naming_those_logged(tmp_path):

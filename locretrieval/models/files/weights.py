@@ -82,8 +82,9 @@ def require_weights(path: str | os.PathLike | None, source: WeightSource, model:
         return Path(path)
     where = "no model.weights path is set" if path is None else f"weight file not found: {path}"
     raise MissingWeightsError(
-        f"model {model!r}: {where}. Expected {source.expected}. Where to get it: {source.publisher}. "
-        "Download it and set model.weights=/path/to/file (nothing is downloaded at run time)."
+        f"model {model!r}: {where}; download it and set model.weights=/path/to/file "
+        "(nothing is downloaded at run time)\n"
+        f"  expected: {source.expected}; where to get it: {source.publisher}"
     )
 
 
