@@ -12,16 +12,18 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 import locretrieval  # registers the config resolvers; imports zlib before pycolmap
+from locretrieval.cli import check_command_line, reported_mistakes
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="export")
 def main(cfg: DictConfig) -> None:
-    from locretrieval.export.run import export  # here, so that `--help` imports none of the heavy modules
+    with reported_mistakes():  # a mistake of the user's: its message, no traceback
+        from locretrieval.export.run import export  # here, so that `--help` imports none of the heavy modules
 
-    export(cfg, Path(HydraConfig.get().runtime.output_dir))
+        export(cfg, Path(HydraConfig.get().runtime.output_dir))
 
 
 if __name__ == "__main__":
     locretrieval.exit_without_final_collection()
-    locretrieval.config.refuse_moved_keys(sys.argv[1:])
+    check_command_line(Path(__file__).parent / "configs", "export", sys.argv[1:])  # keys Hydra would refuse
     main()

@@ -19,6 +19,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
+from locretrieval.cli import Mistake
 from locretrieval.config import ConfigError, built, require, validated
 from locretrieval.training.folders import (
     CHECKPOINTS_FOLDER,
@@ -347,8 +348,9 @@ def consecutive(trials: list[Any]) -> list[list[Any]]:
 
 
 def failure_reason(error: BaseException) -> str:
-    """A failed job's error in one line: its type and message (at most 500 characters)."""
-    text = " ".join(f"{type(error).__name__}: {error}".split())
+    """A failed job's error in one line: its type and message, a user's mistake (`Mistake`) its
+    message only, which names the key or file (at most 500 characters)."""
+    text = " ".join((str(error) if isinstance(error, Mistake) else f"{type(error).__name__}: {error}").split())
     return text if len(text) <= 500 else text[:499] + "…"
 
 
