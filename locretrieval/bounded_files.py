@@ -52,11 +52,13 @@ def expansion_budget(stored_bytes: int) -> int:
     return budgets.size_budget(stored_bytes, budgets.compression_ratio)
 
 
-def _too_large(path: str | os.PathLike, what: str, size: int, stored: int, remedy: str) -> DataFileError:
+def _too_large(
+    path: str | os.PathLike, what: str, size: int | str, stored: int, remedy: str, when: str = "before decompressing"
+) -> DataFileError:
     return DataFileError(
         path,
         f"{what} would expand to {size} bytes from {stored} stored, more than {expansion_budget(stored)} "
-        f"({RATIO_KEY} x stored + 1 MiB); refused before decompressing",
+        f"({RATIO_KEY} x stored + 1 MiB); refused {when}",
         remedy,
     )
 
@@ -64,16 +66,16 @@ def _too_large(path: str | os.PathLike, what: str, size: int, stored: int, remed
 # --- zip ----------------------------------------------------------------------------------------
 
 
-def check_zip(path: str | os.PathLike, remedy: str = FIX_DATA_FILE) -> list[zipfile.ZipInfo]:
+def check_zip(path: str | os.PathLike, remedy: str = FIX_DATA_FILE, kind: str = "zip archive") -> list[zipfile.ZipInfo]:
     """The members of the zip archive ``path`` (its central directory only, nothing decompressed),
-    each within its expansion budget; a `DataFileError` otherwise or when it is not a zip archive."""
+    each within its expansion budget; a `DataFileError` otherwise or when it is not a readable ``kind``."""
     try:
         with zipfile.ZipFile(path) as archive:
             members = archive.infolist()
     except (zipfile.BadZipFile, OSError, ValueError, EOFError) as error:
         if isinstance(error, FileNotFoundError):
             raise
-        raise DataFileError(path, f"not a readable zip archive ({type(error).__name__}: {error})", remedy) from None
+        raise DataFileError(path, f"not a readable {kind} ({type(error).__name__}: {error})", remedy) from None
     for member in members:
         if member.file_size > expansion_budget(member.compress_size):
             raise _too_large(path, f"member {member.filename!r}", member.file_size, member.compress_size, remedy)
@@ -82,31 +84,44 @@ def check_zip(path: str | os.PathLike, remedy: str = FIX_DATA_FILE) -> list[zipf
 
 def check_npz(path: str | os.PathLike, remedy: str = FIX_DATA_FILE) -> None:
     """`check_zip`, and every ``.npy`` member's header (shape x itemsize) equal to the bytes it holds."""
-    members = check_zip(path, remedy)
+    members = check_zip(path, remedy, ".npz file")
     try:
         with zipfile.ZipFile(path) as archive:
             for member in members:
                 if member.filename.endswith(".npy"):
                     with archive.open(member) as stream:
-                        _check_npy_header(path, member, stream, remedy)
+                        _check_npy_header(path, f"member {member.filename!r}", member.file_size, stream, remedy)
     except DataFileError:
         raise
     except Exception as error:  # zipfile and numpy's header reader raise many types on damage
         raise DataFileError(path, f"not a readable .npz file ({type(error).__name__}: {error})", remedy) from None
 
 
-def _check_npy_header(path: str | os.PathLike, member: zipfile.ZipInfo, stream: Any, remedy: str) -> None:
+def check_npy(path: str | os.PathLike, remedy: str = FIX_DATA_FILE) -> None:
+    """An ``.npy`` file's header (shape x itemsize) equal to the bytes it holds (``numpy.load``
+    allocates what the header says before reading)."""
+    try:
+        with open(path, "rb") as stream:
+            _check_npy_header(path, "its header", os.fstat(stream.fileno()).st_size, stream, remedy)
+    except (DataFileError, FileNotFoundError):
+        raise
+    except Exception as error:  # numpy's header reader raises many types on damage
+        raise DataFileError(path, f"not a readable .npy file ({type(error).__name__}: {error})", remedy) from None
+
+
+def _check_npy_header(path: str | os.PathLike, what: str, size: int, stream: Any, remedy: str) -> None:
+    """The ``.npy`` data in ``stream`` (``size`` bytes with its header) holds what its header declares."""
     version = np.lib.format.read_magic(stream)
-    shape, _, dtype = np.lib.format._read_array_header(stream, version, max_header_size=10_000)
+    read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+    shape, _, dtype = read_header(stream)
     if dtype.hasobject:
         return  # refused by numpy.load(allow_pickle=False) itself, before reading any data
     declared = math.prod(shape) * dtype.itemsize
-    held = member.file_size - stream.tell()
+    held = size - stream.tell()
     if declared != held:
         raise DataFileError(
             path,
-            f"member {member.filename!r}: its header declares an array of shape {shape} and dtype {dtype} "
-            f"({declared} bytes) but it holds {held} bytes",
+            f"{what} declares an array of shape {shape} and dtype {dtype} ({declared} bytes) but holds {held} bytes",
             remedy,
         )
 
@@ -158,7 +173,9 @@ def _inflate(compressed: bytes, path: str | os.PathLike, what: str, remedy: str)
             pending = inflater.unconsumed_tail
             total += len(part)
             if total > budget:
-                raise _too_large(path, what, total, len(compressed), remedy)
+                raise _too_large(
+                    path, what, f"more than {total}", len(compressed), remedy, "as it inflated, nothing kept"
+                )
             parts.append(part)
     except zlib.error as error:
         raise DataFileError(path, f"{what}: not readable compressed data ({error})", remedy) from None
@@ -265,7 +282,7 @@ def hdf5_member(group: h5py.Group, name: str, path: str | os.PathLike, remedy: s
             target = getattr(link, "filename", None) or getattr(link, "path", "")
             raise DataFileError(
                 path,
-                f"{node.name.rstrip('/')}/{part} is a {type(link).__name__} (to {target}); links are not followed "
+                f"{node.name.rstrip('/')}/{part} is a link ({type(link).__name__} to {target}); links are not followed "
                 "(only what the file holds is read)",
                 remedy,
             )

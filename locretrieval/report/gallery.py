@@ -38,6 +38,7 @@ from omegaconf import OmegaConf
 from PIL import Image
 from scipy import sparse
 
+from locretrieval.bounded_files import check_npy
 from locretrieval.cache import atomic_path, config_key, file_signature, load_arrays, safe_name, save_arrays
 from locretrieval.config import require, validated
 from locretrieval.errors import DELETE_CACHE_FILE, DataFileError
@@ -109,6 +110,7 @@ class Thumbnails:
             return read_image(path, max_side=self.size)
         file = self.cache_dir / f"{config_key(path, file_signature(path), self.size)}.npy"
         if file.is_file():
+            check_npy(file, DELETE_CACHE_FILE)  # numpy allocates what the header declares before reading
             try:
                 return np.load(file, allow_pickle=False)
             except (OSError, EOFError, ValueError) as error:

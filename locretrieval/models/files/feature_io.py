@@ -4,7 +4,7 @@ kapture (>= 1.1): ``<kapture>/reconstruction/global_features/<feature_name>/`` h
 ``global_features.txt`` (``name, dtype, dsize, metric_type``) and one raw ``.gfeat`` file per
 image, at the image's records_data name plus ``.gfeat`` (what `PrecomputedDescriptor` reads).
 hloc: an HDF5 file with one group per image name (``/`` in names nests groups) holding a
-``global_descriptor`` dataset.
+``global_descriptor`` dataset, read within `locretrieval.bounded_files`' budgets (no link followed).
 """
 
 from __future__ import annotations
@@ -18,6 +18,9 @@ import kapture
 import kapture.io.csv
 import kapture.io.features
 import numpy as np
+
+from locretrieval.bounded_files import hdf5_member, open_hdf5, read_dataset
+from locretrieval.errors import FIX_DATA_FILE
 
 
 def export_global_features(
@@ -49,12 +52,12 @@ def read_hloc_global_descriptors(path: str | os.PathLike, names: Sequence[str]) 
     """``float32 [len(names), D]`` global descriptors of ``names`` from an hloc features file
     (values as stored, e.g. widened from float16; not re-normalised)."""
     rows = []
-    with h5py.File(path, "r") as file:
+    with open_hdf5(path, "hloc features file", FIX_DATA_FILE) as file:
         for name in names:
-            group = file.get(name)
-            if not isinstance(group, h5py.Group) or "global_descriptor" not in group:
+            dataset = hdf5_member(file, f"{name}/global_descriptor", path)
+            if not isinstance(dataset, h5py.Dataset):
                 raise KeyError(f"{path}: no global_descriptor for image {name!r}")
-            rows.append(np.asarray(group["global_descriptor"], dtype=np.float32).reshape(-1))
+            rows.append(np.asarray(read_dataset(dataset, path), dtype=np.float32).reshape(-1))
     dims = {len(row) for row in rows}
     if len(dims) > 1:
         raise ValueError(f"{path}: global descriptors of different sizes {sorted(dims)}")
