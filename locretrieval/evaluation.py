@@ -128,6 +128,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
         list(cfg.report.figure_formats),
         gallery=gallery_settings,
         thumbnail_cache=cache_dir / "thumbnails",
+        image_roots=None,  # the images of the scene just loaded, wherever its config keeps them
     )
     results = result.localization
     if len(results):

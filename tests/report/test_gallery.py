@@ -196,7 +196,12 @@ def test_report_gallery_marks_the_ground_truth_relevance_and_shows_each_outcome(
     run, database_colours, query_colours = gallery_run(tmp_path)
     output = tmp_path / "report"
     report = build_report(
-        [run], output, figure_formats=[], gallery=settings(worst=2, random=2), thumbnail_cache=tmp_path / "thumbs"
+        [run],
+        output,
+        figure_formats=[],
+        gallery=settings(worst=2, random=2),
+        thumbnail_cache=tmp_path / "thumbs",
+        image_roots=[tmp_path / "images"],
     )
     rows = gallery_rows(report.read_text())
     errors = pd.read_csv(
@@ -236,9 +241,9 @@ def test_report_gallery_marks_the_ground_truth_relevance_and_shows_each_outcome(
 def test_every_query_is_drawn_with_queries_all_and_a_rebuilt_report_drops_stale_rows(tmp_path):
     run, _, _ = gallery_run(tmp_path)
     output = tmp_path / "report"
-    build_report([run], output, figure_formats=[], gallery=settings(queries="all"))
+    build_report([run], output, figure_formats=[], gallery=settings(queries="all"), image_roots=[tmp_path])
     assert len(gallery_rows((output / "report.md").read_text())) == NUM_QUERIES
-    build_report([run], output, figure_formats=[], gallery=settings(worst=1, random=0))
+    build_report([run], output, figure_formats=[], gallery=settings(worst=1, random=0), image_roots=[tmp_path])
     assert len(gallery_rows((output / "report.md").read_text())) == 1
     assert len(list((output / "galleries" / "netvlad").glob("*.jpg"))) == 1
 
@@ -264,11 +269,8 @@ def test_report_py_reads_a_runs_gallery_settings_with_overrides(tmp_path):
     OmegaConf.save(
         {"paths": {"cache_dir": str(tmp_path / "cache")}, "report": {"gallery": section}}, tmp_path / "config.yaml"
     )
-    chosen, thumbnails = run_gallery_settings(tmp_path, ["queries=all", "k=10"])
-    assert (
-        chosen == settings(**{**section, "queries": "all", "k": 10}) and thumbnails == tmp_path / "cache" / "thumbnails"
-    )
+    assert run_gallery_settings(tmp_path, ["queries=all", "k=10"]) == settings(**{**section, "queries": "all", "k": 10})
     with pytest.raises(ConfigError, match="report.gallery.k: must be >= 1"):
         run_gallery_settings(tmp_path, ["k=0"])
     OmegaConf.save({"report": {"figure_formats": ["png"]}}, tmp_path / "config.yaml")  # a run of an earlier version
-    assert run_gallery_settings(tmp_path) == (None, None)
+    assert run_gallery_settings(tmp_path) is None
