@@ -15,11 +15,13 @@ import hydra
 from omegaconf import DictConfig
 
 import locretrieval  # registers the config resolvers; imports zlib before pycolmap
+import locretrieval.parts
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="train")
 def main(cfg: DictConfig) -> float | None:
     """Train; returns the ``optimized_metric`` (the objective of ``-m hparams_search=localization``)."""
+    locretrieval.parts.check_run_config(cfg)  # the run's limits; only parts named, before anything is imported
     from locretrieval.training.run import optimized_value, train  # here: `--help` imports no heavy module
 
     return optimized_value(cfg, train(cfg, Path(cfg.output_dir)))

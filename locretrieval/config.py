@@ -26,6 +26,7 @@ from omegaconf import Container, DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
 
 from locretrieval.cache import safe_name
+from locretrieval.errors import DataFileError
 
 Schema = TypeVar("Schema")
 
@@ -239,7 +240,7 @@ def build_part(kind: type, node: Any, where: str, group: str | None = None) -> A
         node = OmegaConf.create(dict(node))
     if not isinstance(node, Container) or "_target_" not in node:
         return require_part(node, kind, where, group)  # refused unless already built
-    check_node(node, where)
+    check_node(node, where, kind)
     built_part = built(node, where)
     if not isinstance(built_part, kind):
         raise ConfigError(f"{where}._target_: {node['_target_']} does not build a {kind.__name__}")
@@ -325,13 +326,16 @@ _HYDRA_NODE_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_
 _SIMPLE_TYPES = (int, float, bool, str)
 
 
-def check_node(node: Any, key: str) -> None:
+def check_node(node: Any, key: str, kind: type | None = None) -> None:
     """Raise `ConfigError` naming the full key when the config node ``node`` (a ``_target_`` node)
-    has a key its target does not take, or a value its target's annotation refuses (int, float,
-    bool, str, optional and list of them), as `validated` does for a schema: before any work."""
-    from hydra.utils import get_object
+    names what is not a part there (a ``kind``, or a part of its key's group: `locretrieval.parts`,
+    checked before its module is imported, its nested nodes too), has a key its target does not
+    take, or a value its target's annotation refuses (int, float, bool, str, optional and list of
+    them), as `validated` does for a schema: before any work."""
+    from locretrieval.parts import check_targets, resolve_part
 
-    target = get_object(node["_target_"])
+    target = resolve_part(node["_target_"], key, kind)
+    check_targets({name: value for name, value in node.items() if name != "_target_"}, key)
     values = {
         name: value
         for name, value in OmegaConf.to_container(node, resolve=True).items()
@@ -374,10 +378,14 @@ def built(node: Any, key: str, **runtime: Any) -> Any:
     A ``_partial_`` node is called with the ``runtime`` objects only the running code has (the
     scene, the training pairs, the network, ...); giving them to a node that is not partial is an
     error naming the key. A value its constructor refuses (a `SettingError` of a range check) is a
-    `ConfigError` naming the full key."""
+    `ConfigError` naming the full key. Every ``_target_`` in ``node`` must be a part
+    (`locretrieval.parts.check_targets`), checked before anything is imported or called."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
+    from locretrieval.parts import check_targets
+
+    check_targets(node, key)
     if runtime and not node.get("_partial_", False):
         raise ConfigError(f"{key}: needs _partial_: true (the run gives it {sorted(runtime)})")
     try:
@@ -388,6 +396,6 @@ def built(node: Any, key: str, **runtime: Any) -> Any:
     except InstantiationException as error:
         if isinstance(error.__cause__, SettingError):
             raise ConfigError(f"{key}.{error.__cause__}") from None
-        if isinstance(error.__cause__, ConfigError):  # a part of it refused (naming its own key)
+        if isinstance(error.__cause__, (ConfigError, DataFileError)):  # a part of it, or a file it read, refused
             raise error.__cause__ from None
         raise

@@ -29,6 +29,7 @@ from locretrieval.estimates import estimated_pose_table
 from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths, statistics_table
 from locretrieval.metrics.localization import best_over_k, median_errors
 from locretrieval.metrics.subsets import SubsetSettings, missing_mask_inputs
+from locretrieval.parts import check_run_config
 from locretrieval.report.gallery import GallerySettings, write_gallery_inputs
 from locretrieval.report.scene_view import SCENE_VIEW_FILE, SceneViewSettings, write_scene_view
 from locretrieval.retrieval.descriptors import DescriptorSearch
@@ -43,8 +44,9 @@ log = logging.getLogger(__name__)
 def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     """Run the benchmark configured by ``cfg`` and write every output into ``output_dir``.
 
-    Every config section, then every input file the run needs (`check_inputs`), is checked
-    before any work; with ``dry_run`` the SfM work is only planned and logged (`log_plan`). Writes the tidy tables
+    The ``limits`` section and every ``_target_`` (`check_run_config`), every config section, then every
+    input file the run needs (`check_inputs`), are checked before any work; with ``dry_run`` the SfM
+    work is only planned and logged (`log_plan`). Writes the tidy tables
     (``results.csv``, ``query_errors.csv.gz``, ``median_errors.csv``, ``retrieval.csv``, ``query_retrieval.csv.gz``,
     ``groundtruth_statistics.csv``, ``subsets.csv``, ``estimated_poses.csv.gz``), the rankings, what galleries read
     (``images.csv``, ``relevance/``), LTVL exports, ``summary.json``, the 3D view (``scene_3d.html``, unless
@@ -54,6 +56,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     empty table.
     """
     started = time.perf_counter()
+    check_run_config(cfg)  # the run's limits; every _target_ a part, before anything it names is imported
     settings = BenchmarkSettings.from_config(cfg)
     shard = Shard.parse(cfg.shard, "shard")
     groundtruth_settings = validated(GroundTruthSettings, cfg.groundtruth, "groundtruth")
@@ -61,11 +64,12 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     gallery_settings = validated(GallerySettings, cfg.report.gallery, "report.gallery")
     scene_view_settings = validated(SceneViewSettings, cfg.report.scene_view, "report.scene_view")
     cache_dir = Path(cfg.paths.cache_dir)
+    missing_weights = weight_inputs(cfg.model)
+    # a weight file is read as the model is built: a bad one is refused before the scene loads (or renders)
+    model = None if missing_weights else built(cfg.model, "model")
     scene: Scene = instantiate_scene(cfg.data)
     log.info("scene %s: %d database images, %d queries", scene.name, len(scene.database), len(scene.queries))
     check_supported(scene, [*settings.paradigms.enabled(), *groundtruth_settings.parsed()])
-    missing_weights = weight_inputs(cfg.model)
-    model = None if missing_weights else built(cfg.model, "model")  # a weight file is read as the model is built
     check_inputs(scene, model, settings, groundtruth_settings, subset_settings, missing_weights)
     if cfg.dry_run:
         log_plan(cfg, scene, settings, groundtruth_settings, cache_dir)

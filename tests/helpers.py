@@ -167,6 +167,19 @@ def error_in_subprocess(function: str, path: Path):
     )
 
 
+def trust_packages(monkeypatch, *packages: str) -> None:
+    """The default limits with ``limits.trusted_packages`` = ``packages`` for this test's process (and
+    those it starts), as a run with ``limits.trusted_packages=[...]`` sets them; undone after the test."""
+    import dataclasses
+    import json
+
+    from locretrieval import limits
+
+    monkeypatch.delenv(limits.ENVIRONMENT, raising=False)
+    settings = {**dataclasses.asdict(limits.current()), "trusted_packages": list(packages)}
+    monkeypatch.setenv(limits.ENVIRONMENT, json.dumps(settings))
+
+
 def network_failing_on_rank(rank: int):
     """``model=callable`` of train.py: a small network whose description for validation (eval
     mode) raises on global rank ``rank`` of a DDP run, a fault of one process; it trains anywhere."""
