@@ -300,7 +300,7 @@ def scan_pickle(stream: io.BufferedIOBase, depth_limit: int) -> None:
         return values
 
     def deepest(values: list[int]) -> int:
-        return max((depths[value] for value in values), default=-1) + 1
+        return max((depths[value] for value in values), default=0)
 
     try:
         for opcode, argument, _ in pickletools.genops(stream):

@@ -393,9 +393,10 @@ def same_settings(stored: Any, configured: Any) -> bool:
     return stored == configured
 
 
-def short_repr(value: Any) -> str:
-    """A ``repr`` of a value read from a file, three levels and six elements deep at most."""
+def short_repr(value: Any, limit: int = 120) -> str:
+    """A ``repr`` of a value read from a file: two levels and four elements deep, at most ``limit`` characters."""
     bounded = reprlib.Repr()
-    bounded.maxlevel, bounded.maxstring, bounded.maxother = 3, 60, 60
-    bounded.maxdict = bounded.maxlist = bounded.maxtuple = bounded.maxset = bounded.maxfrozenset = 6
-    return bounded.repr(value)
+    bounded.maxlevel, bounded.maxstring, bounded.maxother = 2, limit, limit
+    bounded.maxdict = bounded.maxlist = bounded.maxtuple = bounded.maxset = bounded.maxfrozenset = 4
+    text = bounded.repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
