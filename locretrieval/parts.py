@@ -104,14 +104,22 @@ PART_GROUPS: dict[str, PartGroup] = {
 }
 
 
-def group_of(key: str) -> PartGroup:
-    """The `PartGroup` of a config key (``groundtruth.definitions.frustum``, ``trainer.plugins[0]``)."""
+def pattern_of(key: str) -> str | None:
+    """The `PART_GROUPS` pattern a config key (``groundtruth.definitions.frustum``, ``trainer.plugins[0]``)
+    matches, or ``None``."""
     parts = [part for part in re.split(r"\.|\[|\]", key) if part]
-    for pattern, group in PART_GROUPS.items():
+    for pattern in PART_GROUPS:
         expected = pattern.split(".")
         if len(expected) == len(parts) and all(e in ("*", p) for e, p in zip(expected, parts)):
-            return group
-    return PartGroup()
+            return pattern
+    return None
+
+
+def group_of(key: str) -> PartGroup:
+    """The `PartGroup` of a config key (`pattern_of`); a key outside `PART_GROUPS` takes any class of
+    the allowed packages."""
+    pattern = pattern_of(key)
+    return PART_GROUPS[pattern] if pattern is not None else PartGroup()
 
 
 def allowed_packages(group: PartGroup) -> tuple[str, ...]:
