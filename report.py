@@ -34,7 +34,9 @@ def main() -> None:
     parser.add_argument("runs", nargs="+", type=Path, help="run directories, or folders holding them")
     parser.add_argument("--output", type=Path, help="report directory (default: the single run directory given)")
     parser.add_argument("--groundtruth", help="ground truth of the correlation analysis (default: relative pose)")
-    parser.add_argument("--formats", nargs="+", default=["png", "pdf"], help="figure formats (default: png pdf)")
+    parser.add_argument(
+        "--formats", nargs="*", default=["png", "pdf"], help="figure formats (default: png pdf; none given: no figures)"
+    )
     parser.add_argument(
         "--gallery",
         nargs="+",
