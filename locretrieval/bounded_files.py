@@ -44,6 +44,8 @@ if TYPE_CHECKING:
     import h5py
 
 RATIO_KEY = "limits.compression_ratio"
+#: What h5py raises on a damaged file (HDF5's errors mapped to Python's, a few as RuntimeError).
+H5PY_ERRORS = (OSError, RuntimeError)
 
 
 def expansion_budget(stored_bytes: int) -> int:
@@ -184,10 +186,13 @@ def _inflate(compressed: bytes, path: str | os.PathLike, what: str, remedy: str)
 
 def _tag(data: Any, position: int, end: int, order: str, path: Any, remedy: str) -> tuple[int, int, int]:
     """``(type, bytes, data start)`` of the element at ``position`` (the small format packs both in 4 bytes)."""
+    end = min(end, len(data))
     if position + TAG_BYTES > end:
         raise DataFileError(path, f"a MATLAB element at byte {position} is cut short", remedy)
     first, second = struct.unpack(f"{order}II", data[position : position + TAG_BYTES])
-    if first >> 16:  # small data element: bytes in the upper half, data in the next 4 bytes
+    if first >> 16:  # small data element: bytes in the upper half (4 at most), data in the next 4 bytes
+        if first >> 16 > 4:
+            raise DataFileError(path, f"a small MATLAB element at byte {position} declares {first >> 16} bytes", remedy)
         return first & 0xFFFF, first >> 16, position + 4
     if position + TAG_BYTES + second > end:
         raise DataFileError(
@@ -262,7 +267,7 @@ def open_hdf5(path: str | os.PathLike, what: str, remedy: str) -> Iterator[h5py.
     try:
         with h5py.File(path, "r") as file:
             yield file
-    except OSError as error:
+    except H5PY_ERRORS as error:
         raise DataFileError(path, f"not a readable {what} ({error})", remedy) from None
 
 
@@ -275,18 +280,22 @@ def hdf5_member(group: h5py.Group, name: str, path: str | os.PathLike, remedy: s
     for part in [part for part in name.split("/") if part]:
         if not isinstance(node, h5py.Group):
             return None
-        link = node.get(part, getlink=True)
+        try:
+            link = node.get(part, getlink=True)
+            if isinstance(link, h5py.HardLink):
+                node = node[part]
+                continue
+        except (*H5PY_ERRORS, KeyError) as error:  # a damaged file: HDF5's errors as h5py maps them
+            raise DataFileError(path, f"not a readable HDF5 file at {name!r} ({error})", remedy) from None
         if link is None:
             return None
-        if not isinstance(link, h5py.HardLink):
-            target = getattr(link, "filename", None) or getattr(link, "path", "")
-            raise DataFileError(
-                path,
-                f"{node.name.rstrip('/')}/{part} is a link ({type(link).__name__} to {target}); links are not followed "
-                "(only what the file holds is read)",
-                remedy,
-            )
-        node = node[part]
+        target = getattr(link, "filename", None) or getattr(link, "path", "")
+        raise DataFileError(
+            path,
+            f"{node.name.rstrip('/')}/{part} is a link ({type(link).__name__} to {target}); links are not followed "
+            "(only what the file holds is read)",
+            remedy,
+        )
     return node
 
 
@@ -300,14 +309,14 @@ def read_dataset(
 
     if not isinstance(dataset, h5py.Dataset):
         raise DataFileError(path, f"{getattr(dataset, 'name', dataset)} is not a dataset", remedy)
-    if dataset.external or dataset.is_virtual:
-        where = "external storage" if dataset.external else "a virtual layout (other files)"
-        raise DataFileError(path, f"dataset {dataset.name} keeps its data in {where}; refused", remedy)
-    size = dataset.size * dataset.dtype.itemsize
-    stored = dataset.id.get_storage_size()
-    if size > expansion_budget(stored):
-        raise _too_large(path, f"dataset {dataset.name}", size, stored, remedy)
     try:
+        if dataset.external or dataset.is_virtual:
+            where = "external storage" if dataset.external else "a virtual layout (other files)"
+            raise DataFileError(path, f"dataset {dataset.name} keeps its data in {where}; refused", remedy)
+        size = dataset.size * dataset.dtype.itemsize
+        stored = dataset.id.get_storage_size()
+        if size > expansion_budget(stored):
+            raise _too_large(path, f"dataset {dataset.name}", size, stored, remedy)
         return dataset.asstr()[()] if text else dataset[()]
-    except (OSError, ValueError, TypeError) as error:
+    except (*H5PY_ERRORS, KeyError, ValueError, TypeError) as error:  # a damaged file
         raise DataFileError(path, f"dataset {dataset.name} is not readable ({error})", remedy) from None
