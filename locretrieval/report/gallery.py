@@ -200,11 +200,19 @@ def relevance_file(run: Path, groundtruth: str) -> Path:
     return run / RELEVANCE_FOLDER / f"{safe_name(groundtruth)}.npz"
 
 
-def load_relevance(path: Path) -> sparse.csr_matrix:
-    """A relevance matrix written by `write_gallery_inputs`."""
+def load_relevance(path: Path, shape: tuple[int, int] | None = None) -> sparse.csr_matrix:
+    """A relevance matrix written by `write_gallery_inputs` (of ``shape``, queries x database images,
+    when given); a `DataFileError` naming the file when it is not one."""
     arrays = load_arrays(path, RERUN)
-    data = np.ones(len(arrays["indices"]), dtype=bool)
-    return sparse.csr_matrix((data, arrays["indices"], arrays["indptr"]), shape=tuple(arrays["shape"]))
+    try:
+        data = np.ones(len(arrays["indices"]), dtype=bool)
+        matrix = sparse.csr_matrix((data, arrays["indices"], arrays["indptr"]), shape=tuple(arrays["shape"]))
+        matrix.check_format(full_check=True)
+    except (KeyError, ValueError, TypeError, IndexError) as error:
+        raise DataFileError(path, f"not a relevance matrix ({error})", RERUN) from None
+    if shape is not None and matrix.shape != shape:
+        raise DataFileError(path, f"a relevance matrix of shape {matrix.shape}, not {shape} as images.csv", RERUN)
+    return matrix
 
 
 @dataclass
@@ -236,14 +244,38 @@ class GalleryInputs:
             raise ValueError(f"{images_file}: missing columns {missing} (found {list(images.columns)})")
         queries, database = (images[images["set"] == s].sort_values("index") for s in ("query", "database"))
         relevance_path = run_file(run, relevance_file(run, groundtruth).relative_to(run)) if groundtruth else None
-        relevance = load_relevance(relevance_path) if relevance_path is not None and relevance_path.is_file() else None
+        shape = (len(queries), len(database))
+        found = relevance_path is not None and relevance_path.is_file()
+        relevance = load_relevance(relevance_path, shape) if found else None
         rankings = {}
         for path in sorted(run_file(run, RANKINGS_FOLDER).glob("*.npz")):
             arrays = load_arrays(run_file(run, path.relative_to(run)), RERUN)
             if str(arrays.get("kind", "")) == "descriptor":
-                rankings[str(arrays.get("name", path.stem))] = arrays["indices"]  # the file name is its safe_name
+                indices = ranking_indices(arrays, path, len(queries), len(database))
+                rankings[str(arrays.get("name", path.stem))] = indices  # the file name is its safe_name
         outside = [] if image_roots is None else outside_roots(images["path"], [run, *image_roots])
         return cls(list(queries["name"]), list(queries["path"]), list(database["path"]), relevance, rankings, outside)
+
+
+def ranking_indices(arrays: Mapping[str, np.ndarray], path: Path, queries: int, database: int) -> np.ndarray:
+    """A ranking file's ``indices``: integers ``[queries, K]`` into the database (`EMPTY` for none); a
+    `DataFileError` naming the file otherwise."""
+    indices = arrays.get("indices")
+    if (
+        indices is None
+        or indices.dtype.kind not in "iu"
+        or indices.ndim != 2
+        or len(indices) != queries
+        or (indices.size and (indices.min() < EMPTY or indices.max() >= database))
+    ):
+        shape = None if indices is None else f"{indices.dtype} {indices.shape}"
+        raise DataFileError(
+            path,
+            f"indices {shape} are not a ranking of {queries} queries into {database} database images "
+            f"(integers [{queries}, K], {EMPTY} for none; {IMAGES_FILE} lists the images)",
+            RERUN,
+        )
+    return indices
 
 
 def run_gallery_settings(run: Path, overrides: Sequence[str] = ()) -> GallerySettings | None:

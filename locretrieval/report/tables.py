@@ -216,8 +216,11 @@ def load_runs(paths: Sequence[str | Path]) -> RunTables:
     for run in run_dirs:
         if run_file(run, SUMMARY_FILE).is_file():
             try:
-                summaries[str(run)] = json.loads((run / SUMMARY_FILE).read_text())
-            except json.JSONDecodeError as error:
-                raise ValueError(f"{run / SUMMARY_FILE}: not valid JSON ({error})") from error
+                summary = json.loads((run / SUMMARY_FILE).read_text())
+            except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as error:
+                raise DataFileError(run / SUMMARY_FILE, f"not valid JSON ({error})", RERUN) from None
+            if not isinstance(summary, dict):
+                raise DataFileError(run / SUMMARY_FILE, "not a JSON object of labels and values", RERUN)
+            summaries[str(run)] = summary
     log.info("report over %d run(s): %s", len(run_dirs), ", ".join(map(str, run_dirs)))
     return RunTables(run_dirs=run_dirs, summaries=summaries, **tables)

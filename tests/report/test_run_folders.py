@@ -8,10 +8,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from report_runs import gallery_run, write_run
+from report_runs import GROUNDTRUTH, NUM_DATABASE, NUM_QUERIES, gallery_run, write_run
 
 from locretrieval.errors import DataFileError
 from locretrieval.report.run_files import load_yaml
@@ -117,3 +118,22 @@ def test_report_py_names_a_text_nan_without_a_traceback(tmp_path):
         done.stderr
     )
     assert not (run / "report.md").exists()  # stopped before writing
+
+
+def test_damaged_gallery_inputs_and_summary_are_named(tmp_path):
+    from locretrieval.cache import save_arrays
+    from locretrieval.report.gallery import GalleryInputs, relevance_file
+
+    run, _, _ = gallery_run(tmp_path)
+    assert GalleryInputs.read(run, GROUNDTRUTH, [tmp_path]).rankings.keys() == {"netvlad"}
+    ranking = run / "rankings" / "netvlad.npz"
+    save_arrays(ranking, {"indices": np.full((NUM_QUERIES, 3), NUM_DATABASE), "kind": np.asarray("descriptor")})
+    with pytest.raises(DataFileError, match=rf"netvlad\.npz: indices int64 \({NUM_QUERIES}, 3\) are not a ranking"):
+        GalleryInputs.read(run, GROUNDTRUTH, [tmp_path])
+    save_arrays(ranking, {"indices": np.zeros((NUM_QUERIES, 3), dtype=np.int64), "kind": np.asarray("descriptor")})
+    save_arrays(relevance_file(run, GROUNDTRUTH), {"indptr": [0, 1], "indices": [0], "shape": [1, 1]})
+    with pytest.raises(DataFileError, match=r"a relevance matrix of shape \(1, 1\), not \(6, 10\) as images\.csv"):
+        GalleryInputs.read(run, GROUNDTRUTH, [tmp_path])
+    (run / "summary.json").write_text("[1, 2]")
+    with pytest.raises(DataFileError, match=r"summary\.json: not a JSON object of labels and values"):
+        load_runs([run])
