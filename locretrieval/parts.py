@@ -52,9 +52,6 @@ class PartGroup:
     packages: tuple[str, ...] = ()
 
 
-_DESCRIPTORS = PartGroup(
-    ("locretrieval.models.base.GlobalDescriptor", "locretrieval.retrieval.pairs_file.PairsFileRanking")
-)
 _CALLBACKS = PartGroup(("lightning.pytorch.callbacks.Callback",), ("lightning.pytorch.callbacks",))
 
 #: Config keys (``*``: any one key or list index) whose ``_target_`` builds a part, and what a part there is.
@@ -62,8 +59,8 @@ PART_GROUPS: dict[str, PartGroup] = {
     "data": PartGroup(("locretrieval.scene.types.Scene",)),  # the loaders: functions returning a Scene
     "data.ltvl_names": PartGroup(("locretrieval.scene.ltvl.LtvlNames",)),
     "data.render.environments.*": PartGroup(("locretrieval.scene.synthetic.config.EnvironmentBuilder",)),
-    "model": _DESCRIPTORS,
-    "validation_references.*": _DESCRIPTORS,
+    "model": PartGroup(),  # anything with rankings(scene, search): a GlobalDescriptor, a pairs file, a user's model
+    "validation_references.*": PartGroup(),
     "model.backbone": PartGroup(),  # a Backbone protocol: any class of an allowed package
     "model.pooling": PartGroup(("torch.nn.Module",)),
     "model.order": PartGroup(("locretrieval.retrieval.pairs_file.PairOrder",)),

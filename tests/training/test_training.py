@@ -965,7 +965,8 @@ class FarApart(NegativesRule):
         return lambda rows: geometry.pairwise_position_errors(images.centers[rows], images.centers) <= self.metres
 
 
-def test_a_negatives_rule_from_outside_the_package_is_chosen_through_the_config(scene, tmp_path):
+def test_a_negatives_rule_from_outside_the_package_is_chosen_through_the_config(scene, tmp_path, monkeypatch):
+    helpers.trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     node = f"{{_target_: {__name__}.FarApart, metres: 15.0}}"
     cfg = train_config(tmp_path, "~train_relevance.negatives", f"+train_relevance.negatives={node}")
     settings = validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance")
