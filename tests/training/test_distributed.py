@@ -50,7 +50,11 @@ RESNET_WITH_SFM = [
     "paradigms.local_sfm.k=[3]",
 ]
 #: A run of 2 epochs (the cosine schedule's length) stopped after the first, as an interrupted one.
-FIRST_EPOCH = ["trainer.max_epochs=2", "+callbacks.interrupt={_target_: helpers.StopAfterEpoch, epoch: 0}"]
+FIRST_EPOCH = [
+    "trainer.max_epochs=2",
+    "+callbacks.interrupt={_target_: helpers.StopAfterEpoch, epoch: 0}",
+    "limits.trusted_packages=[helpers]",
+]
 #: The subprocesses import this checkout's package and the test helpers (``_target_: helpers....``).
 PYTHONPATH = os.pathsep.join([str(ROOT), str(ROOT / "tests")])
 
