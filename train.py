@@ -22,6 +22,7 @@ from locretrieval.cli import check_command_line, reported_mistakes
 def main(cfg: DictConfig) -> float | None:
     """Train; returns the ``optimized_metric`` (the objective of ``-m hparams_search=localization``)."""
     with reported_mistakes():  # a mistake of the user's: its message, no traceback
+        locretrieval.config.check_run_config(cfg)  # the run's limits; only parts named, before anything is imported
         from locretrieval.training.run import optimized_value, train  # here: `--help` imports no heavy module
 
         return optimized_value(cfg, train(cfg, Path(cfg.output_dir)))

@@ -85,7 +85,9 @@ def main() -> None:
         for label in ("cold (thumbnails made)", "warm (thumbnails from the disk cache)"):
             writer = ReportWriter(root / "report", "bench")
             started = time.perf_counter()
-            gallery_section(writer, [root / "run"], "relative_pose", settings, (5.0, 10.0), root / "thumbnails")
+            gallery_section(
+                writer, [root / "run"], "relative_pose", settings, (5.0, 10.0), root / "thumbnails", [root / "images"]
+            )
             writer.write(root / "report" / "report.md")
             elapsed = time.perf_counter() - started
             print(

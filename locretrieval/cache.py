@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from locretrieval.bounded_files import check_npz
 from locretrieval.errors import DELETE_CACHE_FILE, DataFileError
 
 
@@ -152,9 +153,10 @@ def load_arrays(path: str | os.PathLike, remedy: str = DELETE_CACHE_FILE) -> dic
     whole ``.npz`` (truncated, empty, damaged) is a `DataFileError` naming it and ``remedy`` (what
     to do: by default, delete the cache file); a missing one a ``FileNotFoundError``."""
     try:
+        check_npz(path, remedy)  # every member within limits.compression_ratio, as its header declares
         with np.load(path, allow_pickle=False) as data:
             return {name: data[name] for name in data.files}
-    except FileNotFoundError:
+    except (FileNotFoundError, DataFileError):
         raise
     except Exception as error:  # zipfile and numpy raise a dozen types on a damaged file: all mean "unreadable"
         raise DataFileError(path, f"not a readable .npz file ({type(error).__name__}: {error})", remedy) from None

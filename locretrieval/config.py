@@ -26,8 +26,9 @@ from typing import Any, TypeVar
 from omegaconf import Container, DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
 
+from locretrieval import limits, parts
 from locretrieval.cache import safe_name
-from locretrieval.errors import DataFileError
+from locretrieval.errors import ConfigError, DataFileError, SettingError, require  # noqa: F401  (imported from here)
 
 Schema = TypeVar("Schema")
 
@@ -118,10 +119,6 @@ for _name, _resolver in (("trainer_accelerator", trainer_accelerator), ("trainer
         OmegaConf.register_new_resolver(_name, _resolver)
 
 
-class ConfigError(ValueError):
-    """A configuration value of the wrong type or range; the message names the full key."""
-
-
 #: Keys that moved (0.12) when their value became an object chosen by ``_target_``, a part of the
 #: training module (the loss, optimizer, scheduler and memory nest under ``module``) or a key of the
 #: job (``shard``): the old key -> its new spelling. An override of an old key is refused naming the
@@ -176,19 +173,6 @@ def refuse_moved_keys(overrides: Sequence[str]) -> None:
         key = override.lstrip("+~").split("=", 1)[0]
         if key in MOVED_KEYS:
             raise ConfigError(unknown_key(key, []) + f" (the command line's {override})")
-
-
-class SettingError(ValueError):
-    """A value a schema's ``__post_init__`` refuses; ``field`` is its key within the schema."""
-
-    def __init__(self, field: str, message: str) -> None:
-        super().__init__(f"{field}: {message}")
-
-
-def require(condition: bool, field: str, message: str) -> None:
-    """Raise `SettingError` for ``field`` unless ``condition`` (a range check of a schema)."""
-    if not condition:
-        raise SettingError(field, message)
 
 
 def validated(schema: type[Schema], config: Any, key: str) -> Schema:
@@ -248,7 +232,7 @@ def build_part(kind: type, node: Any, where: str, group: str | None = None) -> A
         node = OmegaConf.create(dict(node))
     if not isinstance(node, Container) or "_target_" not in node:
         return require_part(node, kind, where, group)  # refused unless already built
-    check_node(node, where)
+    check_node(node, where, kind)
     built_part = built(node, where)
     if not isinstance(built_part, kind):
         raise ConfigError(f"{where}._target_: {node['_target_']} does not build a {kind.__name__}")
@@ -334,13 +318,15 @@ _HYDRA_NODE_KEYS = ("_target_", "_partial_", "_recursive_", "_convert_", "_args_
 _SIMPLE_TYPES = (int, float, bool, str)
 
 
-def check_node(node: Any, key: str) -> None:
+def check_node(node: Any, key: str, kind: type | None = None) -> None:
     """Raise `ConfigError` naming the full key when the config node ``node`` (a ``_target_`` node)
-    has a key its target does not take, or a value its target's annotation refuses (int, float,
-    bool, str, optional and list of them), as `validated` does for a schema: before any work."""
-    from hydra.utils import get_object
+    names what is not a part there (a ``kind``, or a part of its key's group: `locretrieval.parts`,
+    checked before its module is imported, its nested nodes too), has a key its target does not
+    take, or a value its target's annotation refuses (int, float, bool, str, optional and list of
+    them), as `validated` does for a schema: before any work."""
 
-    target = get_object(node["_target_"])
+    target = parts.resolve_part(node["_target_"], key, kind)
+    parts.check_targets({name: value for name, value in node.items() if name != "_target_"}, key)
     values = {
         name: value
         for name, value in OmegaConf.to_container(node, resolve=True).items()
@@ -384,10 +370,13 @@ def built(node: Any, key: str, **runtime: Any) -> Any:
     scene, the training pairs, the network, ...); giving them to a node that is not partial is an
     error naming the key. A value its constructor refuses (a `SettingError` of a range check) is a
     `ConfigError` naming the full key; its own `ConfigError`, `DataFileError` or `FileNotFoundError`
-    (a weight file it reads) is raised as it is, not inside Hydra's `InstantiationException`."""
+    (a weight file it reads) is raised as it is, not inside Hydra's `InstantiationException`. Every
+    ``_target_`` in ``node`` must be a part (`locretrieval.parts.check_targets`), checked before
+    anything is imported or called."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
+    parts.check_targets(node, key)
     if runtime and not node.get("_partial_", False):
         raise ConfigError(f"{key}: needs _partial_: true (the run gives it {sorted(runtime)})")
     try:
@@ -401,3 +390,11 @@ def built(node: Any, key: str, **runtime: Any) -> Any:
         if isinstance(error.__cause__, (ConfigError, DataFileError, FileNotFoundError)):
             raise error.__cause__ from None  # a part of it refused (naming its own key), or a file it reads
         raise
+
+
+def check_run_config(cfg: Any) -> None:
+    """What an entry point does first with its composed config: its ``limits`` section checked and
+    made the budgets of the run (`locretrieval.limits.configure`), then every ``_target_`` checked
+    (`locretrieval.parts.check_targets`)."""
+    limits.configure(validated(limits.Limits, cfg.limits, "limits"))
+    parts.check_targets(cfg)

@@ -1,4 +1,4 @@
-"""The project's error for a data or cache file that cannot be used."""
+"""The project's errors: a data or cache file that cannot be used, a configuration value refused."""
 
 from __future__ import annotations
 
@@ -19,3 +19,20 @@ class DataFileError(ValueError):
     def __init__(self, path: str | os.PathLike, problem: str, remedy: str | None = None) -> None:
         self.path = str(path)
         super().__init__(f"{path}: {problem}" + (f"; {remedy}" if remedy else ""))
+
+
+class ConfigError(ValueError):
+    """A configuration value of the wrong type or range; the message names the full key."""
+
+
+class SettingError(ValueError):
+    """A value a schema's ``__post_init__`` refuses; ``field`` is its key within the schema."""
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(f"{field}: {message}")
+
+
+def require(condition: bool, field: str, message: str) -> None:
+    """Raise `SettingError` for ``field`` unless ``condition`` (a range check of a schema)."""
+    if not condition:
+        raise SettingError(field, message)

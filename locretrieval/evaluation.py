@@ -23,7 +23,7 @@ from locretrieval.benchmark import (
     scene_subsets,
 )
 from locretrieval.cache import safe_name, save_arrays
-from locretrieval.config import built, validated
+from locretrieval.config import built, check_run_config, validated
 from locretrieval.estimates import estimated_pose_table
 from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths, statistics_table
 from locretrieval.groundtruth.compute import groundtruth_sfm_pairs
@@ -44,8 +44,9 @@ log = logging.getLogger(__name__)
 def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     """Run the benchmark configured by ``cfg`` and write every output into ``output_dir``.
 
-    Every config section, then every input file the run needs (`check_inputs`), is checked
-    before any work; with ``dry_run`` the SfM work is only counted and forecast (`dry_run`). Writes the tidy tables
+    The ``limits`` section and every ``_target_`` (`check_run_config`), every config section, then every
+    input file the run needs (`check_inputs`), are checked before any work; with ``dry_run`` the SfM
+    work is only counted and forecast (`dry_run`). Writes the tidy tables
     (``results.csv``, ``query_errors.csv.gz``, ``median_errors.csv``, ``retrieval.csv``, ``query_retrieval.csv.gz``,
     ``groundtruth_statistics.csv``, ``subsets.csv``, ``estimated_poses.csv.gz``), the rankings, what galleries read
     (``images.csv``, ``relevance/``), LTVL exports, ``summary.json``, the 3D view (``scene_3d.html``, unless
@@ -55,6 +56,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     empty table.
     """
     started = time.perf_counter()
+    check_run_config(cfg)  # the run's limits; every _target_ a part, before anything it names is imported
     settings = BenchmarkSettings.from_config(cfg)
     shard = Shard.parse(cfg.shard, "shard")
     groundtruth_settings = validated(GroundTruthSettings, cfg.groundtruth, "groundtruth")
@@ -133,6 +135,7 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
         list(cfg.report.figure_formats),
         gallery=gallery_settings,
         thumbnail_cache=cache_dir / "thumbnails",
+        image_roots=None,  # the images of the scene just loaded, wherever its config keeps them
     )
     results = result.localization
     if len(results):

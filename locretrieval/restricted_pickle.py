@@ -6,6 +6,12 @@ callable a crafted file names, and even numpy's own functions are unsafe on craf
 a dtype whose pickled state declares an object field without the "holds objects" flag makes an
 array whose bytes are read as Python object pointers (a crash of the interpreter). So:
 
+- `scan_pickle` reads the opcode stream first (``pickletools.genops``, one pass, nothing built)
+  and refuses containers nested deeper than ``limits.pickle_depth``: the unpickler hashes a dict
+  key or a set member as it builds it, and hashing a tuple nested 10^6 deep overflows the C stack
+  (a crash no ``try`` catches). Each object the stream makes carries its nesting depth, a new
+  container one more than the deepest of what it holds, a list, dict or set whatever is added
+  to it later; the unpickler's memo and marks are followed as it follows them.
 - `load_plain_pickle` resolves only the globals of `SAFE_GLOBALS`, each a checked stand-in:
   builtin containers and scalars (from arguments already in the file, never a size: ``bytes(1
   << 44)`` is refused), ``_codecs.encode`` (latin-1 only, as pickles write bytes) and numpy's
@@ -15,12 +21,14 @@ array whose bytes are read as Python object pointers (a crash of the interpreter
   are exactly ``shape x itemsize``;
 - the loaded structure is then walked (`plain_data`): anything but ``None``, numbers, strings,
   bytes, numeric arrays and scalars, dicts, lists, tuples, sets and frozensets is refused, as
-  are structures that contain themselves or nest deeper than `MAX_DEPTH`, and the total size
-  counted over shared references is bounded by the file's (`SIZE_FACTOR`: no "billion laughs").
+  are structures that contain themselves or nest deeper than ``limits.pickle_depth``, and the
+  total size counted over shared references (in time linear in the objects: each shared one is
+  counted by its size, never walked again) is bounded by the file's (``limits.pickle_size_factor``:
+  no "billion laughs").
 
 Every refusal is a `RefusedPickleError` naming the file and what was refused, before anything
-from the file is used. The same stand-ins serve ``torch.load(weights_only=True)``
-(`TORCH_NUMPY_GLOBALS`, then `plain_data` with ``strict=False``).
+from the file is used. The same scan, stand-ins and walk serve ``torch.load(weights_only=True)``
+(`TORCH_NUMPY_GLOBALS`; the walk with ``strict=False``, its size budget too).
 """
 
 from __future__ import annotations
@@ -28,6 +36,7 @@ from __future__ import annotations
 import io
 import math
 import pickle
+import pickletools
 import re
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -35,14 +44,9 @@ from typing import Any
 
 import numpy as np
 
+from locretrieval import limits
 from locretrieval.errors import FIX_DATA_FILE, DataFileError
 
-#: Nesting depth of containers a plain-data file may have (the published files nest 3 deep).
-MAX_DEPTH = 64
-#: The loaded structure, counted over shared references (an element 1, a string or array its
-#: length in bytes), may be at most this many times the file's size, plus `SIZE_SLACK`.
-SIZE_FACTOR = 64
-SIZE_SLACK = 1 << 20
 #: Type strings of the dtypes an array may have: booleans, integers, floats, complex numbers.
 PLAIN_DTYPE = re.compile(r"b1|\?|[iu][1248]|f(2|4|8|12|16)|c(8|16|24|32)")
 #: Byte orders of a pickled dtype's state.
@@ -63,6 +67,10 @@ class _Refused(pickle.UnpicklingError):
 
 def _refuse(what: str) -> None:
     raise _Refused(f"refused {what}; this file may hold only plain data (numbers, strings, numeric arrays)")
+
+
+def _over_budget(what: str, key: str) -> None:
+    raise _Refused(f"refused {what} ({key})")
 
 
 # --- numpy ---------------------------------------------------------------------------------
@@ -253,6 +261,92 @@ class _PlainDataUnpickler(pickle.Unpickler):
         raise _Refused(f"refused a persistent reference ({_short(pid)}); not a plain-data pickle")
 
 
+# --- the scan ------------------------------------------------------------------------------
+
+
+#: Opcodes that add what follows their container (to the last mark, or one value or pair) to it.
+_ADDING = {"APPEND": 1, "SETITEM": 2, "BUILD": 1, "APPENDS": None, "SETITEMS": None, "ADDITEMS": None}
+#: Opcodes that make one object of everything since the last mark.
+_FROM_MARK = {"TUPLE", "LIST", "DICT", "FROZENSET", "INST", "OBJ"}
+_GETS = {"GET", "BINGET", "LONG_BINGET"}
+_PUTS = {"PUT", "BINPUT", "LONG_BINPUT"}
+
+
+def scan_pickle(stream: io.BufferedIOBase, depth_limit: int) -> None:
+    """Read one pickle of ``stream`` (up to its STOP) without building anything; raise `_Refused` when an
+    object it makes would nest containers deeper than ``depth_limit`` (module docstring), and on a
+    stream the unpickler could not follow either (truncated, an unknown opcode, an empty stack).
+
+    Depths are those of objects, not of stack slots: the stack and the memo hold object numbers, and
+    a value added to a list, dict or set deepens that object wherever it is referenced. A container
+    deepened after it was put in another leaves the other's depth as it was: only a tuple or frozenset
+    (made once, from what it holds then) can be hashed, and hashing stops at the first list, dict or
+    set, whose nesting the walk (`plain_data`) bounds."""
+    depths: list[int] = []  # object number -> its depth
+    stack: list[int] = []
+    marks: list[int] = []
+    memo: dict[Any, int] = {}
+
+    def make(depth: int) -> None:
+        if depth > depth_limit:
+            _over_budget(f"containers nested deeper than {depth_limit}", "limits.pickle_depth")
+        depths.append(depth)
+        stack.append(len(depths) - 1)
+
+    def since_mark() -> list[int]:
+        start = marks.pop()
+        values = stack[start:]
+        del stack[start:]
+        return values
+
+    def deepest(values: list[int]) -> int:
+        return max((depths[value] for value in values), default=0)
+
+    try:
+        for opcode, argument, _ in pickletools.genops(stream):
+            name = opcode.name
+            if name == "STOP":
+                return
+            if name == "MARK":
+                marks.append(len(stack))
+            elif name in _GETS:
+                stack.append(memo[argument])
+            elif name in _PUTS:
+                memo[argument] = stack[-1]
+            elif name == "MEMOIZE":
+                memo[len(memo)] = stack[-1]
+            elif name == "DUP":
+                stack.append(stack[-1])
+            elif name == "POP":  # the top value, or the last mark when none follows it (as the unpickler does)
+                if stack and (not marks or len(stack) > marks[-1]):
+                    stack.pop()
+                else:
+                    marks.pop()
+            elif name == "POP_MARK":
+                since_mark()
+            elif name in _ADDING:
+                count = _ADDING[name]
+                values = since_mark() if count is None else [stack.pop() for _ in range(count)]
+                container = stack[-1]
+                depth = max(depths[container], deepest(values) + 1)
+                if depth > depth_limit:
+                    _over_budget(f"containers nested deeper than {depth_limit}", "limits.pickle_depth")
+                depths[container] = depth
+            elif name in _FROM_MARK:
+                make(deepest(since_mark()) + 1)
+            elif name not in ("PROTO", "FRAME"):  # every other opcode: pops its inputs, makes objects of them
+                values = [stack.pop() for _ in opcode.stack_before]
+                for _ in opcode.stack_after:
+                    make(deepest(values) + 1 if values else 0)
+    except ValueError as error:  # genops': truncated, an unknown opcode, a malformed argument
+        raise _Refused(f"not a readable pickle ({error})") from None
+    except IndexError:
+        raise _Refused("not a readable pickle (an opcode takes a value or mark the stack lacks)") from None
+    except KeyError as error:
+        raise _Refused(f"not a readable pickle (memo entry {_short(error.args[0])} was never stored)") from None
+    raise _Refused("not a readable pickle (no STOP opcode)")
+
+
 def load_plain_pickle(path: str | Path) -> Any:
     """Read the pickle at ``path`` admitting plain data only (module docstring).
 
@@ -260,7 +354,9 @@ def load_plain_pickle(path: str | Path) -> Any:
     naming the file and what else was refused or why it is not a readable pickle."""
     path = Path(path)
     data = path.read_bytes()  # the file's size bounds every read of the unpickler
+    budgets = limits.current()
     try:
+        scan_pickle(io.BytesIO(data), budgets.pickle_depth)
         content = _PlainDataUnpickler(io.BytesIO(data)).load()
     except _Refused as error:
         kind = RefusedGlobalError if str(error).startswith("refused to unpickle the global") else RefusedPickleError
@@ -269,7 +365,7 @@ def load_plain_pickle(path: str | Path) -> Any:
         raise RefusedPickleError(
             path, f"not a readable pickle ({type(error).__name__}: {error})", FIX_DATA_FILE
         ) from None
-    return plain_data(content, path, budget=SIZE_FACTOR * len(data) + SIZE_SLACK)
+    return plain_data(content, path, budget=budgets.size_budget(len(data), budgets.pickle_size_factor))
 
 
 # --- the walk ------------------------------------------------------------------------------
@@ -288,12 +384,12 @@ def plain_data(
     """``content`` with the numpy stand-ins turned into plain arrays and dtypes, every array checked
     to be numeric; containers are rebuilt (dicts and lists in place).
 
-    ``strict``: anything but plain data is refused, and so are structures that contain themselves,
-    nest deeper than `MAX_DEPTH` or count more than ``budget`` (module docstring); otherwise
-    (weights read through torch) other objects pass unchanged and instances of ``holders``
-    (attribute holders such as a PCA) have their attributes walked. Raises `RefusedPickleError`
-    naming ``path``."""
-    walk = _Walk(strict, tuple(holders), budget)
+    Structures nested deeper than ``limits.pickle_depth`` or counting more than ``budget`` (module
+    docstring) are refused. ``strict``: anything but plain data is refused, and so are structures
+    that contain themselves; otherwise (weights read through torch) other objects pass unchanged
+    (uncounted: tensors) and instances of ``holders`` (attribute holders such as a PCA) have their
+    attributes walked. Raises `RefusedPickleError` naming ``path``."""
+    walk = _Walk(strict, tuple(holders), budget, limits.current().pickle_depth)
     try:
         return walk.value(content, 0)
     except _Refused as error:
@@ -301,8 +397,8 @@ def plain_data(
 
 
 class _Walk:
-    def __init__(self, strict: bool, holders: tuple[type, ...], budget: int | None) -> None:
-        self.strict, self.holders, self.budget = strict, holders, budget
+    def __init__(self, strict: bool, holders: tuple[type, ...], budget: int | None, depth: int) -> None:
+        self.strict, self.holders, self.budget, self.depth = strict, holders, budget, depth
         self.done: dict[
             int, tuple[Any, Any, int]
         ] = {}  # id -> (original, kept alive: ids stay unique; converted; size)
@@ -318,8 +414,8 @@ class _Walk:
             if self.strict:
                 _refuse("a structure that contains itself")
             return item
-        if depth > MAX_DEPTH:
-            _refuse(f"containers nested deeper than {MAX_DEPTH}")
+        if depth > self.depth:
+            _over_budget(f"containers nested deeper than {self.depth}", "limits.pickle_depth")
         self.open.add(id(item))
         before = self.total
         converted = self._convert(item, depth)
@@ -329,8 +425,11 @@ class _Walk:
 
     def _count(self, size: int) -> None:
         self.total += size
-        if self.strict and self.budget is not None and self.total > self.budget:
-            _refuse(f"a structure of more than {self.budget} elements and bytes (bounded by the file's size)")
+        if self.budget is not None and self.total > self.budget:
+            _over_budget(
+                f"a structure of more than {self.budget} elements and bytes counted over its shared references",
+                "limits.pickle_size_factor x the file's bytes + 1 MiB",
+            )
 
     def _convert(self, item: Any, depth: int) -> Any:
         if isinstance(item, PlainDtype):

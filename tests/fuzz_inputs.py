@@ -1,23 +1,35 @@
 """Fuzzing of the files the benchmark reads (run by tests/test_fuzz_inputs.py in its own interpreter).
 
 Seeded hypothesis strategies mutate, byte by byte and field by field, each kapture text file (and
-an image) of a small valid folder, a revisited ground-truth pickle and a cache ``.npz``; every case must end in a
-result or in the project's error naming the file (`DataFileError`, or ``FileNotFoundError`` for a
-listed file that is absent), never another exception, a hang or a crash of this interpreter.
-Prints how many cases were tried: ``fuzz: N cases (kapture K, gnd G, cache C)``.
+an image) of a small valid folder, a revisited ground-truth pickle and a cache ``.npz``, and build
+the inputs that once crashed or exhausted the interpreter (#61): pickles nested deep or sharing
+references (through the plain and the torch loader), archives of every compression ratio
+(``.npz`` members, MATLAB elements and cells), hloc HDF5 files with links, external storage and
+unwritten datasets, and YAML with aliases. Every case must end in a result or in the project's
+error naming the file (`DataFileError`, ``FileNotFoundError`` for a listed file that is absent, or
+the error a loader documents), never another exception, a hang or a crash of this interpreter.
+Prints how many cases each target tried and the peak resident memory:
+``fuzz: N cases (kapture K, gnd G, ...); peak memory M MiB``.
 
-    python tests/fuzz_inputs.py [EXAMPLES_PER_TARGET]
+    python tests/fuzz_inputs.py [EXAMPLES_PER_TARGET]   # the new targets try a fifth as many (each costs more)
 """
 
 import io
 import logging
 import pickle
+import resource
+import struct
 import sys
 import tempfile
+import warnings
+import zipfile
 from collections import Counter
 from pathlib import Path
 
+import h5py
 import numpy as np
+import scipy.io
+import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
@@ -25,6 +37,11 @@ from PIL import Image
 from locretrieval.cache import load_arrays, save_arrays
 from locretrieval.errors import DataFileError
 from locretrieval.metrics.revisited import PROTOCOLS, load_revisited_groundtruth
+from locretrieval.models.files.feature_io import read_hloc_global_descriptors
+from locretrieval.models.files.weights import load_torch_file
+from locretrieval.models.published.netvlad import read_netvlad_struct
+from locretrieval.report.run_files import load_yaml
+from locretrieval.restricted_pickle import load_plain_pickle
 from locretrieval.scene.kapture_io import load_image_set
 
 #: A small valid kapture folder: two cameras (one in a rig), three images, tags.
@@ -90,12 +107,13 @@ def kapture_folder(root: Path, files: dict[str, bytes]) -> Path:
     return root
 
 
-def expect_named(call, path: Path, target: str):
-    """``call()``'s result; a `DataFileError` or ``FileNotFoundError`` naming ``path`` counts as handled."""
+def expect_named(call, path: Path, target: str, documented: tuple[type[Exception], ...] = ()):
+    """``call()``'s result; a `DataFileError`, ``FileNotFoundError`` or ``documented`` error naming ``path``
+    counts as handled."""
     CASES[target] += 1
     try:
         return call()
-    except (DataFileError, FileNotFoundError) as error:
+    except (DataFileError, FileNotFoundError, *documented) as error:
         if str(path) not in str(error):
             raise AssertionError(f"{target}: the error does not name {path}: {error}") from error
         return None
@@ -176,11 +194,191 @@ def fuzz_cache(mutation, mutations):
         expect_named(lambda: load_arrays(path), path, "cache")
 
 
+# --- the inputs that crashed or exhausted the interpreter (#61) ------------------------------------
+
+
+def nested(kind: str, depth: int):
+    """0 in ``depth`` containers of ``kind``: tuples (``key``: as a dict's key), lists, dicts or frozensets."""
+    wrap = {"tuple": lambda v: (v,), "key": lambda v: (v,), "list": lambda v: [v], "value": lambda v: {"k": v}}
+    value: object = 0
+    for _ in range(depth):
+        value = frozenset([value]) if kind == "frozenset" else wrap[kind](value)
+    return {value: 1} if kind == "key" else value
+
+
+def laughs(levels: int, fan_out: int):
+    """``fan_out ** levels`` leaves sharing ``levels`` lists."""
+    value: object = 0
+    for _ in range(levels):
+        value = [value] * fan_out
+    return value
+
+
+@given(
+    shape=st.sampled_from(["tuple", "list", "key", "value", "frozenset", "raw tuples", "laughs"]),
+    depth=st.integers(0, 150) | st.sampled_from([10**3, 10**5, 10**6]),
+    fan_out=st.integers(2, 12),
+    protocol=st.integers(0, pickle.HIGHEST_PROTOCOL),
+    mutation=byte_mutation(),
+    mutate=st.booleans(),
+    torch_file=st.booleans(),
+)
+def fuzz_nesting(shape, depth, fan_out, protocol, mutation, mutate, torch_file):
+    if shape == "raw tuples":  # the reproduction: a dict key nested ``depth`` deep, hashed while unpickling
+        data = b"\x80\x02})" + b"\x85" * depth + b"Ns."
+    else:
+        content = laughs(min(depth, 12), fan_out) if shape == "laughs" else nested(shape, min(depth, 150))
+        stream = io.BytesIO()
+        if torch_file:
+            torch.save({"architecture": content}, stream, pickle_protocol=max(protocol, 2))
+        else:
+            pickle.dump(content, stream, protocol=protocol)
+        data = stream.getvalue()
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / ("weights.pt" if torch_file else "gnd_roxford5k.pkl")
+        path.write_bytes(mutate_bytes(data, mutation) if mutate else data)
+        expect_named(lambda: (load_torch_file if torch_file else load_plain_pickle)(path), path, "nesting")
+
+
+def npy_bytes(array: np.ndarray, claimed: tuple[int, ...] | None) -> bytes:
+    """``array`` as an ``.npy`` file whose header may claim another shape."""
+    stream = io.BytesIO()
+    np.save(stream, array)
+    data = stream.getvalue()
+    if claimed is None:
+        return data
+    header = np.lib.format.header_data_from_array_1_0(array) | {"shape": claimed}
+    text = repr(header).encode().ljust(117) + b"\n"
+    return b"\x93NUMPY\x01\x00" + struct.pack("<H", len(text)) + text + array.tobytes()
+
+
+@given(
+    kind=st.sampled_from(["npz", "mat", "mat cells"]),
+    size=st.sampled_from([0, 1, 100, 2**12, 2**16, 2**19]),  # 2**19 zeros: 4 MB in 4 kB, past the budget
+    zeros=st.booleans(),
+    compressed=st.booleans(),
+    claimed=st.none() | st.tuples(st.sampled_from([0, 1, 7, 2**20, 10**12])),
+    mutation=byte_mutation(),
+    mutate=st.booleans(),
+)
+def fuzz_compression(kind, size, zeros, compressed, claimed, mutation, mutate):
+    array = np.zeros(size) if zeros else np.random.default_rng(size).normal(size=size)
+    with tempfile.TemporaryDirectory() as folder:
+        if kind == "npz":
+            path = Path(folder) / "cache.npz"
+            with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED if compressed else zipfile.ZIP_STORED) as archive:
+                archive.writestr("descriptors.npy", npy_bytes(array, claimed))
+            call, documented = (lambda: load_arrays(path)), ()
+        else:
+            path = Path(folder) / "Pitts30K_struct.mat"
+            content = array
+            if kind == "mat cells":
+                content = np.empty((1, 2), dtype=object)
+                content[0, 0], content[0, 1] = array[:8], array[:4]
+            scipy.io.savemat(path, {"net": content}, do_compression=compressed)
+            if claimed is not None and kind == "mat cells" and not compressed:
+                data = bytearray(path.read_bytes())
+                data[160:168] = struct.pack("<ii", 1, min(claimed[0], 2**31 - 1))  # the cell array's dimensions
+                path.write_bytes(data)
+            call, documented = (lambda: read_netvlad_struct(path)), (ValueError,)  # not NetVLAD's struct: named
+        if mutate:
+            path.write_bytes(mutate_bytes(path.read_bytes(), mutation))
+        expect_named(call, path, "compression", documented)
+
+
+@given(
+    layouts=st.lists(
+        st.sampled_from(["dataset", "float16", "external link", "soft link", "hard link", "external storage",
+                         "unwritten", "unwritten small", "compressed", "not a group"]),
+        min_size=1, max_size=4,
+    ),
+    mutation=byte_mutation(),
+    mutate=st.booleans(),
+)  # fmt: skip
+def fuzz_hdf5(layouts, mutation, mutate):
+    with tempfile.TemporaryDirectory() as folder:
+        other, raw, path = Path(folder) / "other.h5", Path(folder) / "other.raw", Path(folder) / "features.h5"
+        with h5py.File(other, "w") as file:
+            file.create_dataset("x/global_descriptor", data=np.ones(4, dtype=np.float32))
+        raw.write_bytes(np.ones(4, dtype=np.float32).tobytes())
+        names = [f"img{i}.jpg" for i in range(len(layouts))]
+        with h5py.File(path, "w") as file:
+            for name, layout in zip(names, layouts):
+                node = f"{name}/global_descriptor"
+                if layout in ("dataset", "float16", "compressed"):
+                    dtype = np.float16 if layout == "float16" else np.float32
+                    file.create_dataset(
+                        node, data=np.arange(4, dtype=dtype), compression="gzip" if layout == "compressed" else None
+                    )
+                elif layout == "external link":
+                    file[name] = h5py.ExternalLink(str(other), "x")
+                elif layout == "soft link":
+                    file[name] = h5py.SoftLink(f"/{names[0]}")
+                elif layout == "hard link" and layouts[0] in ("dataset", "float16", "compressed") and name != names[0]:
+                    file[name] = file[names[0]]
+                elif layout == "external storage":
+                    file.create_dataset(node, shape=(4,), dtype=np.float32, external=[(str(raw), 0, 16)])
+                elif layout.startswith("unwritten"):
+                    size = 2**10 if layout == "unwritten small" else 2**27
+                    file.create_dataset(
+                        node, shape=(size,), dtype=np.float32, chunks=(min(size, 2**16),), compression="gzip"
+                    )
+                else:
+                    file.create_dataset(name, data=np.zeros(2))
+        if mutate:
+            path.write_bytes(mutate_bytes(path.read_bytes(), mutation))
+        documented = (KeyError, ValueError)  # no descriptor for an image; descriptors of different sizes
+        expect_named(lambda: read_hloc_global_descriptors(path, names), path, "hdf5", documented)
+
+
+CONFIG_YAML = (
+    "report:\n  gallery: {queries: selected, k: 5, worst: 10, random: 5, seed: 0, thumbnail_size: 160}\n"
+    "paths: {cache_dir: ${oc.env:HOME}}\nsfm:\n  features: {_target_: locretrieval.sfm.features.SiftFeatures}\n"
+)
+
+
+@given(
+    shape=st.sampled_from(["aliases", "merge keys", "nested", "config"]),
+    levels=st.integers(0, 12),
+    fan_out=st.integers(1, 12),
+    mutation=byte_mutation(),
+    mutate=st.booleans(),
+)
+def fuzz_yaml(shape, levels, fan_out, mutation, mutate):
+    if shape == "aliases":
+        lines = ["l0: &l0 [x]"] + [f"l{i}: &l{i} [{', '.join([f'*l{i - 1}'] * fan_out)}]" for i in range(1, levels + 1)]
+        text = "\n".join(lines) + "\n"
+    elif shape == "merge keys":
+        lines = ["m0: &m0 {a: 1}"] + [
+            f"m{i}: &m{i} {{<<: [{', '.join([f'*m{i - 1}'] * fan_out)}], k{i}: {i}}}" for i in range(1, levels + 1)
+        ]
+        text = "\n".join(lines) + "\n"
+    elif shape == "nested":
+        text = "a: " + "[" * (levels * fan_out * 3) + "]" * (levels * fan_out * 3) + "\n"  # past the recursion limit
+    else:
+        text = CONFIG_YAML
+    data = text.encode()
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "config.yaml"
+        path.write_bytes(mutate_bytes(data, mutation) if mutate else data)
+        expect_named(lambda: load_yaml(path), path, "yaml")
+
+
+#: Targets and the share of ``EXAMPLES_PER_TARGET`` each tries (a case of the newer ones costs about 3x).
+TARGETS = {
+    fuzz_kapture: 1.0, fuzz_groundtruth: 1.0, fuzz_cache: 1.0,
+    fuzz_nesting: 0.3, fuzz_compression: 0.3, fuzz_hdf5: 0.3, fuzz_yaml: 0.3,
+}  # fmt: skip
+
+
 def main(examples: int) -> None:
     logging.disable(logging.WARNING)  # the loaders' warnings about odd but usable files
-    for fuzz in (fuzz_kapture, fuzz_groundtruth, fuzz_cache):
-        settings(SETTINGS, max_examples=examples)(fuzz)()
-    print(f"fuzz: {sum(CASES.values())} cases ({', '.join(f'{k} {v}' for k, v in CASES.items())})", flush=True)
+    warnings.filterwarnings("ignore", message="Detected pickle protocol")  # torch's, of the protocols tried
+    for fuzz, share in TARGETS.items():
+        settings(SETTINGS, max_examples=max(1, round(share * examples)))(fuzz)()
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kB on Linux
+    counts = ", ".join(f"{target} {count}" for target, count in CASES.items())
+    print(f"fuzz: {sum(CASES.values())} cases ({counts}); peak memory {peak:.0f} MiB", flush=True)
 
 
 if __name__ == "__main__":

@@ -167,6 +167,23 @@ def error_in_subprocess(function: str, path: Path):
     )
 
 
+def set_limits(monkeypatch, **values) -> None:
+    """The default ``limits`` with ``values`` for this test's process (and those it starts), as a run with
+    ``limits.<key>=<value>`` sets them; undone after the test."""
+    import dataclasses
+    import json
+
+    from locretrieval import limits
+
+    monkeypatch.delenv(limits.ENVIRONMENT, raising=False)
+    monkeypatch.setenv(limits.ENVIRONMENT, json.dumps({**dataclasses.asdict(limits.current()), **values}))
+
+
+def trust_packages(monkeypatch, *packages: str) -> None:
+    """`set_limits` with ``limits.trusted_packages`` = ``packages`` (the classes and callables a config may name)."""
+    set_limits(monkeypatch, trusted_packages=list(packages))
+
+
 def network_failing_on_rank(rank: int):
     """``model=callable`` of train.py: a small network whose description for validation (eval
     mode) raises on global rank ``rank`` of a DDP run, a fault of one process; it trains anywhere."""

@@ -1,4 +1,5 @@
-"""A finished evaluate.py run's tables, seeded, for the report tests: rankings, relevance, localization."""
+"""A finished evaluate.py run's tables, seeded, for the report tests: rankings, relevance, localization; a
+gallery run (`gallery_run`): its images and what galleries read."""
 
 import json
 import zlib
@@ -6,18 +7,22 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from PIL import Image
 from scipy import sparse
 
+from locretrieval.cache import save_arrays
 from locretrieval.metrics.localization import QUERY_ERROR_COLUMNS, RESULT_COLUMNS
 from locretrieval.metrics.retrieval import retrieval_tables
 from locretrieval.metrics.revisited import RevisitedGroundTruth, evaluate_revisited
+from locretrieval.report.gallery import write_gallery_inputs
 from locretrieval.retrieval import Ranking
-from locretrieval.scene import Camera, ImageSet
+from locretrieval.scene import Camera, ImageSet, Scene
 
 NUM_QUERIES, NUM_DATABASE = 6, 10
 KS = [1, 2, 5, 10]
 THRESHOLDS = [(0.25, 2.0), (5.0, 10.0)]
 GROUNDTRUTH = "gt_relative_pose"
+WIDTH, HEIGHT = 40, 30  # pixels of the gallery runs' images (4:3, below any thumbnail size the tests use)
 
 
 def seeded(name: str) -> np.random.Generator:
@@ -95,3 +100,48 @@ def write_run(directory: Path, descriptors: list[str]) -> Path:
     pd.concat(revisited_tables).to_csv(directory / "revisited.csv", index=False)
     (directory / "summary.json").write_text(json.dumps({"model": ", ".join(descriptors), "run time": "1.0 s"}))
     return directory
+
+
+def palette(count: int, offset: int = 0) -> list[tuple[int, int, int]]:
+    """``count`` solid colours; the first 16 are at least 73 apart (sum over channels)."""
+    return [
+        ((37 * i + 50) % 256, (91 * i + 20) % 200 + 30, (151 * i + 90) % 256) for i in range(offset, offset + count)
+    ]
+
+
+def solid_images(folder: Path, colours: list[tuple[int, int, int]], names: list[str]) -> list[Path]:
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for colour, name in zip(colours, names):
+        Image.new("RGB", (WIDTH, HEIGHT), colour).save(folder / name)
+        paths.append(folder / name)
+    return paths
+
+
+def gallery_run(tmp_path: Path, image_folder: str = "images") -> tuple[Path, list, list]:
+    """The toy run of `write_run` at ``tmp_path / "run"``, with solid-colour images (in ``tmp_path / image_folder``)
+    and the files galleries read."""
+    run = write_run(tmp_path / "run", ["netvlad"])
+    database_colours, query_colours = palette(NUM_DATABASE), palette(NUM_QUERIES, offset=NUM_DATABASE)
+    solid_images(tmp_path / image_folder, database_colours, [f"db{i}.png" for i in range(NUM_DATABASE)])
+    solid_images(tmp_path / image_folder, query_colours, [f"q{i}.png" for i in range(NUM_QUERIES)])
+    camera = Camera("SIMPLE_PINHOLE", WIDTH, HEIGHT, (40.0, 20.0, 15.0))
+
+    def images(names: list[str]) -> ImageSet:
+        return ImageSet(
+            names,
+            tmp_path / image_folder,
+            [camera] * len(names),
+            np.tile([1.0, 0, 0, 0], (len(names), 1)),
+            np.zeros((len(names), 3)),
+        )
+
+    scene = Scene(
+        "toy", images([f"db{i}.png" for i in range(NUM_DATABASE)]), images([f"q{i}.png" for i in range(NUM_QUERIES)])
+    )
+    write_gallery_inputs(scene, {GROUNDTRUTH: relevance()}, run)
+    for name, kind in (("netvlad", "descriptor"), (GROUNDTRUTH, "groundtruth")):
+        save_arrays(
+            run / "rankings" / f"{name}.npz", {"indices": ranking(name, kind).indices, "kind": np.asarray(kind)}
+        )
+    return run, database_colours, query_colours

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from helpers import evaluate_config
+from helpers import evaluate_config, trust_packages
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
@@ -249,11 +249,13 @@ class CentreOracle:
         return [Ranking(self.name, order, -np.take_along_axis(distance, order, 1), "groundtruth")]
 
 
-def test_a_model_from_outside_the_package_is_evaluated_through_the_config(tmp_path):
+def test_a_model_from_outside_the_package_is_evaluated_through_the_config(tmp_path, monkeypatch):
+    trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     marker = tmp_path / "marker.txt"
     node = f"{{_target_: {__name__}.CentreOracle, name: oracle, marker: {marker}}}"
     cfg = evaluate_config(
         f"paths.root_dir={tmp_path}", *SMALL_SCENE, "~model", f"+model={node}", "groundtruth=none",
+        f"limits.trusted_packages=[{__name__}]",
         "paradigms.local_sfm.enabled=false", "paradigms.global_sfm.enabled=false", "paradigms.approximation.k=[1]",
         "report.figure_formats=[]", "report.scene_view.enabled=false", "baselines.random=false",
     )  # fmt: skip

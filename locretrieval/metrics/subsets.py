@@ -28,7 +28,6 @@ from __future__ import annotations
 import abc
 import logging
 import os
-import pickle
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,6 +38,7 @@ import pandas as pd
 from PIL import Image
 from tqdm import tqdm
 
+from locretrieval.bounded_files import check_npy
 from locretrieval.cache import cached_arrays, config_key, file_signature
 from locretrieval.config import named_parts, require
 from locretrieval.scene import ImageSet
@@ -223,7 +223,11 @@ def mask_fraction(path: Path) -> float:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"dynamic-object mask not found: {path}")
-    mask = np.load(path, allow_pickle=False) if path.suffix == ".npy" else read_image(path).any(axis=-1)
+    if path.suffix == ".npy":
+        check_npy(path)  # numpy allocates what the header declares before reading
+        mask = np.load(path, allow_pickle=False)
+    else:
+        mask = read_image(path).any(axis=-1)
     if mask.size == 0:
         raise ValueError(f"dynamic-object mask {path} is empty")
     return float(np.count_nonzero(mask) / mask.size)
@@ -252,8 +256,9 @@ def load_maskrcnn(weights: str | Path, device: Any, min_size: int, score_thresho
     800; the longer side is capped at ``1333 / 800`` of it); the model keeps only detections
     scoring above ``score_threshold`` (the one place it is applied).
     """
-    import torch
     from torchvision.models.detection import MaskRCNN_ResNet50_FPN_Weights, maskrcnn_resnet50_fpn
+
+    from locretrieval.models.files.weights import load_torch_file
 
     weights = Path(weights)
     if not weights.is_file():
@@ -269,10 +274,10 @@ def load_maskrcnn(weights: str | Path, device: Any, min_size: int, score_thresho
         max_size=round(min_size * 1333 / 800),
         box_score_thresh=score_threshold,
     )
+    state = load_torch_file(weights)  # the restricted unpickler, after its scan (DataFileError naming the file)
     try:
-        state = torch.load(weights, map_location="cpu", weights_only=True)
         model.load_state_dict(state)
-    except (RuntimeError, OSError, KeyError, pickle.UnpicklingError) as error:
+    except (RuntimeError, KeyError, TypeError) as error:
         raise ValueError(f"{weights}: not a maskrcnn_resnet50_fpn COCO state dict ({error})") from error
     return model.eval().to(device)
 

@@ -25,11 +25,11 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
-from hydra.utils import get_class
 from torch import nn
 
 from locretrieval.models.files.weights import content_sha256, plain
 from locretrieval.moved import current_path
+from locretrieval.parts import resolve_part
 
 #: Guards divisions by the norm of all-zero vectors.
 NORM_EPS = 1e-12
@@ -204,7 +204,7 @@ def pooling_settings(pooling: Callable[..., nn.Module] | Mapping[str, Any]) -> d
         if target is None:
             raise ValueError(f"model.pooling has no _target_ (choose one: model/pooling=gem): {options}")
         target = current_path(str(target))  # a module path before 0.12 recorded as today's
-        cls = get_class(target)
+        cls = resolve_part(target, "model.pooling")
     else:
         cls = pooling.func if isinstance(pooling, partial) else pooling
         options = dict(pooling.keywords) if isinstance(pooling, partial) else {}
@@ -265,14 +265,14 @@ def upgrade_legacy_pooling(settings: Mapping[str, Any]) -> dict[str, Any]:
     if settings.get("type") not in LEGACY_POOLINGS:
         raise ValueError(f"a pooling record of unknown type {settings.get('type')!r}: {dict(settings)}")
     target, defaults = LEGACY_POOLINGS[settings["type"]]
-    taken = pooling_options(get_class(target))
+    taken = pooling_options(resolve_part(target, "model.pooling"))
     return {"_target_": target, **defaults, **{key: value for key, value in settings.items() if key in taken}}
 
 
 def build_pooling(channels: int, settings: Mapping[str, Any]) -> nn.Module:
     """The pooling of ``settings`` (`pooling_settings`) on a ``channels``-channel map, randomly initialised."""
     options = dict(settings)
-    module = get_class(options.pop("_target_"))(channels, **options)
+    module = resolve_part(current_path(str(options.pop("_target_", None))), "model.pooling")(channels, **options)
     if not isinstance(getattr(module, "output_dim", None), int):
         raise ValueError(f"model.pooling ({settings['_target_']}) must set output_dim, its descriptor's size")
     return module

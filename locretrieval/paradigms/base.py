@@ -144,17 +144,14 @@ class Paradigms:
 def paradigm_of(section: Any, key: str, sections: Sequence[str]) -> Paradigm:
     """The `Paradigm` of the config section ``section`` at ``key`` (one of ``sections``): its
     ``_target_`` class, its other keys checked as that class's fields."""
-    from hydra.utils import get_object
+    from locretrieval.parts import resolve_part
 
     if not isinstance(section, Mapping) or "_target_" not in section:
         raise ConfigError(
             f"{key}: a paradigm section without _target_ (its Paradigm class, as in "
             f"configs/paradigms/approximation.yaml); the sections are {list(sections)}"
         )
-    try:
-        target = get_object(section["_target_"])
-    except Exception as error:
-        raise ConfigError(f"{key}._target_: cannot import {section['_target_']!r} ({error})") from None
+    target = resolve_part(section["_target_"], key, Paradigm)  # checked before anything is imported
     if not (isinstance(target, type) and issubclass(target, Paradigm)) or getattr(target, "__abstractmethods__", ()):
         raise ConfigError(f"{key}._target_: {section['_target_']} is not a Paradigm class")
     return validated(target, {name: value for name, value in section.items() if name != "_target_"}, key)

@@ -55,11 +55,14 @@ def build_report(
     figure_workers: int | None = None,
     gallery: GallerySettings | None = None,
     thumbnail_cache: str | Path | None = None,
+    image_roots: Sequence[str | Path] | None = (),
 ) -> Path:
     """Regenerate ``report.md`` and ``report.html``, ``figures/`` (in ``figure_formats``), ``tables/``
     (Markdown + LaTeX), the correlation tables and, with ``gallery`` settings, the retrieval
     galleries (`gallery_section`, thumbnails cached in ``thumbnail_cache``) in ``output_dir`` from
     the runs at or below ``run_dirs`` (a multirun's runs are concatenated, repeated ground-truth rows dropped).
+    Every file read lies inside its run (`locretrieval.report.run_files`); the galleries' images too, or
+    inside one of ``image_roots`` (``None``: anywhere, for the report of a run just computed).
 
     Correlations and the subset figure use ``primary_groundtruth`` (default: the relative
     pose definition, the paper's choice, else the first ground truth by name). Figures are
@@ -89,7 +92,13 @@ def build_report(
     failure_section(writer, tables)
     if gallery is not None:
         gallery_section(
-            writer, tables.run_dirs, groundtruth, gallery, loosest_threshold(tables.results), thumbnail_cache
+            writer,
+            tables.run_dirs,
+            groundtruth,
+            gallery,
+            loosest_threshold(tables.results),
+            thumbnail_cache,
+            image_roots,
         )
     path = writer.write(output_dir / "report.md")
     log.info("report written to %s and %s", path, write_html(path))

@@ -38,11 +38,13 @@ from omegaconf import OmegaConf
 from PIL import Image
 from scipy import sparse
 
+from locretrieval.bounded_files import check_npy
 from locretrieval.cache import atomic_path, config_key, file_signature, load_arrays, safe_name, save_arrays
 from locretrieval.config import require, validated
 from locretrieval.errors import DELETE_CACHE_FILE, DataFileError
 from locretrieval.metrics.correlation import capped_pose_error
 from locretrieval.report.markdown import ReportWriter, md_code, md_text
+from locretrieval.report.run_files import RERUN, literal, load_yaml, mapping_at, outside_roots, run_file
 from locretrieval.report.tables import TABLES, read_table
 from locretrieval.retrieval import EMPTY, relevant_hits
 from locretrieval.scene import Scene
@@ -51,8 +53,6 @@ from locretrieval.scene.images import read_image
 log = logging.getLogger(__name__)
 
 IMAGES_FILE = "images.csv"
-#: What to do about a damaged file of a run folder.
-RERUN = "the run folder is damaged: run evaluate.py again"
 RELEVANCE_FOLDER = "relevance"
 RANKINGS_FOLDER = "rankings"
 #: The report's gallery images, below its folder (replaced at every report).
@@ -109,6 +109,7 @@ class Thumbnails:
             return read_image(path, max_side=self.size)
         file = self.cache_dir / f"{config_key(path, file_signature(path), self.size)}.npy"
         if file.is_file():
+            check_npy(file, DELETE_CACHE_FILE)  # numpy allocates what the header declares before reading
             try:
                 return np.load(file, allow_pickle=False)
             except (OSError, EOFError, ValueError) as error:
@@ -199,57 +200,95 @@ def relevance_file(run: Path, groundtruth: str) -> Path:
     return run / RELEVANCE_FOLDER / f"{safe_name(groundtruth)}.npz"
 
 
-def load_relevance(path: Path) -> sparse.csr_matrix:
-    """A relevance matrix written by `write_gallery_inputs`."""
+def load_relevance(path: Path, shape: tuple[int, int] | None = None) -> sparse.csr_matrix:
+    """A relevance matrix written by `write_gallery_inputs` (of ``shape``, queries x database images,
+    when given); a `DataFileError` naming the file when it is not one."""
     arrays = load_arrays(path, RERUN)
-    data = np.ones(len(arrays["indices"]), dtype=bool)
-    return sparse.csr_matrix((data, arrays["indices"], arrays["indptr"]), shape=tuple(arrays["shape"]))
+    try:
+        data = np.ones(len(arrays["indices"]), dtype=bool)
+        matrix = sparse.csr_matrix((data, arrays["indices"], arrays["indptr"]), shape=tuple(arrays["shape"]))
+        matrix.check_format(full_check=True)
+    except (KeyError, ValueError, TypeError, IndexError) as error:
+        raise DataFileError(path, f"not a relevance matrix ({error})", RERUN) from None
+    if shape is not None and matrix.shape != shape:
+        raise DataFileError(path, f"a relevance matrix of shape {matrix.shape}, not {shape} as images.csv", RERUN)
+    return matrix
 
 
 @dataclass
 class GalleryInputs:
     """What the galleries of one run read: image files per set, the chosen ground truth's
-    relevance (``None`` without one) and the descriptor rankings' ``indices`` by name."""
+    relevance (``None`` without one) and the descriptor rankings' ``indices`` by name;
+    ``outside``: listed images that may not be read (`read`), whose galleries are not drawn."""
 
     query_names: list[str]
     query_paths: list[str]
     database_paths: list[str]
     relevance: sparse.csr_matrix | None
     rankings: dict[str, np.ndarray]
+    outside: list[str]
 
     @classmethod
-    def read(cls, run: Path, groundtruth: str | None) -> "GalleryInputs | None":
-        """The inputs in ``run``, ``None`` when it has no ``images.csv`` (a run of an earlier version)."""
-        if not (run / IMAGES_FILE).is_file():
+    def read(
+        cls, run: Path, groundtruth: str | None, image_roots: Sequence[str | os.PathLike] | None = ()
+    ) -> "GalleryInputs | None":
+        """The inputs in ``run``, ``None`` when it has no ``images.csv`` (a run of an earlier version).
+        Every file read lies inside ``run`` (`run_file`); so must its images, or inside one of
+        ``image_roots`` (``None``: anywhere, for the run's own report, whose images its config named)."""
+        images_file = run_file(run, IMAGES_FILE)
+        if not images_file.is_file():
             return None
-        images = pd.read_csv(run / IMAGES_FILE, dtype={"set": str, "name": str, "path": str}, keep_default_na=False)
+        images = pd.read_csv(images_file, dtype={"set": str, "name": str, "path": str}, keep_default_na=False)
         missing = [c for c in ("set", "index", "name", "path") if c not in images.columns]
         if missing:
-            raise ValueError(f"{run / IMAGES_FILE}: missing columns {missing} (found {list(images.columns)})")
+            raise ValueError(f"{images_file}: missing columns {missing} (found {list(images.columns)})")
         queries, database = (images[images["set"] == s].sort_values("index") for s in ("query", "database"))
-        relevance_path = relevance_file(run, groundtruth) if groundtruth is not None else None
-        relevance = load_relevance(relevance_path) if relevance_path is not None and relevance_path.is_file() else None
+        relevance_path = run_file(run, relevance_file(run, groundtruth).relative_to(run)) if groundtruth else None
+        shape = (len(queries), len(database))
+        found = relevance_path is not None and relevance_path.is_file()
+        relevance = load_relevance(relevance_path, shape) if found else None
         rankings = {}
-        for path in sorted((run / RANKINGS_FOLDER).glob("*.npz")):
-            arrays = load_arrays(path, RERUN)
+        for path in sorted(run_file(run, RANKINGS_FOLDER).glob("*.npz")):
+            arrays = load_arrays(run_file(run, path.relative_to(run)), RERUN)
             if str(arrays.get("kind", "")) == "descriptor":
-                rankings[str(arrays.get("name", path.stem))] = arrays["indices"]  # the file name is its safe_name
-        return cls(list(queries["name"]), list(queries["path"]), list(database["path"]), relevance, rankings)
+                indices = ranking_indices(arrays, path, len(queries), len(database))
+                rankings[str(arrays.get("name", path.stem))] = indices  # the file name is its safe_name
+        outside = [] if image_roots is None else outside_roots(images["path"], [run, *image_roots])
+        return cls(list(queries["name"]), list(queries["path"]), list(database["path"]), relevance, rankings, outside)
 
 
-def run_gallery_settings(run: Path, overrides: Sequence[str] = ()) -> tuple[GallerySettings | None, Path | None]:
-    """The ``report.gallery`` settings of a run (its ``config.yaml``), ``overrides`` applied
-    (``key=value`` below ``report.gallery``, e.g. ``queries=all``), and its thumbnail cache
-    (``paths.cache_dir/thumbnails``); ``(None, None)`` when its config has no gallery section."""
-    config = OmegaConf.load(run / "config.yaml") if (run / "config.yaml").is_file() else OmegaConf.create()
-    section = OmegaConf.select(config, "report.gallery")
-    if section is None:
-        return None, None
-    settings = validated(
-        GallerySettings, OmegaConf.merge(section, OmegaConf.from_dotlist(list(overrides))), "report.gallery"
+def ranking_indices(arrays: Mapping[str, np.ndarray], path: Path, queries: int, database: int) -> np.ndarray:
+    """A ranking file's ``indices``: integers ``[queries, K]`` into the database (`EMPTY` for none); a
+    `DataFileError` naming the file otherwise."""
+    indices = arrays.get("indices")
+    if (
+        indices is None
+        or indices.dtype.kind not in "iu"
+        or indices.ndim != 2
+        or len(indices) != queries
+        or (indices.size and (indices.min() < EMPTY or indices.max() >= database))
+    ):
+        shape = None if indices is None else f"{indices.dtype} {indices.shape}"
+        raise DataFileError(
+            path,
+            f"indices {shape} are not a ranking of {queries} queries into {database} database images "
+            f"(integers [{queries}, K], {EMPTY} for none; {IMAGES_FILE} lists the images)",
+            RERUN,
+        )
+    return indices
+
+
+def run_gallery_settings(run: Path, overrides: Sequence[str] = ()) -> GallerySettings | None:
+    """The ``report.gallery`` settings of a run (its ``config.yaml``, read as written: `load_yaml`),
+    ``overrides`` applied (``key=value`` below ``report.gallery``, e.g. ``queries=all``); ``None`` when
+    its config has no gallery section."""
+    path = run_file(run, "config.yaml")
+    section = mapping_at(load_yaml(path) if path.is_file() else {}, "report", "gallery")
+    if not section:
+        return None
+    return validated(
+        GallerySettings, OmegaConf.merge(literal(section), OmegaConf.from_dotlist(list(overrides))), "report.gallery"
     )
-    cache_dir = OmegaConf.select(config, "paths.cache_dir")
-    return settings, Path(cache_dir) / "thumbnails" if cache_dir else None
 
 
 # --- which queries, and their outcome ------------------------------------------------------------
@@ -323,10 +362,12 @@ def gallery_section(
     settings: GallerySettings,
     scale: tuple[float, float],
     thumbnail_cache: str | os.PathLike | None,
+    image_roots: Sequence[str | os.PathLike] | None = (),
 ) -> None:
     """The report's ``Galleries`` section: one table per run and descriptor ranking, its rows
     drawn into ``galleries/``; ``scale``: the loosest threshold ``(metres, degrees)``;
-    ``thumbnail_cache``: see `Thumbnails`."""
+    ``thumbnail_cache``: see `Thumbnails`; ``image_roots``: folders besides each run whose images
+    may be read (`GalleryInputs.read`)."""
     started = time.perf_counter()
     writer.heading("Galleries")
     relevance = f"relevant under {md_text(groundtruth)}" if groundtruth else "no ground truth: relevance unknown (grey)"
@@ -349,7 +390,7 @@ def gallery_section(
     rows = 0
     for number, run in enumerate(run_dirs):
         prefix = f"run{number}_" if len(run_dirs) > 1 else ""
-        rows += run_galleries(writer, run, prefix, groundtruth, settings, scale, thumbnails)
+        rows += run_galleries(writer, run, prefix, groundtruth, settings, scale, thumbnails, image_roots)
     log.info("galleries: %d queries in %.1f s", rows, time.perf_counter() - started)
 
 
@@ -361,17 +402,32 @@ def run_galleries(
     settings: GallerySettings,
     scale: tuple[float, float],
     thumbnails: Thumbnails,
+    image_roots: Sequence[str | os.PathLike] | None = (),
 ) -> int:
     """The galleries of one run's descriptor rankings; returns how many rows were drawn."""
-    inputs = GalleryInputs.read(run, groundtruth)
+    inputs = GalleryInputs.read(run, groundtruth, image_roots)
     if inputs is None or not inputs.rankings:
         reason = f"no {IMAGES_FILE}, written by evaluate.py since 0.6" if inputs is None else "no descriptor ranking"
         writer.text(f"No galleries for {md_code(run)} ({reason}).")
         return 0
+    if inputs.outside:
+        log.warning(
+            "galleries of %s not drawn: %d images of its %s lie outside the run folder and the folders "
+            "given by --images, e.g. %s",
+            run,
+            len(inputs.outside),
+            IMAGES_FILE,
+            inputs.outside[0],
+        )
+        writer.text(
+            f"No galleries for {md_code(run)}: {len(inputs.outside)} images its {md_code(IMAGES_FILE)} lists lie "
+            "outside the run folder; give the dataset's folder to report.py (`--images DIR`) to draw them."
+        )
+        return 0
     if groundtruth is not None and inputs.relevance is None:
         missing = relevance_file(run, groundtruth).relative_to(run)
         writer.text(f"{md_code(run)} has no {md_code(missing)}: frames are grey (relevance unknown).")
-    errors = read_table(run / TABLES["query_errors"].file, TABLES["query_errors"])
+    errors = read_table(run_file(run, TABLES["query_errors"].file), TABLES["query_errors"])
     rows = 0
     for name, indices in inputs.rankings.items():
         title = md_text(name) + (f" ({md_code(run)})" if prefix else "")

@@ -22,10 +22,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import pandas as pd
-from omegaconf import OmegaConf
 
 from locretrieval.report.markdown import ReportWriter, md_text
 from locretrieval.report.plots import threshold_label
+from locretrieval.report.run_files import load_yaml, mapping_at, run_file
 from locretrieval.report.tables import TABLES, read_table
 
 #: The shipped CSVs, one per dataset.
@@ -207,10 +207,10 @@ def load_published(folder: Path) -> pd.DataFrame:
 def local_feature(run_dir: Path) -> tuple[str, str | None]:
     """The run's local features as configured (``config.yaml``'s ``sfm.features``) and their
     published name (`LOCAL_FEATURES`; ``None`` when nothing published used them)."""
-    path = Path(run_dir) / "config.yaml"
+    path = run_file(run_dir, "config.yaml")
     if not path.is_file():
         return "unknown (no config.yaml)", None
-    features = OmegaConf.load(path).get("sfm", {}).get("features", {})
+    features = mapping_at(load_yaml(path), "sfm", "features")  # as written: no interpolation resolved
     target = str(features.get("_target_", ""))
     # the kind: SiftFeatures -> sift; runs before sfm.features had a _target_ wrote `type` and `kapture.name`
     kind = (
@@ -218,9 +218,9 @@ def local_feature(run_dir: Path) -> tuple[str, str | None]:
     )
     if kind != "kapture":
         return kind, None
-    name, kept = str(features.get("name") or features.get("kapture", {}).get("name")), features.get("max_keypoints")
+    name, kept = str(features.get("name") or mapping_at(features, "kapture").get("name")), features.get("max_keypoints")
     described = f"kapture {name}" + (f" (best {kept})" if kept is not None else "")
-    full = kept is None or kept >= PUBLISHED_KEYPOINTS
+    full = kept is None or (isinstance(kept, (int, float)) and kept >= PUBLISHED_KEYPOINTS)
     return described, LOCAL_FEATURES.get(name, name) if full else None
 
 
@@ -269,7 +269,7 @@ def published_section(writer: ReportWriter, run_dirs: Sequence[Path], folder: Pa
     published = load_published(Path(folder or PUBLISHED_DIR))
     comparisons, searched = [], []
     for run in run_dirs:
-        results = read_table(Path(run) / TABLES["results"].file, TABLES["results"])
+        results = read_table(run_file(run, TABLES["results"].file), TABLES["results"])
         results = results[results["ranking_kind"] == "descriptor"]
         described, local = local_feature(run)
         comparisons.append(compare(results, published, local))

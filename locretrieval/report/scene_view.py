@@ -27,6 +27,7 @@ from locretrieval import geometry
 from locretrieval.config import require
 from locretrieval.report.html import with_script_policy
 from locretrieval.report.markdown import md_link
+from locretrieval.report.run_files import inside
 from locretrieval.scene import ImageSet, Scene
 
 if TYPE_CHECKING:
@@ -336,8 +337,13 @@ def selection_menu(num_fixed: int, selections: Sequence[tuple]) -> dict:
 
 
 def link(run_dirs: Sequence[Path], output_dir: Path) -> str | None:
-    """A Markdown line linking every run's ``scene_3d.html`` (relative to ``output_dir``), or ``None``."""
-    found = [Path(run) / SCENE_VIEW_FILE for run in run_dirs if (Path(run) / SCENE_VIEW_FILE).is_file()]
+    """A Markdown line linking every run's ``scene_3d.html`` (relative to ``output_dir``; one that resolves
+    outside its run is not linked), or ``None``."""
+    found = [
+        Path(run) / SCENE_VIEW_FILE
+        for run in run_dirs
+        if (Path(run) / SCENE_VIEW_FILE).is_file() and inside(Path(run) / SCENE_VIEW_FILE, run)
+    ]
     if not found:
         return None
     targets = [Path(os.path.relpath(path, output_dir)).as_posix() for path in found]

@@ -9,13 +9,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pandas as pd
-from omegaconf import OmegaConf
 
 from locretrieval.errors import DataFileError
 from locretrieval.metrics.localization import QUERY_ERROR_COLUMNS, RESULT_COLUMNS
 from locretrieval.metrics.retrieval import QUERY_RETRIEVAL_COLUMNS, RETRIEVAL_COLUMNS
 from locretrieval.metrics.revisited import REVISITED_COLUMNS
 from locretrieval.metrics.subsets import SUBSET_COLUMNS
+from locretrieval.report.run_files import RERUN, load_yaml, run_file
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +93,9 @@ def find_run_dirs(paths: Sequence[str | Path]) -> list[Path]:
 
 def read_table(path: Path, spec: TableSpec) -> pd.DataFrame:
     """One table file; a missing optional file or a header-only file gives an empty table, one
-    without the spec's columns a `DataFileError`."""
+    without the spec's columns a `DataFileError`. Every column but `TEXT_COLUMNS` holds numbers (an
+    empty field: none); anything else is a `DataFileError` naming the file, the line and the column
+    (`numeric_columns`)."""
     if not path.is_file():
         return pd.DataFrame(columns=spec.columns)
     try:
@@ -110,7 +112,32 @@ def read_table(path: Path, spec: TableSpec) -> pd.DataFrame:
         keep_default_na=False,
         na_values={c: [""] for c in header if c not in text},
     )
+    unparsed = [  # columns where pandas found text
+        c for c in table.columns if c not in text and not pd.api.types.is_numeric_dtype(table[c])
+    ]
+    table = numeric_columns(table, unparsed, path)
     return table.assign(**{column: table[source] for column, source in spec.derived.items() if column not in header})
+
+
+def numeric_columns(table: pd.DataFrame, columns: Sequence[str], path: Path) -> pd.DataFrame:
+    """``table`` with ``columns`` (text as read) as numbers: an empty field is none (NaN, as pandas
+    writes it); a field that is not a number, or the text ``nan``, is a `DataFileError` naming the
+    file, its line and the column."""
+    converted = {}
+    for column in columns:
+        text = table[column].astype(str).str.strip().where(table[column].notna(), "")
+        numbers = pd.to_numeric(text.where(text != ""), errors="coerce")
+        wrong = (text != "") & (numbers.isna())
+        if wrong.any():
+            row = int(wrong.to_numpy().nonzero()[0][0])
+            raise DataFileError(
+                path,
+                f"line {row + 2}, column {column!r}: {text.iloc[row][:80]!r} is not a number "
+                "(a missing value is an empty field)",
+                RERUN,
+            )
+        converted[column] = numbers
+    return table.assign(**converted)
 
 
 def conflicting_rows(frames: Sequence[tuple[Path, pd.DataFrame]], spec: TableSpec) -> pd.DataFrame:
@@ -150,8 +177,9 @@ def run_variants(run_dirs: Sequence[Path]) -> dict[Path, str]:
     shared by every run, e.g. ``paradigms.approximation.weights.csi.alpha=4``; the directory name otherwise."""
     overrides = {}
     for run in run_dirs:
-        path = run / ".hydra" / "overrides.yaml"
-        overrides[run] = [str(item) for item in (OmegaConf.load(path) if path.is_file() else [])]
+        path = run_file(run, Path(".hydra", "overrides.yaml"))
+        listed = load_yaml(path) if path.is_file() else []  # as written: no interpolation resolved
+        overrides[run] = [str(item) for item in listed] if isinstance(listed, list) else []
     shared = set.intersection(*(set(items) for items in overrides.values())) if overrides else set()
     labels = {run: ", ".join(item for item in items if item not in shared) for run, items in overrides.items()}
     return {run: label or run.name for run, label in labels.items()}
@@ -184,15 +212,18 @@ def label_variants(raw: dict[Path, dict[str, pd.DataFrame]]) -> None:
 def load_runs(paths: Sequence[str | Path]) -> RunTables:
     """Read and combine the tables of the runs at or below ``paths``."""
     run_dirs = find_run_dirs(paths)
-    raw = {run: {name: read_table(run / spec.file, spec) for name, spec in TABLES.items()} for run in run_dirs}
+    raw = {run: {name: read_table(run_file(run, spec.file), spec) for name, spec in TABLES.items()} for run in run_dirs}
     label_variants(raw)
     tables = {name: combine([(run, raw[run][name]) for run in run_dirs], spec) for name, spec in TABLES.items()}
     summaries = {}
     for run in run_dirs:
-        if (run / SUMMARY_FILE).is_file():
+        if run_file(run, SUMMARY_FILE).is_file():
             try:
-                summaries[str(run)] = json.loads((run / SUMMARY_FILE).read_text())
-            except json.JSONDecodeError as error:
-                raise ValueError(f"{run / SUMMARY_FILE}: not valid JSON ({error})") from error
+                summary = json.loads((run / SUMMARY_FILE).read_text())
+            except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as error:
+                raise DataFileError(run / SUMMARY_FILE, f"not valid JSON ({error})", RERUN) from None
+            if not isinstance(summary, dict):
+                raise DataFileError(run / SUMMARY_FILE, "not a JSON object of labels and values", RERUN)
+            summaries[str(run)] = summary
     log.info("report over %d run(s): %s", len(run_dirs), ", ".join(map(str, run_dirs)))
     return RunTables(run_dirs=run_dirs, summaries=summaries, **tables)

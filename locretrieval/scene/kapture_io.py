@@ -26,7 +26,7 @@ import kapture.io.csv as kapture_csv
 import numpy as np
 import quaternion
 
-from locretrieval import geometry
+from locretrieval import geometry, limits
 from locretrieval.errors import DataFileError
 from locretrieval.scene.images import check_image_sizes, check_names
 from locretrieval.scene.ltvl import KaptureNames, LtvlNames
@@ -100,11 +100,15 @@ class CsvRow:
 
 
 def read_csv_rows(path: Path, min_fields: int, max_fields: int | None) -> list[CsvRow]:
-    """Non-comment lines of a kapture CSV file, split like kapture does, field counts checked."""
+    """Non-comment lines of a kapture CSV file, split like kapture does, field counts checked; at most
+    ``limits.kapture_rows`` of them (a `KaptureFormatError` at the first line past it)."""
     rows = []
+    most = limits.current().kapture_rows
     for number, text in _text_lines(path):
         if not text.strip() or text.lstrip().startswith("#"):
             continue
+        if len(rows) == most:
+            raise _too_many_rows(path, number, text, most)
         fields = [value.strip() for value in text.split(",")]
         if len(fields) < min_fields or (max_fields is not None and len(fields) > max_fields):
             expected = str(min_fields) if min_fields == max_fields else f"at least {min_fields}"
@@ -113,6 +117,12 @@ def read_csv_rows(path: Path, min_fields: int, max_fields: int | None) -> list[C
             )
         rows.append(CsvRow(path, number, text, fields))
     return rows
+
+
+def _too_many_rows(path: Path, number: int, text: str, most: int) -> KaptureFormatError:
+    return KaptureFormatError(
+        path, number, text, f"more than {most} rows (limits.kapture_rows; raise it for a larger dataset)"
+    )
 
 
 def _check_unique(rows: list[CsvRow], key_fields: int, what: str) -> None:
@@ -365,9 +375,13 @@ def _read_tags_file(path: Path, names: list[str]) -> list[set[str]]:
     """Per-image tags from ``tags.txt`` (``# image_name, tags`` then ``name, tag1 tag2 ...``)."""
     index = {name: i for i, name in enumerate(names)}
     tags: list[set[str]] = [set() for _ in names]
+    rows, most = 0, limits.current().kapture_rows
     for number, text in _text_lines(path):
         if not text.strip() or text.lstrip().startswith("#"):
             continue
+        rows += 1
+        if rows > most:
+            raise _too_many_rows(path, number, text, most)
         name, separator, values = text.partition(",")
         if not separator:
             raise KaptureFormatError(path, number, text, "expected 'image_name, tag1 tag2 ...'")
@@ -383,6 +397,35 @@ def _check_files_exist(folder: Path, names: Sequence[str], what: str) -> None:
         raise FileNotFoundError(
             f"{len(missing)} {what} file(s) listed in the kapture folder are missing from {folder}, e.g. {missing[:3]}"
         )
+
+
+def _check_inside(root: Path, image_root: Path, names: Sequence[str]) -> None:
+    """Images whose files resolve (through symbolic links) outside the kapture folder ``root``: logged
+    once (datasets link their images from shared storage), refused with ``limits.outside_images: refuse``."""
+    inside = os.path.realpath(root)
+    outside = [
+        (name, resolved)
+        for name in names
+        if os.path.commonpath([inside, resolved := os.path.realpath(os.path.join(image_root, name))]) != inside
+    ]
+    if not outside:
+        return
+    name, resolved = outside[0]
+    if limits.current().outside_images == "refuse":
+        raise DataFileError(
+            image_root / name,
+            f"resolves to {resolved}, outside the kapture folder {root} (limits.outside_images: refuse); "
+            f"{len(outside)} of its {len(names)} images do",
+        )
+    log.warning(
+        "%s: %d of %d images resolve outside the folder (symbolic links), e.g. %s -> %s; "
+        "limits.outside_images=refuse refuses such folders",
+        root,
+        len(outside),
+        len(names),
+        name,
+        resolved,
+    )
 
 
 def _depth_paths(root: Path, keys: Sequence[tuple[int, str]], sensors: dict[str, CsvRow]) -> list[Path | None] | None:
@@ -453,6 +496,7 @@ def load_image_set(kapture_root: str | Path, tag: str | None = None) -> ImageSet
     check_names(root / RECORDS_CAMERA_FILE, names)
     image_root = root / RECORDS_DATA_DIR
     _check_files_exist(image_root, names, "image")
+    _check_inside(root, image_root, names)
     cameras = {camera: _camera(sensors[camera]) for camera in {c for _, c in keys}}
     check_image_sizes(image_root, names, [cameras[c] for _, c in keys], [f"{c!r} in {SENSORS_FILE}" for _, c in keys])
     qvec, tvec = _image_poses(keys, trajectories, rigs)

@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import contextlib
 from collections import OrderedDict
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from locretrieval.bounded_files import hdf5_member, open_hdf5, read_dataset
 from locretrieval.cache import atomic_path, config_key
 from locretrieval.errors import DELETE_CACHE_FILE, DataFileError
 
@@ -66,8 +67,8 @@ class ShardedStore:
                 if shard in self._array_names:  # read before: shards are never modified
                     continue
                 with _open(shard) as file:
-                    index.update((key, shard) for key in file["keys"].asstr()[()])
-                    self._array_names[shard] = sorted(file["data"])
+                    index.update((key, shard) for key in _read(file, "keys", shard, text=True))
+                    self._array_names[shard] = sorted(_member(file, "data", shard))
             self._index, self._stale = index, False
         return self._index
 
@@ -103,12 +104,13 @@ class ShardedStore:
         unread = [name for name in names if (shard, name) not in self._cache]
         if unread:
             with _open(shard) as file:
-                keys = list(file["keys"].asstr()[()])
+                keys = list(_read(file, "keys", shard, text=True))
+                data = _member(file, "data", shard)
                 for name in unread:
-                    if name not in file["data"]:
-                        raise KeyError(f"cache shard {shard} has no array {name!r}; it holds {sorted(file['data'])}")
-                    bounds = np.cumsum(file["lengths"][name][()])[:-1]
-                    self._cache[(shard, name)] = dict(zip(keys, np.split(file["data"][name][()], bounds)))
+                    if name not in data:
+                        raise KeyError(f"cache shard {shard} has no array {name!r}; it holds {sorted(data)}")
+                    bounds = np.cumsum(_read(file, f"lengths/{name}", shard))[:-1]
+                    self._cache[(shard, name)] = dict(zip(keys, np.split(_read(file, f"data/{name}", shard), bounds)))
                     self._cached_bytes += sum(array.nbytes for array in self._cache[(shard, name)].values())
         columns = {}
         for name in names:
@@ -143,14 +145,20 @@ class ShardedStore:
         return path
 
 
-@contextlib.contextmanager
-def _open(shard: Path) -> Iterator[h5py.File]:
+def _open(shard: Path) -> contextlib.AbstractContextManager[h5py.File]:
     """``shard`` open for reading; a shard that cannot be opened or read (damaged, truncated: h5py's
     ``OSError``) is a `DataFileError` naming it and saying to delete it (its records are recomputed)."""
-    import h5py
+    return open_hdf5(shard, "cache shard", DELETE_CACHE_FILE)
 
-    try:
-        with h5py.File(shard, "r") as file:
-            yield file
-    except OSError as error:
-        raise DataFileError(shard, f"not a readable cache shard ({error})", DELETE_CACHE_FILE) from None
+
+def _member(file: h5py.File, name: str, shard: Path) -> h5py.Group | h5py.Dataset:
+    """The group or dataset ``name`` of a shard (no link followed: `hdf5_member`); a `DataFileError` when absent."""
+    member = hdf5_member(file, name, shard, DELETE_CACHE_FILE)
+    if member is None:
+        raise DataFileError(shard, f"not a cache shard: it has no {name!r}", DELETE_CACHE_FILE)
+    return member
+
+
+def _read(file: h5py.File, name: str, shard: Path, text: bool = False) -> np.ndarray:
+    """The dataset ``name`` of a shard, read within its budget (`read_dataset`)."""
+    return read_dataset(_member(file, name, shard), shard, DELETE_CACHE_FILE, text)

@@ -5,7 +5,7 @@ from typing import ClassVar
 import helpers
 import numpy as np
 import pytest
-from helpers import compose_config, evaluate_config
+from helpers import compose_config, evaluate_config, trust_packages
 from omegaconf import OmegaConf
 from scipy.optimize import linprog
 from scipy.spatial.transform import Rotation
@@ -481,9 +481,12 @@ class CameraDistance:
 OUTSIDE = f"{__name__}.CameraDistance"
 
 
-def test_a_definition_from_outside_the_package_is_chosen_by_target_for_ranking_relevance_and_training(pose_scene):
+def test_a_definition_from_outside_the_package_is_chosen_by_target_for_ranking_relevance_and_training(
+    pose_scene, monkeypatch
+):
     """A definition of this module, chosen through the config alone (its ``_target_``, no registry
     entry), ranks the benchmark's queries and grades training pairs."""
+    trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     from locretrieval.groundtruth import DefinitionContext, definition_type
     from locretrieval.training.relevance import TrainingRelevanceSettings, training_pairs
 

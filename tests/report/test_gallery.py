@@ -2,17 +2,26 @@
 the report's gallery section and HTML page built from a run folder."""
 
 import re
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 from PIL import Image
-from report_runs import GROUNDTRUTH, KS, NUM_DATABASE, NUM_QUERIES, ranking, relevance, write_run
+from report_runs import (
+    HEIGHT,
+    KS,
+    NUM_QUERIES,
+    WIDTH,
+    gallery_run,
+    palette,
+    ranking,
+    relevance,
+    solid_images,
+    write_run,
+)
 
 import locretrieval.report.gallery as gallery
-from locretrieval.cache import save_arrays
 from locretrieval.config import ConfigError, validated
 from locretrieval.report import build_report
 from locretrieval.report.gallery import (
@@ -28,29 +37,9 @@ from locretrieval.report.gallery import (
     representative_k,
     run_gallery_settings,
     select_queries,
-    write_gallery_inputs,
 )
 from locretrieval.report.html import write_html
 from locretrieval.retrieval import EMPTY
-from locretrieval.scene import Camera, ImageSet, Scene
-
-WIDTH, HEIGHT = 40, 30  # pixels of the test images (4:3, below any thumbnail size used here)
-
-
-def palette(count: int, offset: int = 0) -> list[tuple[int, int, int]]:
-    """``count`` solid colours; the first 16 are at least 73 apart (sum over channels)."""
-    return [
-        ((37 * i + 50) % 256, (91 * i + 20) % 200 + 30, (151 * i + 90) % 256) for i in range(offset, offset + count)
-    ]
-
-
-def solid_images(folder: Path, colours: list[tuple[int, int, int]], names: list[str]) -> list[Path]:
-    folder.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for colour, name in zip(colours, names):
-        Image.new("RGB", (WIDTH, HEIGHT), colour).save(folder / name)
-        paths.append(folder / name)
-    return paths
 
 
 def nearest(pixel: np.ndarray, colours: list[tuple[int, int, int]]) -> int:
@@ -159,34 +148,6 @@ def test_worst_queries_are_the_largest_mean_capped_errors_and_random_ones_are_se
     assert select_queries(names, scores, settings(queries="all")) == [(q, "") for q in range(NUM_QUERIES)]
 
 
-def gallery_run(tmp_path: Path) -> tuple[Path, list, list]:
-    """The toy run of report_runs.py, with solid-colour images and the files galleries read."""
-    run = write_run(tmp_path / "run", ["netvlad"])
-    database_colours, query_colours = palette(NUM_DATABASE), palette(NUM_QUERIES, offset=NUM_DATABASE)
-    solid_images(tmp_path / "images", database_colours, [f"db{i}.png" for i in range(NUM_DATABASE)])
-    solid_images(tmp_path / "images", query_colours, [f"q{i}.png" for i in range(NUM_QUERIES)])
-    camera = Camera("SIMPLE_PINHOLE", WIDTH, HEIGHT, (40.0, 20.0, 15.0))
-
-    def images(names: list[str]) -> ImageSet:
-        return ImageSet(
-            names,
-            tmp_path / "images",
-            [camera] * len(names),
-            np.tile([1.0, 0, 0, 0], (len(names), 1)),
-            np.zeros((len(names), 3)),
-        )
-
-    scene = Scene(
-        "toy", images([f"db{i}.png" for i in range(NUM_DATABASE)]), images([f"q{i}.png" for i in range(NUM_QUERIES)])
-    )
-    write_gallery_inputs(scene, {GROUNDTRUTH: relevance()}, run)
-    for name, kind in (("netvlad", "descriptor"), (GROUNDTRUTH, "groundtruth")):
-        save_arrays(
-            run / "rankings" / f"{name}.npz", {"indices": ranking(name, kind).indices, "kind": np.asarray(kind)}
-        )
-    return run, database_colours, query_colours
-
-
 def gallery_rows(report: str) -> list[list[str]]:
     section = report[report.index("### Gallery: netvlad") :].split("\n\n")[1]
     return [[cell.strip() for cell in re.split(r"(?<!\\)\|", line)[1:-1]] for line in section.splitlines()[2:]]
@@ -196,7 +157,12 @@ def test_report_gallery_marks_the_ground_truth_relevance_and_shows_each_outcome(
     run, database_colours, query_colours = gallery_run(tmp_path)
     output = tmp_path / "report"
     report = build_report(
-        [run], output, figure_formats=[], gallery=settings(worst=2, random=2), thumbnail_cache=tmp_path / "thumbs"
+        [run],
+        output,
+        figure_formats=[],
+        gallery=settings(worst=2, random=2),
+        thumbnail_cache=tmp_path / "thumbs",
+        image_roots=[tmp_path / "images"],
     )
     rows = gallery_rows(report.read_text())
     errors = pd.read_csv(
@@ -236,9 +202,9 @@ def test_report_gallery_marks_the_ground_truth_relevance_and_shows_each_outcome(
 def test_every_query_is_drawn_with_queries_all_and_a_rebuilt_report_drops_stale_rows(tmp_path):
     run, _, _ = gallery_run(tmp_path)
     output = tmp_path / "report"
-    build_report([run], output, figure_formats=[], gallery=settings(queries="all"))
+    build_report([run], output, figure_formats=[], gallery=settings(queries="all"), image_roots=[tmp_path])
     assert len(gallery_rows((output / "report.md").read_text())) == NUM_QUERIES
-    build_report([run], output, figure_formats=[], gallery=settings(worst=1, random=0))
+    build_report([run], output, figure_formats=[], gallery=settings(worst=1, random=0), image_roots=[tmp_path])
     assert len(gallery_rows((output / "report.md").read_text())) == 1
     assert len(list((output / "galleries" / "netvlad").glob("*.jpg"))) == 1
 
@@ -264,11 +230,8 @@ def test_report_py_reads_a_runs_gallery_settings_with_overrides(tmp_path):
     OmegaConf.save(
         {"paths": {"cache_dir": str(tmp_path / "cache")}, "report": {"gallery": section}}, tmp_path / "config.yaml"
     )
-    chosen, thumbnails = run_gallery_settings(tmp_path, ["queries=all", "k=10"])
-    assert (
-        chosen == settings(**{**section, "queries": "all", "k": 10}) and thumbnails == tmp_path / "cache" / "thumbnails"
-    )
+    assert run_gallery_settings(tmp_path, ["queries=all", "k=10"]) == settings(**{**section, "queries": "all", "k": 10})
     with pytest.raises(ConfigError, match="report.gallery.k: must be >= 1"):
         run_gallery_settings(tmp_path, ["k=0"])
     OmegaConf.save({"report": {"figure_formats": ["png"]}}, tmp_path / "config.yaml")  # a run of an earlier version
-    assert run_gallery_settings(tmp_path) == (None, None)
+    assert run_gallery_settings(tmp_path) is None

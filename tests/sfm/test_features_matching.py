@@ -707,7 +707,8 @@ class GridFeatures(LocalFeatures):
         return np.arange(budget)  # the grid's first cells
 
 
-def test_local_features_and_a_verification_from_outside_the_package_are_chosen_by_target(tmp_path):
+def test_local_features_and_a_verification_from_outside_the_package_are_chosen_by_target(tmp_path, monkeypatch):
+    helpers.trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     nodes = {
         "features": {"_target_": f"{__name__}.GridFeatures", "max_keypoints": 50, "step": 16},
         "query_verification": {
@@ -736,7 +737,7 @@ def test_local_features_and_a_verification_from_outside_the_package_are_chosen_b
     with pytest.raises(
         ConfigError,
         match=r"sfm.features._target_: locretrieval.sfm.verification.NoVerification "
-        r"does not build a LocalFeatures",
+        r"is not a part of sfm.features: a part there is a LocalFeatures",
     ):
         validated(SfmSettings, wrong, "sfm")
     with pytest.raises(ConfigError, match=r"sfm.query_verification.max_eror: unknown key"):
@@ -756,7 +757,8 @@ class FirstMatches(PairVerification):
         return [matches[: self.count] for matches in batch.matches]
 
 
-def test_a_database_verification_from_outside_the_package_is_chosen_through_the_config(tmp_path):
+def test_a_database_verification_from_outside_the_package_is_chosen_through_the_config(tmp_path, monkeypatch):
+    helpers.trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     settings = helpers.sfm_settings(
         choices=[
             "~sfm.features",

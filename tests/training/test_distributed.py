@@ -50,7 +50,11 @@ RESNET_WITH_SFM = [
     "paradigms.local_sfm.k=[3]",
 ]
 #: A run of 2 epochs (the cosine schedule's length) stopped after the first, as an interrupted one.
-FIRST_EPOCH = ["trainer.max_epochs=2", "+callbacks.interrupt={_target_: helpers.StopAfterEpoch, epoch: 0}"]
+FIRST_EPOCH = [
+    "trainer.max_epochs=2",
+    "+callbacks.interrupt={_target_: helpers.StopAfterEpoch, epoch: 0}",
+    "limits.trusted_packages=[helpers]",
+]
 #: The subprocesses import this checkout's package and the test helpers (``_target_: helpers....``).
 PYTHONPATH = os.pathsep.join([str(ROOT), str(ROOT / "tests")])
 
@@ -263,7 +267,12 @@ def test_a_checkpoint_resumes_on_another_number_of_ranks(runs, trained, resumed)
 def test_a_rank_failing_in_validation_ends_every_rank_with_its_error(tmp_path):
     """A network whose description raises on rank 1 only: both processes end, rank 1 with its
     error and rank 0 with rank 1's, within the timeout (a rank left in a collective would hang)."""
-    failing = ["model=callable", "model.target=helpers:network_failing_on_rank", "+model.kwargs={rank: 1}"]
+    failing = [
+        "model=callable",
+        "model.target=helpers:network_failing_on_rank",
+        "limits.trusted_packages=[helpers]",
+        "+model.kwargs={rank: 1}",
+    ]
     done = train_py(tmp_path, "run", 2, *failing, "model.preprocessing.max_side=96", timeout=120)
     output = done.stdout + done.stderr
     assert done.returncode != 0

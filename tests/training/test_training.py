@@ -385,7 +385,8 @@ def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkp
     assert len(sfm_validations) >= 2  # before training and after the epoch
 
 
-def test_resuming_from_the_last_checkpoint_continues_the_same_curve(tmp_path):
+def test_resuming_from_the_last_checkpoint_continues_the_same_curve(tmp_path, monkeypatch):
+    helpers.trust_packages(monkeypatch, "helpers")  # the interrupting callback of the test helpers
     common = ("~augmentation", "trainer.deterministic=true")
     straight = train(
         train_config(tmp_path / "straight", *common, "trainer.max_epochs=2"), tmp_path / "straight" / "run"
@@ -622,6 +623,7 @@ def test_a_run_killed_while_writing_last_ckpt_keeps_the_previous_checkpoint_whol
 
     from locretrieval.training.checkpoints import check_resume_checkpoint
 
+    helpers.trust_packages(monkeypatch, "helpers")  # the interrupting callback of the test helpers
     common = ("~augmentation", "trainer.max_epochs=2")
     train(
         train_config(tmp_path, *common, "+callbacks.interrupt={_target_: helpers.StopAfterEpoch, epoch: 0}"),
@@ -1062,7 +1064,8 @@ class FarApart(NegativesRule):
         return lambda rows: geometry.pairwise_position_errors(images.centers[rows], images.centers) <= self.metres
 
 
-def test_a_negatives_rule_from_outside_the_package_is_chosen_through_the_config(scene, tmp_path):
+def test_a_negatives_rule_from_outside_the_package_is_chosen_through_the_config(scene, tmp_path, monkeypatch):
+    helpers.trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     node = f"{{_target_: {__name__}.FarApart, metres: 15.0}}"
     cfg = train_config(tmp_path, "~train_relevance.negatives", f"+train_relevance.negatives={node}")
     settings = validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance")

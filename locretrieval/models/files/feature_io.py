@@ -5,8 +5,9 @@ kapture (>= 1.1): ``<kapture>/reconstruction/global_features/<feature_name>/`` h
 image, at the image's records_data name plus ``.gfeat`` (what `PrecomputedDescriptor` reads).
 hloc: an HDF5 file with one group per image name (``/`` in names nests groups) holding a
 ``global_descriptor`` dataset, as hloc's ``extract_features`` writes it and ``pairs_from_retrieval``
-reads it (``file[name]["global_descriptor"]``). Names written are checked first
-(`locretrieval.scene.names.check_exported_names`): none leads outside the folder or file written.
+reads it (``file[name]["global_descriptor"]``), read within `locretrieval.bounded_files`' budgets
+(no link followed). Names written are checked first (`locretrieval.scene.names.check_exported_names`):
+none leads outside the folder or file written.
 """
 
 from __future__ import annotations
@@ -22,7 +23,9 @@ import kapture.io.csv
 import kapture.io.features
 import numpy as np
 
+from locretrieval.bounded_files import hdf5_member, open_hdf5, read_dataset
 from locretrieval.cache import atomic_path, safe_name
+from locretrieval.errors import FIX_DATA_FILE
 from locretrieval.scene.names import check_exported_names, inside
 
 
@@ -82,24 +85,23 @@ def read_hloc_global_descriptors(
     where = ", ".join(str(file) for file in files)
     rows = []
     with contextlib.ExitStack() as stack:
-        opened = [stack.enter_context(h5py.File(file, "r")) for file in files]
+        opened = [(stack.enter_context(open_hdf5(file, "hloc features file", FIX_DATA_FILE)), file) for file in files]
         for name in names:
-            dataset = next(
-                (found for found in (_global_descriptor(file, name) for file in opened) if found is not None), None
+            found = next(
+                (
+                    (dataset, file)
+                    for opened_file, file in opened
+                    if isinstance(dataset := hdf5_member(opened_file, f"{name}/global_descriptor", file), h5py.Dataset)
+                ),
+                None,
             )
-            if dataset is None:
+            if found is None:
                 raise KeyError(f"{where}: no global_descriptor for image {name!r}")
+            dataset, file = found
             if dataset.dtype.kind not in "fiu":
-                raise ValueError(f"{dataset.file.filename}: global_descriptor of image {name!r} is {dataset.dtype}")
-            rows.append(np.asarray(dataset, dtype=np.float32).reshape(-1))
+                raise ValueError(f"{file}: global_descriptor of image {name!r} is {dataset.dtype}")
+            rows.append(np.asarray(read_dataset(dataset, file), dtype=np.float32).reshape(-1))
     dims = {len(row) for row in rows}
     if len(dims) > 1:
         raise ValueError(f"{where}: global descriptors of different sizes {sorted(dims)}")
     return np.stack(rows) if rows else np.zeros((0, 0), dtype=np.float32)
-
-
-def _global_descriptor(file: h5py.File, name: str) -> h5py.Dataset | None:
-    """The ``global_descriptor`` dataset in the group of image ``name``, if ``file`` has it."""
-    group = file.get(name)
-    dataset = group.get("global_descriptor") if isinstance(group, h5py.Group) else None
-    return dataset if isinstance(dataset, h5py.Dataset) else None

@@ -7,9 +7,12 @@ Nothing is downloaded: every loader takes a local path. A missing file raises
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import pickle
+import reprlib
+import zipfile
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,10 +21,12 @@ from typing import Any
 import torch
 from omegaconf import OmegaConf
 
+from locretrieval import limits
+from locretrieval.bounded_files import check_zip
 from locretrieval.cache import atomic_path, tree_signature
 from locretrieval.errors import FIX_DATA_FILE, DataFileError
-from locretrieval.moved import current_targets
-from locretrieval.restricted_pickle import TORCH_NUMPY_GLOBALS, plain_data
+from locretrieval.moved import current_path
+from locretrieval.restricted_pickle import TORCH_NUMPY_GLOBALS, RefusedPickleError, plain_data, scan_pickle
 
 #: Environment variable naming the folder of the weight-hash cache (default ~/.cache/locretrieval).
 HASH_CACHE_ENV = "LOCRETRIEVAL_HASH_CACHE"
@@ -29,6 +34,10 @@ HASH_CACHE_ENV = "LOCRETRIEVAL_HASH_CACHE"
 CHECKPOINT_FORMAT = "locretrieval-checkpoint-v1"
 #: Where a Lightning checkpoint of ``train.py`` holds our checkpoint.
 EMBEDDED_CHECKPOINT_KEY = "locretrieval"
+#: The first bytes of a zip archive (torch's own test for its format of files).
+ZIP_MAGIC = b"PK\x03\x04"
+#: Pickles at the start of a file of torch's legacy format: magic number, protocol, system, the object, storage keys.
+LEGACY_PICKLES = 5
 
 
 @dataclass(frozen=True)
@@ -126,15 +135,17 @@ def content_sha256(path: str | os.PathLike) -> str:
 
 
 def load_torch_file(path: str | os.PathLike, allowed: Iterable[Any] = ()) -> Any:
-    """``torch.load`` with the restricted (``weights_only``) unpickler.
+    """``torch.load`` with the restricted (``weights_only``) unpickler, after `scan_torch_file`.
 
     Only tensors, containers, numeric numpy arrays and scalars (rebuilt by the checked stand-ins of
     `locretrieval.restricted_pickle`, never by numpy's own functions) and the ``allowed`` globals
     (objects or ``(object, "module.Name")`` pairs, see ``torch.serialization.safe_globals``) are
     rebuilt; the loaded state is then walked (`plain_data`: the attributes of ``allowed`` classes
-    too) and any array that is not numeric refused. Errors are `DataFileError`s naming the file."""
+    too; nesting and size over shared references bounded, tensors not counted) and any array that
+    is not numeric refused. Errors are `DataFileError`s naming the file."""
     allowed = list(allowed)
     holders = [entry[0] if isinstance(entry, tuple) else entry for entry in allowed]
+    scan_torch_file(path)
     try:
         with torch.serialization.safe_globals([*TORCH_NUMPY_GLOBALS, *allowed]):
             content = torch.load(path, map_location="cpu", weights_only=True)
@@ -149,7 +160,37 @@ def load_torch_file(path: str | os.PathLike, allowed: Iterable[Any] = ()) -> Any
     except Exception as error:  # any failure of a crafted or damaged file (a refused numpy state included)
         reason = f"{type(error).__name__}: {error}"
         raise DataFileError(path, f"not a readable PyTorch file ({reason})", FIX_DATA_FILE) from None
-    return plain_data(content, path, strict=False, holders=[h for h in holders if isinstance(h, type)])
+    budgets = limits.current()
+    budget = budgets.size_budget(os.path.getsize(path), budgets.pickle_size_factor)
+    return plain_data(content, path, budget, strict=False, holders=[h for h in holders if isinstance(h, type)])
+
+
+def scan_torch_file(path: str | os.PathLike) -> None:
+    """Check a torch file before ``torch.load`` reads it: a zip archive (torch's format since 1.6) within
+    its expansion budgets (`check_zip`: every record) and its pickles (``*.pkl`` records), or the
+    pickles at the start of a legacy file, nested within ``limits.pickle_depth`` (`scan_pickle`:
+    unpickling hashes keys as it builds them, and a tuple nested 10^6 deep crashed the interpreter)."""
+    depth = limits.current().pickle_depth
+    with open(path, "rb") as stream:
+        is_zip = stream.read(len(ZIP_MAGIC)) == ZIP_MAGIC  # as torch.load tells them apart
+    try:
+        if not is_zip:
+            with open(path, "rb") as stream:
+                for _ in range(LEGACY_PICKLES):
+                    scan_pickle(stream, depth)
+            return
+        members = check_zip(path)
+        with zipfile.ZipFile(path) as archive:
+            for member in members:
+                if member.filename.endswith(".pkl"):
+                    with archive.open(member) as stream:
+                        scan_pickle(io.BufferedReader(stream), depth)
+    except pickle.UnpicklingError as error:  # the scan's refusals
+        raise RefusedPickleError(path, f"not a readable PyTorch file: {error}", FIX_DATA_FILE) from None
+    except (zipfile.BadZipFile, OSError, EOFError) as error:
+        raise DataFileError(
+            path, f"not a readable PyTorch file ({type(error).__name__}: {error})", FIX_DATA_FILE
+        ) from None
 
 
 def save_checkpoint(
@@ -253,8 +294,14 @@ def read_weights(
     else:
         content = embedded_checkpoint(load_torch_file(path, allowed))
     if is_checkpoint(content):
+        check_checkpoint_layout(content, path)
         if upgrade is not None:
-            content = {**content, "architecture": upgrade(content["architecture"])}
+            try:
+                content = {**content, "architecture": upgrade(content["architecture"])}
+            except (KeyError, TypeError, AttributeError, ValueError) as error:
+                raise DataFileError(
+                    path, f"its architecture is not one a locretrieval checkpoint records ({short_repr(error)})"
+                ) from None
         check_checkpoint(content, path, model, architecture)
         return Weights(
             content["state_dict"], content["architecture"], content["preprocessing"], content["extra"], checkpoint=True
@@ -271,20 +318,86 @@ def _checked(weights: Weights, path: Path, architecture: Mapping[str, Any]) -> W
     return weights
 
 
+#: What a checkpoint holds under each key (`save_checkpoint`).
+CHECKPOINT_LAYOUT = {
+    "model": str,
+    "architecture": Mapping,
+    "preprocessing": Mapping,
+    "state_dict": Mapping,
+    "extra": Mapping,
+}
+
+
+def check_checkpoint_layout(content: Mapping[str, Any], path: Path) -> None:
+    """Raise `DataFileError` unless ``content`` holds each key of `CHECKPOINT_LAYOUT` with a value of its type."""
+    for key, kind in CHECKPOINT_LAYOUT.items():
+        if not isinstance(content.get(key), kind):
+            raise DataFileError(
+                path,
+                f"a locretrieval checkpoint whose {key!r} is {short_repr(content.get(key))}, not a {kind.__name__}",
+                FIX_DATA_FILE,
+            )
+
+
 def check_checkpoint(content: Mapping[str, Any], path: Path, model: str, architecture: Mapping[str, Any]) -> None:
     """Raise unless ``content`` is our checkpoint of ``model`` with the configured ``architecture``."""
     if content.get("model") != model:
-        raise ValueError(f"{path}: a locretrieval checkpoint of model {content.get('model')!r}, not {model!r}")
+        raise ValueError(
+            f"{path}: a locretrieval checkpoint of model {short_repr(content.get('model'))}, not {model!r}"
+        )
     check_architecture(content["architecture"], path, architecture)
 
 
 def check_architecture(stored: Mapping[str, Any], path: Path, architecture: Mapping[str, Any]) -> None:
     """Raise unless the settings a weight file holds (``stored``) equal the configured ``architecture``;
-    a class is compared by its module's path of today (`current_targets`: a checkpoint written before
-    0.12 names ``locretrieval.models.backbones.TorchvisionBackbone``)."""
-    stored = current_targets(plain(dict(stored)))
-    configured = current_targets(plain(dict(architecture)))
-    differing = {key: (stored.get(key), value) for key, value in configured.items() if stored.get(key) != value}
+    a class is compared by its module's path of today (`current_path`: a checkpoint written before
+    0.12 names ``locretrieval.models.backbones.TorchvisionBackbone``).
+
+    The comparison walks the configured settings (`same_settings`), never more of the file's than
+    they have: a file's settings may share references ("billion laughs": 1.8 KB of checkpoint held
+    10^8 leaves), which a copy or a ``repr`` would unfold."""
+    if not isinstance(stored, Mapping):
+        raise ValueError(f"{path}: the architecture in the file is {short_repr(stored)}, not a mapping of settings")
+    configured = plain(dict(architecture))
+    differing = {key: value for key, value in configured.items() if not same_settings(stored.get(key), value)}
     if differing:
-        details = ", ".join(f"{key}: file {a!r} vs config {b!r}" for key, (a, b) in differing.items())
+        details = ", ".join(
+            f"{key}: file {short_repr(stored.get(key))} vs config {value!r}" for key, value in differing.items()
+        )
         raise ValueError(f"{path}: architecture in the file differs from the configuration ({details})")
+
+
+def same_settings(stored: Any, configured: Any) -> bool:
+    """Whether a file's setting equals a configured one (plain JSON types): as JSON would compare them
+    (tuples as lists, keys as text), each ``_target_`` at its `current_path`, in time bounded by
+    ``configured``'s size."""
+    if isinstance(configured, dict):
+        if not isinstance(stored, Mapping) or len(stored) != len(configured):
+            return False
+        values = {str(key): value for key, value in stored.items()}
+        return values.keys() == configured.keys() and all(
+            (
+                isinstance(values[key], str) and current_path(values[key]) == current_path(value)
+                if key == "_target_" and isinstance(value, str)
+                else same_settings(values[key], value)
+            )
+            for key, value in configured.items()
+        )
+    if isinstance(configured, list):
+        return (
+            isinstance(stored, (list, tuple))
+            and len(stored) == len(configured)
+            and all(same_settings(a, b) for a, b in zip(stored, configured))
+        )
+    if isinstance(stored, (Mapping, list, tuple, set, frozenset)) or type(stored) is not type(configured):
+        return isinstance(stored, (int, float)) and isinstance(configured, (int, float)) and stored == configured
+    return stored == configured
+
+
+def short_repr(value: Any, limit: int = 120) -> str:
+    """A ``repr`` of a value read from a file: two levels and four elements deep, at most ``limit`` characters."""
+    bounded = reprlib.Repr()
+    bounded.maxlevel, bounded.maxstring, bounded.maxother = 2, limit, limit
+    bounded.maxdict = bounded.maxlist = bounded.maxtuple = bounded.maxset = bounded.maxfrozenset = 4
+    text = bounded.repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."

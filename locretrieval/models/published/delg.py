@@ -36,6 +36,8 @@ import torch.nn.functional as F
 from torch import nn
 from torchvision.models.resnet import Bottleneck
 
+from locretrieval.cache import load_arrays
+from locretrieval.errors import FIX_DATA_FILE
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
 from locretrieval.models.files.weights import (
     WEIGHT_SOURCES,
@@ -210,8 +212,7 @@ def read_tf_variables(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """
     path = Path(path)
     if path.suffix == ".npz":
-        with np.load(path, allow_pickle=False) as data:
-            return {name: data[name] for name in data.files}
+        return load_arrays(path, FIX_DATA_FILE)
     try:
         import tensorflow as tf
     except ImportError as error:

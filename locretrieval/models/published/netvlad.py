@@ -32,6 +32,7 @@ import scipy.io
 import torch
 from torch import nn
 
+from locretrieval.bounded_files import check_mat
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
 from locretrieval.models.files.weights import (
     WEIGHT_SOURCES,
@@ -81,6 +82,7 @@ def _layer_label(layers: Sequence[Any], index: int) -> str:
 def read_netvlad_struct(path: str | os.PathLike) -> tuple[dict[str, torch.Tensor], np.ndarray]:
     """State dict of `build_netvlad_network` and the average RGB colour (0-255) from a struct ``.mat``."""
     path = Path(path)
+    check_mat(path)  # compressed elements and cell or struct sizes within limits.compression_ratio
     try:
         mat = scipy.io.loadmat(path, struct_as_record=False, squeeze_me=True)
     except NotImplementedError as error:  # MATLAB v7.3 (HDF5) files

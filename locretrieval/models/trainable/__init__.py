@@ -20,7 +20,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from hydra.utils import get_class
 from torch import nn
 
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
@@ -43,6 +42,7 @@ from locretrieval.models.trainable.backbones import (
     backbone_settings,
     upgrade_legacy_backbone,
 )
+from locretrieval.parts import resolve_part
 
 
 def read_trainable_weights(
@@ -80,7 +80,7 @@ def _at_backbone(backbone: Backbone, path: Path, content: Any) -> Weights:
 def initial_values(pooling: Mapping[str, Any]) -> dict[str, torch.Tensor]:
     """Parameters the configuration sets (GeM's initial ``p``, plain or over a pyramid), used where
     a weight file has none."""
-    if issubclass(get_class(pooling["_target_"]), GeMPooling):
+    if issubclass(resolve_part(pooling["_target_"], "model.pooling"), GeMPooling):
         return {"pooling.p": torch.tensor([float(pooling["p"])])}
     return {}
 

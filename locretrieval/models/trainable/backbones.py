@@ -17,7 +17,6 @@ from pathlib import Path
 from typing import Any, Protocol
 
 import torch
-from hydra.utils import get_class
 from torch import nn
 
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
@@ -25,6 +24,8 @@ from locretrieval.models.files.weights import WeightSource, plain, torchvision_s
 from locretrieval.models.networks import torchvision_trunk
 from locretrieval.models.trainable import efficientnet
 from locretrieval.models.trainable.timm_trunk import TimmTrunk
+from locretrieval.moved import current_path
+from locretrieval.parts import resolve_part
 
 #: Input normalisation ``(mean, std)`` per RGB channel: ``(rgb / 255 - mean) / std``.
 Normalization = tuple[tuple[float, ...], tuple[float, ...]]
@@ -148,9 +149,10 @@ def backbone_settings(backbone: Backbone) -> dict[str, Any]:
 
 
 def backbone_of(settings: Mapping[str, Any]) -> Backbone:
-    """The backbone an architecture records (`backbone_settings`)."""
+    """The backbone an architecture records (`backbone_settings`; a config's or a checkpoint's): its
+    ``_target_`` a part of ``model.backbone`` (`resolve_part`, checked before anything is imported)."""
     options = dict(settings)
-    return get_class(options.pop("_target_"))(**options)
+    return resolve_part(current_path(str(options.pop("_target_", None))), "model.backbone")(**options)
 
 
 def upgrade_legacy_backbone(record: Any) -> Any:

@@ -7,6 +7,7 @@ from pathlib import Path
 import helpers
 import pytest
 import torch
+from helpers import trust_packages
 from torch import nn
 
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
@@ -86,9 +87,10 @@ class StridedConvolution:
         return (0.5, 0.5, 0.5), (0.25, 0.25, 0.25)
 
 
-def test_a_backbone_from_outside_the_package_is_one_class_and_one_yaml(tmp_path):
+def test_a_backbone_from_outside_the_package_is_one_class_and_one_yaml(tmp_path, monkeypatch):
     """A test module's class, chosen by a YAML in a config folder of the user's (hydra.searchpath),
     its file read through its own ``trunk_state_dict``."""
+    trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     folder = tmp_path / "configs" / "model" / "backbone"
     folder.mkdir(parents=True)
     (folder / "strided.yaml").write_text("_target_: test_backbones.StridedConvolution\nchannels: 6\n")

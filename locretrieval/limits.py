@@ -1,0 +1,82 @@
+"""The ``limits`` config group: budgets of what a file may make the loaders build, and whom a config may call.
+
+`Limits` is the section's schema (``configs/limits/default.yaml`` holds the defaults and says
+what each key bounds). The loaders read the budgets where they run (`current`): the entry points
+set them from the run's config once (`configure`), which also hands them to the worker processes
+through the environment (`ENVIRONMENT`); a process that never configured them (a library user,
+``report.py``, a test) reads the defaults of the YAML file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+from locretrieval.errors import require
+
+#: The defaults: the config group's one file.
+DEFAULTS_FILE = Path(__file__).resolve().parents[1] / "configs" / "limits" / "default.yaml"
+#: Environment variable through which `configure` hands the budgets to child processes (JSON).
+ENVIRONMENT = "LOCRETRIEVAL_LIMITS"
+#: Bytes every budget of sizes allows on top of its factor (small files keep working whatever they hold).
+SLACK_BYTES = 1 << 20
+OUTSIDE_IMAGES = ("allow", "refuse")
+
+
+@dataclass(frozen=True)
+class Limits:
+    """The ``limits`` section (``configs/limits/default.yaml`` says what each key bounds)."""
+
+    pickle_depth: int
+    pickle_size_factor: int
+    compression_ratio: int
+    kapture_rows: int
+    yaml_nodes: int
+    outside_images: str
+    trusted_packages: list[str]
+
+    def __post_init__(self) -> None:
+        for name in ("pickle_depth", "pickle_size_factor", "compression_ratio", "kapture_rows", "yaml_nodes"):
+            require(getattr(self, name) >= 1, name, f"must be >= 1, got {getattr(self, name)}")
+        require(
+            self.outside_images in OUTSIDE_IMAGES,
+            "outside_images",
+            f"must be one of {list(OUTSIDE_IMAGES)}, got {self.outside_images!r}",
+        )
+        for package in self.trusted_packages:
+            require(
+                all(part.isidentifier() for part in str(package).split(".")),
+                "trusted_packages",
+                f"{package!r} is not a package name (dotted identifiers, e.g. my_package)",
+            )
+
+    def size_budget(self, stored_bytes: int, factor: int) -> int:
+        """Bytes (or elements) that ``stored_bytes`` of a file may become under ``factor``: ``factor
+        x stored_bytes`` + `SLACK_BYTES`."""
+        return factor * stored_bytes + SLACK_BYTES
+
+
+def configure(checked: Limits) -> Limits:
+    """Make ``checked`` (the config's ``limits`` section, `locretrieval.config.check_run_config`) the
+    budgets of this process and of the processes it starts (`ENVIRONMENT`); returns them."""
+    os.environ[ENVIRONMENT] = json.dumps(dataclasses.asdict(checked))
+    return checked
+
+
+def current() -> Limits:
+    """The budgets of this process: those `configure` set (here or in the parent process), else
+    the defaults of `DEFAULTS_FILE`."""
+    return _parsed(os.environ.get(ENVIRONMENT))
+
+
+@functools.lru_cache(maxsize=8)
+def _parsed(text: str | None) -> Limits:
+    """The budgets of the defaults file, or those `configure` checked and wrote (``text``)."""
+    values = yaml.safe_load(DEFAULTS_FILE.read_text()) if text is None else json.loads(text)
+    return Limits(**values)
