@@ -49,11 +49,13 @@ MOVED_MODULES = {
             "paradigm": "paradigms.base",
             "estimates": "estimates",
             "sfm": "sfm.inputs",
+            "plan": "sfm.work",  # the work counted (its forecast is gone: a dry run's, sfm.forecast)
+            "workers": "pool",
             **{
                 name: f"sfm.{name}"
                 for name in (
-                    "colmap_model features matching nearest_neighbours pairs pipeline plan pnp pose_cache "
-                    "sparse_map store triangulation verification workers"
+                    "colmap_model features matching nearest_neighbours pairs pipeline pnp pose_cache "
+                    "sparse_map store triangulation verification"
                 ).split()
             },
         }.items()

@@ -46,10 +46,11 @@ DOTTED_PATH = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*")
 class PartGroup:
     """The parts a config key takes: subclasses of ``bases`` (import paths; none: any class of an
     allowed package) from ``locretrieval``, ``packages`` (the libraries of the group's own options)
-    and ``limits.trusted_packages``."""
+    and ``limits.trusted_packages``; with ``functions``, any function of those packages too."""
 
     bases: tuple[str, ...] = ()
     packages: tuple[str, ...] = ()
+    functions: bool = False  # a function of an allowed package is a part too (a hook the code calls)
 
 
 _CALLBACKS = PartGroup(("lightning.pytorch.callbacks.Callback",), ("lightning.pytorch.callbacks",))
@@ -58,6 +59,7 @@ _CALLBACKS = PartGroup(("lightning.pytorch.callbacks.Callback",), ("lightning.py
 PART_GROUPS: dict[str, PartGroup] = {
     "data": PartGroup(("locretrieval.scene.types.Scene",)),  # the loaders: functions returning a Scene
     "data.ltvl_names": PartGroup(("locretrieval.scene.ltvl.LtvlNames",)),
+    "data.split": PartGroup(("locretrieval.scene.split.SceneSplit",)),
     "data.render.environments.*": PartGroup(("locretrieval.scene.synthetic.config.EnvironmentBuilder",)),
     "model": PartGroup(),  # anything with rankings(scene, search): a GlobalDescriptor, a pairs file, a user's model
     "validation_references.*": PartGroup(),
@@ -98,6 +100,8 @@ PART_GROUPS: dict[str, PartGroup] = {
     "logger.*": PartGroup(("lightning.pytorch.loggers.Logger",), ("lightning.pytorch.loggers",)),
     "trainer": PartGroup(("lightning.pytorch.Trainer",), ("lightning",)),
     "trainer.plugins.*": PartGroup(("lightning.fabric.plugins.CheckpointIO",), ("lightning",)),
+    "hydra.sweeper.sampler": PartGroup(("optuna.samplers.BaseSampler",), ("optuna.samplers",)),
+    "hydra.sweeper.custom_search_space": PartGroup(functions=True),  # (multirun config, trial) -> None
 }
 
 
@@ -151,7 +155,8 @@ def resolve_part(target: Any, key: str, base: type | tuple[type, ...] | None = N
     except Exception as error:  # Hydra wraps the import error
         raise ConfigError(f"{where}: cannot import {target!r} ({error})") from None
     bases = base if isinstance(base, tuple) else (base,) if base is not None else _bases(group)
-    problem = _not_a_part(found, packages, bases)
+    hook = group.functions and inspect.isfunction(found) and in_packages(found.__module__, packages)
+    problem = None if hook else _not_a_part(found, packages, bases)
     if problem:
         raise ConfigError(f"{where}: {target} is not a part of {key or 'the config'}: {problem}")
     return found

@@ -55,7 +55,12 @@ def test_both_entry_points_name_their_jobs_by_the_resolver():
 
 PACKAGE = helpers.CONFIGS.parent / "locretrieval"
 #: The entry points' configs, composed with their default choices.
-ENTRY_POINTS = ("evaluate", "train")
+ENTRY_POINTS = ("evaluate", "train", "export")
+OWN_PLACE_DATA = (  # (dataset, overrides): its optional sections set, so their schemas are checked too
+    ("colmap", "data.model=sparse", "data.images=images", "data.known_distance={images:[a.jpg,b.jpg],metres:12.5}",
+     "paths.root_dir=/nonexistent"),
+    ("photos", "data.images=images", "paths.root_dir=/nonexistent"),
+)
 
 
 def defaults_of(target: Any) -> set[str]:
@@ -68,6 +73,11 @@ def defaults_of(target: Any) -> set[str]:
         }
     parameters = inspect.signature(target).parameters.values()
     return {parameter.name for parameter in parameters if parameter.default is not inspect.Parameter.empty}
+
+
+def required(schema: type) -> set[str]:
+    """The fields of a dataclass without a default."""
+    return {field.name for field in dataclasses.fields(schema)} - defaults_of(schema)
 
 
 def repeated(target: Any, node: Any) -> list[str]:
@@ -138,6 +148,8 @@ def test_no_schema_or_constructor_built_from_yaml_has_a_default_the_yaml_also_se
     entry points' composed configs) has a default for a key its YAML node sets."""
     composed = {name: helpers.compose_config(name, "paths.root_dir=/nonexistent") for name in ENTRY_POINTS}
     composed["train -m hparams_search=localization"] = sweep_config()  # the sweeper's section, hydra.sweeper
+    for data, *overrides in OWN_PLACE_DATA:  # sections only these datasets have
+        composed[f"evaluate data={data}"] = helpers.compose_config("evaluate", f"data={data}", *overrides)
     files = {str(path.relative_to(helpers.CONFIGS)): OmegaConf.load(path) for path in helpers.CONFIGS.rglob("*.yaml")}
     violations = [
         f"{source}:{key or '<root>'}: {node._target_} defaults {repeated(get_object(node._target_), node)}"
@@ -159,6 +171,8 @@ def test_no_schema_or_constructor_built_from_yaml_has_a_default_the_yaml_also_se
                 continue
             if isinstance(node, DictConfig) and "_target_" in node:  # a Hydra plugin's node: its own keys
                 node = {name: value for name, value in node.items() if not name.startswith("_")}
+            if dataclasses.is_dataclass(schema) and key == "data":  # a schema of some of the dataset's keys
+                node = {name: value for name, value in node.items() if name in defaults_of(schema) | required(schema)}
             try:
                 validated(schema, node, key)
             except ConfigError:  # another entry point's section of that name

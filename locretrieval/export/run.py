@@ -11,8 +11,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.benchmark import check_supported, check_unique_names
 from locretrieval.cache import safe_name
-from locretrieval.config import ConfigError, built, validated
-from locretrieval.evaluation import weight_inputs
+from locretrieval.config import ConfigError, built, check_run_config, validated
 from locretrieval.export.onnx import OnnxSettings, export_onnx, torch_network
 from locretrieval.export.pairs import PairsSettings
 from locretrieval.export.scene import DescriptorSettings, check_scene_names, export_scene
@@ -34,9 +33,11 @@ def export(cfg: DictConfig, output_dir: Path) -> list[Path]:
     """Write what ``cfg.export`` lists into ``output_dir`` (files named in docs/export.md): ``pairs``
     (`PairsSettings`: the model's rankings and those of the ground truth ``groundtruth`` enables),
     ``descriptors`` (`DescriptorSettings`: the model's global descriptors), ``onnx`` (`OnnxSettings`:
-    the model's network). Every section, the packages ONNX needs, the model's inputs and the scene's
-    image names are checked before any work. Returns the files and folders written."""
+    the model's network). The limits and every ``_target_`` (`check_run_config`), every section, the
+    packages ONNX needs, the model's inputs and the scene's image names are checked before any work.
+    Returns the files and folders written."""
     started = time.perf_counter()
+    check_run_config(cfg)  # the run's limits; every _target_ a part, before anything it names is imported
     wanted = list(cfg.export)
     unknown = sorted(set(wanted) - set(EXPORTS))
     if unknown or not wanted:
@@ -50,10 +51,7 @@ def export(cfg: DictConfig, output_dir: Path) -> list[Path]:
         raise ConfigError(f"pairs.k: {pairs.k} is more than retrieval.depth={retrieval.depth}, the rankings' depth")
     if onnx is not None:
         onnx.check_packages()
-    missing = weight_inputs(cfg.model)
-    if missing:
-        raise FileNotFoundError(f"nothing was exported: {missing[0]}")
-    model = built(cfg.model, "model")
+    model = built(cfg.model, "model")  # a missing weight file is named with where to get it
     network = torch_network(model) if onnx is not None else None
     scene = instantiate_scene(cfg.data) if pairs is not None or descriptors is not None else None
     if scene is not None:

@@ -114,9 +114,7 @@ def test_report_py_names_a_text_nan_without_a_traceback(tmp_path):
         timeout=300,
     )
     assert done.returncode == 1 and "Traceback" not in done.stderr
-    assert f"report.py: error: {run / 'results.csv'}: line 5, column 'localized_pct': 'nan' is not a number" in (
-        done.stderr
-    )
+    assert done.stderr.startswith(f"{run / 'results.csv'}: line 5, column 'localized_pct': 'nan' is not a number")
     assert not (run / "report.md").exists()  # stopped before writing
 
 

@@ -281,7 +281,7 @@ def test_a_file_of_another_layout_or_with_keys_missing_is_refused_naming_it(dino
     torch.save(state, tmp_path / "salad_as_boq.pth")
     with pytest.raises(InstantiationException, match="not a BoQ weight file"):
         load_model("dinov2_boq", tmp_path / "salad_as_boq.pth")
-    with pytest.raises(InstantiationException, match=r"Expected dino_salad.ckpt .*serizba/salad/releases"):
+    with pytest.raises(InstantiationException, match=r"expected: dino_salad.ckpt .*serizba/salad/releases"):
         load_model("dinov2_salad", tmp_path / "absent.ckpt")
 
 
