@@ -50,7 +50,8 @@ def single_threaded() -> Iterator[None]:
 
     with _single_lock:
         if _single["depth"] == 0:
-            _single["restore"] = (threadpoolctl.threadpool_limits(1), torch.get_num_threads())
+            threads = torch.get_num_threads()  # before the limits: torch's count follows its OpenMP limit
+            _single["restore"] = (threadpoolctl.threadpool_limits(1), threads)
             torch.set_num_threads(1)
         else:
             threadpoolctl.threadpool_limits(1)  # this thread's own OpenMP limit

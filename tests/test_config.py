@@ -57,8 +57,13 @@ PACKAGE = helpers.CONFIGS.parent / "locretrieval"
 #: The entry points' configs, composed with their default choices.
 ENTRY_POINTS = ("evaluate", "train", "export")
 OWN_PLACE_DATA = (  # (dataset, overrides): its optional sections set, so their schemas are checked too
-    ("colmap", "data.model=sparse", "data.images=images", "data.known_distance={images:[a.jpg,b.jpg],metres:12.5}",
-     "paths.root_dir=/nonexistent"),
+    (
+        "colmap",
+        "data.model=sparse",
+        "data.images=images",
+        "data.known_distance={images:[a.jpg,b.jpg],metres:12.5}",
+        "paths.root_dir=/nonexistent",
+    ),
     ("photos", "data.images=images", "paths.root_dir=/nonexistent"),
 )
 

@@ -102,3 +102,20 @@ def test_a_search_large_enough_for_threaded_blas_ranks_the_same_with_1_2_and_4_t
         assert done.returncode == 0, done.stderr[-2000:]
         digests.add(done.stdout.strip())
     assert len(digests) == 1
+
+
+def test_a_single_threaded_block_gives_torch_back_its_threads():
+    """A block that limits every library to one thread leaves torch with the threads it had: a
+    DenseVLAD fit (k-means in such a block) then describes on every core."""
+    import torch
+
+    from locretrieval.threads import single_threaded
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        with single_threaded():
+            assert torch.get_num_threads() == 1
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(previous)

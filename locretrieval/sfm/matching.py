@@ -188,11 +188,8 @@ class PairMatcher:
             store.refresh()  # pairs other processes sharing the cache (shards) have matched since are not redone
         missing_raw = set(self.raw.missing(map(pair_key, pairs)))
         missing_verified = set(verified.missing(map(pair_key, pairs))) if verified is not self.raw else set()
-        return (
-            [pair for pair in pairs if pair_key(pair) in missing_raw | missing_verified],
-            missing_raw,
-            missing_verified,
-        )
+        missing = missing_raw | missing_verified
+        return [pair for pair in pairs if pair_key(pair) in missing], missing_raw, missing_verified
 
     def ensure(self, pairs: Iterable[Pair], workers: int | None, verification: PairVerification) -> int:
         """Match and verify the pairs not yet cached; returns how many pairs were matched."""

@@ -247,6 +247,7 @@ def single_torch_thread() -> Iterator[None]:
 
 def _render(config: RenderSettings, output_dir: Path) -> None:
     output_dir.mkdir(parents=True, exist_ok=True)
+    WORKERS.start(int(config.workers))  # the workers start (seconds of imports) while this process plans the views
     environment = build_environment(config)
     renderer = Renderer(environment, resolve_device(str(config.device)))
     database_camera, query_cameras = cameras(config)
