@@ -70,10 +70,8 @@ def resolve_workers(workers: int | None) -> int:
 
 def task_size(items: int, cap: int, workers: int) -> int:
     """Items per task when ``items`` are split for ``workers`` processes: at most ``cap`` (e.g.
-    what one shard file holds), fewer so that every worker gets `MIN_TASKS_PER_WORKER` tasks where
-    there are enough items (then the work goes to the workers, see `WorkerPool.runs_here`, and a
-    worker that finishes early takes the next task)."""
-    return max(1, min(cap, math.ceil(items / max(1, workers * MIN_TASKS_PER_WORKER))))
+    what one shard file holds), fewer so that every worker gets one."""
+    return max(1, min(cap, math.ceil(items / max(1, workers))))
 
 
 def split(items: Sequence[Task], cap: int, workers: int) -> list[Sequence[Task]]:

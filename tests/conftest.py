@@ -1,11 +1,28 @@
-"""Fixtures shared by test modules: an evaluation run of a hostile dataset (built once a session)."""
+"""Fixtures shared by test modules: an evaluation run of a hostile dataset (built once a session).
 
+The test processes of `make test` (pytest-xdist) share the machine's cores: each, and every process
+it starts, gets its share of threads for the threaded libraries (torch, OpenMP, BLAS), which would
+otherwise each take every core and spin against one another."""
+
+import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from helpers import HOSTILE_IMAGE, HOSTILE_MODEL, HOSTILE_QUERY_FOLDER, HOSTILE_TAG, evaluate_config
+
+TEST_PROCESSES = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+if TEST_PROCESSES > 1:
+    for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(variable, str(max(1, (os.cpu_count() or 1) // TEST_PROCESSES)))
+
+from helpers import (  # noqa: E402 (after the thread limits: it imports torch)
+    HOSTILE_IMAGE,
+    HOSTILE_MODEL,
+    HOSTILE_QUERY_FOLDER,
+    HOSTILE_TAG,
+    evaluate_config,
+)
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from locretrieval.pool import MIN_TASKS_PER_WORKER, WorkerPool, WorkerPoolError, progress_to, split
+from locretrieval.pool import MIN_TASKS_PER_WORKER, WorkerPool, WorkerPoolError, progress_to
 
 
 def process_id(shared, task):
@@ -22,16 +22,6 @@ def test_a_small_workload_runs_in_this_process_without_starting_workers():
     results = list(pool.map(process_id, list(range(few)), 2, "test", shared="s"))
     assert results == [("s", task, os.getpid()) for task in range(few)]
     assert not pool.started(2)  # no worker was started
-
-
-def test_a_stage_split_for_two_workers_runs_in_them_unless_it_is_small():
-    """Split for two workers, the 128 images of the built-in scene's database go to the workers
-    even before a pool is started (a rendered scene read from the cache starts none); five stay here."""
-    pool = WorkerPool("test")
-    database = split([f"db/{index:03d}.png" for index in range(128)], 1000, 2)
-    assert [name for task in database for name in task] == [f"db/{index:03d}.png" for index in range(128)]
-    assert not pool.runs_here(len(database), 2) and max(map(len, database)) == 16
-    assert pool.runs_here(len(split(list(range(5)), 1000, 2)), 2)
 
 
 @pytest.mark.parametrize("count", [3, MIN_TASKS_PER_WORKER * 2])  # in this process, in two workers
