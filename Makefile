@@ -34,9 +34,9 @@ train: $(STAMP)
 	$(BIN)/python train.py $(ARGS)
 
 ## Run the test suite: its files shared by two processes (pytest-xdist; a file's tests stay in one,
-## with its module fixtures), 20 minutes on 2 cores (967 tests on a fresh clone).
+## with its module fixtures; the files with slow tests first, tests/conftest.py), 20 minutes on 2 cores.
 test: $(STAMP)
-	$(BIN)/python -m pytest -n 2 --dist loadfile $(ARGS)
+	$(BIN)/python -m pytest -n 2 --dist loadfile --no-loadscope-reorder $(ARGS)
 
 ## The smoke subset (tests marked `smoke`) on the newest releases pyproject.toml's ranges allow, in
 ## $(NEWEST) (resolved again on every run), NEWEST_HELD at the lock's versions; CI runs it after `make test`.
@@ -47,7 +47,7 @@ test-newest:
 	$(NEWEST)/bin/python -m pip install --quiet --upgrade --upgrade-strategy eager -c $(NEWEST)/held.txt -e '.[dev]'
 	$(NEWEST)/bin/python -m pip list --format=freeze --exclude-editable > $(NEWEST)/tested.txt
 	$(NEWEST)/bin/python -m pip check
-	$(NEWEST)/bin/python -m pytest -m smoke -n 2 --dist loadfile -p no:cacheprovider $(ARGS)
+	$(NEWEST)/bin/python -m pytest -m smoke -n 2 --dist loadfile --no-loadscope-reorder -p no:cacheprovider $(ARGS)
 
 ## Check the code's format and lint (ruff, with pyproject.toml's settings) and that every
 ## third-party import is a declared dependency (deptry); CI runs it before the tests.

@@ -2,8 +2,10 @@
 
 The test processes of `make test` (pytest-xdist) share the machine's cores: each, and every process
 it starts, gets its share of threads for the threaded libraries (torch, OpenMP, BLAS), which would
-otherwise each take every core and spin against one another."""
+otherwise each take every core and spin against one another. The files with the most slow tests are
+handed out first (`pytest_collection_modifyitems`), so that the two processes end together."""
 
+import collections
 import os
 import shutil
 from dataclasses import dataclass
@@ -23,6 +25,14 @@ from helpers import (  # noqa: E402 (after the thread limits: it imports torch)
     HOSTILE_TAG,
     evaluate_config,
 )
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The test files with the most tests marked ``slow`` first, each file's tests in their order:
+    pytest-xdist (``--dist loadfile``) hands out whole files in this order, and a long file handed
+    out last would keep one process busy while the other waits (longest first balances the two)."""
+    slow = collections.Counter(item.path for item in items if item.get_closest_marker("slow"))
+    items.sort(key=lambda item: -slow[item.path])  # a stable sort: ties keep the collection order
 
 
 @dataclass(frozen=True)

@@ -43,6 +43,7 @@ def test_benchmark_runs_at_a_tiny_size(script):
         assert re.search(pattern, result.stdout), f"{script}: no {pattern!r} in\n{result.stdout}"
 
 
+@pytest.mark.slow
 def test_training_benchmark_prints_the_loop_on_one_and_on_two_ddp_processes(tmp_path):
     from training_runs import SCENE, TINY_TRAINING
 

@@ -63,6 +63,7 @@ def expected_methods():
     return approximation | {(p, r, "pnp") for p in ("local_sfm", "global_sfm") for r in RANKINGS}
 
 
+@pytest.mark.slow
 @pytest.mark.smoke
 def test_result_table_has_one_row_per_paradigm_method_k_threshold_and_subset(run):
     _, output = run
@@ -126,6 +127,7 @@ def test_run_writes_every_output(run):
     assert row["estimated_pct"] == pytest.approx(100 * slice_["failure"].isna().mean())
 
 
+@pytest.mark.slow
 def test_multirun_from_the_command_line(run):
     root, _ = run  # the scene and the descriptors are cached under root/.cache by the first run
     command = [
@@ -137,6 +139,8 @@ def test_multirun_from_the_command_line(run):
         f"hydra.sweep.dir={root}/multirun",
         "baselines.random=false",
         "output.ltvl=false",
+        "report.figure_formats=[]",  # the jobs' own reports without figures: report.py below draws them
+        "report.scene_view.enabled=false",
         *TINY_SCENE,
     ]
     completed = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)

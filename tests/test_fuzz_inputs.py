@@ -16,6 +16,7 @@ EXAMPLES = 1500
 MEMORY_CAP = 4 * 2**30
 
 
+@pytest.mark.slow
 def test_mutated_and_crafted_input_files_end_in_a_result_or_an_error_naming_the_file():
     process = run_python(
         "import resource, runpy, sys\n"

@@ -65,6 +65,7 @@ def step_lines(log: str) -> list[str]:
     return [line for line in summary.splitlines() if not line.startswith("==")]
 
 
+@pytest.mark.slow
 def test_gpu_check_rehearsal(rehearsals):
     log, _, work = finished(rehearsals, "gpu_check.sh")
     assert re.search(r"REHEARSAL on the CPU\ndevice: no CUDA GPU; torch \S+", log)
@@ -96,6 +97,7 @@ def test_gpu_check_rehearsal(rehearsals):
     assert budgets <= 330 and f"budgets {budgets} s (rehearsal)" in log  # at most 5.5 min on the GPU
 
 
+@pytest.mark.slow
 def test_gpu_training_gain_rehearsal(rehearsals):
     log, out, work = finished(rehearsals, "gpu_training_gain.sh")
     # the rehearsal's recipe: 2 epochs of 2 batches (mining after the first), within its time limit

@@ -264,6 +264,7 @@ def files_below(folder: Path) -> set[Path]:
     return {path for path in folder.rglob("*") if path.is_file()}
 
 
+@pytest.mark.slow
 def test_a_hostile_run_writes_only_in_its_run_and_cache_folders(hostile_run):
     from helpers import HOSTILE_MODEL
 

@@ -65,6 +65,7 @@ def cap_memory() -> None:
     resource.setrlimit(resource.RLIMIT_AS, (MEMORY_CAP, MEMORY_CAP))
 
 
+@pytest.mark.slow
 def test_the_three_reproductions_end_in_a_named_error_within_seconds(tmp_path):
     (tmp_path / "deep.pkl").write_bytes(DEEP_KEY)
     (tmp_path / "deep.pt").write_bytes(DEEP_KEY)  # torch reads a file that is not a zip as its legacy pickles

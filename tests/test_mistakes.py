@@ -57,6 +57,7 @@ def mistakes(root: Path) -> dict[str, tuple[list[str], str, str | None, str | No
     }
 
 
+@pytest.mark.slow
 def test_each_mistake_ends_with_its_fix_first_on_one_short_screen(tmp_path):
     """The mistakes run at once (each fails before any expensive work: a few seconds of imports),
     in a folder holding no data or weights, with the default settings otherwise."""

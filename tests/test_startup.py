@@ -4,6 +4,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 #: Libraries a run that does not use them must not import (each costs from 0.1 s to 1.5 s).
 HEAVY = ("torchvision", "matplotlib", "lightning", "torch._dynamo", "kornia", "pycolmap", "h5py")
 
@@ -48,6 +50,7 @@ from locretrieval.scene.synthetic import RenderSettings
     assert "locretrieval.report.build" not in figure_worker and "scipy.stats" not in figure_worker
 
 
+@pytest.mark.slow
 def test_matplotlib_is_imported_only_by_the_process_that_draws(tmp_path):
     def report(formats: list[str], workers: int) -> set[str]:
         return loaded_after(f"""

@@ -73,6 +73,7 @@ def open_page(browser, page: Path) -> tuple[list, list]:
     return images, [entry for entry in browser.get_log("browser") if entry["level"] == "SEVERE"]
 
 
+@pytest.mark.slow
 def test_report_html_shows_every_figure_and_gallery_image_without_console_errors(run, browser):
     images, errors = open_page(browser, run / "report.html")
     assert errors == []
@@ -103,6 +104,7 @@ PWNED = "return [window.__pwned === undefined ? null : window.__pwned, document.
 PLOTTED = "const d = document.querySelector('.plotly-graph-div'); return !!(window.Plotly && d && d.data);"
 
 
+@pytest.mark.slow
 def test_a_report_of_a_hostile_dataset_runs_no_script_and_shows_the_names(hostile_run, browser):
     from helpers import HOSTILE_IMAGE, HOSTILE_MODEL, HOSTILE_QUERY_FOLDER, HOSTILE_TAG
 

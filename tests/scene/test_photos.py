@@ -42,6 +42,7 @@ def walk(tmp_path_factory):
     )
 
 
+@pytest.mark.slow
 def test_photos_reconstruct_near_the_true_poses_and_benchmark_as_the_true_poses_do(tmp_path, walk, monkeypatch, caplog):
     paths = (f"data.images={walk.folder}", f"paths.root_dir={tmp_path}")
     cfg = evaluate_config("data=photos", *paths, *RECONSTRUCTION, *BENCHMARK)

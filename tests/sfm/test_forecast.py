@@ -89,6 +89,7 @@ def settings() -> BenchmarkSettings:
     return BenchmarkSettings.from_config(config)
 
 
+@pytest.mark.slow
 def test_the_paradigms_match_at_most_the_pairs_the_ground_truth_left_and_share_its_map(scene, tmp_path):
     benchmark = settings()
     inputs = SfmInputs.prepare(scene, benchmark.sfm, tmp_path, extract=False)

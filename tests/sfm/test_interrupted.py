@@ -15,13 +15,13 @@ import pytest
 from locretrieval.cache import load_arrays
 
 ROOT = Path(__file__).resolve().parents[2]
-#: Enough registrations (256 queries x 3 rankings x k = 5, 10, 15, 20) for local SfM's register stage,
+#: Enough registrations (128 queries x 3 rankings x k = 5, 10, 15, 20) for local SfM's register stage,
 #: which reads maps triangulated before it, to run several save intervals (`SAVE_SECONDS`).
 COMMAND = [
     "data.render.width=160",
     "data.render.height=120",
     "data.render.num_database=30",
-    "data.render.num_queries=256",
+    "data.render.num_queries=128",
     "data.render.texture_size=64",
     "data.render.length=24.0",
     "data.render.seed=3",

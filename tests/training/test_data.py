@@ -6,6 +6,7 @@ import os
 
 import helpers
 import numpy as np
+import pytest
 import torch
 from omegaconf import OmegaConf
 from PIL import Image
@@ -50,6 +51,7 @@ def _decode_into(paths, cache, results) -> None:
     results.put(np.asarray(decoded_images(paths, (40, 30), cache, workers=1)).sum())
 
 
+@pytest.mark.slow
 def test_two_processes_decoding_the_same_images_share_one_file(tmp_path, monkeypatch):
     paths = write_images(tmp_path / "images", count=24)
     context = multiprocessing.get_context("spawn")

@@ -151,6 +151,7 @@ def steps(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("loss", ddp_steps.LOSSES)
 def test_two_ddp_processes_take_the_steps_of_one_process_given_the_union_of_their_batches(steps, loss):
     """The same loss at each of two steps and the same parameters after each (SGD: the step is the
@@ -208,6 +209,7 @@ def validation(run: Path) -> pd.DataFrame:
     return pd.read_csv(run / "validation.csv")
 
 
+@pytest.mark.slow
 def test_validation_on_two_ranks_equals_one_process_exactly(runs):
     root, logs, _ = runs
     two, one = root / "ranks2" / "run", root / "ranks1" / "run"
@@ -244,6 +246,7 @@ def test_train_py_ends_naming_its_run_folder_checkpoints_and_report(runs, proces
     assert shown[2] == f"checkpoint, last: {run / 'checkpoints' / 'last.ckpt'}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("trained", "resumed"), [(2, 1), (1, 2)])
 def test_a_checkpoint_resumes_on_another_number_of_ranks(runs, trained, resumed):
     root, *_ = runs
@@ -264,6 +267,7 @@ def test_a_checkpoint_resumes_on_another_number_of_ranks(runs, trained, resumed)
     assert not all(torch.equal(weights[0][key], weights[1][key]) for key in weights[0])  # it trained on
 
 
+@pytest.mark.slow
 def test_a_rank_failing_in_validation_ends_every_rank_with_its_error(tmp_path):
     """A network whose description raises on rank 1 only: both processes end, rank 1 with its
     error and rank 0 with rank 1's, within the timeout (a rank left in a collective would hang)."""

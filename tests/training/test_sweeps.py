@@ -135,9 +135,8 @@ def test_the_summary_of_runs_marks_the_best_closes_the_gap_of_the_means_and_says
     assert (tmp_path / "out" / "summary.html").read_text().count("<tr>") == 5  # header, 3 trials, the mean
 
 
-#: The documented sweep, three trials of the quick run, in parallel through the joblib launcher (its
-#: default workers), run where the tests cannot write: everything under the test's folder.
-#: The documented study with the default workers, its trials quick runs of one epoch validated by paradigm 1 alone.
+#: The documented study, three trials in parallel through the joblib launcher with its default workers,
+#: each a quick run cut to one epoch of two batches of small images, validated by paradigm 1 alone.
 SWEEP = [
     "-m",
     "hparams_search=localization",
@@ -145,6 +144,8 @@ SWEEP = [
     "hydra/launcher=joblib_local",
     "hydra.sweeper.n_trials=3",
     "trainer.max_epochs=1",
+    "sampler.batches_per_epoch=2",
+    "datamodule.image_size=[96,72]",
     "paradigms.local_sfm.enabled=false",
     "paradigms.global_sfm.enabled=false",
 ]

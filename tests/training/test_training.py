@@ -385,6 +385,7 @@ def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkp
     assert len(sfm_validations) >= 2  # before training and after the epoch
 
 
+@pytest.mark.slow
 def test_resuming_from_the_last_checkpoint_continues_the_same_curve(tmp_path, monkeypatch):
     helpers.trust_packages(monkeypatch, "helpers")  # the interrupting callback of the test helpers
     common = ("~augmentation", "trainer.deterministic=true")
@@ -413,6 +414,7 @@ def test_resuming_from_the_last_checkpoint_continues_the_same_curve(tmp_path, mo
             assert found[key] == pytest.approx(value, abs=1e-6), (expected["epoch"], key)
 
 
+@pytest.mark.slow
 def test_two_process_cpu_ddp_smoke_run(tmp_path):
     import subprocess
     import sys
@@ -533,6 +535,7 @@ def test_frozen_batch_norm_keeps_the_pretrained_statistics_while_the_weights_lea
     assert not all(torch.equal(trained[key], initial[key]) for key in affine)  # batch-norm scales learn either way
 
 
+@pytest.mark.slow
 def test_frozen_parameters_keep_their_pretrained_values(tmp_path):
     from locretrieval.models.files.weights import EMBEDDED_CHECKPOINT_KEY
 
@@ -584,6 +587,7 @@ def test_a_diverging_run_stops_at_the_step_naming_the_loss_and_the_learning_rate
         assert all(torch.isfinite(value).all() for value in state.values() if value.is_floating_point())
 
 
+@pytest.mark.slow
 def test_resuming_from_a_file_that_is_not_a_checkpoint_of_this_project_is_refused_before_any_work(tmp_path):
     from locretrieval.training.checkpoints import check_resume_checkpoint
 
@@ -616,6 +620,7 @@ class Killed(Exception):
     """Stands for the kill of a process in the middle of a write."""
 
 
+@pytest.mark.slow
 def test_a_run_killed_while_writing_last_ckpt_keeps_the_previous_checkpoint_whole(tmp_path, monkeypatch):
     import errno
     import os
@@ -673,6 +678,7 @@ def test_a_run_killed_while_writing_last_ckpt_keeps_the_previous_checkpoint_whol
     assert not [path.name for path in last.parent.iterdir() if path.name.startswith(".")]  # no temporary file left
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("launcher", ["joblib_local", "submitit_local"])
 def test_a_parallel_training_multirun_as_documented_shares_one_cache_without_corrupting_it(tmp_path, launcher):
     """docs/training.md's ``python train.py -m hydra/launcher=joblib_local loss=ap,triplet`` (and

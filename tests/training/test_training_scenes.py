@@ -45,6 +45,7 @@ def data_dir(tmp_path_factory):
 SCENES = "training.scenes=[aachen,baidu,{config:kapture,mapping:photos/mapping,queries:[photos/query]}]"
 
 
+@pytest.mark.slow
 def test_several_scenes_are_trained_on_and_never_related_across(tmp_path, data_dir):
     cfg = train_config(
         tmp_path, f"paths.data_dir={data_dir}", SCENES, "sampler.anchors=6", "+trainer.fast_dev_run=true"

@@ -405,6 +405,7 @@ def _fit_with_threads(scene, threads: int, results) -> None:
     results.put({**fitted_arrays(model), "queries": model.describe(scene.queries)})
 
 
+@pytest.mark.slow
 def test_the_fit_and_the_descriptors_do_not_depend_on_the_thread_count(textures_scene):
     """One process with 1 torch and faiss thread, one with 2: the same vocabulary, PCA and descriptors, bit for bit."""
     import multiprocessing

@@ -167,6 +167,7 @@ def test_salad_reads_its_published_file_and_gives_the_published_descriptor_reord
     torch.testing.assert_close(ours @ ours.T, expected @ expected.T, atol=2e-5, rtol=1e-4)  # the same similarities
 
 
+@pytest.mark.slow
 def test_megaloc_reads_its_published_file_and_gives_the_published_descriptor(dinov2_base, tmp_path):
     for backbone_prefix in ("backbone.model.", "backbone."):  # the GitHub release, and the later DINOv2-only layout
         state = {f"{backbone_prefix}{k}": v for k, v in dinov2_base.items()}
