@@ -222,6 +222,25 @@ def test_an_npz_member_expanding_past_its_budget_or_its_header_is_refused(tmp_pa
     assert load_arrays(tmp_path / "plain.npz")["a"].tolist() == [0, 1, 2, 3, 4]
 
 
+def test_an_npz_file_removed_while_it_is_checked_is_missing_not_damaged(tmp_path, monkeypatch):
+    """A part removed by a concurrent merge between the check's two openings is a FileNotFoundError,
+    which the pose cache's reader answers by listing the parts again, not a DataFileError."""
+    from locretrieval import bounded_files
+
+    path = tmp_path / "part.npz"
+    save_arrays(path, {"keys": np.zeros((2, 16), np.uint8)})
+    check_zip = bounded_files.check_zip
+
+    def removed_after_the_first_opening(*args, **kwargs):
+        members = check_zip(*args, **kwargs)
+        path.unlink()
+        return members
+
+    monkeypatch.setattr(bounded_files, "check_zip", removed_after_the_first_opening)
+    with pytest.raises(FileNotFoundError):
+        load_arrays(path)
+
+
 def test_a_mat_file_expanding_past_its_budget_or_declaring_huge_cells_is_refused(tmp_path):
     import scipy.io
 
