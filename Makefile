@@ -34,7 +34,7 @@ train: $(STAMP)
 	$(BIN)/python train.py $(ARGS)
 
 ## Run the test suite: its files shared by two processes (pytest-xdist; a file's tests stay in one,
-## with its module fixtures; the files with slow tests first, tests/conftest.py), 20 minutes on 2 cores.
+## with its module fixtures; the files with slow tests first, tests/conftest.py), 15 minutes on 2 cores.
 test: $(STAMP)
 	$(BIN)/python -m pytest -n 2 --dist loadfile --no-loadscope-reorder $(ARGS)
 
