@@ -16,6 +16,7 @@ read ones stay in memory, up to `CACHED_BYTES` per store.
 from __future__ import annotations
 
 import contextlib
+import threading
 from collections import OrderedDict
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
@@ -39,7 +40,9 @@ Column = dict[str, np.ndarray]
 
 
 class ShardedStore:
-    """Records ``key -> {array name: array}`` spread over the shard files of ``folder``."""
+    """Records ``key -> {array name: array}`` spread over the shard files of ``folder``. The index
+    changes under a lock: the pipeline's matching thread writes and refreshes it while the main
+    thread pickles the store for the worker processes."""
 
     def __init__(self, folder: str | Path) -> None:
         self.folder = Path(folder)
@@ -48,15 +51,31 @@ class ShardedStore:
         self._array_names: dict[Path, list[str]] = {}
         self._cache: OrderedDict[tuple[Path, str], Column] = OrderedDict()
         self._cached_bytes = 0
+        self._lock = threading.RLock()
 
     def __getstate__(self) -> dict:
-        """Pickled for worker processes without the in-memory shards."""
-        return {**self.__dict__, "_cache": OrderedDict(), "_cached_bytes": 0}
+        """Pickled for worker processes without the in-memory shards, with a copy of the index
+        taken between two of its changes (a dict pickled while another thread adds to it may lose
+        entries)."""
+        with self._lock:
+            state = {**self.__dict__, "_cache": OrderedDict(), "_cached_bytes": 0}
+            state["_index"] = None if self._index is None else dict(self._index)
+            state["_array_names"] = dict(self._array_names)
+        del state["_lock"]
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.RLock()
 
     @property
     def index(self) -> dict[str, Path]:
         """Key -> shard holding it, read from the shard files on first use, then from the shards
         written since when asked to (`refresh`)."""
+        with self._lock:
+            return self._read_index()
+
+    def _read_index(self) -> dict[str, Path]:
         if self._index is None or self._stale:
             index = self._index or {}
             # "[!.]": not the hidden temporary files of shards being written (`atomic_path`)
@@ -139,9 +158,10 @@ class ShardedStore:
                     arrays = [np.asarray(records[key][name]) for key in keys]
                     file.create_dataset(f"data/{name}", data=np.concatenate(arrays))
                     file.create_dataset(f"lengths/{name}", data=np.array([len(a) for a in arrays], dtype=np.int64))
-        if self._index is not None:
-            self._index.update((key, path) for key in keys)
-            self._array_names[path] = names
+        with self._lock:
+            if self._index is not None:
+                self._index.update((key, path) for key in keys)
+                self._array_names[path] = names
         return path
 
 

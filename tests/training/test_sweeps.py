@@ -215,7 +215,8 @@ def test_an_optuna_sweep_killed_after_its_first_trial_resumes_without_running_it
         drawn = {key for key in trial.params if key.startswith("module.loss.")}
         assert drawn == set(search[trial.params["loss"]]), trial.params
 
-    best = max((value, number) for number, state, value in study if state == "COMPLETE")[1]
+    top = max(value for _, state, value in study if state == "COMPLETE")
+    best = min(number for number, state, value in study if state == "COMPLETE" and value == top)  # the first of equals
     summary = pd.read_csv(folder / "summary.csv")
     assert summary["trial"].astype(int).tolist() == [number for number, _, _ in study]
     assert summary.loc[summary["best"], "trial"].astype(int).tolist() == [best]
