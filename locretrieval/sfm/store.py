@@ -51,12 +51,12 @@ class ShardedStore:
         self._array_names: dict[Path, list[str]] = {}
         self._cache: OrderedDict[tuple[Path, str], Column] = OrderedDict()
         self._cached_bytes = 0
-        self._lock = threading.RLock()
+        self._lock = threading.Lock()
 
     def __getstate__(self) -> dict:
-        """Pickled for worker processes without the in-memory shards, with a copy of the index
-        taken between two of its changes (a dict pickled while another thread adds to it may lose
-        entries)."""
+        """Pickled for worker processes without the in-memory shards, with the index and the list
+        of read shards copied together between two changes: a list naming a shard whose keys the
+        index lacks makes a worker skip that shard."""
         with self._lock:
             state = {**self.__dict__, "_cache": OrderedDict(), "_cached_bytes": 0}
             state["_index"] = None if self._index is None else dict(self._index)
@@ -66,7 +66,7 @@ class ShardedStore:
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
-        self._lock = threading.RLock()
+        self._lock = threading.Lock()
 
     @property
     def index(self) -> dict[str, Path]:
