@@ -29,7 +29,7 @@ from scipy import sparse
 from locretrieval.config import ConfigError, validated
 from locretrieval.estimates import PoseEstimates
 from locretrieval.groundtruth import GroundTruth, RelevanceScope
-from locretrieval.metrics.localization import MetricsSettings, localization_table, query_error_table, query_subsets
+from locretrieval.metrics.localization import MetricsSettings, localization_tables, query_error_table, query_subsets
 from locretrieval.metrics.retrieval import retrieval_tables
 from locretrieval.metrics.subsets import SubsetSettings, image_subsets
 from locretrieval.paradigms.base import Paradigms
@@ -68,9 +68,11 @@ class BenchmarkSettings:
 class BenchmarkResult:
     """Everything the benchmark computed for one scene.
 
-    ``localization``: % localised per subset x ranking x paradigm x method x k x threshold
-    (`RESULT_COLUMNS`); ``query_errors``: per query; ``retrieval`` / ``query_retrieval``:
-    P@k, R@k, mAP@k of every ranking against every ground truth (empty without ground truth);
+    ``localization``: % localised per subset x ranking x paradigm x method x k x threshold, with its
+    interval (`RESULT_COLUMNS`); ``query_localized``: the per-query outcomes it counts
+    (`QUERY_LOCALIZED_COLUMNS`, which the paired comparisons read); ``query_errors``: per query;
+    ``retrieval`` / ``query_retrieval``: P@k, R@k, mAP@k of every ranking against every ground truth
+    (empty without ground truth), with their intervals;
     ``sfm_stages``: per SfM stage, its seconds, work done and unit (`StageRecord`); ``sfm_seconds``:
     the SfM paradigms' wall-clock seconds.
     """
@@ -82,6 +84,7 @@ class BenchmarkResult:
     query_errors: pd.DataFrame
     retrieval: pd.DataFrame
     query_retrieval: pd.DataFrame
+    query_localized: pd.DataFrame = dataclasses.field(default_factory=pd.DataFrame)
     sfm_stages: dict[str, dict[str, float | int | str]] = dataclasses.field(default_factory=dict)
     sfm_seconds: float = 0.0
 
@@ -139,6 +142,22 @@ def warn_shallow_rankings(rankings: Sequence[Ranking], ks: Sequence[int]) -> Non
             "figures keep the requested k, results.csv's k_effective holds the k used",
             beyond,
             shallow,
+        )
+
+
+def warn_whole_database_ks(scene: Scene, paradigms: Paradigms) -> None:
+    """Warn about the ks of the SfM paradigms that reach the whole database (a small place of one's own):
+    there every ranking, random included, hands the paradigm the same images, so no ranking can differ."""
+    size = len(scene.database)
+    whole = {name: [k for k in getattr(paradigms, name).k if k >= size] for name in paradigms.sfm_stages()}
+    whole = {name: ks for name, ks in whole.items() if ks}
+    if whole:
+        log.warning(
+            "%s: k %s reach all %d database images: every ranking, random included, gives those paradigms the same "
+            "images there, so their results cannot tell rankings apart (a smaller k list: paradigms.<name>.k=[...])",
+            scene.name,
+            "; ".join(f"{name} {ks}" for name, ks in whole.items()),
+            size,
         )
 
 
@@ -231,6 +250,7 @@ def benchmark(
     """
     check_supported(scene, settings.paradigms.enabled())
     warn_shallow_rankings(rankings, settings.paradigms.ks())
+    warn_whole_database_ks(scene, settings.paradigms)
     depths = {ranking.name: ranking.depth for ranking in rankings}
     sfm_paradigms = settings.paradigms.sfm_stages()
     sfm_estimates, sfm_stages, sfm_seconds = {}, {}, 0.0
@@ -247,11 +267,18 @@ def benchmark(
         )
         # labelled by the section's name: a paradigm class may run under several names
         estimates += [dataclasses.replace(e.labelled(paradigm.k, depths[e.ranking]), paradigm=name) for e in computed]
-    thresholds = settings.metrics.thresholds
-    localization = localization_table(
-        scene.name, estimates, scene.queries, thresholds, subsets, settings.metrics.inclusive
+    metrics = settings.metrics
+    localization, query_localized = localization_tables(
+        scene.name,
+        estimates,
+        scene.queries,
+        metrics.thresholds,
+        subsets,
+        metrics.inclusive,
+        metrics.uncertainty.confidence,
+        scene.position_unit,
     )
-    query_errors = query_error_table(scene.name, estimates, scene.queries)
+    query_errors = query_error_table(scene.name, estimates, scene.queries, scene.position_unit)
     retrieval, query_retrieval = pd.DataFrame(), pd.DataFrame()
     if relevance:
         retrieval, query_retrieval = retrieval_tables(
@@ -262,6 +289,7 @@ def benchmark(
             subsets,
             range(1, settings.retrieval.depth + 1),
             settings.paradigms.ks(),
+            metrics.uncertainty,
         )
     return BenchmarkResult(
         scene.name,
@@ -271,6 +299,7 @@ def benchmark(
         query_errors,
         retrieval,
         query_retrieval,
+        query_localized,
         sfm_stages,
         sfm_seconds,
     )

@@ -27,9 +27,11 @@ from locretrieval.config import built, check_run_config, validated
 from locretrieval.estimates import estimated_pose_table
 from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths, statistics_table
 from locretrieval.groundtruth.compute import groundtruth_sfm_pairs
-from locretrieval.metrics.localization import best_over_k, median_errors
+from locretrieval.metrics.localization import median_errors
 from locretrieval.metrics.subsets import SubsetSettings, missing_mask_inputs
+from locretrieval.metrics.uncertainty import Uncertainty
 from locretrieval.report.gallery import GallerySettings, write_gallery_inputs
+from locretrieval.report.markdown import best_localization
 from locretrieval.report.scene_view import SCENE_VIEW_FILE, SceneViewSettings, write_scene_view
 from locretrieval.report.tables import SFM_STAGES
 from locretrieval.retrieval.descriptors import DescriptorSearch
@@ -97,7 +99,9 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     relevance = relevances(groundtruths, groundtruth_settings.relevance)
     result = benchmark(scene, rankings, settings, subsets, cache_dir, relevance)
 
-    write_tables(result, statistics_table(scene.name, groundtruths), subset_table, output_dir)
+    write_tables(
+        result, statistics_table(scene.name, groundtruths), subset_table, settings.metrics.uncertainty, output_dir
+    )
     write_gallery_inputs(scene, relevance, output_dir)
     poses = estimated_pose_table(scene.name, result.estimates, scene.queries.names)
     poses.to_csv(output_dir / "estimated_poses.csv.gz", index=False)
@@ -136,11 +140,17 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
         gallery=gallery_settings,
         thumbnail_cache=cache_dir / "thumbnails",
         image_roots=None,  # the images of the scene just loaded, wherever its config keeps them
+        uncertainty=settings.metrics.uncertainty,
     )
     results = result.localization
     if len(results):
-        best = best_over_k(results[results["subset"] == "all"], "position_threshold_m")
-        log.info("best %% localized over k, all queries:\n%s", best.to_string())
+        best = best_localization(results).droplevel("dataset")
+        log.info(
+            "best %% localized over k, all %d queries (%g %% interval, the k reaching it):\n%s",
+            len(scene.queries),
+            100 * settings.metrics.uncertainty.confidence,
+            best.to_string(),
+        )
     log.info("results and report.md in %s", output_dir)
     return results
 
@@ -228,9 +238,13 @@ def global_map_points(scene: Scene, settings: BenchmarkSettings, cache_dir: Path
 
 
 def write_tables(
-    result: BenchmarkResult, groundtruth_statistics: pd.DataFrame, subset_table: pd.DataFrame, output_dir: Path
+    result: BenchmarkResult,
+    groundtruth_statistics: pd.DataFrame,
+    subset_table: pd.DataFrame,
+    uncertainty: Uncertainty,
+    output_dir: Path,
 ) -> None:
-    """The tidy tables and the rankings of a run (see `evaluate`)."""
+    """The tidy tables and the rankings of a run (see `evaluate`); the median errors' intervals at ``uncertainty``."""
     for ranking in result.rankings:
         arrays = {
             "indices": ranking.indices,
@@ -240,8 +254,9 @@ def write_tables(
         }
         save_arrays(output_dir / "rankings" / f"{safe_name(ranking.name)}.npz", arrays)
     result.localization.to_csv(output_dir / "results.csv", index=False)
+    result.query_localized.to_csv(output_dir / "query_localized.csv.gz", index=False)
     result.query_errors.to_csv(output_dir / "query_errors.csv.gz", index=False)
-    median_errors(result.query_errors).to_csv(output_dir / "median_errors.csv", index=False)
+    median_errors(result.query_errors, uncertainty).to_csv(output_dir / "median_errors.csv", index=False)
     groundtruth_statistics.to_csv(output_dir / "groundtruth_statistics.csv", index=False)
     subset_table.to_csv(output_dir / "subsets.csv", index=False)
     if len(result.retrieval.columns):

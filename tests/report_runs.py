@@ -11,9 +11,10 @@ from PIL import Image
 from scipy import sparse
 
 from locretrieval.cache import save_arrays
-from locretrieval.metrics.localization import QUERY_ERROR_COLUMNS, RESULT_COLUMNS
+from locretrieval.metrics.localization import QUERY_ERROR_COLUMNS, QUERY_LOCALIZED_COLUMNS, RESULT_COLUMNS
 from locretrieval.metrics.retrieval import retrieval_tables
 from locretrieval.metrics.revisited import RevisitedGroundTruth, evaluate_revisited
+from locretrieval.metrics.uncertainty import share_interval
 from locretrieval.report.gallery import write_gallery_inputs
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Camera, ImageSet, Scene
@@ -47,24 +48,36 @@ def ranking(name: str, kind: str) -> Ranking:
     return Ranking(name, np.argsort(keys, axis=1), np.zeros((NUM_QUERIES, NUM_DATABASE)), kind)
 
 
-def localization(name: str, kind: str) -> tuple[pd.DataFrame, pd.DataFrame]:
+def localization(name: str, kind: str) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+    """A ranking's localization tables: ``results.csv``'s rows (with Wilson's intervals), the
+    per-query outcomes they count and ``query_errors.csv.gz``'s rows, from seeded errors."""
     rng = seeded(name + "/poses")
-    results, errors = [], []
+    results, outcomes, errors = [], [], []
     paradigms = [("approximation", "ewb"), ("global_sfm", "pnp")]
     paradigms += [("approximation", "csi")] if kind == "descriptor" else []  # CSI needs descriptors
+    names = queries().names
     for paradigm, method in paradigms:
         for k in KS:
             position = rng.exponential(1.0, NUM_QUERIES)
             position[rng.random(NUM_QUERIES) < 0.15] = np.nan
-            for n, query in enumerate(queries().names):
+            for n, query in enumerate(names):
                 failure = "" if np.isfinite(position[n]) else "too few inliers"
-                errors.append(("toy", name, kind, paradigm, method, k, query, position[n], 2 * position[n], failure))
-            for subset, members in (("all", slice(None)), ("blurry", slice(0, 3))):
-                for x, y in THRESHOLDS:
-                    localized = 100 * np.mean(np.nan_to_num(position[members], nan=np.inf) < x)
-                    row = (paradigm, method, k, min(k, NUM_DATABASE), x, y, localized, len(position[members]))
-                    results.append(("toy", subset, name, kind, *row))
-    return pd.DataFrame(results, columns=RESULT_COLUMNS), pd.DataFrame(errors, columns=QUERY_ERROR_COLUMNS)
+                errors.append(
+                    ("toy", name, kind, paradigm, method, k, query, position[n], 2 * position[n], failure, "m")
+                )
+            for x, y in THRESHOLDS:
+                hits = np.nan_to_num(position, nan=np.inf) < x
+                outcomes += [("toy", name, kind, paradigm, method, k, x, y, q, int(h)) for q, h in zip(names, hits)]
+                for subset, members in (("all", slice(None)), ("blurry", slice(0, 3))):
+                    count, localized = len(hits[members]), int(hits[members].sum())
+                    low, high = share_interval(localized, count, 0.95)
+                    row = (paradigm, method, k, min(k, NUM_DATABASE), x, y, 100 * localized / count, count, localized)
+                    results.append(("toy", subset, name, kind, *row, 100 * low, 100 * high, "m"))
+    return (
+        pd.DataFrame(results, columns=RESULT_COLUMNS),
+        pd.DataFrame(outcomes, columns=QUERY_LOCALIZED_COLUMNS),
+        pd.DataFrame(errors, columns=QUERY_ERROR_COLUMNS),
+    )
 
 
 def write_run(directory: Path, descriptors: list[str]) -> Path:
@@ -78,7 +91,8 @@ def write_run(directory: Path, descriptors: list[str]) -> Path:
     )
     tables = [localization(r.name, r.kind) for r in rankings]
     pd.concat([t[0] for t in tables]).to_csv(directory / "results.csv", index=False)
-    pd.concat([t[1] for t in tables]).to_csv(directory / "query_errors.csv.gz", index=False)
+    pd.concat([t[1] for t in tables]).to_csv(directory / "query_localized.csv.gz", index=False)
+    pd.concat([t[2] for t in tables]).to_csv(directory / "query_errors.csv.gz", index=False)
     retrieval.to_csv(directory / "retrieval.csv", index=False)
     per_query.to_csv(directory / "query_retrieval.csv.gz", index=False)
     pd.DataFrame([{"dataset": "toy", "groundtruth": GROUNDTRUTH, "avg_relevant": 3.1, "missing_pct": 0.0}]).to_csv(

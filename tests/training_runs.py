@@ -63,24 +63,74 @@ def validation_table(rows):
     return pd.DataFrame(rows, columns=["epoch", "metric", "value"])
 
 
-def gap_run(folder: Path, label: str, objective: float, rows: list[tuple], seconds: float = 12.0) -> Path:
-    """A finished train.py run's files as the summary reads them: ``gap.csv`` of ``rows``
-    (metric, untrained, trained, densevlad, ground truth), validation.csv, summary.json, config.yaml, .hydra."""
+def outcomes(percent: float, queries: int) -> np.ndarray:
+    """Per-query outcomes (int8, 1: localized) of ``queries`` queries, the first ``percent`` % localized:
+    nested, so that a larger share localizes every query a smaller one does."""
+    return (np.arange(queries) < round(percent * queries / 100)).astype(np.int8)
+
+
+def gap_run(
+    folder: Path,
+    label: str,
+    objective: float,
+    rows: list[tuple],
+    seconds: float = 12.0,
+    queries: int = 100,
+    held_out: float | None = None,
+) -> Path:
+    """A finished train.py run's files as the summary reads them: ``gap.csv`` of ``rows`` (metric and
+    the % untrained, trained, densevlad and ground truth localized of ``queries`` validation queries, as
+    `gap_row` writes it), validation.csv (the objective with its interval), summary.json, config.yaml, .hydra;
+    with ``held_out`` (% localized), as many held-out queries again, the objective's metric on them at its
+    best validation and every query's outcome there (``validation_queries.csv.gz``)."""
+    from locretrieval.metrics.uncertainty import Uncertainty, share_interval
+    from locretrieval.training.report import gap_row
+
     run = folder / label
     (run / ".hydra").mkdir(parents=True)
     config = OmegaConf.create({"optimized_metric": METRIC, "optimized_validation": "best"})
     OmegaConf.save(config, run / "config.yaml")  # train.py writes it
     OmegaConf.save(OmegaConf.create([f"seed={label}", "debug=quick"]), run / ".hydra" / "overrides.yaml")
+    everyone = np.ones(queries, dtype=bool)
     gap = pd.DataFrame(
         [
-            {"metric": m, "untrained": u, "trained": t, "densevlad": d, "groundtruth": "gt_relative_pose",
-             "groundtruth_value": g, "gap_closed_pct": 100 * (t - d) / (g - d) if g != d else float("nan")}
-            for m, u, t, d, g in rows
+            gap_row(
+                metric,
+                "all",
+                everyone,
+                {name: outcomes(value, queries) for name, value in zip(GAP_OUTCOMES, values)},
+                Uncertainty(),
+                "densevlad",
+            )
+            | {"groundtruth": "gt_relative_pose"}
+            for metric, *values in rows
         ]
-    )  # fmt: skip
-    gap.to_csv(run / "gap.csv", index=False)
-    validation_table([(-1, METRIC, 1.0), (0, METRIC, objective - 1), (1, METRIC, objective)]).to_csv(
-        run / "validation.csv", index=False
     )
+    gap.to_csv(run / "gap.csv", index=False)
+    figures = [(-1, 1.0), (0, objective - 1), (1, objective)]
+    intervals = [share_interval(round(value * queries / 100), queries, 0.95) for _, value in figures]
+    validation = pd.DataFrame(
+        [
+            (epoch, METRIC, value, 100 * low, 100 * high, queries)
+            for (epoch, value), (low, high) in zip(figures, intervals)
+        ],
+        columns=["epoch", "metric", "value", "low", "high", "num_queries"],
+    )
+    if held_out is not None:
+        low, high = share_interval(round(held_out * queries / 100), queries, 0.95)
+        held = ("held_out/" + METRIC.removeprefix("val/"), held_out, 100 * low, 100 * high, queries)
+        validation.loc[len(validation)] = (1, *held)
+        key = METRIC.removeprefix("val/")
+        names = [f"q{index:03d}" for index in range(2 * queries)]
+        split = ["val"] * queries + ["held_out"] * queries
+        localized = np.concatenate([outcomes(objective, queries), outcomes(held_out, queries)])
+        pd.DataFrame(
+            {"ranking": "trained", "epoch": 1, "metric": key, "query": names, "split": split, "localized": localized}
+        ).to_csv(run / "validation_queries.csv.gz", index=False)
+    validation.to_csv(run / "validation.csv", index=False)
     (run / "summary.json").write_text(json.dumps({"seconds": seconds}))
     return run
+
+
+#: The outcomes of a gap row, in `gap_run`'s order.
+GAP_OUTCOMES = ("untrained", "trained", "baseline", "groundtruth")

@@ -21,6 +21,9 @@ Conventions (all metrics are fractions in [0, 1]):
   paper's R@k is over all queries, and Table 1's "missing" queries can never be
   recalled); its AP is undefined (NaN) and it is left out of mAP, as the revisited
   Oxford/Paris evaluation does. ``num_queries`` in the tables says how many were averaged.
+- **Uncertainty**: ``value_low`` to ``value_high`` is each figure's interval over its queries
+  (`locretrieval.metrics.uncertainty`): Wilson's for R@k (a share of queries), a seeded bootstrap
+  over the queries for P@k and mAP@k (the same resamples for every ranking and ground truth).
 - **Ties**: only the stored order of ``Ranking.indices`` matters; scores are ignored, so
   images with tied scores count in the order the ranking holds them (`top_k` puts the
   lower database index first). Nothing is averaged over tie permutations.
@@ -34,6 +37,7 @@ import numpy as np
 import pandas as pd
 from scipy import sparse
 
+from locretrieval.metrics.uncertainty import Uncertainty, share_interval
 from locretrieval.retrieval import EMPTY, Ranking, relevant_hits
 from locretrieval.scene import ImageSet
 
@@ -49,6 +53,8 @@ RETRIEVAL_COLUMNS = [
     "k",
     "value",
     "num_queries",
+    "value_low",
+    "value_high",
 ]
 
 #: Columns of the per-query retrieval table (``query_retrieval.csv.gz``).
@@ -92,6 +98,7 @@ def retrieval_tables(
     subsets: Mapping[str, np.ndarray],
     ks: Sequence[int],
     query_ks: Sequence[int],
+    uncertainty: Uncertainty | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Tidy retrieval table and per-query table of every ranking against every ground truth.
 
@@ -100,8 +107,11 @@ def retrieval_tables(
     every k of ``ks`` (the paper: 1..50); a subset without such a query yields no rows, and
     mAP rows average over those of them that have a relevant image. The second
     (`QUERY_RETRIEVAL_COLUMNS`) holds every query with a reference pose for the k of
-    ``query_ks`` (those of the paradigms, for the per-query correlation of Sec. 3.7).
+    ``query_ks`` (those of the paradigms, for the per-query correlation of Sec. 3.7). Each value has
+    its interval at ``uncertainty``'s confidence (``value_low``, ``value_high``; see the module).
     """
+    uncertainty = uncertainty or Uncertainty()
+    bootstrap = uncertainty.bootstrap(len(queries))
     wrong = {name: len(mask) for name, mask in subsets.items() if len(mask) != len(queries)}
     if wrong:
         raise ValueError(f"{dataset}: subset masks {wrong} do not have one entry per query ({len(queries)})")
@@ -127,14 +137,21 @@ def retrieval_tables(
                 for metric, quantity in METRICS.items():
                     averaged = members & has_relevant if metric == "map" else members
                     if averaged.any():
-                        values = per_query[quantity][averaged][:, table_columns].mean(axis=0)
+                        per_k = per_query[quantity][:, table_columns]
+                        values = per_k[averaged].mean(axis=0)
                         count = int(averaged.sum())
+                        if metric == "recall":  # a share of queries
+                            low, high = share_interval(per_k[averaged].sum(axis=0), count, uncertainty.confidence)
+                        else:
+                            low, high = bootstrap.mean_interval(per_k, averaged, uncertainty.confidence)
                         rows = {
                             "subset": subset,
                             "metric": metric,
                             "k": table_ks,
                             "value": values,
                             "num_queries": count,
+                            "value_low": low,
+                            "value_high": high,
                         }
                         frames.append(pd.DataFrame({**labels, **rows}))
             for quantity in METRICS.values():

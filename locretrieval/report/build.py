@@ -9,9 +9,11 @@ from pathlib import Path
 
 import pandas as pd
 
+from locretrieval.metrics.comparison import best_k_comparisons, comparison_table, separation
 from locretrieval.metrics.correlation import dataset_pearson, dataset_spearman, paired_metrics, query_pearson
 from locretrieval.metrics.localization import median_errors
 from locretrieval.metrics.retrieval import METRICS
+from locretrieval.metrics.uncertainty import Uncertainty
 from locretrieval.report import markdown, plots, scene_view
 from locretrieval.report.gallery import GallerySettings, gallery_section
 from locretrieval.report.html import write_html
@@ -29,12 +31,27 @@ METRIC_TITLES = {
     "map": "mAP@k",
 }
 
+#: The paired comparisons of every two rankings written next to the report (`comparison_table`).
+COMPARISON_FILE = "comparisons.csv"
 #: Correlation tables written next to the report.
 CORRELATION_FILES = {
     "pearson": "correlation_dataset_pearson.csv",
     "spearman": "correlation_dataset_spearman.csv",
     "query": "correlation_query_pearson.csv.gz",
 }
+
+
+@dataclass
+class Comparisons:
+    """The paired comparisons of a report: per k (`comparison_table`), at each ranking's best k
+    (`best_k_comparisons`), whether each paradigm separates the ground truths from the baseline
+    (`separation`), each dataset's position unit and the ``uncertainty`` they were computed at."""
+
+    per_k: pd.DataFrame
+    best_k: pd.DataFrame
+    separation: pd.DataFrame
+    units: dict[str, str]
+    uncertainty: Uncertainty
 
 
 @dataclass
@@ -56,6 +73,7 @@ def build_report(
     gallery: GallerySettings | None = None,
     thumbnail_cache: str | Path | None = None,
     image_roots: Sequence[str | Path] | None = (),
+    uncertainty: Uncertainty | None = None,
 ) -> Path:
     """Regenerate ``report.md`` and ``report.html``, ``figures/`` (in ``figure_formats``), ``tables/``
     (Markdown + LaTeX), the correlation tables and, with ``gallery`` settings, the retrieval
@@ -63,6 +81,8 @@ def build_report(
     the runs at or below ``run_dirs`` (a multirun's runs are concatenated, repeated ground-truth rows dropped).
     Every file read lies inside its run (`locretrieval.report.run_files`); the galleries' images too, or
     inside one of ``image_roots`` (``None``: anywhere, for the report of a run just computed).
+    Every two rankings of a dataset are compared on their queries (`Comparisons`, ``comparisons.csv``),
+    at ``uncertainty``'s confidence (default: `Uncertainty`'s, the ``metrics.uncertainty`` config's).
 
     Correlations and the subset figure use ``primary_groundtruth`` (default: the relative
     pose definition, the paper's choice, else the first ground truth by name). Figures are
@@ -73,6 +93,9 @@ def build_report(
     output_dir.mkdir(parents=True, exist_ok=True)
     painters = Painters(plots.FigureFolder(output_dir / "figures", tuple(figure_formats)), figure_workers)
     tables = load_runs(run_dirs)
+    uncertainty = uncertainty or Uncertainty()
+    comparisons = compute_comparisons(tables, uncertainty)
+    comparisons.per_k.to_csv(output_dir / COMPARISON_FILE, index=False)
     correlations = compute_correlations(tables)
     for name, file in CORRELATION_FILES.items():
         getattr(correlations, name).to_csv(output_dir / file, index=False)
@@ -80,16 +103,16 @@ def build_report(
     datasets = sorted(set(tables.results["dataset"]) | set(tables.retrieval["dataset"]))
     writer = markdown.ReportWriter(output_dir, f"locretrieval report: {md_text(', '.join(datasets) or 'no results')}")
     colors = plots.ranking_colors(pd.concat([tables.results["ranking"], tables.retrieval["ranking"]]))
-    overview(writer, tables, groundtruth)
+    overview(writer, tables, groundtruth, uncertainty)
     writer.text(*filter(None, [scene_view.link(tables.run_dirs, output_dir)]))
     groundtruth_section(writer, tables)
-    localization_section(writer, tables, painters, colors)
+    localization_section(writer, tables, comparisons, painters, colors)
     published_section(writer, tables.run_dirs)
     retrieval_section(writer, tables, painters, colors)
     revisited_section(writer, tables)
     correlation_section(writer, tables, correlations, groundtruth, painters, colors)
     subset_section(writer, tables, groundtruth, painters, colors)
-    failure_section(writer, tables)
+    failure_section(writer, tables, uncertainty)
     if gallery is not None:
         gallery_section(
             writer,
@@ -99,19 +122,51 @@ def build_report(
             loosest_threshold(tables.results),
             thumbnail_cache,
             image_roots,
+            plots.position_unit(tables.results),
         )
     path = writer.write(output_dir / "report.md")
     log.info("report written to %s and %s", path, write_html(path))
     return path
 
 
+def compute_comparisons(tables: RunTables, uncertainty: Uncertainty) -> Comparisons:
+    """The paired comparisons of the runs' rankings (`Comparisons`); each paradigm and threshold
+    that does not separate the ground truths from the baseline is logged as a warning."""
+    best_k = best_k_comparisons(tables.query_localized, uncertainty)
+    separated = separation(best_k)
+    units = dataset_units(tables.results)
+    for row in separated[~separated["separates"].astype(bool)].itertuples():
+        log.warning(
+            "%s on %s at %g %s, %g°: no ground truth is distinguishable from the baseline (%s): this paradigm does "
+            "not separate rankings on this scene at this threshold",
+            row.paradigm,
+            row.dataset,
+            row.position_threshold_m,
+            units.get(row.dataset, "m"),
+            row.rotation_threshold_deg,
+            row.pairs,
+        )
+    return Comparisons(comparison_table(tables.query_localized, uncertainty), best_k, separated, units, uncertainty)
+
+
+def dataset_units(results: pd.DataFrame) -> dict[str, str]:
+    """Each dataset's position unit (`position_unit` of its localization rows)."""
+    return results.groupby("dataset")["position_unit"].first().to_dict() if len(results) else {}
+
+
 def compute_correlations(tables: RunTables) -> Correlations:
-    """The three analyses of Sec. 3.7 over the descriptor rankings of ``tables``."""
+    """The three analyses of Sec. 3.7 over the descriptor rankings of ``tables``, the dataset-level
+    ones with their dataset's ``position_unit`` (their thresholds' labels)."""
     paired = paired_metrics(tables.retrieval, tables.results)
+    units = dataset_units(tables.results)
+
+    def with_units(frame: pd.DataFrame) -> pd.DataFrame:
+        return frame.assign(position_unit=frame["dataset"].map(units)) if len(frame) else frame
+
     return Correlations(
         paired=paired,
-        pearson=dataset_pearson(paired),
-        spearman=dataset_spearman(paired),
+        pearson=with_units(dataset_pearson(paired)),
+        spearman=with_units(dataset_spearman(paired)),
         query=query_pearson(tables.query_retrieval, tables.query_errors, loosest_threshold(tables.results)),
     )
 
@@ -139,7 +194,9 @@ def choose_groundtruth(retrieval: pd.DataFrame, requested: str | None) -> str | 
     return chosen
 
 
-def overview(writer: markdown.ReportWriter, tables: RunTables, groundtruth: str | None) -> None:
+def overview(
+    writer: markdown.ReportWriter, tables: RunTables, groundtruth: str | None, uncertainty: Uncertainty
+) -> None:
     results = tables.results
     rankings = pd.concat([results[["ranking", "ranking_kind"]], tables.retrieval[["ranking", "ranking_kind"]]])
     rankings = rankings.drop_duplicates().sort_values(["ranking_kind", "ranking"])
@@ -152,6 +209,7 @@ def overview(writer: markdown.ReportWriter, tables: RunTables, groundtruth: str 
             or "none",
             "subsets": md_text(", ".join(sorted(set(results["subset"]) | set(tables.retrieval["subset"])))) or "none",
             "ground truth of the correlation analysis": md_text(groundtruth or "none"),
+            "uncertainty": md_text(uncertainty_text(results, uncertainty)),
         }
     )
     for number, (run, summary) in enumerate(tables.summaries.items()):
@@ -163,6 +221,23 @@ def overview(writer: markdown.ReportWriter, tables: RunTables, groundtruth: str 
         if isinstance(stages, dict) and stages:
             caption = "SfM stages: seconds of work (stages overlap) and work done, in each stage's units."
             writer.table(sfm_stage_table(stages), f"sfm_stages_{number}", caption, ".1f")
+
+
+def uncertainty_text(results: pd.DataFrame, uncertainty: Uncertainty) -> str:
+    """What the intervals are, and what one query is worth, in words."""
+    level = f"{100 * uncertainty.confidence:g} %"
+    text = (
+        f"every figure with its {level} interval over its queries: Wilson's for a share of queries (% localized, "
+        f"R@k, % with an estimate), a bootstrap of the queries ({uncertainty.resamples} resamples, seed "
+        f"{uncertainty.seed}) for means and medians (P@k, mAP@k, median errors); two rankings are compared on the "
+        f"same queries (exact McNemar test, Bonferroni's correction over the pairs of a panel; {COMPARISON_FILE})"
+    )
+    everyone = results[results["subset"] == "all"] if len(results) else results
+    counts = sorted({int(n) for n in everyone["num_queries"]}) if len(everyone) else []
+    if counts:
+        worth = ", ".join(f"{100 / n:.3g} points of {n} queries" for n in counts)
+        text += f"; one query is {worth}"
+    return text
 
 
 def sfm_stage_table(stages: dict) -> pd.DataFrame:
@@ -196,21 +271,53 @@ def groundtruth_section(writer: markdown.ReportWriter, tables: RunTables) -> Non
     writer.table(statistics.set_index(["dataset", "groundtruth"]), "table1_groundtruth_statistics", caption)
 
 
-def localization_section(writer: markdown.ReportWriter, tables: RunTables, painters: Painters, colors: dict) -> None:
+def localization_section(
+    writer: markdown.ReportWriter, tables: RunTables, comparisons: Comparisons, painters: Painters, colors: dict
+) -> None:
     results = tables.results
     writer.heading("Localization (paper Figs. 4-6)")
     if results.empty:
         writer.text("No localization results: no query has a reference pose.")
         return
     best = markdown.best_localization(results)
-    writer.table(best, "localization_best_over_k", "Best % of queries localized over k (all queries).", ".1f")
+    caption = (
+        "Best % of queries localized over k (all queries), its interval and the k where it is reached; the k is "
+        "chosen on these queries, so the best figure leans optimistic."
+    )
+    writer.table(best, "localization_best_over_k", caption)
+    difference_section(writer, results, comparisons)
     for (dataset, paradigm, method), _ in results.groupby(["dataset", "paradigm", "method"], sort=True):
         writer.heading(md_text(f"{dataset}: {paradigm}, {method}"), 3)
         rows = results[(results["dataset"] == dataset) & (results["paradigm"] == paradigm)]  # a job per figure
         writer.figures(painters.draw(plots.plot_localization_vs_k, rows, painters.figures, colors, methods=[method]))
         pivot = markdown.pivot_localization(results[results["dataset"] == dataset], paradigm, method)
-        caption = "% of queries localized (all queries), per ranking and k."
-        writer.table(pivot, f"localization_{dataset}_{paradigm}_{method}", caption, ".1f")
+        caption = "% of queries localized (all queries) with its interval, per ranking and k."
+        writer.table(pivot, f"localization_{dataset}_{paradigm}_{method}", caption)
+
+
+def difference_section(writer: markdown.ReportWriter, results: pd.DataFrame, comparisons: Comparisons) -> None:
+    """Which differences of the best-over-k table are real (`Comparisons.best_k`), and each paradigm
+    that does not separate the ground truths from the baseline."""
+    writer.heading("Which differences are real", 3)
+    if comparisons.best_k.empty:
+        why = (
+            "one ranking only"
+            if results["ranking"].nunique() < 2
+            else "the runs have no per-query outcomes (query_localized.csv.gz: runs of an earlier version)"
+        )
+        writer.text(f"No paired comparison: {md_text(why)}.")
+        return
+    best_k = comparisons.best_k.assign(position_unit=comparisons.best_k["dataset"].map(comparisons.units))
+    table = markdown.difference_table(best_k)
+    caption = (
+        "Paired differences in points (ranking minus other, each at its best k, on the queries both were evaluated "
+        "on), with their exact interval given the queries only one of them localized (exact McNemar test), at "
+        f"{100 * comparisons.uncertainty.confidence:g} % for all the pairs of a paradigm, method and threshold "
+        "together (Bonferroni): better or worse exactly where the interval excludes 0. Every pair at every k is in "
+        f"{COMPARISON_FILE}."
+    )
+    writer.table(table, "localization_differences", caption)
+    writer.text(*markdown.separation_lines(comparisons.separation, comparisons.units))
 
 
 def retrieval_section(writer: markdown.ReportWriter, tables: RunTables, painters: Painters, colors: dict) -> None:
@@ -224,7 +331,7 @@ def retrieval_section(writer: markdown.ReportWriter, tables: RunTables, painters
     )
     writer.figures(painters.draw(plots.plot_retrieval_curves, retrieval, painters.figures, colors=colors))
     summary = markdown.retrieval_summary(retrieval)
-    writer.table(summary, "retrieval_summary", "Retrieval metrics in % (all queries).", ".1f")
+    writer.table(summary, "retrieval_summary", "Retrieval metrics in % (all queries) with their intervals.")
 
 
 def revisited_section(writer: markdown.ReportWriter, tables: RunTables) -> None:
@@ -247,14 +354,21 @@ def correlation_section(
     writer.heading(
         f"Correlation between retrieval and localization (paper Sec. 3.7), relevance: {md_text(groundtruth)}"
     )
+    descriptors = sorted(set(correlations.paired["ranking"])) if len(correlations.paired) else []
     writer.text(
         "Pearson: per descriptor, over k, between the retrieval metric and % localized (Tables 3 and 6). "
         "Spearman: per k, over the descriptors (Tables 4 and 5). Violins: per query, over k, between the "
         "retrieval metric and the negated capped pose error min(1, max(c/tau_c, R/tau_R)) at the loosest "
-        "threshold, failures scoring 1 (Figs. 8 and 11). Undefined coefficients (constant series, fewer "
-        "than 2 points, 3 per query) print as –; every coefficient is in "
+        "threshold, failures scoring 1 (Figs. 8 and 11). An undefined coefficient says why in its cell (a constant "
+        "series, fewer than 2 points, 3 per query); every coefficient is in "
         f"{', '.join(CORRELATION_FILES.values())}."
     )
+    if len(descriptors) < 2:
+        writer.text(
+            f"Spearman's rho over the descriptors needs at least 2 descriptors; these runs have {len(descriptors)} "
+            f"({md_text(', '.join(descriptors) or 'none')}): its tables are left out. A report over runs of "
+            "several descriptors on this scene (report.py) has them."
+        )
     for metric in [m for m in METRIC_TITLES if m in set(correlations.pearson["retrieval_metric"])]:
         pearson, spearman, pairs = (
             _selected(frame, groundtruth, metric)
@@ -267,11 +381,16 @@ def correlation_section(
         writer.table(
             markdown.correlation_matrix(pearson, "ranking"), f"pearson_{stem}", "Pearson r over k, per descriptor."
         )
-        caption = "Spearman rho over the descriptors, per k."
-        writer.table(markdown.correlation_matrix(spearman, "k"), f"spearman_{stem}", caption)
-        if len(query):
+        if len(descriptors) >= 2:
+            caption = "Spearman rho over the descriptors, per k."
+            writer.table(markdown.correlation_matrix(spearman, "k"), f"spearman_{stem}", caption)
+        if len(query) and query["coefficient"].notna().any():
             writer.figures(painters.draw(plots.plot_query_violins, query, painters.figures, colors))
-        analyses = {"pearson": pearson, "spearman": spearman, "per query": query}
+        elif len(query):
+            reasons = markdown.undefined_summary(query)
+            why = "; ".join(f"{row.undefined_reason}: {row.count}" for row in reasons.itertuples())
+            writer.text(f"No per-query coefficient is defined, so no violin is drawn ({md_text(why)}).")
+        analyses = {"pearson": pearson, "per query": query} | ({"spearman": spearman} if len(descriptors) >= 2 else {})
         undefined = pd.concat(
             [markdown.undefined_summary(frame).assign(analysis=name) for name, frame in analyses.items()]
         )
@@ -312,20 +431,16 @@ def subset_section(
         writer.table(best, "best_by_subset", "Best % localized over k at the loosest threshold.", ".1f")
 
 
-def failure_section(writer: markdown.ReportWriter, tables: RunTables) -> None:
+def failure_section(writer: markdown.ReportWriter, tables: RunTables, uncertainty: Uncertainty) -> None:
     if tables.query_errors.empty:
         return
     writer.heading("Median errors")
-    medians = (
-        median_errors(tables.query_errors)
-        .drop(columns=["ranking_kind"])
-        .set_index(["dataset", "paradigm", "method", "ranking", "k"])
-    )
+    medians = median_errors(tables.query_errors, uncertainty)
     caption = (
-        "Median position (m) and rotation (deg) errors over the queries with an estimate and a reference pose, "
-        "and the % of queries with an estimate."
+        "Median position and rotation errors over the queries with an estimate and a reference pose, and the % of "
+        "queries with an estimate, each with its interval (– where no query has an estimate)."
     )
-    writer.table(medians, "median_errors", caption, ".2f")
+    writer.table(markdown.median_error_summary(medians), "median_errors", caption)
     writer.heading("Failures")
     failures = markdown.failure_summary(tables.query_errors)
     writer.text(

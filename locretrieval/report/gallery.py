@@ -44,11 +44,13 @@ from locretrieval.config import require, validated
 from locretrieval.errors import DELETE_CACHE_FILE, DataFileError
 from locretrieval.metrics.correlation import capped_pose_error
 from locretrieval.report.markdown import ReportWriter, md_code, md_text
+from locretrieval.report.plots import threshold_label
 from locretrieval.report.run_files import RERUN, literal, load_yaml, mapping_at, outside_roots, run_file
 from locretrieval.report.tables import TABLES, read_table
 from locretrieval.retrieval import EMPTY, relevant_hits
 from locretrieval.scene import Scene
 from locretrieval.scene.images import read_image
+from locretrieval.scene.types import METRES
 
 log = logging.getLogger(__name__)
 
@@ -335,13 +337,18 @@ def select_queries(names: Sequence[str], scores: pd.Series, settings: GallerySet
 
 def outcome_texts(errors: pd.DataFrame) -> pd.Series:
     """Per query (the index), each paradigm and method's outcome as Markdown (`md_text`), ``<br>``-separated:
-    ``approximation ewb k=5: 0.42 m, 1.3°``, ``...: failed (reason)`` or ``...: no reference pose``."""
+    ``approximation ewb k=5: 0.42 m, 1.3°``, ``...: failed (reason)`` or ``...: no reference pose``
+    (positions in the errors' ``position_unit``, metres for a run of an earlier version)."""
     if errors.empty:
         return pd.Series(dtype=str)
     label = errors["paradigm"] + " " + errors["method"] + " k=" + errors["k"].astype(int).astype(str) + ": "
     failure = errors["failure"].fillna("")
+    unit = errors["position_unit"] if "position_unit" in errors else METRES
     errors_text = (
-        errors["position_error_m"].map("{:.2f} m".format) + ", " + errors["rotation_error_deg"].map("{:.1f}°".format)
+        errors["position_error_m"].map("{:.2f} ".format)
+        + unit
+        + ", "
+        + errors["rotation_error_deg"].map("{:.1f}°".format)
     )
     outcome = np.where(
         failure != "",
@@ -363,9 +370,10 @@ def gallery_section(
     scale: tuple[float, float],
     thumbnail_cache: str | os.PathLike | None,
     image_roots: Sequence[str | os.PathLike] | None = (),
+    unit: str = METRES,
 ) -> None:
     """The report's ``Galleries`` section: one table per run and descriptor ranking, its rows
-    drawn into ``galleries/``; ``scale``: the loosest threshold ``(metres, degrees)``;
+    drawn into ``galleries/``; ``scale``: the loosest threshold ``(position in unit, degrees)``;
     ``thumbnail_cache``: see `Thumbnails`; ``image_roots``: folders besides each run whose images
     may be read (`GalleryInputs.read`)."""
     started = time.perf_counter()
@@ -379,7 +387,7 @@ def gallery_section(
             "Every query."
             if settings.queries == "all"
             else f"The {settings.worst} worst queries (largest mean capped error at the loosest threshold, "
-            f"{scale[0]:g} m / {scale[1]:g}°, failures counting 1), "
+            f"{md_text(threshold_label(*scale, unit))}, failures counting 1), "
             f"then {settings.random} drawn at random (seed {settings.seed})."
         )
         + " `relevant`: relevant images among those shown."

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import re
 import urllib.parse
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future
 from functools import partial
 from pathlib import Path
@@ -18,7 +18,6 @@ from pathlib import Path
 import pandas as pd
 
 from locretrieval.cache import safe_name
-from locretrieval.metrics.localization import best_over_k
 from locretrieval.report.plots import threshold_label
 
 #: Characters Markdown (GitHub's and Python-Markdown's, tables included) or HTML could read as
@@ -138,26 +137,82 @@ def _label(level: str | None, value: object) -> str:
     return f"k={value}" if level == "k" and value != "" else str(value)
 
 
+def interval_text(value: float, low: float, high: float, digits: int = 1) -> str:
+    """``79.7 (68.3–87.7)``: a figure and its interval; the figure alone where the interval is not
+    known (a run of an earlier version), ``–`` where there is no figure (the captions say when)."""
+    if pd.isna(value):
+        return "–"
+    if pd.isna(low) or pd.isna(high):
+        return f"{value:.{digits}f}"
+    return f"{value:.{digits}f} ({low:.{digits}f}–{high:.{digits}f})"
+
+
+def difference_text(difference: float, low: float, high: float, verdict: str) -> str:
+    """``+12.5 (+3.1 to +21.9) better``: a paired difference in points, its interval and verdict."""
+    return f"{difference:+.1f} ({low:+.1f} to {high:+.1f}) {verdict}"
+
+
+def localized_text(rows: pd.DataFrame, with_k: bool = False) -> list[str]:
+    """Each localization row's % localized with its interval (`interval_text`), and its k."""
+    texts = [
+        interval_text(row.localized_pct, row.localized_low_pct, row.localized_high_pct) for row in rows.itertuples()
+    ]
+    return [f"{text}, k={k}" for text, k in zip(texts, rows["k"])] if with_k else texts
+
+
 def pivot_localization(table: pd.DataFrame, paradigm: str, method: str) -> pd.DataFrame:
-    """``(ranking, k) x threshold`` table of % localised for one paradigm/method, all queries:
-    a row per ranking and k, a column per threshold, tightest first."""
+    """``(ranking, k) x threshold`` table of % localised with its interval for one paradigm/method,
+    all queries: a row per ranking and k, a column per threshold, tightest first."""
     rows = table[(table["paradigm"] == paradigm) & (table["method"] == method) & (table["subset"] == "all")]
     rows, thresholds = _with_thresholds(rows)
-    return rows.pivot_table(index=["ranking", "k"], columns="threshold", values="localized_pct")[thresholds].round(1)
+    rows = rows.assign(text=localized_text(rows))
+    return rows.pivot(index=["ranking", "k"], columns="threshold", values="text")[thresholds]
+
+
+def best_rows(table: pd.DataFrame, keys: Sequence[str]) -> pd.DataFrame:
+    """The row of each group of ``keys`` where the most queries were localized, the smallest k among equals."""
+    ordered = table.sort_values(["localized_pct", "k"], ascending=[False, True], kind="stable")
+    return ordered.drop_duplicates(list(keys))
 
 
 def best_localization(table: pd.DataFrame) -> pd.DataFrame:
-    """Best % localised over k, all queries: ``(dataset, paradigm, method, ranking) x threshold``."""
+    """Best % localised over k with its interval and k, all queries:
+    ``(dataset, paradigm, method, ranking) x threshold``."""
     rows, thresholds = _with_thresholds(table[table["subset"] == "all"])
-    best = rows.groupby(["dataset", "paradigm", "method", "ranking", "threshold"])["localized_pct"].max()
-    return best.unstack("threshold")[thresholds].round(1)
+    keys = ["dataset", "paradigm", "method", "ranking", "threshold"]
+    best = best_rows(rows, keys)
+    best = best.assign(text=localized_text(best, with_k=True))
+    return best.set_index(keys)["text"].unstack("threshold")[thresholds]
+
+
+def difference_table(best_k: pd.DataFrame) -> pd.DataFrame:
+    """The headline's paired differences (`best_k_comparisons`): a row per dataset, paradigm, method
+    and pair of rankings (those with a descriptor, and each ground truth against each baseline), a
+    column per threshold: ``+12.5 (+3.1 to +21.9) better`` (points, ranking minus other, each at its best k)."""
+    pairs = best_k[
+        (best_k["ranking_kind"] == "descriptor")
+        | (best_k["other_kind"] == "descriptor")
+        | ((best_k["ranking_kind"] == "groundtruth") & (best_k["other_kind"] == "baseline"))
+    ]
+    if pairs.empty:
+        return pd.DataFrame()
+    pairs, thresholds = _with_thresholds(pairs)
+    text = [
+        difference_text(row.difference_pts, row.difference_low_pts, row.difference_high_pts, row.verdict)
+        for row in pairs.itertuples()
+    ]
+    pairs = pairs.assign(text=text, pair=pairs["ranking"] + " vs " + pairs["other"])
+    keys = ["dataset", "paradigm", "method", "pair", "threshold"]
+    return pairs.set_index(keys)["text"].unstack("threshold")[thresholds]
 
 
 def _with_thresholds(rows: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
-    """``rows`` with a ``threshold`` label column, and the labels in order, tightest first."""
-    pairs = list(zip(rows["position_threshold_m"], rows["rotation_threshold_deg"]))
-    labels = [threshold_label(x, y) for x, y in sorted(set(pairs))]
-    return rows.assign(threshold=[threshold_label(x, y) for x, y in pairs]), labels
+    """``rows`` with a ``threshold`` label column (in the rows' `position_unit`), and the labels in
+    order, tightest first."""
+    units = rows["position_unit"] if "position_unit" in rows else pd.Series("m", index=rows.index)
+    triples = list(zip(rows["position_threshold_m"], rows["rotation_threshold_deg"], units))
+    labels = [threshold_label(x, y, unit) for x, y, unit in sorted(set(triples))]
+    return rows.assign(threshold=[threshold_label(x, y, unit) for x, y, unit in triples]), labels
 
 
 def failure_summary(query_errors: pd.DataFrame) -> pd.DataFrame:
@@ -172,10 +227,16 @@ def failure_summary(query_errors: pd.DataFrame) -> pd.DataFrame:
 
 def correlation_matrix(correlations: pd.DataFrame, across: str) -> pd.DataFrame:
     """Coefficients as ``(dataset, paradigm, method, threshold) x across`` (``ranking``
-    for Pearson, Tables 3 and 6; ``k`` for Spearman, Tables 4 and 5)."""
-    thresholds = zip(correlations["position_threshold_m"], correlations["rotation_threshold_deg"])
-    rows = correlations.assign(threshold=[threshold_label(x, y) for x, y in thresholds])
-    return rows.set_index(["dataset", "paradigm", "method", "threshold", across])["coefficient"].unstack(across)
+    for Pearson, Tables 3 and 6; ``k`` for Spearman, Tables 4 and 5), two decimals; an undefined
+    one says why (``undefined: constant localization metric``)."""
+    rows, _ = _with_thresholds(correlations)
+    text = [
+        f"undefined: {reason}" if pd.isna(value) else f"{value:.2f}"
+        for value, reason in zip(rows["coefficient"], rows["undefined_reason"])
+    ]
+    return (
+        rows.assign(text=text).set_index(["dataset", "paradigm", "method", "threshold", across])["text"].unstack(across)
+    )
 
 
 def undefined_summary(correlations: pd.DataFrame) -> pd.DataFrame:
@@ -185,11 +246,34 @@ def undefined_summary(correlations: pd.DataFrame) -> pd.DataFrame:
 
 
 def retrieval_summary(retrieval: pd.DataFrame, ks: Sequence[int] = (1, 5, 10, 20, 50)) -> pd.DataFrame:
-    """P@k, R@k and mAP@k in % for a few k: ``(dataset, ground truth, ranking) x (metric, k)``."""
+    """P@k, R@k and mAP@k in % with their intervals for a few k: ``(dataset, ground truth, ranking) x (metric, k)``."""
     rows = retrieval[(retrieval["subset"] == "all") & retrieval["k"].isin(list(ks))]
-    return rows.pivot_table(index=["dataset", "groundtruth", "ranking"], columns=["metric", "k"], values="value").mul(
-        100
-    )
+    low = rows["value_low"] if "value_low" in rows else pd.Series(float("nan"), index=rows.index)
+    high = rows["value_high"] if "value_high" in rows else pd.Series(float("nan"), index=rows.index)
+    text = [interval_text(100 * v, 100 * lo, 100 * hi) for v, lo, hi in zip(rows["value"], low, high)]
+    keys = ["dataset", "groundtruth", "ranking", "metric", "k"]
+    return rows.assign(text=text).set_index(keys)["text"].unstack(["metric", "k"]).sort_index(axis=1)
+
+
+def median_error_summary(medians: pd.DataFrame) -> pd.DataFrame:
+    """The median errors with their intervals and the % of queries with an estimate, one row per
+    dataset, paradigm, method, ranking and k (`median_errors`)."""
+    unit = medians["position_unit"].iloc[0] if "position_unit" in medians and len(medians) else "m"
+    texts = {
+        f"median position error ({unit})": ("median_position_error_m", "median_position_error_low_m", 2),
+        "median rotation error (deg)": ("median_rotation_error_deg", "median_rotation_error_low_deg", 2),
+        "% with an estimate": ("estimated_pct", "estimated_low_pct", 1),
+    }
+    columns = {}
+    for title, (value, low, digits) in texts.items():
+        high = low.replace("_low", "_high")
+        missing = pd.Series(float("nan"), index=medians.index)
+        columns[title] = [
+            interval_text(v, lo, hi, digits)
+            for v, lo, hi in zip(medians[value], medians.get(low, missing), medians.get(high, missing))
+        ]
+    keys = ["dataset", "paradigm", "method", "ranking", "k"]
+    return pd.DataFrame(columns, index=pd.MultiIndex.from_frame(medians[keys]))
 
 
 def revisited_summary(revisited: pd.DataFrame) -> pd.DataFrame:
@@ -206,5 +290,24 @@ def subset_sizes(results: pd.DataFrame, retrieval: pd.DataFrame) -> pd.DataFrame
 
 
 def best_by_subset(results: pd.DataFrame) -> pd.DataFrame:
-    """`best_over_k` at the loosest threshold, one column per subset."""
-    return best_over_k(results[results["position_threshold_m"] == results["position_threshold_m"].max()], "subset")
+    """Best % localised over k with its interval at the loosest threshold, one column per subset
+    (``paradigm, method, ranking`` rows)."""
+    loosest = results[results["position_threshold_m"] == results["position_threshold_m"].max()]
+    keys = ["paradigm", "method", "ranking", "subset"]
+    best = best_rows(loosest, keys)
+    return best.assign(text=localized_text(best)).set_index(keys)["text"].unstack("subset")
+
+
+def separation_lines(separation: pd.DataFrame, units: Mapping[str, str]) -> list[str]:
+    """A sentence per paradigm and threshold where no ground truth is distinguishable from the baseline
+    (`locretrieval.metrics.comparison.separation`; ``units``: each dataset's position unit): that
+    paradigm cannot rank descriptors there."""
+    lines = []
+    for row in separation[~separation["separates"].astype(bool)].itertuples():
+        threshold = threshold_label(row.position_threshold_m, row.rotation_threshold_deg, units.get(row.dataset, "m"))
+        lines.append(
+            f"**{md_text(row.paradigm)} at {md_text(threshold)} does not separate rankings on "
+            f"{md_text(row.dataset)}**: no ground truth is distinguishable from the baseline "
+            f"({md_text(row.pairs)}), so where a descriptor lies between them says nothing about it there."
+        )
+    return lines

@@ -1,7 +1,8 @@
 """Figures drawn from the tidy result tables only (no recomputation), as PNG and/or PDF.
 
 Descriptor rankings are solid lines, ground-truth rankings dashed (the upper bounds of
-paper Figs. 4-6) and baselines dotted; a ranking keeps its colour in every figure.
+paper Figs. 4-6) and baselines dotted; a ranking keeps its colour in every figure. A curve of
+figures over queries (% localized, P@k, R@k, mAP@k) carries its interval as a light band of its colour.
 
 matplotlib is imported by the first figure drawn (`pyplot`), not with this module: a run
 without figures (``report.figure_formats=[]``) does not load it.
@@ -19,6 +20,8 @@ import numpy as np
 import pandas as pd
 
 from locretrieval.cache import safe_name
+from locretrieval.metrics.comparison import REFERENCE_METHOD
+from locretrieval.scene.types import METRES
 
 if TYPE_CHECKING:
     import matplotlib.pyplot as plt
@@ -39,7 +42,8 @@ RANKING_COLORS = (
 )
 #: Line style per ranking kind: descriptors solid, ground truth dashed (paper Fig. 4).
 LINE_STYLES = {"descriptor": "-", "groundtruth": "--", "baseline": ":"}
-REFERENCE_METHOD = "ewb"
+#: The opacity of an interval's band.
+BAND_ALPHA = 0.12
 METRIC_LABELS = {"precision": "P@k", "recall": "R@k", "map": "mAP@k", "average_precision": "AP@k"}  # AP: per query
 PANEL_WIDTH, PANEL_HEIGHT = 4.2, 3.6
 #: Room in inches around and between the panels, for the text every panel has: tick labels of at
@@ -52,6 +56,9 @@ SMALL_CHARACTER_INCHES = 7 * 0.65 / 72
 #: `savefig` options per file suffix: PNG at zlib's fastest level (measured: 40 % less encoding time, 5 % larger files).
 SAVE_OPTIONS = {".png": {"pil_kwargs": {"compress_level": 1}}}
 PERCENT_LIMITS = (-2, 102)  # a little room around 0 and 100 %
+#: The columns of a localization row's interval, and of a retrieval row's (in %, `plot_retrieval_curves`).
+LOCALIZED_BAND = ("localized_low_pct", "localized_high_pct")
+PERCENT_BAND = ("low_percent", "high_percent")
 THRESHOLD_COLUMNS = ["position_threshold_m", "rotation_threshold_deg"]
 #: One correlation figure per dataset x ground truth x retrieval metric.
 FIGURE_KEYS = ["dataset", "groundtruth", "retrieval_metric"]
@@ -112,8 +119,17 @@ def _panels(count: int, panel_width: float = PANEL_WIDTH) -> tuple[plt.Figure, n
     return figure, axes[0]
 
 
-def threshold_label(position: float, rotation: float) -> str:
-    return f"{position:g} m, {rotation:g}°"
+def threshold_label(position: float, rotation: float, unit: str = METRES) -> str:
+    """``0.25 m, 2°``; a scene without a metric scale names its ``unit`` (``0.25 model units, 2°``)."""
+    return f"{position:g} {unit}, {rotation:g}°"
+
+
+def position_unit(rows: pd.DataFrame) -> str:
+    """The unit of the position thresholds of ``rows`` (their ``position_unit``; metres for a run of
+    an earlier version, which has no such column)."""
+    if "position_unit" in rows and len(rows):
+        return str(rows["position_unit"].iloc[0])
+    return METRES
 
 
 def headline_threshold(results: pd.DataFrame, paradigm: str) -> tuple[float, float]:
@@ -164,21 +180,33 @@ def _log_k_axis(axis: plt.Axes, ks: Iterable[int]) -> None:
 
 
 def _line(
-    axis: plt.Axes, rows: pd.DataFrame, x: str, y: str, label: str, kind: str, color: str, style: str | None = None
+    axis: plt.Axes,
+    rows: pd.DataFrame,
+    x: str,
+    y: str,
+    label: str,
+    kind: str,
+    color: str,
+    style: str | None = None,
+    band: tuple[str, str] | None = None,
 ) -> None:
-    """One curve; markers only on short curves, where they do not hide the dashes."""
+    """One curve; markers only on short curves, where they do not hide the dashes; with ``band``
+    (the columns of an interval's ends) the interval as a light band, where it is known."""
     rows = rows.sort_values(x)
     marker = "o" if len(rows) <= 15 else None
     axis.plot(
         rows[x], rows[y], style or LINE_STYLES.get(kind, "-"), color=color, marker=marker, markersize=3, label=label
     )
+    if band is not None and set(band) <= set(rows.columns) and rows[list(band)].notna().all(axis=None):
+        axis.fill_between(rows[x], rows[band[0]], rows[band[1]], color=color, alpha=BAND_ALPHA, linewidth=0)
 
 
 def plot_localization_vs_k(
     table: pd.DataFrame, figures: FigureFolder, colors: Mapping[str, str], methods: Iterable[str] | None = None
 ) -> list[Path]:
     """One figure per dataset x paradigm x method (those in ``methods``, default all): %
-    localised vs k over all queries, a panel per threshold (paper Figs. 4-6), ground truth dashed."""
+    localised vs k over all queries with its interval, a panel per threshold (paper Figs. 4-6),
+    ground truth dashed."""
     table = table[table["subset"] == "all"]
     written = []
     for (dataset, paradigm), rows in table.groupby(["dataset", "paradigm"], sort=True):
@@ -192,9 +220,13 @@ def plot_localization_vs_k(
                     (curves["position_threshold_m"] == position) & (curves["rotation_threshold_deg"] == rotation)
                 ]
                 for (ranking, kind, used), line in at.groupby(["ranking", "ranking_kind", "method"], sort=True):
-                    _line(axis, line, "k", "localized_pct", f"{ranking} ({used})", kind, colors[ranking])
+                    label = f"{ranking} ({used})"
+                    _line(axis, line, "k", "localized_pct", label, kind, colors[ranking], band=LOCALIZED_BAND)
                 _log_k_axis(axis, at["k"])
-                axis.set(ylabel="% localized", ylim=PERCENT_LIMITS, title=threshold_label(position, rotation))
+                title = threshold_label(position, rotation, position_unit(at))
+                axis.set(
+                    ylabel=f"% localized ({int(at['num_queries'].max())} queries)", ylim=PERCENT_LIMITS, title=title
+                )
                 axis.grid(True, alpha=0.3)
             axes[-1].legend(fontsize=7, loc="best")
             figure.suptitle(f"{dataset}: {paradigm}, {method}")
@@ -204,7 +236,7 @@ def plot_localization_vs_k(
 
 def plot_retrieval_curves(retrieval: pd.DataFrame, figures: FigureFolder, colors: Mapping[str, str]) -> list[Path]:
     """One figure per dataset x metric: P@k (Fig. 7), R@k (Fig. 10) or mAP@k vs k in %, over
-    all queries, a panel per ground truth, every ranking a line."""
+    all queries, a panel per ground truth, every ranking a line with its interval."""
     retrieval = retrieval[retrieval["subset"] == "all"]
     written = []
     for (dataset, metric), rows in retrieval.groupby(["dataset", "metric"], sort=True):
@@ -213,7 +245,7 @@ def plot_retrieval_curves(retrieval: pd.DataFrame, figures: FigureFolder, colors
         for axis, groundtruth in zip(axes, groundtruths):
             curves = rows[rows["groundtruth"] == groundtruth]
             for (ranking, kind), line in curves.groupby(["ranking", "ranking_kind"], sort=True):
-                _line(axis, line.assign(percent=100 * line["value"]), "k", "percent", ranking, kind, colors[ranking])
+                _line(axis, in_percent(line), "k", "percent", ranking, kind, colors[ranking], band=PERCENT_BAND)
             axis.set(
                 xlabel="k (retrieved images)",
                 ylabel=f"{METRIC_LABELS.get(metric, metric)} (%)",
@@ -225,6 +257,14 @@ def plot_retrieval_curves(retrieval: pd.DataFrame, figures: FigureFolder, colors
         figure.suptitle(f"{dataset}: {METRIC_LABELS.get(metric, metric)}")
         written.append(figures.save(figure, f"{dataset}_{metric}_at_k"))
     return written
+
+
+def in_percent(rows: pd.DataFrame) -> pd.DataFrame:
+    """Retrieval rows with their value and interval in % (``percent``, `PERCENT_BAND`)."""
+    percent = {"percent": 100 * rows["value"]}
+    if {"value_low", "value_high"} <= set(rows.columns):
+        percent |= {PERCENT_BAND[0]: 100 * rows["value_low"], PERCENT_BAND[1]: 100 * rows["value_high"]}
+    return rows.assign(**percent)
 
 
 def plot_correlation_scatter(
@@ -260,7 +300,7 @@ def plot_correlation_scatter(
             axis.set(
                 xlabel=f"{METRIC_LABELS.get(metric, metric)} (%)",
                 ylabel="% localized",
-                title=f"{paradigm}, {method} ({threshold_label(position, rotation)})",
+                title=f"{paradigm}, {method} ({threshold_label(position, rotation, position_unit(panel))})",
             )
             axis.grid(True, alpha=0.3)
             axis.legend(fontsize=7, loc="best")
@@ -322,7 +362,7 @@ def plot_subset_comparison(
     ``groundtruth``."""
     results = at_headline_thresholds(results[results["ranking_kind"] == "descriptor"])
     retrieval = retrieval[(retrieval["ranking_kind"] == "descriptor") & (retrieval["groundtruth"] == groundtruth)]
-    retrieval = retrieval[retrieval["metric"].isin(["precision", "recall"])].assign(percent=lambda t: 100 * t["value"])
+    retrieval = in_percent(retrieval[retrieval["metric"].isin(["precision", "recall"])])
     written = []
     for dataset in sorted(set(results["dataset"]) | set(retrieval["dataset"])):
         localization = results[results["dataset"] == dataset]
@@ -338,7 +378,7 @@ def plot_subset_comparison(
                     rows = localization[(localization["paradigm"] == key[0]) & (localization["method"] == key[1])]
                     y, ylabel = "localized_pct", "% localized"
                     position, rotation = rows[THRESHOLD_COLUMNS].iloc[0]
-                    title = f"{key[0]}, {key[1]} ({threshold_label(position, rotation)})"
+                    title = f"{key[0]}, {key[1]} ({threshold_label(position, rotation, position_unit(rows))})"
                 else:
                     rows = ranked[ranked["metric"] == key]
                     y, ylabel, title = "percent", f"{METRIC_LABELS[key]} (%)", f"{METRIC_LABELS[key]} ({groundtruth})"

@@ -29,6 +29,7 @@ from locretrieval.report.html import with_script_policy
 from locretrieval.report.markdown import md_link
 from locretrieval.report.run_files import inside
 from locretrieval.scene import ImageSet, Scene
+from locretrieval.scene.types import METRES
 
 if TYPE_CHECKING:
     import plotly.graph_objects as go
@@ -109,14 +110,15 @@ def scene_figure(
     if map_points is not None and len(map_points):
         fixed.append(map_trace(map_points, settings.max_map_points, surroundings(scene, depth)))
     fixed += reference_traces(scene.queries, queries, depth)
-    selections = estimate_traces(scene.queries, queries, estimated_poses, depth)
+    selections = estimate_traces(scene.queries, queries, estimated_poses, depth, scene.position_unit)
     for trace in selections[0] if selections else ():
         trace.visible = True
     figure = go.Figure(fixed + [trace for pair in selections for trace in pair])
+    unit = scene.position_unit
     figure.update_layout(
         title=f"{scene.name}: {len(cameras)} of {len(scene.database)} database cameras, {len(queries)} of "
-        f"{len(scene.queries)} queries (frusta {depth:.2g} m deep)",
-        scene={"aspectmode": "data", "xaxis_title": "x (m)", "yaxis_title": "y (m)", "zaxis_title": "z (m)"},
+        f"{len(scene.queries)} queries (frusta {depth:.2g} {unit} deep)",
+        scene={"aspectmode": "data", **{f"{axis}axis_title": f"{axis} ({unit})" for axis in "xyz"}},
         legend={"itemsizing": "constant"},
         margin={"l": 0, "r": 0, "t": 40, "b": 0},
         updatemenus=[selection_menu(len(fixed), selections)] if selections else [],
@@ -235,10 +237,10 @@ def reference_traces(queries: ImageSet, drawn: np.ndarray, depth: float) -> list
 
 
 def estimate_traces(
-    queries: ImageSet, drawn: np.ndarray, estimated_poses: pd.DataFrame, depth: float
+    queries: ImageSet, drawn: np.ndarray, estimated_poses: pd.DataFrame, depth: float, unit: str = METRES
 ) -> list[tuple["go.Scatter3d", "go.Scatter3d"]]:
     """Per ranking x paradigm x method x k: its estimated centres and its lines; descriptor
-    rankings first (``ranking_kind``, when given), then by name, paradigm, method and k."""
+    rankings first (``ranking_kind``, when given), then by name, paradigm, method and k; errors in ``unit``."""
     missing = [c for c in ["query", *SELECTION, *POSE_COLUMNS] if c not in estimated_poses]
     if missing:
         raise ValueError(f"estimated poses lack columns {missing} (found {list(estimated_poses.columns)})")
@@ -249,7 +251,7 @@ def estimate_traces(
         raise ValueError(f"estimated poses of queries not in the scene, e.g. {rows.loc[unknown, 'query'].iloc[0]!r}")
     rows = rows[rows["_query"].isin(set(drawn.tolist()))]
     groups = sorted(rows.groupby(SELECTION, sort=True), key=lambda item: _is_baseline(item[1]))  # stable
-    return [selection_traces(queries, group, dict(zip(SELECTION, key)), depth) for key, group in groups]
+    return [selection_traces(queries, group, dict(zip(SELECTION, key)), depth, unit) for key, group in groups]
 
 
 def _is_baseline(rows: pd.DataFrame) -> bool:
@@ -258,7 +260,7 @@ def _is_baseline(rows: pd.DataFrame) -> bool:
 
 
 def selection_traces(
-    queries: ImageSet, rows: pd.DataFrame, selection: dict, depth: float
+    queries: ImageSet, rows: pd.DataFrame, selection: dict, depth: float, unit: str = METRES
 ) -> tuple["go.Scatter3d", "go.Scatter3d"]:
     """One selection's estimated centres (hover: query index, position and rotation errors) and,
     per query, its optical axis (``depth`` long) and the segment to its reference centre."""
@@ -293,7 +295,9 @@ def selection_traces(
         meta=meta,
         visible=False,
         customdata=np.stack([members, position, rotation], axis=1).astype(np.float32),
-        hovertemplate="query #%{customdata[0]}<br>%{customdata[1]:.2f} m, %{customdata[2]:.1f}°<extra>estimate</extra>",
+        hovertemplate="query #%{customdata[0]}<br>%{customdata[1]:.2f} "
+        + unit
+        + ", %{customdata[2]:.1f}°<extra>estimate</extra>",
     )
     lines = go.Scatter3d(
         **xyz(segments),

@@ -11,11 +11,12 @@ from pathlib import Path
 import pandas as pd
 
 from locretrieval.errors import DataFileError
-from locretrieval.metrics.localization import QUERY_ERROR_COLUMNS, RESULT_COLUMNS
+from locretrieval.metrics.localization import QUERY_ERROR_COLUMNS, QUERY_LOCALIZED_COLUMNS, RESULT_COLUMNS
 from locretrieval.metrics.retrieval import QUERY_RETRIEVAL_COLUMNS, RETRIEVAL_COLUMNS
 from locretrieval.metrics.revisited import REVISITED_COLUMNS
 from locretrieval.metrics.subsets import SUBSET_COLUMNS
 from locretrieval.report.run_files import RERUN, load_yaml, run_file
+from locretrieval.scene.types import METRES
 
 log = logging.getLogger(__name__)
 
@@ -23,25 +24,59 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class TableSpec:
     """A run's table file, the columns it must hold and those that identify a row; ``derived``:
-    columns that runs of earlier versions lack, copied from another (``{column: source}``)."""
+    columns that runs of earlier versions lack, copied from another (``{column: source}``);
+    ``defaults``: columns they lack, with the value they meant (``{column: value}``; NaN: unknown,
+    e.g. the intervals earlier versions did not compute)."""
 
     file: str
     columns: list[str]
     keys: list[str]
     derived: dict[str, str] = field(default_factory=dict)
+    defaults: dict[str, object] = field(default_factory=dict)
 
 
-def _spec(file: str, columns: list[str], values: Sequence[str], derived: dict[str, str] | None = None) -> TableSpec:
-    return TableSpec(file, columns, [c for c in columns if c not in values], derived or {})
+def _spec(
+    file: str,
+    columns: list[str],
+    values: Sequence[str],
+    derived: dict[str, str] | None = None,
+    defaults: dict[str, object] | None = None,
+) -> TableSpec:
+    return TableSpec(file, columns, [c for c in columns if c not in values], derived or {}, defaults or {})
+
+
+UNKNOWN = float("nan")
+#: The columns of the localization tables earlier versions did not write: positions were metres.
+LOCALIZATION_DEFAULTS = {
+    "localized": UNKNOWN,
+    "localized_low_pct": UNKNOWN,
+    "localized_high_pct": UNKNOWN,
+    "position_unit": METRES,
+}
 
 
 #: Tables of a run directory; only ``results`` is required.
 TABLES: dict[str, TableSpec] = {
-    "results": _spec("results.csv", RESULT_COLUMNS, ["localized_pct", "num_queries"], {"k_effective": "k"}),
-    "query_errors": _spec(
-        "query_errors.csv.gz", QUERY_ERROR_COLUMNS, ["position_error_m", "rotation_error_deg", "failure"]
+    "results": _spec(
+        "results.csv",
+        RESULT_COLUMNS,
+        ["localized_pct", "num_queries", *LOCALIZATION_DEFAULTS],
+        {"k_effective": "k"},
+        LOCALIZATION_DEFAULTS,
     ),
-    "retrieval": _spec("retrieval.csv", RETRIEVAL_COLUMNS, ["value", "num_queries"]),
+    "query_localized": _spec("query_localized.csv.gz", QUERY_LOCALIZED_COLUMNS, ["localized"]),
+    "query_errors": _spec(
+        "query_errors.csv.gz",
+        QUERY_ERROR_COLUMNS,
+        ["position_error_m", "rotation_error_deg", "failure", "position_unit"],
+        defaults={"position_unit": METRES},
+    ),
+    "retrieval": _spec(
+        "retrieval.csv",
+        RETRIEVAL_COLUMNS,
+        ["value", "num_queries", "value_low", "value_high"],
+        defaults={"value_low": UNKNOWN, "value_high": UNKNOWN},
+    ),
     "query_retrieval": _spec("query_retrieval.csv.gz", QUERY_RETRIEVAL_COLUMNS, ["value"]),
     "groundtruth_statistics": TableSpec(
         "groundtruth_statistics.csv", columns=["dataset", "groundtruth"], keys=["dataset", "groundtruth"]
@@ -53,7 +88,7 @@ TABLES: dict[str, TableSpec] = {
 #: Columns read as text, verbatim (never as numbers or NaN): names and labels.
 TEXT_COLUMNS = {
     "dataset", "subset", "ranking", "ranking_kind", "groundtruth", "paradigm", "method", "metric",
-    "query", "image", "failure", "mask_source", "protocol",
+    "query", "image", "failure", "mask_source", "protocol", "position_unit",
 }  # fmt: skip
 
 #: Optional free-form summary of a run (``{"label": value}``), shown in the report.
@@ -68,6 +103,7 @@ class RunTables:
 
     run_dirs: list[Path]
     results: pd.DataFrame
+    query_localized: pd.DataFrame
     query_errors: pd.DataFrame
     retrieval: pd.DataFrame
     query_retrieval: pd.DataFrame
@@ -102,7 +138,7 @@ def read_table(path: Path, spec: TableSpec) -> pd.DataFrame:
         header = list(pd.read_csv(path, nrows=0).columns)
     except pd.errors.EmptyDataError:
         return pd.DataFrame(columns=spec.columns)
-    missing = [c for c in spec.columns if c not in header and c not in spec.derived]
+    missing = [c for c in spec.columns if c not in header and c not in spec.derived and c not in spec.defaults]
     if missing:
         raise DataFileError(path, f"missing columns {missing} (found {header})")
     text = [c for c in header if c in TEXT_COLUMNS]
@@ -116,6 +152,7 @@ def read_table(path: Path, spec: TableSpec) -> pd.DataFrame:
         c for c in table.columns if c not in text and not pd.api.types.is_numeric_dtype(table[c])
     ]
     table = numeric_columns(table, unparsed, path)
+    table = table.assign(**{column: value for column, value in spec.defaults.items() if column not in header})
     return table.assign(**{column: table[source] for column, source in spec.derived.items() if column not in header})
 
 

@@ -117,7 +117,7 @@ class ReconstructionQuality:
             "mean track length": round(self.mean_track_length, 2),
             "mean reprojection error (px)": round(self.mean_reprojection_error_px, 3),
             "scale": self.scale_text(),
-            "metres per model unit": self.metres_per_unit,
+            "metres per model unit": None if self.scale_source == "unitless" else self.metres_per_unit,
             "GPS residual median (m)": self.gps_residual_median_m,
             "GPS residual RMS (m)": self.gps_residual_rms_m,
         }

@@ -15,6 +15,11 @@ from locretrieval.config import ConfigError, require_part
 from locretrieval.scene.ltvl import KaptureNames, LtvlNames
 from locretrieval.scene.reconstruction import Observations, ReconstructionQuality
 
+#: The unit of positions and position thresholds of a scene with a metric scale; a reconstruction
+#: without one (``data.unitless=true``) is in `MODEL_UNITS`.
+METRES = "m"
+MODEL_UNITS = "model units"
+
 #: COLMAP camera models and the indices of (fx, fy, cx, cy) in their parameter vectors.
 #: Single-focal models repeat the focal length.
 CAMERA_MODELS: dict[str, tuple[int, int, int, int]] = {
@@ -240,6 +245,13 @@ class Scene:
         if not self.database.has_pose.all():
             missing = [n for n, ok in zip(self.database.names, self.database.has_pose) if not ok]
             raise ValueError(f"scene {self.name!r}: database images without pose: {missing[:5]}")
+
+    @property
+    def position_unit(self) -> str:
+        """The unit of its positions and of the position thresholds: `METRES`, or `MODEL_UNITS` for a
+        reconstruction run without a metric scale (``data.unitless=true``)."""
+        unitless = self.quality is not None and self.quality.scale_source == "unitless"
+        return MODEL_UNITS if unitless else METRES
 
     def far_plane(self, far: float | None, key: str) -> float:
         """``far`` (metres), or the scene's ``frustum_far`` where ``far`` (the config ``key``) is ``None``."""

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
+import math
 import time
 from collections.abc import Callable, Collection, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
 
@@ -44,21 +47,81 @@ Reported = TypeVar("Reported")
 TRAINED = "trained"
 
 
-def metric_rows(result: BenchmarkResult, ranking: str, retrieval_ks: Collection[int]) -> dict[str, float]:
-    """``{key: value}`` of one ranking on all queries: ``val/<paradigm>/<method>/k<k>/<X>m_<Y>deg``
-    (% localized) and ``val/retrieval/<groundtruth>/<metric>@<k>`` for ``k`` in ``retrieval_ks``."""
-    metrics = {}
+#: The prefixes of the validation metrics: ``val/`` on the queries a run may select on (checkpoints,
+#: early stopping, a sweep's objective), ``held_out/`` on the validation queries kept out of every
+#: selection (``training.validation.held_out``), whose figures a sweep reports.
+SELECTION, HELD_OUT = "val", "held_out"
+#: The subsets of the validation queries the two prefixes are computed on.
+SPLIT_SUBSETS = {SELECTION: "selection", HELD_OUT: "held_out"}
+#: Columns of ``validation.csv`` (`LocalizationValidation.history_table`), and what a figure's
+#: interval is when a checkpoint of an earlier version kept none.
+VALIDATION_COLUMNS = ["epoch", "metric", "value", "low", "high", "num_queries"]
+UNKNOWN_DETAIL = [float("nan"), float("nan"), float("nan")]
+#: Columns of ``validation_queries.csv.gz`` (`LocalizationValidation.outcome_table`).
+OUTCOME_COLUMNS = ["ranking", "epoch", "metric", "query", "split", "localized"]
+#: Points of % localized (the half width of a 95 % interval at 50 %) beyond which the queries a run
+#: selects on are too few to tell its epochs or trials apart (`LocalizationValidation.warn_coarse`).
+COARSE_POINTS = 10.0
+
+
+@dataclass(frozen=True)
+class Figure:
+    """A validation figure: its ``value`` (% localized, or a retrieval metric's fraction), its
+    interval ``low`` to ``high`` (`locretrieval.metrics.uncertainty`) and the ``num_queries`` it is over."""
+
+    value: float
+    low: float
+    high: float
+    num_queries: int
+
+
+def localization_key(paradigm: str, method: str, k: int, position: float, rotation: float) -> str:
+    """``<paradigm>/<method>/k<k>/<X>m_<Y>deg``: a localization figure's key after its prefix."""
+    return f"{paradigm}/{method}/k{k}/{position:g}m_{rotation:g}deg"
+
+
+def figure_rows(
+    result: BenchmarkResult, ranking: str, retrieval_ks: Collection[int], subset: str = "all", prefix: str = SELECTION
+) -> dict[str, Figure]:
+    """``{key: Figure}`` of one ranking on a subset of the queries: ``<prefix>/<paradigm>/<method>/k<k>/<X>m_<Y>deg``
+    (% localized) and ``<prefix>/retrieval/<groundtruth>/<metric>@<k>`` for ``k`` in ``retrieval_ks``."""
+    figures = {}
     table = result.localization
-    rows = table[(table["subset"] == "all") & (table["ranking"] == ranking)]
+    rows = table[(table["subset"] == subset) & (table["ranking"] == ranking)]
     for row in rows.itertuples():
-        threshold = f"{row.position_threshold_m:g}m_{row.rotation_threshold_deg:g}deg"
-        metrics[f"val/{row.paradigm}/{row.method}/k{row.k}/{threshold}"] = float(row.localized_pct)
+        key = localization_key(row.paradigm, row.method, row.k, row.position_threshold_m, row.rotation_threshold_deg)
+        figures[f"{prefix}/{key}"] = Figure(
+            float(row.localized_pct), float(row.localized_low_pct), float(row.localized_high_pct), int(row.num_queries)
+        )
     if len(result.retrieval):
         table = result.retrieval
-        rows = table[(table["subset"] == "all") & (table["ranking"] == ranking) & table["k"].isin(list(retrieval_ks))]
+        rows = table[(table["subset"] == subset) & (table["ranking"] == ranking) & table["k"].isin(list(retrieval_ks))]
         for row in rows.itertuples():
-            metrics[f"val/retrieval/{row.groundtruth}/{row.metric}@{row.k}"] = float(row.value)
-    return metrics
+            figures[f"{prefix}/retrieval/{row.groundtruth}/{row.metric}@{row.k}"] = Figure(
+                float(row.value), float(row.value_low), float(row.value_high), int(row.num_queries)
+            )
+    return figures
+
+
+def metric_rows(
+    result: BenchmarkResult, ranking: str, retrieval_ks: Collection[int], subset: str = "all", prefix: str = SELECTION
+) -> dict[str, float]:
+    """The values of `figure_rows`: what a validation logs."""
+    return {key: figure.value for key, figure in figure_rows(result, ranking, retrieval_ks, subset, prefix).items()}
+
+
+def query_outcomes(result: BenchmarkResult, ranking: str, queries: Sequence[str]) -> dict[str, np.ndarray]:
+    """``{localization key: int8 [Q]}`` of one ranking: each of ``queries`` localized (1) or not (0), -1
+    where it was not evaluated (no reference pose); the keys as `localization_key`'s."""
+    rows = result.query_localized[result.query_localized["ranking"] == ranking]
+    position = pd.Index(queries)
+    outcomes = {}
+    keys = ["paradigm", "method", "k", "position_threshold_m", "rotation_threshold_deg"]
+    for (paradigm, method, k, x, y), group in rows.groupby(keys, sort=False):
+        outcome = np.full(len(queries), -1, dtype=np.int8)
+        outcome[position.get_indexer(group["query"])] = group["localized"].to_numpy(dtype=np.int8)
+        outcomes[localization_key(paradigm, method, k, x, y)] = outcome
+    return outcomes
 
 
 def every_validation_settings(settings: BenchmarkSettings) -> BenchmarkSettings:
@@ -78,17 +141,19 @@ def validation_metrics(settings: BenchmarkSettings, groundtruths: Collection[str
     """The `metric_rows` keys a validation logs: `every_validation_metrics`, and ``with_sfm`` those
     of the SfM paradigms too (a validation every ``sfm_every_n_epochs``)."""
     paradigms = (settings if with_sfm else every_validation_settings(settings)).paradigms
-    thresholds = [f"{position:g}m_{rotation:g}deg" for position, rotation in settings.metrics.thresholds]
     keys = [
-        f"val/{name}/{method}/k{k}/{threshold}"
+        f"{SELECTION}/{localization_key(name, method, k, position, rotation)}"
         for name in paradigms.enabled()
         for method in getattr(paradigms, name).method_names()
         for k in getattr(paradigms, name).k
-        for threshold in thresholds
+        for position, rotation in settings.metrics.thresholds
     ]
     ks = [k for k in settings.paradigms.ks() if k <= settings.retrieval.depth]
     return keys + [
-        f"val/retrieval/{groundtruth}/{metric}@{k}" for groundtruth in groundtruths for metric in METRICS for k in ks
+        f"{SELECTION}/retrieval/{groundtruth}/{metric}@{k}"
+        for groundtruth in groundtruths
+        for metric in METRICS
+        for k in ks
     ]
 
 
@@ -103,7 +168,12 @@ class LocalizationValidation(L.Callback):
     ``relevance_scope``: the retrieval metrics' relevance (`relevances`). ``gallery_queries`` fixed
     validation queries have their top ``gallery_k`` logged as an image at each validation.
     ``headline``: the metrics a validation prints (the training report's gap rows).
-    ``history`` holds every validation (epoch -1: before training).
+    ``held_out``: the share of the validation queries kept out of every selection (drawn with
+    ``budget_seed``): ``val/`` metrics are on the others (what checkpoints, early stopping and a
+    sweep's objective read), ``held_out/`` metrics on them (what a sweep reports); 0: ``val/`` on all.
+    ``history`` holds every validation (epoch -1: before training), ``details`` each figure's
+    interval and number of queries (`Figure`), ``outcomes`` each query's outcome per localization
+    key (`query_outcomes`); ``reference*`` the same of the reference rankings.
 
     Under DDP every rank takes part (`locretrieval.training.distributed`): each describes a share
     of the images and every rank holds all descriptors; each does its share of the SfM paradigms'
@@ -131,6 +201,7 @@ class LocalizationValidation(L.Callback):
         headline: Sequence[str] = (),
         budget_minutes: float | None = None,
         budget_seed: int = 0,
+        held_out: float = 0.0,
     ) -> None:
         require(every_n_epochs >= 1, "every_n_epochs", f"must be >= 1, got {every_n_epochs}")
         require(
@@ -148,14 +219,20 @@ class LocalizationValidation(L.Callback):
         self.relevance = relevances(self.groundtruths, relevance_scope)
         self.preprocessing, self.extraction = preprocessing, extraction
         self.every_n_epochs, self.sfm_every_n_epochs = every_n_epochs, sfm_every_n_epochs
+        require(0 <= held_out < 1, "held_out", f"must be a share in [0, 1), got {held_out}")
         self.cache_dir, self.random_seed = cache_dir, random_seed
-        self.subsets = {"all": np.ones(len(scene.queries), dtype=bool)}
         self.history: list[dict[str, float]] = []
+        self.details: list[dict[str, list[float]]] = []  # per validation: key -> [low, high, num_queries]
+        self.outcomes: list[dict[str, np.ndarray]] = []  # per validation: localization key -> int8 per query
         self.reference: dict[str, dict[str, float]] = {}
+        self.reference_details: dict[str, dict[str, list[float]]] = {}
+        self.reference_outcomes: dict[str, dict[str, np.ndarray]] = {}
         self.sfm_stages: dict[str, dict] = {}  # per validation with SfM: its stages' seconds and work
         self.gallery_queries, self.gallery_k, self.gallery_size = gallery_queries, gallery_k, gallery_size
         self.gallery_rows = self._gallery_rows()
         self.budget_minutes, self.budget_seed = budget_minutes, budget_seed
+        self.held_out = float(held_out)
+        self.subsets, self.splits = self._split_queries()
         self.validated_queries: list[str] | None = None  # with a budget: the queries every validation uses
         # relevance marks by relative pose, else the first ground truth there is
         self.gallery_groundtruth = (
@@ -173,12 +250,57 @@ class LocalizationValidation(L.Callback):
             np.random.default_rng(0).choice(posed, size=min(self.gallery_queries, len(posed)), replace=False)
         )
 
+    def _split_queries(self) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+        """The query subsets a validation's benchmark computes (``all``, and with ``held_out`` the
+        selection and held-out queries, drawn with ``budget_seed``), and the subset of each metric
+        prefix (`SELECTION`, `HELD_OUT`)."""
+        count = len(self.scene.queries)
+        everything = np.ones(count, dtype=bool)
+        if not self.held_out:
+            return {"all": everything}, {SELECTION: "all"}
+        held = np.zeros(count, dtype=bool)
+        held[np.random.default_rng(self.budget_seed).permutation(count)[: round(self.held_out * count)]] = True
+        if held.all() or not held.any():
+            raise ConfigError(
+                f"training.validation.held_out: {self.held_out:g} of {count} validation queries leaves "
+                f"{'none to select on' if held.all() else 'none held out'}; validate on more queries or change it"
+            )
+        return {"all": everything, "selection": ~held, "held_out": held}, dict(SPLIT_SUBSETS)
+
+    def resolution(self) -> str:
+        """The queries of each split and what one of them is worth, in words (the validation log's)."""
+        counts = {prefix: int(self.subsets[subset].sum()) for prefix, subset in self.splits.items()}
+        names = {SELECTION: "selected on", HELD_OUT: "held out"}
+        return "; ".join(
+            f"{count} queries {names[prefix]} (one query: {100 / count:.3g} points)" for prefix, count in counts.items()
+        )
+
+    @property
+    def selected_queries(self) -> int:
+        """How many validation queries the ``val/`` metrics are over."""
+        return int(self.subsets[self.splits[SELECTION]].sum())
+
+    def warn_coarse(self) -> None:
+        """A warning when the queries selected on are too few to tell a few points apart: the half
+        width of a 95 % interval at 50 % localized is over `COARSE_POINTS`."""
+        count = self.selected_queries
+        half_width = 100 * 1.96 * math.sqrt(0.25 / count)
+        if half_width > COARSE_POINTS:
+            log.warning(
+                "validation selects on %d queries: one query is %.3g points and a 95 %% interval at 50 %% localized "
+                "spans +-%.1f points, so epochs (and a sweep's trials) closer than that are not told apart; "
+                "validate on more queries for finer differences (a larger render, training.validation.max_queries)",
+                count,
+                100 / count,
+                half_width,
+            )
+
     def _keep_queries(self, rows: np.ndarray) -> None:
         """Validate on the queries ``rows`` only (sorted indices), from now on."""
         self.scene = dataclasses.replace(self.scene, queries=self.scene.queries.subset(rows))
         self.groundtruths = {name: groundtruth.of_queries(rows) for name, groundtruth in self.groundtruths.items()}
         self.relevance = relevances(self.groundtruths, self.relevance_scope)
-        self.subsets = {"all": np.ones(len(rows), dtype=bool)}
+        self.subsets, self.splits = self._split_queries()
         self.gallery_rows = self._gallery_rows()
         self.validated_queries = list(self.scene.queries.names)
 
@@ -271,19 +393,24 @@ class LocalizationValidation(L.Callback):
             rankings, trained = [r.of_queries(rows) for r in rankings], trained.of_queries(rows)
         if rankings:
 
-            def report(result: BenchmarkResult) -> dict[str, dict[str, float]]:
+            def report(result: BenchmarkResult) -> dict[str, tuple[dict[str, Figure], dict[str, np.ndarray]]]:
                 if result.sfm_stages:
                     self.sfm_stages["references"] = result.sfm_stages
-                return {r.name: metric_rows(result, r.name, self.settings.paradigms.ks()) for r in rankings}
+                return {r.name: self._measured(result, r.name) for r in rankings}
 
-            self.reference = self._benchmark(rankings, self.sfm_every_n_epochs is not None, ranks, report)
-            for name, metrics in self.reference.items():
+            measured = self._benchmark(rankings, self.sfm_every_n_epochs is not None, ranks, report)
+            for name, (figures, outcomes) in measured.items():
+                self.reference[name] = {key: figure.value for key, figure in figures.items()}
+                self.reference_details[name] = {key: figure_detail(figure) for key, figure in figures.items()}
+                self.reference_outcomes[name] = outcomes
                 if trainer.is_global_zero:
-                    log.info("reference %s: %s", name, headline_line(metrics, self.headline))
+                    log.info("reference %s: %s", name, headline_line(self.reference[name], self.headline))
                 if trainer.logger is not None:
                     trainer.logger.log_metrics(
-                        {k.replace("val/", f"reference/{name}/"): v for k, v in metrics.items()}, step=0
+                        {f"reference/{name}/{key}": value for key, value in self.reference[name].items()}, step=0
                     )
+        if trainer.is_global_zero:
+            self.warn_coarse()
         metrics = self._record(trainer, pl_module, epoch=-1, ranking=trained)
         if trainer.logger is not None:  # before training: no pl_module.log outside the loop
             trainer.logger.log_metrics(metrics, step=trainer.global_step)
@@ -297,30 +424,45 @@ class LocalizationValidation(L.Callback):
         for key, value in self._record(trainer, pl_module, epoch).items():
             pl_module.log(key, value, sync_dist=True, reduce_fx="max")
 
+    def _measured(self, result: BenchmarkResult, ranking: str) -> tuple[dict[str, Figure], dict[str, np.ndarray]]:
+        """One ranking's figures on each split (`figure_rows`) and its per-query outcomes (`query_outcomes`)."""
+        ks = self.settings.paradigms.ks()
+        figures = {
+            key: figure
+            for prefix, subset in self.splits.items()
+            for key, figure in figure_rows(result, ranking, ks, subset, prefix).items()
+        }
+        return figures, query_outcomes(result, ranking, self.scene.queries.names)
+
     def _record(
         self, trainer: L.Trainer, pl_module: L.LightningModule, epoch: int, ranking: Ranking | None = None
     ) -> dict[str, float]:
         """Validate the module's network after ``epoch`` (-1: before training; its ``ranking`` when
-        computed already), keep the metrics (every rank) and, on rank 0, print them and log the
-        gallery of the fixed validation queries."""
+        computed already), keep the figures and per-query outcomes (every rank) and, on rank 0, print
+        them and log the gallery of the fixed validation queries."""
         ranks = Ranks.of(trainer)
         ranking = ranking if ranking is not None else self._trained_ranking(pl_module.network, ranks)
 
-        def report(result: BenchmarkResult) -> dict[str, float]:
+        def report(result: BenchmarkResult) -> tuple[dict[str, Figure], dict[str, np.ndarray]]:
             if result.sfm_stages:
                 self.sfm_stages[f"epoch {epoch}"] = result.sfm_stages
-            metrics = metric_rows(result, TRAINED, self.settings.paradigms.ks())
+            figures, outcomes = self._measured(result, TRAINED)
+            metrics = {key: figure.value for key, figure in figures.items()}
             log.info(
-                "validation after epoch %d:\n%s",
+                "validation after epoch %d, %s:\n%s",
                 epoch,
-                headline_table({TRAINED: metrics, **self.reference}, self.headline),
+                self.resolution(),
+                headline_table({TRAINED: metrics, **self.reference}, self.headline, self.selected_queries),
             )
             if len(self.gallery_rows):
                 self._log_gallery(trainer, ranking, epoch)
-            return metrics
+            return figures, outcomes
 
-        metrics = self._benchmark([ranking], self._wants_sfm(epoch), ranks, report)
+        figures, outcomes = self._benchmark([ranking], self._wants_sfm(epoch), ranks, report)
+        metrics = {key: figure.value for key, figure in figures.items()}
         self.history.append({"epoch": epoch, **metrics})
+        self.details.append({key: figure_detail(figure) for key, figure in figures.items()})
+        self.outcomes.append(outcomes)
         return metrics
 
     def _log_gallery(self, trainer: L.Trainer, ranking: Ranking, epoch: int) -> None:
@@ -347,23 +489,69 @@ class LocalizationValidation(L.Callback):
                 logger.experiment.add_image("val/gallery", image, global_step=trainer.global_step, dataformats="HWC")
 
     def history_table(self) -> pd.DataFrame:
-        """Tidy ``epoch, metric, value`` of every validation."""
+        """Tidy ``epoch, metric, value, low, high, num_queries`` of every validation (`VALIDATION_COLUMNS`;
+        the interval unknown, NaN, for the validations of a checkpoint of an earlier version)."""
         rows = [
-            (entry["epoch"], key, value) for entry in self.history for key, value in entry.items() if key != "epoch"
+            (entry["epoch"], key, value, *details.get(key, UNKNOWN_DETAIL))
+            for entry, details in itertools.zip_longest(self.history, self.details, fillvalue={})
+            for key, value in entry.items()
+            if key != "epoch"
         ]
-        return pd.DataFrame(rows, columns=["epoch", "metric", "value"])
+        return pd.DataFrame(rows, columns=VALIDATION_COLUMNS)
+
+    def outcome_table(self) -> pd.DataFrame:
+        """Tidy per-query outcomes (`OUTCOME_COLUMNS`): the trained network's at each validation,
+        the reference rankings' (epoch -1); ``split`` is the query's (`SELECTION`, `HELD_OUT`)."""
+        names = np.asarray(self.scene.queries.names, dtype=object)
+        split = np.full(len(names), SELECTION, dtype=object)
+        if HELD_OUT in self.splits:
+            split[self.subsets[self.splits[HELD_OUT]]] = HELD_OUT
+        runs = [(TRAINED, entry["epoch"], outcomes) for entry, outcomes in zip(self.history, self.outcomes)]
+        runs += [(name, -1, outcomes) for name, outcomes in self.reference_outcomes.items()]
+        frames = [
+            pd.DataFrame(
+                {
+                    "ranking": ranking,
+                    "epoch": epoch,
+                    "metric": key,
+                    "query": names,
+                    "split": split,
+                    "localized": outcome,
+                }
+            )[outcome >= 0]
+            for ranking, epoch, outcomes in runs
+            for key, outcome in outcomes.items()
+        ]
+        return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(columns=OUTCOME_COLUMNS)
 
     def state_dict(self) -> dict:
-        galleries = {
-            key: torch.from_numpy(image) for key, image in self.galleries.items()
-        }  # tensors: a safe load reads them
-        state = {"history": self.history, "reference": self.reference, "galleries": galleries}
+        def tensors(outcomes: Mapping[str, np.ndarray]) -> dict[str, torch.Tensor]:  # a safe load reads tensors
+            return {key: torch.from_numpy(outcome) for key, outcome in outcomes.items()}
+
+        state = {
+            "history": self.history,
+            "reference": self.reference,
+            "galleries": {key: torch.from_numpy(image) for key, image in self.galleries.items()},
+            "details": self.details,
+            "reference_details": self.reference_details,
+            "outcomes": [tensors(outcomes) for outcomes in self.outcomes],
+            "reference_outcomes": {name: tensors(outcomes) for name, outcomes in self.reference_outcomes.items()},
+        }
         return state | ({"validated_queries": self.validated_queries} if self.validated_queries is not None else {})
 
     def load_state_dict(self, state_dict: dict) -> None:
+        def arrays(outcomes: Mapping[str, torch.Tensor]) -> dict[str, np.ndarray]:
+            return {key: outcome.numpy() for key, outcome in outcomes.items()}
+
         self.history = list(state_dict["history"])
         self.reference = dict(state_dict["reference"])
         self.galleries = {key: image.numpy() for key, image in state_dict.get("galleries", {}).items()}
+        self.details = list(state_dict.get("details", []))
+        self.reference_details = dict(state_dict.get("reference_details", {}))
+        self.outcomes = [arrays(outcomes) for outcomes in state_dict.get("outcomes", [])]
+        self.reference_outcomes = {
+            name: arrays(outcomes) for name, outcomes in state_dict.get("reference_outcomes", {}).items()
+        }
         if state_dict.get("validated_queries") is not None:  # a run with a budget goes on with its queries
             position = {name: row for row, name in enumerate(self.scene.queries.names)}
             missing = [name for name in state_dict["validated_queries"] if name not in position]
@@ -374,20 +562,40 @@ class LocalizationValidation(L.Callback):
             self._keep_queries(np.sort([position[name] for name in state_dict["validated_queries"]]))
 
 
+def figure_detail(figure: Figure) -> list[float]:
+    """``[low, high, num_queries]`` of a figure: what a checkpoint keeps of it besides its value."""
+    return [figure.low, figure.high, figure.num_queries]
+
+
 def headline_line(metrics: Mapping[str, float], keys: Sequence[str]) -> str:
     """The metrics ``keys`` of a validation (those present) as one line."""
     return ", ".join(f"{key.removeprefix('val/')}={metrics[key]:.3g}" for key in keys if key in metrics)
 
 
-def headline_table(rankings: Mapping[str, Mapping[str, float]], keys: Sequence[str]) -> str:
-    """The metrics ``keys`` of several rankings as a console table (rankings as rows; none: their count)."""
+def headline_table(
+    rankings: Mapping[str, Mapping[str, float]], keys: Sequence[str], num_queries: int | None = None
+) -> str:
+    """The metrics ``keys`` of several rankings as a console table (rankings as rows; none: their count);
+    with ``num_queries`` each % localized also as the queries it is (``43.8 (7/16)``)."""
+
+    def cell(key: str, value: float | None) -> str | None:
+        if value is None or not np.isfinite(value):
+            return None
+        count = (
+            f" ({round(value * num_queries / 100)}/{num_queries})" if num_queries and "/retrieval/" not in key else ""
+        )
+        return f"{value:.3g}{count}"
+
     table = pd.DataFrame(
-        {name: {key.removeprefix("val/"): metrics.get(key) for key in keys} for name, metrics in rankings.items()}
+        {
+            name: {key.removeprefix(f"{SELECTION}/"): cell(key, metrics.get(key)) for key in keys}
+            for name, metrics in rankings.items()
+        }
     ).T
     table = table.dropna(axis=1, how="all")
     if not len(table.columns):
         return f"{len(next(iter(rankings.values()), {}))} metrics (no headline configured)"
-    return table.to_string(float_format=lambda value: f"{value:.3g}")
+    return table.fillna("–").to_string()
 
 
 class HardNegativeMining(L.Callback):

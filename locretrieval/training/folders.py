@@ -19,16 +19,41 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from locretrieval.errors import FIX_DATA_FILE, DataFileError
-from locretrieval.training.objective import Objective
+from locretrieval.training.objective import Objective, ObjectiveFigures
 
 #: A train.py run's composed config (written resolved).
 CONFIG_FILE = "config.yaml"
 #: A finished train.py run: the file it writes last (rank 0, after its report).
 FINISHED_FILE = "summary.json"
-#: A train.py run's validations (``epoch, metric, value``).
+#: A train.py run's validations (``epoch, metric, value, low, high, num_queries``).
 VALIDATION_FILE = "validation.csv"
+#: Each validation query's outcome (``ranking, epoch, metric, query, split, localized``).
+VALIDATION_QUERIES_FILE = "validation_queries.csv.gz"
 #: A train.py run's gap rows (the training report's table).
 GAP_FILE = "gap.csv"
+#: ``gap.csv``'s columns; the baseline's value is in one more, named after ``report.baseline``.
+GAP_COLUMNS = [
+    "metric",
+    "split",
+    "num_queries",
+    "untrained",
+    "trained",
+    "trained_low",
+    "trained_high",
+    "baseline_low",
+    "baseline_high",
+    "groundtruth",
+    "groundtruth_value",
+    "groundtruth_low",
+    "groundtruth_high",
+    "gap_pts",
+    "gap_low_pts",
+    "gap_high_pts",
+    "gap_closed_pct",
+    "gap_closed_low_pct",
+    "gap_closed_high_pct",
+    "gap_note",
+]
 #: A run's checkpoints (``callbacks.*.dirpath`` of configs/callbacks/checkpoints.yaml).
 CHECKPOINTS_FOLDER = "checkpoints"
 #: What Hydra's sweepers write at the top of a sweep folder (the project's Optuna sweeper too).
@@ -110,11 +135,16 @@ def trial_job(trial: Any, jobs: dict[int, Path]) -> Path | None:
 def run_objective(folder: Path) -> float:
     """The objective of the finished train.py run in ``folder``: the `Objective` of the
     `CONFIG_FILE` it wrote (as written), from its `VALIDATION_FILE`; `ValueError` as `Objective.value`."""
+    return run_objective_figures(folder).value
+
+
+def run_objective_figures(folder: Path) -> ObjectiveFigures:
+    """`run_objective` with its interval and the held-out figure at its validation (`Objective.figures`)."""
     path = folder / CONFIG_FILE
     config = read_as_written(path)
     if not isinstance(config, dict) or not {"optimized_metric", "optimized_validation"} <= set(config):
         raise DataFileError(path, "not a train.py config: no optimized_metric and optimized_validation")
-    return Objective.from_config(config).value(pd.read_csv(folder / VALIDATION_FILE))[1]
+    return Objective.from_config(config).figures(pd.read_csv(folder / VALIDATION_FILE))
 
 
 def is_training_folder(path: Path) -> bool:

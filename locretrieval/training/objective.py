@@ -1,5 +1,7 @@
 """What ``train.py`` returns, a sweep's objective: one metric of the validations after training
-(``optimized_metric``), at its best or its last validation (``optimized_validation``)."""
+(``optimized_metric``), at its best or its last validation (``optimized_validation``), and what a
+summary reports beside it: its interval, and the same metric on the held-out validation queries at
+that validation (`ObjectiveFigures`), which took no part in choosing it."""
 
 from __future__ import annotations
 
@@ -14,6 +16,22 @@ from locretrieval.config import ConfigError
 
 #: ``optimized_validation``: the metric's highest value over the validations after training, or its last.
 VALIDATIONS = ("best", "last")
+#: The prefixes of the metrics on the queries selected on and on the held-out ones (`callbacks`).
+SELECTION_PREFIX, HELD_OUT_PREFIX = "val/", "held_out/"
+
+
+@dataclass(frozen=True)
+class ObjectiveFigures:
+    """The objective of a run at its chosen validation (``epoch``): ``value`` with its interval
+    (``low``, ``high``, NaN when the run kept none) over ``num_queries``; ``held_out``: the same metric
+    on the held-out queries at that validation, ``(value, low, high, num_queries)``, or None."""
+
+    epoch: int
+    value: float
+    low: float
+    high: float
+    num_queries: float
+    held_out: tuple[float, float, float, float] | None
 
 
 @dataclass(frozen=True)
@@ -63,3 +81,27 @@ class Objective:
                 )
         chosen = rows.loc[rows["value"].idxmax()] if self.validation == "best" else rows.iloc[-1]
         return int(chosen["epoch"]), float(chosen["value"])
+
+    @property
+    def held_out_metric(self) -> str:
+        """The objective's metric on the held-out validation queries."""
+        return HELD_OUT_PREFIX + self.metric.removeprefix(SELECTION_PREFIX)
+
+    def figures(self, table: pd.DataFrame) -> ObjectiveFigures:
+        """The `ObjectiveFigures` of ``table`` (``validation.csv``; its interval columns absent in a run
+        of an earlier version): `value`'s validation, and the held-out metric there."""
+        epoch, value = self.value(table)
+
+        def at_epoch(metric: str) -> pd.Series | None:
+            rows = table[(table["epoch"] == epoch) & (table["metric"] == metric)]
+            return rows.iloc[0] if len(rows) else None
+
+        chosen = at_epoch(self.metric)
+        interval = [float(chosen.get(column, math.nan)) for column in ("low", "high", "num_queries")]
+        held = at_epoch(self.held_out_metric)
+        held_out = (
+            None
+            if held is None
+            else tuple(float(held.get(column, math.nan)) for column in ("value", "low", "high", "num_queries"))
+        )
+        return ObjectiveFigures(epoch, value, *interval, held_out)

@@ -46,12 +46,15 @@ class ValidationScope:
     local features capped at ``sfm_max_keypoints`` per image (null: ``sfm.features``' own), and
     ``budget_minutes``: the first validation (before training) localizes its queries in an order
     drawn with ``seed`` until that many minutes are spent, and every validation then uses the queries
-    it reached (`LocalizationValidation`; null: no bound)."""
+    it reached (`LocalizationValidation`; null: no bound); ``held_out``: the share of the validation
+    queries (drawn with ``seed``) kept out of every selection (checkpoints, early stopping, a sweep's
+    objective read ``val/`` metrics of the others; ``held_out/`` metrics report on them; 0: none)."""
 
     max_queries: int | None
     seed: int
     sfm_max_keypoints: int | None
     budget_minutes: float | None
+    held_out: float = 0.0
 
     def __post_init__(self) -> None:
         require(
@@ -69,6 +72,7 @@ class ValidationScope:
             "budget_minutes",
             f"must be positive or null, got {self.budget_minutes}",
         )
+        require(0 <= self.held_out < 1, "held_out", f"must be a share in [0, 1), got {self.held_out}")
 
     def scene(self, scene: Scene) -> Scene:
         """``scene`` with its ``max_queries`` validation queries (all when there are fewer), in their order."""
@@ -249,6 +253,7 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
         headline=report.metrics(),
         budget_minutes=training.validation.budget_minutes,
         budget_seed=training.validation.seed,
+        held_out=training.validation.held_out,
     )
     callbacks = {"localization_validation": validator, **callbacks}  # first: early stopping reads what it logged
     if cfg.get("miner"):

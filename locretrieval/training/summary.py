@@ -1,11 +1,15 @@
 """One summary of train.py runs: a sweep's jobs (a grid or an Optuna study) or separate runs.
 
 A table with one row per trial: its overrides (those not shared by every trial), the objective
-(``optimized_metric``), each gap row of its training report (``gap.csv``: the baseline, untrained,
-trained and ground-truth % localized, and the share of the gap closed), its time, the best trial
-marked; with several trials a mean row whose gap is the gap of the means. Where a value is
-undefined its cell says why, never ``nan``. For an Optuna study also its optimization history and
-parameter importances. Written as ``summary.csv``, ``summary.md``, ``summary.html`` (the page of
+(``optimized_metric``) with its interval on the validation queries it selected on, the same metric on
+the held-out validation queries at that validation (``training.validation.held_out``: figures no
+selection used), each gap row of its training report (``gap.csv``: the baseline, untrained, trained
+and ground-truth % localized, and the share of the gap closed where there is a gap), its time, the
+best trial marked; with several trials a mean row whose gap is the gap of the means. Whether the
+best trial is distinguishable from the next (a paired test on the held-out queries). Where a value
+is undefined its cell says why, never ``nan``. For an Optuna study also its optimization history and,
+from `MIN_IMPORTANCE_TRIALS` finished trials, parameter importances. Written as ``summary.csv``,
+``summary.md``, ``summary.html`` (the page of
 the report) and, for a study, ``optuna.html`` (Optuna's plotly figures, plotly.js embedded).
 """
 
@@ -24,16 +28,19 @@ from typing import Any
 import pandas as pd
 
 from locretrieval.errors import DataFileError
+from locretrieval.metrics.uncertainty import Uncertainty, paired_difference
 from locretrieval.report.html import with_script_policy, write_html
-from locretrieval.report.markdown import markdown_table, md_code, md_link, md_text
+from locretrieval.report.markdown import difference_text, interval_text, markdown_table, md_code, md_link, md_text
 from locretrieval.training.folders import (
     CONFIG_FILE,
     FAILURE,
     FINISHED_FILE,
+    GAP_COLUMNS,
     GAP_FILE,
     INTERRUPTED,
     MULTIRUN_FILE,
     RETRY_OF,
+    VALIDATION_QUERIES_FILE,
     finished_job,
     interrupted,
     is_training_folder,
@@ -42,21 +49,21 @@ from locretrieval.training.folders import (
     load_named_study,
     open_study,
     read_as_written,
-    run_objective,
+    run_objective_figures,
     study_file,
     trial_job,
     trial_note,
     trial_overrides,
     written_value,
 )
-from locretrieval.training.objective import Objective
+from locretrieval.training.objective import Objective, ObjectiveFigures
 
 #: The files of the summary in its folder.
 FILES = {"csv": "summary.csv", "markdown": "summary.md", "html": "summary.html", "figures": "optuna.html"}
 #: The values of a gap row (``gap.csv``) after the baseline's, whose column is named after ``report.baseline``.
 GAP_VALUES = ("untrained", "trained", "groundtruth_value")
-#: ``gap.csv``'s columns other than the baseline's.
-GAP_COLUMNS = ("metric", *GAP_VALUES, "groundtruth", "gap_closed_pct")
+#: Finished trials below which parameter importances (a random forest fitted to the trials) are noise.
+MIN_IMPORTANCE_TRIALS = 10
 #: How a CSV cell that a spreadsheet runs as a formula starts (OWASP, "CSV Injection").
 FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
 
@@ -76,6 +83,7 @@ class TrialRow:
     seconds: float | None = None
     gap: pd.DataFrame | None = None
     note: str = ""
+    figures: ObjectiveFigures | None = None  # the objective's interval and held-out figure, when read
 
 
 @dataclass
@@ -106,10 +114,15 @@ class Summary:
     folders: list[Path]
     unread: list[str] = field(default_factory=list)
 
+    def ranked(self) -> list[TrialRow]:
+        """The rows with a finite objective, best first (the first of equals first)."""
+        scored = [row for row in self.rows if row.objective is not None and math.isfinite(row.objective)]
+        return sorted(scored, key=lambda row: -row.objective if self.maximize else row.objective)
+
     def best(self) -> TrialRow | None:
         """The row of the best finite objective (the first of equals), None without one."""
-        scored = [row for row in self.rows if row.objective is not None and math.isfinite(row.objective)]
-        return (max if self.maximize else min)(scored, key=lambda row: row.objective) if scored else None
+        ranked = self.ranked()
+        return ranked[0] if ranked else None
 
 
 def summarize(paths: Sequence[Path], storage: str | None = None) -> Summary:
@@ -147,7 +160,8 @@ def run_row(folder: Path, label: str, overrides: list[str]) -> TrialRow:
         label, folder, "finished", None, overrides, seconds if isinstance(seconds, (int, float)) else None, gap
     )
     try:
-        row.objective = run_objective(folder)
+        row.figures = run_objective_figures(folder)
+        row.objective = row.figures.value
     except (OSError, ValueError) as error:
         row.note = f"no objective: {error}"
     return row
@@ -212,37 +226,56 @@ def stored_study(folder: Path, storage: str | None = None) -> tuple[Study | None
     return Study(study.study_name, where, study.direction.name.lower(), trials, study, study.user_attrs), ""
 
 
-def gap_text(reference: float, trained: float, truth: float, baseline: str) -> str:
-    """The share of the gap between ``baseline`` and the ground truth that training closed, or why it is undefined."""
-    if pd.isna(reference):
-        return f"gap undefined: no {baseline} value"
-    if pd.isna(truth):
-        return "gap undefined: no ground truth validated"
-    if truth == reference:
-        return f"gap undefined: the ground truth equals {baseline}"
-    return f"{100 * (trained - reference) / (truth - reference):.0f} %"
+def gap_text(values: pd.Series) -> str:
+    """The share of the gap closed with its interval (``48 % (12 to 85)``), or why there is none
+    (``gap.csv``'s ``gap_note``; a run of an earlier version, which had no test, says so)."""
+    note = values.get("gap_note")
+    if isinstance(note, str) and note:
+        return note
+    closed = values.get("gap_closed_pct", math.nan)
+    if "gap_note" not in values.index:
+        return "gap undefined: a run of an earlier version (no per-query outcomes to test the gap)"
+    if pd.isna(closed):
+        return "gap undefined"
+    low, high = values.get("gap_closed_low_pct", math.nan), values.get("gap_closed_high_pct", math.nan)
+    interval = f" ({low:.0f} to {high:.0f})" if not (pd.isna(low) or pd.isna(high)) else ""
+    return f"{closed:.0f} %{interval}"
 
 
 def gap_cell(values: pd.Series, baseline: str) -> str:
-    """``baseline / untrained / trained / ground truth (gap closed %)`` of a gap row, % localized."""
+    """``baseline / untrained / trained / ground truth (gap closed)`` of a gap row, % localized."""
     shown = [values[baseline], *(values[name] for name in GAP_VALUES)]
     text = " / ".join("–" if pd.isna(value) else f"{value:.1f}" for value in shown)
-    return f"{text} ({gap_text(values[baseline], values['trained'], values['groundtruth_value'], baseline)})"
+    return f"{text} ({gap_text(values)})"
 
 
 def gap_baseline(rows: Sequence[TrialRow]) -> str:
     """The baseline of the rows' gap tables (``report.baseline``); `ValueError` when they differ."""
+    known = {*GAP_COLUMNS, *GAP_VALUES}
     tables = [row.gap for row in rows if row.gap is not None]
-    baselines = sorted({column for table in tables for column in table.columns if column not in GAP_COLUMNS})
+    baselines = sorted({column for table in tables for column in table.columns if column not in known})
     if len(baselines) > 1:
         raise ValueError(f"gap.csv: the runs measure their gap from different baselines {baselines} (report.baseline)")
     return baselines[0] if baselines else "baseline"
 
 
+def mean_gap_cell(tables: Sequence[pd.DataFrame], metric: str, baseline: str) -> str:
+    """The mean row's cell: the means over the runs of the baseline, untrained, trained and ground
+    truth, and the gap of the means where every run has a gap (no interval: the runs' queries differ)."""
+    rows = [table.loc[metric] for table in tables if metric in table.index]
+    means = pd.DataFrame(rows)[[baseline, *GAP_VALUES]].mean()
+    text = " / ".join("–" if pd.isna(value) else f"{value:.1f}" for value in means)
+    without = sum(pd.isna(row.get("gap_closed_pct", math.nan)) for row in rows)
+    if without:
+        return f"{text} (no gap of the means: {without} of {len(rows)} runs have no gap to close)"
+    closed = 100 * (means["trained"] - means[baseline]) / (means["groundtruth_value"] - means[baseline])
+    return f"{text} (gap of the means {closed:.0f} %; no interval: the runs' queries differ)"
+
+
 def gap_cells(rows: Sequence[TrialRow], baseline: str) -> pd.DataFrame:
     """One cell (`gap_cell`) per trial and gap metric, in the runs' order; a metric a finished run
-    has no row for was not validated before and after training; with several runs a last row, the
-    means over them and the gap closed of the means."""
+    has no row for was not validated before and after training; with several runs a last row
+    (`mean_gap_cell`)."""
     tables = {row.label: row.gap.set_index("metric") for row in rows if row.gap is not None}
     metrics = list(dict.fromkeys(metric for table in tables.values() for metric in table.index))
     cells = pd.DataFrame(index=[row.label for row in rows], columns=metrics, dtype=object)
@@ -250,42 +283,121 @@ def gap_cells(rows: Sequence[TrialRow], baseline: str) -> pd.DataFrame:
         table = tables.get(row.label)
         for metric in metrics:
             if table is None:
-                cells.loc[row.label, metric] = "–"
+                cells.loc[row.label, metric] = "no gap.csv: the run did not finish"
             elif metric in table.index:
                 cells.loc[row.label, metric] = gap_cell(table.loc[metric], baseline)
             else:
                 cells.loc[row.label, metric] = "not validated before and after training"
     if len(tables) > 1:
-        stacked = pd.concat(tables.values())
-        means = stacked[[baseline, *GAP_VALUES]].groupby(level=0).mean()
-        cells.loc[f"mean of {len(tables)}"] = [gap_cell(means.loc[metric], baseline) for metric in metrics]
+        cells.loc[f"mean of {len(tables)}"] = [mean_gap_cell(list(tables.values()), m, baseline) for m in metrics]
     return cells
 
 
+def objective_text(figures: ObjectiveFigures | None) -> str:
+    """The objective with its interval, its number of queries and its validation's epoch."""
+    if figures is None:
+        return "–"
+    text = interval_text(figures.value, figures.low, figures.high)
+    queries = f", {figures.num_queries:.0f} queries" if not pd.isna(figures.num_queries) else ""
+    return f"{text}{queries}, epoch {figures.epoch}"
+
+
+def held_out_text(figures: ObjectiveFigures | None) -> str:
+    """The objective's metric on the held-out queries at the chosen validation, or why there is none."""
+    if figures is None:
+        return "–"
+    if figures.held_out is None:
+        return "no held-out queries (training.validation.held_out=0): only the selection's figure"
+    value, low, high, count = figures.held_out
+    return f"{interval_text(value, low, high)}, {count:.0f} queries"
+
+
+def best_against_next(summary: Summary) -> str | None:
+    """Whether the best trial is distinguishable from the next: an exact McNemar test on their
+    outcomes of the objective's metric at their chosen validations, on the held-out queries (on the
+    queries selected on where there are none, which the selection favours), in words; None with
+    fewer than two scored trials."""
+    ranked = summary.ranked()
+    if len(ranked) < 2 or summary.objective is None:
+        return None
+    best, runner = ranked[0], ranked[1]
+    outcomes = [trial_outcomes(row, summary.objective) for row in (best, runner)]
+    if any(outcome is None for outcome in outcomes):
+        return (
+            f"trial {best.label} against trial {runner.label}: not compared (a run without "
+            f"{VALIDATION_QUERIES_FILE}, or a retrieval objective, which has no per-query outcome)"
+        )
+    first, second = outcomes
+    split = "held_out" if (first["split"] == "held_out").any() else "val"
+    paired = pd.merge(
+        first[first["split"] == split], second[second["split"] == split], on="query", suffixes=("_best", "_next")
+    )
+    if paired.empty:
+        return f"trial {best.label} against trial {runner.label}: not compared (no validation query in common)"
+    a, b = paired["localized_best"].to_numpy(bool), paired["localized_next"].to_numpy(bool)
+    uncertainty = Uncertainty()
+    result = paired_difference(int((a & ~b).sum()), int((~a & b).sum()), len(paired), uncertainty.confidence)
+    verdict = "distinguishable" if result.p_value < uncertainty.alpha else "not distinguishable"
+    where = (
+        f"the {len(paired)} held-out queries"
+        if split == "held_out"
+        else f"the {len(paired)} queries the sweep selected on (no held-out queries: the selection favours the best)"
+    )
+    text = difference_text(100 * float(result.difference), 100 * float(result.low), 100 * float(result.high), "")
+    return (
+        f"trial {best.label} against the next, trial {runner.label}, on {where}: {text.strip()} points "
+        f"(exact McNemar p={float(result.p_value):.2g}): {verdict}"
+    )
+
+
+def trial_outcomes(row: TrialRow, objective: Objective) -> pd.DataFrame | None:
+    """The per-query outcomes of the objective's metric of a trial at its chosen validation
+    (``query, split, localized``), or None where there are none."""
+    if row.folder is None or row.figures is None or not (row.folder / VALIDATION_QUERIES_FILE).is_file():
+        return None
+    table = pd.read_csv(row.folder / VALIDATION_QUERIES_FILE, dtype={"query": str, "split": str})
+    key = objective.metric.removeprefix("val/")
+    rows = table[(table["ranking"] == "trained") & (table["epoch"] == row.figures.epoch) & (table["metric"] == key)]
+    return rows[["query", "split", "localized"]] if len(rows) else None
+
+
+#: The figures of a gap row that ``summary.csv`` keeps, after the baseline's.
+GAP_FIGURES = (*GAP_VALUES, "gap_closed_pct", "gap_closed_low_pct", "gap_closed_high_pct")
+
+
 def trial_table(summary: Summary) -> pd.DataFrame:
-    """``summary.csv``: a row per trial (trial, state, best, objective, seconds, overrides,
-    folder, note) with each gap row's values (``<metric> <value>``; empty where undefined, and
-    ``<metric> why`` says why)."""
+    """``summary.csv``: a row per trial (trial, state, best, objective and its interval, its number of
+    queries and epoch, the held-out figure and its interval, seconds, overrides, folder, note) with each
+    gap row's values (``<metric> <value>``; empty where undefined, and ``<metric> why`` says why)."""
     best, baseline = summary.best(), gap_baseline(summary.rows)
     records = []
     for row in summary.rows:
+        figures = row.figures
+        held = figures.held_out if figures is not None and figures.held_out is not None else (None,) * 4
         record = {
             "trial": row.label,
             "state": row.state,
             "best": row is best,
             "objective": row.objective,
+            "objective_low": figures.low if figures else None,
+            "objective_high": figures.high if figures else None,
+            "objective_queries": figures.num_queries if figures else None,
+            "objective_epoch": figures.epoch if figures else None,
+            "held_out": held[0],
+            "held_out_low": held[1],
+            "held_out_high": held[2],
+            "held_out_queries": held[3],
             "seconds": row.seconds,
             "overrides": " ".join(row.overrides),
             "folder": str(row.folder.resolve()) if row.folder is not None else "",
             "note": row.note,
         }
         for metric, values in row.gap.set_index("metric").iterrows() if row.gap is not None else []:
-            for name in (baseline, *GAP_VALUES, "gap_closed_pct"):
-                record[f"{metric} {name}"] = values[name] if math.isfinite(values[name]) else None
-            if not math.isfinite(values["gap_closed_pct"]):
-                record[f"{metric} why"] = gap_text(
-                    values[baseline], values["trained"], values["groundtruth_value"], baseline
-                )
+            for name in (baseline, *GAP_FIGURES):
+                value = values.get(name, math.nan)
+                record[f"{metric} {name}"] = value if isinstance(value, (int, float)) and math.isfinite(value) else None
+            if pd.isna(values.get("gap_closed_pct", math.nan)):
+                record[f"{metric} why"] = gap_text(values)
         records.append(record)
     return pd.DataFrame(records)
 
@@ -320,7 +432,8 @@ def trial_markdown(summary: Summary) -> pd.DataFrame:
             "overrides": [
                 ", ".join(shown_override(item) for item in row.overrides if item not in shared) for row in summary.rows
             ],
-            "objective": ["–" if row.objective is None else f"{row.objective:.4g}" for row in summary.rows],
+            "objective (selected on)": [objective_text(row.figures) for row in summary.rows],
+            "held out": [held_out_text(row.figures) for row in summary.rows],
             **{metric: list(cells.loc[labels, metric]) for metric in cells.columns},
             "time": ["–" if row.seconds is None else f"{row.seconds:.0f} s" for row in summary.rows],
             "note": [row.note for row in summary.rows],
@@ -333,33 +446,43 @@ def trial_markdown(summary: Summary) -> pd.DataFrame:
 
 
 def markdown_lines(summary: Summary, output_dir: Path) -> list[str]:
-    """``summary.md``: what was summarised, the trial table and each Optuna study's section."""
+    """``summary.md``: what was summarised, the best trial against the next, the trial table and each
+    Optuna study's section."""
     objective, best = summary.objective, summary.best()
     baseline = gap_baseline(summary.rows)
     aim = "higher is better" if summary.maximize else "lower is better"
     shared = shared_overrides(summary.rows)
-    objective_text = (
+    objective_line = (
         f"{md_code(objective.metric)} at its {objective.validation} validation after training, {aim}"
         if objective
         else "unknown"
     )
+    against = best_against_next(summary)
     lines = [
         f"# Sweep summary: {md_text(', '.join(folder.name for folder in summary.folders))}",
         "",
         f"- **folders**: {', '.join(md_code(folder) for folder in summary.folders)}",
         f"- **trials**: {len(summary.rows)}",
-        f"- **objective**: {objective_text}",
+        f"- **objective**: {objective_line}",
         f"- **overrides of every trial**: {', '.join(md_code(item) for item in shared) or 'none'}",
-        f"- **best trial**: {md_text(best.label)}, objective {best.objective:.4g}"
+        f"- **best trial**: {md_text(best.label)}, objective {md_text(objective_text(best.figures))}; held out: "
+        f"{md_text(held_out_text(best.figures))}"
         if best
         else "- **best trial**: none",
+        *([f"- **best against the next**: {md_text(against)}"] if against else []),
         *(f"- **study not read**: {md_text(why)}" for why in summary.unread),
         "",
         "## Trials",
         "",
+        "The objective is measured on the validation queries the sweep selects on (its interval, its queries and "
+        "the validation it was taken at): the best trial's figure there is favoured by its own selection. The "
+        "held-out column is the same metric at the same validation on the validation queries kept out of every "
+        "selection (training.validation.held_out): the figure to report.",
+        "",
         f"Per gap row of the training report: {md_text(baseline)} / untrained / trained / ground truth, % of the "
-        f"validation queries localized, and the share of the gap between {md_text(baseline)} and the ground truth "
-        "that training closed; for several trials their mean and the gap of the means.",
+        f"held-out validation queries localized (all of them without a held-out share), and the share of the gap "
+        f"between {md_text(baseline)} and the ground truth that training closed with its interval, where the ground "
+        "truth is distinguishably above the baseline; for several trials their mean and the gap of the means.",
         "",
         markdown_table(trial_markdown(summary), index=False),
         "",
@@ -389,8 +512,8 @@ def study_lines(study: Study, output_dir: Path) -> list[str]:
     else:
         lines += [
             "",
-            "Parameter importances (Optuna's fANOVA: the share of the objective's variance each parameter explains "
-            "in a random forest fitted to the completed trials):",
+            f"Parameter importances over {len(study.complete())} finished trials (Optuna's fANOVA: the share of the "
+            "objective's variance each parameter explains in a random forest fitted to them):",
             "",
             markdown_table(importances.to_frame().reset_index(), index=False, floatfmt=".3f"),
         ]
@@ -406,8 +529,11 @@ def parameter_importances(study: Study) -> tuple[pd.Series | None, str]:
     from optuna.importance import get_param_importances
 
     complete = study.complete()
-    if len(complete) < 2:
-        return None, f"they need 2 finished trials, the study has {len(complete)}"
+    if len(complete) < MIN_IMPORTANCE_TRIALS:
+        return None, (
+            f"a random forest fitted to {len(complete)} finished trials says nothing; they are computed from "
+            f"{MIN_IMPORTANCE_TRIALS} on"
+        )
     if len({trial.value for trial in complete}) < 2:
         return None, f"the objective took one value ({complete[0].value:.4g}) over the finished trials"
     importances = get_param_importances(study.optuna_study, evaluator=importance_evaluator())

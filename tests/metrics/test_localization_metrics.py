@@ -1,13 +1,14 @@
 import numpy as np
 import pytest
 from helpers import evaluate_config
+from scipy import stats
 
 from locretrieval import geometry
 from locretrieval.config import validated
 from locretrieval.estimates import PoseEstimates
 from locretrieval.metrics.localization import (
     MetricsSettings,
-    localization_table,
+    localization_tables,
     localized,
     query_error_table,
     query_subsets,
@@ -49,21 +50,38 @@ def test_thresholds_include_equality_by_default_and_nan_is_not_localized():
     assert localized(position, rotation, [[0.25, 2.0]], inclusive=False).tolist() == [[False, False, False, False]]
     queries = queries_with_poses()
     at_threshold = estimate([0.25, 0.1, 0.3, 0.0], [1.0, 2.0, 1.0, 0.0])
-    table = localization_table("toy", [at_threshold], queries, [[0.25, 2.0]], query_subsets(queries), inclusive=False)
+    table, _ = localization_tables(
+        "toy", [at_threshold], queries, [[0.25, 2.0]], query_subsets(queries), inclusive=False
+    )
     assert table.set_index("subset")["localized_pct"]["all"] == pytest.approx(0.0)
 
 
-def test_localization_table_percentages():
+def test_localization_table_percentages_with_their_intervals_and_the_outcomes_they_count():
     queries = queries_with_poses()
     e = estimate([0.1, 0.4, np.nan, 0.0], [1.0, 3.0, 0.0, 0.0])
-    table = localization_table("toy", [e], queries, THRESHOLDS, query_subsets(queries), inclusive=True)
-    lookup = table.set_index(["subset", "position_threshold_m"])["localized_pct"]
-    assert lookup[("all", 0.25)] == pytest.approx(100 / 3)
-    assert lookup[("all", 0.5)] == pytest.approx(200 / 3)
-    assert lookup[("day", 5.0)] == pytest.approx(50.0)  # query 2 has no estimate
-    assert lookup[("night", 0.5)] == pytest.approx(100.0)  # query 3 has no reference pose
+    table, outcomes = localization_tables(
+        "toy", [e], queries, THRESHOLDS, query_subsets(queries), inclusive=True, confidence=0.9, position_unit="m"
+    )
+    lookup = table.set_index(["subset", "position_threshold_m"])
+    assert lookup["localized_pct"][("all", 0.25)] == pytest.approx(100 / 3)
+    assert lookup["localized_pct"][("all", 0.5)] == pytest.approx(200 / 3)
+    assert lookup["localized_pct"][("day", 5.0)] == pytest.approx(50.0)  # query 2 has no estimate
+    assert lookup["localized_pct"][("night", 0.5)] == pytest.approx(100.0)  # query 3 has no reference pose
     assert set(table["num_queries"]) == {3, 2, 1}
     assert len(table) == 3 * 3  # subsets x thresholds x k
+    # Wilson's 90 % interval of 2 of 3 queries, as scipy computes it
+    interval = stats.binomtest(2, 3).proportion_ci(confidence_level=0.9, method="wilson")
+    row = lookup.loc[("all", 0.5)]
+    assert (row["localized"], row["num_queries"]) == (2, 3)
+    assert (row["localized_low_pct"], row["localized_high_pct"]) == pytest.approx(
+        (100 * interval.low, 100 * interval.high)
+    )
+    assert set(table["position_unit"]) == {"m"}
+    # one row per query with a reference pose and threshold: what the shares count, query 3 left out
+    at = outcomes.set_index(["position_threshold_m", "query"])["localized"]
+    assert sorted(set(outcomes["query"])) == ["q/0.png", "q/1.png", "q/2.png"]
+    assert [at[(0.25, q)] for q in ("q/0.png", "q/1.png", "q/2.png")] == [1, 0, 0]
+    assert [at[(0.5, q)] for q in ("q/0.png", "q/1.png", "q/2.png")] == [1, 1, 0]
 
 
 def test_query_error_table_matches_hand_computed_errors():

@@ -10,6 +10,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from locretrieval.metrics.localization import RESULT_COLUMNS
+from locretrieval.metrics.uncertainty import share_interval
 from locretrieval.report import build_report
 from locretrieval.report import published as published_module
 from locretrieval.report.published import MATCH_KEYS, PUBLISHED_COLUMNS, PUBLISHED_DIR, load_published, parse_adoc
@@ -141,9 +142,14 @@ def test_malformed_tables_are_errors_naming_the_file(tmp_path):
 
 def write_run(directory: Path, dataset: str, rows: list[tuple], features: dict) -> Path:
     """A finished run: ``results.csv`` with ``rows`` of (subset, ranking, paradigm, method, k,
-    metres, degrees, % localized) and a ``config.yaml`` whose ``sfm.features`` are ``features``."""
+    metres, degrees, % localized) of 100 queries and a ``config.yaml`` whose ``sfm.features`` are ``features``."""
     directory.mkdir(parents=True)
-    results = [(dataset, s, r, "descriptor", p, m, k, k, x, y, pct, 100) for s, r, p, m, k, x, y, pct in rows]
+    results = []
+    for s, r, p, m, k, x, y, pct in rows:
+        low, high = share_interval(round(pct), 100, 0.95)
+        results.append(
+            (dataset, s, r, "descriptor", p, m, k, k, x, y, pct, 100, round(pct), 100 * low, 100 * high, "m")
+        )
     pd.DataFrame(results, columns=RESULT_COLUMNS).to_csv(directory / "results.csv", index=False)
     OmegaConf.save(OmegaConf.create({"sfm": {"features": features}}), directory / "config.yaml")
     return directory

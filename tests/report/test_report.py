@@ -7,6 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from report_runs import GROUNDTRUTH, KS, localization, write_run
+from scipy import stats
 
 from locretrieval.report import build_report
 from locretrieval.report.markdown import pivot_localization
@@ -15,19 +16,21 @@ from locretrieval.report.tables import load_runs
 
 
 def test_ground_truth_without_a_method_is_drawn_with_ewb():
-    results, _ = localization("netvlad", "descriptor")
-    gt_results, _ = localization(GROUNDTRUTH, "groundtruth")
+    results, _, _ = localization("netvlad", "descriptor")
+    gt_results, _, _ = localization(GROUNDTRUTH, "groundtruth")
     curves = curves_for_method(pd.concat([results, gt_results]), "approximation", "csi")
     assert set(zip(curves["ranking"], curves["method"])) == {("netvlad", "csi"), (GROUNDTRUTH, "ewb")}
 
 
 def test_pivot_localization_reads_the_table_with_k_as_rows_and_thresholds_as_columns():
-    results, _ = localization("netvlad", "descriptor")
+    results, _, _ = localization("netvlad", "descriptor")
     pivot = pivot_localization(results, "global_sfm", "pnp")
     assert list(pivot.columns) == ["0.25 m, 2°", "5 m, 10°"] and list(pivot.index) == [("netvlad", k) for k in KS]
-    lookup = results.set_index(["subset", "paradigm", "k", "position_threshold_m"])["localized_pct"]
-    expected = lookup[("all", "global_sfm", 5, 5.0)]
-    assert pivot.loc[("netvlad", 5), "5 m, 10°"] == round(expected, 1)
+    row = results.set_index(["subset", "paradigm", "k", "position_threshold_m"]).loc[("all", "global_sfm", 5, 5.0)]
+    # the share of the 6 queries with its Wilson interval, as scipy gives it
+    interval = stats.binomtest(int(row["localized"]), 6).proportion_ci(method="wilson")
+    expected = f"{row['localized_pct']:.1f} ({100 * interval.low:.1f}–{100 * interval.high:.1f})"
+    assert pivot.loc[("netvlad", 5), "5 m, 10°"] == expected
 
 
 def markdown_rows(path: Path) -> list[list[str]]:
@@ -45,8 +48,12 @@ def test_report_shows_the_best_over_k_first_and_narrow_tables_from_the_unchanged
     assert best[0] == ["dataset", "paradigm", "method", "ranking", "0.25 m, 2°", "5 m, 10°"]
     results = pd.read_csv(run / "results.csv")
     ewb = results.query("subset == 'all' and paradigm == 'approximation' and method == 'ewb' and ranking == 'netvlad'")
-    best_ewb = ewb.groupby("position_threshold_m")["localized_pct"].max()
-    assert ["toy", "approximation", "ewb", "netvlad", f"{best_ewb[0.25]:.1f}", f"{best_ewb[5.0]:.1f}"] in best
+    best_ewb = ewb.sort_values(["localized_pct", "k"], ascending=[False, True]).groupby("position_threshold_m").first()
+    cells = [
+        f"{row.localized_pct:.1f} ({row.localized_low_pct:.1f}–{row.localized_high_pct:.1f}), k={row.k}"
+        for row in best_ewb.itertuples()
+    ]
+    assert ["toy", "approximation", "ewb", "netvlad", *cells] in best
     table = markdown_rows(tmp_path / "report" / "tables" / "localization_toy_global_sfm_pnp.md")
     assert table[0] == ["ranking", "k", "0.25 m, 2°", "5 m, 10°"]
     assert len(table) == 2 + 3 * len(KS)  # header, rule, a row per ranking and k
@@ -86,12 +93,18 @@ def test_report_of_a_multirun_produces_every_figure_and_table(tmp_path):
         assert (output / "tables" / f"{stem}.md").is_file()
     assert "gt\\_relative\\_pose" in (output / "tables" / "table1_groundtruth_statistics.tex").read_text()
     assert (
-        "## Median errors" in text and "median_position_error_m" in (output / "tables" / "median_errors.md").read_text()
+        "## Median errors" in text
+        and "median position error (m)" in (output / "tables" / "median_errors.md").read_text()
     )
     pearson = pd.read_csv(output / "correlation_dataset_pearson.csv")
     assert set(pearson["ranking"]) == {"apgem", "netvlad"}  # descriptors only, from both runs
     assert len(pd.read_csv(output / "correlation_query_pearson.csv.gz")) > 0
     assert "too few inliers" in text and "run time" in text
+    # the two runs' descriptors compared with each other on the same queries, as within one run
+    comparisons = pd.read_csv(output / "comparisons.csv")
+    assert {("apgem", "netvlad"), ("apgem", GROUNDTRUTH), ("netvlad", "random")} <= set(
+        zip(comparisons["ranking"], comparisons["other"])
+    )
 
 
 def test_figures_drawn_by_worker_processes_are_those_drawn_in_process(tmp_path):
@@ -274,8 +287,10 @@ def test_headline_thresholds_and_retrieval_summary_values(tmp_path):
     assert headline_threshold(tables.results, "global_sfm") == (0.25, 2.0)  # tightest, as Figs. 5-6
     summary = retrieval_summary(tables.retrieval)
     row = tables.retrieval.query("subset == 'all' and ranking == 'netvlad' and metric == 'recall' and k == 5").iloc[0]
-    assert summary.loc[(row["dataset"], row["groundtruth"], "netvlad"), ("recall", 5)] == pytest.approx(
-        100 * row["value"]
+    # R@5 of the 6 queries, a share of them: Wilson's interval, as scipy gives it
+    interval = stats.binomtest(round(6 * row["value"]), 6).proportion_ci(method="wilson")
+    assert summary.loc[(row["dataset"], row["groundtruth"], "netvlad"), ("recall", 5)] == (
+        f"{100 * row['value']:.1f} ({100 * interval.low:.1f}–{100 * interval.high:.1f})"
     )
 
 
@@ -284,3 +299,32 @@ def test_runs_written_before_k_effective_existed_read_it_as_k(tmp_path):
     pd.read_csv(run / "results.csv").drop(columns="k_effective").to_csv(run / "results.csv", index=False)
     loaded = load_runs([run]).results
     assert len(loaded) and (loaded["k_effective"] == loaded["k"]).all()
+
+
+def test_report_compares_every_two_rankings_and_says_where_a_paradigm_cannot_separate_them(tmp_path):
+    run = write_run(tmp_path / "run", ["netvlad"])
+    text = build_report([run], tmp_path / "report", figure_formats=[]).read_text()
+    comparisons = pd.read_csv(tmp_path / "report" / "comparisons.csv")
+    outcomes = pd.read_csv(run / "query_localized.csv.gz")
+    row = comparisons.query(
+        "paradigm == 'global_sfm' and k == 5 and position_threshold_m == 5.0 and ranking == 'netvlad' and "
+        "other == 'random'"
+    ).iloc[0]
+    at = outcomes.query("paradigm == 'global_sfm' and k == 5 and position_threshold_m == 5.0")
+    first = at[at["ranking"] == "netvlad"].set_index("query")["localized"]
+    second = at[at["ranking"] == "random"].set_index("query")["localized"].loc[first.index]
+    assert (row["only_ranking"], row["only_other"]) == (
+        ((first == 1) & (second == 0)).sum(),
+        ((first == 0) & (second == 1)).sum(),
+    )
+    assert row["difference_pts"] == pytest.approx(100 * (first.mean() - second.mean()))
+    pairs = comparisons.query("paradigm == 'global_sfm' and k == 5 and position_threshold_m == 5.0")
+    assert len(pairs) == 3  # netvlad, the ground truth and random: three pairs
+    # 6 queries tell nothing apart: every verdict says so, and the report says which paradigms cannot separate
+    assert set(comparisons["verdict"]) == {"not distinguishable"}
+    assert "### Which differences are real" in text
+    assert "**global_sfm at 5 m, 10° does not separate rankings on toy**" in text
+    # one descriptor: no Spearman table over the descriptors, and why
+    assert "Spearman's rho over the descriptors needs at least 2 descriptors; these runs have 1" in text
+    assert not list((tmp_path / "report" / "tables").glob("spearman_*"))
+    assert "nan" not in text.lower().replace("nanmean", "")

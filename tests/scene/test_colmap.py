@@ -4,12 +4,15 @@ its tracks share, the split, the metric scale and bad input."""
 
 from __future__ import annotations
 
+import json
 import logging
+import re
 import shutil
 from pathlib import Path
 
 import helpers
 import numpy as np
+import pandas as pd
 import pytest
 from own_place import render_walk, write_model
 from PIL import Image
@@ -231,3 +234,27 @@ def test_bad_input_names_the_problem(tmp_path, walk):
     with pytest.raises(FileNotFoundError, match=r"sparse_missing/cameras.bin \(or .txt\) not found"):
         (tmp_path / "sparse_missing").mkdir()
         load(tmp_path, tmp_path / "sparse_missing", walk_scene.folder, "data.metres_per_unit=1")
+
+
+def test_a_run_without_a_metric_scale_names_model_units_everywhere(tmp_path, walk):
+    from locretrieval.evaluation import evaluate
+
+    model = model_of(walk, tmp_path / "sparse", scale=0.5)
+    photos = without_exif(walk[0].folder, tmp_path / "photos")
+    cfg = helpers.evaluate_config(
+        "data=colmap", f"paths.root_dir={tmp_path}", f"data.model={model}", f"data.images={photos}",
+        "data.unitless=true", "device=cpu", "model.max_side=96", "model.step=4", "baselines.random=true",
+        "paradigms.approximation.k=[1,3]", "paradigms.local_sfm.enabled=false", "paradigms.global_sfm.enabled=false",
+        "groundtruth.enabled=[relative_pose]", "subsets.dynamic_masks=[]", "subsets.blur_width=160",
+        "report.figure_formats=[]", "report.scene_view.enabled=false", "output.ltvl=false",
+    )  # fmt: skip
+    run = tmp_path / "run"
+    evaluate(cfg, run)
+    results = pd.read_csv(run / "results.csv")
+    assert set(results["position_unit"]) == {"model units"}
+    assert set(pd.read_csv(run / "median_errors.csv")["position_unit"]) == {"model units"}
+    report = (run / "report.md").read_text()
+    assert "5 model units, 10°" in report and "median position error (model units)" in report
+    assert not re.search(r"\d m, \d", report)  # no threshold labelled in metres
+    quality = json.loads((run / "summary.json").read_text())["pseudo ground truth"]
+    assert quality["metres per model unit"] is None and "not metres" in quality["scale"]

@@ -766,36 +766,51 @@ def test_a_parallel_training_multirun_as_documented_shares_one_cache_without_cor
 def test_the_gap_table_gives_the_share_of_the_gap_to_the_ground_truth_that_training_closed():
     from types import SimpleNamespace
 
+    from training_runs import outcomes
+
+    from locretrieval.metrics.uncertainty import Uncertainty
     from locretrieval.training.report import TrainingReportSettings, gap_table
 
-    history = pd.DataFrame(
-        {
-            "epoch": [-1, 0, 1, -1, 1, -1],
-            "metric": ["val/approximation/ewb/k3/5m_10deg"] * 3
-            + ["val/local_sfm/pnp/k10/0.25m_2deg"] * 2
-            + ["val/global_sfm/pnp/k5/0.25m_2deg"],
-            "value": [10.0, 20.0, 40.0, 50.0, 60.0, 70.0],
-        }
-    )
+    p1, local, glob = "approximation/ewb/k3/5m_10deg", "local_sfm/pnp/k10/0.25m_2deg", "global_sfm/pnp/k5/0.25m_2deg"
+    n = 50
+    validations = [  # before training and two epochs; the SfM paradigms validated before training and at the last
+        {p1: outcomes(10, n), local: outcomes(50, n), glob: outcomes(70, n)},
+        {p1: outcomes(20, n)},
+        {p1: outcomes(40, n), local: outcomes(60, n)},
+    ]
     reference = {
-        "densevlad": {"val/approximation/ewb/k3/5m_10deg": 20.0, "val/local_sfm/pnp/k10/0.25m_2deg": 40.0},
-        "gt_relative_pose": {"val/approximation/ewb/k3/5m_10deg": 60.0, "val/local_sfm/pnp/k10/0.25m_2deg": 100.0},
-        "gt_co_observation": {"val/local_sfm/pnp/k10/0.25m_2deg": 80.0},
+        "densevlad": {p1: outcomes(20, n), local: outcomes(40, n)},
+        "gt_relative_pose": {p1: outcomes(60, n), local: outcomes(100, n)},
+        "gt_co_observation": {local: outcomes(80, n)},
     }
+    validation = SimpleNamespace(
+        outcomes=validations,
+        reference_outcomes=reference,
+        splits={"val": "all"},
+        subsets={"all": np.ones(n, dtype=bool)},
+        settings=SimpleNamespace(metrics=SimpleNamespace(uncertainty=Uncertainty())),
+    )
     report = validated(TrainingReportSettings, helpers.compose_config("train").report, "report")  # the default rows
-    table = gap_table(SimpleNamespace(history_table=lambda: history, reference=reference), report).set_index("metric")
-    assert list(table.index) == [
-        "approximation/ewb/k3/5m_10deg",
-        "local_sfm/pnp/k10/0.25m_2deg",
-    ]  # global SfM: validated once
-    assert table.loc[
-        "approximation/ewb/k3/5m_10deg", ["untrained", "trained", "densevlad", "groundtruth_value"]
-    ].tolist() == [10, 40, 20, 60]
-    assert table.loc["approximation/ewb/k3/5m_10deg", "gap_closed_pct"] == pytest.approx(100 * (40 - 20) / (60 - 20))
-    assert (
-        table.loc["local_sfm/pnp/k10/0.25m_2deg", "groundtruth"] == "gt_co_observation"
-    )  # 2a: the co-observation upper bound
-    assert table.loc["local_sfm/pnp/k10/0.25m_2deg", "gap_closed_pct"] == pytest.approx(100 * (60 - 40) / (80 - 40))
+    table = gap_table(validation, report).set_index("metric")
+    assert list(table.index) == [p1, local]  # global SfM: validated once
+    assert table.loc[p1, ["untrained", "trained", "densevlad", "groundtruth_value"]].tolist() == [10, 40, 20, 60]
+    assert table.loc[p1, "gap_closed_pct"] == pytest.approx(100 * (40 - 20) / (60 - 20))
+    assert table.loc[p1, "gap_closed_low_pct"] < 50 < table.loc[p1, "gap_closed_high_pct"]
+    assert table.loc[local, "groundtruth"] == "gt_co_observation"  # 2a: the co-observation upper bound
+    assert table.loc[local, "gap_closed_pct"] == pytest.approx(100 * (60 - 40) / (80 - 40))
+    assert set(table["split"]) == {"all"} and set(table["num_queries"]) == {n}
+    # the local SfM row: the ground truth below the baseline, a trained model below both: no gap to close
+    reference["densevlad"][local] = outcomes(37.5 * 1.0, 16)
+    reference["gt_co_observation"][local] = outcomes(31.25, 16)
+    validations[0][local], validations[2][local] = outcomes(18.75, 16), outcomes(25.0, 16)
+    validation.subsets = {"all": np.ones(16, dtype=bool)}
+    for entries in (validations, [reference["densevlad"], reference["gt_relative_pose"]]):
+        for entry in entries:
+            entry[p1] = entry[p1][:16]
+    below = gap_table(validation, report).set_index("metric").loc[local]
+    assert np.isnan(below["gap_closed_pct"]) and below["gap_note"].startswith(
+        "no gap to close: the ground truth (31.2 %) is below densevlad (37.5 %) on these 16 queries"
+    )
 
 
 @pytest.mark.parametrize(
@@ -1087,6 +1102,7 @@ def test_a_negatives_rule_from_outside_the_package_is_chosen_through_the_config(
 def test_the_training_report_escapes_every_name_it_writes(tmp_path):
     from types import SimpleNamespace
 
+    from locretrieval.metrics.uncertainty import Uncertainty
     from locretrieval.training.report import TrainingReportSettings, write_training_report
 
     hostile = "<img src=x onerror=alert(1)>"
@@ -1095,14 +1111,24 @@ def test_the_training_report_escapes_every_name_it_writes(tmp_path):
     reference = {"densevlad": {metric: 20.0}, "gt_relative_pose": {metric: 60.0}, hostile: {metric: 30.0}}
     validation = SimpleNamespace(
         history_table=lambda: pd.DataFrame(
-            [(-1, metric, 10.0), (0, metric, 40.0)], columns=["epoch", "metric", "value"]
+            [(-1, metric, 10.0, 1.0, 30.0, 10), (0, metric, 40.0, 20.0, 60.0, 10)],
+            columns=["epoch", "metric", "value", "low", "high", "num_queries"],
         ),
+        outcome_table=lambda: pd.DataFrame(columns=["ranking", "epoch", "metric", "query", "split", "localized"]),
+        resolution=lambda: f"10 queries selected on {hostile}",
         history=history,
         reference=reference,
+        reference_details={},
         galleries={},
+        outcomes=[],
+        reference_outcomes={},
+        splits={"val": "all"},
+        subsets={"all": np.ones(10, dtype=bool)},
+        settings=SimpleNamespace(metrics=SimpleNamespace(uncertainty=Uncertainty())),
     )
     report = validated(TrainingReportSettings, helpers.compose_config("train").report, "report")
     write_training_report(validation, tmp_path, report, {"val/local_sfm/pnp/k10/0.25m_2deg": hostile})
     text = (tmp_path / "report.md").read_text()
-    assert "<img" not in text and text.count("&#60;img src=x onerror=alert(1)&#62;") == 2  # reference row, unfilled
-    assert "| approximation/ewb/k3/5m_10deg |" in text  # names without markup unchanged
+    # the resolution line, the reference row and the unfilled row
+    assert "<img" not in text and text.count("&#60;img src=x onerror=alert(1)&#62;") == 3
+    assert "| val/approximation/ewb/k3/5m_10deg " in text  # names without markup unchanged
