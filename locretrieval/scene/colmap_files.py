@@ -61,7 +61,7 @@ class _Records:
     def __init__(self, path: Path) -> None:
         self.path = path
         self.position = 0
-        self.stream = open(path, "rb")  # noqa: SIM115  (closed by __exit__)
+        self.stream = open(path, "rb")  # closed by __exit__
         self.size = os.fstat(self.stream.fileno()).st_size
         self.data: Any = mmap.mmap(self.stream.fileno(), 0, access=mmap.ACCESS_READ) if self.size else b""
 
@@ -217,7 +217,7 @@ def check_reconstruction(reconstruction: Any, folder: Path) -> None:
     poses = files.get("frames", files["images"])  # where the poses are: a frame's, or (before rigs) the image's
     for image_id, image in sorted(reconstruction.images.items()):
         try:
-            image.name  # noqa: B018  (pycolmap decodes it here)
+            image.name  # pycolmap decodes it here
         except UnicodeDecodeError as error:
             raise DataFileError(
                 files["images"], f"image {image_id}: its name is not UTF-8 text ({error.reason})", FIX_DATA_FILE
