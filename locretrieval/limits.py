@@ -38,11 +38,15 @@ class Limits:
     compression_ratio: int
     kapture_rows: int
     yaml_nodes: int
+    folder_entries: int
+    image_pixels: int
+    list_file_bytes: int
     outside_images: str
     trusted_packages: list[str]
 
     def __post_init__(self) -> None:
-        for name in ("pickle_depth", "pickle_size_factor", "compression_ratio", "kapture_rows", "yaml_nodes"):
+        counts = ("pickle_depth", "pickle_size_factor", "compression_ratio", "kapture_rows", "yaml_nodes")
+        for name in (*counts, "folder_entries", "image_pixels", "list_file_bytes"):
             require(getattr(self, name) >= 1, name, f"must be >= 1, got {getattr(self, name)}")
         require(
             self.outside_images in OUTSIDE_IMAGES,

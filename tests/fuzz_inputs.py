@@ -5,19 +5,24 @@ an image) of a small valid folder, a revisited ground-truth pickle and a cache `
 the inputs that once crashed or exhausted the interpreter (#61): pickles nested deep or sharing
 references (through the plain and the torch loader), archives of every compression ratio
 (``.npz`` members, MATLAB elements and cells), hloc HDF5 files with links, external storage and
-unwritten datasets, and YAML with aliases. Every case must end in a result or in the project's
-error naming the file (`DataFileError`, ``FileNotFoundError`` for a listed file that is absent, or
-the error a loader documents), never another exception, a hang or a crash of this interpreter.
-Prints how many cases each target tried and the peak resident memory:
-``fuzz: N cases (kapture K, gnd G, ...); peak memory M MiB``.
+unwritten datasets, and YAML with aliases; and (#69) each file of a COLMAP model as published ones
+are (a rig, distortion, 3D points; binary and text: bytes, fields, counts and values such as NaN or
+2^64 - 1) and photo folders (links that loop, lead out or nowhere, a header of 13,000 x 13,000
+pixels, damaged photos, GPS altitudes out of range). Every case must end in a result or in the
+project's error naming the file (`DataFileError`, ``FileNotFoundError`` for a listed file that is
+absent, or the error a loader documents), never another exception, a hang or a crash of this
+interpreter; a COLMAP model that loads must be valid (`invalid_model`). Prints how many cases each
+target tried, the peak resident memory and each target's largest case (the memory it took above
+what was resident before it):
+``fuzz: N cases (kapture K, gnd G, ...); peak memory M MiB; largest case (...): kapture X, ...``.
 
     python tests/fuzz_inputs.py [EXAMPLES_PER_TARGET]   # the new targets try a fifth as many (each costs more)
 """
 
+import functools
 import io
 import logging
 import pickle
-import resource
 import struct
 import sys
 import tempfile
@@ -42,7 +47,13 @@ from locretrieval.models.files.weights import load_torch_file
 from locretrieval.models.published.netvlad import read_netvlad_struct
 from locretrieval.report.run_files import load_yaml
 from locretrieval.restricted_pickle import load_plain_pickle
+from locretrieval.scene.colmap import read_model
 from locretrieval.scene.kapture_io import load_image_set
+from locretrieval.scene.photos import checked_photos
+from locretrieval.scene.scale import gps_positions
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the tests' own builders
+from own_place import plain_photos, rig_model  # noqa: E402
 
 #: A small valid kapture folder: two cameras (one in a rig), three images, tags.
 KAPTURE_FILES = {
@@ -66,6 +77,8 @@ TOKENS = [
 ]  # fmt: skip
 
 CASES: Counter = Counter()
+#: The most memory one case of each target took, MiB (`expect_named`).
+CASE_PEAKS: Counter = Counter()
 SETTINGS = settings(
     derandomize=True, database=None, deadline=None, suppress_health_check=list(HealthCheck), print_blob=True
 )
@@ -109,14 +122,18 @@ def kapture_folder(root: Path, files: dict[str, bytes]) -> Path:
 
 def expect_named(call, path: Path, target: str, documented: tuple[type[Exception], ...] = ()):
     """``call()``'s result; a `DataFileError`, ``FileNotFoundError`` or ``documented`` error naming ``path``
-    counts as handled."""
+    counts as handled. The memory the call took above what was resident before it is kept, the
+    largest per target (`CASE_PEAKS`, MiB)."""
     CASES[target] += 1
+    resident = reset_peak_kib()
     try:
         return call()
     except (DataFileError, FileNotFoundError, *documented) as error:
         if str(path) not in str(error):
             raise AssertionError(f"{target}: the error does not name {path}: {error}") from error
         return None
+    finally:
+        CASE_PEAKS[target] = max(CASE_PEAKS[target], (status_kib("VmHWM") - resident) / 1024)
 
 
 @given(
@@ -364,10 +381,143 @@ def fuzz_yaml(shape, levels, fan_out, mutation, mutate):
         expect_named(lambda: load_yaml(path), path, "yaml")
 
 
+# --- COLMAP models and photo folders (#69) -----------------------------------------------------------
+
+#: Values a careless or hostile writer puts in a binary COLMAP field: (struct format, value).
+BINARY_VALUES = [
+    *(("<d", value) for value in (float("nan"), float("inf"), -float("inf"), 0.0, -1.0, 2.0, 1e300, 1e-300)),
+    *(("<Q", value) for value in (0, 1, 2**32, 2**40, 2**63, 2**64 - 1)),
+    *(("<I", value) for value in (0, 1, 7, 2**31, 2**32 - 1)),
+    *(("<i", value) for value in (-1, 3, 17, 99, 2**31 - 1)),
+]
+#: ... and in a text one's fields.
+COLMAP_TOKENS = [
+    *TOKENS, "1e999", "-0", "4294967295", "18446744073709551615", "CAMERA", "IMU", "OPENCV", "EQUIRECTANGULAR",
+    "1 2 3", "", "\xe9.jpg",
+]  # fmt: skip
+
+
+@functools.cache
+def colmap_models() -> dict[str, dict[str, bytes]]:
+    """The files of a model as published ones are (`own_place.rig_model`: a rig of two cameras,
+    distortion, keypoints, 3D points), binary and text, by file name."""
+    with tempfile.TemporaryDirectory() as folder:
+        return {
+            kind: {
+                path.name: path.read_bytes() for path in rig_model(Path(folder) / kind, text=kind == "text").iterdir()
+            }
+            for kind in ("binary", "text")
+        }
+
+
+def invalid_model(reconstruction) -> str | None:
+    """Why a model that loaded is not one to benchmark (a camera's focal length not positive or
+    its principal point outside the image, a parameter or a registered pose not finite, a rotation
+    not a unit quaternion, a name not text), checked independently of the loader; None when valid."""
+    for camera_id, camera in reconstruction.cameras.items():
+        params = np.asarray(camera.params, dtype=np.float64)
+        focal, centre = params[camera.focal_length_idxs()], params[camera.principal_point_idxs()]
+        if not (np.isfinite(params).all() and (focal > 0).all()):
+            return f"camera {camera_id}: {params}"
+        if not (0 <= centre[0] <= camera.width and 0 <= centre[1] <= camera.height):
+            return f"camera {camera_id}: principal point {centre} outside {camera.width} x {camera.height}"
+    for image_id, image in reconstruction.images.items():
+        image.name.encode()  # a name pycolmap cannot decode raises here
+        if image.has_pose:
+            pose = image.cam_from_world()
+            quaternion, translation = np.asarray(pose.rotation.quat), np.asarray(pose.translation)
+            if not (np.isfinite(translation).all() and abs(np.linalg.norm(quaternion) - 1.0) <= 1e-3):
+                return f"image {image_id}: pose {quaternion} {translation}"
+    return None
+
+
+@given(
+    kind=st.sampled_from(["binary", "text"]),
+    file=st.sampled_from(["rigs", "cameras", "frames", "images", "points3D"]),
+    mutation=byte_mutation(),
+    field=st.tuples(st.floats(0, 1), st.floats(0, 1), st.sampled_from(COLMAP_TOKENS) | st.text(max_size=12)),
+    value=st.tuples(st.floats(0, 1), st.sampled_from(BINARY_VALUES)),
+    by_field=st.booleans(),
+)
+def fuzz_colmap(kind, file, mutation, field, value, by_field):
+    files = dict(colmap_models()[kind])
+    name = f"{file}.{'bin' if kind == 'binary' else 'txt'}"
+    if by_field and kind == "binary":
+        fraction, (layout, number) = value
+        data = bytearray(files[name])
+        offset = int(fraction * max(0, len(data) - struct.calcsize(layout)))
+        if len(data) >= struct.calcsize(layout):
+            struct.pack_into(layout, data, offset, number)
+        files[name] = bytes(data)
+    elif by_field:
+        files[name] = mutate_token(files[name].decode(), *field).encode("utf-8", "surrogatepass")
+    else:
+        files[name] = mutate_bytes(files[name], mutation)
+    with tempfile.TemporaryDirectory() as folder:
+        model = Path(folder) / "sparse"
+        model.mkdir()
+        for file_name, content in files.items():
+            (model / file_name).write_bytes(content)
+        reconstruction = expect_named(lambda: read_model(model), model, "colmap")
+        if reconstruction is not None and (problem := invalid_model(reconstruction)) is not None:
+            raise AssertionError(f"colmap: an invalid model loaded ({problem})")
+
+
+def mutate_token(text: str, line_fraction: float, token_fraction: float, value: str) -> str:
+    """``text`` with one space-separated token of one line replaced by ``value``."""
+    lines = text.split("\n")
+    number = int(line_fraction * (len(lines) - 1))
+    tokens = lines[number].split(" ")
+    tokens[int(token_fraction * (len(tokens) - 1))] = value
+    lines[number] = " ".join(tokens)
+    return "\n".join(lines)
+
+
+#: What a shared photo folder may hold besides photos (a file name -> what it is): links that loop,
+#: lead out or nowhere, a hidden file, another file, a PNG header declaring 13,000 x 13,000 pixels.
+PHOTO_EXTRAS = ["loop", "up", "outside", "outside.jpg", "nowhere.jpg", ".hidden.jpg", "notes.txt", "huge.png"]
+
+
+def huge_png() -> bytes:
+    """A PNG whose header declares 13,000 x 13,000 pixels, its data cut short."""
+    stream = io.BytesIO()
+    Image.new("1", (8, 8)).save(stream, format="PNG")
+    data = bytearray(stream.getvalue())
+    struct.pack_into(">II", data, 16, 13_000, 13_000)  # IHDR's width and height (its CRC left wrong)
+    return bytes(data)
+
+
+@given(
+    photos=st.integers(0, 4),
+    extras=st.lists(st.sampled_from(PHOTO_EXTRAS), max_size=4, unique=True),
+    mutation=byte_mutation(),
+    mutate=st.booleans(),
+    altitude=st.none() | st.sampled_from([0.0, -1e6, 4294967295.0, 1e300]),
+)
+def fuzz_photos(photos, extras, mutation, mutate, altitude):
+    with tempfile.TemporaryDirectory() as root:
+        folder, outside = Path(root) / "photos", Path(root) / "shared"
+        names = plain_photos(folder, np.arange(3.0 * photos).reshape(-1, 3), 16, 12, [altitude] * photos)
+        plain_photos(outside, np.ones((1, 3)), 16, 12)
+        folder.mkdir(exist_ok=True)
+        if mutate and names:
+            (folder / names[0]).write_bytes(mutate_bytes((folder / names[0]).read_bytes(), mutation))
+        links = {"loop": ".", "up": "..", "outside": outside, "outside.jpg": outside / "walk/000.jpg",
+                 "nowhere.jpg": Path(root) / "nowhere.jpg"}  # fmt: skip
+        for extra in extras:
+            if extra in links:
+                (folder / extra).symlink_to(links[extra])
+            else:
+                (folder / extra).write_bytes(huge_png() if extra == "huge.png" else b"not a photo")
+        found = expect_named(lambda: checked_photos(folder), folder, "photos")
+        if found is not None:
+            gps_positions(folder, found)  # GPS that cannot be read counts as none
+
+
 #: Targets and the share of ``EXAMPLES_PER_TARGET`` each tries (a case of the newer ones costs about 3x).
 TARGETS = {
     fuzz_kapture: 1.0, fuzz_groundtruth: 1.0, fuzz_cache: 1.0,
-    fuzz_nesting: 0.3, fuzz_compression: 0.3, fuzz_hdf5: 0.3, fuzz_yaml: 0.3,
+    fuzz_nesting: 0.3, fuzz_compression: 0.3, fuzz_hdf5: 0.3, fuzz_yaml: 0.3, fuzz_colmap: 0.3, fuzz_photos: 0.2,
 }  # fmt: skip
 
 
@@ -376,18 +526,38 @@ def main(examples: int) -> None:
     warnings.filterwarnings("ignore", message="Detected pickle protocol")  # torch's, of the protocols tried
     for fuzz, share in TARGETS.items():
         settings(SETTINGS, max_examples=max(1, round(share * examples)))(fuzz)()
-    peak = peak_resident_kib() / 1024
+    reset_peak_kib()  # the last case's peak
     counts = ", ".join(f"{target} {count}" for target, count in CASES.items())
-    print(f"fuzz: {sum(CASES.values())} cases ({counts}); peak memory {peak:.0f} MiB", flush=True)
+    peaks = ", ".join(f"{target} {peak:.1f}" for target, peak in CASE_PEAKS.items())
+    print(
+        f"fuzz: {sum(CASES.values())} cases ({counts}); peak memory {PEAK_KIB / 1024:.0f} MiB; "
+        f"largest case (MiB above the resident memory before it): {peaks}",
+        flush=True,
+    )
 
 
-def peak_resident_kib() -> int:
-    """This process's peak resident memory (KiB): ``VmHWM``, which starts anew with the program
-    (``ru_maxrss`` keeps the peak of the process that started it across ``exec``)."""
+#: This process's peak resident memory (KiB) before the last `reset_peak_kib`.
+PEAK_KIB = 0
+
+
+def reset_peak_kib() -> int:
+    """This process's resident memory now (KiB), its peak (``VmHWM``) reset to it (Linux 4.0+:
+    ``/proc/self/clear_refs``), the peak so far kept in `PEAK_KIB`."""
+    global PEAK_KIB
+    PEAK_KIB = max(PEAK_KIB, status_kib("VmHWM"))
+    with open("/proc/self/clear_refs", "w") as control:
+        control.write("5")
+    return status_kib("VmRSS")
+
+
+def status_kib(key: str) -> int:
+    """A memory figure of ``/proc/self/status`` (KiB): ``VmHWM`` the peak resident memory (which
+    starts anew with the program: ``ru_maxrss`` keeps the peak of the process that started it
+    across ``exec``), ``VmRSS`` the resident memory now."""
     for line in open("/proc/self/status"):
-        if line.startswith("VmHWM:"):
+        if line.startswith(f"{key}:"):
             return int(line.split()[1])
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # not Linux: KiB where it is defined so
+    raise KeyError(key)
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ asked) and COLMAP models of known scenes written by pycolmap."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -154,3 +155,76 @@ def write_truth_kapture(walk: Walk, root: Path, rows: dict[str, list[int]]) -> d
         for i in indices:  # the photos themselves, where write_kapture put grey images
             shutil.copy(walk.folder / walk.names[i], root / folder / "sensors" / "records_data" / walk.names[i])
     return folders
+
+
+def rig_model(folder: Path, text: bool = False, keypoints: int = 500) -> Path:
+    """A COLMAP model as published ones are (COLMAP 3.12 and later): a rig of two cameras (OPENCV
+    with its distortion, SIMPLE_RADIAL 0.1 m to its right) 64 x 48 pixels, three frames 1 m apart
+    along x (identity rotations), six registered images ``cam<1|2>/<frame>.jpg`` of ``keypoints``
+    2D points each, and 20 3D points each observed by the six images; written by pycolmap."""
+    import pycolmap
+
+    model = pycolmap.Reconstruction()
+    for camera_id, name, params in (
+        (1, "OPENCV", [50, 51, 32, 24, 0.01, -0.002, 1e-4, 2e-4]),
+        (2, "SIMPLE_RADIAL", [50, 32, 24, 0.01]),
+    ):
+        camera = pycolmap.Camera(model=name, width=64, height=48, params=params)
+        camera.camera_id = camera_id
+        model.add_camera(camera)
+    rig = pycolmap.Rig(rig_id=1)
+    rig.add_ref_sensor(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, 1))
+    rig.add_sensor(
+        pycolmap.sensor_t(pycolmap.SensorType.CAMERA, 2), pycolmap.Rigid3d(pycolmap.Rotation3d(), [0.1, 0.0, 0.0])
+    )
+    model.add_rig(rig)
+    rng = np.random.default_rng(0)
+    for frame_id in (1, 2, 3):
+        frame = pycolmap.Frame()
+        frame.frame_id, frame.rig_id = frame_id, 1
+        frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(), [float(frame_id - 1), 0.0, 0.0])
+        for camera_id in (1, 2):
+            image_id = 2 * (frame_id - 1) + camera_id
+            frame.add_data_id(pycolmap.data_t(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, camera_id), image_id))
+        model.add_frame(frame)
+        for camera_id in (1, 2):
+            image_id = 2 * (frame_id - 1) + camera_id
+            image = pycolmap.Image(
+                name=f"cam{camera_id}/{frame_id - 1:03d}.jpg",
+                keypoints=rng.uniform(0.0, 48.0, (keypoints, 2)),
+                camera_id=camera_id,
+                image_id=image_id,
+            )
+            image.frame_id = frame_id
+            model.add_image(image)
+        model.register_frame(frame_id)
+    for point in range(20):
+        track = pycolmap.Track()
+        for image_id in range(1, 7):
+            track.add_element(image_id, point)
+        model.add_point3D(rng.uniform(-1.0, 1.0, 3) + [0.0, 0.0, 5.0], track)
+    folder.mkdir(parents=True, exist_ok=True)
+    model.write_text(folder) if text else model.write(folder)
+    return folder
+
+
+def plain_photos(
+    folder: Path, centres: np.ndarray, width: int, height: int, altitudes: Sequence[float | None] | None = None
+) -> list[str]:
+    """One JPEG file ``walk/NNN.jpg`` of ``folder`` per camera centre (metres, east-north-up about
+    `GPS_ORIGIN`), each of another flat colour (no two alike), its centre in its EXIF as a GPS
+    position whose altitude is its value of ``altitudes`` where that is given; returns their names."""
+    import pycolmap
+
+    names = []
+    for index, centre in enumerate(np.asarray(centres, dtype=np.float64)):
+        latitude, longitude, altitude = pycolmap.GPSTransform().enu_to_ellipsoid(centre[None], *GPS_ORIGIN)[0]
+        if altitudes is not None and altitudes[index] is not None:
+            altitude = altitudes[index]
+        exif = Image.Exif()
+        exif[ExifTags.IFD.GPSInfo] = gps_exif(latitude, longitude, altitude)
+        name = f"walk/{index:03d}.jpg"
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        Image.new("RGB", (width, height), (index * 37 % 256, 255 - index * 11 % 256, 80)).save(folder / name, exif=exif)
+        names.append(name)
+    return names

@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from locretrieval.errors import DataFileError
 from locretrieval.models.files.weights import content_sha256, plain
 from locretrieval.moved import current_path
 from locretrieval.parts import resolve_part
@@ -330,23 +331,25 @@ def load_weights(
     network is built with the seeded default initialisation and ``state_dict`` (if any)
     overrides what it holds; the parameters it lacks are listed in the `WeightsInfo`. Names
     in ``state_dict`` the network has no place for are always an error naming ``path``.
+
+    The network's shapes are compared with ``state_dict``'s before any of it is allocated (built
+    on the ``meta`` device first, `check_shapes`): sizes a weight file's architecture declares
+    (``whiten_dim`` 600,000 in a 2 KB checkpoint asked for 3 GB) must be those its weights have.
     """
     source = str(path) if path is not None else "no weight file"
-    if not random_init:
-        if state_dict is None:
-            raise ValueError(f"{source}: no weights to load; set model.random_init=true for random weights")
+    if not random_init and state_dict is None:
+        raise ValueError(f"{source}: no weights to load; set model.random_init=true for random weights")
+    if state_dict is not None:
         with torch.device("meta"):
-            network = factory()
+            skeleton = factory()
+        check_shapes(skeleton, state_dict, source, complete=not random_init)
+    if not random_init:
+        network = skeleton
         network.to_empty(device="cpu")
         for name, buffer in network.named_buffers():
             if name.endswith("num_batches_tracked"):
                 buffer.zero_()
-        missing = _load(network, state_dict, source)
-        if missing:
-            raise ValueError(
-                f"{source}: holds no values for {len(missing)} parameters, e.g. {missing[:6]}; "
-                "set model.random_init=true to initialise them randomly"
-            )
+        _load(network, state_dict, source)
         random_parameters: tuple[str, ...] = ()
     else:
         with torch.random.fork_rng(devices=[]):
@@ -360,17 +363,40 @@ def load_weights(
     return network, WeightsInfo(sha256, random_parameters, int(seed))
 
 
+def check_shapes(network: nn.Module, state_dict: Mapping[str, torch.Tensor], source: str, complete: bool) -> None:
+    """Raise a `DataFileError` naming ``source`` when a value of ``state_dict`` has no place in
+    ``network`` (built on the ``meta`` device: nothing allocated) or another shape than its place
+    there, or (``complete``) when a parameter of the network has no value in it."""
+    places = network.state_dict()
+    unexpected = [name for name in state_dict if name not in places]
+    if unexpected:
+        raise DataFileError(
+            source, f"holds {len(unexpected)} values the network has no place for, e.g. {unexpected[:6]}"
+        )
+    for name, value in state_dict.items():
+        if not isinstance(value, torch.Tensor):
+            raise DataFileError(source, f"{name} holds {type(value).__name__}, not a tensor")
+        if tuple(value.shape) != tuple(places[name].shape):
+            raise DataFileError(
+                source,
+                f"does not fit the network its architecture describes: {name} has shape {tuple(value.shape)} in "
+                f"the file, {tuple(places[name].shape)} in the network (compared before the network is allocated)",
+            )
+    missing = [name for name in places if name not in state_dict and not name.endswith("num_batches_tracked")]
+    if complete and missing:
+        raise DataFileError(
+            source,
+            f"holds no values for {len(missing)} parameters, e.g. {missing[:6]}; set model.random_init=true to "
+            "initialise them randomly",
+        )
+
+
 def _load(network: RetrievalNet, state_dict: Mapping[str, torch.Tensor], source: str) -> list[str]:
-    """Load ``state_dict`` (no unexpected names allowed); return the parameters it lacks."""
+    """Load ``state_dict`` (its names and shapes checked: `check_shapes`); return the parameters it lacks."""
     try:
         result = network.load_state_dict(dict(state_dict), strict=False)
     except RuntimeError as error:
         raise ValueError(f"{source}: does not fit the network: {error}") from error
-    if result.unexpected_keys:
-        raise ValueError(
-            f"{source}: holds {len(result.unexpected_keys)} values the network has no place for, "
-            f"e.g. {result.unexpected_keys[:6]}"
-        )
     return [name for name in result.missing_keys if not name.endswith("num_batches_tracked")]
 
 

@@ -27,12 +27,13 @@ import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
 from locretrieval.config import build_part, validated
 from locretrieval.errors import FIX_DATA_FILE, DataFileError
+from locretrieval.scene.colmap_files import check_model_files, check_reconstruction
 from locretrieval.scene.images import check_distinct_images, check_image_sizes, check_names, image_files
 from locretrieval.scene.ltvl import LtvlNames
 from locretrieval.scene.reconstruction import Observations, ReconstructionQuality
 from locretrieval.scene.scale import KnownDistance, ScaleSettings, metric_alignment
 from locretrieval.scene.split import SceneSplit
-from locretrieval.scene.types import CAMERA_MODELS, Camera, ImageSet, Scene
+from locretrieval.scene.types import Camera, ImageSet, Scene
 
 if TYPE_CHECKING:
     import pycolmap  # imported where it is used: a run without a COLMAP model does not load it
@@ -123,13 +124,17 @@ def load_colmap_dataset(
 
 
 def read_model(folder: Path) -> pycolmap.Reconstruction:
-    """The COLMAP model of ``folder``; a `DataFileError` naming it when pycolmap cannot read it."""
+    """The COLMAP model of ``folder``, its files checked before pycolmap reads them and what it read
+    checked after (`locretrieval.scene.colmap_files`); a `DataFileError` naming the file otherwise."""
     import pycolmap
 
+    check_model_files(folder)
     try:
-        return pycolmap.Reconstruction(folder)
+        reconstruction = pycolmap.Reconstruction(folder)
     except Exception as error:  # pycolmap raises its own types (and ValueError, RuntimeError) for bad files
         raise DataFileError(folder, f"pycolmap cannot read this COLMAP model ({error})", FIX_DATA_FILE) from None
+    check_reconstruction(reconstruction, folder)
+    return reconstruction
 
 
 def scene_parts(
@@ -243,17 +248,12 @@ def reconstruction_scene(
 def registered_images(
     reconstruction: pycolmap.Reconstruction, images: Sequence[pycolmap.Image], folder: Path, model: str
 ) -> ImageSet:
-    """The `ImageSet` of registered ``images`` (their cameras checked against the files' sizes)."""
-    cameras = {}
-    for camera_id, camera in reconstruction.cameras.items():
-        model_name = camera.model.name
-        if model_name not in CAMERA_MODELS:
-            raise DataFileError(
-                model,
-                f"camera {camera_id} has model {model_name}, which locretrieval cannot use; supported "
-                f"(calibrated COLMAP) models: {sorted(CAMERA_MODELS)}",
-            )
-        cameras[camera_id] = Camera(model_name, int(camera.width), int(camera.height), tuple(map(float, camera.params)))
+    """The `ImageSet` of registered ``images`` (their cameras checked against the files' sizes; the
+    model's values were checked where it was read, `read_model`)."""
+    cameras = {  # checked by `read_model`
+        camera_id: Camera(camera.model.name, int(camera.width), int(camera.height), tuple(map(float, camera.params)))
+        for camera_id, camera in reconstruction.cameras.items()
+    }
     names = [image.name for image in images]
     image_cameras = [cameras[image.camera_id] for image in images]
     check_image_sizes(folder, names, image_cameras, [f"{image.camera_id} in {model}" for image in images])

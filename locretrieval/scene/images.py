@@ -12,7 +12,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from locretrieval import limits
 from locretrieval.errors import FIX_DATA_FILE, DataFileError
+from locretrieval.folders import walk
+from locretrieval.report.run_files import inside
 
 if TYPE_CHECKING:
     from locretrieval.scene.types import Camera
@@ -33,6 +36,7 @@ def read_image(path: str | Path, grayscale: bool = False, max_side: int | None =
     mode = "L" if grayscale else "RGB"
     try:
         with Image.open(path) as image:
+            check_pixels(path, image.size)
             if max_side is None:
                 return np.asarray(image.convert(mode))
             image.draft(mode, (max_side, max_side))  # JPEG: DCT scaling to >= the size asked; others: no-op
@@ -44,12 +48,28 @@ def read_image(path: str | Path, grayscale: bool = False, max_side: int | None =
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    """``(width, height)`` of an image file, from its header; a `DataFileError` naming it when unreadable."""
+    """``(width, height)`` of an image file, from its header, within ``limits.image_pixels``
+    (`check_pixels`); a `DataFileError` naming it when unreadable."""
     try:
         with Image.open(path) as image:
-            return image.size
+            size = image.size
     except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as error:
         raise DataFileError(path, f"not a readable image ({error})", FIX_DATA_FILE) from None
+    check_pixels(path, size)
+    return size
+
+
+def check_pixels(path: Path, size: tuple[int, int]) -> None:
+    """Raise a `DataFileError` naming the image ``path`` when its ``(width, height)`` (its header's)
+    holds more than ``limits.image_pixels`` pixels: decoding it and extracting its features take
+    about 12 bytes a pixel (a 164 KB PNG of 13,000 x 13,000 zeros took 2.1 GB)."""
+    most = limits.current().image_pixels
+    if size[0] * size[1] > most:
+        raise DataFileError(
+            path,
+            f"{size[0]} x {size[1]} = {size[0] * size[1]} pixels, more than {most} (limits.image_pixels; refused "
+            "before decoding it): shrink the image, or raise the limit for larger images",
+        )
 
 
 def check_image_sizes(folder: Path, names: Sequence[str], cameras: Sequence[Camera], where: Sequence[str]) -> None:
@@ -77,17 +97,23 @@ def check_names(path: Path, names: Sequence[str]) -> None:
 
 def image_files(folder: Path) -> list[str]:
     """The images of ``folder`` and its subfolders (`IMAGE_EXTENSIONS`, any case), as sorted
-    ``/``-separated names relative to it; hidden files and folders are skipped and other files
-    are logged as left out."""
-    names, others = [], []
-    for root, folders, files in os.walk(folder, followlinks=True):
-        folders[:] = sorted(name for name in folders if not name.startswith("."))
-        relative = Path(root).relative_to(folder)
-        for file in files:
-            if file.startswith("."):
-                continue
-            name = (relative / file).as_posix()
-            (names if Path(file).suffix.lower() in IMAGE_EXTENSIONS else others).append(name)
+    ``/``-separated names relative to it, walked safely (`locretrieval.folders.walk`: a link to a
+    folder inside is not followed, a folder is walked once, at most ``limits.folder_entries``
+    entries). Images resolving outside the folder (a link to a file, or files below a link to a
+    folder) are logged once, or refused with ``limits.outside_images: refuse`` (`check_inside`).
+    Hidden files and folders are skipped; other files and the links not followed are logged."""
+    refuse = limits.current().outside_images == "refuse"
+    names, others, not_followed = [], [], []
+    for entry in walk(folder, hidden=False, follow_outside=not refuse):
+        if entry.is_dir:
+            if entry.outside and refuse:
+                raise _outside(Path(entry.path), entry.target, "image folder", folder, "a folder")
+            if entry.target is not None and not entry.outside:
+                not_followed.append(entry.name)
+        elif Path(entry.name).suffix.lower() in IMAGE_EXTENSIONS:
+            names.append(entry.name)
+        else:
+            others.append(entry.name)
     if others:
         log.warning(
             "%s: %d files are not images %s and are left out, e.g. %s",
@@ -96,7 +122,47 @@ def image_files(folder: Path) -> list[str]:
             IMAGE_EXTENSIONS,
             others[:3],
         )
-    return sorted(names)
+    if not_followed:
+        log.warning(
+            "%s: %d links to folders inside it are not followed (their images are listed where they are), e.g. %s",
+            folder,
+            len(not_followed),
+            not_followed[:3],
+        )
+    names.sort()
+    check_inside(folder, folder, names, "image folder")
+    return names
+
+
+def check_inside(root: Path, image_root: Path, names: Sequence[str], kind: str) -> None:
+    """Images of ``image_root`` (``names``) whose files resolve (through symbolic links) outside the
+    ``kind`` of folder ``root`` (a kapture folder, an image folder): logged once (datasets link their
+    images from shared storage), refused with ``limits.outside_images: refuse``."""
+    outside = [
+        (name, resolved)
+        for name in names
+        if not inside(resolved := os.path.realpath(os.path.join(image_root, name)), root)
+    ]
+    if not outside:
+        return
+    name, resolved = outside[0]
+    if limits.current().outside_images == "refuse":
+        raise _outside(image_root / name, resolved, kind, root, f"{len(outside)} of its {len(names)} images do")
+    log.warning(
+        "%s: %d of %d images resolve outside the folder (symbolic links), e.g. %s -> %s; "
+        "limits.outside_images=refuse refuses such folders",
+        root,
+        len(outside),
+        len(names),
+        name,
+        resolved,
+    )
+
+
+def _outside(path: Path, resolved: str | None, kind: str, root: Path, detail: str) -> DataFileError:
+    return DataFileError(
+        path, f"resolves to {resolved}, outside the {kind} {root} (limits.outside_images: refuse); {detail}"
+    )
 
 
 def check_distinct_images(folder: Path, names: Sequence[str]) -> None:

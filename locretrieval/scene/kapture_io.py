@@ -28,7 +28,7 @@ import quaternion
 
 from locretrieval import geometry, limits
 from locretrieval.errors import DataFileError
-from locretrieval.scene.images import check_image_sizes, check_names
+from locretrieval.scene.images import check_image_sizes, check_inside, check_names
 from locretrieval.scene.ltvl import KaptureNames, LtvlNames
 from locretrieval.scene.names import records_name_problem
 from locretrieval.scene.types import CAMERA_MODELS, Camera, ImageSet, Scene
@@ -399,35 +399,6 @@ def _check_files_exist(folder: Path, names: Sequence[str], what: str) -> None:
         )
 
 
-def _check_inside(root: Path, image_root: Path, names: Sequence[str]) -> None:
-    """Images whose files resolve (through symbolic links) outside the kapture folder ``root``: logged
-    once (datasets link their images from shared storage), refused with ``limits.outside_images: refuse``."""
-    inside = os.path.realpath(root)
-    outside = [
-        (name, resolved)
-        for name in names
-        if os.path.commonpath([inside, resolved := os.path.realpath(os.path.join(image_root, name))]) != inside
-    ]
-    if not outside:
-        return
-    name, resolved = outside[0]
-    if limits.current().outside_images == "refuse":
-        raise DataFileError(
-            image_root / name,
-            f"resolves to {resolved}, outside the kapture folder {root} (limits.outside_images: refuse); "
-            f"{len(outside)} of its {len(names)} images do",
-        )
-    log.warning(
-        "%s: %d of %d images resolve outside the folder (symbolic links), e.g. %s -> %s; "
-        "limits.outside_images=refuse refuses such folders",
-        root,
-        len(outside),
-        len(names),
-        name,
-        resolved,
-    )
-
-
 def _depth_paths(root: Path, keys: Sequence[tuple[int, str]], sensors: dict[str, CsvRow]) -> list[Path | None] | None:
     """Depth map of each image (``records_depth.txt``, sensor ``<camera>_depth`` at its
     timestamp), or ``None`` without any. Depth is side data the benchmark does not use: entries
@@ -496,7 +467,7 @@ def load_image_set(kapture_root: str | Path, tag: str | None = None) -> ImageSet
     check_names(root / RECORDS_CAMERA_FILE, names)
     image_root = root / RECORDS_DATA_DIR
     _check_files_exist(image_root, names, "image")
-    _check_inside(root, image_root, names)
+    check_inside(root, image_root, names, "kapture folder")
     cameras = {camera: _camera(sensors[camera]) for camera in {c for _, c in keys}}
     check_image_sizes(image_root, names, [cameras[c] for _, c in keys], [f"{c!r} in {SENSORS_FILE}" for _, c in keys])
     qvec, tvec = _image_poses(keys, trajectories, rigs)

@@ -164,9 +164,8 @@ def checked_photos(folder: Path) -> list[str]:
     """The images of ``folder``, each readable and none a copy of another."""
     names = image_files(folder)
     if not names:
-        raise ValueError(
-            f"{folder}: no image files (extensions {', '.join(IMAGE_EXTENSIONS)}, any case) to reconstruct"
-        )
+        extensions = ", ".join(IMAGE_EXTENSIONS)
+        raise DataFileError(folder, f"no image files (extensions {extensions}, any case) to reconstruct")
     check_names(folder, names)
     for name in names:
         image_size(folder / name)  # its header: an unreadable file is named now, not inside pycolmap

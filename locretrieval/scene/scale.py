@@ -22,11 +22,15 @@ import numpy as np
 from PIL import ExifTags, Image, UnidentifiedImageError
 
 from locretrieval.config import ConfigError, require
+from locretrieval.errors import DataFileError
 
 log = logging.getLogger(__name__)
 
 #: Images with a GPS position an alignment needs at least (a similarity has 7 degrees of freedom).
 MIN_GPS_IMAGES = 3
+#: GPS altitudes (metres) a photo can hold: the deepest sea floor to above the highest summit. An
+#: altitude outside (4.29e9 m: an unsigned field that wrapped) makes its position an outlier.
+EARTH_ALTITUDES_M = (-11_000.0, 9_000.0)
 
 
 @dataclass
@@ -110,18 +114,38 @@ def metric_alignment(
             return MetricAlignment(pycolmap.Sim3d(), "unitless")
         scale = settings.metres_per_unit or _known_distance_scale(reconstruction, settings.known_distance, model)
         return MetricAlignment(pycolmap.Sim3d(scale, pycolmap.Rotation3d(), np.zeros(3)), explicit[0])
-    positions = gps_positions(image_folder, names)
+    positions, outliers = _on_earth(gps_positions(image_folder, names), model)
     if len(positions) < MIN_GPS_IMAGES:
+        off_earth = f"; {outliers} more hold altitudes outside Earth's {EARTH_ALTITUDES_M} m" if outliers else ""
         raise ConfigError(
             f"the scale of {model} is unknown, and the paradigms' thresholds are metres. Give it one of three ways:\n"
             f"  1. GPS positions in the photos' EXIF (found in {len(positions)} of the {len(names)} registered "
-            f"images; at least {MIN_GPS_IMAGES} are needed),\n"
+            f"images{off_earth}; at least {MIN_GPS_IMAGES} are needed),\n"
             "  2. data.metres_per_unit=<metres per model unit>,\n"
             "  3. 'data.known_distance={images: [<image a>, <image b>], metres: <their distance>}' (two registered "
             "images' camera centres).\n"
             "(data.unitless=true runs with the model's units on purpose; the results say so.)"
         )
-    return _gps_alignment(reconstruction, positions, settings.gps_max_error, model)
+    return _gps_alignment(reconstruction, positions, settings.gps_max_error, model, image_folder)
+
+
+def _on_earth(positions: dict[str, np.ndarray], model: str) -> tuple[dict[str, np.ndarray], int]:
+    """``positions`` whose altitude is unknown (NaN) or within `EARTH_ALTITUDES_M`, and how many
+    others there are: outliers (logged)."""
+    low, high = EARTH_ALTITUDES_M
+    outliers = {name: position for name, position in positions.items() if position[2] < low or position[2] > high}
+    if outliers:
+        name, position = next(iter(outliers.items()))
+        log.warning(
+            "%s: %d GPS positions have altitudes outside Earth's %s m (e.g. %s: %.6g m) and are left out of the "
+            "alignment as outliers",
+            model,
+            len(outliers),
+            EARTH_ALTITUDES_M,
+            name,
+            position[2],
+        )
+    return {name: position for name, position in positions.items() if name not in outliers}, len(outliers)
 
 
 def _known_distance_scale(reconstruction: Any, known: KnownDistance, model: str) -> float:
@@ -139,9 +163,11 @@ def _known_distance_scale(reconstruction: Any, known: KnownDistance, model: str)
 
 
 def _gps_alignment(
-    reconstruction: Any, positions: dict[str, np.ndarray], max_error: float, model: str
+    reconstruction: Any, positions: dict[str, np.ndarray], max_error: float, model: str, image_folder: Path
 ) -> MetricAlignment:
-    """The similarity taking the camera centres to the GPS positions (east-north-up metres), and its residuals."""
+    """The similarity taking the camera centres to the GPS positions (east-north-up metres), and its
+    residuals; refused (`DataFileError` naming the photos' folder) when most of them exceed
+    ``max_error``: GPS and model disagree, and a scale fitted to them would be wrong."""
     import pycolmap
 
     names = sorted(positions)
@@ -163,6 +189,16 @@ def _gps_alignment(
     old = np.array([reconstruction.find_image_with_name(name).projection_center() for name in names])
     aligned = old @ np.asarray(new_from_old.matrix())[:, :3].T + np.asarray(new_from_old.matrix())[:, 3]
     residuals = np.linalg.norm(aligned - enu, axis=1)
+    far = int((residuals > max_error).sum())
+    if 2 * far > len(names):
+        raise DataFileError(
+            image_folder,
+            f"the GPS positions of {far} of its {len(names)} images with GPS lie farther than data.gps_max_error="
+            f"{max_error} m from the camera centres of {model} aligned to them (residuals: median "
+            f"{np.median(residuals):.4g} m, largest {residuals.max():.4g} m, {new_from_old.scale:.4g} metres per "
+            "model unit): the GPS and the model disagree, and a scale fitted to them would be wrong. Give the scale "
+            "by data.metres_per_unit or data.known_distance, or raise data.gps_max_error for GPS that coarse",
+        )
     return MetricAlignment(new_from_old, "gps", len(names), residuals)
 
 

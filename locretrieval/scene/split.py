@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from locretrieval import limits
 from locretrieval.config import require
 from locretrieval.errors import FIX_DATA_FILE, DataFileError
 
@@ -121,10 +122,17 @@ class ListFile(SceneSplit):
     path: str
 
     def listed(self) -> list[tuple[int, str]]:
-        """``(line number, name)`` of each name the file lists."""
+        """``(line number, name)`` of each name the file lists (at most ``limits.list_file_bytes``)."""
         path = Path(self.path)
         if not path.is_file():
             raise FileNotFoundError(f"data.split.path: query list file {path} not found")
+        most = limits.current().list_file_bytes
+        if path.stat().st_size > most:
+            raise DataFileError(
+                path,
+                f"{path.stat().st_size} bytes, more than {most} (limits.list_file_bytes; refused before reading it): "
+                "a list of image names is far smaller; raise the limit for a longer list",
+            )
         try:
             text = path.read_text(encoding="utf-8")
         except UnicodeDecodeError as error:

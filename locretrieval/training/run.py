@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.benchmark import BenchmarkSettings
 from locretrieval.config import ConfigError, built, check_node, require, validated
+from locretrieval.folders import check_written_folder
 from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, compute_groundtruths
 from locretrieval.scene import ImageSet, Scene
 from locretrieval.scene.datasets import instantiate_scene, load_synthetic_dataset
@@ -227,6 +228,7 @@ def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
     callbacks = checked_callbacks(cfg, settings, groundtruth_settings)
     sfm_validated = cfg.callbacks.localization_validation.get("sfm_every_n_epochs") is not None
     Objective.from_config(cfg).check(validation_metrics(settings, list(groundtruth_settings.parsed()), sfm_validated))
+    check_written_folder(output_dir, "run folder (output_dir)")  # Hydra's was checked; output_dir may be another
     output_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, output_dir / CONFIG_FILE, resolve=True)
     cache_dir = Path(cfg.paths.cache_dir)

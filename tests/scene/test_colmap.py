@@ -14,7 +14,7 @@ import helpers
 import numpy as np
 import pandas as pd
 import pytest
-from own_place import render_walk, write_model
+from own_place import plain_photos, render_walk, write_model
 from PIL import Image
 
 from locretrieval import geometry
@@ -153,6 +153,51 @@ def test_without_gps_the_scale_is_given_or_the_run_stops_naming_the_three_ways(t
         load(tmp_path, model, photos, f"data.known_distance={{images: [{first}, walk/nowhere.jpg], metres: 1.0}}")
 
 
+def gps_place(root: Path, offsets: np.ndarray, altitudes: list[float | None]) -> tuple[Path, Path]:
+    """15 flat photos 8 x 6 along 14 m (their GPS: each centre moved by its row of ``offsets``,
+    metres east-north-up, at its altitude where given) and the model of their true centres at half
+    the metric scale: ``(model, photos)``."""
+    from locretrieval.scene import Camera
+
+    centres = np.column_stack([np.linspace(0.0, 14.0, 15), 3.0 * np.sin(np.arange(15)), 0.1 * np.arange(15) % 0.7])
+    names = plain_photos(root / "photos", centres + offsets, 8, 6, altitudes)
+    camera = Camera("PINHOLE", 8, 6, (6.0, 6.0, 4.0, 3.0))
+    qvec = np.tile([1.0, 0.0, 0.0, 0.0], (15, 1))
+    write_model(root / "sparse", names, camera, qvec, -0.5 * centres, [], np.zeros((0, 3)))
+    return root / "sparse", root / "photos"
+
+
+def test_gps_altitudes_outside_the_earths_are_outliers(tmp_path, caplog):
+    no_offset = np.zeros((15, 3))
+    model, photos = gps_place(tmp_path / "one", no_offset, [4294967295.0] + [None] * 14)  # 2^32 - 1: wrapped
+    with caplog.at_level(logging.WARNING):
+        scene = load(tmp_path, model, photos)
+    assert "1 GPS positions have altitudes outside Earth's (-11000.0, 9000.0) m (e.g. walk/000.jpg: 4.29497e+09 m)" in (
+        caplog.text
+    )
+    assert scene.quality.gps_images == 14 and scene.quality.metres_per_unit == pytest.approx(2.0, rel=1e-5)
+    model, photos = gps_place(tmp_path / "all", no_offset, [4294967295.0] * 15)
+    with pytest.raises(
+        ConfigError,
+        match=r"found in 0 of the 15 registered images; 15 more hold altitudes outside Earth's \(-11000.0, 9000.0\) m",
+    ):
+        load(tmp_path, model, photos)
+
+
+def test_gps_most_images_disagree_with_is_refused_saying_how_far_off(tmp_path):
+    """Three groups of 5 photos, each group's GPS moved as one (none, 30 m east, 30 m north): the
+    alignment fits one group exactly, the 10 others lie 30 m (or 42.4 m) off: refused."""
+    offsets = np.array([[0.0, 0.0, 0.0], [30.0, 0.0, 0.0], [0.0, 30.0, 0.0]])[np.arange(15) % 3]
+    model, photos = gps_place(tmp_path, offsets, [None] * 15)
+    with pytest.raises(
+        DataFileError,
+        match=rf"^{photos}: the GPS positions of 10 of its 15 images with GPS lie farther than data.gps_max_error=10.0 "
+        r"m from the camera centres of .*sparse aligned to them \(residuals: median 30(\.0\d*)? m, largest (30|42\.4)",
+    ):
+        load(tmp_path, model, photos)
+    assert load(tmp_path, model, photos, "data.gps_max_error=50").quality.gps_images == 15
+
+
 @pytest.mark.parametrize(
     ("split", "queries"),
     [
@@ -187,11 +232,14 @@ def test_a_split_part_chooses_the_queries(tmp_path, walk, split, queries):
     assert sorted(scene.database.names) == sorted(set(names) - set(queries))
 
 
-def test_a_list_file_naming_an_image_not_in_the_folder_names_its_line(tmp_path, walk):
-    (tmp_path / "queries.txt").write_text("walk/001.jpg\nwalk/missing.jpg\n")
+def test_a_list_file_within_its_byte_budget_naming_no_image_of_the_folder_names_its_line(tmp_path, walk, monkeypatch):
+    (tmp_path / "queries.txt").write_text("walk/001.jpg\nwalk/missing.jpg\n")  # 30 bytes
     model = model_of(walk, tmp_path / "sparse")
     overrides = ("data.metres_per_unit=1", "data/split=list_file", f"data.split.path={tmp_path / 'queries.txt'}")
     with pytest.raises(DataFileError, match=r"queries.txt:2: 'walk/missing.jpg' is not an image of the image folder"):
+        load(tmp_path, model, walk[0].folder, *overrides)
+    helpers.set_limits(monkeypatch, list_file_bytes=29)
+    with pytest.raises(DataFileError, match=r"queries.txt: 30 bytes, more than 29 \(limits.list_file_bytes; refused"):
         load(tmp_path, model, walk[0].folder, *overrides)
 
 

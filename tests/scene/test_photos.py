@@ -104,7 +104,7 @@ def test_bad_photo_folders_are_refused_before_any_reconstruction(tmp_path, walk)
         load(tmp_path / "nowhere")
     (tmp_path / "empty").mkdir()
     (tmp_path / "empty" / "notes.txt").write_text("no photos here")
-    with pytest.raises(ValueError, match=r"empty: no image files"):
+    with pytest.raises(DataFileError, match=r"empty: no image files"):
         load(tmp_path / "empty")
     broken = tmp_path / "broken"
     shutil.copytree(walk.folder, broken)

@@ -587,6 +587,20 @@ def test_a_diverging_run_stops_at_the_step_naming_the_loss_and_the_learning_rate
         assert all(torch.isfinite(value).all() for value in state.values() if value.is_floating_point())
 
 
+def test_an_output_dir_holding_a_link_out_of_it_is_refused_before_anything_is_written(tmp_path):
+    """``output_dir`` may be another folder than Hydra's (which its callback checked)."""
+    from locretrieval.errors import DataFileError
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").symlink_to(tmp_path / "victim.yaml")
+    with pytest.raises(
+        DataFileError, match=rf"^{run / 'config.yaml'}: a symbolic link to {tmp_path / 'victim.yaml'}, "
+    ):
+        train(train_config(tmp_path), run)
+    assert not (tmp_path / "victim.yaml").exists() and sorted(path.name for path in run.iterdir()) == ["config.yaml"]
+
+
 @pytest.mark.slow
 def test_resuming_from_a_file_that_is_not_a_checkpoint_of_this_project_is_refused_before_any_work(tmp_path):
     from locretrieval.training.checkpoints import check_resume_checkpoint
