@@ -320,13 +320,11 @@ _SIMPLE_TYPES = (int, float, bool, str)
 
 def check_node(node: Any, key: str, kind: type | None = None) -> None:
     """Raise `ConfigError` naming the full key when the config node ``node`` (a ``_target_`` node)
-    names what is not a part there (a ``kind``, or a part of its key's group: `locretrieval.parts`,
-    checked before its module is imported, its nested nodes too), has a key its target does not
-    take, or a value its target's annotation refuses (int, float, bool, str, optional and list of
-    them), as `validated` does for a schema: before any work."""
+    names what does not import or is not a ``kind`` (`locretrieval.parts.import_part`), has a key its
+    target does not take, or a value its target's annotation refuses (int, float, bool, str, optional
+    and list of them), as `validated` does for a schema: before any work."""
 
-    target = parts.resolve_part(node["_target_"], key, kind)
-    parts.check_targets({name: value for name, value in node.items() if name != "_target_"}, key)
+    target = parts.import_part(node["_target_"], key, parts.PartGroup((kind,)) if kind else parts.ANY_CALLABLE)
     values = {
         name: value
         for name, value in OmegaConf.to_container(node, resolve=True).items()
@@ -370,13 +368,13 @@ def built(node: Any, key: str, **runtime: Any) -> Any:
     scene, the training pairs, the network, ...); giving them to a node that is not partial is an
     error naming the key. A value its constructor refuses (a `SettingError` of a range check) is a
     `ConfigError` naming the full key; its own `ConfigError`, `DataFileError` or `FileNotFoundError`
-    (a weight file it reads) is raised as it is, not inside Hydra's `InstantiationException`. Every
-    ``_target_`` in ``node`` must be a part (`locretrieval.parts.check_targets`), checked before
-    anything is imported or called."""
+    (a weight file it reads) is raised as it is, not inside Hydra's `InstantiationException`; a
+    ``_target_`` that does not import is named by its key (`locretrieval.parts.import_part`)."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
-    parts.check_targets(node, key)
+    if isinstance(node, Container) and "_target_" in node:
+        parts.import_part(node["_target_"], key)
     if runtime and not node.get("_partial_", False):
         raise ConfigError(f"{key}: needs _partial_: true (the run gives it {sorted(runtime)})")
     try:
@@ -394,7 +392,6 @@ def built(node: Any, key: str, **runtime: Any) -> Any:
 
 def check_run_config(cfg: Any) -> None:
     """What an entry point does first with its composed config: its ``limits`` section checked and
-    made the budgets of the run (`locretrieval.limits.configure`), then every ``_target_`` checked
-    (`locretrieval.parts.check_targets`)."""
+    made the budgets of the run (`locretrieval.limits.configure`). Its ``_target_`` are the user's
+    (a config the user runs is code: `locretrieval.parts`); files read as data are checked where read."""
     limits.configure(validated(limits.Limits, cfg.limits, "limits"))
-    parts.check_targets(cfg)

@@ -28,7 +28,12 @@ from hydra.experimental.callback import Callback
 
 from locretrieval import limits
 from locretrieval.errors import DataFileError
-from locretrieval.report.run_files import inside
+
+
+def inside(path: str | os.PathLike, folder: str | os.PathLike) -> bool:
+    """Whether ``path`` resolves (symbolic links followed) inside ``folder`` (resolved too)."""
+    resolved, root = os.path.realpath(path), os.path.realpath(folder)
+    return os.path.commonpath([resolved, root]) == root
 
 
 @dataclass(frozen=True)

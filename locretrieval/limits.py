@@ -1,4 +1,5 @@
-"""The ``limits`` config group: budgets of what a file may make the loaders build, and whom a config may call.
+"""The ``limits`` config group: budgets of what a file may make the loaders build, and whose classes a
+file read as data may name (``trusted_packages``, `locretrieval.parts.resolve_recorded`).
 
 `Limits` is the section's schema (``configs/limits/default.yaml`` holds the defaults and says
 what each key bounds). The loaders read the budgets where they run (`current`): the entry points

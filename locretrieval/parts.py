@@ -1,37 +1,30 @@
-"""Only parts can be called: every ``_target_`` of a config is checked before anything is imported or called.
+"""What a ``_target_`` may name, by where its config comes from (docs/configuration.md, "What is code
+and what is data").
 
-A config names the objects a run builds by ``_target_`` (Hydra's `instantiate`, and the project's
-own builders: `locretrieval.config.built`, backbones and poolings recorded in checkpoints, ground
-truths, paradigms). A config is text anyone can share (a run's ``.hydra/config.yaml``), and Hydra
-calls whatever it names: ``model.backbone._target_=subprocess.Popen`` ran a command, ``builtins.open``
-with ``mode: w`` emptied a file. So a target must be a *part* of the group its key belongs to
-(`PART_GROUPS`), checked by `resolve_part` in two steps:
+A config the user runs (the command line and the config files it composes) is code, as a Python
+script is: Hydra instantiates what it names, so its ``_target_`` may name any class or function of
+any package on the path, the user's own included. `import_part` imports it and checks it is what its
+key builds (a `PartGroup`'s base class), so that a mistake reads as one: ``paradigms.mine._target_:
+my_package.Thing is not a part of paradigms.mine: a part there is a Paradigm``.
 
-1. before any import, its dotted path must lie in an allowed package: ``locretrieval``, the
-   libraries the group's own options name (``torch.optim`` for ``module.optimizer``, ``lightning``
-   for ``trainer``, ...) and the packages a user names in ``limits.trusted_packages``;
-2. then the object must be a class defined in such a package (not one imported into it:
-   ``locretrieval.config.os.system`` is refused) and a subclass of the group's base class where the
-   group has one; a function counts where it is annotated to return that base (``data``'s loaders
-   return a `locretrieval.scene.Scene`).
-
-A key outside `PART_GROUPS` takes classes of the allowed packages only. `check_targets` checks every
-``_target_`` below a config node (the entry points check the whole config before the run starts;
-``hydra.*`` is Hydra's own, built before the run).
+A config read as data is not code: the architecture a checkpoint records (what the torch.hub entry,
+``export.py`` and ``model=checkpoint`` rebuild a network from). There every ``_target_`` must be a
+part of its key's group before anything is imported (`check_recorded`): its dotted path in
+locretrieval, in the libraries the group's builder names or in ``limits.trusted_packages`` (the
+packages a user trusts their files to name), then a class defined there and of the group's base; and
+no string of it may be an interpolation (``${oc.env:...}``), which would be resolved later, after the
+check, and could name what the check did not see. Each builder states its group (`PartGroup`) beside
+the code that builds it: a new kind of part needs no table elsewhere.
 """
 
 from __future__ import annotations
 
-import importlib
 import inspect
 import re
 import typing
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
-
-from omegaconf import OmegaConf
-from omegaconf.errors import OmegaConfBaseException
 
 from locretrieval import limits
 from locretrieval.errors import ConfigError
@@ -40,92 +33,84 @@ from locretrieval.errors import ConfigError
 OWN_PACKAGE = "locretrieval"
 #: A dotted import path (``package.module.Name``).
 DOTTED_PATH = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*")
+#: What an interpolation of OmegaConf's looks like in a string.
+INTERPOLATION = re.compile(r"\$\{")
 
 
 @dataclass(frozen=True)
 class PartGroup:
-    """The parts a config key takes: subclasses of ``bases`` (import paths; none: any class of an
-    allowed package) from ``locretrieval``, ``packages`` (the libraries of the group's own options)
-    and ``limits.trusted_packages``; with ``functions``, any function of those packages too."""
+    """What a config key's builder takes: a class of ``bases`` (none: any class), or with
+    ``functions`` any function too (a hook the code calls); ``packages``: the libraries besides
+    locretrieval whose classes a recorded config (data) may name there."""
 
-    bases: tuple[str, ...] = ()
+    bases: tuple[type, ...] = ()
     packages: tuple[str, ...] = ()
-    functions: bool = False  # a function of an allowed package is a part too (a hook the code calls)
+    functions: bool = False
 
 
-_CALLBACKS = PartGroup(("lightning.pytorch.callbacks.Callback",), ("lightning.pytorch.callbacks",))
-
-#: Config keys (``*``: any one key or list index) whose ``_target_`` builds a part, and what a part there is.
-PART_GROUPS: dict[str, PartGroup] = {
-    "data": PartGroup(("locretrieval.scene.types.Scene",)),  # the loaders: functions returning a Scene
-    "data.ltvl_names": PartGroup(("locretrieval.scene.ltvl.LtvlNames",)),
-    "data.split": PartGroup(("locretrieval.scene.split.SceneSplit",)),
-    "data.render.environments.*": PartGroup(("locretrieval.scene.synthetic.config.EnvironmentBuilder",)),
-    "model": PartGroup(),  # anything with rankings(scene, search): a GlobalDescriptor, a pairs file, a user's model
-    "validation_references.*": PartGroup(),
-    "model.backbone": PartGroup(),  # a Backbone protocol: any class of an allowed package
-    "model.pooling": PartGroup(("torch.nn.Module",)),
-    "model.order": PartGroup(("locretrieval.retrieval.pairs_file.PairOrder",)),
-    "groundtruth.definitions.*": PartGroup(),  # a Definition protocol (checked by its fields as well)
-    "train_relevance.definition": PartGroup(),
-    "groundtruth.relevance": PartGroup(("locretrieval.groundtruth.base.RelevanceScope",)),
-    "train_relevance.negatives": PartGroup(("locretrieval.training.relevance.NegativesRule",)),
-    "paradigms.*": PartGroup(("locretrieval.paradigms.base.Paradigm",)),
-    "paradigms.approximation.weights.*": PartGroup(("locretrieval.paradigms.approximation.ApproximationMethod",)),
-    "paradigms.local_sfm.map_matches": PartGroup(("locretrieval.paradigms.local_sfm.MapMatches",)),
-    "sfm.features": PartGroup(("locretrieval.sfm.features.LocalFeatures",)),
-    "sfm.query_verification": PartGroup(("locretrieval.sfm.verification.PairVerification",)),
-    "sfm.database_verification": PartGroup(("locretrieval.sfm.verification.PairVerification",)),
-    "sfm.triangulation": PartGroup(("locretrieval.sfm.triangulation.Triangulation",)),
-    "subsets.mask_sources.*": PartGroup(("locretrieval.metrics.subsets.MaskSource",)),
-    "augmentation": PartGroup(),
-    "sampler": PartGroup(("torch.utils.data.Sampler",)),
-    "datamodule": PartGroup(("lightning.pytorch.LightningDataModule",)),
-    "module": PartGroup(("lightning.pytorch.LightningModule",)),
-    "module.loss": PartGroup(("torch.nn.Module",)),
-    "module.loss.loss": PartGroup(
-        ("pytorch_metric_learning.losses.BaseMetricLossFunction",), ("pytorch_metric_learning.losses",)
-    ),
-    "module.loss.distance": PartGroup(
-        ("pytorch_metric_learning.distances.BaseDistance",), ("pytorch_metric_learning.distances",)
-    ),
-    "module.loss.reducer": PartGroup(
-        ("pytorch_metric_learning.reducers.BaseReducer",), ("pytorch_metric_learning.reducers",)
-    ),
-    "module.memory": PartGroup(("torch.nn.Module",)),
-    "module.optimizer": PartGroup(("torch.optim.Optimizer",), ("torch.optim",)),
-    "module.scheduler": PartGroup(("torch.optim.lr_scheduler.LRScheduler",), ("torch.optim.lr_scheduler",)),
-    "miner": _CALLBACKS,
-    "callbacks.*": _CALLBACKS,
-    "logger.*": PartGroup(("lightning.pytorch.loggers.Logger",), ("lightning.pytorch.loggers",)),
-    "trainer": PartGroup(("lightning.pytorch.Trainer",), ("lightning",)),
-    "trainer.plugins.*": PartGroup(("lightning.fabric.plugins.CheckpointIO",), ("lightning",)),
-    "hydra.sweeper.sampler": PartGroup(("optuna.samplers.BaseSampler",), ("optuna.samplers",)),
-    "hydra.sweeper.custom_search_space": PartGroup(functions=True),  # (multirun config, trial) -> None
-}
+#: What a key without a base of its own takes: in a config the user runs any class or function
+#: (`ANY_CALLABLE`), in a recorded config any class of the allowed packages (`ANY_CLASS`: a function
+#: of locretrieval's, such as one that writes a file, is not a part).
+ANY_CALLABLE = PartGroup(functions=True)
+ANY_CLASS = PartGroup()
 
 
-def pattern_of(key: str) -> str | None:
-    """The `PART_GROUPS` pattern a config key (``groundtruth.definitions.frustum``, ``trainer.plugins[0]``)
-    matches, or ``None``."""
-    parts = [part for part in re.split(r"\.|\[|\]", key) if part]
-    for pattern in PART_GROUPS:
-        expected = pattern.split(".")
-        if len(expected) == len(parts) and all(e in ("*", p) for e, p in zip(expected, parts)):
-            return pattern
-    return None
+def import_part(target: Any, key: str, group: PartGroup = ANY_CALLABLE) -> Any:
+    """The class (or function, where ``group`` takes one) that the ``_target_`` ``target`` of a config
+    the user runs names at ``key``, imported; a `ConfigError` naming ``<key>._target_`` when it is
+    not an import path, does not import or is not a part of ``group``."""
+    found = _imported(target, key)
+    _require_part(found, target, key, group)
+    return found
 
 
-def group_of(key: str) -> PartGroup:
-    """The `PartGroup` of a config key (`pattern_of`); a key outside `PART_GROUPS` takes any class of
-    the allowed packages."""
-    pattern = pattern_of(key)
-    return PART_GROUPS[pattern] if pattern is not None else PartGroup()
+def resolve_recorded(target: Any, key: str, group: PartGroup = ANY_CLASS) -> Any:
+    """The class the ``_target_`` ``target`` of a recorded config (data) names at ``key``: checked to
+    lie in locretrieval, ``group.packages`` or ``limits.trusted_packages`` before anything is
+    imported, then to be defined there (a name imported into an allowed module, such as
+    ``locretrieval.config.os.system``, is not) and a part of ``group``."""
+    packages = (OWN_PACKAGE, *group.packages, *limits.current().trusted_packages)
+    where = f"{key}._target_" if key else "_target_"
+    _require_path(target, where)
+    if not in_packages(target, packages):
+        raise ConfigError(
+            f"{where}: {target} is not a part: a recorded config (a file's, not the command line's) may name "
+            f"classes of {list(packages)} only; trust another package's with limits.trusted_packages=[<package>] "
+            "on your command line (nothing was imported)"
+        )
+    found = _imported(target, key)
+    module = getattr(found, "__module__", None) or ""
+    if not in_packages(module, packages):
+        raise ConfigError(
+            f"{where}: {target} is not a part of {key}: it is defined in {module or 'no module'}, "
+            f"outside {list(packages)}"
+        )
+    _require_part(found, target, key, group)
+    return found
 
 
-def allowed_packages(group: PartGroup) -> tuple[str, ...]:
-    """``locretrieval``, ``group``'s libraries and ``limits.trusted_packages``."""
-    return (OWN_PACKAGE, *group.packages, *limits.current().trusted_packages)
+def _require_path(target: Any, where: str) -> None:
+    if not isinstance(target, str) or not DOTTED_PATH.fullmatch(target):
+        raise ConfigError(f"{where}: {target!r} is not an import path (package.module.Class)")
+
+
+def _imported(target: Any, key: str) -> Any:
+    """What the import path ``target`` names, imported (Hydra's `get_object`)."""
+    where = f"{key}._target_" if key else "_target_"
+    _require_path(target, where)
+    from hydra.utils import get_object
+
+    try:
+        return get_object(target)
+    except Exception as error:  # Hydra wraps the import error
+        raise ConfigError(f"{where}: cannot import {target!r} ({error})") from None
+
+
+def _require_part(found: Any, target: str, key: str, group: PartGroup) -> None:
+    problem = _not_a_part(found, group)
+    if problem:
+        where = f"{key}._target_" if key else "_target_"
+        raise ConfigError(f"{where}: {target} is not a part of {key or 'the config'}: {problem}")
 
 
 def in_packages(path: str, packages: Sequence[str]) -> bool:
@@ -133,94 +118,65 @@ def in_packages(path: str, packages: Sequence[str]) -> bool:
     return any(path == package or path.startswith(f"{package}.") for package in packages)
 
 
-def resolve_part(target: Any, key: str, base: type | tuple[type, ...] | None = None) -> Any:
-    """The class (or function returning a part) that ``target`` names at the config key ``key``, checked
-    as the module docstring says, before importing anything outside the allowed packages or calling
-    anything; ``base``: the class every part there is (instead of its group's). A `ConfigError`
-    naming ``<key>._target_`` otherwise."""
-    group = group_of(key)
-    packages = allowed_packages(group)
-    where = f"{key}._target_" if key else "_target_"
-    if not isinstance(target, str) or not DOTTED_PATH.fullmatch(target):
-        raise ConfigError(f"{where}: {target!r} is not an import path (package.module.Class)")
-    if not in_packages(target, packages):
-        raise ConfigError(
-            f"{where}: {target} is not a part: a config may name classes of {list(packages)} only; a class of "
-            "your own package is allowed once you name the package in limits.trusted_packages (nothing was imported)"
-        )
-    from hydra.utils import get_object
-
-    try:
-        found = get_object(target)
-    except Exception as error:  # Hydra wraps the import error
-        raise ConfigError(f"{where}: cannot import {target!r} ({error})") from None
-    bases = base if isinstance(base, tuple) else (base,) if base is not None else _bases(group)
-    hook = group.functions and inspect.isfunction(found) and in_packages(found.__module__, packages)
-    problem = None if hook else _not_a_part(found, packages, bases)
-    if problem:
-        raise ConfigError(f"{where}: {target} is not a part of {key or 'the config'}: {problem}")
-    return found
-
-
-def _bases(group: PartGroup) -> tuple[type, ...]:
-    bases = []
-    for path in group.bases:
-        module, _, name = path.rpartition(".")
-        bases.append(getattr(importlib.import_module(module), name))
-    return tuple(bases)
-
-
-def _not_a_part(found: Any, packages: Sequence[str], bases: tuple[type, ...]) -> str | None:
-    """Why ``found`` is not a part (``None``: it is)."""
-    module = getattr(found, "__module__", None) or ""
-    if not in_packages(module, packages):
-        return f"it is defined in {module or 'no module'}, outside {list(packages)}"
+def _not_a_part(found: Any, group: PartGroup) -> str | None:
+    """Why ``found`` is not a part of ``group`` (``None``: it is)."""
     if inspect.isclass(found):
-        if bases and not issubclass(found, bases):
-            return f"a part there is a {' or '.join(b.__qualname__ for b in bases)}"
+        if group.bases and not issubclass(found, group.bases):
+            return f"a part there is a {' or '.join(base.__qualname__ for base in group.bases)}"
         return None
-    if inspect.isfunction(found) and bases:
-        try:
-            returned = typing.get_type_hints(found).get("return")
-        except Exception:  # annotations that do not resolve
-            returned = None
-        if isinstance(returned, type) and issubclass(returned, bases):
-            return None
-        return f"a function there must be annotated to return a {' or '.join(b.__qualname__ for b in bases)}"
+    if group.functions and callable(found):
+        return None
+    if inspect.isfunction(found):
+        if group.bases:
+            try:
+                returned = typing.get_type_hints(found).get("return")
+            except Exception:  # annotations that do not resolve
+                returned = None
+            if isinstance(returned, type) and issubclass(returned, group.bases):
+                return None
+            names = " or ".join(base.__qualname__ for base in group.bases)
+            return f"a function there must be annotated to return a {names}"
+        return "not a class"
     return "not a class"
 
 
-def check_targets(node: Any, key: str = "") -> None:
-    """`resolve_part` for every ``_target_`` in ``node`` (a config node or plain data) and below it, at
-    its full key below ``key``; ``hydra`` at the top is left to Hydra. A node is checked as it
-    resolves (an interpolation checked where it is used), or as written when it does not resolve."""
-    if OmegaConf.is_config(node):
-        try:
-            node = OmegaConf.to_container(node, resolve=True)
-        except OmegaConfBaseException:  # resolved when used (a ${hydra:...} outside a run): checked as written
-            node = OmegaConf.to_container(node, resolve=False)
-    _check_plain(node, key)
+def check_recorded(node: Any, where: str, groups: Mapping[str, PartGroup]) -> None:
+    """Check a recorded config (plain data a file holds: a checkpoint's architecture) before anything
+    of it is built: no string holds an interpolation, and every ``_target_`` below the key ``name``
+    of ``groups`` is a part of that group (`resolve_recorded`; a ``_target_`` nested deeper in it, of
+    any class of the allowed packages). ``where`` names the file or section in the errors."""
+    refuse_interpolations(node, where)
+    for name, group in groups.items():
+        value = node.get(name) if isinstance(node, Mapping) else None
+        for key, target, depth in _targets(value, f"{where}: {name}"):
+            resolve_recorded(target, key, group if depth == 0 else ANY_CLASS)
 
 
-def _check_plain(node: Any, key: str) -> None:
+def refuse_interpolations(node: Any, where: str) -> None:
+    """A `ConfigError` naming the key of the first string of ``node`` (plain data) that holds an
+    interpolation (``${...}``): recorded values are taken as written, never resolved."""
+    if isinstance(node, Mapping):
+        for name, value in node.items():
+            refuse_interpolations(name, where)
+            refuse_interpolations(value, f"{where}.{name}")
+    elif isinstance(node, (list, tuple)):
+        for index, value in enumerate(node):
+            refuse_interpolations(value, f"{where}[{index}]")
+    elif isinstance(node, str) and INTERPOLATION.search(node):
+        raise ConfigError(
+            f"{where}: {node[:80]!r} is an interpolation; a recorded config is data, taken as written, and may not "
+            "hold one (it would be resolved after the check of what it names)"
+        )
+
+
+def _targets(node: Any, key: str, depth: int = 0) -> typing.Iterator[tuple[str, Any, int]]:
+    """``(key, target, depth)`` of every ``_target_`` in plain data ``node`` (depth 0: ``node``'s own)."""
     if isinstance(node, Mapping):
         for name, value in node.items():
             if name == "_target_":
-                resolve_part(value, key)
-            elif not (key == "" and name == "hydra"):
-                _check_plain(value, f"{key}.{name}" if key else str(name))
+                yield key, value, depth
+            else:
+                yield from _targets(value, f"{key}.{name}", depth + 1)
     elif isinstance(node, (list, tuple)):
         for index, value in enumerate(node):
-            _check_plain(value, f"{key}[{index}]")
-
-
-def check_callable(target: str, key: str) -> None:
-    """A ``package.module:function`` a config names to be called (``model=callable``'s ``model.target``): its
-    module must lie in ``locretrieval`` or ``limits.trusted_packages``, checked before importing it."""
-    module = target.partition(":")[0]
-    packages = allowed_packages(PartGroup())
-    if not DOTTED_PATH.fullmatch(module) or not in_packages(module, packages):
-        raise ConfigError(
-            f"{key}: {target!r} is not in {list(packages)}: name its package in limits.trusted_packages "
-            "(e.g. limits.trusted_packages=[my_package]) to call it (nothing was imported)"
-        )
+            yield from _targets(value, f"{key}[{index}]", depth + 1)

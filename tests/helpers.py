@@ -16,6 +16,21 @@ from locretrieval.scene.synthetic import RenderSettings, render_synthetic_datase
 from locretrieval.sfm.inputs import SfmSettings
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+#: The overrides of a tiny built-in scene for a run of the command line: 32 database images and 16 queries of
+#: 160 x 120 pixels, DenseVLAD on them.
+TINY_SCENE = [
+    "data.render.width=160",
+    "data.render.height=120",
+    "data.render.num_database=32",
+    "data.render.num_queries=16",
+    "data.render.texture_size=64",
+    "data.render.length=20.0",
+    "data.render.workers=1",
+    "data.render.seed=3",
+    "model.max_side=160",
+    "model.step=4",
+    "subsets.blur_width=160",
+]
 #: Extraction overrides for tests: CPU, in this process, no progress bars.
 QUIET_EXTRACTION = ("device=cpu", "model.extraction.num_workers=0", "model.extraction.progress=false")
 
@@ -177,11 +192,6 @@ def set_limits(monkeypatch, **values) -> None:
 
     monkeypatch.delenv(limits.ENVIRONMENT, raising=False)
     monkeypatch.setenv(limits.ENVIRONMENT, json.dumps({**dataclasses.asdict(limits.current()), **values}))
-
-
-def trust_packages(monkeypatch, *packages: str) -> None:
-    """`set_limits` with ``limits.trusted_packages`` = ``packages`` (the classes and callables a config may name)."""
-    set_limits(monkeypatch, trusted_packages=list(packages))
 
 
 def network_failing_on_rank(rank: int):

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from helpers import evaluate_config, render_settings, trust_packages
+from helpers import evaluate_config, render_settings
 from PIL import Image
 from torch import nn
 
@@ -207,6 +207,7 @@ LAYERS = [
         "limits",
         "bounded_files",
         "parts",
+        "folders",
     },
     {"models"},
     {"retrieval"},
@@ -404,7 +405,6 @@ def test_a_new_paradigm_is_one_class_and_one_config_section(scene, monkeypatch):
     """A paradigm added through the config alone (its ``_target_``, a class of this module) runs on
     every ranking, after the built-in ones, under its section's name: the pose of the top-ranked
     database image, which must equal paradigm 1 (EWB) at k=1."""
-    trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     cfg = evaluate_config(
         "paradigms.local_sfm.enabled=false",
         "paradigms.global_sfm.enabled=false",
@@ -443,7 +443,7 @@ def test_a_new_paradigm_is_one_class_and_one_config_section(scene, monkeypatch):
             r"paradigms.top_image._target_: .* not a part of paradigms.top_image: a function there must be annotated",
         ),
         (f"{{_target_: {__name__}.NoSuchParadigm}}", r"paradigms.top_image._target_: cannot import"),
-        ("{_target_: no.such.Paradigm}", r"paradigms.top_image._target_: no.such.Paradigm is not a part"),
+        ("{_target_: no.such.Paradigm}", r"paradigms.top_image._target_: cannot import 'no.such.Paradigm'"),
         (f"{{_target_: {__name__}.TopImage, enabled: true, k: [1], depth: 3}}", r"paradigms.top_image.depth: unknown"),
     ):
         with pytest.raises(ConfigError, match=message):

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from helpers import evaluate_config, trust_packages
+from helpers import TINY_SCENE, evaluate_config
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
@@ -22,19 +22,6 @@ from locretrieval.retrieval import Ranking, random_ranking
 from locretrieval.scene.datasets import instantiate_scene
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY_SCENE = [
-    "data.render.width=160",
-    "data.render.height=120",
-    "data.render.num_database=32",
-    "data.render.num_queries=16",
-    "data.render.texture_size=64",
-    "data.render.length=20.0",
-    "data.render.workers=1",
-    "data.render.seed=3",
-    "model.max_side=160",
-    "model.step=4",
-    "subsets.blur_width=160",
-]
 KS = [1, 2, 5, 10]
 
 
@@ -254,12 +241,10 @@ class CentreOracle:
 
 
 def test_a_model_from_outside_the_package_is_evaluated_through_the_config(tmp_path, monkeypatch):
-    trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     marker = tmp_path / "marker.txt"
     node = f"{{_target_: {__name__}.CentreOracle, name: oracle, marker: {marker}}}"
     cfg = evaluate_config(
         f"paths.root_dir={tmp_path}", *SMALL_SCENE, "~model", f"+model={node}", "groundtruth=none",
-        f"limits.trusted_packages=[{__name__}]",
         "paradigms.local_sfm.enabled=false", "paradigms.global_sfm.enabled=false", "paradigms.approximation.k=[1]",
         "report.figure_formats=[]", "report.scene_view.enabled=false", "baselines.random=false",
     )  # fmt: skip

@@ -1,6 +1,7 @@
-"""Loaders within budgets (``limits``): no file can crash or exhaust the interpreter. The three
+"""Loaders within budgets (``limits``): no file can crash or exhaust the interpreter. The file
 reproductions of #61 run as users meet them, in fresh interpreters (a crash of one cannot take the
-test run with it), at once: each must end in a named error, exit status 1, within seconds."""
+test run with it), at once: each must end in a named error, exit status 1, within seconds (a config
+naming a process is the user's own code: tests/test_parts.py)."""
 
 import os
 import pickle
@@ -66,10 +67,9 @@ def cap_memory() -> None:
 
 
 @pytest.mark.slow
-def test_the_three_reproductions_end_in_a_named_error_within_seconds(tmp_path):
+def test_the_file_reproductions_end_in_a_named_error_within_seconds(tmp_path):
     (tmp_path / "deep.pkl").write_bytes(DEEP_KEY)
     (tmp_path / "deep.pt").write_bytes(DEEP_KEY)  # torch reads a file that is not a zip as its legacy pickles
-    marker = tmp_path / "pwned"
 
     def evaluate(name: str, *overrides: str) -> list[str]:
         where = [f"hydra.run.dir={tmp_path / name}", f"paths.cache_dir={tmp_path / 'cache'}"]
@@ -84,16 +84,6 @@ def test_the_three_reproductions_end_in_a_named_error_within_seconds(tmp_path):
     )
     commands = {
         "deep key": ([sys.executable, "-c", deep_key], None),
-        "Popen": (
-            evaluate(
-                "popen",
-                "model=lite0_gem",
-                "+model._recursive_=false",
-                "model.backbone._target_=subprocess.Popen",
-                f"+model.backbone.args=[touch,{marker}]",
-            ),
-            None,
-        ),
         "laughs": (
             evaluate("laughs", "model=checkpoint", f"model.weights={laughs_checkpoint(tmp_path / 'laughs.pt')}"),
             cap_memory,
@@ -115,14 +105,12 @@ def test_the_three_reproductions_end_in_a_named_error_within_seconds(tmp_path):
     depth = r"refused containers nested deeper than 64 \(limits.pickle_depth\)"
     expected = {
         "deep key": [rf"deep\.pkl: {depth}", rf"deep\.pt: not a readable PyTorch file: {depth}"],
-        "Popen": [r"model.backbone._target_: subprocess.Popen is not a part: a config may name classes of \['locre"],
         "laughs": [r"laughs\.pt: refused a structure of more than \d+ elements and bytes counted over its shared"],
     }
     for name, patterns in expected.items():
         for pattern in patterns:
             assert re.search(pattern, outputs[name]), f"{name}: {pattern}\n{outputs[name][-3000:]}"
-    assert not marker.exists()
-    assert elapsed < WITHIN, elapsed  # all three at once; each was a crash, a command run or 87 s to a MemoryError
+    assert elapsed < WITHIN, elapsed  # both at once; each was a crash or 87 s to a MemoryError
 
 
 # ------------------------------------------------------------------------------ pickles

@@ -1,27 +1,34 @@
-"""Only parts can be called: at every ``_target_`` the config groups accept, ``subprocess.Popen``,
-``os.system``, ``builtins.open`` (``mode: w``) and ``this`` are refused before anything is imported
-or called, by the entry points' check and by every builder that resolves a target itself."""
+"""What a ``_target_`` may name, by where its config comes from (locretrieval.parts): a config the user
+runs is code and names anything, their own package's classes included, with no trust setting; the
+architecture a checkpoint records is data, and names only parts (no process, shell command, file
+opened for writing or module that prints on import), no interpolation, before anything is imported."""
 
+import os
 import re
+import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
+import helpers
+import pandas as pd
 import pytest
+import torch
 import yaml
-from helpers import CONFIGS, compose_config, set_limits, trust_packages
+from helpers import CONFIGS, compose_config, set_limits
 from omegaconf import OmegaConf
 
-from locretrieval.config import ConfigError, check_node, check_run_config
-from locretrieval.groundtruth.compute import definition_class
-from locretrieval.models.networks import build_pooling, pooling_settings
-from locretrieval.models.trainable.backbones import backbone_of
-from locretrieval.paradigms.base import paradigm_of
-from locretrieval.parts import PART_GROUPS, pattern_of, resolve_part
+from locretrieval.config import ConfigError
+from locretrieval.export.network import descriptor_from_checkpoint
+from locretrieval.models.files.weights import save_checkpoint
+from locretrieval.models.networks import POOLING
+from locretrieval.parts import check_recorded, import_part, resolve_recorded
 
-#: What a hostile config names: a process, a shell command, a file opened for writing, a module that prints on import.
+#: What a hostile file names: a process, a shell command, a file opened for writing, a module that prints on import.
 HOSTILE_TARGETS = ["subprocess.Popen", "os.system", "builtins.open", "this"]
 #: Not importable at all: ``this`` prints the Zen of Python when imported.
 NEVER_IMPORTED = "this"
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def targets_below(node, key: str = ""):
@@ -37,129 +44,152 @@ def targets_below(node, key: str = ""):
             yield from targets_below(value, f"{key}[{index}]")
 
 
-def configured_targets() -> dict[str, set[str]]:
-    """Every config key holding a ``_target_`` and the targets the configs give it: each YAML file's at its
-    package (its group's path, its ``# @package`` header, the root for ``_global_`` presets), and the
-    composed entry points' (where defaults lists place an option, e.g. ``...weights.csi``)."""
-    found: dict[str, set[str]] = {}
+def test_every_target_the_shipped_configs_name_imports():
+    found = {}
     for path in CONFIGS.rglob("*.yaml"):
-        group = path.relative_to(CONFIGS).parent.parts
-        if group[:1] == ("hydra",):
-            continue
-        text = path.read_text()
-        header = re.search(r"^# @package (\S+)", text, flags=re.M)
-        prefix = "" if not group or "_global_" in text else header.group(1) if header else ".".join(group)
-        for key, target in targets_below(yaml.safe_load(text) or {}, prefix):
-            found.setdefault(key, set()).add(target)
+        if path.relative_to(CONFIGS).parts[0] != "hydra":
+            found |= dict(targets_below(yaml.safe_load(path.read_text()) or {}, path.stem))
     for name in ("evaluate", "train"):
-        composed = OmegaConf.to_container(compose_config(name, "paths.root_dir=/nonexistent"), resolve=False)
-        for key, target in targets_below(composed):
-            found.setdefault(key, set()).add(target)
-    return found
+        found |= dict(targets_below(OmegaConf.to_container(compose_config(name, "paths.root_dir=/x"), resolve=False)))
+    assert len(found) >= 40
+    for key, target in found.items():
+        import_part(target, key)  # a misspelt target in a shipped config fails here, naming its key
 
 
-@pytest.fixture(scope="module")
-def target_keys() -> dict[str, set[str]]:
-    return configured_targets()
+def hostile_checkpoint(path: Path, pooling: dict, preprocessing: dict | None = None) -> Path:
+    """A locretrieval checkpoint of the trainable family recording ``pooling`` (and ``preprocessing``)."""
+    backbone = {"_target_": "locretrieval.models.trainable.backbones.TimmBackbone", "name": "resnet18"}
+    save_checkpoint(
+        path,
+        "trainable",
+        {"backbone": backbone, "pooling": pooling, "whiten_dim": None},
+        preprocessing or {"max_side": 160, "mean": [0.5] * 3, "std": [0.5] * 3},
+        {"w": torch.zeros(1)},
+    )
+    return path
 
 
-def test_every_target_the_configs_name_is_a_part_of_its_group(target_keys):
-    assert {
-        "model",
-        "model.backbone",
-        "model.pooling",
-        "trainer",
-        "trainer.plugins[0]",
-        "callbacks.best_checkpoint",
-    } <= set(target_keys)
-    assert len(target_keys) >= 40
-    for key, targets in target_keys.items():
-        for target in targets:
-            resolve_part(target, key)  # raises for a table that forgot a group's base class or library
-    unlisted = {key for key in target_keys if pattern_of(key) is None}
-    assert unlisted <= {  # a group file's own package, not where a defaults list places its options
-        "paradigms", "paradigms.approximation.weights", "paradigms.weights", "paradigms.map_matches",
-        "groundtruth.definitions", "data.render.environments", "subsets.mask_sources",
-    }, unlisted  # fmt: skip
-    assert len(PART_GROUPS) >= 30
-
-
-def test_hostile_targets_are_refused_at_every_key_before_anything_is_imported(target_keys):
-    for key in target_keys:
-        for target in HOSTILE_TARGETS:
-            with pytest.raises(ConfigError, match=rf"^{re.escape(key)}._target_: {re.escape(target)} is not a part"):
-                resolve_part(target, key)
-    assert NEVER_IMPORTED not in sys.modules
-
-
-@pytest.mark.parametrize("entry_point", ["evaluate", "train"])
-def test_the_entry_points_check_refuses_them_anywhere_in_the_config(entry_point, tmp_path, monkeypatch):
-    """A run's check (`check_run_config`, what evaluate() and train.py do first) at every target of the composed
-    config: a file opened with mode w stays as it was, no process starts."""
-    set_limits(monkeypatch)  # the limits the check sets for the run end with the test
+def test_a_checkpoints_architecture_names_parts_only_before_anything_is_imported(tmp_path):
     victim, marker = tmp_path / "victim.txt", tmp_path / "pwned"
     victim.write_text("kept")
-    cfg = compose_config(entry_point, "paths.root_dir=/nonexistent")
-    keys = [key for key, _ in targets_below(OmegaConf.to_container(cfg, resolve=False))]
-    assert len(keys) >= (10 if entry_point == "evaluate" else 25)
-    hostile_nodes = {
+    arguments = {
         "subprocess.Popen": {"args": ["touch", str(marker)]},
         "os.system": {"command": f"touch {marker}"},
         "builtins.open": {"file": str(victim), "mode": "w"},
         "this": {},
     }
-    for number, key in enumerate(keys):  # each key one of them in turn (every one at every key: resolve_part's test)
-        target, arguments = list(hostile_nodes.items())[number % len(hostile_nodes)]
-        hostile = cfg.copy()
-        OmegaConf.set_struct(hostile, False)
-        OmegaConf.select(hostile, key).update({"_target_": target, **arguments})
-        with pytest.raises(ConfigError, match=rf"^{re.escape(key)}._target_: {re.escape(target)} is not a part"):
-            check_run_config(hostile)
+    for number, target in enumerate(HOSTILE_TARGETS):
+        checkpoint = hostile_checkpoint(tmp_path / f"{number}.pt", {"_target_": target, **arguments[target]})
+        with pytest.raises(ConfigError, match=rf"architecture: pooling._target_: {re.escape(target)} is not a part"):
+            descriptor_from_checkpoint(checkpoint)
+    nested = {"_target_": "locretrieval.models.networks.GeMPooling", "p": {"_target_": "os.system", "command": "x"}}
+    with pytest.raises(ConfigError, match=r"pooling.p._target_: os.system is not a part"):
+        descriptor_from_checkpoint(hostile_checkpoint(tmp_path / "nested.pt", nested))
     assert victim.read_text() == "kept" and not marker.exists() and NEVER_IMPORTED not in sys.modules
 
 
-def test_builders_that_resolve_targets_themselves_refuse_them_too():
-    """A checkpoint's architecture (backbone, pooling), a ground-truth definition, a paradigm, a node checked
-    by keys: each resolves its target through the same check, before importing it."""
-    calls = {
-        "model.backbone": lambda target: backbone_of({"_target_": target, "args": ["true"]}),
-        "model.pooling": lambda target: build_pooling(8, {"_target_": target}),
-        "groundtruth.definitions.mine": lambda target: definition_class(target, "groundtruth.definitions.mine"),
-        "paradigms.mine": lambda target: paradigm_of({"_target_": target}, "paradigms.mine", ["mine"]),
-        "sfm.features": lambda target: check_node(OmegaConf.create({"_target_": target, "mode": "w"}), "sfm.features"),
-    }
-    for key, call in calls.items():
-        for target in HOSTILE_TARGETS:
-            with pytest.raises(ConfigError, match=rf"{re.escape(key)}._target_: {re.escape(target)} is not a part"):
-                call(target)
-    with pytest.raises(ConfigError, match=r"model.pooling._target_: .*'os.system'.* is not an import path"):
-        pooling_settings({"_target_": {"_target_": "os.system"}})
-    assert NEVER_IMPORTED not in sys.modules
+def test_an_interpolation_in_a_checkpoints_record_is_refused_before_it_resolves(tmp_path, monkeypatch):
+    """An interpolation that resolves only later (an environment variable the run sets afterwards, as
+    ``PL_GLOBAL_SEED``) would hide a target from the check: a recorded config holds none."""
+    monkeypatch.delenv("HIDDEN_TARGET", raising=False)
+    hidden = hostile_checkpoint(tmp_path / "hidden.pt", {"_target_": "${oc.env:HIDDEN_TARGET,os.system}"})
+    with pytest.raises(ConfigError, match=r"architecture.pooling._target_: '\$\{oc.env:HIDDEN_TARGET.*interpolation"):
+        descriptor_from_checkpoint(hidden)
+    in_preprocessing = hostile_checkpoint(
+        tmp_path / "size.pt", {"_target_": "locretrieval.models.networks.GeMPooling"}, {"max_side": "${oc.env:X}"}
+    )
+    with pytest.raises(ConfigError, match=r"preprocessing.max_side: .* interpolation"):
+        descriptor_from_checkpoint(in_preprocessing)
 
 
-def test_a_users_package_is_trusted_by_name_and_its_parts_still_checked(tmp_path, monkeypatch):
+def test_the_hub_entry_refuses_a_hostile_checkpoint_in_a_fresh_process_with_a_named_error(tmp_path):
+    checkpoint = hostile_checkpoint(tmp_path / "hostile.pt", {"_target_": "${oc.env:HIDDEN_TARGET,this}"})
+    code = f"import torch; torch.hub.load({str(ROOT)!r}, 'locretrieval', weights={str(checkpoint)!r}, source='local')"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1
+    assert "ConfigError: " in done.stderr and "is an interpolation" in done.stderr
+    assert "Beautiful is better than ugly" not in done.stdout  # `this` never imported
+
+
+def test_a_checkpoint_may_name_a_users_package_that_their_command_line_trusts(tmp_path, monkeypatch):
     (tmp_path / "my_parts.py").write_text(
         "import torch\n\n"
         "class MaxPooling(torch.nn.Module):\n"
         "    def __init__(self, channels):\n        super().__init__()\n        self.output_dim = channels\n\n"
-        "class NotAModule:\n    pass\n\n"
-        "def helper():\n    pass\n"
+        "class NotAModule:\n    pass\n"
     )
     monkeypatch.syspath_prepend(str(tmp_path))
+    set_limits(monkeypatch)
     with pytest.raises(ConfigError, match=r"my_parts.MaxPooling is not a part: .*limits.trusted_packages"):
-        resolve_part("my_parts.MaxPooling", "model.pooling")
+        check_recorded({"pooling": {"_target_": "my_parts.MaxPooling"}}, "x.pt: architecture", {"pooling": POOLING})
     assert "my_parts" not in sys.modules  # refused before its import
-    trust_packages(monkeypatch, "my_parts")
-    assert build_pooling(16, {"_target_": "my_parts.MaxPooling"}).output_dim == 16
+    set_limits(monkeypatch, trusted_packages=["my_parts"])
+    assert resolve_recorded("my_parts.MaxPooling", "pooling", POOLING).__name__ == "MaxPooling"
+    with pytest.raises(ConfigError, match=r"my_parts.NotAModule is not a part of pooling: a part there is a Module"):
+        resolve_recorded("my_parts.NotAModule", "pooling", POOLING)
     with pytest.raises(
-        ConfigError, match=r"my_parts.NotAModule is not a part of model.pooling: a part there is a Module"
+        ConfigError, match=r"locretrieval.config.os.system is not a part of backbone: .*defined in posix"
     ):
-        resolve_part("my_parts.NotAModule", "model.pooling")
-    with pytest.raises(ConfigError, match=r"my_parts.helper is not a part of model.backbone: not a class"):
-        resolve_part("my_parts.helper", "model.backbone")
-    with pytest.raises(ConfigError, match=r"locretrieval.config.os.system is not a part of .*defined in posix"):
-        resolve_part("locretrieval.config.os.system", "model.backbone")  # imported into an allowed module
-    assert resolve_part("locretrieval.scene.datasets.load_dataset", "data").__name__ == "load_dataset"  # -> Scene
-    with pytest.raises(ConfigError, match=r"locretrieval.cache.save_arrays is not a part of data: a function there"):
-        resolve_part("locretrieval.cache.save_arrays", "data")
-    assert Path(sys.modules["my_parts"].__file__).parent == tmp_path
+        resolve_recorded("locretrieval.config.os.system", "backbone")  # imported into an allowed module
+
+
+TOY_PARADIGM = '''
+    """A paradigm of a user's own package: each query at the pose of its top-ranked database image."""
+
+    from dataclasses import dataclass
+
+    import numpy as np
+
+    from locretrieval.estimates import PoseEstimates
+    from locretrieval.paradigms.base import Paradigm
+
+
+    @dataclass
+    class TopImage(Paradigm):
+        def method_names(self):
+            return ["top_image"]
+
+        def run(self, scene, rankings, sfm, cache_dir):
+            estimates = []
+            for ranking in rankings:
+                top, ks = ranking.indices[:, 0], list(self.k)
+                qvec = scene.database.qvec[top][None].repeat(len(ks), 0)
+                tvec = scene.database.tvec[top][None].repeat(len(ks), 0)
+                failures = np.full((len(ks), len(top)), "", dtype=object)
+                outcome = PoseEstimates(ranking.name, ranking.kind, "top_image", "top_image", ks, qvec, tvec, failures)
+                estimates.append(outcome)
+            return estimates
+'''
+
+
+@pytest.mark.slow
+def test_a_new_part_group_is_one_module_and_one_yaml_run_from_the_command_line_without_trust(tmp_path):
+    """A user adds a paradigm with a module of their package and a YAML in their config folder (Hydra's
+    search path), and runs the documented command with it: nothing to edit in locretrieval, no trust
+    setting; its results equal paradigm 1 (EWB) at k=1, as the pose of the top-ranked image is."""
+    package = tmp_path / "my_package"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "toy.py").write_text(textwrap.dedent(TOY_PARADIGM))
+    (tmp_path / "my_configs" / "paradigms").mkdir(parents=True)
+    (tmp_path / "my_configs" / "paradigms" / "top_image.yaml").write_text(
+        "_target_: my_package.toy.TopImage\nenabled: true\nk: [1]\n"
+    )
+    run = tmp_path / "run"
+    command = [
+        sys.executable, str(ROOT / "evaluate.py"), f"hydra.searchpath=[file://{tmp_path / 'my_configs'}]",
+        "+paradigms@paradigms.top_image=top_image", f"hydra.run.dir={run}", f"paths.root_dir={tmp_path}",
+        "paradigms.local_sfm.enabled=false", "paradigms.global_sfm.enabled=false", "paradigms.approximation.k=[1]",
+        "groundtruth.enabled=[relative_pose]", "report.figure_formats=[]", "report.scene_view.enabled=false",
+        "report.gallery.worst=0", "report.gallery.random=0", "output.ltvl=false", "subsets.dynamic_masks=[]",
+        *helpers.TINY_SCENE,
+    ]  # fmt: skip
+    environment = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600, env=environment, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    results = pd.read_csv(run / "results.csv").query("subset == 'all'")
+    columns = ["ranking", "position_threshold_m", "localized_pct"]
+    mine = results[results["paradigm"] == "top_image"][columns].sort_values(columns[:2]).reset_index(drop=True)
+    ewb = results[(results["paradigm"] == "approximation") & (results["method"] == "ewb")][columns]
+    assert len(mine) == 3 * 3  # densevlad, the ground truth and random, three thresholds
+    pd.testing.assert_frame_equal(mine, ewb.sort_values(columns[:2]).reset_index(drop=True))

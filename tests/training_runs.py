@@ -83,7 +83,7 @@ def gap_run(
     `gap_row` writes it), validation.csv (the objective with its interval), summary.json, config.yaml, .hydra;
     with ``held_out`` (% localized), as many held-out queries again, the objective's metric on them at its
     best validation and every query's outcome there (``validation_queries.csv.gz``)."""
-    from locretrieval.metrics.uncertainty import Uncertainty, share_interval
+    from locretrieval.metrics.uncertainty import default_uncertainty, share_interval
     from locretrieval.training.report import gap_row
 
     run = folder / label
@@ -99,7 +99,7 @@ def gap_run(
                 "all",
                 everyone,
                 {name: outcomes(value, queries) for name, value in zip(GAP_OUTCOMES, values)},
-                Uncertainty(),
+                default_uncertainty(),
                 "densevlad",
             )
             | {"groundtruth": "gt_relative_pose"}

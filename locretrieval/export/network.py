@@ -10,8 +10,10 @@ field leave preprocessing to the caller.
 
 `descriptor_from_checkpoint` builds the descriptor a locretrieval checkpoint records (a Lightning
 checkpoint of ``train.py``, or `TorchGlobalDescriptor.save_checkpoint`'s file) from the file alone:
-its model, architecture and preprocessing. ``hubconf.py`` at the repository root exposes
-`locretrieval`: ``torch.hub.load(<repository>, "locretrieval", weights=<checkpoint>, source="local")``.
+its model, architecture and preprocessing, a file's data whose every ``_target_`` is checked
+(`locretrieval.parts.check_recorded`) before anything it names is imported. ``hubconf.py`` at the
+repository root exposes `locretrieval`:
+``torch.hub.load(<repository>, "locretrieval", weights=<checkpoint>, source="local")``.
 """
 
 from __future__ import annotations
@@ -26,9 +28,10 @@ from torch import nn
 
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
 from locretrieval.models.files.weights import embedded_checkpoint, is_checkpoint, load_torch_file
-from locretrieval.models.networks import upgrade_legacy_pooling
+from locretrieval.models.networks import POOLING, upgrade_legacy_pooling
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
-from locretrieval.models.trainable.backbones import upgrade_legacy_backbone
+from locretrieval.models.trainable.backbones import BACKBONE, upgrade_legacy_backbone
+from locretrieval.parts import check_recorded, refuse_interpolations
 
 #: The model a checkpoint records -> the descriptor class that reads it (the trainable family).
 CHECKPOINT_MODELS = {
@@ -81,6 +84,9 @@ def descriptor_from_checkpoint(path: str | os.PathLike) -> TorchGlobalDescriptor
         )
     architecture: dict[str, Any] = dict(content["architecture"])
     preprocessing: dict[str, Any] = dict(content["preprocessing"])
+    # data, not code: what it names checked before anything of it is imported or built
+    check_recorded(architecture, f"{path}: architecture", {"backbone": BACKBONE, "pooling": POOLING})
+    refuse_interpolations(preprocessing, f"{path}: preprocessing")
     options = {"pooling": upgrade_legacy_pooling(architecture["pooling"]), "whiten_dim": architecture["whiten_dim"]}
     if model == "trainable":
         options["backbone"] = upgrade_legacy_backbone(architecture["backbone"])  # a name before 0.12

@@ -15,7 +15,7 @@ from scipy import sparse
 from locretrieval.cache import cached_arrays, config_key, safe_name
 from locretrieval.config import ConfigError, part, require, validated
 from locretrieval.groundtruth.base import Definition, DefinitionContext, GroundTruth, RelevanceScope
-from locretrieval.parts import resolve_part
+from locretrieval.parts import import_part
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
 from locretrieval.sfm.inputs import SfmSettings
@@ -171,9 +171,9 @@ def groundtruth_sfm_pairs(
 
 
 def definition_class(target: str, key: str) -> type[Definition]:
-    """The `Definition` class a ``_target_`` names (a part: `resolve_part`, checked before anything is
-    imported); a `ConfigError` naming ``<key>._target_`` otherwise."""
-    kind = resolve_part(target, key)
+    """The `Definition` class a ``_target_`` names (`import_part`); a `ConfigError` naming
+    ``<key>._target_`` otherwise."""
+    kind = import_part(target, key)
     if not dataclasses.is_dataclass(kind) or not all(
         hasattr(kind, name) for name in ("uses_sfm", "groundtruth", "graded")
     ):

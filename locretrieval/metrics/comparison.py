@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from locretrieval.metrics.uncertainty import Uncertainty, paired_difference, percentile_interval
+from locretrieval.metrics.uncertainty import Uncertainty, default_uncertainty, paired_difference, percentile_interval
 
 #: The method of pose approximation every ranking has (equal weights): rankings without a panel's
 #: method (ground truths and baselines have no descriptors for BDI and CSI) are compared with it.
@@ -178,7 +178,7 @@ def _kind_rank(kind: str) -> int:
 def comparison_table(query_localized: pd.DataFrame, uncertainty: Uncertainty | None = None) -> pd.DataFrame:
     """``comparisons.csv``: every pair of rankings of a dataset per paradigm, method panel (`panel`),
     k and threshold, compared on the queries both were evaluated on (`compared_pairs`)."""
-    uncertainty = uncertainty or Uncertainty()
+    uncertainty = uncertainty or default_uncertainty()
     frames = []
     for dataset, of_dataset in query_localized.groupby("dataset", sort=True):
         matrix = outcome_matrix(of_dataset)
@@ -199,7 +199,7 @@ def best_k_comparisons(query_localized: pd.DataFrame, uncertainty: Uncertainty |
     (`BEST_K_COLUMNS`). The k is chosen on the same
     queries, so a ranking's share at its best k is an optimistic estimate; both sides are chosen alike.
     Bonferroni's family: the pairs of one panel and threshold."""
-    uncertainty = uncertainty or Uncertainty()
+    uncertainty = uncertainty or default_uncertainty()
     frames = []
     for dataset, of_dataset in query_localized.groupby("dataset", sort=True):
         matrix = outcome_matrix(of_dataset)

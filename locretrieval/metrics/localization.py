@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -12,7 +11,7 @@ import pandas as pd
 
 from locretrieval.config import require
 from locretrieval.estimates import LOCALIZED, PoseEstimates
-from locretrieval.metrics.uncertainty import Uncertainty, share_interval
+from locretrieval.metrics.uncertainty import Uncertainty, default_uncertainty, share_interval
 from locretrieval.scene import ImageSet
 from locretrieval.scene.types import METRES
 
@@ -67,7 +66,7 @@ class MetricsSettings:
 
     thresholds: list[Any]
     inclusive: bool
-    uncertainty: Uncertainty = dataclasses.field(default_factory=Uncertainty)
+    uncertainty: Uncertainty
 
     def __post_init__(self) -> None:
         pairs = [t for t in self.thresholds if isinstance(t, (list, tuple)) and len(t) == 2]
@@ -121,7 +120,7 @@ def localization_tables(
     thresholds: Sequence[Sequence[float]],
     subsets: Mapping[str, np.ndarray],
     inclusive: bool,
-    confidence: float = Uncertainty.confidence,
+    confidence: float,
     position_unit: str = METRES,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The tidy % localised over the queries with a reference pose, for each subset mask
@@ -259,7 +258,7 @@ def median_errors(query_errors: pd.DataFrame, uncertainty: Uncertainty | None = 
     (`QueryBootstrap`, the same resamples for every row of a dataset), Wilson's for the share."""
     if query_errors.empty:
         return pd.DataFrame(columns=MEDIAN_ERROR_COLUMNS)
-    uncertainty = uncertainty or Uncertainty()
+    uncertainty = uncertainty or default_uncertainty()
     rows = query_errors.assign(estimated=query_errors["failure"].fillna("") == LOCALIZED)
     if "position_unit" not in rows:  # a run of an earlier version: metres
         rows = rows.assign(position_unit=METRES)

@@ -37,7 +37,7 @@ import numpy as np
 import pandas as pd
 from scipy import sparse
 
-from locretrieval.metrics.uncertainty import Uncertainty, share_interval
+from locretrieval.metrics.uncertainty import Uncertainty, default_uncertainty, share_interval
 from locretrieval.retrieval import EMPTY, Ranking, relevant_hits
 from locretrieval.scene import ImageSet
 
@@ -110,7 +110,7 @@ def retrieval_tables(
     ``query_ks`` (those of the paradigms, for the per-query correlation of Sec. 3.7). Each value has
     its interval at ``uncertainty``'s confidence (``value_low``, ``value_high``; see the module).
     """
-    uncertainty = uncertainty or Uncertainty()
+    uncertainty = uncertainty or default_uncertainty()
     bootstrap = uncertainty.bootstrap(len(queries))
     wrong = {name: len(mask) for name, mask in subsets.items() if len(mask) != len(queries)}
     if wrong:

@@ -22,7 +22,9 @@ bootstrap resamples shared by every ranking keeps their intervals paired.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy import stats
@@ -32,13 +34,14 @@ from locretrieval.errors import require
 
 @dataclass
 class Uncertainty:
-    """``confidence``: the intervals' level (0.95: a 95 % interval; 1 - confidence is the tests'
-    significance level); ``resamples``: bootstrap resamples of the queries (means and medians);
-    ``seed``: the bootstrap's seed."""
+    """The ``metrics.uncertainty`` section (``configs/metrics/default.yaml`` holds the defaults):
+    ``confidence``, the intervals' level (0.95: a 95 % interval; 1 - confidence is the tests'
+    significance level); ``resamples``, bootstrap resamples of the queries (means and medians);
+    ``seed``, the bootstrap's seed."""
 
-    confidence: float = 0.95
-    resamples: int = 1000
-    seed: int = 0
+    confidence: float
+    resamples: int
+    seed: int
 
     def __post_init__(self) -> None:
         require(0.5 <= self.confidence < 1, "confidence", f"must be in [0.5, 1), got {self.confidence}")
@@ -52,6 +55,19 @@ class Uncertainty:
     def bootstrap(self, num_queries: int) -> QueryBootstrap:
         """Resamples of ``num_queries`` queries with this seed."""
         return QueryBootstrap(num_queries, self.resamples, self.seed)
+
+
+#: The defaults of the ``metrics`` config group (its one file).
+DEFAULTS_FILE = Path(__file__).resolve().parents[2] / "configs" / "metrics" / "default.yaml"
+
+
+@functools.cache
+def default_uncertainty() -> Uncertainty:
+    """The ``metrics.uncertainty`` of `DEFAULTS_FILE`: for what runs without a run's config (``report.py``
+    over runs, a sweep's summary)."""
+    import yaml
+
+    return Uncertainty(**yaml.safe_load(DEFAULTS_FILE.read_text())["uncertainty"])
 
 
 def share_interval(successes: np.ndarray, trials: np.ndarray, confidence: float) -> tuple[np.ndarray, np.ndarray]:

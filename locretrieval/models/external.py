@@ -29,7 +29,6 @@ from locretrieval.models.extraction import ExtractionSettings, Preprocessing
 from locretrieval.models.files.weights import content_sha256, embedded_checkpoint, load_torch_file, settings_of
 from locretrieval.models.networks import WeightsInfo, l2_normalize
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
-from locretrieval.parts import check_callable
 
 HUB_SOURCES = ("local", "github")
 #: ``(height, width)`` of the probe image that finds a network's output dimension.
@@ -158,12 +157,11 @@ def hub_module(repo: str, entry: str, source: str, kwargs: Mapping[str, Any]) ->
 
 
 def callable_module(target: str, kwargs: Mapping[str, Any]) -> nn.Module | Callable:
-    """The result of ``package.module:function(**kwargs)``: a module, or a function of images; the
-    package must be locretrieval's or one of ``limits.trusted_packages``."""
+    """The result of ``package.module:function(**kwargs)``: a module, or a function of images (a config
+    the user runs names it: code, as the rest of their config)."""
     module_name, _, attribute = target.partition(":")
     if not module_name or not attribute:
         raise ValueError(f"model.target must be 'package.module:function', got {target!r}")
-    check_callable(target, "model.target")  # its package trusted (limits.trusted_packages), before importing it
     try:
         builder = getattr(importlib.import_module(module_name), attribute)
     except (ImportError, AttributeError) as error:

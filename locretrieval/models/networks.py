@@ -30,10 +30,12 @@ from torch import nn
 from locretrieval.errors import DataFileError
 from locretrieval.models.files.weights import content_sha256, plain
 from locretrieval.moved import current_path
-from locretrieval.parts import resolve_part
+from locretrieval.parts import PartGroup, import_part
 
 #: Guards divisions by the norm of all-zero vectors.
 NORM_EPS = 1e-12
+#: What ``model.pooling`` builds: a torch module whose ``output_dim`` is its descriptor's size.
+POOLING = PartGroup((nn.Module,))
 
 
 def l2_normalize(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
@@ -205,7 +207,7 @@ def pooling_settings(pooling: Callable[..., nn.Module] | Mapping[str, Any]) -> d
         if target is None:
             raise ValueError(f"model.pooling has no _target_ (choose one: model/pooling=gem): {options}")
         target = current_path(str(target))  # a module path before 0.12 recorded as today's
-        cls = resolve_part(target, "model.pooling")
+        cls = import_part(target, "model.pooling", POOLING)
     else:
         cls = pooling.func if isinstance(pooling, partial) else pooling
         options = dict(pooling.keywords) if isinstance(pooling, partial) else {}
@@ -266,14 +268,16 @@ def upgrade_legacy_pooling(settings: Mapping[str, Any]) -> dict[str, Any]:
     if settings.get("type") not in LEGACY_POOLINGS:
         raise ValueError(f"a pooling record of unknown type {settings.get('type')!r}: {dict(settings)}")
     target, defaults = LEGACY_POOLINGS[settings["type"]]
-    taken = pooling_options(resolve_part(target, "model.pooling"))
+    taken = pooling_options(import_part(target, "model.pooling", POOLING))
     return {"_target_": target, **defaults, **{key: value for key, value in settings.items() if key in taken}}
 
 
 def build_pooling(channels: int, settings: Mapping[str, Any]) -> nn.Module:
     """The pooling of ``settings`` (`pooling_settings`) on a ``channels``-channel map, randomly initialised."""
     options = dict(settings)
-    module = resolve_part(current_path(str(options.pop("_target_", None))), "model.pooling")(channels, **options)
+    module = import_part(current_path(str(options.pop("_target_", None))), "model.pooling", POOLING)(
+        channels, **options
+    )
     if not isinstance(getattr(module, "output_dim", None), int):
         raise ValueError(f"model.pooling ({settings['_target_']}) must set output_dim, its descriptor's size")
     return module

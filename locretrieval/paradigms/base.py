@@ -144,14 +144,14 @@ class Paradigms:
 def paradigm_of(section: Any, key: str, sections: Sequence[str]) -> Paradigm:
     """The `Paradigm` of the config section ``section`` at ``key`` (one of ``sections``): its
     ``_target_`` class, its other keys checked as that class's fields."""
-    from locretrieval.parts import resolve_part
+    from locretrieval.parts import PartGroup, import_part
 
     if not isinstance(section, Mapping) or "_target_" not in section:
         raise ConfigError(
             f"{key}: a paradigm section without _target_ (its Paradigm class, as in "
             f"configs/paradigms/approximation.yaml); the sections are {list(sections)}"
         )
-    target = resolve_part(section["_target_"], key, Paradigm)  # checked before anything is imported
+    target = import_part(section["_target_"], key, PartGroup((Paradigm,)))
     if not (isinstance(target, type) and issubclass(target, Paradigm)) or getattr(target, "__abstractmethods__", ()):
         raise ConfigError(f"{key}._target_: {section['_target_']} is not a Paradigm class")
     return validated(target, {name: value for name, value in section.items() if name != "_target_"}, key)

@@ -13,7 +13,7 @@ from locretrieval.metrics.comparison import best_k_comparisons, comparison_table
 from locretrieval.metrics.correlation import dataset_pearson, dataset_spearman, paired_metrics, query_pearson
 from locretrieval.metrics.localization import median_errors
 from locretrieval.metrics.retrieval import METRICS
-from locretrieval.metrics.uncertainty import Uncertainty
+from locretrieval.metrics.uncertainty import Uncertainty, default_uncertainty
 from locretrieval.report import markdown, plots, scene_view
 from locretrieval.report.gallery import GallerySettings, gallery_section
 from locretrieval.report.html import write_html
@@ -93,7 +93,7 @@ def build_report(
     output_dir.mkdir(parents=True, exist_ok=True)
     painters = Painters(plots.FigureFolder(output_dir / "figures", tuple(figure_formats)), figure_workers)
     tables = load_runs(run_dirs)
-    uncertainty = uncertainty or Uncertainty()
+    uncertainty = uncertainty or default_uncertainty()
     comparisons = compute_comparisons(tables, uncertainty)
     comparisons.per_k.to_csv(output_dir / COMPARISON_FILE, index=False)
     correlations = compute_correlations(tables)

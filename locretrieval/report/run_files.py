@@ -23,15 +23,10 @@ from omegaconf._utils import get_yaml_loader
 
 from locretrieval import limits
 from locretrieval.errors import DataFileError
+from locretrieval.folders import inside
 
 #: What to do about a run file that cannot be used.
 RERUN = "the run folder is damaged: run evaluate.py again"
-
-
-def inside(path: str | os.PathLike, folder: str | os.PathLike) -> bool:
-    """Whether ``path`` resolves (symbolic links followed) inside ``folder`` (resolved too)."""
-    resolved, root = os.path.realpath(path), os.path.realpath(folder)
-    return os.path.commonpath([resolved, root]) == root
 
 
 def run_file(run: str | os.PathLike, relative: str | os.PathLike) -> Path:

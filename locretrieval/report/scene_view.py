@@ -25,9 +25,9 @@ import pandas as pd
 
 from locretrieval import geometry
 from locretrieval.config import require
+from locretrieval.folders import inside
 from locretrieval.report.html import with_script_policy
 from locretrieval.report.markdown import md_link
-from locretrieval.report.run_files import inside
 from locretrieval.scene import ImageSet, Scene
 from locretrieval.scene.types import METRES
 

@@ -180,9 +180,6 @@ def instantiate_scene(node: Any) -> Scene:
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
-    from locretrieval.parts import check_targets
-
-    check_targets(node, "data")  # only parts: before anything is imported or called
     try:
         return instantiate(node)
     except InstantiationException as error:

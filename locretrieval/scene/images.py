@@ -14,8 +14,7 @@ from PIL import Image, UnidentifiedImageError
 
 from locretrieval import limits
 from locretrieval.errors import FIX_DATA_FILE, DataFileError
-from locretrieval.folders import walk
-from locretrieval.report.run_files import inside
+from locretrieval.folders import inside, walk
 
 if TYPE_CHECKING:
     from locretrieval.scene.types import Camera

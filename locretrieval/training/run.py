@@ -55,7 +55,7 @@ class ValidationScope:
     seed: int
     sfm_max_keypoints: int | None
     budget_minutes: float | None
-    held_out: float = 0.0
+    held_out: float
 
     def __post_init__(self) -> None:
         require(

@@ -28,7 +28,7 @@ from typing import Any
 import pandas as pd
 
 from locretrieval.errors import DataFileError
-from locretrieval.metrics.uncertainty import Uncertainty, paired_difference
+from locretrieval.metrics.uncertainty import default_uncertainty, paired_difference
 from locretrieval.report.html import with_script_policy, write_html
 from locretrieval.report.markdown import difference_text, interval_text, markdown_table, md_code, md_link, md_text
 from locretrieval.training.folders import (
@@ -335,7 +335,7 @@ def best_against_next(summary: Summary) -> str | None:
     if paired.empty:
         return f"trial {best.label} against trial {runner.label}: not compared (no validation query in common)"
     a, b = paired["localized_best"].to_numpy(bool), paired["localized_next"].to_numpy(bool)
-    uncertainty = Uncertainty()
+    uncertainty = default_uncertainty()
     result = paired_difference(int((a & ~b).sum()), int((~a & b).sum()), len(paired), uncertainty.confidence)
     verdict = "distinguishable" if result.p_value < uncertainty.alpha else "not distinguishable"
     where = (

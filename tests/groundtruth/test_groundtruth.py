@@ -5,7 +5,7 @@ from typing import ClassVar
 import helpers
 import numpy as np
 import pytest
-from helpers import compose_config, evaluate_config, trust_packages
+from helpers import compose_config, evaluate_config
 from omegaconf import OmegaConf
 from scipy.optimize import linprog
 from scipy.spatial.transform import Rotation
@@ -486,7 +486,6 @@ def test_a_definition_from_outside_the_package_is_chosen_by_target_for_ranking_r
 ):
     """A definition of this module, chosen through the config alone (its ``_target_``, no registry
     entry), ranks the benchmark's queries and grades training pairs."""
-    trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     from locretrieval.groundtruth import DefinitionContext, definition_type
     from locretrieval.training.relevance import TrainingRelevanceSettings, training_pairs
 

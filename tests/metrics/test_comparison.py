@@ -15,7 +15,7 @@ from locretrieval.metrics.comparison import (
     separation,
 )
 from locretrieval.metrics.localization import QUERY_LOCALIZED_COLUMNS
-from locretrieval.metrics.uncertainty import Uncertainty
+from locretrieval.metrics.uncertainty import default_uncertainty
 
 QUERIES = [f"q{i:02d}" for i in range(40)]
 #: Which queries each ranking localizes (at 5 m), per k; ground truth and random have EWB only.
@@ -42,7 +42,7 @@ def outcomes() -> pd.DataFrame:
 
 
 def test_every_pair_per_k_has_its_counts_difference_and_bonferroni_verdict():
-    table = comparison_table(outcomes(), Uncertainty())
+    table = comparison_table(outcomes(), default_uncertainty())
     at = table[(table["position_threshold_m"] == 5.0) & (table["method"] == "ewb") & (table["k"] == 5)]
     assert len(at) == 6  # the pairs of four rankings
     row = at[(at["ranking"] == "a") & (at["other"] == "b")].iloc[0]
@@ -65,7 +65,7 @@ def test_every_pair_per_k_has_its_counts_difference_and_bonferroni_verdict():
 
 
 def test_a_method_panel_compares_the_rankings_without_it_at_ewb_once():
-    table = comparison_table(outcomes(), Uncertainty())
+    table = comparison_table(outcomes(), default_uncertainty())
     bdi = table[(table["method"] == "bdi") & (table["k"] == 1) & (table["position_threshold_m"] == 5.0)]
     # a and b at BDI, the ground truth and random at EWB; ground truth against random only in EWB's panel
     assert sorted(zip(bdi["ranking"], bdi["other"])) == [
@@ -80,7 +80,7 @@ def test_a_method_panel_compares_the_rankings_without_it_at_ewb_once():
 
 
 def test_best_over_k_pairs_each_ranking_at_its_own_best_k_and_say_whether_a_paradigm_separates():
-    best = best_k_comparisons(outcomes(), Uncertainty())
+    best = best_k_comparisons(outcomes(), default_uncertainty())
     at = best[(best["method"] == "ewb") & (best["position_threshold_m"] == 5.0)].set_index(["ranking", "other"])
     assert at.loc[("a", "b"), ["ranking_k", "other_k"]].tolist() == [5, 5]
     assert at.loc[("gt", "random"), ["ranking_k", "other_k", "verdict"]].tolist() == [1, 5, BETTER]
@@ -93,17 +93,17 @@ def test_gap_closed_exists_only_above_a_distinguishable_gap_and_has_its_interval
     n = 40
     baseline, truth, trained = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
     baseline[:10], truth[:30], trained[:20] = True, True, True
-    gap = gap_closed(trained, baseline, truth, Uncertainty(), "densevlad")
+    gap = gap_closed(trained, baseline, truth, default_uncertainty(), "densevlad")
     assert gap.exists and gap.closed == pytest.approx(50.0) and gap.gap == pytest.approx(50.0)
     assert gap.closed_low < 50.0 < gap.closed_high
     # a model worse than the baseline closes a negative share, never a positive one
-    worse = gap_closed(np.zeros(n, bool), baseline, truth, Uncertainty(), "densevlad")
+    worse = gap_closed(np.zeros(n, bool), baseline, truth, default_uncertainty(), "densevlad")
     assert worse.closed == pytest.approx(-50.0) and worse.closed_high < 0
     # the ground truth below the baseline (the issue's local SfM row): no gap, whatever training did
-    below = gap_closed(trained, truth, baseline, Uncertainty(), "densevlad")
+    below = gap_closed(trained, truth, baseline, default_uncertainty(), "densevlad")
     assert not below.exists and np.isnan(below.closed) and "below densevlad" in below.note
     # a gap of one query: within the queries' noise
     close = truth.copy()
     close[:30], close[:11] = False, True
-    within = gap_closed(trained, baseline, close, Uncertainty(), "densevlad")
+    within = gap_closed(trained, baseline, close, default_uncertainty(), "densevlad")
     assert not within.exists and "not distinguishable from densevlad" in within.note

@@ -51,7 +51,7 @@ def test_thresholds_include_equality_by_default_and_nan_is_not_localized():
     queries = queries_with_poses()
     at_threshold = estimate([0.25, 0.1, 0.3, 0.0], [1.0, 2.0, 1.0, 0.0])
     table, _ = localization_tables(
-        "toy", [at_threshold], queries, [[0.25, 2.0]], query_subsets(queries), inclusive=False
+        "toy", [at_threshold], queries, [[0.25, 2.0]], query_subsets(queries), inclusive=False, confidence=0.95
     )
     assert table.set_index("subset")["localized_pct"]["all"] == pytest.approx(0.0)
 

@@ -1,6 +1,6 @@
 import numpy as np
 import pytest
-from helpers import evaluate_config, trust_packages
+from helpers import evaluate_config
 from PIL import Image, ImageFilter
 
 from locretrieval.config import ConfigError, validated
@@ -219,7 +219,6 @@ class BrightPixels(MaskSource):
 
 
 def test_a_mask_source_from_outside_the_package_is_chosen_through_the_config(tmp_path, monkeypatch):
-    trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     chosen = settings(
         f"+subsets.mask_sources.bright={{_target_: {__name__}.BrightPixels, level: 128}}",
         "subsets.dynamic_masks=[bright]",

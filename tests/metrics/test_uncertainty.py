@@ -7,6 +7,7 @@ from scipy import stats
 from locretrieval.metrics.uncertainty import (
     QueryBootstrap,
     Uncertainty,
+    default_uncertainty,
     exact_interval,
     paired_difference,
     share_interval,
@@ -85,6 +86,7 @@ def test_the_same_seed_gives_the_same_resamples_and_a_bounded_mean_of_zeros_is_n
 
 def test_uncertainty_settings_refuse_what_makes_no_interval():
     with pytest.raises(ValueError, match="confidence"):
-        Uncertainty(confidence=1.0)
+        Uncertainty(confidence=1.0, resamples=1000, seed=0)
     with pytest.raises(ValueError, match="resamples"):
-        Uncertainty(resamples=10)
+        Uncertainty(confidence=0.95, resamples=10, seed=0)
+    assert default_uncertainty() == Uncertainty(0.95, 1000, 0)  # configs/metrics/default.yaml's

@@ -158,7 +158,6 @@ def colour_statistics():
 def test_a_researchers_callable_module_or_function_is_benchmarked(scene, tmp_path, monkeypatch):
     (tmp_path / "my_descriptors.py").write_text(MODULE)
     monkeypatch.syspath_prepend(str(tmp_path))
-    helpers.trust_packages(monkeypatch)  # the run's limits (its trusted packages) end with the test
     for target, kwargs, dimension in (
         ("my_descriptors:build", "{dim: 24}", 24),
         ("my_descriptors:colour_statistics", "{}", 6),
@@ -168,7 +167,6 @@ def test_a_researchers_callable_module_or_function_is_benchmarked(scene, tmp_pat
             f"paths.root_dir={tmp_path}",
             "model=callable",
             f"model.target={target}",
-            "limits.trusted_packages=[my_descriptors]",  # its package is named as one whose code the config may call
             f"+model.kwargs={kwargs}",
             f"model.name={target.split(':')[1]}",
         )
@@ -178,9 +176,6 @@ def test_a_researchers_callable_module_or_function_is_benchmarked(scene, tmp_pat
         from hydra.utils import instantiate
 
         assert instantiate(cfg.model).network.output_dim == dimension
-    with pytest.raises(InstantiationException, match=r"model.target: 'os:system' is not in \['locretrieval', 'my_desc"):
-        instantiate(helpers.evaluate_config("model=callable", "model.target=os:system", *QUIET).model)
-    helpers.trust_packages(monkeypatch, "nowhere")
     with pytest.raises(InstantiationException, match=r"model.target 'nowhere:build': No module named 'nowhere'"):
         instantiate(helpers.evaluate_config("model=callable", "model.target=nowhere:build", *QUIET).model)
 
@@ -213,7 +208,6 @@ def build():
     return PatchCheck()
 """)
     monkeypatch.syspath_prepend(str(tmp_path))
-    helpers.trust_packages(monkeypatch, "patch_net")
     from hydra.utils import instantiate
 
     cfg = helpers.evaluate_config(
@@ -272,7 +266,6 @@ def test_train_py_trains_a_researchers_module_and_evaluate_reads_it_back(tmp_pat
 
     (tmp_path / "my_descriptors.py").write_text(MODULE)
     monkeypatch.syspath_prepend(str(tmp_path))
-    helpers.trust_packages(monkeypatch, "my_descriptors")
     model = ("model=callable", "model.target=my_descriptors:build", "+model.kwargs={dim: 16}")
     cfg = train_config(
         tmp_path, *model, "paradigms.approximation.k=[1,3]", image_side="model.preprocessing.max_side=96"
@@ -367,7 +360,6 @@ def test_a_fixed_size_network_is_probed_and_fed_at_its_size_and_its_code_keys_th
 
     (tmp_path / "fixed_net.py").write_text(FIXED)
     monkeypatch.syspath_prepend(str(tmp_path))
-    helpers.trust_packages(monkeypatch, "fixed_net")
     cfg = helpers.evaluate_config(
         "model=callable", "model.target=fixed_net:build", "model.preprocessing.size=[64,48]", *QUIET
     )

@@ -1,6 +1,6 @@
 import numpy as np
 import pytest
-from helpers import evaluate_config, trust_packages
+from helpers import evaluate_config
 from scipy.spatial.transform import Rotation
 
 from locretrieval import geometry
@@ -351,7 +351,6 @@ class TopImageWeights(PrefixWeights):
 def test_a_method_from_outside_the_package_is_chosen_through_the_config(two_images, monkeypatch):
     """``TopImageWeights``, named in the config alone, runs on every ranking beside EWB: at every k
     it gives the top image's pose, as EWB does at k=1."""
-    trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     cfg = evaluate_config(
         "paths.root_dir=/nonexistent",
         f"+paradigms.approximation.weights.top={{_target_: {__name__}.TopImageWeights}}",

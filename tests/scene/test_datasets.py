@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import render_settings, trust_packages
+from helpers import render_settings
 from hydra import compose, initialize_config_dir
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
@@ -270,7 +270,6 @@ class ShoutedNames(LtvlNames):
 
 
 def test_ltvl_names_from_outside_the_package_are_chosen_through_the_config(tmp_path, monkeypatch):
-    trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     base = tmp_path / "Aachen-Day-Night-v1.1"
     kapture_folder(base / "mapping", ["db/1.jpg", "db/2.jpg"], posed=True)
     kapture_folder(base / "query_day", ["query/day/milestone/a.jpg"], posed=False)

@@ -233,7 +233,6 @@ class ReversedOrder(PairOrder):
 
 
 def test_a_pairs_order_from_outside_the_package_is_chosen_through_the_config(rendered, tmp_path, monkeypatch):
-    helpers.trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     install(LAYOUTS["baidu"], rendered, tmp_path / "data")
     common = ["data=baidu", f"paths.data_dir={tmp_path / 'data'}", f"paths.root_dir={tmp_path}", "model=pairs"]
     scene = instantiate_scene(helpers.evaluate_config(*common, "model.path=unused").data)

@@ -10,7 +10,7 @@ import kapture.io.records as kapture_records
 import numpy as np
 import pycolmap  # noqa: E402  (after locretrieval)
 import pytest
-from helpers import evaluate_config, render_settings, trust_packages
+from helpers import evaluate_config, render_settings
 from PIL import Image
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
@@ -400,7 +400,6 @@ class RecordedMall(EnvironmentBuilder):
 
 
 def test_an_environment_from_outside_the_package_is_chosen_through_the_config(tmp_path, monkeypatch):
-    trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     from locretrieval.scene.datasets import instantiate_scene
 
     tiny = [f"data.render.{key}={value}" for key, value in TINY.items() if key != "conditions"]

@@ -708,7 +708,6 @@ class GridFeatures(LocalFeatures):
 
 
 def test_local_features_and_a_verification_from_outside_the_package_are_chosen_by_target(tmp_path, monkeypatch):
-    helpers.trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     nodes = {
         "features": {"_target_": f"{__name__}.GridFeatures", "max_keypoints": 50, "step": 16},
         "query_verification": {
@@ -758,7 +757,6 @@ class FirstMatches(PairVerification):
 
 
 def test_a_database_verification_from_outside_the_package_is_chosen_through_the_config(tmp_path, monkeypatch):
-    helpers.trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     settings = helpers.sfm_settings(
         choices=[
             "~sfm.features",

@@ -256,7 +256,6 @@ class NoMapMatches(local_sfm.MapMatches):
 
 
 def test_map_matches_from_outside_the_package_are_chosen_through_the_config(scene, cache, rankings, monkeypatch):
-    helpers.trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     cfg = helpers.evaluate_config(
         "paths.root_dir=/nonexistent",
         f"paradigms.local_sfm.map_matches._target_={__name__}.NoMapMatches",

@@ -53,7 +53,6 @@ RESNET_WITH_SFM = [
 FIRST_EPOCH = [
     "trainer.max_epochs=2",
     "+callbacks.interrupt={_target_: helpers.StopAfterEpoch, epoch: 0}",
-    "limits.trusted_packages=[helpers]",
 ]
 #: The subprocesses import this checkout's package and the test helpers (``_target_: helpers....``).
 PYTHONPATH = os.pathsep.join([str(ROOT), str(ROOT / "tests")])
@@ -274,7 +273,6 @@ def test_a_rank_failing_in_validation_ends_every_rank_with_its_error(tmp_path):
     failing = [
         "model=callable",
         "model.target=helpers:network_failing_on_rank",
-        "limits.trusted_packages=[helpers]",
         "+model.kwargs={rank: 1}",
     ]
     done = train_py(tmp_path, "run", 2, *failing, "model.preprocessing.max_side=96", timeout=120)

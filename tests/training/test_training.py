@@ -387,7 +387,6 @@ def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkp
 
 @pytest.mark.slow
 def test_resuming_from_the_last_checkpoint_continues_the_same_curve(tmp_path, monkeypatch):
-    helpers.trust_packages(monkeypatch, "helpers")  # the interrupting callback of the test helpers
     common = ("~augmentation", "trainer.deterministic=true")
     straight = train(
         train_config(tmp_path / "straight", *common, "trainer.max_epochs=2"), tmp_path / "straight" / "run"
@@ -642,7 +641,6 @@ def test_a_run_killed_while_writing_last_ckpt_keeps_the_previous_checkpoint_whol
 
     from locretrieval.training.checkpoints import check_resume_checkpoint
 
-    helpers.trust_packages(monkeypatch, "helpers")  # the interrupting callback of the test helpers
     common = ("~augmentation", "trainer.max_epochs=2")
     train(
         train_config(tmp_path, *common, "+callbacks.interrupt={_target_: helpers.StopAfterEpoch, epoch: 0}"),
@@ -782,7 +780,7 @@ def test_the_gap_table_gives_the_share_of_the_gap_to_the_ground_truth_that_train
 
     from training_runs import outcomes
 
-    from locretrieval.metrics.uncertainty import Uncertainty
+    from locretrieval.metrics.uncertainty import default_uncertainty
     from locretrieval.training.report import TrainingReportSettings, gap_table
 
     p1, local, glob = "approximation/ewb/k3/5m_10deg", "local_sfm/pnp/k10/0.25m_2deg", "global_sfm/pnp/k5/0.25m_2deg"
@@ -802,7 +800,7 @@ def test_the_gap_table_gives_the_share_of_the_gap_to_the_ground_truth_that_train
         reference_outcomes=reference,
         splits={"val": "all"},
         subsets={"all": np.ones(n, dtype=bool)},
-        settings=SimpleNamespace(metrics=SimpleNamespace(uncertainty=Uncertainty())),
+        settings=SimpleNamespace(metrics=SimpleNamespace(uncertainty=default_uncertainty())),
     )
     report = validated(TrainingReportSettings, helpers.compose_config("train").report, "report")  # the default rows
     table = gap_table(validation, report).set_index("metric")
@@ -901,7 +899,7 @@ def test_head_lr_scale_moves_the_head_that_much_faster_than_the_backbone(frozen_
 
 
 def test_validation_on_a_seeded_subset_of_the_queries_with_capped_sfm_features(tmp_path):
-    scope = ValidationScope(max_queries=4, seed=3, sfm_max_keypoints=200, budget_minutes=None)
+    scope = ValidationScope(max_queries=4, seed=3, sfm_max_keypoints=200, budget_minutes=None, held_out=0.0)
     cfg = train_config(
         tmp_path,
         "training.validation.max_queries=4",
@@ -920,7 +918,7 @@ def test_validation_on_a_seeded_subset_of_the_queries_with_capped_sfm_features(t
     assert (
         settings.sfm.features.max_keypoints == 200 and scope.scene(full).queries.names == validator.scene.queries.names
     )
-    assert ValidationScope(None, 0, None, None).scene(full) is full
+    assert ValidationScope(None, 0, None, None, 0.0).scene(full) is full
 
 
 class FakeClock:
@@ -1100,7 +1098,6 @@ class FarApart(NegativesRule):
 
 
 def test_a_negatives_rule_from_outside_the_package_is_chosen_through_the_config(scene, tmp_path, monkeypatch):
-    helpers.trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     node = f"{{_target_: {__name__}.FarApart, metres: 15.0}}"
     cfg = train_config(tmp_path, "~train_relevance.negatives", f"+train_relevance.negatives={node}")
     settings = validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance")
@@ -1116,7 +1113,7 @@ def test_a_negatives_rule_from_outside_the_package_is_chosen_through_the_config(
 def test_the_training_report_escapes_every_name_it_writes(tmp_path):
     from types import SimpleNamespace
 
-    from locretrieval.metrics.uncertainty import Uncertainty
+    from locretrieval.metrics.uncertainty import default_uncertainty
     from locretrieval.training.report import TrainingReportSettings, write_training_report
 
     hostile = "<img src=x onerror=alert(1)>"
@@ -1138,7 +1135,7 @@ def test_the_training_report_escapes_every_name_it_writes(tmp_path):
         reference_outcomes={},
         splits={"val": "all"},
         subsets={"all": np.ones(10, dtype=bool)},
-        settings=SimpleNamespace(metrics=SimpleNamespace(uncertainty=Uncertainty())),
+        settings=SimpleNamespace(metrics=SimpleNamespace(uncertainty=default_uncertainty())),
     )
     report = validated(TrainingReportSettings, helpers.compose_config("train").report, "report")
     write_training_report(validation, tmp_path, report, {"val/local_sfm/pnp/k10/0.25m_2deg": hostile})

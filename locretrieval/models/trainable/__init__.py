@@ -25,6 +25,7 @@ from torch import nn
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
 from locretrieval.models.files.weights import MissingWeightsError, Weights, WeightSource, read_weights, require_weights
 from locretrieval.models.networks import (
+    POOLING,
     GeMPooling,
     RetrievalNet,
     build_retrieval_net,
@@ -42,7 +43,7 @@ from locretrieval.models.trainable.backbones import (
     backbone_settings,
     upgrade_legacy_backbone,
 )
-from locretrieval.parts import resolve_part
+from locretrieval.parts import import_part
 
 
 def read_trainable_weights(
@@ -80,7 +81,7 @@ def _at_backbone(backbone: Backbone, path: Path, content: Any) -> Weights:
 def initial_values(pooling: Mapping[str, Any]) -> dict[str, torch.Tensor]:
     """Parameters the configuration sets (GeM's initial ``p``, plain or over a pyramid), used where
     a weight file has none."""
-    if issubclass(resolve_part(pooling["_target_"], "model.pooling"), GeMPooling):
+    if issubclass(import_part(pooling["_target_"], "model.pooling", POOLING), GeMPooling):
         return {"pooling.p": torch.tensor([float(pooling["p"])])}
     return {}
 

@@ -25,7 +25,7 @@ from locretrieval.models.networks import torchvision_trunk
 from locretrieval.models.trainable import efficientnet
 from locretrieval.models.trainable.timm_trunk import TimmTrunk
 from locretrieval.moved import current_path
-from locretrieval.parts import resolve_part
+from locretrieval.parts import ANY_CLASS, import_part
 
 #: Input normalisation ``(mean, std)`` per RGB channel: ``(rgb / 255 - mean) / std``.
 Normalization = tuple[tuple[float, ...], tuple[float, ...]]
@@ -148,11 +148,16 @@ def backbone_settings(backbone: Backbone) -> dict[str, Any]:
     return {"_target_": f"{cls.__module__}.{cls.__qualname__}", **plain(dataclasses.asdict(backbone))}
 
 
+#: What ``model.backbone`` builds: a `Backbone` (a protocol: any class of locretrieval's, or of a trusted package
+#: where a checkpoint records it).
+BACKBONE = ANY_CLASS
+
+
 def backbone_of(settings: Mapping[str, Any]) -> Backbone:
-    """The backbone an architecture records (`backbone_settings`; a config's or a checkpoint's): its
-    ``_target_`` a part of ``model.backbone`` (`resolve_part`, checked before anything is imported)."""
+    """The backbone an architecture records (`backbone_settings`; a config's, or a checkpoint's once
+    `locretrieval.parts.check_recorded` checked it with `BACKBONE`)."""
     options = dict(settings)
-    return resolve_part(current_path(str(options.pop("_target_", None))), "model.backbone")(**options)
+    return import_part(current_path(str(options.pop("_target_", None))), "model.backbone", BACKBONE)(**options)
 
 
 def upgrade_legacy_backbone(record: Any) -> Any:

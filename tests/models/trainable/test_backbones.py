@@ -7,7 +7,6 @@ from pathlib import Path
 import helpers
 import pytest
 import torch
-from helpers import trust_packages
 from torch import nn
 
 from locretrieval.models.extraction import IMAGENET_MEAN, IMAGENET_STD
@@ -90,7 +89,6 @@ class StridedConvolution:
 def test_a_backbone_from_outside_the_package_is_one_class_and_one_yaml(tmp_path, monkeypatch):
     """A test module's class, chosen by a YAML in a config folder of the user's (hydra.searchpath),
     its file read through its own ``trunk_state_dict``."""
-    trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     folder = tmp_path / "configs" / "model" / "backbone"
     folder.mkdir(parents=True)
     (folder / "strided.yaml").write_text("_target_: test_backbones.StridedConvolution\nchannels: 6\n")

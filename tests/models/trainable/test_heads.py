@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from helpers import trust_packages
 from omegaconf import OmegaConf
 from training_runs import train_config
 
@@ -175,7 +174,6 @@ class MaxPooling(torch.nn.Module):
 
 def test_a_pooling_from_outside_the_package_is_one_class_and_one_yaml(tmp_path, monkeypatch):
     """A test module's class, chosen by a YAML in a config folder of the user's (hydra.searchpath)."""
-    trust_packages(monkeypatch, __name__)  # a user's package: its parts named in limits.trusted_packages
     folder = tmp_path / "configs" / "model" / "pooling"
     folder.mkdir(parents=True)
     (folder / "max.yaml").write_text("_target_: test_heads.MaxPooling\n_partial_: true\nscale: 2.0\n")
