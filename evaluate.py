@@ -19,9 +19,10 @@ from locretrieval.cli import check_command_line, reported_mistakes
 @hydra.main(version_base="1.3", config_path="configs", config_name="evaluate")
 def main(cfg: DictConfig) -> None:
     with reported_mistakes():  # a mistake of the user's: its message, no traceback
-        from locretrieval.evaluation import evaluate  # here, so that `--help` imports none of the heavy modules
+        from locretrieval.build import build_evaluation  # here, so that `--help` imports none of the heavy modules
+        from locretrieval.evaluation import evaluate
 
-        evaluate(cfg, Path(HydraConfig.get().runtime.output_dir))
+        evaluate(build_evaluation(cfg), Path(HydraConfig.get().runtime.output_dir))
 
 
 if __name__ == "__main__":

@@ -18,9 +18,10 @@ from locretrieval.cli import check_command_line, reported_mistakes
 @hydra.main(version_base="1.3", config_path="configs", config_name="export")
 def main(cfg: DictConfig) -> None:
     with reported_mistakes():  # a mistake of the user's: its message, no traceback
-        from locretrieval.export.run import export  # here, so that `--help` imports none of the heavy modules
+        from locretrieval.build import build_export  # here, so that `--help` imports none of the heavy modules
+        from locretrieval.export.run import export
 
-        export(cfg, Path(HydraConfig.get().runtime.output_dir))
+        export(build_export(cfg), Path(HydraConfig.get().runtime.output_dir))
 
 
 if __name__ == "__main__":

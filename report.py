@@ -20,10 +20,10 @@ import logging
 from pathlib import Path
 
 import locretrieval  # imports zlib before pycolmap; see locretrieval/__init__.py
+from locretrieval.build import build_report_gallery
 from locretrieval.cli import reported_mistakes
 from locretrieval.config import ConfigError
 from locretrieval.report import build_report
-from locretrieval.report.gallery import run_gallery_settings
 from locretrieval.report.run_files import load_yaml, run_file
 from locretrieval.report.tables import find_run_dirs
 from locretrieval.training.summary import MULTIRUN_FILE, is_training_folder, write_summary
@@ -74,7 +74,7 @@ def report(args: argparse.Namespace) -> None:
             raise ConfigError("give either train.py runs and sweeps or evaluation runs, not both")
         print(write_summary(args.runs, args.output))
         return
-    gallery = run_gallery_settings(find_run_dirs(args.runs)[0], args.gallery)
+    gallery = build_report_gallery(find_run_dirs(args.runs)[0], args.gallery)
     print(
         build_report(
             args.runs,

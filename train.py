@@ -22,10 +22,12 @@ from locretrieval.cli import check_command_line, reported_mistakes
 def main(cfg: DictConfig) -> float | None:
     """Train; returns the ``optimized_metric`` (the objective of ``-m hparams_search=localization``)."""
     with reported_mistakes():  # a mistake of the user's: its message, no traceback
-        locretrieval.config.check_run_config(cfg)  # the run's limits; only parts named, before anything is imported
-        from locretrieval.training.run import optimized_value, train  # here: `--help` imports no heavy module
+        from locretrieval.build import build_training  # here: `--help` imports no heavy module
+        from locretrieval.cli import composed_training_scenes
+        from locretrieval.training.run import optimized_value, train
 
-        return optimized_value(cfg, train(cfg, Path(cfg.output_dir)))
+        run = build_training(cfg, composed_training_scenes(cfg))
+        return optimized_value(run.objective, train(run, Path(cfg.output_dir)))
 
 
 if __name__ == "__main__":

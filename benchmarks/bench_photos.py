@@ -24,7 +24,7 @@ from hydra import compose, initialize_config_dir
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
-from locretrieval.scene.datasets import instantiate_scene
+from locretrieval.build import scene_of
 from locretrieval.scene.kapture_io import concatenate_image_sets, load_image_set
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -47,7 +47,7 @@ def main() -> None:
         with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
             cfg = compose("evaluate", overrides=overrides)
         started, cpu = time.perf_counter(), time.process_time()
-        scene = instantiate_scene(cfg.data)
+        scene = scene_of(cfg.data)
         seconds = (time.perf_counter() - started, time.process_time() - cpu)
     images = concatenate_image_sets([scene.database, scene.queries])
     rows = [known.names.index(name) for name in images.names]

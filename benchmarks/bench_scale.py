@@ -57,8 +57,9 @@ from locretrieval import geometry
 from locretrieval.benchmark import relevances
 from locretrieval.config import validated
 from locretrieval.groundtruth import frustum_groundtruth, groundtruth_from_scores, relative_pose_groundtruth
-from locretrieval.metrics.localization import localization_table, query_error_table
+from locretrieval.metrics.localization import localization_tables, query_error_table
 from locretrieval.metrics.retrieval import retrieval_tables
+from locretrieval.metrics.uncertainty import default_uncertainty
 from locretrieval.paradigms.approximation import PoseApproximation
 from locretrieval.paradigms.base import Paradigms
 from locretrieval.retrieval import random_ranking
@@ -287,7 +288,9 @@ def run_size(args: argparse.Namespace) -> None:
     measure(
         "localization metrics (tables)",
         lambda: (
-            localization_table(args.size, estimates, queries, THRESHOLDS, subsets, inclusive=True),
+            localization_tables(
+                args.size, estimates, queries, THRESHOLDS, subsets, True, default_uncertainty().confidence
+            ),
             query_error_table(args.size, estimates, queries),
         ),
     )
@@ -303,6 +306,7 @@ def run_size(args: argparse.Namespace) -> None:
         subsets,
         range(1, DEPTH + 1),
         KS,
+        default_uncertainty(),  # evaluate.py's: bootstrap intervals of every figure
     )
     recall = tables[0].query("ranking == 'descriptor' and groundtruth == 'relative_pose' and metric == 'recall'")
     localized = [e for e in estimates if e.ranking == "descriptor" and e.method == "bdi"][0]

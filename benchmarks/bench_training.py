@@ -57,17 +57,13 @@ class StepTimer:
 
 
 def training_setup(overrides: list[str]):
-    """The config, datamodule and module train.py builds (`training_parts`, `training_module`;
-    no validation callback, no scheduler)."""
+    """The config, datamodule and module train.py builds (`locretrieval.build.build_training`; no
+    scheduler)."""
     from pathlib import Path
 
     from hydra import compose, initialize_config_dir
-    from hydra.utils import instantiate
 
-    from locretrieval.benchmark import BenchmarkSettings
-    from locretrieval.config import validated
-    from locretrieval.training.relevance import TrainingRelevanceSettings
-    from locretrieval.training.run import TrainingSettings, training_module, training_parts
+    from locretrieval.build import build_training
 
     root = Path(__file__).resolve().parents[1]
     with initialize_config_dir(
@@ -76,16 +72,8 @@ def training_setup(overrides: list[str]):
         cfg = compose(
             "train", overrides=[f"paths.root_dir={root}", "output_dir=/tmp/bench_training", "~scheduler", *overrides]
         )
-    descriptor = instantiate(cfg.model)
-    parts = training_parts(
-        cfg,
-        instantiate(cfg.data),
-        descriptor.preprocessing,
-        BenchmarkSettings.from_config(cfg),
-        validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance"),
-        validated(TrainingSettings, cfg.training, "training"),
-    )
-    return cfg, parts.datamodule, training_module(cfg, descriptor, parts.pairs)
+    run = build_training(cfg)
+    return cfg, run.datamodule, run.module
 
 
 def loop_images_per_second(cfg, data, module, steps: int, processes: int) -> tuple[float, float, float]:
@@ -151,7 +139,7 @@ def pipeline_images_per_second(data, steps: int) -> tuple[float, float]:
     decoded from the image files at every step (the same sampler, workers and collate)."""
     from torch.utils.data import DataLoader
 
-    from locretrieval.processes import dataloader_context
+    from locretrieval.processes import dataloader_workers
     from locretrieval.training.data import collate
     from locretrieval.training.decoded import decode
 
@@ -171,9 +159,8 @@ def pipeline_images_per_second(data, steps: int) -> tuple[float, float]:
             dataset,
             batch_sampler=data.sampler,
             collate_fn=collate(data.pairs),
-            num_workers=data.num_workers,
             persistent_workers=data.num_workers > 0,
-            multiprocessing_context=dataloader_context(data.num_workers),  # as the datamodule's: fork
+            **dataloader_workers(data.num_workers),  # as the datamodule's: fork
         )
         data.sampler.batches_per_epoch = steps + 2
         batches = iter(loader)

@@ -71,20 +71,18 @@ def scene_gaps(cfg, trained_model, report, cache_dir: Path) -> tuple[pd.DataFram
     truths) and its validation history (``epoch, metric, value``: the untrained network -1, trained 0)."""
     from hydra.utils import instantiate
 
-    from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
+    from locretrieval.benchmark import benchmark, build_rankings, relevances
+    from locretrieval.build import benchmark_settings, scene_of
     from locretrieval.config import validated
     from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths
     from locretrieval.retrieval.descriptors import describe_scene
-    from locretrieval.scene.datasets import instantiate_scene
-    from locretrieval.training.callbacks import metric_rows
+    from locretrieval.training.callbacks import VALIDATION_COLUMNS, figure_rows, query_outcomes
     from locretrieval.training.report import gap_table
     from locretrieval.training.run import TrainingSettings
 
-    settings = validated(TrainingSettings, cfg.training, "training").validation.settings(
-        BenchmarkSettings.from_config(cfg)
-    )
+    settings = validated(TrainingSettings, cfg.training, "training").validation.settings(benchmark_settings(cfg))
     groundtruth_settings = validated(GroundTruthSettings, cfg.groundtruth, "groundtruth")
-    scene = instantiate_scene(cfg.data)
+    scene = scene_of(cfg.data)
     groundtruths = compute_groundtruths(scene, groundtruth_settings, settings.sfm, cache_dir)
     models = {
         report.baseline: instantiate(cfg.validation_references[report.baseline]),
@@ -100,15 +98,22 @@ def scene_gaps(cfg, trained_model, report, cache_dir: Path) -> tuple[pd.DataFram
     ks = settings.paradigms.ks()
     history = pd.DataFrame(
         [
-            (epoch, metric, value)
+            (epoch, metric, figure.value, figure.low, figure.high, figure.num_queries)
             for epoch, name in ((-1, UNTRAINED), (0, TRAINED))
-            for metric, value in metric_rows(result, name, ks).items()
+            for metric, figure in figure_rows(result, name, ks).items()
         ],
-        columns=["epoch", "metric", "value"],
+        columns=VALIDATION_COLUMNS,
     )
-    reference = {r.name: metric_rows(result, r.name, ks) for r in rankings if r.name not in (UNTRAINED, TRAINED)}
-    # gap_table reads a validation's history (before training: the untrained network; last: trained)
-    return gap_table(SimpleNamespace(history_table=lambda: history, reference=reference), report), history
+    outcomes = {r.name: query_outcomes(result, r.name, scene.queries.names) for r in rankings}
+    # gap_table reads a validation's per-query outcomes (before training: the untrained network; last: trained)
+    validation = SimpleNamespace(
+        outcomes=[outcomes[UNTRAINED], outcomes[TRAINED]],
+        reference_outcomes={name: found for name, found in outcomes.items() if name not in (UNTRAINED, TRAINED)},
+        splits={"val": "all"},
+        subsets=everything,
+        settings=settings,
+    )
+    return gap_table(validation, report), history
 
 
 def main() -> None:

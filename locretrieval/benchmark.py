@@ -2,7 +2,7 @@
 
 `evaluate.py` (through `locretrieval.evaluation`) and the training callback both call it:
 
-    settings = BenchmarkSettings.from_config(cfg)                     # every section checked
+    settings = build.benchmark_settings(cfg)                          # every section checked
     groundtruths = compute_groundtruths(scene, gt_settings, settings.sfm, cache_dir)
     descriptors = describe_scene(model, scene, cache_dir=None)       # e.g. a network in memory
     rankings = build_rankings(scene, {model.name: descriptors}, groundtruths, settings.retrieval, seed)
@@ -20,13 +20,12 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pandas as pd
 from scipy import sparse
 
-from locretrieval.config import ConfigError, validated
+from locretrieval.config import ConfigError
 from locretrieval.estimates import PoseEstimates
 from locretrieval.groundtruth import GroundTruth, RelevanceScope
 from locretrieval.metrics.localization import MetricsSettings, localization_tables, query_error_table, query_subsets
@@ -52,16 +51,6 @@ class BenchmarkSettings:
     paradigms: Paradigms
     sfm: SfmSettings
     metrics: MetricsSettings
-
-    @classmethod
-    def from_config(cls, cfg: Any) -> "BenchmarkSettings":
-        """The settings in a composed ``evaluate``/``train`` config (sections of the same names)."""
-        return cls(
-            retrieval=validated(RetrievalSettings, cfg.retrieval, "retrieval"),
-            paradigms=validated(Paradigms, cfg.paradigms, "paradigms"),
-            sfm=validated(SfmSettings, cfg.sfm, "sfm"),
-            metrics=validated(MetricsSettings, cfg.metrics, "metrics"),
-        )
 
 
 @dataclass

@@ -32,6 +32,8 @@ log = logging.getLogger(__name__)
 
 #: The errors that are the user's to fix, reported by their message alone.
 MISTAKES = (ConfigError, DataFileError, FileNotFoundError, MissingMandatoryValue)
+#: The project's configs (``configs/``).
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 #: The environment variable (Hydra's) that shows a mistake's traceback too.
 FULL_ERROR_ENV = "HYDRA_FULL_ERROR"
 
@@ -259,3 +261,22 @@ def nearest_keys(config: DictConfig, name: str) -> list[str]:
     walk(OmegaConf.to_container(config, resolve=False), "")
     near = difflib.get_close_matches(name, list(full_keys), cutoff=0.75)
     return [full_key for last in near for full_key in full_keys[last]][:3]
+
+
+def composed_training_scenes(cfg: DictConfig) -> list[DictConfig]:
+    """The data nodes of the scenes a train.py config's ``training.scenes`` names (a data config's name,
+    or ``{config: <name>, ...}``), each composed by Hydra as ``data=<name>`` composes it (its defaults
+    list applied, its interpolations left for the run's config), in the list's order: the entry point
+    composes them, the build step makes their scenes (`locretrieval.build.build_training`)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    names = [entry if isinstance(entry, str) else entry.get("config") for entry in cfg.training.scenes]
+    known = {path.stem for path in (CONFIG_DIR / "data").glob("*.yaml")}
+    unknown = [name for name in names if name not in known]
+    if unknown:
+        raise ConfigError(f"training.scenes: no data config {unknown[0]!r}; expected one of {sorted(known)}")
+    if GlobalHydra.instance().is_initialized():  # in train.py's Hydra app
+        return [compose(config_name="train", overrides=[f"data={name}"]).data for name in names]
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        return [compose(config_name="train", overrides=[f"data={name}"]).data for name in names]

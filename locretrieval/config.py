@@ -19,14 +19,14 @@ import os
 import re
 import types
 import typing
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
 from omegaconf import Container, DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
 
-from locretrieval import limits, parts
+from locretrieval import parts
 from locretrieval.cache import safe_name
 from locretrieval.errors import ConfigError, DataFileError, SettingError, require  # noqa: F401  (imported from here)
 
@@ -195,6 +195,11 @@ def validated(schema: type[Schema], config: Any, key: str) -> Schema:
     except OmegaConfBaseException as error:
         raise ConfigError(_message(schema, key, error)) from None
     return _build(schema, node, key)
+
+
+def validated_sections(cfg: Any, schemas: Mapping[str, type]) -> dict[str, Any]:
+    """Every section ``key`` of ``cfg`` checked against its ``schemas[key]`` (`validated`), by key."""
+    return {key: validated(schema, OmegaConf.select(cfg, key), key) for key, schema in schemas.items()}
 
 
 def part(kind: type, group: str | None = None) -> Any:
@@ -367,8 +372,9 @@ def built(node: Any, key: str, **runtime: Any) -> Any:
     A ``_partial_`` node is called with the ``runtime`` objects only the running code has (the
     scene, the training pairs, the network, ...); giving them to a node that is not partial is an
     error naming the key. A value its constructor refuses (a `SettingError` of a range check) is a
-    `ConfigError` naming the full key; its own `ConfigError`, `DataFileError` or `FileNotFoundError`
-    (a weight file it reads) is raised as it is, not inside Hydra's `InstantiationException`; a
+    `ConfigError` naming the full key; its own `ValueError` (a `ConfigError`, a `DataFileError`: a
+    value or a file it refused) or `FileNotFoundError` (a weight file or dataset it reads) is raised as
+    it is, not inside Hydra's one-line `InstantiationException`; a
     ``_target_`` that does not import is named by its key (`locretrieval.parts.import_part`)."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
@@ -378,20 +384,13 @@ def built(node: Any, key: str, **runtime: Any) -> Any:
     if runtime and not node.get("_partial_", False):
         raise ConfigError(f"{key}: needs _partial_: true (the run gives it {sorted(runtime)})")
     try:
-        target = instantiate(node)
+        target = instantiate(node, _convert_="all")  # plain lists and dicts: no config object past here
         return target(**runtime) if runtime else target
     except SettingError as error:
         raise ConfigError(f"{key}.{error}") from None
     except InstantiationException as error:
         if isinstance(error.__cause__, SettingError):
             raise ConfigError(f"{key}.{error.__cause__}") from None
-        if isinstance(error.__cause__, (ConfigError, DataFileError, FileNotFoundError)):
+        if isinstance(error.__cause__, (ValueError, FileNotFoundError)):
             raise error.__cause__ from None  # a part of it refused (naming its own key), or a file it reads
         raise
-
-
-def check_run_config(cfg: Any) -> None:
-    """What an entry point does first with its composed config: its ``limits`` section checked and
-    made the budgets of the run (`locretrieval.limits.configure`). Its ``_target_`` are the user's
-    (a config the user runs is code: `locretrieval.parts`); files read as data are checked where read."""
-    limits.configure(validated(limits.Limits, cfg.limits, "limits"))

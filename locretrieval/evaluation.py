@@ -1,16 +1,18 @@
-"""The run behind ``evaluate.py``: instantiate, compute (`locretrieval.benchmark`), write, report."""
+"""The run behind ``evaluate.py``: compute (`locretrieval.benchmark`), write, report, from the objects
+the build step made of the config (`Evaluation`, `locretrieval.build.build_evaluation`)."""
 
 from __future__ import annotations
 
 import json
 import logging
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
-from omegaconf import DictConfig, OmegaConf
+import yaml
 
 from locretrieval.benchmark import (
     BenchmarkResult,
@@ -23,7 +25,6 @@ from locretrieval.benchmark import (
     scene_subsets,
 )
 from locretrieval.cache import safe_name, save_arrays
-from locretrieval.config import built, check_run_config, validated
 from locretrieval.estimates import estimated_pose_table
 from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths, statistics_table
 from locretrieval.groundtruth.compute import groundtruth_sfm_pairs
@@ -36,46 +37,70 @@ from locretrieval.report.scene_view import SCENE_VIEW_FILE, SceneViewSettings, w
 from locretrieval.report.tables import SFM_STAGES
 from locretrieval.retrieval.descriptors import DescriptorSearch
 from locretrieval.scene import Scene
-from locretrieval.scene.datasets import instantiate_scene
 from locretrieval.scene.ltvl import write_ltvl
 from locretrieval.shard import Shard
 
 log = logging.getLogger(__name__)
 
 
-def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
-    """Run the benchmark configured by ``cfg`` and write every output into ``output_dir``.
+@dataclass
+class ReportSettings:
+    """The ``report`` section of evaluate.yaml: the ground truth of the correlations and subset figures
+    (``groundtruth``; None: relative pose), the ``figure_formats`` (none: no figure), the ``gallery``
+    and the ``scene_view`` (`GallerySettings`, `SceneViewSettings`)."""
 
-    The ``limits`` section and every ``_target_`` (`check_run_config`), every config section, then every
-    input file the run needs (`check_inputs`), are checked before any work; with ``dry_run`` the SfM
-    work is only counted and forecast (`dry_run`). Writes the tidy tables
-    (``results.csv``, ``query_errors.csv.gz``, ``median_errors.csv``, ``retrieval.csv``, ``query_retrieval.csv.gz``,
-    ``groundtruth_statistics.csv``, ``subsets.csv``, ``estimated_poses.csv.gz``), the rankings, what galleries read
-    (``images.csv``, ``relevance/``), LTVL exports, ``summary.json``, the 3D view (``scene_3d.html``, unless
-    ``report.scene_view.enabled`` is false) and the report built from those files. Returns the localization table.
-    With ``shard=i/n`` the run is one job of a sharded evaluation: it computes the rankings and
-    its share of the SfM work into the cache (`run_sfm_shard`), writes nothing else and returns an
-    empty table.
+    groundtruth: str | None
+    figure_formats: list[str]
+    gallery: GallerySettings
+    scene_view: SceneViewSettings
+
+
+@dataclass
+class Evaluation:
+    """What ``evaluate.py`` runs, built from its config by `locretrieval.build.build_evaluation` (every
+    key, ``_target_`` and input checked there): the ``scene`` and the ``model``, the ``benchmark``'s
+    settings, the ``groundtruth``, ``subsets`` and ``report`` settings, the ``cache_dir``, the random
+    baseline's seed (``random_seed``; None: no random baseline), this job's ``shard`` (None: the whole
+    run), ``dry_run``, whether to write LTVL files (``ltvl``) and the ``config`` as run (plain data:
+    ``config.yaml``)."""
+
+    scene: Scene
+    model: Any
+    benchmark: BenchmarkSettings
+    groundtruth: GroundTruthSettings
+    subsets: SubsetSettings
+    report: ReportSettings
+    cache_dir: Path
+    random_seed: int | None
+    shard: Shard | None
+    dry_run: bool
+    ltvl: bool
+    config: dict = field(repr=False)
+
+
+def evaluate(run: Evaluation, output_dir: Path) -> pd.DataFrame:
+    """Run the benchmark ``run`` describes and write every output into ``output_dir``.
+
+    The inputs the run needs are checked first (`check_inputs`); with ``dry_run`` the SfM work is only
+    counted and forecast (`dry_run`). Writes the tidy tables (``results.csv``, ``query_localized.csv.gz``,
+    ``query_errors.csv.gz``, ``median_errors.csv``, ``retrieval.csv``, ``query_retrieval.csv.gz``,
+    ``groundtruth_statistics.csv``, ``subsets.csv``, ``estimated_poses.csv.gz``), the rankings, what galleries
+    read (``images.csv``, ``relevance/``), LTVL exports, ``summary.json``, the 3D view (``scene_3d.html``, unless
+    ``report.scene_view.enabled`` is false) and the report built from those files. Returns the localization
+    table. With a ``shard`` the run is one job of a sharded evaluation: it computes the rankings and its
+    share of the SfM work into the cache (`run_sfm_shard`), writes nothing else and returns an empty table.
     """
     started = time.perf_counter()
-    check_run_config(cfg)  # the run's limits; every _target_ a part, before anything it names is imported
-    settings = BenchmarkSettings.from_config(cfg)
-    shard = Shard.parse(cfg.shard, "shard")
-    groundtruth_settings = validated(GroundTruthSettings, cfg.groundtruth, "groundtruth")
-    subset_settings = validated(SubsetSettings, cfg.subsets, "subsets")
-    gallery_settings = validated(GallerySettings, cfg.report.gallery, "report.gallery")
-    scene_view_settings = validated(SceneViewSettings, cfg.report.scene_view, "report.scene_view")
-    cache_dir = Path(cfg.paths.cache_dir)
-    model = built(cfg.model, "model")  # before the scene: a missing weight file is named with where to get it
-    scene: Scene = instantiate_scene(cfg.data)
+    scene, model, settings, cache_dir = run.scene, run.model, run.benchmark, run.cache_dir
+    groundtruth_settings, subset_settings = run.groundtruth, run.subsets
     log.info("scene %s: %d database images, %d queries", scene.name, len(scene.database), len(scene.queries))
     check_supported(scene, [*settings.paradigms.enabled(), *groundtruth_settings.parsed()])
     check_inputs(scene, model, settings, groundtruth_settings, subset_settings)
-    if cfg.dry_run:
-        dry_run(cfg, scene, settings, groundtruth_settings, cache_dir)
+    if run.dry_run:
+        dry_run(scene, settings, groundtruth_settings, cache_dir, run.random_seed is not None)
         return pd.DataFrame()
     output_dir.mkdir(parents=True, exist_ok=True)
-    OmegaConf.save(cfg, output_dir / "config.yaml", resolve=True)  # as run; .hydra/ keeps the interpolations
+    (output_dir / "config.yaml").write_text(yaml.safe_dump(run.config, sort_keys=False))  # as run, resolved
 
     given = model.rankings(scene, DescriptorSearch(settings.retrieval, cache_dir))  # descriptors or a pairs file
     groundtruths, groundtruth_started = {}, time.perf_counter()
@@ -86,13 +111,12 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
             "no query has a reference pose: ground truth and metrics are skipped, poses are only exported (ltvl/)"
         )
     groundtruth_seconds = time.perf_counter() - groundtruth_started
-    random_seed = int(cfg.seed) if cfg.baselines.random else None
-    rankings = build_rankings(scene, {}, groundtruths, settings.retrieval, random_seed, given)
-    if shard is not None:  # one job of a sharded evaluation: its SfM work, no results
-        run_sfm_shard(scene, rankings, settings, cache_dir, shard)
+    rankings = build_rankings(scene, {}, groundtruths, settings.retrieval, run.random_seed, given)
+    if run.shard is not None:  # one job of a sharded evaluation: its SfM work, no results
+        run_sfm_shard(scene, rankings, settings, cache_dir, run.shard)
         return pd.DataFrame()
     subsets, subset_table = scene_subsets(scene, subset_settings, cache_dir)
-    if cfg.report.figure_formats:
+    if run.report.figure_formats:
         from locretrieval.report.painters import start_painters
 
         start_painters()  # the report's figure workers import matplotlib while the benchmark runs
@@ -105,15 +129,15 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     write_gallery_inputs(scene, relevance, output_dir)
     poses = estimated_pose_table(scene.name, result.estimates, scene.queries.names)
     poses.to_csv(output_dir / "estimated_poses.csv.gz", index=False)
-    if scene_view_settings.enabled:
+    if run.report.scene_view.enabled:
         write_scene_view(
             output_dir / SCENE_VIEW_FILE,
             scene,
             poses,
             global_map_points(scene, settings, cache_dir),
-            scene_view_settings,
+            run.report.scene_view,
         )
-    exported = export_ltvl(scene, result, output_dir / "ltvl") if cfg.output.ltvl else 0
+    exported = export_ltvl(scene, result, output_dir / "ltvl") if run.ltvl else 0
     summary = {
         "dataset": scene.name,
         "database images": len(scene.database),
@@ -135,9 +159,9 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
     build_report(
         [output_dir],
         output_dir,
-        cfg.report.groundtruth,
-        list(cfg.report.figure_formats),
-        gallery=gallery_settings,
+        run.report.groundtruth,
+        list(run.report.figure_formats),
+        gallery=run.report.gallery,
         thumbnail_cache=cache_dir / "thumbnails",
         image_roots=None,  # the images of the scene just loaded, wherever its config keeps them
         uncertainty=settings.metrics.uncertainty,
@@ -156,11 +180,12 @@ def evaluate(cfg: DictConfig, output_dir: Path) -> pd.DataFrame:
 
 
 def dry_run(
-    cfg: DictConfig, scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings, cache_dir: Path
+    scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings, cache_dir: Path, random: bool
 ) -> None:
     """``dry_run``: log the SfM work (upper bounds: no ranking is computed) and its forecast
-    (`locretrieval.sfm.forecast`, a few seconds of calibration); no descriptor, ground truth or file
-    of the run is computed or written."""
+    (`locretrieval.sfm.forecast`, a few seconds of calibration) over the model's, the ground truth's
+    and (``random``) the random ranking; no descriptor, ground truth or file of the run is computed or
+    written."""
     paradigms = settings.paradigms.sfm_stages()
     if not paradigms:
         log.info("dry run: no SfM paradigm is enabled, nothing to match")
@@ -169,7 +194,7 @@ def dry_run(
 
     posed = bool(scene.queries.has_pose.any())
     groundtruth_rankings = len(groundtruths.parsed()) if posed else 0
-    num_rankings = 1 + groundtruth_rankings + int(bool(cfg.baselines.random))
+    num_rankings = 1 + groundtruth_rankings + int(random)
     pairs = groundtruth_sfm_pairs(scene, groundtruths, settings.sfm) if posed else (set(), set())
     _, _, lines = dry_run_forecast(scene, settings.sfm, paradigms, cache_dir, num_rankings, pairs)
     log.info(
@@ -177,7 +202,7 @@ def dry_run(
         "computed:\n%s",
         num_rankings,
         groundtruth_rankings,
-        int(bool(cfg.baselines.random)),
+        int(random),
         lines,
     )
 

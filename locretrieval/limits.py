@@ -2,18 +2,15 @@
 file read as data may name (``trusted_packages``, `locretrieval.parts.resolve_recorded`).
 
 `Limits` is the section's schema (``configs/limits/default.yaml`` holds the defaults and says
-what each key bounds). The loaders read the budgets where they run (`current`): the entry points
-set them from the run's config once (`configure`), which also hands them to the worker processes
-through the environment (`ENVIRONMENT`); a process that never configured them (a library user,
-``report.py``, a test) reads the defaults of the YAML file.
+what each key bounds). The loaders read the budgets where they run (`current`): the build step sets
+those of the run's config once (`use`), and the worker processes the run starts get them with their
+start (`locretrieval.pool`, the DataLoaders' `locretrieval.processes.dataloader_workers`); a process
+that never set them (a library user, ``report.py``, a test) reads the defaults of the YAML file.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import functools
-import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,8 +20,6 @@ from locretrieval.errors import require
 
 #: The defaults: the config group's one file.
 DEFAULTS_FILE = Path(__file__).resolve().parents[1] / "configs" / "limits" / "default.yaml"
-#: Environment variable through which `configure` hands the budgets to child processes (JSON).
-ENVIRONMENT = "LOCRETRIEVAL_LIMITS"
 #: Bytes every budget of sizes allows on top of its factor (small files keep working whatever they hold).
 SLACK_BYTES = 1 << 20
 OUTSIDE_IMAGES = ("allow", "refuse")
@@ -67,21 +62,24 @@ class Limits:
         return factor * stored_bytes + SLACK_BYTES
 
 
-def configure(checked: Limits) -> Limits:
-    """Make ``checked`` (the config's ``limits`` section, `locretrieval.config.check_run_config`) the
-    budgets of this process and of the processes it starts (`ENVIRONMENT`); returns them."""
-    os.environ[ENVIRONMENT] = json.dumps(dataclasses.asdict(checked))
-    return checked
+#: The budgets `use` set in this process (None: the defaults).
+_in_use: Limits | None = None
+
+
+def use(checked: Limits | None) -> Limits:
+    """Make ``checked`` (the run's ``limits`` section; None: the defaults again) the budgets of this
+    process, as `current` reads them; returns them."""
+    global _in_use
+    _in_use = checked
+    return current()
 
 
 def current() -> Limits:
-    """The budgets of this process: those `configure` set (here or in the parent process), else
-    the defaults of `DEFAULTS_FILE`."""
-    return _parsed(os.environ.get(ENVIRONMENT))
+    """The budgets of this process: those `use` set, else the defaults of `DEFAULTS_FILE`."""
+    return _in_use if _in_use is not None else defaults()
 
 
-@functools.lru_cache(maxsize=8)
-def _parsed(text: str | None) -> Limits:
-    """The budgets of the defaults file, or those `configure` checked and wrote (``text``)."""
-    values = yaml.safe_load(DEFAULTS_FILE.read_text()) if text is None else json.loads(text)
-    return Limits(**values)
+@functools.cache
+def defaults() -> Limits:
+    """The budgets of the defaults file."""
+    return Limits(**yaml.safe_load(DEFAULTS_FILE.read_text()))

@@ -39,6 +39,7 @@ from typing import Any, TypeVar
 
 from tqdm import tqdm
 
+from locretrieval import limits
 from locretrieval.threads import single_threaded
 
 Task = TypeVar("Task")
@@ -88,10 +89,13 @@ def exit_with_parent(parent: int) -> None:
     os._exit(1)
 
 
-def _start_worker(parent: int, preload: tuple[str, ...], initializer: Callable[[], None] | None) -> None:
-    """A worker's start: watch ``parent``, import ``preload`` (what the first task would import,
-    paid once when the pool starts), then ``initializer()``."""
+def _start_worker(
+    parent: int, preload: tuple[str, ...], initializer: Callable[[], None] | None, budgets: limits.Limits
+) -> None:
+    """A worker's start: watch ``parent``, take its ``budgets`` (`locretrieval.limits`), import
+    ``preload`` (what the first task would import, paid once when the pool starts), then ``initializer()``."""
     threading.Thread(target=exit_with_parent, args=(parent,), daemon=True).start()
+    limits.use(budgets)
     for module in preload:
         importlib.import_module(module)
     if initializer is not None:
@@ -140,11 +144,17 @@ def _call(function: Callable[..., Any], shared_file: str | None, task: Any) -> A
     return function(loaded[1], task)
 
 
+def _key(workers: int) -> tuple[int, str]:
+    """An executor's key: its worker count and the budgets its workers take (`locretrieval.limits`)."""
+    return workers, repr(limits.current())
+
+
 class WorkerPool:
     """Worker processes of one purpose: ``name`` (errors name it), the modules each worker imports
     as it starts (``preload``) and an ``initializer`` (a module-level function) run after them;
     ``one_thread``: each worker's BLAS, OpenMP and torch on one thread. One loky pool per worker
-    count, started on first use and kept."""
+    count and budgets (`locretrieval.limits.current`, which its workers take as they start), started on
+    first use and kept."""
 
     def __init__(
         self,
@@ -154,7 +164,7 @@ class WorkerPool:
         one_thread: bool = True,
     ) -> None:
         self.name, self.preload, self.initializer, self.one_thread = name, tuple(preload), initializer, one_thread
-        self._executors: dict[int, Any] = {}
+        self._executors: dict[tuple[int, str], Any] = {}
         self._lock = threading.Lock()  # the SfM pipeline submits from two threads
         # A process that multiprocessing started (a job of Hydra's joblib launcher) joins its children
         # as it exits, without running atexit: loky's idle workers would keep it waiting. Finalizers
@@ -162,23 +172,24 @@ class WorkerPool:
         multiprocessing.util.Finalize(self, WorkerPool.shutdown, args=(self,), exitpriority=100)
 
     def started(self, workers: int) -> bool:
-        """Whether this pool's ``workers`` processes are running."""
-        return workers in self._executors
+        """Whether this pool's ``workers`` processes are running (with this process's budgets)."""
+        return _key(workers) in self._executors
 
     def executor(self, workers: int) -> Any:
-        """The loky executor of ``workers`` processes, started now if it is not."""
+        """The loky executor of ``workers`` processes with this process's budgets, started now if it is not."""
         from loky import ProcessPoolExecutor
 
+        key, budgets = _key(workers), limits.current()
         with self._lock:
-            if workers not in self._executors:
-                self._executors[workers] = ProcessPoolExecutor(
+            if key not in self._executors:
+                self._executors[key] = ProcessPoolExecutor(
                     workers,
                     initializer=_start_worker,
-                    initargs=(os.getpid(), self.preload, self.initializer),
+                    initargs=(os.getpid(), self.preload, self.initializer, budgets),
                     env=ONE_THREAD_ENVIRONMENT if self.one_thread else None,
                     timeout=IDLE_SECONDS,
                 )
-            return self._executors[workers]
+            return self._executors[key]
 
     def start(self, workers: int) -> None:
         """Start ``workers`` processes now (e.g. while this process prepares what they will do)."""
@@ -205,7 +216,7 @@ class WorkerPool:
 
     def _discard(self, workers: int) -> None:
         with self._lock:
-            executor = self._executors.pop(workers, None)
+            executor = self._executors.pop(_key(workers), None)
         if executor is not None:
             executor.shutdown(wait=False, kill_workers=True)
 

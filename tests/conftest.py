@@ -68,7 +68,7 @@ def hostile_dataset(root: Path) -> tuple[Path, Path]:
 @pytest.fixture(scope="session")
 def hostile_run(tmp_path_factory) -> HostileRun:
     """`evaluate` of `hostile_dataset` with ``model.name`` `HOSTILE_MODEL`, the approximation paradigm only."""
-    from locretrieval.evaluation import evaluate
+    from helpers import evaluate
 
     root = tmp_path_factory.mktemp("hostile")
     mapping, query = hostile_dataset(root)

@@ -186,12 +186,10 @@ def set_limits(monkeypatch, **values) -> None:
     """The default ``limits`` with ``values`` for this test's process (and those it starts), as a run with
     ``limits.<key>=<value>`` sets them; undone after the test."""
     import dataclasses
-    import json
 
     from locretrieval import limits
 
-    monkeypatch.delenv(limits.ENVIRONMENT, raising=False)
-    monkeypatch.setenv(limits.ENVIRONMENT, json.dumps({**dataclasses.asdict(limits.current()), **values}))
+    monkeypatch.setattr(limits, "_in_use", dataclasses.replace(limits.defaults(), **values))
 
 
 def network_failing_on_rank(rank: int):
@@ -210,3 +208,29 @@ def network_failing_on_rank(rank: int):
             return self.conv(images).mean((2, 3))
 
     return FailingOnRank()
+
+
+def evaluate(cfg: DictConfig, output_dir: Path):
+    """What evaluate.py runs: the build step (`locretrieval.build.build_evaluation`), then the evaluation."""
+    from locretrieval.build import build_evaluation
+    from locretrieval.evaluation import evaluate as run
+
+    return run(build_evaluation(cfg), Path(output_dir))
+
+
+def export(cfg: DictConfig, output_dir: Path):
+    """What export.py runs: the build step (`locretrieval.build.build_export`), then the export."""
+    from locretrieval.build import build_export
+    from locretrieval.export.run import export as run
+
+    return run(build_export(cfg), Path(output_dir))
+
+
+def train(cfg: DictConfig, output_dir: Path):
+    """What train.py runs: the scenes ``training.scenes`` names composed, the build step
+    (`locretrieval.build.build_training`), then the training; returns the validation callback."""
+    from locretrieval.build import build_training
+    from locretrieval.cli import composed_training_scenes
+    from locretrieval.training.run import train as run
+
+    return run(build_training(cfg, composed_training_scenes(cfg)), Path(output_dir))

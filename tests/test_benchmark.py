@@ -14,7 +14,8 @@ from helpers import evaluate_config, render_settings
 from PIL import Image
 from torch import nn
 
-from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
+from locretrieval.benchmark import benchmark, build_rankings, relevances
+from locretrieval.build import benchmark_settings
 from locretrieval.config import ConfigError
 from locretrieval.estimates import PoseEstimates
 from locretrieval.evaluation import export_ltvl
@@ -74,7 +75,7 @@ def test_the_core_benchmarks_a_network_in_memory_twice_without_disk_caches(scene
         "paradigms.approximation.k=[1,3]",
         "paths.root_dir=/nonexistent",
     )
-    settings = BenchmarkSettings.from_config(cfg)
+    settings = benchmark_settings(cfg)
     groundtruths = compute_groundtruths(
         scene, helpers.groundtruth_section({"relative_pose": cfg.groundtruth.definitions.relative_pose}, depth=50)
     )
@@ -111,7 +112,7 @@ def test_a_k_beyond_the_ranking_depth_keeps_its_label_in_every_paradigm(scene, t
         "sfm.workers=1",
         "paths.root_dir=/nonexistent",
     )
-    settings = BenchmarkSettings.from_config(cfg)
+    settings = benchmark_settings(cfg)
     groundtruths = compute_groundtruths(
         scene, helpers.groundtruth_section({"relative_pose": cfg.groundtruth.definitions.relative_pose}, depth=3)
     )
@@ -379,7 +380,7 @@ def test_no_import_circle_among_the_modules():
 )
 def test_config_values_of_the_wrong_type_or_range_name_the_full_key(override, message):
     with pytest.raises(ConfigError, match=message):
-        BenchmarkSettings.from_config(evaluate_config(override, "paths.root_dir=/nonexistent"))
+        benchmark_settings(evaluate_config(override, "paths.root_dir=/nonexistent"))
 
 
 @dataclass
@@ -412,7 +413,7 @@ def test_a_new_paradigm_is_one_class_and_one_config_section(scene, monkeypatch):
         f"+paradigms.top_image={{_target_: {__name__}.TopImage, enabled: true, k: [1]}}",
         "paths.root_dir=/nonexistent",
     )
-    settings = BenchmarkSettings.from_config(cfg)
+    settings = benchmark_settings(cfg)
     assert settings.paradigms.enabled() == ["approximation", "top_image"]
     assert not settings.paradigms.top_image.uses_sfm and settings.paradigms.local_sfm.uses_sfm
     groundtruths = compute_groundtruths(
@@ -447,6 +448,4 @@ def test_a_new_paradigm_is_one_class_and_one_config_section(scene, monkeypatch):
         (f"{{_target_: {__name__}.TopImage, enabled: true, k: [1], depth: 3}}", r"paradigms.top_image.depth: unknown"),
     ):
         with pytest.raises(ConfigError, match=message):
-            BenchmarkSettings.from_config(
-                evaluate_config(f"+paradigms.top_image={section}", "paths.root_dir=/nonexistent")
-            )
+            benchmark_settings(evaluate_config(f"+paradigms.top_image={section}", "paths.root_dir=/nonexistent"))

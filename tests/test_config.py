@@ -283,9 +283,8 @@ def test_an_old_spelling_of_a_training_key_is_refused_naming_the_nested_one(tmp_
     """``python train.py loss.margin=0.2`` (before the nesting) is refused naming
     ``module.loss.margin``; a config file's top-level ``optimizer:`` section, naming
     ``module.optimizer``, before any work."""
+    from helpers import train
     from training_runs import train_config
-
-    from locretrieval.training.run import train
 
     completed = helpers.run_python(
         "import sys; sys.argv = ['train.py', 'loss=triplet', 'loss.margin=0.2']; "

@@ -8,18 +8,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from helpers import TINY_SCENE, evaluate_config
+from helpers import TINY_SCENE, evaluate, evaluate_config
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 import locretrieval  # noqa: F401
 from locretrieval.benchmark import check_unique_names
+from locretrieval.build import scene_of
 from locretrieval.config import ConfigError, validated
-from locretrieval.evaluation import evaluate
 from locretrieval.paradigms.base import Paradigms
 from locretrieval.report.markdown import md_text
 from locretrieval.retrieval import Ranking, random_ranking
-from locretrieval.scene.datasets import instantiate_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 KS = [1, 2, 5, 10]
@@ -253,7 +252,7 @@ def test_a_model_from_outside_the_package_is_evaluated_through_the_config(tmp_pa
     marker.write_text("here")
     evaluate(cfg, tmp_path / "run")
     saved = np.load(tmp_path / "run" / "rankings" / "oracle.npz")
-    scene = instantiate_scene(cfg.data)
+    scene = scene_of(cfg.data)
     distance = np.linalg.norm(scene.queries.centers[:, None] - scene.database.centers[None], axis=2)
     np.testing.assert_array_equal(saved["indices"], np.argsort(distance, axis=1, kind="stable"))
     results = pd.read_csv(tmp_path / "run" / "results.csv")

@@ -8,8 +8,10 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 from locretrieval.pool import MIN_TASKS_PER_WORKER, WorkerPool, WorkerPoolError, progress_to
+from locretrieval.processes import dataloader_workers
 
 
 def process_id(shared, task):
@@ -96,13 +98,13 @@ def test_the_compute_workers_run_inside_a_job_of_joblibs_loky_executor_and_let_i
     assert done.returncode == 0 and done.stdout.strip() == "done", done.stderr[-3000:]
 
 
-def test_a_dataloader_context_leaves_a_plain_process_s_start_method_alone():
+def test_dataloader_workers_leave_a_plain_process_s_start_method_alone_and_take_its_budgets():
     done = subprocess.run(
         [
             sys.executable,
             "-c",
-            "import multiprocessing\nfrom locretrieval.processes import dataloader_context\ndataloader_context(2)\n"
-            "print(multiprocessing.get_start_method(allow_none=True))",
+            "import multiprocessing\nfrom locretrieval.processes import dataloader_workers\n"
+            "options = dataloader_workers(2)\nprint(multiprocessing.get_start_method(allow_none=True))",
         ],
         capture_output=True,
         text=True,
@@ -110,3 +112,36 @@ def test_a_dataloader_context_leaves_a_plain_process_s_start_method_alone():
         cwd=Path(__file__).parents[1],
     )
     assert done.stdout.strip() == "None", done.stderr  # other libraries' pools keep their platform default
+
+
+class Budgets(torch.utils.data.Dataset):
+    """Each item: the image budget its worker process sees (`locretrieval.limits.current`)."""
+
+    def __len__(self) -> int:
+        return 4
+
+    def __getitem__(self, index: int) -> int:
+        from locretrieval import limits
+
+        return limits.current().image_pixels
+
+
+def image_budget(_: int) -> int:
+    from locretrieval import limits
+
+    return limits.current().image_pixels
+
+
+def test_the_run_s_budgets_reach_every_worker_with_its_start(monkeypatch):
+    """The budgets the build step sets (`limits.use`) are what two DataLoader workers and two pool
+    workers read, not the defaults: they are handed over as the workers start."""
+    from helpers import set_limits
+
+    set_limits(monkeypatch, image_pixels=12345)
+    loader = torch.utils.data.DataLoader(Budgets(), batch_size=None, **dataloader_workers(2))
+    assert sorted(int(value) for value in loader) == [12345] * 4
+    pool = WorkerPool("budgets test")
+    try:
+        assert list(pool.executor(2).map(image_budget, range(4))) == [12345] * 4
+    finally:
+        pool.shutdown()

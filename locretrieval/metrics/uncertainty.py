@@ -27,9 +27,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 
 from locretrieval.errors import require
+
+
+def _stats():
+    """scipy.stats, imported on first use: a figure worker imports this module's constants only."""
+    from scipy import stats
+
+    return stats
 
 
 @dataclass
@@ -76,7 +82,7 @@ def share_interval(successes: np.ndarray, trials: np.ndarray, confidence: float)
     ``binomtest(k, n).proportion_ci(confidence, method="wilson")``."""
     k = np.asarray(successes, dtype=np.float64)
     n = np.asarray(trials, dtype=np.float64)
-    z = stats.norm.ppf(0.5 + confidence / 2)
+    z = _stats().norm.ppf(0.5 + confidence / 2)
     with np.errstate(invalid="ignore", divide="ignore"):
         p = k / n
         centre = (k + z * z / 2) / (n + z * z)
@@ -91,8 +97,8 @@ def exact_interval(successes: np.ndarray, trials: np.ndarray, confidence: float)
     n = np.asarray(trials, dtype=np.float64)
     tail = (1 - confidence) / 2
     with np.errstate(invalid="ignore", divide="ignore"):
-        low = np.where(k > 0, stats.beta.ppf(tail, k, n - k + 1), 0.0)
-        high = np.where(k < n, stats.beta.ppf(1 - tail, k + 1, n - k), 1.0)
+        low = np.where(k > 0, _stats().beta.ppf(tail, k, n - k + 1), 0.0)
+        high = np.where(k < n, _stats().beta.ppf(1 - tail, k + 1, n - k), 1.0)
     undefined = n <= 0
     return np.where(undefined, np.nan, low), np.where(undefined, np.nan, high)
 
@@ -195,5 +201,5 @@ def paired_difference(
         high = np.where(m > 0, (2 * split_high - 1) * m / n, none_high)
         difference = (b - c) / n
     # exact two-sided McNemar: twice the smaller tail of Binomial(m, 1/2), at most 1 (scipy's binomtest)
-    p_value = np.where(m > 0, np.minimum(1.0, 2 * stats.binom.cdf(np.minimum(b, c), m, 0.5)), 1.0)
+    p_value = np.where(m > 0, np.minimum(1.0, 2 * _stats().binom.cdf(np.minimum(b, c), m, 0.5)), 1.0)
     return PairedDifference(n, b, c, difference, low, high, p_value)

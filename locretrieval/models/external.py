@@ -26,7 +26,7 @@ import torch
 from torch import nn
 
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
-from locretrieval.models.files.weights import content_sha256, embedded_checkpoint, load_torch_file, settings_of
+from locretrieval.models.files.weights import content_sha256, embedded_checkpoint, load_torch_file, plain
 from locretrieval.models.networks import WeightsInfo, l2_normalize
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
 
@@ -97,7 +97,7 @@ class ExternalDescriptor(TorchGlobalDescriptor):
         preprocessing = Preprocessing(
             **{
                 key: tuple(value) if isinstance(value, list) else value
-                for key, value in settings_of(preprocessing).items()
+                for key, value in plain(dict(preprocessing)).items()
             }
         )
         info = WeightsInfo(sha256=None)
@@ -177,8 +177,8 @@ class HubDescriptor(ExternalDescriptor):
     def __init__(
         self, name: str, repo: str, entry: str, source: str, kwargs: Mapping[str, Any], **settings: Any
     ) -> None:
-        module = hub_module(str(repo), str(entry), str(source), settings_of(kwargs))
-        identity = {"repo": str(repo), "entry": str(entry), "source": str(source), "kwargs": settings_of(kwargs)}
+        module = hub_module(str(repo), str(entry), str(source), plain(dict(kwargs)))
+        identity = {"repo": str(repo), "entry": str(entry), "source": str(source), "kwargs": plain(dict(kwargs))}
         super().__init__(name, module, identity, **settings)
 
 
@@ -188,8 +188,8 @@ class CallableDescriptor(ExternalDescriptor):
     model = "callable"
 
     def __init__(self, name: str, target: str, kwargs: Mapping[str, Any], **settings: Any) -> None:
-        module = callable_module(str(target), settings_of(kwargs))
+        module = callable_module(str(target), plain(dict(kwargs)))
         # the code's content: a function has no state dict to hash, so an edit must change the key
         # (a copy, a fresh clone must not)
         code = content_sha256(inspect.getsourcefile(importlib.import_module(str(target).partition(":")[0])))[:16]
-        super().__init__(name, module, {"target": str(target), "kwargs": settings_of(kwargs), "code": code}, **settings)
+        super().__init__(name, module, {"target": str(target), "kwargs": plain(dict(kwargs)), "code": code}, **settings)

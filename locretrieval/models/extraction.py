@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from locretrieval.config import require
 from locretrieval.models.networks import RetrievalNet, l2_normalize
-from locretrieval.processes import dataloader_context
+from locretrieval.processes import dataloader_workers
 from locretrieval.scene.images import read_image
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -270,8 +270,7 @@ def extract_descriptors(
     loader = DataLoader(
         ImageFiles(paths, preprocessing),
         batch_sampler=batches,
-        num_workers=settings.num_workers,
-        multiprocessing_context=dataloader_context(settings.num_workers),
+        **dataloader_workers(settings.num_workers),
         collate_fn=_as_list,
         pin_memory=device.type == "cuda",
     )

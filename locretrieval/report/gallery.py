@@ -34,18 +34,17 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from omegaconf import OmegaConf
 from PIL import Image
 from scipy import sparse
 
 from locretrieval.bounded_files import check_npy
 from locretrieval.cache import atomic_path, config_key, file_signature, load_arrays, safe_name, save_arrays
-from locretrieval.config import require, validated
+from locretrieval.config import require
 from locretrieval.errors import DELETE_CACHE_FILE, DataFileError
 from locretrieval.metrics.correlation import capped_pose_error
 from locretrieval.report.markdown import ReportWriter, md_code, md_text
 from locretrieval.report.plots import threshold_label
-from locretrieval.report.run_files import RERUN, literal, load_yaml, mapping_at, outside_roots, run_file
+from locretrieval.report.run_files import RERUN, outside_roots, run_file
 from locretrieval.report.tables import TABLES, read_table
 from locretrieval.retrieval import EMPTY, relevant_hits
 from locretrieval.scene import Scene
@@ -278,19 +277,6 @@ def ranking_indices(arrays: Mapping[str, np.ndarray], path: Path, queries: int, 
             RERUN,
         )
     return indices
-
-
-def run_gallery_settings(run: Path, overrides: Sequence[str] = ()) -> GallerySettings | None:
-    """The ``report.gallery`` settings of a run (its ``config.yaml``, read as written: `load_yaml`),
-    ``overrides`` applied (``key=value`` below ``report.gallery``, e.g. ``queries=all``); ``None`` when
-    its config has no gallery section."""
-    path = run_file(run, "config.yaml")
-    section = mapping_at(load_yaml(path) if path.is_file() else {}, "report", "gallery")
-    if not section:
-        return None
-    return validated(
-        GallerySettings, OmegaConf.merge(literal(section), OmegaConf.from_dotlist(list(overrides))), "report.gallery"
-    )
 
 
 # --- which queries, and their outcome ------------------------------------------------------------

@@ -169,20 +169,3 @@ def load_synthetic_dataset(
 
 #: Renderer keys that change how fast a scene renders, not what it contains.
 RENDER_ONLY_KEYS = ("workers",)
-
-
-def instantiate_scene(node: Any) -> Scene:
-    """The scene of a data config node (Hydra's `instantiate`); a missing dataset's error, a missing
-    file's and a value refused (a `ConfigError`, a `DataFileError` naming the file, a photo folder
-    that does not reconstruct) are raised as themselves, so that their lines (the path expected, how
-    to get the dataset; the key; the file) are printed once and as written, not inside Hydra's
-    one-line `InstantiationException`."""
-    from hydra.errors import InstantiationException
-    from hydra.utils import instantiate
-
-    try:
-        return instantiate(node)
-    except InstantiationException as error:
-        if isinstance(error.__cause__, (FileNotFoundError, ValueError)):
-            raise error.__cause__ from None
-        raise

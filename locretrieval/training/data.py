@@ -16,7 +16,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from locretrieval.config import require
-from locretrieval.processes import dataloader_context
+from locretrieval.processes import dataloader_workers
 from locretrieval.training.decoded import decoded_images
 from locretrieval.training.relevance import TrainingPairs
 
@@ -230,9 +230,8 @@ class TrainingData(L.LightningDataModule):
             self.dataset,
             batch_sampler=self.sampler,
             collate_fn=collate(self.pairs),
-            num_workers=self.num_workers,
             persistent_workers=self.num_workers > 0,
-            multiprocessing_context=dataloader_context(self.num_workers),
+            **dataloader_workers(self.num_workers),
             pin_memory=on_gpu,
         )
 

@@ -16,9 +16,9 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
-from omegaconf import OmegaConf
 
 from locretrieval.errors import FIX_DATA_FILE, DataFileError
+from locretrieval.report.run_files import load_yaml
 from locretrieval.training.objective import Objective, ObjectiveFigures
 
 #: A train.py run's composed config (written resolved).
@@ -72,8 +72,9 @@ NOT_RUN = "not run"
 
 
 def read_as_written(path: Path) -> Any:
-    """The YAML file ``path`` as plain values, its interpolations left as text (none resolved)."""
-    return OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+    """The YAML file ``path`` as plain values, its interpolations left as text (none resolved), within
+    ``limits.yaml_nodes`` (`locretrieval.report.run_files.load_yaml`)."""
+    return load_yaml(path)
 
 
 def written_value(path: Path, key: str) -> Any:

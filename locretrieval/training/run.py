@@ -1,5 +1,6 @@
-"""`train(cfg, output_dir)`: what ``train.py`` runs. Instantiate from the config, train with
-Lightning, validate by localization every epoch, write the validation curves and report."""
+"""`train(run, output_dir)`: what ``train.py`` runs, from the objects the build step made of its config
+(`Training`, `locretrieval.build.build_training`): train with Lightning, validate by localization every
+epoch, write the validation curves and report."""
 
 from __future__ import annotations
 
@@ -15,29 +16,21 @@ from typing import Any
 
 import lightning as L
 import numpy as np
-from hydra.utils import instantiate
+import yaml
 from lightning.pytorch.utilities import rank_zero_only
-from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.benchmark import BenchmarkSettings
-from locretrieval.config import ConfigError, built, check_node, require, validated
-from locretrieval.folders import check_written_folder
-from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, compute_groundtruths
+from locretrieval.config import ConfigError, require
+from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings
 from locretrieval.scene import ImageSet, Scene
-from locretrieval.scene.datasets import instantiate_scene, load_synthetic_dataset
 from locretrieval.scene.kapture_io import concatenate_image_sets
-from locretrieval.training.callbacks import LocalizationValidation, every_validation_metrics, validation_metrics
-from locretrieval.training.checkpoints import check_resume_checkpoint
+from locretrieval.training.callbacks import LocalizationValidation
 from locretrieval.training.folders import CONFIG_FILE, FINISHED_FILE
 from locretrieval.training.objective import Objective
 from locretrieval.training.relevance import TrainingPairs, TrainingRelevanceSettings, combined_pairs
 from locretrieval.training.report import TrainingReportSettings, write_training_report
 
 log = logging.getLogger(__name__)
-
-
-#: The data configs `training.scenes` names.
-DATA_CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "data"
 
 
 @dataclass
@@ -117,70 +110,34 @@ class TrainingSettings:
             "validation_database",
             "no training images: set validation_database=true or give scenes or extra_renders",
         )
-        known = sorted(path.stem for path in DATA_CONFIGS.glob("*.yaml"))
         for index, entry in enumerate(self.scenes):
             require(
                 isinstance(entry, str) or (isinstance(entry, dict) and isinstance(entry.get("config"), str)),
                 f"scenes[{index}]",
                 f"must be a data config's name or {{config: <name>, ...its keys}}, got {entry!r}",
             )
-            name = entry if isinstance(entry, str) else entry["config"]
-            require(name in known, f"scenes[{index}]", f"no data config {name!r}; expected one of {known}")
 
 
-def training_worlds(cfg: DictConfig, scene: Scene, settings: TrainingSettings) -> list[Scene]:
-    """Scenes whose databases are trained on, without queries: the validation scene's database,
-    the databases of the ``scenes`` listed, and/or separately rendered scenes (all their images)."""
+def training_worlds(
+    scene: Scene, settings: TrainingSettings, listed: Sequence[Scene], extra: Sequence[Scene]
+) -> list[Scene]:
+    """Scenes whose databases are trained on, without queries: the validation scene's database, the
+    databases of the scenes ``training.scenes`` lists (``listed``, in its order), and the separately
+    rendered scenes of ``training.extra_renders`` (``extra``: all their images)."""
     worlds = [_without_queries(scene.name, scene.database, scene)] if settings.validation_database else []
-    for index, entry in enumerate(settings.scenes):
-        listed = listed_scene(cfg, entry)
-        if listed.database.fingerprint() == scene.database.fingerprint():
+    for index, (entry, other) in enumerate(zip(settings.scenes, listed)):
+        if other.database.fingerprint() == scene.database.fingerprint():
             raise ValueError(
                 f"training.scenes[{index}] ({entry!r}) is the validation "
                 f"scene's database: training.validation_database trains on it"
             )
-        worlds.append(_without_queries(f"{listed.name}_{index}", listed.database, listed))
-    if settings.extra_renders:
-        if "render" not in cfg.data:
-            raise ValueError("training.extra_renders needs the synthetic data config (data=synthetic)")
-        for override in settings.extra_renders:
-            render = OmegaConf.merge(cfg.data.render, override)
-            extra = load_synthetic_dataset(
-                f"train_{render.environment}_{render.seed}",
-                cfg.paths.cache_dir,
-                render,
-                ltvl_names=scene.ltvl_names,
-                frustum_far=scene.frustum_far,
-            )
-            if extra.database.fingerprint() == scene.database.fingerprint():
-                raise ValueError(f"training.extra_renders {dict(override)} renders the validation scene itself")
-            images = concatenate_image_sets([extra.database, extra.queries])  # one world: paired together
-            worlds.append(_without_queries(extra.name, images, scene))
+        worlds.append(_without_queries(f"{other.name}_{index}", other.database, other))
+    for override, rendered in zip(settings.extra_renders, extra):
+        if rendered.database.fingerprint() == scene.database.fingerprint():
+            raise ValueError(f"training.extra_renders {dict(override)} renders the validation scene itself")
+        images = concatenate_image_sets([rendered.database, rendered.queries])  # one world: paired together
+        worlds.append(_without_queries(rendered.name, images, scene))
     return worlds
-
-
-def listed_scene(cfg: DictConfig, entry: Any) -> Scene:
-    """The scene of a ``training.scenes`` entry: the data node of ``configs/data/<name>.yaml`` (its
-    keys overridden by the entry's), instantiated with the run's config (paths)."""
-    name, overrides = (
-        (entry, {}) if isinstance(entry, str) else (entry["config"], {k: v for k, v in entry.items() if k != "config"})
-    )
-    node = composed_data(name)
-    run = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))  # the run's config, its data node replaced
-    run.data = OmegaConf.merge(node, overrides)
-    return instantiate_scene(run.data)
-
-
-def composed_data(name: str) -> DictConfig:
-    """The ``data`` node of ``configs/data/<name>.yaml`` as Hydra composes it (its defaults list, e.g.
-    its LTVL names, applied), interpolations left for the run's config to resolve."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    if GlobalHydra.instance().is_initialized():  # in train.py's Hydra app
-        return compose(config_name="train", overrides=[f"data={name}"]).data
-    with initialize_config_dir(config_dir=str(DATA_CONFIGS.parent), version_base="1.3"):
-        return compose(config_name="train", overrides=[f"data={name}"]).data
 
 
 def _without_queries(name: str, images: ImageSet, scene: Scene) -> Scene:
@@ -195,95 +152,48 @@ def _without_queries(name: str, images: ImageSet, scene: Scene) -> Scene:
     )
 
 
-#: The config nodes of the objects train.py builds (besides callbacks and loggers), checked first;
-#: the module's own parts (its loss, optimizer, scheduler and memory) are checked below it.
-OBJECT_NODES = ("sampler", "augmentation", "datamodule", "module", "miner", "trainer")
-MODULE_PARTS = ("loss", "optimizer", "scheduler", "memory")
-
-
 @dataclass
-class TrainingParts:
-    """What the training loop consumes: the image ``sets`` trained on (one per world), their
-    ``pairs``, the ``sampler`` of batches and the ``datamodule``."""
+class Training:
+    """What ``train.py`` runs, built from its config by `locretrieval.build.build_training` (every key,
+    ``_target_``, monitor and the objective checked there, the scene and ground truths prepared): the
+    Lightning ``trainer``, ``module`` and ``datamodule``, the ``worlds`` trained on (`training_worlds`),
+    the ``validator`` (its callback among the trainer's), the training ``report`` settings and the gap
+    rows validation cannot fill (``unfilled``: metric -> why), the ``objective`` train.py returns, the
+    checkpoint it resumes (``ckpt_path``), the ``config`` as run (plain data) and when the build
+    ``started`` (``time.perf_counter``)."""
 
-    sets: list[ImageSet]
-    pairs: TrainingPairs
-    sampler: Any
+    trainer: Any
+    module: Any
     datamodule: Any
+    worlds: list[Scene]
+    validator: LocalizationValidation
+    report: TrainingReportSettings
+    unfilled: dict[str, str]
+    objective: Objective
+    ckpt_path: str | None
+    config: dict = dataclasses.field(repr=False)
+    started: float = dataclasses.field(default_factory=time.perf_counter)
 
 
-def train(cfg: DictConfig, output_dir: Path) -> LocalizationValidation:
-    """Train the configured model; returns the validation callback (its ``history``; `optimized_value`:
-    what train.py returns). Every object is built from its config group (`built`); what can be
-    checked without the scene (the sections and object nodes, the resumed checkpoint, the metrics
-    checkpoints monitor, the ``optimized_metric``) is checked before it is prepared."""
-    started = time.perf_counter()
-    L.seed_everything(int(cfg.seed), workers=True, verbose=False)  # the seed is in config.yaml
-    settings = BenchmarkSettings.from_config(cfg)
-    training = validated(TrainingSettings, cfg.training, "training")
-    relevance = validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance")
-    groundtruth_settings = validated(GroundTruthSettings, cfg.groundtruth, "groundtruth")
-    report = validated(TrainingReportSettings, cfg.report, "report")
-    unfilled = unfilled_report_rows(cfg, report, training.validation.settings(settings), groundtruth_settings)
-    callbacks = checked_callbacks(cfg, settings, groundtruth_settings)
-    sfm_validated = cfg.callbacks.localization_validation.get("sfm_every_n_epochs") is not None
-    Objective.from_config(cfg).check(validation_metrics(settings, list(groundtruth_settings.parsed()), sfm_validated))
-    check_written_folder(output_dir, "run folder (output_dir)")  # Hydra's was checked; output_dir may be another
+def train(run: Training, output_dir: Path) -> LocalizationValidation:
+    """Train ``run``'s module and write, on rank 0, its training report, validation tables and the
+    file that says it finished; returns the validation callback (its ``history``; `optimized_value`:
+    what train.py returns)."""
     output_dir.mkdir(parents=True, exist_ok=True)
-    OmegaConf.save(cfg, output_dir / CONFIG_FILE, resolve=True)
-    cache_dir = Path(cfg.paths.cache_dir)
-
-    descriptor = instantiate(cfg.model)  # the zoo model: network, preprocessing, weights checked
-    if cfg.get("ckpt_path"):  # before the scene and ground truth are prepared
-        check_resume_checkpoint(cfg.ckpt_path, descriptor.model, descriptor.architecture)
-    scene: Scene = instantiate_scene(cfg.data)
-    validation_scene, validation_settings = training.validation.scene(scene), training.validation.settings(settings)
-    parts = training_parts(cfg, scene, descriptor.preprocessing, settings, relevance, training)
-    groundtruths = compute_groundtruths(validation_scene, groundtruth_settings, validation_settings.sfm, cache_dir)
-    validator = built(
-        cfg.callbacks.localization_validation,
-        "callbacks.localization_validation",
-        scene=validation_scene,
-        groundtruths=groundtruths,
-        settings=validation_settings,
-        preprocessing=descriptor.preprocessing,
-        extraction=descriptor.settings,
-        cache_dir=cache_dir,
-        random_seed=int(cfg.seed) if cfg.baselines.random else None,
-        relevance_scope=groundtruth_settings.relevance,
-        reference_models={name: instantiate(node) for name, node in (cfg.get("validation_references") or {}).items()},
-        headline=report.metrics(),
-        budget_minutes=training.validation.budget_minutes,
-        budget_seed=training.validation.seed,
-        held_out=training.validation.held_out,
-    )
-    callbacks = {"localization_validation": validator, **callbacks}  # first: early stopping reads what it logged
-    if cfg.get("miner"):
-        callbacks["miner"] = built(
-            cfg.miner,
-            "miner",
-            sets=parts.sets,
-            pairs=parts.pairs,
-            sampler=parts.sampler,
-            preprocessing=descriptor.preprocessing,
-            extraction=descriptor.settings,
-        )
-    module = training_module(cfg, descriptor, parts.pairs)
-    loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values()]
-    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=list(callbacks.values()), logger=loggers or False)
-    if module.freeze_batch_norm:  # Lightning warns of the (intended) eval-mode batch norm
+    (output_dir / CONFIG_FILE).write_text(yaml.safe_dump(run.config, sort_keys=False))  # as run, resolved
+    if run.module.freeze_batch_norm:  # Lightning warns of the (intended) eval-mode batch norm
         warnings.filterwarnings("ignore", message=r"Found \d+ module\(s\) in eval mode at the start of training")
-    trainer.fit(module, datamodule=parts.datamodule, ckpt_path=cfg.get("ckpt_path"))
-    if trainer.is_global_zero:
-        write_training_report(validator, output_dir, report, unfilled)
+    run.trainer.fit(run.module, datamodule=run.datamodule, ckpt_path=run.ckpt_path)
+    if run.trainer.is_global_zero:
+        write_training_report(run.validator, output_dir, run.report, run.unfilled)
         summary = {
-            "seconds": round(time.perf_counter() - started, 1),  # the whole run: the sweep summary's time
-            "SfM stages per validation": validator.sfm_stages,  # per stage: seconds, work done, its unit
+            "seconds": round(time.perf_counter() - run.started, 1),  # the whole run: the sweep summary's time
+            "SfM stages per validation": run.validator.sfm_stages,  # per stage: seconds, work done, its unit
         }
         (output_dir / FINISHED_FILE).write_text(json.dumps(summary, indent=2))  # last: the run finished
-        for line in outputs_lines(output_dir, trainer):
+        for line in outputs_lines(output_dir, run.trainer):
             log.info("%s", line)
-    return validator
+    return run.validator
 
 
 def outputs_lines(output_dir: Path, trainer: L.Trainer) -> list[str]:
@@ -305,26 +215,30 @@ def outputs_lines(output_dir: Path, trainer: L.Trainer) -> list[str]:
     return lines
 
 
-def optimized_value(cfg: DictConfig, validator: LocalizationValidation) -> float | None:
+def optimized_value(objective: Objective, validator: LocalizationValidation) -> float | None:
     """What train.py returns, a sweep's objective: the ``optimized_metric`` at the
     ``optimized_validation`` (`Objective`), the value ``validation.csv`` holds; None on the DDP
     ranks other than 0, which do not validate."""
     if rank_zero_only.rank != 0:
         return None
-    return Objective.from_config(cfg).value(validator.history_table())[1]
+    return objective.value(validator.history_table())[1]
 
 
 def unfilled_report_rows(
-    cfg: DictConfig, report: TrainingReportSettings, settings: BenchmarkSettings, groundtruths: GroundTruthSettings
+    report: TrainingReportSettings,
+    settings: BenchmarkSettings,
+    groundtruths: GroundTruthSettings,
+    references: Sequence[str],
+    sfm_validated: bool,
 ) -> dict[str, str]:
-    """The gap rows (``report.gap``) that validation cannot fill with these settings: metric ->
-    why, each logged as a warning; a ``report.baseline`` that is no validation reference is an error."""
-    references = list(cfg.get("validation_references") or {})
+    """The gap rows (``report.gap``) that validation cannot fill with these settings (the validation
+    ``references``' names, whether it validates the SfM paradigms): metric -> why, each logged as a
+    warning; a ``report.baseline`` that is no validation reference is an error."""
     if report.baseline not in references:
         raise ConfigError(
-            f"report.baseline: {report.baseline!r} is not a validation reference (validation_references: {references})"
+            f"report.baseline: {report.baseline!r} is not a validation reference (validation_references: "
+            f"{list(references)})"
         )
-    sfm_validated = cfg.callbacks.localization_validation.get("sfm_every_n_epochs") is not None
     unfilled = {
         row.metric: why for row in report.gap if (why := row.unfilled(settings, groundtruths.parsed(), sfm_validated))
     }
@@ -333,85 +247,19 @@ def unfilled_report_rows(
     return unfilled
 
 
-def checked_callbacks(
-    cfg: DictConfig, settings: BenchmarkSettings, groundtruths: GroundTruthSettings
-) -> dict[str, L.Callback]:
-    """Check every object node (`check_node`: keys and types) and build the callbacks that need
-    nothing from the run (checkpoints, ...), their monitors checked (`check_monitors`); the
-    validation callback is built once the scene is there."""
-    for part in MODULE_PARTS:  # a config of before the nesting (a finetune or experiment file's `optimizer:`)
-        if part in cfg:
-            raise ConfigError(
-                f"{part}: moved, now module.{part} (the {part} group's package; a key of it: module.{part}.<key>)"
-            )
-    nodes = {key: cfg[key] for key in OBJECT_NODES if cfg.get(key)}
-    nodes |= {f"module.{part}": cfg.module[part] for part in MODULE_PARTS if cfg.module.get(part)}
-    nodes |= {f"callbacks.{name}": node for name, node in (cfg.get("callbacks") or {}).items() if node is not None}
-    nodes |= {f"logger.{name}": node for name, node in (cfg.get("logger") or {}).items() if node is not None}
-    nodes |= {f"validation_references.{name}": node for name, node in (cfg.get("validation_references") or {}).items()}
-    for key, node in nodes.items():
-        check_node(node, key)
-    if "callbacks.localization_validation" not in nodes:
-        raise ConfigError(
-            "callbacks.localization_validation: missing; training is validated by localization (callbacks=default)"
-        )
-    callbacks = {
-        name: built(node, f"callbacks.{name}")
-        for name, node in cfg.callbacks.items()
-        if node is not None and name != "localization_validation"
-    }
-    check_monitors(callbacks, every_validation_metrics(settings, list(groundtruths.parsed())))
-    return callbacks
-
-
-def training_parts(
-    cfg: DictConfig,
-    scene: Scene,
-    preprocessing: Any,
-    settings: BenchmarkSettings,
-    relevance: TrainingRelevanceSettings,
-    training: TrainingSettings,
-) -> TrainingParts:
-    """The training images of ``scene`` (and the extra renders), their relevance pairs, the sampler
-    and the datamodule, from their config nodes."""
-    worlds = training_worlds(cfg, scene, training)
+def training_pairs(
+    worlds: Sequence[Scene], relevance: TrainingRelevanceSettings, settings: BenchmarkSettings, cache_dir: Path
+) -> TrainingPairs:
+    """The relevance pairs of the ``worlds``' databases (each graded within its world), logged."""
     sets = [world.database for world in worlds]
-    cache_dir = Path(cfg.paths.cache_dir)
     pairs = combined_pairs(sets, relevance, [pair_context(world, settings, cache_dir) for world in worlds])
     log.info(
-        "training on %d images (%d with a relevant partner), validating on %d queries of %s",
+        "training on %d images (%d with a relevant partner) of %d scene(s)",
         pairs.num_images,
         int((np.diff(pairs.graded.indptr) > 0).sum()),
-        len(scene.queries),
-        scene.name,
+        len(worlds),
     )
-    sampler = built(cfg.sampler, "sampler", pairs=pairs)
-    augmentation = built(cfg.augmentation, "augmentation") if cfg.get("augmentation") else None
-    paths = [path for images in sets for path in images.paths]
-    datamodule = built(
-        cfg.datamodule,
-        "datamodule",
-        paths=paths,
-        pairs=pairs,
-        sampler=sampler,
-        augmentation=augmentation,
-        cache_dir=cache_dir,
-    )
-    return TrainingParts(sets, pairs, sampler, datamodule)
-
-
-def training_module(cfg: DictConfig, descriptor: Any, pairs: TrainingPairs) -> Any:
-    """The LightningModule of ``cfg.module``, its nested loss, optimizer, scheduler and memory
-    instantiated with it by Hydra, training the model's network on the training ``pairs``."""
-    return built(
-        cfg.module,
-        "module",
-        network=descriptor.network.train(),
-        preprocessing=descriptor.preprocessing,
-        model=descriptor.model,
-        architecture=descriptor.architecture,
-        pairs=pairs,
-    )
+    return pairs
 
 
 def pair_context(world: Scene, settings: BenchmarkSettings, cache_dir: Path) -> DefinitionContext:

@@ -10,11 +10,10 @@ import onnx
 import onnxruntime
 import pytest
 import torch
-from helpers import compose_config
+from helpers import compose_config, export
 from hydra.utils import instantiate
 
 from locretrieval.export.onnx import OnnxExportError, OnnxSettings, export_onnx
-from locretrieval.export.run import export
 from locretrieval.models.files.weights import EMBEDDED_CHECKPOINT_KEY, load_torch_file
 
 ROOT = Path(__file__).resolve().parents[2]

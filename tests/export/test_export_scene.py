@@ -12,13 +12,12 @@ import kapture.io.features
 import numpy as np
 import pandas as pd
 import pytest
-from helpers import HOSTILE_IMAGE, HOSTILE_MODEL, compose_config, evaluate_config
+from helpers import HOSTILE_IMAGE, HOSTILE_MODEL, compose_config, evaluate, evaluate_config, export
 from hydra import compose, initialize_config_dir
 
+from locretrieval.build import scene_of
 from locretrieval.config import ConfigError
-from locretrieval.evaluation import evaluate
 from locretrieval.export.pairs import PairsSettings, ranked_pairs
-from locretrieval.export.run import export
 from locretrieval.export.scene import DescriptorSettings, export_scene
 from locretrieval.models.files.feature_io import export_global_features
 from locretrieval.retrieval.descriptors import describe_scene
@@ -26,7 +25,6 @@ from locretrieval.retrieval.index import search
 from locretrieval.retrieval.pairs_file import PairsFileRanking, ScoreOrder
 from locretrieval.retrieval.ranking import Ranking
 from locretrieval.scene import Camera, ImageSet, Scene
-from locretrieval.scene.datasets import instantiate_scene
 from locretrieval.scene.names import exported_name_problem
 
 #: A small scene and a small random network: what is tested is what is written, not the model.
@@ -72,7 +70,7 @@ def exported(tmp_path_factory):
     cfg = compose_config("export", *common)
     written = export(cfg, root / "export")
     assert len(written) == 8  # 2 rankings x 2 pairs files, 2 kapture feature folders, 2 hloc files
-    return root, root / "run", root / "export", instantiate_scene(cfg.data)
+    return root, root / "run", root / "export", scene_of(cfg.data)
 
 
 def test_pairs_files_read_back_give_the_rankings_and_results_of_the_run(exported):

@@ -9,9 +9,9 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from helpers import evaluate
 from hydra.errors import InstantiationException
 
-from locretrieval.evaluation import evaluate
 from locretrieval.models.extraction import Preprocessing
 from locretrieval.models.networks import build_retrieval_net
 from locretrieval.models.trainable import imagenet_weights
@@ -259,10 +259,9 @@ def test_every_preset_composes_and_without_its_hub_code_names_the_repo(preset, t
 
 
 def test_train_py_trains_a_researchers_module_and_evaluate_reads_it_back(tmp_path, monkeypatch):
+    from helpers import train
     from hydra.utils import instantiate
     from training_runs import train_config
-
-    from locretrieval.training.run import train
 
     (tmp_path / "my_descriptors.py").write_text(MODULE)
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -329,9 +328,8 @@ def test_a_timm_backbone_loads_its_own_state_dict_without_the_classifier(scene, 
 
 
 def test_train_py_trains_a_timm_backbone(tmp_path):
+    from helpers import train
     from training_runs import train_config
-
-    from locretrieval.training.run import train
 
     cfg = train_config(
         tmp_path,

@@ -4,7 +4,8 @@ from helpers import evaluate_config
 from scipy.spatial.transform import Rotation
 
 from locretrieval import geometry
-from locretrieval.benchmark import BenchmarkSettings, benchmark
+from locretrieval.benchmark import benchmark
+from locretrieval.build import benchmark_settings
 from locretrieval.config import ConfigError
 from locretrieval.estimates import LOCALIZED
 from locretrieval.paradigms import approximation
@@ -154,7 +155,7 @@ def test_descriptor_free_rankings_get_ewb_only(two_images):
 
 
 def test_the_configured_methods_are_the_papers_and_an_unknown_name_is_an_error():
-    settings = BenchmarkSettings.from_config(evaluate_config("paths.root_dir=/nonexistent")).paradigms.approximation
+    settings = benchmark_settings(evaluate_config("paths.root_dir=/nonexistent")).paradigms.approximation
     assert settings.chosen() == {
         "ewb": EqualWeights(),
         "bdi": BarycentricWeights(),
@@ -165,11 +166,11 @@ def test_the_configured_methods_are_the_papers_and_an_unknown_name_is_an_error()
         match=r"paradigms.approximation.methods: must be a non-empty list of names of paradigms.approximation.weights "
         r"\['ewb', 'bdi', 'csi'\], got \['ewb', 'median'\]",
     ):
-        BenchmarkSettings.from_config(
+        benchmark_settings(
             evaluate_config("paths.root_dir=/nonexistent", "paradigms.approximation.methods=[ewb,median]")
         )
     with pytest.raises(ConfigError, match=r"paradigms.approximation.weights.csi.alpha: must be positive, got 0"):
-        BenchmarkSettings.from_config(
+        benchmark_settings(
             evaluate_config("paths.root_dir=/nonexistent", "paradigms.approximation.weights.csi.alpha=0")
         )
 
@@ -359,7 +360,7 @@ def test_a_method_from_outside_the_package_is_chosen_through_the_config(two_imag
         "paradigms.local_sfm.enabled=false",
         "paradigms.global_sfm.enabled=false",
     )
-    settings = BenchmarkSettings.from_config(cfg)
+    settings = benchmark_settings(cfg)
     queries = image_set(two_images.qvec[[1, 0]], two_images.centers[[1, 0]] + 0.5)
     scene = Scene("two", two_images, queries)
     ranking = Ranking("gt", [[0, 1], [1, 0]], [[1.0, 0.5], [1.0, 0.5]], "groundtruth")

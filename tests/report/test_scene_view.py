@@ -8,13 +8,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from helpers import evaluate_config
+from helpers import evaluate, evaluate_config
 from hydra.utils import instantiate
 from scipy.spatial.transform import Rotation
 
 from locretrieval.config import validated
 from locretrieval.estimates import ESTIMATED_POSE_COLUMNS, PoseEstimates, estimated_pose_table
-from locretrieval.evaluation import evaluate
 from locretrieval.report.scene_view import SceneViewSettings, scene_figure, write_scene_view
 from locretrieval.scene import Camera, ImageSet, Scene
 

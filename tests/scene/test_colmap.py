@@ -18,10 +18,10 @@ from own_place import plain_photos, render_walk, write_model
 from PIL import Image
 
 from locretrieval import geometry
+from locretrieval.build import scene_of
 from locretrieval.config import ConfigError
 from locretrieval.errors import DataFileError
 from locretrieval.groundtruth import compute_groundtruths
-from locretrieval.scene.datasets import instantiate_scene
 
 IMAGES = 15
 CO_OBSERVATION = {"_target_": "locretrieval.groundtruth.CoObservationDefinition", "min_shared": 1, "query_pairs": 5}
@@ -59,7 +59,7 @@ def load(root: Path, model: Path, images: Path, *overrides: str):
     cfg = helpers.evaluate_config(
         "data=colmap", f"paths.root_dir={root}", f"data.model={model}", f"data.images={images}", *overrides
     )
-    return instantiate_scene(cfg.data)
+    return scene_of(cfg.data)
 
 
 @pytest.mark.parametrize("text", [False, True], ids=["binary", "text"])
@@ -285,7 +285,7 @@ def test_bad_input_names_the_problem(tmp_path, walk):
 
 
 def test_a_run_without_a_metric_scale_names_model_units_everywhere(tmp_path, walk):
-    from locretrieval.evaluation import evaluate
+    from helpers import evaluate
 
     model = model_of(walk, tmp_path / "sparse", scale=0.5)
     photos = without_exif(walk[0].folder, tmp_path / "photos")

@@ -14,9 +14,10 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from kapture_folders import PINHOLE, pose, write_kapture
 
+from locretrieval.build import scene_of
 from locretrieval.config import ConfigError
 from locretrieval.scene import Scene
-from locretrieval.scene.datasets import DatasetNotFoundError, instantiate_scene
+from locretrieval.scene.datasets import DatasetNotFoundError
 from locretrieval.scene.ltvl import KaptureNames, LtvlNames, WithoutFirstFolder, write_ltvl
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
@@ -210,7 +211,7 @@ def test_bad_dataset_settings_fail_before_loading(tmp_path):
         ConfigError,
         match=r"data.ltvl_names: a LtvlNames is chosen by its config group now: data/ltvl_names=basename \(configs/",
     ):
-        instantiate_scene(compose_data("baidu", f"paths.data_dir={tmp_path}", "data.ltvl_names=basename").data)
+        scene_of(compose_data("baidu", f"paths.data_dir={tmp_path}", "data.ltvl_names=basename").data)
     with pytest.raises(InstantiationException, match="frustum_far must be a positive distance"):
         instantiate(compose_data("baidu", f"paths.data_dir={tmp_path}", "data.frustum_far=0").data)
     with pytest.raises(InstantiationException, match=r"1 query_tags \['x'\] for 2 query entries"):
@@ -275,11 +276,11 @@ def test_ltvl_names_from_outside_the_package_are_chosen_through_the_config(tmp_p
     kapture_folder(base / "query_day", ["query/day/milestone/a.jpg"], posed=False)
     kapture_folder(base / "query_night", ["query/night/nexus5x/b.jpg"], posed=False)
     cfg = compose_data("aachen", f"paths.data_dir={tmp_path}", f"data.ltvl_names._target_={__name__}.ShoutedNames")
-    scene = instantiate_scene(cfg.data)
+    scene = scene_of(cfg.data)
     assert isinstance(scene.ltvl_names, ShoutedNames)
     write_ltvl(
         tmp_path / "out.txt", scene.queries.names, np.tile([1.0, 0, 0, 0], (2, 1)), np.zeros((2, 3)), scene.ltvl_names
     )
     assert [line.split()[0] for line in (tmp_path / "out.txt").read_text().splitlines()] == ["A.JPG", "B.JPG"]
     chosen = compose_data("aachen", f"paths.data_dir={tmp_path}", "data/ltvl_names=strip_prefix")
-    assert instantiate_scene(chosen.data).ltvl_names == WithoutFirstFolder()
+    assert scene_of(chosen.data).ltvl_names == WithoutFirstFolder()

@@ -11,15 +11,15 @@ import shutil
 import numpy as np
 import pandas as pd
 import pytest
-from helpers import evaluate_config
+from helpers import evaluate, evaluate_config
 from own_place import render_walk, write_truth_kapture
 from PIL import Image
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
+from locretrieval.build import scene_of
 from locretrieval.errors import DataFileError
-from locretrieval.evaluation import evaluate
 from locretrieval.scene import photos
-from locretrieval.scene.datasets import DatasetNotFoundError, instantiate_scene
+from locretrieval.scene.datasets import DatasetNotFoundError
 
 #: 20 photos 0.53 m apart along 10 m, 320 x 240 at 70 degrees; every 5th is a query (data.split's default).
 PHOTOS, WIDTH, HEIGHT, LENGTH = 20, 320, 240, 10.0
@@ -52,11 +52,11 @@ def test_photos_reconstruct_near_the_true_poses_and_benchmark_as_the_true_poses_
 
     monkeypatch.setattr(photos, "build_models", interrupted)  # killed after features and matches
     with pytest.raises(KeyboardInterrupt):
-        instantiate_scene(cfg.data)
+        scene_of(cfg.data)
     monkeypatch.undo()
     with caplog.at_level(logging.INFO):
         evaluate(cfg, tmp_path / "photos_run")  # the documented command: resumes the reconstruction, benchmarks it
-        scene = instantiate_scene(cfg.data)
+        scene = scene_of(cfg.data)
     assert "reconstruction of" in caplog.text and "cached in" in caplog.text  # the second load reconstructs nothing
 
     # the camera centres, after a similarity alignment to the true ones: the shops across the corridor are
@@ -98,7 +98,7 @@ def test_bad_photo_folders_are_refused_before_any_reconstruction(tmp_path, walk)
     def load(folder, *overrides):
         paths = (f"data.images={folder}", f"paths.root_dir={tmp_path}")
         cfg = evaluate_config("data=photos", *paths, "data.metres_per_unit=1", *overrides)
-        return instantiate_scene(cfg.data)
+        return scene_of(cfg.data)
 
     with pytest.raises(DatasetNotFoundError, match="photo folder not found"):
         load(tmp_path / "nowhere")
@@ -130,4 +130,4 @@ def test_photos_that_do_not_overlap_stop_saying_how_many_registered(tmp_path):
         Image.fromarray(rng.integers(0, 256, (60, 80, 3), dtype=np.uint8)).save(noise / f"{index}.png")
     cfg = evaluate_config("data=photos", f"data.images={noise}", f"paths.root_dir={tmp_path}", "data.metres_per_unit=1")
     with pytest.raises(ValueError, match=r"pycolmap registered 0 of the 6 images of .*noise .*too few overlapping"):
-        instantiate_scene(cfg.data)
+        scene_of(cfg.data)

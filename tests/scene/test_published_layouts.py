@@ -12,12 +12,12 @@ import helpers
 import numpy as np
 import pandas as pd
 import pytest
+from helpers import evaluate
 from published_layouts import LAYOUTS, SCENE, install, split
 
+from locretrieval.build import scene_of
 from locretrieval.config import ConfigError, built
-from locretrieval.evaluation import evaluate
 from locretrieval.retrieval.pairs_file import FileOrder, PairOrder, PairsFileRanking, ScoreOrder
-from locretrieval.scene.datasets import instantiate_scene
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 from locretrieval.sfm.features import extract_features
@@ -235,7 +235,7 @@ class ReversedOrder(PairOrder):
 def test_a_pairs_order_from_outside_the_package_is_chosen_through_the_config(rendered, tmp_path, monkeypatch):
     install(LAYOUTS["baidu"], rendered, tmp_path / "data")
     common = ["data=baidu", f"paths.data_dir={tmp_path / 'data'}", f"paths.root_dir={tmp_path}", "model=pairs"]
-    scene = instantiate_scene(helpers.evaluate_config(*common, "model.path=unused").data)
+    scene = scene_of(helpers.evaluate_config(*common, "model.path=unused").data)
     path = tmp_path / "pairs.txt"
     path.write_text(
         "".join(f"{query} {image}\n" for query in scene.queries.names for image in scene.database.names[:3])

@@ -15,6 +15,7 @@ from PIL import Image
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
+from locretrieval.build import scene_of
 from locretrieval.config import ConfigError
 from locretrieval.device import resolve_device
 from locretrieval.scene.synthetic import render_synthetic_dataset
@@ -400,15 +401,14 @@ class RecordedMall(EnvironmentBuilder):
 
 
 def test_an_environment_from_outside_the_package_is_chosen_through_the_config(tmp_path, monkeypatch):
-    from locretrieval.scene.datasets import instantiate_scene
 
     tiny = [f"data.render.{key}={value}" for key, value in TINY.items() if key != "conditions"]
     common = ["device=cpu", f"paths.root_dir={tmp_path}", f"paths.cache_dir={tmp_path / 'cache'}", *tiny]
     node = f"{{_target_: {__name__}.RecordedMall}}"
     cfg = evaluate_config(*common, f"+data.render.environments.recorded={node}", "data.render.environment=recorded")
-    recorded = instantiate_scene(cfg.data)
+    recorded = scene_of(cfg.data)
     assert recorded.name == "synthetic_recorded" and BUILT == [(TINY["length"], TINY["texture_size"])]
-    mall = instantiate_scene(evaluate_config(*common).data)
+    mall = scene_of(evaluate_config(*common).data)
     assert mall.database.paths != recorded.database.paths  # rendered into a folder of its own
     for ours, theirs in zip(recorded.database.paths + recorded.queries.paths, mall.database.paths + mall.queries.paths):
         assert filecmp.cmp(ours, theirs, shallow=False)  # the mall's images, by the same seed

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from locretrieval.benchmark import BenchmarkSettings
+from locretrieval.build import benchmark_settings
 from locretrieval.config import validated
 from locretrieval.groundtruth.compute import GroundTruthSettings, groundtruth_sfm_pairs
 from locretrieval.sfm.forecast import (
@@ -86,7 +87,7 @@ def scene(tmp_path_factory):
 
 def settings() -> BenchmarkSettings:
     config = helpers.evaluate_config("paradigms.local_sfm.k=[3,5]", "paradigms.global_sfm.k=[1,3]", "device=cpu")
-    return BenchmarkSettings.from_config(config)
+    return benchmark_settings(config)
 
 
 @pytest.mark.slow

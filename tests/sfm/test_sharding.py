@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from helpers import evaluate_config
 
-from locretrieval import evaluation
+from locretrieval import build
 from locretrieval.config import ConfigError, refuse_moved_keys
 from locretrieval.shard import Shard
 
@@ -45,14 +45,14 @@ def test_the_shard_is_a_key_of_the_job_parsed_once_and_checked_before_any_work(t
         with pytest.raises(ConfigError, match=rf"^shard: must be 'i/n' with 0 <= i < n .*got {bad!r}"):
             Shard.parse(bad, "shard")
     # evaluate.py refuses a bad shard before it renders, describes or matches anything
-    monkeypatch.setattr(evaluation, "instantiate_scene", lambda *args: pytest.fail("the scene was built"))
+    monkeypatch.setattr(build, "scene_of", lambda *args: pytest.fail("the scene was built"))
     with pytest.raises(ConfigError, match=r"^shard: must be 'i/n'"):
-        evaluation.evaluate(evaluate_config("shard=2/2", f"paths.root_dir={tmp_path}"), tmp_path / "run")
+        build.build_evaluation(evaluate_config("shard=2/2", f"paths.root_dir={tmp_path}"))
     # the old spelling, a key of the sfm group, is refused naming the new one
     with pytest.raises(ConfigError, match=r"^sfm.shard: moved, now shard, a key of the job"):
         refuse_moved_keys(["sfm.shard=0/2"])
     with pytest.raises(ConfigError, match=r"^sfm.shard: moved, now shard"):
-        evaluation.evaluate(evaluate_config("+sfm.shard=0/2", f"paths.root_dir={tmp_path}"), tmp_path / "run")
+        build.build_evaluation(evaluate_config("+sfm.shard=0/2", f"paths.root_dir={tmp_path}"))
 
 
 def evaluate(*overrides: str) -> str:

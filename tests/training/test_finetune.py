@@ -5,6 +5,7 @@ a learning rate per part of any network (module.lr_scales)."""
 import helpers
 import pytest
 import torch
+from helpers import train
 from hydra.utils import instantiate
 from training_runs import train_config
 
@@ -12,7 +13,6 @@ from locretrieval.config import SettingError
 from locretrieval.models.files.weights import embedded_checkpoint, load_torch_file
 from locretrieval.models.networks import GeMPooling, RetrievalNet
 from locretrieval.training.module import freeze_parameters
-from locretrieval.training.run import train
 
 #: CosPlace's and EigenPlaces' hub module as their code lays it out (torchvision ResNet children as
 #: ``backbone``; L2, GeM, flatten, linear, L2 as ``aggregation``), random weights: the published

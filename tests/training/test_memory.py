@@ -7,12 +7,12 @@ import helpers
 import numpy as np
 import pytest
 import torch
+from helpers import train
 from training_runs import random_pairs, train_config
 
 from locretrieval.models.networks import GeMPooling, RetrievalNet
 from locretrieval.training.losses import ListwiseLoss
 from locretrieval.training.memory import CrossBatchMemory, DescriptorMemory
-from locretrieval.training.run import train
 
 
 def unit(rows: int, dim: int, seed: int) -> torch.Tensor:

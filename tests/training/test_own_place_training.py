@@ -4,17 +4,18 @@ co-observation relevance from the model's tracks, and such a scene listed beside
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import helpers
 import numpy as np
 import pytest
+from helpers import train
 from hydra.utils import instantiate
 from own_place import render_walk, write_model
 from training_runs import TINY_TRAINING
 
-from locretrieval.benchmark import BenchmarkSettings
-from locretrieval.config import validated
-from locretrieval.training.relevance import TrainingRelevanceSettings
-from locretrieval.training.run import TrainingSettings, train, training_parts
+from locretrieval.build import build_training
+from locretrieval.cli import composed_training_scenes
 
 
 def place(root, seed: int, count: int):
@@ -48,13 +49,9 @@ def test_train_py_trains_on_a_colmap_scene_beside_another_with_relevance_from_it
         f"training.scenes=[{listed}]", "sampler.anchors=4",
     )  # fmt: skip
     scene = instantiate(cfg.data)
-    parts = training_parts(
-        cfg,
-        scene,
-        instantiate(cfg.model).preprocessing,
-        BenchmarkSettings.from_config(cfg),
-        validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance"),
-        validated(TrainingSettings, cfg.training, "training"),
+    run = build_training(cfg, composed_training_scenes(cfg))  # what train.py builds
+    parts = SimpleNamespace(
+        sets=[world.database for world in run.worlds], pairs=run.datamodule.pairs, sampler=run.datamodule.sampler
     )
     other_database = [name for index, name in enumerate(other_names) if index % 5]  # a listed scene's database
     assert [s.names for s in parts.sets] == [scene.database.names, other_database]

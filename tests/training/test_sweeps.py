@@ -19,6 +19,7 @@ from omegaconf import OmegaConf
 from scipy import stats
 from training_runs import METRIC, gap_run, validation_table
 
+from locretrieval.build import benchmark_settings
 from locretrieval.config import ConfigError
 from locretrieval.training.objective import Objective
 from locretrieval.training.summary import write_summary
@@ -45,9 +46,8 @@ def test_the_objective_is_the_metric_at_its_best_or_last_validation_after_traini
 
 
 def test_an_objective_that_validation_never_logs_is_refused_before_the_scene_is_prepared(tmp_path):
+    from helpers import train
     from training_runs import train_config
-
-    from locretrieval.training.run import train
 
     sfm = "val/global_sfm/pnp/k5/0.25m_2deg"  # the test config validates without the SfM paradigms
     for metric in ("val/approximation/ewb/k4/5m_10deg", sfm):
@@ -59,9 +59,8 @@ def test_an_objective_that_validation_never_logs_is_refused_before_the_scene_is_
         assert not (Path(cfg.paths.cache_dir) / "synthetic").exists()
     cfg = train_config(tmp_path, f"optimized_metric={sfm}", "callbacks.localization_validation.sfm_every_n_epochs=1")
     from locretrieval.training.callbacks import validation_metrics  # accepted once the SfM paradigms are validated
-    from locretrieval.training.run import BenchmarkSettings
 
-    assert sfm in validation_metrics(BenchmarkSettings.from_config(cfg), ["relative_pose"], with_sfm=True)
+    assert sfm in validation_metrics(benchmark_settings(cfg), ["relative_pose"], with_sfm=True)
 
 
 def test_the_search_space_names_keys_of_the_training_config():

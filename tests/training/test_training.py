@@ -10,13 +10,15 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from helpers import train
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from torchvision.transforms import v2
 from training_runs import METRIC, SCENE, TINY_TRAINING, train_config
 
 from locretrieval import geometry
-from locretrieval.benchmark import BenchmarkSettings, benchmark, build_rankings, relevances
+from locretrieval.benchmark import benchmark, build_rankings, relevances
+from locretrieval.build import benchmark_settings
 from locretrieval.config import ConfigError, validated
 from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, RankedRelevance, compute_groundtruths
@@ -33,7 +35,7 @@ from locretrieval.training.relevance import (
     combined_pairs,
     training_pairs,
 )
-from locretrieval.training.run import ValidationScope, train
+from locretrieval.training.run import ValidationScope
 
 RELATIVE_POSE = TrainingRelevanceSettings(
     {
@@ -275,7 +277,7 @@ def test_fast_dev_run_of_train_py_through_hydra_compose(tmp_path):
         "gt_frustum",
         "random",
     }  # the reference rankings
-    expected = every_validation_metrics(BenchmarkSettings.from_config(cfg), ["relative_pose", "frustum"])
+    expected = every_validation_metrics(benchmark_settings(cfg), ["relative_pose", "frustum"])
     assert set(validator.history[1]) - {"epoch"} == set(expected)  # what checkpoints may monitor is what is logged
 
 
@@ -360,7 +362,7 @@ def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkp
     # evaluate.py's path: the zoo model reads the Lightning checkpoint unchanged
     model_cfg = OmegaConf.merge(cfg.model, {"weights": str(checkpoint), "max_side": 96})
     model = instantiate(model_cfg)
-    settings = BenchmarkSettings.from_config(cfg)
+    settings = benchmark_settings(cfg)
     scene = instantiate(cfg.data)
     groundtruths = compute_groundtruths(
         scene, validated(GroundTruthSettings, cfg.groundtruth, "groundtruth"), settings.sfm, cfg.paths.cache_dir
@@ -449,12 +451,13 @@ def test_two_process_cpu_ddp_smoke_run(tmp_path):
 
 
 def test_extra_rendered_scenes_are_trained_on_with_their_queries_and_never_the_validation_queries(tmp_path, scene):
+    from locretrieval.build import extra_renders
     from locretrieval.training.run import TrainingSettings, training_worlds
 
     cfg = train_config(tmp_path, "training.extra_renders=[{seed: 7}]")
     validation_scene = instantiate(cfg.data)
     settings = validated(TrainingSettings, cfg.training, "training")
-    worlds = training_worlds(cfg, validation_scene, settings)
+    worlds = training_worlds(validation_scene, settings, [], extra_renders(cfg, settings, validation_scene))
     assert all(len(world.queries) == 0 for world in worlds)
     sets = [world.database for world in worlds]
     assert [len(images) for images in sets] == [24, 30]  # the validation database; the other world's database + queries
@@ -464,7 +467,8 @@ def test_extra_rendered_scenes_are_trained_on_with_their_queries_and_never_the_v
     assert graded[24:48, 48:].any()  # the extra scene's database and queries are paired with each other
     itself = train_config(tmp_path, f"training.extra_renders=[{{seed: {SCENE['seed']}}}]")
     with pytest.raises(ValueError, match="renders the validation scene itself"):
-        training_worlds(itself, validation_scene, validated(TrainingSettings, itself.training, "training"))
+        settings = validated(TrainingSettings, itself.training, "training")
+        training_worlds(validation_scene, settings, [], extra_renders(itself, settings, validation_scene))
 
 
 def test_hard_negatives_set_during_an_epoch_apply_to_its_later_batches(scene):
@@ -914,7 +918,7 @@ def test_validation_on_a_seeded_subset_of_the_queries_with_capped_sfm_features(t
         full.queries.names[q] for q in expected
     ]  # the same queries at every validation
     assert validator.settings.sfm.features.max_keypoints == 200
-    settings = scope.settings(BenchmarkSettings.from_config(cfg))
+    settings = scope.settings(benchmark_settings(cfg))
     assert (
         settings.sfm.features.max_keypoints == 200 and scope.scene(full).queries.names == validator.scene.queries.names
     )

@@ -2,21 +2,22 @@
 images, relevance within each scene, batches drawn across them, validation on another scene."""
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import helpers
 import numpy as np
 import pytest
+from helpers import train
 from hydra.utils import instantiate
 from published_layouts import LAYOUTS, SCENE, install, write_kapture_folder
 from training_runs import train_config
 
-from locretrieval.benchmark import BenchmarkSettings
-from locretrieval.config import ConfigError, validated
+from locretrieval.build import build_training
+from locretrieval.cli import composed_training_scenes
+from locretrieval.config import ConfigError
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
 from locretrieval.sfm.features import extract_features
-from locretrieval.training.relevance import TrainingRelevanceSettings
-from locretrieval.training.run import TrainingSettings, train, training_parts
 
 
 @pytest.fixture(scope="module")
@@ -50,15 +51,10 @@ def test_several_scenes_are_trained_on_and_never_related_across(tmp_path, data_d
     cfg = train_config(
         tmp_path, f"paths.data_dir={data_dir}", SCENES, "sampler.anchors=6", "+trainer.fast_dev_run=true"
     )
-    settings = BenchmarkSettings.from_config(cfg)
     scene = instantiate(cfg.data)
-    parts = training_parts(
-        cfg,
-        scene,
-        instantiate(cfg.model).preprocessing,
-        settings,
-        validated(TrainingRelevanceSettings, cfg.train_relevance, "train_relevance"),
-        validated(TrainingSettings, cfg.training, "training"),
+    run = build_training(cfg, composed_training_scenes(cfg))  # what train.py builds
+    parts = SimpleNamespace(
+        sets=[world.database for world in run.worlds], pairs=run.datamodule.pairs, sampler=run.datamodule.sampler
     )
     sizes = [len(images) for images in parts.sets]
     assert sizes == [len(scene.database), 12, 12, 8]  # the validation scene's database, Aachen's, Baidu's, the photos'
@@ -82,8 +78,6 @@ def test_several_scenes_are_trained_on_and_never_related_across(tmp_path, data_d
 
 def test_a_listed_scene_that_is_no_data_config_is_named_before_any_work(tmp_path):
     cfg = train_config(tmp_path, "training.scenes=[aachen,atlantis]")
-    with pytest.raises(
-        ConfigError, match=r"training.scenes\[1\]: no data config 'atlantis'; expected one of \[.*'baidu'"
-    ):
+    with pytest.raises(ConfigError, match=r"training.scenes: no data config 'atlantis'; expected one of \[.*'baidu'"):
         train(cfg, tmp_path / "run")
     assert not (Path(cfg.paths.cache_dir) / "synthetic").exists()  # the validation scene was not rendered

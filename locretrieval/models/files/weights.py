@@ -13,13 +13,12 @@ import os
 import pickle
 import reprlib
 import zipfile
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import OmegaConf
 
 from locretrieval import limits
 from locretrieval.bounded_files import check_zip
@@ -220,20 +219,17 @@ def save_checkpoint(
 
 
 def plain(value: Any) -> Any:
-    """``value`` as plain JSON types (tuples and config nodes become lists and dicts), for storing and
-    comparing settings."""
-    return json.loads(json.dumps(value, default=_config_container))
+    """``value`` as plain JSON types (tuples and other sequences become lists, mappings dicts), for
+    storing and comparing settings."""
+    return json.loads(json.dumps(value, default=_as_json))
 
 
-def _config_container(value: Any) -> Any:
-    if OmegaConf.is_config(value):
-        return OmegaConf.to_container(value, resolve=True)
-    raise TypeError(f"{type(value).__name__} is not a setting (JSON types or config nodes)")
-
-
-def settings_of(node: Any) -> dict[str, Any]:
-    """A config node (or mapping) as plain JSON types."""
-    return plain(OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else dict(node))
+def _as_json(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return dict(value)
+    if isinstance(value, Sequence) and not isinstance(value, (str, bytes)):
+        return list(value)
+    raise TypeError(f"{type(value).__name__} is not a setting (JSON types, mappings and sequences)")
 
 
 def is_checkpoint(content: Any) -> bool:

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from helpers import train
 from omegaconf import OmegaConf
 from training_runs import train_config
 
@@ -24,7 +25,6 @@ from locretrieval.models.networks import (
 )
 from locretrieval.models.trainable.backbones import TorchvisionBackbone
 from locretrieval.models.trainable.heads import BoQHead, MixVPRHead, SALADHead
-from locretrieval.training.run import train
 
 RESNET18 = TorchvisionBackbone("resnet18")
 #: SALAD's options but the sizes (those of configs/model/pooling/salad.yaml).
