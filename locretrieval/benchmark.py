@@ -52,6 +52,11 @@ class BenchmarkSettings:
     sfm: SfmSettings
     metrics: MetricsSettings
 
+    @classmethod
+    def from_config(cls, cfg: object) -> BenchmarkSettings:
+        """Moved in 0.12: the settings of a composed config are built by `locretrieval.build.benchmark_settings`."""
+        raise AttributeError("BenchmarkSettings.from_config moved: locretrieval.build.benchmark_settings(cfg)")
+
 
 @dataclass
 class BenchmarkResult:

@@ -36,3 +36,13 @@ def require(condition: bool, field: str, message: str) -> None:
     """Raise `SettingError` for ``field`` unless ``condition`` (a range check of a schema)."""
     if not condition:
         raise SettingError(field, message)
+
+
+def require_built(run: object, kind: type, builder: str) -> None:
+    """Refuse anything but a ``kind`` run object where an entry function expects one: since 0.12 the
+    entry functions take what `locretrieval.build` made of a composed config, not the config."""
+    if not isinstance(run, kind):
+        raise TypeError(
+            f"a {kind.__name__} is expected, not a {type(run).__name__}: build it from the composed config "
+            f"first, locretrieval.build.{builder}(cfg)"
+        )

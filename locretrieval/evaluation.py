@@ -25,6 +25,7 @@ from locretrieval.benchmark import (
     scene_subsets,
 )
 from locretrieval.cache import safe_name, save_arrays
+from locretrieval.errors import require_built
 from locretrieval.estimates import estimated_pose_table
 from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths, statistics_table
 from locretrieval.groundtruth.compute import groundtruth_sfm_pairs
@@ -90,6 +91,7 @@ def evaluate(run: Evaluation, output_dir: Path) -> pd.DataFrame:
     table. With a ``shard`` the run is one job of a sharded evaluation: it computes the rankings and its
     share of the SfM work into the cache (`run_sfm_shard`), writes nothing else and returns an empty table.
     """
+    require_built(run, Evaluation, "build_evaluation")
     started = time.perf_counter()
     scene, model, settings, cache_dir = run.scene, run.model, run.benchmark, run.cache_dir
     groundtruth_settings, subset_settings = run.groundtruth, run.subsets

@@ -82,3 +82,18 @@ def test_an_evaluation_is_its_objects_and_its_config_as_run(tmp_path):
     assert run.random_seed == 5 and run.shard is None and run.cache_dir == tmp_path / ".cache"
     assert run.model.name == "densevlad" and run.report.figure_formats == ["png"]
     assert run.config["seed"] == 5 and "${" not in str(run.config)  # the config as run: resolved, plain
+
+
+def test_the_entry_functions_given_a_config_name_the_build_step_that_makes_their_run(tmp_path):
+    from locretrieval.benchmark import BenchmarkSettings
+    from locretrieval.evaluation import evaluate
+    from locretrieval.export.run import export
+    from locretrieval.training.run import train
+
+    cfg = evaluate_config()
+    for function, builder in ((evaluate, "build_evaluation"), (export, "build_export"), (train, "build_training")):
+        with pytest.raises(TypeError, match=rf"not a DictConfig: .*locretrieval\.build\.{builder}\(cfg\)"):
+            function(cfg, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(AttributeError, match=r"locretrieval\.build\.benchmark_settings\(cfg\)"):
+        BenchmarkSettings.from_config(cfg)

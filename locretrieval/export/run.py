@@ -15,6 +15,7 @@ import yaml
 from locretrieval.benchmark import check_supported, check_unique_names
 from locretrieval.cache import safe_name
 from locretrieval.config import ConfigError
+from locretrieval.errors import require_built
 from locretrieval.export.onnx import OnnxSettings, export_onnx
 from locretrieval.export.pairs import PairsSettings
 from locretrieval.export.scene import DescriptorSettings, check_scene_names, export_scene
@@ -80,6 +81,7 @@ def export(run: Export, output_dir: Path) -> list[Path]:
     (`PairsSettings`: the model's rankings and those of the ground truth ``groundtruth`` enables),
     ``descriptors`` (`DescriptorSettings`: the model's global descriptors), ``onnx`` (`OnnxSettings`:
     the model's network). Returns the files and folders written."""
+    require_built(run, Export, "build_export")
     started = time.perf_counter()
     output_dir.mkdir(parents=True, exist_ok=True)
     (output_dir / "config.yaml").write_text(yaml.safe_dump(run.config, sort_keys=False))  # as run, resolved

@@ -21,6 +21,7 @@ from lightning.pytorch.utilities import rank_zero_only
 
 from locretrieval.benchmark import BenchmarkSettings
 from locretrieval.config import ConfigError, require
+from locretrieval.errors import require_built
 from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings
 from locretrieval.scene import ImageSet, Scene
 from locretrieval.scene.kapture_io import concatenate_image_sets
@@ -179,6 +180,7 @@ def train(run: Training, output_dir: Path) -> LocalizationValidation:
     """Train ``run``'s module and write, on rank 0, its training report, validation tables and the
     file that says it finished; returns the validation callback (its ``history``; `optimized_value`:
     what train.py returns)."""
+    require_built(run, Training, "build_training")
     output_dir.mkdir(parents=True, exist_ok=True)
     (output_dir / CONFIG_FILE).write_text(yaml.safe_dump(run.config, sort_keys=False))  # as run, resolved
     if run.module.freeze_batch_norm:  # Lightning warns of the (intended) eval-mode batch norm
