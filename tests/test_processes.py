@@ -5,11 +5,12 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
-from locretrieval.pool import MIN_TASKS_PER_WORKER, WorkerPool, WorkerPoolError, progress_to
+from locretrieval.pool import MIN_TASKS_PER_WORKER, WorkerPool, WorkerPoolError, cpu_time, progress_to
 
 
 def process_id(shared, task):
@@ -49,6 +50,32 @@ def test_a_stream_reports_each_task_it_finished():
         for task in range(8):
             submit(task)
     assert sorted(done) == list(range(8)) and pool.started(2)
+    pool.shutdown()
+
+
+def busy(shared, seconds):
+    """Burn ``seconds`` of this process's CPU time."""
+    started = time.process_time()
+    while time.process_time() - started < seconds:
+        pass
+    return seconds
+
+
+def test_the_cpu_time_of_a_block_holds_its_tasks_cpu_time_in_the_workers():
+    pool = WorkerPool("test")
+    tasks = [0.05] * (MIN_TASKS_PER_WORKER * 2)  # enough to start two workers
+    here = time.process_time()
+    with cpu_time() as outer:
+        with cpu_time() as inner:
+            finished = list(pool.map(busy, tasks, 2, "test", shared="s"))
+        with pool.stream(busy, len(tasks), 2, "test", shared="s") as submit:
+            for task in tasks:
+                submit(task)
+    here = time.process_time() - here  # this process's own CPU time, both blocks included
+    assert finished == tasks and pool.started(2)
+    # each task burnt its 0.05 s in a worker, counted in the block it ran for and in the one around it
+    assert sum(tasks) <= inner.seconds <= sum(tasks) + 0.1 + here
+    assert 2 * sum(tasks) <= outer.seconds <= 2 * sum(tasks) + 0.2 + here
     pool.shutdown()
 
 
