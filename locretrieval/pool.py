@@ -24,6 +24,7 @@ import contextlib
 import contextvars
 import importlib
 import math
+import multiprocessing
 import multiprocessing.util
 import os
 import pickle
@@ -61,10 +62,23 @@ class WorkerPoolError(RuntimeError):
     """A worker process of a stage ended abruptly (killed, out of memory, or failed to start)."""
 
 
+def available_cores() -> int:
+    """The CPU cores this process may use: those its affinity allows (e.g. a SLURM job's share of a
+    node), and in a process another Python process started (a job of Hydra's joblib launcher, which
+    runs ``n_jobs`` at once), at most its ``OMP_NUM_THREADS``: joblib sets it to ``cores / n_jobs``
+    there, so the jobs share the cores rather than each starting a worker per core."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    share = os.environ.get("OMP_NUM_THREADS", "")
+    if multiprocessing.parent_process() is not None and share.isdigit() and int(share) > 0:
+        cores = min(cores, int(share))
+    return max(1, cores)
+
+
 def resolve_workers(workers: int | None) -> int:
-    """``workers`` as a positive count; ``None`` or 0 means one per CPU core."""
+    """``workers`` as a positive count; ``None`` or 0 means one per core this process may use
+    (`available_cores`)."""
     if workers is None or int(workers) == 0:
-        return os.cpu_count() or 1
+        return available_cores()
     if int(workers) < 0:
         raise ValueError(f"workers must be >= 0 (0 or null: one per core), got {workers}")
     return int(workers)

@@ -123,6 +123,38 @@ def test_the_compute_workers_run_inside_a_job_of_joblibs_loky_executor_and_let_i
     assert done.returncode == 0 and done.stdout.strip() == "done", done.stderr[-3000:]
 
 
+def workers_of_a_job():
+    """What a job of joblib's loky executor (Hydra's joblib launcher) resolves ``sfm.workers`` null and 3 to."""
+    from locretrieval.pool import resolve_workers
+
+    return resolve_workers(None), resolve_workers(3)
+
+
+JOBLIB_SHARES = """
+import os, sys
+sys.path.insert(0, sys.argv[1])
+from joblib import Parallel, delayed
+from locretrieval.pool import resolve_workers
+import test_processes
+jobs = Parallel(n_jobs=2, backend="loky")(delayed(test_processes.workers_of_a_job)() for _ in range(2))
+print(resolve_workers(None), *jobs)
+"""
+
+
+def test_the_jobs_of_a_launcher_that_runs_two_at_once_share_the_cores_instead_of_a_worker_per_core_each():
+    environment = {name: value for name, value in os.environ.items() if not name.endswith("_NUM_THREADS")}
+    done = subprocess.run(
+        [sys.executable, "-c", JOBLIB_SHARES, str(Path(__file__).parent)],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        env=environment,
+    )
+    cores = len(os.sched_getaffinity(0))
+    # a plain process: every core it may use; each of two jobs: half of them (joblib's OMP_NUM_THREADS), at least one
+    assert done.stdout.split() == [str(cores), *[f"({max(1, cores // 2)},", "3)"] * 2], done.stderr[-3000:]
+
+
 def test_a_dataloader_context_leaves_a_plain_process_s_start_method_alone():
     done = subprocess.run(
         [
