@@ -35,7 +35,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The scene's size keys (``data.render.<key>``) that grow with the size factor.
@@ -80,7 +79,9 @@ class RunCost:
 
 def base_scene() -> dict[str, float]:
     """The built-in scene's size keys (``configs/data/synthetic.yaml``): 1x."""
-    render = yaml.safe_load((ROOT / "configs" / "data" / "synthetic.yaml").read_text())["render"]
+    from omegaconf import OmegaConf
+
+    render = OmegaConf.load(ROOT / "configs" / "data" / "synthetic.yaml").render
     return {key: render[key] for key in SIZE_KEYS}
 
 
