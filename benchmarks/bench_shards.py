@@ -11,7 +11,9 @@ Both start from empty caches but for the rendered scene (rendered beforehand, un
   once, sharing one cache), then ``python evaluate.py``, which writes the results from the cache.
 
 CPU time is user + system time of each command and every process it waited for (its workers),
-from ``getrusage(RUSAGE_CHILDREN)``; wall time beside it.
+from ``getrusage(RUSAGE_CHILDREN)``; wall time beside it. What the sharded evaluation adds is
+mostly processes: the multirun's, one per job, each job's workers and the run after the jobs;
+the CPU time a job and a worker spend starting (their imports) is printed too.
 """
 
 from __future__ import annotations
@@ -45,6 +47,26 @@ def timed(*arguments: str) -> tuple[float, float]:
     if done.returncode:
         raise SystemExit(f"evaluate.py failed:\n{done.stderr[-3000:]}")
     return after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime, wall
+
+
+#: What a process of each kind imports before its first work: a job (Hydra, the evaluation, the default
+#: model's module, pycolmap) and a worker (`locretrieval.pool.WORKERS`' preload and initializer).
+STARTS = {
+    "a job": "import hydra, pycolmap, locretrieval.evaluation, locretrieval.models.published.densevlad",
+    "a worker": "import importlib\nfrom locretrieval.pool import WORKERS\n"
+    "for module in WORKERS.preload:\n    importlib.import_module(module)\nWORKERS.initializer()",
+}
+
+
+def start_cost(code: str, repeats: int = 2) -> float:
+    """The least CPU seconds of ``repeats`` fresh interpreters running ``code`` (their start)."""
+    costs = []
+    for _ in range(repeats):
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True)
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        costs.append(after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime)
+    return min(costs)
 
 
 def table_bytes(path: Path) -> bytes:
@@ -86,6 +108,8 @@ def main() -> None:
         f"{args.shards} shards then the plain run: {jobs[0]:.1f} + {after[0]:.1f} = {sharded_cpu:.1f} s CPU, "
         f"{jobs[1]:.1f} + {after[1]:.1f} s wall"
     )
+    starts = {kind: start_cost(code) for kind, code in STARTS.items()}
+    print("CPU time to start " + ", ".join(f"{kind}: {seconds:.1f} s" for kind, seconds in starts.items()))
     ratio = sharded_cpu / plain[0]
     print(
         f"sharded / plain CPU time {ratio:.2f} (target at most {TARGET}: {'met' if ratio <= TARGET else 'MISSED'}); "

@@ -300,11 +300,16 @@ def hdf5_member(group: h5py.Group, name: str, path: str | os.PathLike, remedy: s
 
 
 def read_dataset(
-    dataset: h5py.Dataset, path: str | os.PathLike, remedy: str = FIX_DATA_FILE, text: bool = False
+    dataset: h5py.Dataset,
+    path: str | os.PathLike,
+    remedy: str = FIX_DATA_FILE,
+    text: bool = False,
+    rows: slice | None = None,
 ) -> Any:
-    """All of ``dataset`` (``text``: variable-length strings as ``str``), after checking that its bytes
-    live in this file (no external storage, no virtual layout) and that its size is within the
-    budget of what the file stores for it (module docstring)."""
+    """All of ``dataset`` (``text``: variable-length strings as ``str``), or its ``rows`` (a slice of
+    its first axis), after checking that its bytes live in this file (no external storage, no
+    virtual layout) and that its size is within the budget of what the file stores for it (module
+    docstring)."""
     import h5py
 
     if not isinstance(dataset, h5py.Dataset):
@@ -317,6 +322,8 @@ def read_dataset(
         stored = dataset.id.get_storage_size()
         if size > expansion_budget(stored):
             raise _too_large(path, f"dataset {dataset.name}", size, stored, remedy)
+        if rows is not None:
+            return (dataset.asstr() if text else dataset)[rows]
         return dataset.asstr()[()] if text else dataset[()]
     except (*H5PY_ERRORS, KeyError, ValueError, TypeError) as error:  # a damaged file
         raise DataFileError(path, f"dataset {dataset.name} is not readable ({error})", remedy) from None

@@ -9,7 +9,9 @@ import os
 import re
 import shutil
 import socket
+import struct
 import tempfile
+import zipfile
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -148,18 +150,56 @@ def save_arrays(path: str | os.PathLike, arrays: Mapping[str, np.ndarray]) -> No
             np.savez(stream, **arrays)
 
 
-def load_arrays(path: str | os.PathLike, remedy: str = DELETE_CACHE_FILE) -> dict[str, np.ndarray]:
-    """Read every array of an ``.npz`` file into memory (no pickled object). A file that is not a
-    whole ``.npz`` (truncated, empty, damaged) is a `DataFileError` naming it and ``remedy`` (what
-    to do: by default, delete the cache file); a missing one a ``FileNotFoundError``."""
+def load_arrays(
+    path: str | os.PathLike, remedy: str = DELETE_CACHE_FILE, memory_map: bool = False
+) -> dict[str, np.ndarray]:
+    """Read every array of an ``.npz`` file into memory (no pickled object), or with ``memory_map``
+    map each read-only (`save_arrays`'s uncompressed members: only the pages a reader touches are
+    read, and processes share them). A file that is not a whole ``.npz`` (truncated, empty, damaged)
+    is a `DataFileError` naming it and ``remedy`` (what to do: by default, delete the cache file); a
+    missing one a ``FileNotFoundError``."""
     try:
         check_npz(path, remedy)  # every member within limits.compression_ratio, as its header declares
+        if memory_map:
+            return _mapped_members(path, remedy)
         with np.load(path, allow_pickle=False) as data:
             return {name: data[name] for name in data.files}
     except (FileNotFoundError, DataFileError):
         raise
     except Exception as error:  # zipfile and numpy raise a dozen types on a damaged file: all mean "unreadable"
         raise DataFileError(path, f"not a readable .npz file ({type(error).__name__}: {error})", remedy) from None
+
+
+#: Bytes before a zip member's name in its local header, and where the name's and the extra field's lengths are.
+_LOCAL_HEADER_BYTES, _LOCAL_HEADER_LENGTHS = 30, slice(26, 30)
+
+
+def _mapped_members(path: str | os.PathLike, remedy: str) -> dict[str, np.ndarray]:
+    """Each ``.npy`` member of an uncompressed ``.npz`` (checked by `check_npz`) as a read-only
+    ``numpy.memmap``. By hand: numpy maps ``.npy`` files only, not an archive's members, whose data
+    sits at an offset the zip's local header gives."""
+    arrays = {}
+    with zipfile.ZipFile(path) as archive, open(path, "rb") as stream:
+        for member in archive.infolist():
+            name = member.filename.removesuffix(".npy")
+            if member.compress_type != zipfile.ZIP_STORED:
+                raise DataFileError(path, f"member {member.filename!r} is compressed: it cannot be mapped", remedy)
+            stream.seek(member.header_offset)
+            name_length, extra_length = struct.unpack("<HH", stream.read(_LOCAL_HEADER_BYTES)[_LOCAL_HEADER_LENGTHS])
+            stream.seek(member.header_offset + _LOCAL_HEADER_BYTES + name_length + extra_length)
+            version = np.lib.format.read_magic(stream)
+            read_header = (
+                np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            )
+            shape, fortran_order, dtype = read_header(stream)
+            if dtype.hasobject:
+                raise DataFileError(path, f"member {member.filename!r} holds Python objects", remedy)
+            if 0 in shape:  # numpy cannot map zero bytes
+                arrays[name] = np.empty(shape, dtype=dtype)
+                continue
+            order = "F" if fortran_order else "C"
+            arrays[name] = np.memmap(path, dtype=dtype, mode="r", offset=stream.tell(), shape=shape, order=order)
+    return arrays
 
 
 def cached_arrays(

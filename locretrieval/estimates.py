@@ -5,11 +5,14 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from locretrieval import geometry
+
+if TYPE_CHECKING:
+    import pandas as pd  # imported by the table's function: the SfM workers, which import this module, need none
 
 #: Failure reason of a query whose estimate exists.
 LOCALIZED = ""
@@ -84,6 +87,8 @@ ESTIMATED_POSE_COLUMNS = [
 def estimated_pose_table(dataset: str, estimates: Sequence[PoseEstimates], query_names: Sequence[str]) -> pd.DataFrame:
     """The estimated poses of every ``estimates`` (queries named by ``query_names``, in order), one
     row per ranking x paradigm x method x k x query that has an estimate (`ESTIMATED_POSE_COLUMNS`)."""
+    import pandas as pd
+
     frames = []
     for e in estimates:
         found = np.isfinite(e.qvec).all(-1) & np.isfinite(e.tvec).all(-1)  # [len(ks), Q]

@@ -32,6 +32,7 @@ from locretrieval.groundtruth.compute import groundtruth_sfm_pairs
 from locretrieval.metrics.localization import median_errors
 from locretrieval.metrics.subsets import SubsetSettings, missing_mask_inputs
 from locretrieval.metrics.uncertainty import Uncertainty
+from locretrieval.pool import cpu_time
 from locretrieval.report.gallery import GallerySettings, write_gallery_inputs
 from locretrieval.report.markdown import best_localization
 from locretrieval.report.scene_view import SCENE_VIEW_FILE, SceneViewSettings, write_scene_view
@@ -104,14 +105,18 @@ def evaluate(run: Evaluation, output_dir: Path) -> pd.DataFrame:
     output_dir.mkdir(parents=True, exist_ok=True)
     (output_dir / "config.yaml").write_text(yaml.safe_dump(run.config, sort_keys=False))  # as run, resolved
 
-    given = model.rankings(scene, DescriptorSearch(settings.retrieval, cache_dir))  # descriptors or a pairs file
+    described = time.perf_counter()
+    with cpu_time() as descriptors_cpu:
+        given = model.rankings(scene, DescriptorSearch(settings.retrieval, cache_dir))  # descriptors or a pairs file
+    descriptors_seconds = time.perf_counter() - described
     groundtruths, groundtruth_started = {}, time.perf_counter()
-    if scene.queries.has_pose.any():
-        groundtruths = compute_groundtruths(scene, groundtruth_settings, settings.sfm, cache_dir)
-    else:
-        log.warning(
-            "no query has a reference pose: ground truth and metrics are skipped, poses are only exported (ltvl/)"
-        )
+    with cpu_time() as groundtruth_cpu:
+        if scene.queries.has_pose.any():
+            groundtruths = compute_groundtruths(scene, groundtruth_settings, settings.sfm, cache_dir)
+        else:
+            log.warning(
+                "no query has a reference pose: ground truth and metrics are skipped, poses are only exported (ltvl/)"
+            )
     groundtruth_seconds = time.perf_counter() - groundtruth_started
     rankings = build_rankings(scene, {}, groundtruths, settings.retrieval, run.random_seed, given)
     if run.shard is not None:  # one job of a sharded evaluation: its SfM work, no results
@@ -149,7 +154,10 @@ def evaluate(run: Evaluation, output_dir: Path) -> pd.DataFrame:
         "paradigms": ", ".join(f"{p} (k={getattr(settings.paradigms, p).k})" for p in settings.paradigms.enabled()),
         "LTVL exports": f"{exported} files in ltvl/",
         "run time": f"{time.perf_counter() - started:.1f} s",
+        "descriptors seconds": round(descriptors_seconds, 2),
+        "descriptors CPU seconds": round(descriptors_cpu.seconds, 2),
         "ground truth seconds": round(groundtruth_seconds, 2),
+        "ground truth CPU seconds": round(groundtruth_cpu.seconds, 2),
         "SfM seconds": round(result.sfm_seconds, 2),
         SFM_STAGES: result.sfm_stages,  # per stage: seconds, work done, its unit
     }

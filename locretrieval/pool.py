@@ -13,7 +13,8 @@ multiprocessing started (a joblib job), so a `WorkerPool` stops them first.
 
 A small workload runs in this process (`runs_here`): starting workers costs more than they save.
 The data that every task of a call shares is pickled once to a temporary file, which each worker
-loads once per call. A caller may report progress in its own units (`progress_to`).
+loads once per call. A caller may report progress in its own units (`progress_to`) and measure the
+CPU time of its work, its tasks' in the workers included (`cpu_time`).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import contextlib
 import contextvars
 import importlib
 import math
+import multiprocessing
 import multiprocessing.util
 import os
 import pickle
@@ -33,6 +35,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future
 from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any, TypeVar
@@ -60,10 +63,23 @@ class WorkerPoolError(RuntimeError):
     """A worker process of a stage ended abruptly (killed, out of memory, or failed to start)."""
 
 
+def available_cores() -> int:
+    """The CPU cores this process may use: those its affinity allows (e.g. a SLURM job's share of a
+    node), and in a process another Python process started (a job of Hydra's joblib launcher, which
+    runs ``n_jobs`` at once), at most its ``OMP_NUM_THREADS``: joblib sets it to ``cores / n_jobs``
+    there, so the jobs share the cores rather than each starting a worker per core."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    share = os.environ.get("OMP_NUM_THREADS", "")
+    if multiprocessing.parent_process() is not None and share.isdigit() and int(share) > 0:
+        cores = min(cores, int(share))
+    return max(1, cores)
+
+
 def resolve_workers(workers: int | None) -> int:
-    """``workers`` as a positive count; ``None`` or 0 means one per CPU core."""
+    """``workers`` as a positive count; ``None`` or 0 means one per core this process may use
+    (`available_cores`)."""
     if workers is None or int(workers) == 0:
-        return os.cpu_count() or 1
+        return available_cores()
     if int(workers) < 0:
         raise ValueError(f"workers must be >= 0 (0 or null: one per core), got {workers}")
     return int(workers)
@@ -102,6 +118,38 @@ def _start_worker(
         initializer()
 
 
+@dataclass
+class CpuTime:
+    """CPU seconds (user + system) of a block of work (`cpu_time`)."""
+
+    seconds: float = 0.0
+
+
+#: The `CpuTime` records the tasks finished in workers for the work in progress in this thread add to (`cpu_time`).
+_cpu_records: contextvars.ContextVar[tuple[CpuTime, ...]] = contextvars.ContextVar("cpu_records", default=())
+
+
+@contextlib.contextmanager
+def cpu_time() -> Iterator[CpuTime]:
+    """Within it, the CPU time of this process (every thread of it: stages that overlap in time share
+    it) plus that of every task `WorkerPool.map` and `WorkerPool.stream` run for this thread in
+    worker processes (measured there), added to the `CpuTime` it yields when the block ends (the
+    workers' as their tasks finish). Blocks may nest: a task counts in each."""
+    record, started = CpuTime(), time.process_time()
+    token = _cpu_records.set((*_cpu_records.get(), record))
+    try:
+        yield record
+    finally:
+        _cpu_records.reset(token)
+        record.seconds += time.process_time() - started
+
+
+def _add_worker_cpu(seconds: float) -> None:
+    """A worker task's CPU seconds, to every `cpu_time` block open in this thread."""
+    for record in _cpu_records.get():
+        record.seconds += seconds
+
+
 #: The progress of the work in progress in this thread: ``advance(units)`` (`progress_to`).
 _progress: contextvars.ContextVar[Callable[[int], None] | None] = contextvars.ContextVar("progress", default=None)
 
@@ -132,16 +180,17 @@ def _progress_of(description: str, tasks: int, units: Callable[[Any], int]) -> I
         yield lambda task: bar.update()
 
 
-def _call(function: Callable[..., Any], shared_file: str | None, task: Any) -> Any:
+def _call(function: Callable[..., Any], shared_file: str | None, task: Any) -> tuple[Any, float]:
     """In a worker: ``function(task)``, or ``function(shared, task)`` with the call's shared data
-    loaded once per call."""
+    loaded once per call; with the CPU seconds it took (loading included)."""
+    started = time.process_time()
     if shared_file is None:
-        return function(task)
+        return function(task), time.process_time() - started
     loaded = _call.__dict__.get("shared")
     if loaded is None or loaded[0] != shared_file:
         with open(shared_file, "rb") as stream:  # this process's own file (`_shared_file`), not a data file
             loaded = _call.__dict__["shared"] = (shared_file, pickle.load(stream))
-    return function(loaded[1], task)
+    return function(loaded[1], task), time.process_time() - started
 
 
 def _key(workers: int) -> tuple[int, str]:
@@ -263,7 +312,8 @@ class WorkerPool:
             with _shared_file(shared) as shared_file:
                 try:
                     results = self.executor(workers).map(partial(_call, function, shared_file), tasks, chunksize=1)
-                    for task, result in zip(tasks, results):
+                    for task, (result, seconds) in zip(tasks, results):
+                        _add_worker_cpu(seconds)
                         done(task)
                         yield result
                 except BrokenProcessPool as error:
@@ -299,7 +349,7 @@ class WorkerPool:
 
             def finish_oldest() -> None:
                 task, future = pending.popleft()
-                future.result()
+                _add_worker_cpu(future.result()[1])
                 done(task)
 
             with _shared_file(shared) as shared_file:

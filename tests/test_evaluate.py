@@ -265,7 +265,8 @@ def test_the_summary_and_the_report_hold_each_sfm_stage_with_its_work_counted(ru
     import json
 
     _, output = run
-    stages = json.loads((output / "summary.json").read_text())["SfM stages"]
+    summary = json.loads((output / "summary.json").read_text())
+    stages = summary["SfM stages"]
     assert list(stages) == [
         "features",
         "match + verify",
@@ -283,9 +284,13 @@ def test_the_summary_and_the_report_hold_each_sfm_stage_with_its_work_counted(ru
             registrations |= {(q, tuple(sorted(i for i in row[:k] if i >= 0))) for q, row in enumerate(indices)}
     assert stages["global_sfm: register"] == {
         "seconds": stages["global_sfm: register"]["seconds"],
+        "cpu_seconds": stages["global_sfm: register"]["cpu_seconds"],
         "done": len(registrations),
         "unit": "registrations",
     }
+    # CPU time where work was done (the workers' included): each registration runs RANSAC
+    assert stages["global_sfm: register"]["cpu_seconds"] > 0 and stages["match + verify"]["cpu_seconds"] > 0
+    assert summary["descriptors CPU seconds"] > 0 and summary["ground truth CPU seconds"] > 0
     assert stages["global_sfm: triangulate"]["done"] == 1 and stages["global_sfm: triangulate"]["unit"] == "maps"
     report = (output / "report.md").read_text()
     assert "SfM stages: seconds of work" in report and "{'" not in report  # a table, no Python repr

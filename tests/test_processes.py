@@ -5,12 +5,13 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 import torch
 
-from locretrieval.pool import MIN_TASKS_PER_WORKER, WorkerPool, WorkerPoolError, progress_to
+from locretrieval.pool import MIN_TASKS_PER_WORKER, WorkerPool, WorkerPoolError, cpu_time, progress_to
 from locretrieval.processes import dataloader_workers
 
 
@@ -51,6 +52,32 @@ def test_a_stream_reports_each_task_it_finished():
         for task in range(8):
             submit(task)
     assert sorted(done) == list(range(8)) and pool.started(2)
+    pool.shutdown()
+
+
+def busy(shared, seconds):
+    """Burn ``seconds`` of this process's CPU time."""
+    started = time.process_time()
+    while time.process_time() - started < seconds:
+        pass
+    return seconds
+
+
+def test_the_cpu_time_of_a_block_holds_its_tasks_cpu_time_in_the_workers():
+    pool = WorkerPool("test")
+    tasks = [0.05] * (MIN_TASKS_PER_WORKER * 2)  # enough to start two workers
+    here = time.process_time()
+    with cpu_time() as outer:
+        with cpu_time() as inner:
+            finished = list(pool.map(busy, tasks, 2, "test", shared="s"))
+        with pool.stream(busy, len(tasks), 2, "test", shared="s") as submit:
+            for task in tasks:
+                submit(task)
+    here = time.process_time() - here  # this process's own CPU time, both blocks included
+    assert finished == tasks and pool.started(2)
+    # each task burnt its 0.05 s in a worker, counted in the block it ran for and in the one around it
+    assert sum(tasks) <= inner.seconds <= sum(tasks) + 0.1 + here
+    assert 2 * sum(tasks) <= outer.seconds <= 2 * sum(tasks) + 0.2 + here
     pool.shutdown()
 
 
@@ -96,6 +123,38 @@ def test_the_compute_workers_run_inside_a_job_of_joblibs_loky_executor_and_let_i
         [sys.executable, "-c", JOBLIB_JOB, str(Path(__file__).parent)], capture_output=True, text=True, timeout=180
     )
     assert done.returncode == 0 and done.stdout.strip() == "done", done.stderr[-3000:]
+
+
+def workers_of_a_job():
+    """What a job of joblib's loky executor (Hydra's joblib launcher) resolves ``sfm.workers`` null and 3 to."""
+    from locretrieval.pool import resolve_workers
+
+    return resolve_workers(None), resolve_workers(3)
+
+
+JOBLIB_SHARES = """
+import os, sys
+sys.path.insert(0, sys.argv[1])
+from joblib import Parallel, delayed
+from locretrieval.pool import resolve_workers
+import test_processes
+jobs = Parallel(n_jobs=2, backend="loky")(delayed(test_processes.workers_of_a_job)() for _ in range(2))
+print(resolve_workers(None), *jobs)
+"""
+
+
+def test_the_jobs_of_a_launcher_that_runs_two_at_once_share_the_cores_instead_of_a_worker_per_core_each():
+    environment = {name: value for name, value in os.environ.items() if not name.endswith("_NUM_THREADS")}
+    done = subprocess.run(
+        [sys.executable, "-c", JOBLIB_SHARES, str(Path(__file__).parent)],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        env=environment,
+    )
+    cores = len(os.sched_getaffinity(0))
+    # a plain process: every core it may use; each of two jobs: half of them (joblib's OMP_NUM_THREADS), at least one
+    assert done.stdout.split() == [str(cores), *[f"({max(1, cores // 2)},", "3)"] * 2], done.stderr[-3000:]
 
 
 def test_dataloader_workers_leave_a_plain_process_s_start_method_alone_and_take_its_budgets():

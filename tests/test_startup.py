@@ -26,6 +26,19 @@ def test_the_benchmark_and_a_precomputed_model_import_no_heavy_library():
     assert not loaded & {*HEAVY, "torch"}  # precomputed descriptors and features are matched without torch
 
 
+def test_a_compute_worker_imports_what_its_tasks_use_only():
+    """A worker's start (`locretrieval.pool.WORKERS`' preload) is paid by every process of a run and of
+    each job of a sharded one: kapture (with numba and scipy.interpolate: seconds), pandas and scipy's
+    optimizers are for the scene loaders, the tables and the frustum pairs of the main process."""
+    code = (
+        "import importlib\nfrom locretrieval.pool import WORKERS\nfor m in WORKERS.preload: importlib.import_module(m)"
+    )
+    loaded = loaded_after(code)
+    assert {"torch", "pycolmap", "locretrieval.sfm.pipeline", "locretrieval.sfm.matching"} <= loaded
+    assert not loaded & {"kapture", "numba", "quaternion", "pandas", "scipy.optimize", "scipy.interpolate", "faiss"}
+    assert "kapture" in loaded_after("import locretrieval.scene.feature_files")  # where kapture's features are read
+
+
 def test_the_report_sfm_modules_and_synthetic_config_import_their_libraries_when_used():
     code = """
 from locretrieval.report import build_report

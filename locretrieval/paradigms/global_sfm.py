@@ -165,7 +165,8 @@ def _pose_cache(inputs: SfmInputs, settings: GlobalSfm, cache_dir: Path) -> Pose
 
 
 def global_map(inputs: SfmInputs, colmap_model: str | None, cache_dir: Path) -> SparseMap:
-    """The database's map: an existing COLMAP model, or triangulated with known poses (cached)."""
+    """The database's map: an existing COLMAP model, or triangulated with known poses (cached, and
+    memory-mapped from the cache: a worker registering a query reads only what its top-k images see)."""
     database = inputs.scene.database
     if colmap_model:
         log.info("global map: COLMAP model %s", colmap_model)
@@ -176,7 +177,7 @@ def global_map(inputs: SfmInputs, colmap_model: str | None, cache_dir: Path) -> 
     with FileLock(f"{path}.lock"):  # one builder among the jobs sharing the cache (shards); the others wait and read it
         if path.exists():
             log.info("global map loaded from %s", path)
-            return SparseMap.load(path)
+            return SparseMap.load(path, memory_map=True)
         pairs = database_pairs(database, inputs.map_pairs)
         named = [(database.names[a], database.names[b]) for a, b in pairs]
         workers = inputs.settings.processes
@@ -199,7 +200,7 @@ def global_map(inputs: SfmInputs, colmap_model: str | None, cache_dir: Path) -> 
         len(pairs),
         path,
     )
-    return sparse_map
+    return SparseMap.load(path, memory_map=True)
 
 
 def map_cache_path(inputs: SfmInputs, cache_dir: Path) -> Path:

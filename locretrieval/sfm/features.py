@@ -45,13 +45,6 @@ from locretrieval.cache import config_key
 from locretrieval.config import require
 from locretrieval.pool import WORKERS, resolve_workers, split
 from locretrieval.scene import ImageSet
-from locretrieval.scene.feature_files import (
-    feature_file,
-    feature_folder_candidates,
-    find_feature_folder,
-    read_feature_array,
-    read_feature_header,
-)
 from locretrieval.scene.images import read_image
 from locretrieval.sfm.store import ShardedStore
 
@@ -302,9 +295,11 @@ KAPTURE_FEATURE_KINDS = ("keypoints", "descriptors")
 def kapture_feature_folder(root: Path, kind: str, features: str) -> Path:
     """The folder of the ``kind`` features ``features`` of kapture folder ``root``, in kapture's
     layout or the downloader's (`find_feature_folder`); FileNotFoundError naming both otherwise."""
-    folder = find_feature_folder(root, kind, features)
+    from locretrieval.scene import feature_files  # here: kapture's imports (seconds) only where its features are read
+
+    folder = feature_files.find_feature_folder(root, kind, features)
     if folder is None:
-        searched = [str(f / f"{kind}.txt") for f in feature_folder_candidates(root, kind, features)]
+        searched = [str(f / f"{kind}.txt") for f in feature_files.feature_folder_candidates(root, kind, features)]
         raise FileNotFoundError(f"kapture {kind} {features!r} of {root} not found: none of {searched}")
     return folder
 
@@ -312,6 +307,8 @@ def kapture_feature_folder(root: Path, kind: str, features: str) -> Path:
 def missing_kapture_features(images: ImageSet, settings: KaptureFeatures) -> list[str]:
     """What reading the kapture features of ``images`` would miss: each absent feature folder, and
     per kapture folder the images without a keypoints or descriptors file (counted, one named)."""
+    from locretrieval.scene import feature_files  # here: kapture's imports (seconds) only where its features are read
+
     names_by_root: dict[Path, list[str]] = {}
     for name, path in zip(images.names, images.paths):
         names_by_root.setdefault(kapture_root_of(path, name), []).append(name)
@@ -323,7 +320,9 @@ def missing_kapture_features(images: ImageSet, settings: KaptureFeatures) -> lis
             except FileNotFoundError as error:
                 problems.append(str(error))
                 continue
-            absent = [path for path in (feature_file(folder, kind, n) for n in names) if not path.is_file()]
+            absent = [
+                path for path in (feature_files.feature_file(folder, kind, n) for n in names) if not path.is_file()
+            ]
             if absent:
                 problems.append(
                     f"kapture {kind} {settings.name!r}: {len(absent)} of "
@@ -334,16 +333,18 @@ def missing_kapture_features(images: ImageSet, settings: KaptureFeatures) -> lis
 
 def _read_kapture_features(image_name: str, image_path: Path, settings: KaptureFeatures) -> dict[str, np.ndarray]:
     """Keypoints (x, y shifted by ``pixel_offset``) and descriptors of one image from kapture files."""
+    from locretrieval.scene import feature_files  # here: kapture's imports (seconds) only where its features are read
+
     root = kapture_root_of(image_path, image_name)
     features = settings.name
     arrays = {}
     for kind in KAPTURE_FEATURE_KINDS:
         folder = kapture_feature_folder(root, kind, features)
-        config = read_feature_header(folder / f"{kind}.txt", kind)
-        path = feature_file(folder, kind, image_name)
+        config = feature_files.read_feature_header(folder / f"{kind}.txt", kind)
+        path = feature_files.feature_file(folder, kind, image_name)
         if not path.is_file():
             raise FileNotFoundError(f"kapture {kind} {features!r} of image {image_name!r} not found: {path}")
-        arrays[kind] = read_feature_array(path, config)
+        arrays[kind] = feature_files.read_feature_array(path, config)
     keypoints, descriptors = arrays["keypoints"], arrays["descriptors"]
     if len(keypoints) != len(descriptors):
         raise ValueError(

@@ -8,7 +8,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from locretrieval.config import require
-from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii
 from locretrieval.scene import ImageSet, Scene
 
 #: Image pairs whose overlap radii are held in memory at once (a block of rows of the first set).
@@ -50,6 +49,8 @@ def overlapping_pairs(first: ImageSet, second: ImageSet, selection: PairSelectio
     ``second`` first). ``exclude_self``: both sets are the same, pairs (i, i) are left out.
     Images without a pose are skipped. Radii are computed for `PAIRS_PER_CHUNK` pairs at a time.
     """
+    from locretrieval.frusta import TruncatedFrusta, pairwise_overlap_radii  # here: scipy's linprog, not in workers
+
     if selection.far is None:
         raise ValueError("pair selection: far is unset; resolve it with PairSelection.for_scene(scene)")
     near, far = selection.near, selection.far

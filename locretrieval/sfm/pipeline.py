@@ -46,7 +46,7 @@ from typing import Any
 from tqdm import tqdm
 
 from locretrieval.estimates import PoseEstimates
-from locretrieval.pool import progress_to
+from locretrieval.pool import cpu_time, progress_to
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
 from locretrieval.sfm.features import extract_features
@@ -173,11 +173,14 @@ def ranked_ks(
 @dataclass
 class StageRecord:
     """What a stage did in a run: its ``seconds`` of work (summed over its calls; stages overlap,
-    so a run's records may add up to more than its time) and its ``done`` work in its ``unit``."""
+    so a run's records may add up to more than its time), its ``cpu_seconds`` (this process's while
+    it ran and its tasks' in the worker processes, `cpu_time`; overlapping stages share this
+    process's) and its ``done`` work in its ``unit``."""
 
     seconds: float = 0.0
     done: int = 0
     unit: str = ""
+    cpu_seconds: float = 0.0
 
     def __str__(self) -> str:
         rate = f", {self.done / self.seconds:,.1f}/s" if self.done and self.seconds > 0 else ""
@@ -186,7 +189,7 @@ class StageRecord:
 
 class StageMeter:
     """Times each stage where it runs and shows its progress in its own units: ``with meter(stage):
-    ...`` (from several threads) adds the block's seconds to the stage's record, and the tasks its
+    ...`` (from several threads) adds the block's seconds and CPU seconds to the stage's record, and the tasks its
     worker pools finish to the stage's bar (tqdm: rate and time left from the stage's throughput so
     far) of the ``planned`` work (stage -> (units, unit name), `SfmPlan.stage_units`)."""
 
@@ -210,11 +213,13 @@ class StageMeter:
     def __call__(self, stage: str) -> Iterator[None]:
         started = time.perf_counter()
         try:
-            with progress_to(lambda units: self.advance(stage, units)):
+            with cpu_time() as cpu, progress_to(lambda units: self.advance(stage, units)):
                 yield
         finally:
             with self._lock:
-                self.records.setdefault(stage, StageRecord()).seconds += time.perf_counter() - started
+                record = self.records.setdefault(stage, StageRecord())
+                record.seconds += time.perf_counter() - started
+                record.cpu_seconds += cpu.seconds
 
     def close(self) -> dict[str, StageRecord]:
         """Close the bars; every stage's record."""

@@ -10,7 +10,9 @@ a key (any string, e.g. an image name or a pair of them). A shard stores, per ar
 the records' arrays concatenated along their first axis with their lengths, and the keys in
 order, so reading a shard is a few dataset reads. Readers may ask for some of the arrays only
 (e.g. keypoints without descriptors): each array of a shard is read on first use and recently
-read ones stay in memory, up to `CACHED_BYTES` per store.
+read ones stay in memory, up to `CACHED_BYTES` per store. An array larger than `WHOLE_ARRAY_BYTES`
+(at the published datasets' 20,000 keypoints, a shard's descriptors are hundreds of MB) is read
+record by record, those asked for only: a pair's cost then does not grow with the shard it lies in.
 """
 
 from __future__ import annotations
@@ -34,6 +36,9 @@ if TYPE_CHECKING:
 SHARD_SUFFIX = ".h5"
 #: Bytes of shard arrays kept in memory per store (least recently used dropped first).
 CACHED_BYTES = 512 * 2**20
+#: A shard's array of more bytes than this is read record by record (those asked for), a smaller
+#: one whole on first use (the records asked for next are likely in it, and it stays in the cache).
+WHOLE_ARRAY_BYTES = CACHED_BYTES // 16
 
 #: One array of every record of a shard: ``key -> array``.
 Column = dict[str, np.ndarray]
@@ -109,28 +114,37 @@ class ShardedStore:
     def read(self, keys: Iterable[str], arrays: Sequence[str] | None = None) -> dict[str, dict[str, np.ndarray]]:
         """The records of ``keys`` holding the arrays named in ``arrays`` (all when None), and
         only those are read from disk; a missing key or array is a `KeyError`."""
-        records = {}
+        keys = list(dict.fromkeys(keys))
+        by_shard: dict[Path, list[str]] = {}
         for key in keys:
             shard = self.index.get(key)
             if shard is None:
                 raise KeyError(f"{self.folder}: no record {key!r}")
+            by_shard.setdefault(shard, []).append(key)
+        records: dict[str, dict[str, np.ndarray]] = {key: {} for key in keys}
+        for shard, shard_keys in by_shard.items():
             names = self._array_names[shard] if arrays is None else arrays
-            records[key] = {name: column[key] for name, column in self._columns(shard, names).items()}
+            for name, column in self._columns(shard, names, shard_keys).items():
+                for key in shard_keys:
+                    records[key][name] = column[key]
         return records
 
-    def _columns(self, shard: Path, names: Sequence[str]) -> dict[str, Column]:
-        """The arrays ``names`` of every record of ``shard``, read on first use and cached."""
-        unread = [name for name in names if (shard, name) not in self._cache]
+    def _columns(self, shard: Path, names: Sequence[str], keys: Sequence[str]) -> dict[str, Column]:
+        """The arrays ``names`` of the records ``keys`` of ``shard`` (of every record where an array
+        is read whole, `WHOLE_ARRAY_BYTES`), read on first use and cached."""
+        unread = {name: [key for key in keys if key not in self._cache.get((shard, name), {})] for name in names}
+        unread = {name: missing for name, missing in unread.items() if missing}
         if unread:
             with _open(shard) as file:
-                keys = list(_read(file, "keys", shard, text=True))
+                shard_keys = list(_read(file, "keys", shard, text=True))
                 data = _member(file, "data", shard)
-                for name in unread:
+                for name, missing in unread.items():
                     if name not in data:
                         raise KeyError(f"cache shard {shard} has no array {name!r}; it holds {sorted(data)}")
-                    bounds = np.cumsum(_read(file, f"lengths/{name}", shard))[:-1]
-                    self._cache[(shard, name)] = dict(zip(keys, np.split(_read(file, f"data/{name}", shard), bounds)))
-                    self._cached_bytes += sum(array.nbytes for array in self._cache[(shard, name)].values())
+                    column = self._cache.setdefault((shard, name), {})
+                    read = _records(file, shard, name, shard_keys, missing)
+                    self._cached_bytes += sum(array.nbytes for key, array in read.items() if key not in column)
+                    column.update(read)
         columns = {}
         for name in names:
             self._cache.move_to_end((shard, name))
@@ -177,6 +191,22 @@ def _member(file: h5py.File, name: str, shard: Path) -> h5py.Group | h5py.Datase
     if member is None:
         raise DataFileError(shard, f"not a cache shard: it has no {name!r}", DELETE_CACHE_FILE)
     return member
+
+
+def _records(file: h5py.File, shard: Path, name: str, keys: Sequence[str], wanted: Sequence[str]) -> Column:
+    """Array ``name`` of every record of an open shard whose keys are ``keys`` (in order), or of the
+    records ``wanted`` only when the array exceeds `WHOLE_ARRAY_BYTES` (one read of its rows each)."""
+    lengths = _read(file, f"lengths/{name}", shard)
+    dataset = _member(file, f"data/{name}", shard)
+    if dataset.size * dataset.dtype.itemsize <= WHOLE_ARRAY_BYTES:
+        return dict(zip(keys, np.split(_read(file, f"data/{name}", shard), np.cumsum(lengths)[:-1])))
+    ends, row = np.cumsum(lengths), {key: index for index, key in enumerate(keys)}
+    return {
+        key: read_dataset(
+            dataset, shard, DELETE_CACHE_FILE, rows=slice(ends[row[key]] - lengths[row[key]], ends[row[key]])
+        )
+        for key in wanted
+    }
 
 
 def _read(file: h5py.File, name: str, shard: Path, text: bool = False) -> np.ndarray:

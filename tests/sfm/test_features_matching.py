@@ -105,6 +105,28 @@ def test_sharded_store_round_trip_and_missing_keys(tmp_path, monkeypatch):
     assert len(ShardedStore(tmp_path / "store")) == 3
 
 
+def test_a_large_array_of_a_shard_is_read_only_for_the_records_asked_for(tmp_path, monkeypatch):
+    """At 20,000 keypoints a shard's descriptors are hundreds of MB: reading them whole for one image
+    would make a pair's cost grow with the shard it lies in."""
+    store = ShardedStore(tmp_path / "store")
+    rng = np.random.default_rng(0)
+    records = {f"image{i}": {"d": rng.integers(0, 255, (10 + i, 128), dtype=np.uint8)} for i in range(8)}
+    shard = store.write(records)
+    monkeypatch.setattr("locretrieval.sfm.store.WHOLE_ARRAY_BYTES", 1000)  # the shard holds 10,752 bytes
+    reader = ShardedStore(tmp_path / "store")
+    read = reader.read(["image5", "image2", "image5"])
+    assert list(read) == ["image5", "image2"]
+    for name in ("image5", "image2"):
+        np.testing.assert_array_equal(read[name]["d"], records[name]["d"])
+    assert sorted(reader._cache[(shard, "d")]) == ["image2", "image5"] and reader._cached_bytes == (15 + 12) * 128
+    np.testing.assert_array_equal(reader.read(["image7"])["image7"]["d"], records["image7"]["d"])
+    assert reader._cached_bytes == (15 + 12 + 17) * 128
+    monkeypatch.setattr("locretrieval.sfm.store.WHOLE_ARRAY_BYTES", 20_000)  # a small array: read whole
+    whole = ShardedStore(tmp_path / "store")
+    whole.read(["image0"])
+    assert len(whole._cache[(shard, "d")]) == 8 and whole._cached_bytes == sum(10 + i for i in range(8)) * 128
+
+
 # ------------------------------------------------------------------------------------ features
 
 
