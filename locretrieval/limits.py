@@ -14,14 +14,14 @@ import functools
 import json
 import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import yaml
 
 from locretrieval.errors import require
+from locretrieval.resources import configs_dir
 
-#: The defaults: the config group's one file.
-DEFAULTS_FILE = Path(__file__).resolve().parents[1] / "configs" / "limits" / "default.yaml"
+#: The defaults: the config group's one file (in the shipped configs).
+DEFAULTS_FILE = ("limits", "default.yaml")
 #: Environment variable through which `configure` hands the budgets to child processes (JSON).
 ENVIRONMENT = "LOCRETRIEVAL_LIMITS"
 #: Bytes every budget of sizes allows on top of its factor (small files keep working whatever they hold).
@@ -82,5 +82,5 @@ def current() -> Limits:
 @functools.lru_cache(maxsize=8)
 def _parsed(text: str | None) -> Limits:
     """The budgets of the defaults file, or those `configure` checked and wrote (``text``)."""
-    values = yaml.safe_load(DEFAULTS_FILE.read_text()) if text is None else json.loads(text)
+    values = yaml.safe_load(configs_dir().joinpath(*DEFAULTS_FILE).read_text()) if text is None else json.loads(text)
     return Limits(**values)

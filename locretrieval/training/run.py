@@ -23,6 +23,7 @@ from locretrieval.benchmark import BenchmarkSettings
 from locretrieval.config import ConfigError, built, check_node, require, validated
 from locretrieval.folders import check_written_folder
 from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings, compute_groundtruths
+from locretrieval.resources import configs_dir
 from locretrieval.scene import ImageSet, Scene
 from locretrieval.scene.datasets import instantiate_scene, load_synthetic_dataset
 from locretrieval.scene.kapture_io import concatenate_image_sets
@@ -34,10 +35,6 @@ from locretrieval.training.relevance import TrainingPairs, TrainingRelevanceSett
 from locretrieval.training.report import TrainingReportSettings, write_training_report
 
 log = logging.getLogger(__name__)
-
-
-#: The data configs `training.scenes` names.
-DATA_CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "data"
 
 
 @dataclass
@@ -117,7 +114,7 @@ class TrainingSettings:
             "validation_database",
             "no training images: set validation_database=true or give scenes or extra_renders",
         )
-        known = sorted(path.stem for path in DATA_CONFIGS.glob("*.yaml"))
+        known = sorted(path.stem for path in (configs_dir() / "data").glob("*.yaml"))
         for index, entry in enumerate(self.scenes):
             require(
                 isinstance(entry, str) or (isinstance(entry, dict) and isinstance(entry.get("config"), str)),
@@ -179,7 +176,7 @@ def composed_data(name: str) -> DictConfig:
 
     if GlobalHydra.instance().is_initialized():  # in train.py's Hydra app
         return compose(config_name="train", overrides=[f"data={name}"]).data
-    with initialize_config_dir(config_dir=str(DATA_CONFIGS.parent), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(configs_dir()), version_base="1.3"):
         return compose(config_name="train", overrides=[f"data={name}"]).data
 
 

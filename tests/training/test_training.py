@@ -735,6 +735,9 @@ def test_a_parallel_training_multirun_as_documented_shares_one_cache_without_cor
     assert all(len(job.name) <= 96 for job in jobs)  # 24 overrides: cut, with a hash
     logs = [(job / "train.log").read_text() for job in jobs]
     assert sum(log.count("rendering the synthetic scene") for log in logs) == 1  # one job rendered, the other read it
+    if launcher == "joblib_local":  # the two jobs' console lines interleave in the terminal: each says its job
+        lines = re.findall(r"^\[\d{4}-[^]]+\](\[job \d\])?\[locretrieval\.", done.stdout, re.M)
+        assert set(lines) == {"[job 0]", "[job 1]"}, done.stdout[-3000:]
     alone = train(
         train_config(
             tmp_path / "alone",
