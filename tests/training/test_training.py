@@ -1060,7 +1060,7 @@ def test_the_report_says_which_requested_gap_row_it_cannot_fill(tmp_path, caplog
     text = (tmp_path / "run" / "report.md").read_text()
     assert (
         "Requested row approximation/ewb/k3/5m_10deg (report.gap) "
-        "is not filled: k=3 is not in paradigms.approximation.k &#91;1, 5&#93;." in text  # Markdown text, escaped
+        "is not filled: k=3 is not in paradigms.approximation.k [1, 5]." in text  # Markdown text: plain brackets
     )
     assert (
         "Requested row local_sfm/pnp/k10/0.25m_2deg (report.gap) is not filled: the SfM paradigms are not validated"
