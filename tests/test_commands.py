@@ -150,3 +150,17 @@ def test_a_dry_run_of_the_command_line_keeps_no_run_folder(tmp_path):
     for arguments in (["dry_run=false"], ["-m", "dry_run=true"], ["data=baidu"]):
         with commands.dry_run_folder(arguments) as extra:
             assert extra == []
+
+
+@pytest.mark.skipif(shutil.which("make") is None, reason="make is not installed")
+def test_make_evaluate_says_what_it_installs_and_shows_the_installation_as_it_goes(tmp_path):
+    venv = tmp_path / "venv"  # a fresh environment: every installation step runs
+    completed = subprocess.run(
+        ["make", "--dry-run", "evaluate", f"VENV={venv}"], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert completed.returncode == 0, completed.stderr
+    steps = completed.stdout.splitlines()
+    sync = next(index for index, step in enumerate(steps) if "pip-sync" in step)
+    assert not re.search(r"\s(--quiet|-q+)\b", steps[sync]), steps[sync]  # pip's own lines and bars, package by package
+    assert steps[sync - 1].startswith("echo") and "Installing the packages of constraints.txt" in steps[sync - 1]
+    assert "evaluate.py" in steps[-1]  # then the evaluation
