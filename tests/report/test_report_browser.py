@@ -136,7 +136,7 @@ def test_a_sweep_summary_and_its_optuna_figures_draw_with_their_own_scripts_only
 
     hostile = "model.name=<img src=x onerror=window.__pwned=1>"
     study = optuna.create_study(study_name="s", storage=f"sqlite:///{tmp_path / 'optuna.db'}", direction="maximize")
-    for number, value in enumerate((10.0, 30.0, 20.0)):
+    for number, value in enumerate((10.0, 30.0, 20.0, 12.0, 14.0, 16.0, 18.0, 22.0, 24.0, 26.0)):  # importances: 10
         trial = study.ask()
         trial.suggest_float("module.optimizer.lr", 1e-5, 1e-3, log=True)
         study.tell(trial, value)
