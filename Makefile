@@ -16,10 +16,12 @@ space := $(empty) $(empty)
 .PHONY: evaluate train test test-newest lint lock benchmark gpu-bundle venv clean
 
 # The lock installed exactly (pip-sync removes what it does not list), then the project itself.
-$(STAMP): pyproject.toml $(LOCK)
+# pip-sync shows each package as it installs (about 2-3 minutes the first time).
+$(STAMP): pyproject.toml setup.py $(LOCK)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet -c $(LOCK) pip pip-tools
-	$(BIN)/pip-sync --quiet $(LOCK)
+	@echo "Installing the packages of $(LOCK) into $(VENV) (about 2-3 minutes the first time):"
+	$(BIN)/pip-sync $(LOCK)
 	$(BIN)/python -m pip install --quiet --no-deps -e .
 	touch $(STAMP)
 

@@ -30,7 +30,7 @@ from locretrieval.estimates import PoseEstimates
 from locretrieval.groundtruth import GroundTruth, RelevanceScope
 from locretrieval.metrics.localization import MetricsSettings, localization_tables, query_error_table, query_subsets
 from locretrieval.metrics.retrieval import retrieval_tables
-from locretrieval.metrics.subsets import SubsetSettings, image_subsets
+from locretrieval.metrics.subsets import SubsetSettings, image_subsets, known_subsets
 from locretrieval.paradigms.base import Paradigms
 from locretrieval.retrieval import Ranking, random_ranking
 from locretrieval.retrieval.descriptors import SceneDescriptors
@@ -165,9 +165,10 @@ def scene_subsets(
     scene: Scene, settings: SubsetSettings, cache_dir: str | Path | None
 ) -> tuple[dict[str, np.ndarray], pd.DataFrame]:
     """The query subsets every metric is reported on (``all``, one per query tag, ``blurry``,
-    ``dynamic_scene``) and the per-query table behind the image subsets (``subsets.csv``)."""
+    ``dynamic_scene``: a tag of those, `known_subsets`) and the per-query table behind the image
+    subsets (``subsets.csv``)."""
     image_masks, table = image_subsets(scene.name, scene.queries, settings, cache_dir)
-    tag_masks = query_subsets(scene.queries)
+    tag_masks, image_masks, table = known_subsets(query_subsets(scene.queries), image_masks, table)
     clash = sorted(set(tag_masks) & set(image_masks))
     if clash:
         raise ValueError(f"query tags {clash} clash with the subsets of configs/subsets")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import hashlib
 import json
 import os
@@ -202,19 +203,44 @@ def _mapped_members(path: str | os.PathLike, remedy: str) -> dict[str, np.ndarra
     return arrays
 
 
+class NotCached(LookupError):
+    """Arrays `cached_arrays` would compute, asked for within `stored_only`; ``path``: where they would be."""
+
+    def __init__(self, path: str | os.PathLike | None) -> None:
+        self.path = path
+        super().__init__(f"not cached: {path}")
+
+
+_stored_only = contextvars.ContextVar("stored_only", default=False)
+
+
+@contextlib.contextmanager
+def stored_only() -> Iterator[None]:
+    """Within it (in this thread), `cached_arrays` computes nothing: what is not stored raises
+    `NotCached` (a dry run's look at what the caches already hold)."""
+    token = _stored_only.set(True)
+    try:
+        yield
+    finally:
+        _stored_only.reset(token)
+
+
 def cached_arrays(
     path: str | os.PathLike | None, compute: Callable[[], Mapping[str, np.ndarray]]
 ) -> tuple[dict[str, np.ndarray], bool]:
-    """``(arrays, hit)``: the arrays stored at ``path``, else ``compute()`` saved there.
+    """``(arrays, hit)``: the arrays stored at ``path``, else ``compute()`` saved there (within
+    `stored_only`: `NotCached` instead).
 
     Processes sharing the cache (the jobs of a sharded evaluation or a multirun) compute it once:
     the first holds the hidden ``.<name>.lock`` beside it while it computes, the others wait and read what it saved.
     ``path=None`` disables caching (always computes, ``hit`` False).
     """
+    if path is not None and Path(path).is_file():
+        return load_arrays(path), True
+    if _stored_only.get():
+        raise NotCached(path)
     if path is None:
         return dict(compute()), False
-    if Path(path).is_file():
-        return load_arrays(path), True
     from filelock import FileLock
 
     Path(path).parent.mkdir(parents=True, exist_ok=True)

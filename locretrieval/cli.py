@@ -27,13 +27,12 @@ from omegaconf.errors import MissingMandatoryValue
 
 from locretrieval.config import ConfigError, refuse_moved_keys, unknown_key
 from locretrieval.errors import DataFileError
+from locretrieval.resources import configs_dir
 
 log = logging.getLogger(__name__)
 
 #: The errors that are the user's to fix, reported by their message alone.
 MISTAKES = (ConfigError, DataFileError, FileNotFoundError, MissingMandatoryValue)
-#: The project's configs (``configs/``).
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 #: The environment variable (Hydra's) that shows a mistake's traceback too.
 FULL_ERROR_ENV = "HYDRA_FULL_ERROR"
 
@@ -100,13 +99,139 @@ def log_to_files(message: str) -> None:
 
 def check_command_line(config_dir: Path, config_name: str, arguments: Sequence[str]) -> None:
     """Refuse, as a mistake (`reported_mistakes`), the command line's overrides of keys that moved
-    (`refuse_moved_keys`) or that the composed config lacks (`unknown_override_keys`), before Hydra
-    runs it. ``config_dir``/``config_name``: the entry point's config; ``arguments``: ``sys.argv[1:]``."""
+    (`refuse_moved_keys`), of config groups the command lacks or options a group lacks
+    (`group_override_problems`), of a ``device`` that is none (`device_problems`) and of keys the
+    composed config lacks (`unknown_override_keys`), before Hydra runs it: Hydra's own messages
+    list every option with its search path, advise ``+group=`` for a group the command does not have,
+    and blame the key a refused value lands in (``sfm.matching.device``) rather than the one typed.
+    ``config_dir``/``config_name``: the command's configs; ``arguments``: its command line."""
     with reported_mistakes():
         refuse_moved_keys(arguments)
-        problems = unknown_override_keys(config_dir, config_name, arguments)
+        problems = [
+            *group_override_problems(config_dir, config_name, arguments),
+            *device_problems(arguments),
+            *unknown_override_keys(config_dir, config_name, arguments),
+        ]
         if problems:
             raise ConfigError("\n".join(problems))
+
+
+def parsed_command_line(arguments: Sequence[str]) -> tuple[Any, list[Any]] | None:
+    """``(Hydra's parsed arguments, the overrides)`` of a command line as ``@hydra.main`` reads it;
+    ``None`` for a command line that runs nothing (``--help``, ``--info``, ...) or whose overrides
+    Hydra cannot parse (its message says where)."""
+    from hydra._internal.utils import get_args_parser  # what @hydra.main parses the command line with
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    parsed = get_args_parser().parse_args(list(arguments))
+    if parsed.help or parsed.hydra_help or parsed.info or parsed.shell_completion or parsed.experimental_rerun:
+        return None
+    try:
+        return parsed, OverridesParser.create().parse_overrides(parsed.overrides)
+    except HydraException:
+        return None
+
+
+def override_values(override: Any) -> list[str]:
+    """The values ``override`` sets, as text: one, or each of a choice or range sweep; none for a
+    glob or interval sweep, a deletion or ``null``."""
+    if override.is_delete():
+        return []
+    if override.is_sweep_override():
+        if override.is_range_sweep() or override.value_type.name in ("SIMPLE_CHOICE_SWEEP", "CHOICE_SWEEP"):
+            return [str(value) for value in override.sweep_string_iterator()]
+        return []
+    value = override.value()
+    return [] if value is None else [str(value)]
+
+
+def group_override_problems(config_dir: Path, config_name: str, arguments: Sequence[str]) -> list[str]:
+    """The errors of the overrides in ``arguments`` that choose an option of a config group (a
+    folder of ``config_dir`` or of the command line's ``--config-dir``): a group the command's
+    primary config ``config_name`` does not choose (`defaults_groups`; Hydra's advice, ``+group=``,
+    would add it to a command that does not use it), or an option no folder of the group holds,
+    named with the nearest (`unknown_option_message`). Hydra's own groups (``hydra/...``) are Hydra's."""
+    found = parsed_command_line(arguments)
+    if found is None:
+        return []
+    parsed, overrides = found
+    folders = [Path(parsed.config_dir).resolve(), config_dir] if parsed.config_dir else [config_dir]
+    name = parsed.config_name or config_name
+    groups = defaults_groups(next((f / f"{name}.yaml" for f in folders if (f / f"{name}.yaml").is_file()), None))
+    problems = []
+    for override in overrides:
+        group = override.key_or_group
+        options = sorted({path.stem for folder in folders for path in (folder / group).glob("*.yaml")})
+        if override.is_hydra_override() or override.is_delete() or not options:
+            continue  # not a config group: a key (`unknown_override_keys`)
+        adds = override.is_add() or override.is_force_add()
+        if groups is not None and not adds and group.split("/")[0] not in groups:
+            problems.append(missing_group_message(config_dir, name, group, groups, override.input_line))
+            continue
+        problems += [
+            unknown_option_message(group, value, options, override.input_line)
+            for value in override_values(override)
+            if value not in options
+        ]
+    return problems
+
+
+def defaults_groups(primary: Path | None) -> set[str] | None:
+    """The top-level config groups the defaults list of the primary config file ``primary`` chooses
+    (``model`` for ``model: densevlad``, ``model@validation_references.x: ...``, ``optional model: ...``),
+    Hydra's own left out; ``None`` when there is no such file (a config of the user's, not found)."""
+    if primary is None:
+        return None
+    groups = set()
+    for entry in OmegaConf.load(primary).get("defaults", []):
+        if isinstance(entry, str) or len(entry) != 1:
+            continue  # _self_, or a config of the same group
+        key = str(next(iter(entry))).removeprefix("override ").removeprefix("optional ").lstrip("/")
+        group = key.split("@", 1)[0].split("/", 1)[0]
+        if group != "hydra":
+            groups.add(group)
+    return groups
+
+
+def missing_group_message(config_dir: Path, name: str, group: str, groups: set[str], line: str) -> str:
+    """The error of an override of ``group``, which the command ``name`` does not choose: the other
+    commands whose primary configs (in ``config_dir``) do, and the command's own groups."""
+    others = sorted(
+        path.stem
+        for path in config_dir.glob("*.yaml")
+        if path.stem != name and group.split("/")[0] in (defaults_groups(path) or ())
+    )
+    where = f"; it is {' and '.join(others)}'s (locretrieval {others[0]} {line})" if others else ""
+    return f"{group}: {name} has no config group {group}{where}; {name}'s groups: {', '.join(sorted(groups))}"
+
+
+def unknown_option_message(group: str, value: str, options: Sequence[str], line: str) -> str:
+    """The error of ``group=value`` where the group holds no option ``value``: the nearest options
+    and every option, on one line (Hydra's lists them one a line, with its search path)."""
+    near = difflib.get_close_matches(value, options, n=2, cutoff=0.6)
+    suggestion = f"; did you mean {' or '.join(near)}?" if near else ""
+    return f"{group}={value}: no such option of {group}{suggestion} (its options: {', '.join(options)})" + (
+        f" (the command line's {line})" if line != f"{group}={value}" else ""
+    )
+
+
+#: The values ``device`` takes (configs/evaluate.yaml): ``auto`` picks a GPU when there is one.
+DEVICES = re.compile(r"auto|cpu|cuda(:\d+)?")
+
+
+def device_problems(arguments: Sequence[str]) -> list[str]:
+    """The errors of the command line's ``device=`` values that are no device (``gpu``): named as
+    typed, with the choices; otherwise the value is refused where it lands (``sfm.matching.device``)."""
+    found = parsed_command_line(arguments)
+    overrides = [] if found is None else found[1]
+    return [
+        f"device={value}: no such device; choose auto (a GPU when there is one), cpu, cuda or cuda:N"
+        for override in overrides
+        if override.key_or_group == "device" and not override.is_hydra_override()
+        for value in override_values(override)
+        if not DEVICES.fullmatch(value)
+    ]
 
 
 def unknown_override_keys(config_dir: Path, config_name: str, arguments: Sequence[str]) -> list[str]:
@@ -152,7 +277,11 @@ def unknown_override_keys(config_dir: Path, config_name: str, arguments: Sequenc
                 return []
             refused[key] = line
             continue
-        return [unknown_override_message(config, key, line) for key, line in refused.items()]
+        name = parsed.config_name or config_name
+        return [
+            unknown_override_message(config, key, line) + elsewhere(config_dir, name, key)
+            for key, line in refused.items()
+        ]
 
 
 def config_names(config_dir: Path, config_name: str) -> tuple[set[str], set[str]]:
@@ -246,6 +375,26 @@ def unknown_override_message(config: DictConfig, key: str, line: str) -> str:
     return f"{message} (the command line's {line})"
 
 
+#: What a user of another tool may type for a command, and what the command has instead.
+SYNONYMS = {
+    ("train", "dry_run"): "debug=quick (a few batches of a small scene, under a minute)",
+    ("train", "fast_dev_run"): "debug=quick (a few batches of a small scene, under a minute)",
+}
+
+
+def elsewhere(config_dir: Path, name: str, key: str) -> str:
+    """A hint for a ``key`` the command ``name`` lacks: what it has instead (`SYNONYMS`), and the
+    other commands whose primary configs (in ``config_dir``) have the key's top-level key."""
+    top = key.split(".", 1)[0]
+    hint = f"; instead, {SYNONYMS[name, top]}" if (name, top) in SYNONYMS else ""
+    others = [
+        path.stem for path in sorted(config_dir.glob("*.yaml")) if path.stem != name and top in OmegaConf.load(path)
+    ]
+    if others:
+        hint += f"; {top} is a key of {' and '.join(others)} (locretrieval {others[0]} {top}=...)"
+    return hint
+
+
 def nearest_keys(config: DictConfig, name: str) -> list[str]:
     """The full keys of ``config`` whose last part is near ``name`` (difflib's close matches, a
     stricter cutoff than for the keys beside it; at most 3)."""
@@ -272,11 +421,11 @@ def composed_training_scenes(cfg: DictConfig) -> list[DictConfig]:
     from hydra.core.global_hydra import GlobalHydra
 
     names = [entry if isinstance(entry, str) else entry.get("config") for entry in cfg.training.scenes]
-    known = {path.stem for path in (CONFIG_DIR / "data").glob("*.yaml")}
+    known = {path.stem for path in (configs_dir() / "data").glob("*.yaml")}
     unknown = [name for name in names if name not in known]
     if unknown:
         raise ConfigError(f"training.scenes: no data config {unknown[0]!r}; expected one of {sorted(known)}")
     if GlobalHydra.instance().is_initialized():  # in train.py's Hydra app
         return [compose(config_name="train", overrides=[f"data={name}"]).data for name in names]
-    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(configs_dir()), version_base="1.3"):
         return [compose(config_name="train", overrides=[f"data={name}"]).data for name in names]

@@ -80,11 +80,13 @@ JOB_DIRNAME_LENGTH = 96
 def job_dirname(number: Any, label: Any) -> str:
     """``${job_dirname:${hydra.job.num},${hydra.job.override_dirname}}``: a multirun job's folder
     name, ``<number>_<label>`` with each override's key shortened to its last part
-    (``sampler.anchors=3`` -> ``anchors=3``) and every character but letters, digits and
-    ``._=,+-`` made ``-``; a longer one is cut to `JOB_DIRNAME_LENGTH` characters ending in a hash
-    of the whole label (so it stays unique). The job's full overrides are in its
-    ``.hydra/overrides.yaml``."""
+    (``sampler.anchors=3`` -> ``anchors=3``), a value with 4 decimals or more rounded
+    to 3 (an Optuna trial's ``blur_probability=0.489309171116382`` -> ``blur_probability=0.489``)
+    and every character but letters, digits and ``._=,+-`` made ``-``; a longer one is cut to
+    `JOB_DIRNAME_LENGTH` characters ending in a hash of the whole label (so it stays unique). The
+    job's full overrides are in its ``.hydra/overrides.yaml``."""
     short = re.sub(r"(^|,)[~+]*(?:[\w@/-]+\.)+(?=[\w-]+=)", r"\1", str(label))
+    short = re.sub(r"(?<==)-?\d+\.\d{4,}(?:e-?\d+)?(?=,|$)", lambda number: f"{float(number.group()):.3g}", short)
     name = f"{number}_{re.sub(r'[^A-Za-z0-9._=,+-]', '-', short)}".rstrip(".")
     if len(name) <= JOB_DIRNAME_LENGTH:
         return name
@@ -94,6 +96,16 @@ def job_dirname(number: Any, label: Any) -> str:
 
 if not OmegaConf.has_resolver("job_dirname"):
     OmegaConf.register_new_resolver("job_dirname", job_dirname)
+
+
+def job_label(number: Any) -> str:
+    """``${job_label:${oc.select:hydra.job.num,null}}``: ``[job <number>]`` for a job of a multirun
+    (the console's log lines, configs/hydra/job_logging/), nothing for a single run (``None``)."""
+    return "" if number is None else f"[job {number}]"
+
+
+if not OmegaConf.has_resolver("job_label"):
+    OmegaConf.register_new_resolver("job_label", job_label)
 
 
 if not OmegaConf.has_resolver("safe_name"):

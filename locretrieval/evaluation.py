@@ -28,7 +28,6 @@ from locretrieval.cache import safe_name, save_arrays
 from locretrieval.errors import require_built
 from locretrieval.estimates import estimated_pose_table
 from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths, statistics_table
-from locretrieval.groundtruth.compute import groundtruth_sfm_pairs
 from locretrieval.metrics.localization import median_errors
 from locretrieval.metrics.subsets import SubsetSettings, missing_mask_inputs
 from locretrieval.metrics.uncertainty import Uncertainty
@@ -100,7 +99,9 @@ def evaluate(run: Evaluation, output_dir: Path) -> pd.DataFrame:
     check_supported(scene, [*settings.paradigms.enabled(), *groundtruth_settings.parsed()])
     check_inputs(scene, model, settings, groundtruth_settings, subset_settings)
     if run.dry_run:
-        dry_run(scene, settings, groundtruth_settings, cache_dir, run.random_seed is not None)
+        from locretrieval.dry_run import dry_run
+
+        dry_run(scene, model, settings, groundtruth_settings, cache_dir, run.random_seed)
         return pd.DataFrame()
     output_dir.mkdir(parents=True, exist_ok=True)
     (output_dir / "config.yaml").write_text(yaml.safe_dump(run.config, sort_keys=False))  # as run, resolved
@@ -187,34 +188,6 @@ def evaluate(run: Evaluation, output_dir: Path) -> pd.DataFrame:
         )
     log.info("results and report.md in %s", output_dir)
     return results
-
-
-def dry_run(
-    scene: Scene, settings: BenchmarkSettings, groundtruths: GroundTruthSettings, cache_dir: Path, random: bool
-) -> None:
-    """``dry_run``: log the SfM work (upper bounds: no ranking is computed) and its forecast
-    (`locretrieval.sfm.forecast`, a few seconds of calibration) over the model's, the ground truth's
-    and (``random``) the random ranking; no descriptor, ground truth or file of the run is computed or
-    written."""
-    paradigms = settings.paradigms.sfm_stages()
-    if not paradigms:
-        log.info("dry run: no SfM paradigm is enabled, nothing to match")
-        return
-    from locretrieval.sfm.forecast import dry_run_forecast
-
-    posed = bool(scene.queries.has_pose.any())
-    groundtruth_rankings = len(groundtruths.parsed()) if posed else 0
-    num_rankings = 1 + groundtruth_rankings + int(random)
-    pairs = groundtruth_sfm_pairs(scene, groundtruths, settings.sfm) if posed else (set(), set())
-    _, _, lines = dry_run_forecast(scene, settings.sfm, paradigms, cache_dir, num_rankings, pairs)
-    log.info(
-        "dry run over %d rankings (the model's, %d of the ground truth, %d random); nothing of the run is "
-        "computed:\n%s",
-        num_rankings,
-        groundtruth_rankings,
-        int(random),
-        lines,
-    )
 
 
 def check_inputs(

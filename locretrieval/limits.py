@@ -12,14 +12,14 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from pathlib import Path
 
 import yaml
 
 from locretrieval.errors import require
+from locretrieval.resources import configs_dir
 
-#: The defaults: the config group's one file.
-DEFAULTS_FILE = Path(__file__).resolve().parents[1] / "configs" / "limits" / "default.yaml"
+#: The defaults: the config group's one file (in the shipped configs).
+DEFAULTS_FILE = ("limits", "default.yaml")
 #: Bytes every budget of sizes allows on top of its factor (small files keep working whatever they hold).
 SLACK_BYTES = 1 << 20
 OUTSIDE_IMAGES = ("allow", "refuse")
@@ -82,4 +82,4 @@ def current() -> Limits:
 @functools.cache
 def defaults() -> Limits:
     """The budgets of the defaults file."""
-    return Limits(**yaml.safe_load(DEFAULTS_FILE.read_text()))
+    return Limits(**yaml.safe_load(configs_dir().joinpath(*DEFAULTS_FILE).read_text()))

@@ -1,6 +1,7 @@
 """Shared test helpers: the project's configs composed by Hydra, zoo models built from them, a
 callback that interrupts training, a network that fails on one rank, the hostile names of conftest's hostile run."""
 
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -234,3 +235,21 @@ def train(cfg: DictConfig, output_dir: Path):
     from locretrieval.training.run import train as run
 
     return run(build_training(cfg, composed_training_scenes(cfg)), Path(output_dir))
+
+
+#: A log line's start (Hydra's format) and a tqdm bar's (``12%|`` or ``| 3/16 [``).
+STAMP = re.compile(r"\[\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}\]")
+BAR = re.compile(r"\d+%\||\|\s*\d+/\d+ \[")
+
+
+def collisions(screen: str) -> list[str]:
+    """The pieces of a terminal's output where a log line and a bar share a line: each line cut at
+    carriage returns and cursor moves (where a bar is drawn again), a log line's stamp after other
+    text of its piece, or a bar after a log line's stamp."""
+    pieces = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "\r", screen).replace("\n", "\r").split("\r")
+    found = []
+    for piece in pieces:
+        stamp = STAMP.search(piece)
+        if stamp and (piece[: stamp.start()].strip() or BAR.search(piece[stamp.end() :])):
+            found.append(piece)
+    return found

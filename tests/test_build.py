@@ -13,9 +13,10 @@ from locretrieval.config import ConfigError
 from locretrieval.evaluation import Evaluation
 
 PACKAGE = Path(__file__).resolve().parents[1] / "locretrieval"
-#: The modules that may read a config: the build step and the validation under it, the command line's
-#: helpers, and Hydra's plugins (the sweeper and the callbacks Hydra hands its config to).
-READ_CONFIGS = {"build.py", "config.py", "cli.py", "training/sweeps.py", "folders.py"}
+#: The modules that may read a config: the build step and the validation under it, the commands (the
+#: Hydra applications) and their command line's helpers, and Hydra's plugins (the sweeper and the
+#: callbacks Hydra hands its config to).
+READ_CONFIGS = {"build.py", "config.py", "commands.py", "cli.py", "training/sweeps.py", "folders.py"}
 #: What reading a config is: its types, and OmegaConf's readers (registering a resolver is not).
 CONFIG_NAMES = {"DictConfig", "ListConfig", "Container"}
 OMEGACONF_READERS = {

@@ -45,6 +45,12 @@ def test_short_labels_stay_as_they_are_and_nothing_can_leave_the_sweep_folder():
     assert "/" not in job_dirname(1, "model.name=../../outside") and job_dirname(1, "x/..") != "1_x/.."
 
 
+def test_an_optuna_trial_s_folder_shows_its_values_rounded_to_three_digits():
+    label = "augmentation.blur_probability=0.489309171116382,module.optimizer.lr=0.00012345678,sampler.anchors=6"
+    assert job_dirname(0, label) == "0_blur_probability=0.489,lr=0.000123,anchors=6"
+    assert job_dirname(1, "x=2.0,y=0.25,z=1.5e-05") == "1_x=2.0,y=0.25,z=1.5e-05"  # short values as they are
+
+
 def test_both_entry_points_name_their_jobs_by_the_resolver():
     for name in ("train", "evaluate"):
         subdir = OmegaConf.load(helpers.CONFIGS / f"{name}.yaml").hydra.sweep._get_node("subdir")._value()

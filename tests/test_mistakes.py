@@ -15,7 +15,7 @@ from hydra.errors import InstantiationException
 from omegaconf import OmegaConf
 
 from locretrieval import cli
-from locretrieval.cli import Mistake, reported_mistakes, unknown_override_keys
+from locretrieval.cli import Mistake, device_problems, group_override_problems, reported_mistakes, unknown_override_keys
 from locretrieval.config import ConfigError
 from locretrieval.errors import DataFileError
 from locretrieval.models.files.weights import WEIGHT_SOURCES
@@ -25,10 +25,41 @@ CONFIGS = ROOT / "configs"
 
 
 def mistakes(root: Path) -> dict[str, tuple[list[str], str, str | None, str | None]]:
-    """Each mistake: its command (run in ``root``, where nothing is installed), the start of the
-    first line it must print, and words the output must hold and must not."""
+    """Each mistake: its command (a script of the repository's root, or ``-m locretrieval``: the
+    installed command; run in ``root``, an empty folder), the start of the first line it must print,
+    and words the output must hold and must not."""
     data = root / "data"
     return {
+        "an option a config group lacks": (
+            ["-m", "locretrieval", "evaluate", "model=netvald"],
+            "model=netvald: no such option of model; did you mean netvlad",
+            "densevlad, ",  # the options, on the same line
+            "Config search path",
+        ),
+        "a config group the command lacks": (
+            ["evaluate.py", "loss=apx"],
+            "loss: evaluate has no config group loss; it is train's (locretrieval train loss=apx)",
+            "evaluate's groups: baselines, data, ",
+            "+loss",
+        ),
+        "a key of another command": (
+            ["train.py", "dry_run=yes"],
+            "dry_run: unknown key; expected one of ",
+            "instead, debug=quick",
+            None,
+        ),
+        "a device that is none, named as typed": (
+            ["-m", "locretrieval", "evaluate", "device=gpu"],
+            "device=gpu: no such device; choose auto (a GPU when there is one), cpu, cuda or cuda:N",
+            None,
+            "sfm.matching",
+        ),
+        "an export the model cannot do": (
+            ["export.py", "export=[onnx]"],
+            "export=[onnx]: model 'densevlad' (DenseVLAD) is not a torch network",
+            "model=checkpoint model.weights=",
+            None,
+        ),
         "a published dataset not installed": (
             ["train.py", "data=baidu", "loss=ap"],
             f"kapture folder not found: {data}/baidu-mall/mapping",
@@ -65,7 +96,9 @@ def test_each_mistake_ends_with_its_fix_first_on_one_short_screen(tmp_path):
     cases = mistakes(tmp_path)
     started = {
         name: subprocess.Popen(
-            [sys.executable, str(ROOT / command[0]), *command[1:]],
+            [sys.executable, *command]
+            if command[0] == "-m"
+            else [sys.executable, str(ROOT / command[0]), *command[1:]],
             cwd=tmp_path,
             env={**env, "PYTHONPATH": str(ROOT)},
             stdout=subprocess.PIPE,
@@ -157,3 +190,28 @@ def test_the_config_is_composed_only_for_a_key_that_is_surely_absent(monkeypatch
     for mistyped in ("trainer.max_epoch=2", "max_epochs=2"):
         with pytest.raises(AssertionError, match="composed"):
             unknown_override_keys(CONFIGS, "train", [mistyped])
+
+
+def test_a_group_s_options_are_those_of_the_shipped_and_the_user_s_config_folders(tmp_path):
+    (tmp_path / "model").mkdir()
+    (tmp_path / "model" / "mine.yaml").write_text("name: mine\n")
+    mine = ["--config-dir", str(tmp_path)]
+    assert group_override_problems(CONFIGS, "evaluate", [*mine, "model=mine"]) == []
+    [refused] = group_override_problems(CONFIGS, "evaluate", ["model=mine"])
+    assert refused.startswith("model=mine: no such option of model (its options: apgem, ")
+    # additions, deletions, Hydra's own groups, an optional group set to null and nested groups pass
+    passing = ["+loss=ap", "~baselines", "hydra/launcher=joblib_local", "sfm/features=kapture", "hparams_search=null"]
+    assert group_override_problems(CONFIGS, "train", passing) == []
+    [swept] = group_override_problems(CONFIGS, "train", ["-m", "loss=ap,tripplet", "optimizer=adam"])
+    assert swept.startswith("loss=tripplet: no such option of loss; did you mean triplet? (its options: ap, ")
+    assert swept.endswith("(the command line's loss=ap,tripplet)")
+    [missing] = group_override_problems(CONFIGS, "export", ["optimizer=adamw"])
+    assert missing.startswith("optimizer: export has no config group optimizer; it is train's")
+
+
+def test_a_device_is_named_as_typed_with_its_choices():
+    assert device_problems(["device=cuda:1", "device=auto", "hydra.job.chdir=false"]) == []
+    assert device_problems(["-m", "device=cpu,gpu,mps"]) == [
+        f"device={name}: no such device; choose auto (a GPU when there is one), cpu, cuda or cuda:N"
+        for name in ("gpu", "mps")
+    ]

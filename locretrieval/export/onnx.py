@@ -35,7 +35,7 @@ import torch
 
 import locretrieval
 from locretrieval.cache import atomic_path
-from locretrieval.config import require
+from locretrieval.config import ConfigError, require
 from locretrieval.export.network import DescriptorNetwork
 from locretrieval.models.base import GlobalDescriptor
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
@@ -85,12 +85,19 @@ class OnnxSettings:
             )
 
 
+#: The models (configs/model/) that are no torch network, so none has an ONNX graph.
+NOT_NETWORKS = ("densevlad", "precomputed", "pairs")
+
+
 def torch_network(model: GlobalDescriptor) -> TorchGlobalDescriptor:
-    """``model`` if it is computed by a torch network; a ``TypeError`` saying so otherwise."""
+    """``model`` if it is computed by a torch network; a `ConfigError` (a mistake: one screen)
+    naming the models that are, otherwise."""
     if not isinstance(model, TorchGlobalDescriptor):
-        raise TypeError(
-            f"onnx: model {model.name!r} ({type(model).__name__}) is not a torch network; ONNX export takes a "
-            "trainable model (model=checkpoint, gem, lite0_gem, timm, dinov2_*), a zoo network or a hub/callable module"
+        raise ConfigError(
+            f"export=[onnx]: model {model.name!r} ({type(model).__name__}) is not a torch network, so it has no "
+            f"ONNX graph; every model but {', '.join(NOT_NETWORKS)} exports to ONNX: a trained one "
+            "(model=checkpoint model.weights=<run>/checkpoints/last.ckpt), a trainable one (gem, lite0_gem, timm, "
+            "netvlad_head), the zoo's networks (netvlad, apgem, delg, dinov2_*) and hub or callable modules"
         )
     return model
 

@@ -49,9 +49,12 @@ log = logging.getLogger(__name__)
 #: Bump when the meaning of cached scores changes.
 CACHE_VERSION = 2
 
-#: Names of the subsets `subset_masks` returns (distinct from the synthetic scene's tags).
+#: Names of the subsets `subset_masks` returns.
 BLURRY = "blurry"
 DYNAMIC_SCENE = "dynamic_scene"
+#: The query tags of a scene that knows which queries are blurred or show dynamic objects (the
+#: synthetic renderer's): such a tag is the subset, reported under the subset's name (`known_subsets`).
+SUBSET_TAGS = {BLURRY: "blur", DYNAMIC_SCENE: "dynamic"}
 
 #: COCO classes counted as dynamic: the paper names persons, vehicles ("car"), animals and
 #: "objects"; we read objects as the things people carry (COCO's accessory and sports
@@ -387,3 +390,27 @@ def image_subsets(
     for name, mask in masks.items():
         log.info("subset %s: %d of %d images", name, int(mask.sum()), len(mask))
     return masks, table
+
+
+def known_subsets(
+    tag_masks: dict[str, np.ndarray], image_masks: dict[str, np.ndarray], table: pd.DataFrame
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], pd.DataFrame]:
+    """One name per subset: where the queries carry the tag of an image subset (`SUBSET_TAGS`), the
+    tag's queries are that subset (what the scene knows rather than what a detector finds), under
+    the subset's name, the tag's own subset dropped; ``(tag masks, image masks, table)`` with the
+    table's column of the subset holding the tag's. The detectors' agreement is logged."""
+    tag_masks, image_masks, table = dict(tag_masks), dict(image_masks), table.copy()
+    for subset, tag in SUBSET_TAGS.items():
+        if subset in image_masks and tag in tag_masks:
+            known, detected = tag_masks.pop(tag), image_masks[subset]
+            log.info(
+                "subset %s: the %d queries the scene tags %r (the detector finds %d, %d of them tagged)",
+                subset,
+                int(known.sum()),
+                tag,
+                int(detected.sum()),
+                int((known & detected).sum()),
+            )
+            image_masks[subset] = known
+            table[subset] = known
+    return tag_masks, image_masks, table

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -63,8 +62,8 @@ class Uncertainty:
         return QueryBootstrap(num_queries, self.resamples, self.seed)
 
 
-#: The defaults of the ``metrics`` config group (its one file).
-DEFAULTS_FILE = Path(__file__).resolve().parents[2] / "configs" / "metrics" / "default.yaml"
+#: The defaults of the ``metrics`` config group (its one file, in the shipped configs).
+DEFAULTS_FILE = ("metrics", "default.yaml")
 
 
 @functools.cache
@@ -73,7 +72,9 @@ def default_uncertainty() -> Uncertainty:
     over runs, a sweep's summary)."""
     import yaml
 
-    return Uncertainty(**yaml.safe_load(DEFAULTS_FILE.read_text())["uncertainty"])
+    from locretrieval.resources import configs_dir
+
+    return Uncertainty(**yaml.safe_load(configs_dir().joinpath(*DEFAULTS_FILE).read_text())["uncertainty"])
 
 
 def share_interval(successes: np.ndarray, trials: np.ndarray, confidence: float) -> tuple[np.ndarray, np.ndarray]:

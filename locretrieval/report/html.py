@@ -54,13 +54,14 @@ PAGE = jinja2.Environment(autoescape=True).from_string(
 <title>{{ title }}</title>
 <link rel="icon" href="data:,">
 <style>
-body { font-family: system-ui, sans-serif; margin: 0 auto; max-width: 1400px; padding: 1rem 2rem; color: #1f2328; }
+body { font-family: system-ui, sans-serif; margin: 0 auto; max-width: 1400px; padding: 1rem 2rem; color: #1f2328;
+       overflow-wrap: anywhere; }
 nav { padding: 0.5rem 0; border-bottom: 1px solid #d0d7de; margin-bottom: 1rem; }
 nav a { margin-right: 1.5rem; }
 table { border-collapse: collapse; margin: 0.5rem 0 1.5rem; font-size: 0.9rem; display: block;
         max-width: 100%; overflow-x: auto; }
 th, td { border: 1px solid #d0d7de; padding: 0.25rem 0.5rem; vertical-align: top; }
-th { background: #f6f8fa; }
+th { background: #f6f8fa; min-width: 6ch; }
 img { max-width: 100%; height: auto; }
 code { font-size: 0.85em; }
 </style>

@@ -21,8 +21,13 @@ from locretrieval.cache import safe_name
 from locretrieval.report.plots import threshold_label
 
 #: Characters Markdown (GitHub's and Python-Markdown's, tables included) or HTML could read as
-#: markup: written as numeric character references, which both show as the character.
-_MARKUP = re.compile(r"[\\`*\[\]<>&|$~]|(?<![A-Za-z0-9])_|_(?![A-Za-z0-9])")
+#: markup: written as numeric character references, which both show as the character. Where a
+#: plain character is safe it stays one: a ``&`` that starts no character reference, a ``]`` that
+#: closes no link, image or link definition (none before ``(``, ``[`` or ``:``; a ``[`` alone
+#: opens nothing), an ``_`` inside a word.
+_MARKUP = re.compile(r"[\\`*<>|$~]|&(?=#?\w+;)|\](?=[(\[:])|(?<![A-Za-z0-9])_|_(?![A-Za-z0-9])")
+#: Brackets in a link's label (`md_link`), where every one could end or nest the label.
+_BRACKETS = re.compile(r"[\[\]]")
 _LINE_BREAK = re.compile(r"[\r\n\t\v\f\u2028\u2029]+")
 #: LaTeX's special characters and what writes them literally.
 _LATEX = {
@@ -47,8 +52,10 @@ def md_code(value: object) -> str:
 
 
 def md_link(label: object, target: str) -> str:
-    """A Markdown link to the relative path ``target`` (percent-encoded) labelled ``label`` (`md_text`)."""
-    return f"[{md_text(label)}]({urllib.parse.quote(target)})"
+    """A Markdown link to the relative path ``target`` (percent-encoded) labelled ``label`` (`md_text`,
+    its brackets escaped too)."""
+    text = _BRACKETS.sub(lambda match: f"&#{ord(match.group())};", md_text(label))
+    return f"[{text}]({urllib.parse.quote(target)})"
 
 
 def latex_text(value: object) -> str:

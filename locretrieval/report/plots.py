@@ -46,6 +46,8 @@ LINE_STYLES = {"descriptor": "-", "groundtruth": "--", "baseline": ":"}
 BAND_ALPHA = 0.12
 METRIC_LABELS = {"precision": "P@k", "recall": "R@k", "map": "mAP@k", "average_precision": "AP@k"}  # AP: per query
 PANEL_WIDTH, PANEL_HEIGHT = 4.2, 3.6
+#: The widest a figure is drawn, in inches: three panels, shown at about their size on a report page.
+FIGURE_WIDTH_INCHES = 13.0
 #: Room in inches around and between the panels, for the text every panel has: tick labels of at
 #: most four characters, one-line axis labels and titles (two-line 7-point tick labels under the
 #: violins, which have no x label), the figure's one-line title; legends are inside the axes.
@@ -101,22 +103,30 @@ class FigureFolder:
 
 
 def _panels(count: int, panel_width: float = PANEL_WIDTH) -> tuple[plt.Figure, np.ndarray]:
-    """A figure of ``count`` panels in a row, with `MARGINS_INCHES` around and between them."""
-    width = panel_width * count
+    """A figure of ``count`` panels, in rows of as many as `FIGURE_WIDTH_INCHES` holds (a report
+    page shows it at about its size: panels in one long row would be shrunk past reading), with
+    `MARGINS_INCHES` around and between them (each row its titles above and labels below)."""
+    columns = max(1, min(count, int(FIGURE_WIDTH_INCHES // panel_width)))
+    rows = -(-count // columns)
+    width, height = panel_width * columns, PANEL_HEIGHT * rows
     margins = MARGINS_INCHES
-    axis_width = (width - margins["left"] - margins["right"] - (count - 1) * margins["between"]) / count
+    axis_width = (width - margins["left"] - margins["right"] - (columns - 1) * margins["between"]) / columns
+    axis_height = PANEL_HEIGHT - margins["top"] - margins["bottom"]
     layout = {
         "left": margins["left"] / width,
         "right": 1 - margins["right"] / width,
-        "bottom": margins["bottom"] / PANEL_HEIGHT,
-        "top": 1 - margins["top"] / PANEL_HEIGHT,
+        "bottom": margins["bottom"] / height,
+        "top": 1 - margins["top"] / height,
         "wspace": margins["between"] / axis_width,
+        "hspace": (margins["top"] + margins["bottom"]) / axis_height,
     }
     # Titles sit at the top of their axes: auto-placing them above tick labels re-measures every
     # tick label at each draw, and no panel has ticks or (without offsets) an offset text at its top.
     with pyplot().rc_context({"axes.titley": 1.0, "axes.formatter.useoffset": False}):
-        figure, axes = pyplot().subplots(1, count, figsize=(width, PANEL_HEIGHT), squeeze=False, gridspec_kw=layout)
-    return figure, axes[0]
+        figure, axes = pyplot().subplots(rows, columns, figsize=(width, height), squeeze=False, gridspec_kw=layout)
+    for unused in axes.ravel()[count:]:
+        unused.remove()
+    return figure, axes.ravel()[:count]
 
 
 def threshold_label(position: float, rotation: float, unit: str = METRES) -> str:
@@ -400,7 +410,7 @@ def plot_subset_comparison(
                 _log_k_axis(axis, rows["k"])
                 axis.set(ylabel=ylabel, ylim=PERCENT_LIMITS, title=title)
                 axis.grid(True, alpha=0.3)
-                axis.legend(fontsize=6, loc="best")
+                axis.legend(fontsize=7, loc="best")
             figure.suptitle(f"{dataset}: all queries (solid) vs {subset} (dashed)")
             written.append(figures.save(figure, f"{dataset}_subset_{subset}"))
     return written

@@ -1,13 +1,18 @@
 """The forecast of a dry run (``evaluate.py dry_run=true``): what the SfM work will take here.
 
 No run imports this module: a run measures its stages where they run (`StageMeter`). A dry run
-counts the work before any ranking is computed (`count_work`: upper bounds, each ranking's top-k
-taken as disjoint, less the pairs the ground truth matches first), then times the costly stages
-once on this machine (`calibrate`: the pipeline on a small neighbourhood of the scene, in one
-process with one thread, into a temporary folder) and multiplies: features per image, matching
-per pair, triangulation per matched pair in a map, registration per database image a query is
-registered against, each spread over the worker processes. A machine busier than when calibrated
-takes longer; the forecast claims the measured run within `BAND` of it.
+counts the work before the rankings it cannot read from the caches are computed (`count_work`:
+exact for the rankings given, cached work as cached; upper bounds for the others, each ranking's
+top-k taken as disjoint, less the pairs the ground truth matches first: `counted_plan`), then
+multiplies by unit costs measured on this machine (`calibrate`: the pipeline on a small
+neighbourhood of the scene, in one process with one thread, into a temporary folder; then again
+over its own cached work, for what reading work back costs): features per image, matching per
+pair, triangulation per matched pair in a map, registration per database image a query is
+registered against, each spread over the worker processes, and per unit of cached work what
+reading it back costs. The unit costs are kept in the cache (`stored_calibration`: keyed by the
+settings, the sample and the machine), so that two dry runs of one config forecast the same. A
+machine busier than when calibrated takes longer; the forecast claims the measured run within
+`BAND` of it.
 """
 
 from __future__ import annotations
@@ -15,21 +20,25 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import os
+import platform
+import statistics
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from math import comb
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from locretrieval.cache import temporary_folder
+from locretrieval.cache import config_key, load_arrays, save_arrays, temporary_folder
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
 from locretrieval.sfm.inputs import SfmInputs, SfmSettings
 from locretrieval.sfm.matching import pair_key
 from locretrieval.sfm.pipeline import SfmStages, count_work, run_sfm
-from locretrieval.sfm.work import FEATURES, MATCHING, SfmPlan, Work, stage_names
+from locretrieval.sfm.work import FEATURES, MATCHING, ParadigmWork, SfmPlan, Work, stage_names
 from locretrieval.threads import single_threaded
 
 log = logging.getLogger(__name__)
@@ -41,6 +50,13 @@ CALIBRATION_DATABASE = 12
 CALIBRATION_QUERIES = 3
 #: The ground truth's own matching and joint map, forecast as stages of their own.
 GROUNDTRUTH_MATCHING, GROUNDTRUTH_MAP = "ground truth: match + verify", "ground truth: triangulate"
+#: A run's SfM work besides its stages' (counting the work, gathering the outcomes): the forecast's
+#: entry, and its cost per registration in `Calibration.cached`.
+CACHED_OTHER = "counting + gathering"
+#: Passes over the calibration's own cached work; the medians are kept.
+CACHED_PASSES = 3
+#: Bump when what a calibration measures changes: the stored ones are then measured again.
+CALIBRATION_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -48,7 +64,9 @@ class Calibration:
     """Seconds per unit in one process with one thread, measured by `calibrate`: ``features`` per
     image, ``pairs`` per pair matched and verified, and per paradigm ``map_pairs`` per matched pair
     triangulated into a map and ``registered_images`` per database image a query is registered
-    against; ``seconds``: what the calibration took; ``sample``: what it ran on."""
+    against; ``seconds``: what the calibration took; ``sample``: what it ran on; ``cached``: per
+    stage, seconds per unit of its work found cached (read back; `stage_totals`' units), and
+    `CACHED_OTHER` per registration."""
 
     features: float
     pairs: float
@@ -56,6 +74,7 @@ class Calibration:
     registered_images: dict[str, float]
     seconds: float
     sample: str
+    cached: dict[str, float] = dataclasses.field(default_factory=dict)
 
 
 def calibration_sample(scene: Scene) -> tuple[Scene, Ranking]:
@@ -86,19 +105,30 @@ def calibration_sample(scene: Scene) -> tuple[Scene, Ranking]:
 def calibrate(scene: Scene, settings: SfmSettings, paradigms: Mapping[str, SfmStages], cache_dir: Path) -> Calibration:
     """Unit costs of the SfM stages, measured by running the pipeline (`run_sfm`) with
     ``paradigms`` on `calibration_sample`, in one process with one thread (as each worker runs
-    its tasks), into a temporary folder of ``cache_dir`` deleted afterwards."""
+    its tasks), into a temporary folder of ``cache_dir`` deleted afterwards; then `CACHED_PASSES`
+    times again over its own cached work (`Calibration.cached`: the median of each stage's time
+    per unit of its work, `stage_totals`, and of the rest, `CACHED_OTHER`, per registration)."""
     sample, ranking = calibration_sample(scene)
     one_process = dataclasses.replace(settings, workers=1)
     started = time.perf_counter()
     with temporary_folder(cache_dir, "calibration") as folder, single_threaded(), _quiet():
-        inputs = SfmInputs.prepare(sample, one_process, folder, extract=False)
-        run = run_sfm(inputs, [ranking], paradigms)
+        run, *again = [
+            run_sfm(SfmInputs.prepare(sample, one_process, folder, extract=False), [ranking], paradigms)
+            for _ in range(1 + CACHED_PASSES)
+        ]
 
     def per_unit(stage: str, units: float) -> float:
         record = run.stages.get(stage)
         return record.seconds / units if record is not None and units else 0.0
 
     plan = run.plan
+    cached = {
+        stage: statistics.median(r.stages[stage].seconds if stage in r.stages else 0.0 for r in again) / units
+        for stage, units in stage_totals(plan).items()
+        if units
+    }
+    rest = [max(0.0, r.seconds - sum(record.seconds for record in r.stages.values())) for r in again]
+    cached[CACHED_OTHER] = statistics.median(rest) / max(1, sum(work.registrations.total for work in plan.paradigms))
     map_pairs, registered = {}, {}
     for work in plan.paradigms:
         triangulate, register = stage_names(work.paradigm)
@@ -111,7 +141,76 @@ def calibrate(scene: Scene, settings: SfmSettings, paradigms: Mapping[str, SfmSt
         registered,
         time.perf_counter() - started,
         f"{len(sample.database)} database images and {len(sample.queries)} queries near the scene's centre",
+        cached,
     )
+
+
+def stage_totals(plan: SfmPlan) -> dict[str, int]:
+    """Each stage's work in all, cached or not, in the units of `SfmPlan.stage_units`."""
+    totals = {
+        FEATURES: plan.features.total,
+        MATCHING: max((p.query_pairs.total for p in plan.paradigms), default=0)
+        + sum(p.database_pairs.total for p in plan.paradigms),
+    }
+    for work in plan.paradigms:
+        triangulate, register = stage_names(work.paradigm)
+        totals[triangulate], totals[register] = work.maps.total, work.registrations.total
+    return totals
+
+
+def stored_calibration(
+    scene: Scene, settings: SfmSettings, paradigms: Mapping[str, SfmStages], cache_dir: Path
+) -> tuple[Calibration, Path, bool]:
+    """``(calibration, its file, whether it was stored)``: the `calibrate` of these settings on this
+    scene's sample and this machine, measured once and kept in ``cache_dir/forecast/``."""
+    sample, _ = calibration_sample(scene)
+    key = config_key(
+        CALIBRATION_VERSION,
+        repr(dataclasses.replace(settings, workers=1)),
+        {name: repr(stages) for name, stages in paradigms.items()},
+        sample.database.fingerprint(),
+        sample.queries.fingerprint(),
+        platform.node(),
+        os.cpu_count(),
+    )
+    path = cache_dir / "forecast" / f"calibration-{key}.npz"
+    if path.is_file():
+        return calibration_from_arrays(load_arrays(path), path), path, True
+    calibration = calibrate(scene, settings, paradigms, cache_dir)
+    save_arrays(path, calibration_arrays(calibration))  # no lock: two dry runs measuring at once keep either
+    return calibration, path, False
+
+
+def calibration_arrays(calibration: Calibration) -> dict[str, np.ndarray]:
+    """``calibration`` as the arrays of its cache file: one per value, a mapping's as ``<field>:<key>``."""
+    arrays = {"sample": np.asarray(calibration.sample)}
+    for field in dataclasses.fields(Calibration):
+        value = getattr(calibration, field.name)
+        if isinstance(value, dict):
+            arrays.update({f"{field.name}:{key}": np.float64(number) for key, number in value.items()})
+        elif field.name != "sample":
+            arrays[field.name] = np.float64(value)
+    return arrays
+
+
+def calibration_from_arrays(arrays: Mapping[str, np.ndarray], path: Path) -> Calibration:
+    """The `Calibration` of a cache file's ``arrays`` (`calibration_arrays`); a `DataFileError`
+    naming ``path`` when they are not one."""
+    from locretrieval.errors import DELETE_CACHE_FILE, DataFileError
+
+    values: dict[str, Any] = {"map_pairs": {}, "registered_images": {}, "cached": {}}
+    try:
+        for name, array in arrays.items():
+            field, _, key = name.partition(":")
+            if key:
+                values[field][key] = float(array)
+            else:
+                values[field] = str(array) if field == "sample" else float(array)
+        if CACHED_OTHER not in values["cached"]:
+            raise KeyError(f"cached costs {sorted(values['cached'])}")
+        return Calibration(**values)
+    except (TypeError, ValueError, KeyError) as error:
+        raise DataFileError(path, f"not a forecast's calibration ({error})", DELETE_CACHE_FILE) from None
 
 
 def after_groundtruth(
@@ -156,11 +255,13 @@ def forecast(
 ) -> dict[str, float]:
     """Seconds per stage: ``plan``'s new units (and the ``groundtruth``'s, `after_groundtruth`)
     times ``calibration``'s unit costs, spread over ``processes`` workers where the pipeline
-    spreads them (matching on a GPU and a map every query shares in one process)."""
+    spreads them (matching on a GPU and a map every query shares in one process); plus reading
+    back the work found cached (`stage_totals` less the new, `Calibration.cached`) and
+    `CACHED_OTHER` per registration, in this process."""
     matching_processes = processes if matching_device == "cpu" else 1
     seconds = {FEATURES: plan.features.new * calibration.features / processes}
     groundtruth = groundtruth or {}
-    if groundtruth:
+    if groundtruth and groundtruth[GROUNDTRUTH_MATCHING].total:  # the ground truth matches first
         seconds[GROUNDTRUTH_MATCHING] = groundtruth[GROUNDTRUTH_MATCHING].new * calibration.pairs / matching_processes
         shared = next((w.paradigm for w in plan.paradigms if w.shared_map), None)
         per_pair = calibration.map_pairs.get(shared, 0.0) if shared else max(calibration.map_pairs.values(), default=0)
@@ -171,6 +272,12 @@ def forecast(
         map_seconds = work.maps.new * work.pairs_per_map * calibration.map_pairs[work.paradigm]
         seconds[triangulate] = map_seconds if work.shared_map else map_seconds / processes
         seconds[register] = work.registered_images.new * calibration.registered_images[work.paradigm] / processes
+    if calibration.cached:
+        new = plan.stage_units()
+        for stage, total in stage_totals(plan).items():
+            seconds[stage] += max(0, total - new[stage][0]) * calibration.cached.get(stage, 0.0)
+        registrations = sum(work.registrations.total for work in plan.paradigms)
+        seconds[CACHED_OTHER] = registrations * calibration.cached[CACHED_OTHER]
     return seconds
 
 
@@ -187,7 +294,8 @@ def describe_forecast(seconds: Mapping[str, float], calibration: Calibration, pr
                 f"{calibration.registered_images[name] * 1e3:.2f} ms/registered image"
                 for name in calibration.map_pairs
             )
-            + f"; spread over {processes} worker process(es)",
+            + f"; spread over {processes} worker process(es); counting + gathering "
+            + f"{calibration.cached.get(CACHED_OTHER, 0.0) * 1e3:.2f} ms/registration",
             "  forecast: " + ", ".join(f"{stage} {duration(value)}" for stage, value in seconds.items()),
             f"  total {duration(total)}: the run should take {duration(total * low)} to {duration(total * high)} "
             f"(x{low:g}-{high:g}) on a machine as loaded as now",
@@ -195,25 +303,53 @@ def describe_forecast(seconds: Mapping[str, float], calibration: Calibration, pr
     )
 
 
+def counted_plan(
+    inputs: SfmInputs, rankings: Sequence[Ranking], paradigms: Mapping[str, SfmStages], num_rankings: int
+) -> SfmPlan:
+    """The work of ``paradigms``: exact for ``rankings`` (cached work as cached, `count_work`),
+    plus upper bounds for ``num_rankings`` more not computed yet (a map every query shares counted once)."""
+    if not rankings or not num_rankings:
+        return count_work(inputs, rankings or None, paradigms, num_rankings)
+    exact, bound = count_work(inputs, rankings, paradigms), count_work(inputs, None, paradigms, num_rankings)
+
+    def added(a: ParadigmWork, b: ParadigmWork) -> ParadigmWork:
+        def add(x: Work, y: Work) -> Work:
+            return Work(x.total + y.total, x.new + y.new)
+
+        summed = ("query_pairs", "registrations", "registered_images", "queries")
+        if not a.shared_map:  # a map every query shares is one, whichever the rankings
+            summed += ("database_pairs", "maps")
+        return dataclasses.replace(a, **{name: add(getattr(a, name), getattr(b, name)) for name in summed})
+
+    return SfmPlan(exact.features, [added(a, b) for a, b in zip(exact.paradigms, bound.paradigms)], exact=False)
+
+
 def dry_run_forecast(
     scene: Scene,
     settings: SfmSettings,
     paradigms: Mapping[str, SfmStages],
     cache_dir: Path,
+    rankings: Sequence[Ranking],
     num_rankings: int,
     groundtruth_pairs: tuple[set[tuple[str, str]], set[tuple[str, str]]],
 ) -> tuple[SfmPlan, dict[str, float], str]:
-    """The dry run of ``paradigms`` on ``scene`` with ``num_rankings`` rankings to come and the
-    ground truth's pairs (`groundtruth_sfm_pairs`): the plan, each stage's forecast seconds and
-    the log lines saying both."""
+    """The dry run of ``paradigms`` on ``scene`` with the ``rankings`` the caches hold,
+    ``num_rankings`` more to come and the pairs of the ground truth to compute
+    (`groundtruth_sfm_pairs`): the plan (`counted_plan`), each stage's forecast seconds (the
+    calibration `stored_calibration` keeps) and the log lines saying both."""
     inputs = SfmInputs.prepare(scene, settings, cache_dir, extract=False)
-    plan, groundtruth = after_groundtruth(count_work(inputs, None, paradigms, num_rankings), inputs, *groundtruth_pairs)
-    calibration = calibrate(scene, settings, paradigms, cache_dir)
+    plan, groundtruth = after_groundtruth(
+        counted_plan(inputs, rankings, paradigms, num_rankings), inputs, *groundtruth_pairs
+    )
+    calibration, path, stored = stored_calibration(scene, settings, paradigms, cache_dir)
     seconds = forecast(plan, calibration, settings.processes, settings.matching.matcher().device, groundtruth)
     lines = [plan.describe()]
     if groundtruth[GROUNDTRUTH_MATCHING].total:
         lines.append(f"  ground truth: pairs {groundtruth[GROUNDTRUTH_MATCHING]}, matched first")
     lines.append(describe_forecast(seconds, calibration, settings.processes))
+    lines.append(
+        f"  unit costs {'read from' if stored else 'measured now and kept in'} {path} (delete it to measure again)"
+    )
     return plan, seconds, "\n".join(lines)
 
 

@@ -369,12 +369,18 @@ def waiting(study: Any) -> int:
 
 
 def progress(study: Any, n_trials: int) -> str:
-    """How far ``study`` is: its trials per state and the completed ones to go."""
-    states: dict[str, int] = {}
+    """How far ``study`` is, in words: its completed trials of ``n_trials``, how many are still to
+    complete, and the trials it holds in other states (failed, waiting to run again, ...)."""
+    words = {"FAIL": "failed", "WAITING": "waiting to run"}  # Optuna's TrialState names otherwise, in lower case
+    done = completed(study)
+    others: dict[str, int] = {}
     for trial in study.get_trials(deepcopy=False):
-        states[trial.state.name.lower()] = states.get(trial.state.name.lower(), 0) + 1
-    held = ", ".join(f"{count} {state}" for state, count in states.items()) or "no trials"
-    return f"{held}; {max(0, n_trials - completed(study))} of n_trials={n_trials} to complete"
+        if trial.state.name != "COMPLETE":
+            state = words.get(trial.state.name, trial.state.name.lower())
+            others[state] = others.get(state, 0) + 1
+    left = max(0, n_trials - done)
+    text = f"{done} of {n_trials} trials (n_trials) complete, {left or 'none'} to go"
+    return text + (f"; also {', '.join(f'{count} {state}' for state, count in others.items())}" if others else "")
 
 
 def reseeded(node: dict[str, Any], offset: int) -> Any:

@@ -13,7 +13,8 @@ import torch
 from helpers import compose_config, export
 from hydra.utils import instantiate
 
-from locretrieval.export.onnx import OnnxExportError, OnnxSettings, export_onnx
+from locretrieval.config import ConfigError
+from locretrieval.export.onnx import NOT_NETWORKS, OnnxExportError, OnnxSettings, export_onnx
 from locretrieval.models.files.weights import EMBEDDED_CHECKPOINT_KEY, load_torch_file
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -92,8 +93,21 @@ def test_a_graph_that_fixed_the_batch_is_refused_and_not_kept(tmp_path):
 
 def test_onnx_export_refuses_a_model_that_is_not_a_torch_network(tmp_path):
     cfg = compose_config("export", "export=[onnx]", f"paths.root_dir={tmp_path}")  # DenseVLAD
-    with pytest.raises(TypeError, match=r"model 'densevlad' \(DenseVLAD\) is not a torch network"):
+    with pytest.raises(ConfigError, match=r"model 'densevlad' \(DenseVLAD\) is not a torch network"):
         export(cfg, tmp_path / "out")
+
+
+def test_the_models_named_as_no_torch_network_are_those_whose_class_is_none():
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import get_class
+
+    from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
+
+    names = sorted(path.stem for path in (helpers.CONFIGS / "model").glob("*.yaml"))
+    with initialize_config_dir(config_dir=str(helpers.CONFIGS), version_base="1.3"):
+        targets = {name: compose("export", overrides=[f"model={name}"]).model._target_ for name in names}
+    networks = {name for name, target in targets.items() if issubclass(get_class(target), TorchGlobalDescriptor)}
+    assert sorted(set(names) - networks) == sorted(NOT_NETWORKS)
 
 
 def test_torch_hub_loads_a_trained_checkpoint_from_the_repository(tmp_path):

@@ -1,4 +1,5 @@
 import numpy as np
+import pandas as pd
 import pytest
 from helpers import evaluate_config
 from PIL import Image, ImageFilter
@@ -229,3 +230,36 @@ def test_a_mask_source_from_outside_the_package_is_chosen_through_the_config(tmp
     expected = [(image.mean(-1) > 128).mean() for image in images]
     np.testing.assert_allclose(table["dynamic_fraction"], expected)
     assert set(table["mask_source"]) == {"bright"} and subsets[DYNAMIC_SCENE].tolist() == [e >= 0.2 for e in expected]
+
+
+def test_a_tag_that_is_an_image_subset_is_that_subset_under_one_name(caplog):
+    from locretrieval.metrics.subsets import known_subsets
+
+    tags = {"all": np.ones(4, bool), "blur": np.array([1, 1, 0, 0], bool), "night": np.array([0, 0, 1, 1], bool)}
+    images = {"blurry": np.array([0, 1, 1, 0], bool), "dynamic_scene": np.array([0, 0, 0, 1], bool)}
+    table = pd.DataFrame({"blur_score": [5.0, 10.0, 15.0, 30.0], "blurry": images["blurry"]})
+    with caplog.at_level("INFO"):
+        tags_left, subsets, written = known_subsets(tags, images, table)
+    assert set(tags_left) == {"all", "night"} and set(subsets) == {"blurry", "dynamic_scene"}  # no 'blur' beside it
+    assert subsets["blurry"].tolist() == [True, True, False, False] == written["blurry"].tolist()
+    assert subsets["dynamic_scene"].tolist() == [False, False, False, True]  # no 'dynamic' tag: the detector's
+    assert written["blur_score"].tolist() == [5.0, 10.0, 15.0, 30.0] and table["blurry"].tolist() == [0, 1, 1, 0]
+    assert "subset blurry: the 2 queries the scene tags 'blur' (the detector finds 2, 1 of them tagged)" in caplog.text
+
+
+def test_a_scene_reports_each_subset_once_under_the_subsets_name(tmp_path):
+    import dataclasses
+    from types import SimpleNamespace
+
+    from locretrieval.benchmark import scene_subsets
+
+    blurred = np.asarray(Image.fromarray(textured()).filter(ImageFilter.GaussianBlur(4)))
+    empty, full = np.zeros((10, 10), np.uint8), np.full((10, 10), 255, np.uint8)
+    queries = image_set(tmp_path, [textured(), blurred, textured(), textured()], [empty, empty, empty, full])
+    tags = [{"night"}, {"blur"}, {"blur"}, {"dynamic"}]  # the renderer blurred q1 and q2; q2 is sharp to the FFT
+    queries = dataclasses.replace(queries, tags=[frozenset(t) for t in tags])
+    subsets, table = scene_subsets(SimpleNamespace(name="toy", queries=queries), CONFIG, tmp_path / "cache")
+    assert sorted(subsets) == ["all", "blurry", "dynamic_scene", "night"]  # no 'blur' nor 'dynamic' beside them
+    assert subsets[BLURRY].tolist() == [False, True, True, False] == table[BLURRY].tolist()  # what the scene knows
+    assert subsets[DYNAMIC_SCENE].tolist() == [False, False, False, True]
+    assert table["blur_score"].iloc[2] > CONFIG.blur_threshold  # the detector alone would not count q2

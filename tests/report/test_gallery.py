@@ -22,6 +22,7 @@ from report_runs import (
 )
 
 import locretrieval.report.gallery as gallery
+from locretrieval.build import build_report_gallery
 from locretrieval.config import ConfigError, validated
 from locretrieval.report import build_report
 from locretrieval.report.gallery import (
@@ -35,7 +36,6 @@ from locretrieval.report.gallery import (
     Thumbnails,
     gallery_image,
     representative_k,
-    run_gallery_settings,
     select_queries,
 )
 from locretrieval.report.html import write_html
@@ -230,8 +230,8 @@ def test_report_py_reads_a_runs_gallery_settings_with_overrides(tmp_path):
     OmegaConf.save(
         {"paths": {"cache_dir": str(tmp_path / "cache")}, "report": {"gallery": section}}, tmp_path / "config.yaml"
     )
-    assert run_gallery_settings(tmp_path, ["queries=all", "k=10"]) == settings(**{**section, "queries": "all", "k": 10})
+    assert build_report_gallery(tmp_path, ["queries=all", "k=10"]) == settings(**{**section, "queries": "all", "k": 10})
     with pytest.raises(ConfigError, match="report.gallery.k: must be >= 1"):
-        run_gallery_settings(tmp_path, ["k=0"])
+        build_report_gallery(tmp_path, ["k=0"])
     OmegaConf.save({"report": {"figure_formats": ["png"]}}, tmp_path / "config.yaml")  # a run of an earlier version
-    assert run_gallery_settings(tmp_path) is None
+    assert build_report_gallery(tmp_path) is None

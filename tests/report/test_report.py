@@ -150,8 +150,16 @@ def test_every_report_figure_keeps_its_text_inside_the_figure_and_its_own_panel(
         boxes = [axis.get_tightbbox(renderer) for axis in figure.axes]  # ticks, labels, title, legend
         for box in boxes:
             assert 0 <= box.x0 and box.x1 <= width and 0 <= box.y0 and box.y1 <= height, stem
-        for left, right in zip(boxes, boxes[1:]):
-            assert left.x1 < right.x0, stem  # no panel's text reaches into the next
+        rows = {}  # the panels of each row, by the bottom of their frames
+        for axis, box in zip(figure.axes, boxes):
+            rows.setdefault(round(axis.get_position().y0, 6), []).append(box)
+        assert len(figure.axes) <= 3 * len(rows), stem  # at most three panels a row: legible at the page's width
+        for row in rows.values():
+            for left, right in zip(row, row[1:]):
+                assert left.x1 < right.x0, stem  # no panel's text reaches into the next
+        ordered = [rows[key] for key in sorted(rows, reverse=True)]  # top row first
+        for upper, lower in zip(ordered, ordered[1:]):
+            assert max(box.y1 for box in lower) < min(box.y0 for box in upper), stem  # nor into the row below
         for axis in figure.axes:  # nor one tick label into the next
             labels = sorted(
                 (label.get_window_extent(renderer) for label in axis.get_xticklabels() if label.get_text()),
@@ -328,3 +336,69 @@ def test_report_compares_every_two_rankings_and_says_where_a_paradigm_cannot_sep
     assert "Spearman's rho over the descriptors needs at least 2 descriptors; these runs have 1" in text
     assert not list((tmp_path / "report" / "tables").glob("spearman_*"))
     assert "nan" not in text.lower().replace("nanmean", "")
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["[a](javascript:alert(1))", "![i](http://x/i.png)", "[x]: http://e", "[a][x]", "&#91;x&#93; &amp;", "<b>x</b>"],
+)
+def test_markdown_text_is_shown_literally_and_forms_no_link_image_definition_or_tag(name):
+    import html
+
+    import markdown
+
+    from locretrieval.report.markdown import md_link, md_text
+
+    for line in (f"- **{md_text(name)}**: {md_text(name)}", md_text(name), md_link(name, "a b.png")):
+        page = markdown.markdown(f"{line}\n\n[x] [a]", extensions=["tables"])  # [x]: what a definition would link
+        tags = set(re.findall(r"<(\w+)", page))
+        assert tags <= {"ul", "li", "strong", "p", "a"}, page
+        assert page.count("<a ") == (line.startswith("[") and line.endswith("(a%20b.png)")), page  # md_link's only
+        assert name in html.unescape(re.sub(r"<[^>]+>", "", page)), page  # shown as it is
+
+
+def test_markdown_text_keeps_the_characters_that_form_nothing():
+    from locretrieval.report.markdown import md_text
+
+    assert md_text("approximation (k=[1, 2, 3, 5])") == "approximation (k=[1, 2, 3, 5])"
+    assert md_text("R&D [blur] a_b") == "R&D [blur] a_b"
+    assert (
+        md_text("[a](b) [c]: d [e][f] <g> &#1; &amp;")
+        == "[a&#93;(b) [c&#93;: d [e&#93;[f] &#60;g&#62; &#38;#1; &#38;amp;"
+    )
+
+
+def test_the_run_section_shows_a_list_of_k_as_written_in_markdown_and_html(tmp_path):
+    import html
+    import json
+
+    run = write_run(tmp_path / "run", ["netvlad"])
+    summary = {"paradigms": "approximation (k=[1, 2, 3, 5, 10])", "model": "R&D [blur] <b>x</b> [a](b)"}
+    (run / "summary.json").write_text(json.dumps(summary))
+    report = build_report([run], tmp_path / "report", figure_formats=[])  # the text only
+    text = report.read_text()
+    assert "- **paradigms**: approximation (k=[1, 2, 3, 5, 10])" in text  # the brackets as they are
+    assert "&#91;" not in text and text.count("&#93;") == 1  # the one ] that would close a link: [a](b)
+    page = report.with_suffix(".html").read_text()
+    shown = html.unescape(re.sub(r"<[^>]+>", "", page))  # what a browser shows
+    assert "paradigms: approximation (k=[1, 2, 3, 5, 10])" in shown
+    assert "model: R&D [blur] <b>x</b> [a](b)" in shown and "<b>x</b>" not in page  # shown, not made markup
+
+
+def test_a_report_page_wraps_long_words_and_scrolls_a_wide_table_inside_itself(tmp_path):
+    """The page's style (measured in Chromium by tests/report/test_report_browser.py): text breaks
+    anywhere it must (a Hydra job folder is one long word), a table is its own scrolling box."""
+    from locretrieval.report.html import write_html
+
+    page = tmp_path / "summary.md"
+    page.write_text("# s\n\n| trial | gap |\n| --- | --- |\n| 0_blur_probability=0.489309171116382,b=1 | 1 |\n")
+    style = re.search(r"<style>(.*?)</style>", write_html(page).read_text(), re.DOTALL).group(1)
+    rules = {
+        selector.strip(): {
+            item.split(":")[0].strip(): item.split(":", 1)[1].strip() for item in body.split(";") if ":" in item
+        }
+        for selector, body in re.findall(r"([^{}]+)\{([^}]*)\}", style)
+    }
+    assert rules["body"]["overflow-wrap"] == "anywhere"
+    assert rules["table"]["display"] == "block" and rules["table"]["overflow-x"] == "auto"
+    assert rules["table"]["max-width"] == "100%"

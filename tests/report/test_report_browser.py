@@ -157,3 +157,47 @@ def test_a_sweep_summary_and_its_optuna_figures_draw_with_their_own_scripts_only
     drawn = "return Array.from(document.querySelectorAll('.plotly-graph-div')).map(d => !!(window.Plotly && d.data));"
     assert browser.execute_script(drawn) == [True, True]  # the optimization history and the importances
     assert errors == []
+
+
+#: JavaScript: how far the page and each table reach beyond the window or their own box, in pixels.
+WIDTHS = """
+const page = document.documentElement.scrollWidth - window.innerWidth;
+const body = document.body.getBoundingClientRect();
+return [page, Array.from(document.querySelectorAll('table')).map(t => [
+    t.scrollWidth - t.clientWidth,
+    Math.max(...Array.from(t.querySelectorAll('th, td')).map(c => c.getBoundingClientRect().right)) - body.right])];
+"""
+
+
+def test_a_sweep_summary_s_table_fits_the_page_its_long_cells_wrapped(tmp_path, browser):
+    """The summary of two trials whose overrides and job folders are long unbroken words (as Hydra
+    names a sweep's folders), at 1000 pixels: the page does not scroll sideways and the trial table
+    shows every column, its cells wrapped, nothing cut or hidden behind a scroll."""
+    from omegaconf import OmegaConf
+    from training_runs import gap_run
+
+    from locretrieval.training.summary import write_summary
+
+    rows = [
+        ("approximation/ewb/k3/5m_10deg", 10.0, 40.0, 20.0, 60.0),
+        ("global_sfm/pnp/k5/0.25m_2deg", 50.0, 55.0, 50.0, 50.0),
+        ("local_sfm/pnp/k10/0.25m_2deg", 10.0, 30.0, 20.0, 70.0),
+    ]
+    runs = []
+    for number, probability in enumerate((0.489309171116382, 0.1023456789)):
+        label = f"{number}_blur_probability={probability},brightness=0.123456789012"
+        run = gap_run(tmp_path / "sweep", label, 40.0 - number, rows)
+        overrides = [f"data.augmentation.blur_probability={probability}", "data.augmentation.brightness=0.12"]
+        OmegaConf.save(OmegaConf.create(overrides), run / ".hydra" / "overrides.yaml")
+        runs.append(run)
+    write_summary(runs, tmp_path / "summary")
+    browser.set_window_size(1000, 1000)
+    try:
+        _, errors = open_page(browser, tmp_path / "summary" / "summary.html")
+        page, tables = browser.execute_script(WIDTHS)
+    finally:
+        browser.set_window_size(1400, 1000)
+    assert errors == [] and len(tables) == 1
+    assert page <= 0  # nothing wider than the window
+    ((hidden, beyond),) = tables
+    assert hidden <= 0 and beyond <= 0  # every column inside the table's box and the page's

@@ -6,7 +6,9 @@ scene, and ``evaluate.py data=<name> model=precomputed model.feature_name=<name>
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
+from pathlib import Path
 
 import helpers
 import numpy as np
@@ -106,17 +108,26 @@ def test_a_dry_run_logs_the_plan_and_its_forecast_and_writes_nothing(rendered, t
         "paradigms.local_sfm.k=[3]",
         "paradigms.global_sfm.k=[1,3]",
         "sfm.workers=1",
+        "baselines.random=false",  # the random ranking is drawn, so counted exactly: here every ranking is bounded
         "dry_run=true",
         *helpers.QUIET_EXTRACTION[:1],
     )
     before = {path for path in tmp_path.rglob("*")}
     with caplog.at_level("INFO", logger="locretrieval"):
         assert evaluate(cfg, tmp_path / "run").empty
-    assert {path for path in tmp_path.rglob("*")} == before  # no output folder, no cache: nothing but the log
     plan = next(record.getMessage() for record in caplog.records if "SfM plan" in record.getMessage())
-    # 5 rankings (the model, 3 ground truths, random), 12 database images, 4 queries, each ranking's top 3 apart;
-    # the co-observation ground truth matches the global map's pairs and each query's overlapping images first
-    rankings, queries, images = 5, 4, 12
+    # no output folder: the unit costs it measured, kept in the cache and named in its log, and nothing else
+    [calibration] = re.findall(r"unit costs measured now and kept in (\S+\.npz) ", plan)
+    written = {Path(calibration), Path(calibration).parent, tmp_path / ".cache"}
+    assert {path for path in tmp_path.rglob("*")} == before | written
+    # 4 rankings none of which is cached (the model, 3 ground truths), 12 database images, 4 queries, each
+    # ranking's top 3 apart; the co-observation ground truth matches the global map's pairs and each query's
+    # overlapping images first
+    assert (
+        "not computed yet, their work bounded: densevlad_multi, gt_relative_pose, gt_frustum, gt_co_observation;"
+        in plan
+    )
+    rankings, queries, images = 4, 4, 12
     query_pairs = min(rankings * queries * 3, queries * images)
     selection = replace(helpers.sfm_settings().map_pairs, far=50.0, min_radius=10.0, max_per_image=None)
     map_pairs = len(database_pairs(scene.database, selection))

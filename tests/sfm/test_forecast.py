@@ -3,6 +3,7 @@ one calibration measured, spread over the processes the pipeline gives the stage
 counts less what the ground truth matches first; a calibration that leaves nothing behind."""
 
 import dataclasses
+import time
 from math import comb
 
 import helpers
@@ -13,6 +14,7 @@ from locretrieval.benchmark import BenchmarkSettings
 from locretrieval.build import benchmark_settings
 from locretrieval.config import validated
 from locretrieval.groundtruth.compute import GroundTruthSettings, groundtruth_sfm_pairs
+from locretrieval.retrieval import Ranking, random_ranking
 from locretrieval.sfm.forecast import (
     CALIBRATION_DATABASE,
     CALIBRATION_QUERIES,
@@ -22,10 +24,12 @@ from locretrieval.sfm.forecast import (
     after_groundtruth,
     calibrate,
     calibration_sample,
+    counted_plan,
+    dry_run_forecast,
     forecast,
 )
 from locretrieval.sfm.inputs import SfmInputs
-from locretrieval.sfm.pipeline import count_work
+from locretrieval.sfm.pipeline import count_work, run_sfm
 from locretrieval.sfm.work import ParadigmWork, SfmPlan, Work
 
 SCENE = {"width": 160, "height": 120, "num_database": 24, "num_queries": 6, "texture_size": 64, "length": 20.0,
@@ -127,3 +131,53 @@ def test_the_calibration_runs_the_pipeline_on_a_neighbourhood_and_leaves_nothing
     assert calibration.features > 0 and calibration.pairs > 0 and calibration.seconds > 0
     assert all(value > 0 for value in [*calibration.map_pairs.values(), *calibration.registered_images.values()])
     assert not any(path.is_file() for path in (tmp_path / "cache").rglob("*"))  # its scratch folder is gone
+
+
+@pytest.mark.slow
+def test_cached_work_is_forecast_as_cached_and_two_dry_runs_forecast_the_same(scene, tmp_path):
+    """The rankings of a run whose work is all cached: counted exactly (no new work), forecast as
+    reading it back, far below the forecast of the same work before it was done; the unit costs
+    measured once and kept, so that a second dry run forecasts the same."""
+    benchmark = settings()
+    paradigms = benchmark.paradigms.sfm_stages()
+    distances = np.linalg.norm(scene.queries.centers[:, None] - scene.database.centers[None], axis=2)
+    nearest = np.argsort(distances, axis=1, kind="stable")[:, :10]
+    rankings = [
+        Ranking("near", nearest, -np.take_along_axis(distances, nearest, axis=1), "groundtruth"),
+        random_ranking(len(scene.queries), len(scene.database), 10, 0),
+    ]
+    before = dry_run_forecast(scene, benchmark.sfm, paradigms, tmp_path, rankings, 0, (set(), set()))
+    assert "measured now and kept in" in before[2] and before[0].new_pairs() > 0
+    run_sfm(SfmInputs.prepare(scene, benchmark.sfm, tmp_path, extract=False), rankings, paradigms)  # fills the cache
+    first = dry_run_forecast(scene, benchmark.sfm, paradigms, tmp_path, rankings, 0, (set(), set()))
+    second = dry_run_forecast(scene, benchmark.sfm, paradigms, tmp_path, rankings, 0, (set(), set()))
+    assert first[1] == second[1] and "read from" in first[2] and "read from" in second[2]
+    plan = first[0]
+    assert plan.exact and plan.features.new == 0 and plan.new_pairs() == 0
+    assert all(w.maps.new == w.registrations.new == 0 and w.registrations.total for w in plan.paradigms)
+    assert 0 < sum(first[1].values()) < 0.25 * sum(before[1].values())
+    cached = []  # the run itself, all of it read back: the best of three (a busy machine's pauses left out)
+    for _ in range(3):
+        started = time.perf_counter()
+        run_sfm(SfmInputs.prepare(scene, benchmark.sfm, tmp_path, extract=False), rankings, paradigms)
+        cached.append(time.perf_counter() - started)
+    assert 0.5 * min(cached) <= sum(first[1].values()) <= 2 * min(cached), (first[1], cached)  # within 2x
+
+
+def test_the_rankings_known_are_counted_exactly_and_the_others_bounded_a_shared_map_once(scene, tmp_path):
+    benchmark = settings()
+    paradigms = benchmark.paradigms.sfm_stages()
+    inputs = SfmInputs.prepare(scene, benchmark.sfm, tmp_path, extract=False)
+    known = [random_ranking(len(scene.queries), len(scene.database), 10, 0)]
+    exact, bound = count_work(inputs, known, paradigms), count_work(inputs, None, paradigms, 2)
+    mixed = counted_plan(inputs, known, paradigms, 2)
+    assert not mixed.exact and mixed.features == exact.features
+    for together, one, other in zip(mixed.paradigms, exact.paradigms, bound.paradigms):
+        assert together.registrations == Work(
+            one.registrations.total + other.registrations.total, one.registrations.new + other.registrations.new
+        )
+        shared = one.shared_map  # global_sfm's one map, whichever the rankings
+        assert together.maps == (
+            one.maps if shared else Work(one.maps.total + other.maps.total, one.maps.new + other.maps.new)
+        )
+    assert counted_plan(inputs, known, paradigms, 0) == exact and counted_plan(inputs, [], paradigms, 2) == bound

@@ -85,6 +85,22 @@ def test_the_search_space_names_keys_of_the_training_config():
             assert OmegaConf.select(node, key, default="missing") != "missing", (loss, key)
 
 
+def test_a_study_s_progress_says_what_completed_and_what_is_left_in_words():
+    import optuna
+
+    from locretrieval.training.sweeps import progress
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study()
+    assert progress(study, 2) == "0 of 2 trials (n_trials) complete, 2 to go"
+    for value in (1.0, 2.0):
+        study.tell(study.ask(), value)
+    assert progress(study, 2) == "2 of 2 trials (n_trials) complete, none to go"
+    study.tell(study.ask(), state=optuna.trial.TrialState.FAIL)
+    study.enqueue_trial({})
+    assert progress(study, 5) == "2 of 5 trials (n_trials) complete, 3 to go; also 1 failed, 1 waiting to run"
+
+
 def test_a_study_started_by_another_command_is_refused_and_a_resumed_sampler_draws_anew(tmp_path):
     import optuna
 

@@ -737,6 +737,9 @@ def test_a_parallel_training_multirun_as_documented_shares_one_cache_without_cor
     assert all(len(job.name) <= 96 for job in jobs)  # 24 overrides: cut, with a hash
     logs = [(job / "train.log").read_text() for job in jobs]
     assert sum(log.count("rendering the synthetic scene") for log in logs) == 1  # one job rendered, the other read it
+    if launcher == "joblib_local":  # the two jobs' console lines interleave in the terminal: each says its job
+        lines = re.findall(r"^\[\d{4}-[^]]+\](\[job \d\])?\[locretrieval\.", done.stdout, re.M)
+        assert set(lines) == {"[job 0]", "[job 1]"}, done.stdout[-3000:]
     alone = train(
         train_config(
             tmp_path / "alone",
@@ -1059,7 +1062,7 @@ def test_the_report_says_which_requested_gap_row_it_cannot_fill(tmp_path, caplog
     text = (tmp_path / "run" / "report.md").read_text()
     assert (
         "Requested row approximation/ewb/k3/5m_10deg (report.gap) "
-        "is not filled: k=3 is not in paradigms.approximation.k &#91;1, 5&#93;." in text  # Markdown text, escaped
+        "is not filled: k=3 is not in paradigms.approximation.k [1, 5]." in text  # Markdown text: plain brackets
     )
     assert (
         "Requested row local_sfm/pnp/k10/0.25m_2deg (report.gap) is not filled: the SfM paradigms are not validated"
