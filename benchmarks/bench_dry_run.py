@@ -1,6 +1,7 @@
 """The dry run against the run it forecasts, as users run them (issue #59's targets: the dry run
 takes at most a fifth of the run's SfM time, and the run's SfM time is within the band the dry run
-states).
+states; issue #71's: with every SfM result cached, the run within 2x of its forecast, and two dry
+runs forecast the same).
 
     .venv/bin/python benchmarks/bench_dry_run.py [--root DIR] [Hydra overrides for both runs ...]
 
@@ -24,6 +25,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -75,25 +77,61 @@ def main() -> None:
         )
         for cache in SFM_CACHES:
             shutil.rmtree(root / ".cache" / cache, ignore_errors=True)
-        dry_seconds, log = run(root, "dry_run=true", f"hydra.run.dir={root / 'dry-run'}", *args.overrides)
-        forecast = seconds_of(re.search(r"\n  total ([\d.]+ (?:s|min|h)):", log).group(1))
-        low, high = (float(x) for x in re.search(r"\(x([\d.]+)-([\d.]+)\)", log).group(1, 2))
-        calibration = float(re.search(r"calibrated in ([\d.]+) s", log).group(1))
-        run_seconds, _ = run(root, f"hydra.run.dir={root / 'run'}", *args.overrides)
-        summary = json.loads((root / "run" / "summary.json").read_text())
-    groundtruth, paradigms = summary["ground truth seconds"], summary["SfM seconds"]
-    measured = groundtruth + paradigms
-    ratio = measured / forecast if forecast else float("inf")
-    print(f"dry run: {dry_seconds:.1f} s in all, its calibration {calibration:.1f} s; forecast {forecast:.1f} s")
+        cold = forecast_then_run(root, "cold", args.overrides)
+        cached = forecast_then_run(root, "cached", args.overrides)  # every SfM result is in the cache now
+        again = forecast_seconds(dry_forecast(root, "cached-again", args.overrides)[1])
+    for label, result in (("empty SfM caches", cold), ("everything cached", cached)):
+        print(
+            f"{label}: dry run {result.dry_seconds:.1f} s (calibration {result.calibration:.1f} s), forecast "
+            f"{result.forecast:.1f} s; the run's SfM work {result.measured:.1f} s; measured / forecast "
+            f"{result.ratio:.2f} (band x{result.low:g}-{result.high:g}: "
+            f"{'within' if result.low <= result.ratio <= result.high else 'OUTSIDE'})"
+        )
+    share = cold.dry_seconds / cold.measured
     print(
-        f"run: {run_seconds:.1f} s in all, its SfM work {measured:.1f} s (ground truth {groundtruth:.1f} s, "
-        f"SfM paradigms {paradigms:.1f} s)"
+        f"dry run / run's SfM time {share:.2f} (target at most {DRY_RUN_SHARE:g}: "
+        f"{'met' if share <= DRY_RUN_SHARE else 'MISSED'}); the cached run within 2x of its forecast: "
+        f"{'met' if 0.5 <= cached.ratio <= 2 else 'MISSED'}; two dry runs of the cached run forecast "
+        f"{cached.forecast:.2f} and {again:.2f} s: {'the same' if again == cached.forecast else 'DIFFERENT'}"
     )
-    print(
-        f"measured / forecast {ratio:.2f} (band x{low:g}-{high:g}: {'within' if low <= ratio <= high else 'OUTSIDE'}); "
-        f"dry run / run's SfM time {dry_seconds / measured:.2f} (target at most {DRY_RUN_SHARE:g}: "
-        f"{'met' if dry_seconds / measured <= DRY_RUN_SHARE else 'MISSED'})"
-    )
+
+
+@dataclass
+class Forecast:
+    """A dry run's forecast and the run it forecast: seconds, the band the dry run states."""
+
+    dry_seconds: float
+    calibration: float
+    forecast: float
+    low: float
+    high: float
+    measured: float  # the run's SfM work: the ground truth's seconds and the SfM paradigms'
+
+    @property
+    def ratio(self) -> float:
+        return self.measured / self.forecast if self.forecast else float("inf")
+
+
+def dry_forecast(root: Path, label: str, overrides: list[str]) -> tuple[float, str]:
+    """A dry run's seconds and its log."""
+    return run(root, "dry_run=true", f"hydra.run.dir={root / ('dry-run-' + label)}", *overrides)
+
+
+def forecast_seconds(log: str) -> float:
+    """The total a dry run's log forecasts."""
+    return seconds_of(re.search(r"\n  total ([\d.]+ (?:s|min|h)):", log).group(1))
+
+
+def forecast_then_run(root: Path, label: str, overrides: list[str]) -> Forecast:
+    """A dry run, then the run it forecast (its ``summary.json``)."""
+    dry_seconds, log = dry_forecast(root, label, overrides)
+    forecast = forecast_seconds(log)
+    low, high = (float(x) for x in re.search(r"\(x([\d.]+)-([\d.]+)\)", log).group(1, 2))
+    calibration = re.search(r"calibrated in ([\d.]+) s", log)
+    run(root, f"hydra.run.dir={root / ('run-' + label)}", *overrides)
+    summary = json.loads((root / ("run-" + label) / "summary.json").read_text())
+    measured = summary["ground truth seconds"] + summary["SfM seconds"]
+    return Forecast(dry_seconds, float(calibration.group(1)) if calibration else 0.0, forecast, low, high, measured)
 
 
 if __name__ == "__main__":

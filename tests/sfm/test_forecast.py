@@ -3,7 +3,6 @@ one calibration measured, spread over the processes the pipeline gives the stage
 counts less what the ground truth matches first; a calibration that leaves nothing behind."""
 
 import dataclasses
-import time
 from math import comb
 
 import helpers
@@ -156,12 +155,7 @@ def test_cached_work_is_forecast_as_cached_and_two_dry_runs_forecast_the_same(sc
     assert plan.exact and plan.features.new == 0 and plan.new_pairs() == 0
     assert all(w.maps.new == w.registrations.new == 0 and w.registrations.total for w in plan.paradigms)
     assert 0 < sum(first[1].values()) < 0.25 * sum(before[1].values())
-    cached = []  # the run itself, all of it read back: the best of three (a busy machine's pauses left out)
-    for _ in range(3):
-        started = time.perf_counter()
-        run_sfm(SfmInputs.prepare(scene, benchmark.sfm, tmp_path, extract=False), rankings, paradigms)
-        cached.append(time.perf_counter() - started)
-    assert 0.5 * min(cached) <= sum(first[1].values()) <= 2 * min(cached), (first[1], cached)  # within 2x
+    # how close the forecast comes to the cached run's time is benchmarks/bench_dry_run.py's to measure
 
 
 def test_the_rankings_known_are_counted_exactly_and_the_others_bounded_a_shared_map_once(scene, tmp_path):
