@@ -8,11 +8,12 @@ their size, and VGA 640x480, its largest size) writes random-texture images to a
 folder, fits the model on them (vocabulary + PCA, timed separately) and times `describe` on as
 many other images; image decoding and resizing are included. Target (issue #13): >= 10 images/s.
 
-Then the cost of the same numbers on every machine (issue #48): the steps whose threaded sums
-would follow the thread count (the vocabulary's k-means, the PCA, the whitening product and the
-faiss search) as shipped (fixed single-threaded units, chunks in parallel threads) against the
-libraries left to their own threads, at the published datasets' sizes, beside the bare product's
-GFLOP/s with every thread (the machine's limit).
+Then the cost of the same numbers on every machine (issues #48, #68): the steps whose sums would
+follow the thread count or the machine's kernels (the vocabulary's k-means, the PCA, the faiss
+search) as shipped (assignments settled in float64, float64 PCA, fixed single-threaded units,
+chunks in parallel threads) against faiss's own k-means and PCA and its search left to its
+threads, at the published datasets' sizes, beside the bare product's GFLOP/s with every thread
+(the machine's limit).
 """
 
 import argparse
@@ -118,7 +119,7 @@ def invariance_cost(args: argparse.Namespace) -> None:
     product = seconds(lambda: bare[0] @ bare[1].T)
     gflop = 2 * queries.shape[0] * database.shape[0] * queries.shape[1] / 1e9
     print(
-        f"thread invariance ({torch.get_num_threads()} threads; as shipped vs the libraries' own threads; "
+        f"machine invariance ({torch.get_num_threads()} threads; as shipped vs faiss with its own threads; "
         f"bare product {gflop / product:.0f} GFLOP/s):"
     )
     steps = {

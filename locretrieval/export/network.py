@@ -10,9 +10,10 @@ field leave preprocessing to the caller.
 
 `descriptor_from_checkpoint` builds the descriptor a locretrieval checkpoint records (a Lightning
 checkpoint of ``train.py``, or `TorchGlobalDescriptor.save_checkpoint`'s file) from the file alone:
-its model, architecture and preprocessing, a file's data whose every ``_target_`` is checked
-(`locretrieval.parts.check_recorded`) before anything it names is imported. ``hubconf.py`` at the
-repository root exposes `locretrieval`:
+its model, architecture and preprocessing (the ``max_side``, ``size``, ``scales``, ``mean`` and
+``std`` it was trained at, as ``export.py`` and ``evaluate.py model=checkpoint`` take them), a file's
+data whose every ``_target_`` is checked (`locretrieval.parts.check_recorded`) before anything it
+names is imported. ``hubconf.py`` at the repository root exposes `locretrieval`:
 ``torch.hub.load(<repository>, "locretrieval", weights=<checkpoint>, source="local")``.
 """
 
@@ -30,6 +31,7 @@ from locretrieval.models.extraction import ExtractionSettings, Preprocessing
 from locretrieval.models.files.weights import embedded_checkpoint, is_checkpoint, load_torch_file
 from locretrieval.models.networks import POOLING, upgrade_legacy_pooling
 from locretrieval.models.torch_descriptor import TorchGlobalDescriptor
+from locretrieval.models.trainable import FROM_CHECKPOINT
 from locretrieval.models.trainable.backbones import BACKBONE, upgrade_legacy_backbone
 from locretrieval.parts import check_recorded, refuse_interpolations
 
@@ -61,9 +63,15 @@ class DescriptorNetwork(nn.Module):
         return self.network.finalize(self.network(images))
 
 
-def descriptor_from_checkpoint(path: str | os.PathLike) -> TorchGlobalDescriptor:
+def descriptor_from_checkpoint(
+    path: str | os.PathLike,
+    max_side: int | str | None = FROM_CHECKPOINT,
+    size: tuple[int, int] | str | None = FROM_CHECKPOINT,
+    scales: tuple[float, ...] | str = FROM_CHECKPOINT,
+) -> TorchGlobalDescriptor:
     """The descriptor a locretrieval checkpoint ``path`` records (`CHECKPOINT_MODELS`), built with the
-    architecture and preprocessing it holds and filled with its weights, on the CPU. The file is read
+    architecture and preprocessing it holds and filled with its weights, on the CPU; ``max_side``,
+    ``size`` or ``scales`` given override the trained ones (logged when they differ). The file is read
     with the restricted unpickler; what is not such a checkpoint is a ``ValueError`` naming it."""
     path = Path(path)
     if not path.is_file():
@@ -83,10 +91,9 @@ def descriptor_from_checkpoint(path: str | os.PathLike) -> TorchGlobalDescriptor
             "(export the others with export.py and their model=<name> config)"
         )
     architecture: dict[str, Any] = dict(content["architecture"])
-    preprocessing: dict[str, Any] = dict(content["preprocessing"])
     # data, not code: what it names checked before anything of it is imported or built
     check_recorded(architecture, f"{path}: architecture", {"backbone": BACKBONE, "pooling": POOLING})
-    refuse_interpolations(preprocessing, f"{path}: preprocessing")
+    refuse_interpolations(dict(content["preprocessing"]), f"{path}: preprocessing")
     options = {"pooling": upgrade_legacy_pooling(architecture["pooling"]), "whiten_dim": architecture["whiten_dim"]}
     if model == "trainable":
         options["backbone"] = upgrade_legacy_backbone(architecture["backbone"])  # a name before 0.12
@@ -97,18 +104,25 @@ def descriptor_from_checkpoint(path: str | os.PathLike) -> TorchGlobalDescriptor
         weights=str(path),
         random_init=False,
         seed=0,
-        max_side=preprocessing.get("max_side"),
-        size=preprocessing.get("size"),
-        scales=preprocessing.get("scales", [1.0]),
+        max_side=max_side,
+        size=size,
+        scales=scales,
         extraction=CPU_EXTRACTION,
         **options,
     )
 
 
-def locretrieval(weights: str) -> DescriptorNetwork:
+def locretrieval(
+    weights: str,
+    max_side: int | str | None = FROM_CHECKPOINT,
+    size: tuple[int, int] | str | None = FROM_CHECKPOINT,
+    scales: tuple[float, ...] | str = FROM_CHECKPOINT,
+) -> DescriptorNetwork:
     """The network a locretrieval checkpoint holds (``weights``: a Lightning checkpoint of train.py,
     e.g. ``<run>/checkpoints/last.ckpt``, or a plain locretrieval checkpoint), on the CPU in eval mode:
     normalised RGB images ``float32 [B, 3, H, W]`` in, unit descriptors ``[B, D]`` out. How to
-    resize and normalise images is its ``preprocessing`` (``max_side`` or ``size``, ``mean``, ``std``)."""
-    descriptor = descriptor_from_checkpoint(weights)
+    resize and normalise images is its ``preprocessing`` (``max_side`` or ``size``, ``mean``, ``std``):
+    what the network was trained at, unless ``max_side``, ``size`` or ``scales`` are given (a warning
+    is logged when they differ from the trained ones)."""
+    descriptor = descriptor_from_checkpoint(weights, max_side=max_side, size=size, scales=scales)
     return DescriptorNetwork(descriptor.network, descriptor.preprocessing).eval()

@@ -41,6 +41,7 @@ from tqdm import tqdm
 from locretrieval.device import resolve_device
 from locretrieval.models.base import GlobalDescriptor
 from locretrieval.models.published.dense_sift import SIFT_DIM, cpu_lattice, cpu_rootsift, sift_lattice, window_weights
+from locretrieval.models.published.densevlad_kernels import EPS
 from locretrieval.models.published.vlad import VladAccumulator, kmeans_vocabulary, normalize_vlad, pca_whitening
 from locretrieval.scene import ImageSet
 from locretrieval.scene.images import read_image
@@ -49,7 +50,7 @@ from locretrieval.threads import map_single_threaded, torch_threads
 log = logging.getLogger(__name__)
 
 #: Bumped whenever a code change alters the descriptors (part of the cache key).
-IMPLEMENTATION_VERSION = 3
+IMPLEMENTATION_VERSION = 4
 #: Descriptors built and assigned at a time on a GPU (8 MB of them): fewer, larger chunks
 #: were faster (fewer tensor operations), and the working set stays bounded.
 CHUNK_POINTS = 16384
@@ -249,7 +250,7 @@ class DenseVLAD(GlobalDescriptor):
 
     @torch.no_grad()
     def _learn_vocabulary(self, database: ImageSet) -> None:
-        """k-means (faiss, spherical, seeded) on RootSIFTs sampled evenly from database images."""
+        """Spherical k-means (`kmeans_vocabulary`, seeded) on RootSIFTs sampled evenly from database images."""
         count = min(len(database), self.vocabulary_images)
         chosen = np.unique(np.linspace(0, len(database) - 1, count).round().astype(int))
         per_image_scale = math.ceil(self.vocabulary_samples / (len(chosen) * len(self.bin_sizes)))
@@ -327,21 +328,26 @@ class DenseVLAD(GlobalDescriptor):
 
     @torch.no_grad()
     def _whiten(self, vlads: np.ndarray) -> np.ndarray:
-        """PCA-whitened, L2-normalised descriptors ``float32 [N, dims]``."""
+        """PCA-whitened, L2-normalised descriptors ``float32 [N, dims]``; on the CPU in float64,
+        rounded once (the same on every machine, see `locretrieval.models.published.vlad`)."""
         self._require_fitted()
         out = np.empty((len(vlads), self._pca_projection.shape[1]), dtype=np.float32)
+        if self.device.type == "cpu":
+            mean = self._pca_mean.numpy().astype(np.float64)
+            projection = self._pca_projection.numpy().astype(np.float64)
 
-        def whiten(start: int) -> None:
+            def whiten(start: int) -> None:
+                whitened = (vlads[start : start + WHITENING_ROWS].astype(np.float64) - mean) @ projection
+                norms = np.maximum(np.linalg.norm(whitened, axis=1, keepdims=True), EPS)
+                out[start : start + WHITENING_ROWS] = whitened / norms
+
+            # each chunk's product on one thread: the same sums whatever the thread count
+            map_single_threaded(whiten, range(0, len(vlads), WHITENING_ROWS))
+            return out
+        for start in range(0, len(vlads), WHITENING_ROWS):
             chunk = torch.from_numpy(vlads[start : start + WHITENING_ROWS]).to(self.device)
             whitened = (chunk - self._pca_mean) @ self._pca_projection
             out[start : start + WHITENING_ROWS] = F.normalize(whitened, dim=-1).cpu().numpy()
-
-        starts = range(0, len(vlads), WHITENING_ROWS)
-        if self.device.type == "cpu":
-            map_single_threaded(whiten, starts)  # each chunk's product on one thread: the same bits on any machine
-        else:
-            for start in starts:
-                whiten(start)
         return out
 
     def describe(self, images: ImageSet) -> np.ndarray:

@@ -14,6 +14,7 @@ identity lists them.
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -22,6 +23,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from locretrieval.errors import FIX_DATA_FILE, DataFileError
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing
 from locretrieval.models.files.weights import MissingWeightsError, Weights, WeightSource, read_weights, require_weights
 from locretrieval.models.networks import (
@@ -45,6 +47,14 @@ from locretrieval.models.trainable.backbones import (
 )
 from locretrieval.parts import import_part
 
+log = logging.getLogger(__name__)
+
+#: The value of ``max_side``, ``size`` or ``scales`` that takes it from the locretrieval checkpoint in
+#: ``weights``: the images the network was trained at (``model=checkpoint``'s default).
+FROM_CHECKPOINT = "checkpoint"
+#: What a checkpoint written before a setting existed was trained at.
+UNRECORDED = {"max_side": None, "size": None, "scales": [1.0]}
+
 
 def read_trainable_weights(
     path: Path,
@@ -52,10 +62,11 @@ def read_trainable_weights(
     architecture: Mapping[str, Any],
     authors: Callable[[Path, Any, Mapping[str, Any]], Weights],
     upgrade: Callable[[Mapping[str, Any]], Mapping[str, Any]] | None = None,
-) -> tuple[dict[str, torch.Tensor], Normalization | None]:
+) -> tuple[dict[str, torch.Tensor], Mapping[str, Any] | None]:
     """State dict from our checkpoint of ``model`` (its recorded architecture brought to today's
-    form by ``upgrade``) with the ``(mean, std)`` it was trained with, or from another file read by
-    ``authors(path, content, architecture)`` with ``None``."""
+    form by ``upgrade``) with the preprocessing it was trained with (``max_side``, ``size``,
+    ``scales``, ``mean``, ``std``), or from another file read by ``authors(path, content,
+    architecture)`` with ``None``."""
     weights = read_weights(
         path, model, architecture, lambda file, content: authors(file, content, architecture), upgrade=upgrade
     )
@@ -64,7 +75,55 @@ def read_trainable_weights(
     state = dict(weights.state_dict)
     if architecture.get("backbone") == backbone_settings(EfficientNetLiteBackbone("efficientnet_lite0")):
         state = efficientnet.upgrade_legacy_trunk(state, "backbone.")  # 0.4.0 named its own Lite0's layers
-    return state, (tuple(weights.preprocessing["mean"]), tuple(weights.preprocessing["std"]))
+    return state, weights.preprocessing
+
+
+def trained_resize(name: str, path: Path | None, trained: Mapping[str, Any] | None, **given: Any) -> dict[str, Any]:
+    """``given`` (``max_side``, ``size``, ``scales``) with each `FROM_CHECKPOINT` replaced by the value
+    the checkpoint at ``path`` records (``trained``: its preprocessing; ``None``: no locretrieval
+    checkpoint, where `FROM_CHECKPOINT` is a ``ValueError``), and a warning for each value given that
+    differs from the recorded one: the descriptors are then not those of the network as trained."""
+    settings = {}
+    for key, value in given.items():
+        recorded = None if trained is None else _recorded(path, key, trained)
+        if value == FROM_CHECKPOINT:
+            if trained is None:
+                where = "no model.weights is set" if path is None else f"model.weights={path} is not one"
+                raise ValueError(
+                    f"model {name!r}: model.{key}={FROM_CHECKPOINT} takes the value a locretrieval checkpoint "
+                    f"records, but {where}: give model.weights=<run>/checkpoints/last.ckpt, or set model.{key}"
+                )
+            value = recorded
+        elif trained is not None and _resize_value(key, value) != recorded:
+            log.warning(
+                "%s: model.%s=%s differs from %s, what the network in %s was trained at: its descriptors are not "
+                "the trained network's (model.%s=%s takes the trained value)",
+                name,
+                key,
+                _resize_value(key, value),
+                recorded,
+                path,
+                key,
+                FROM_CHECKPOINT,
+            )
+        settings[key] = value
+    return settings
+
+
+def _resize_value(key: str, value: Any) -> Any:
+    """``value`` of preprocessing setting ``key`` as `Preprocessing` holds it (for comparing)."""
+    return getattr(Preprocessing(**{key: value}), key)
+
+
+def _recorded(path: Path | None, key: str, trained: Mapping[str, Any]) -> Any:
+    """The value of ``key`` the checkpoint at ``path`` records (`UNRECORDED` if none), checked."""
+    value = trained.get(key, UNRECORDED[key])
+    try:
+        return _resize_value(key, value)
+    except (TypeError, ValueError) as error:
+        raise DataFileError(
+            path or "model.weights", f"its preprocessing {key}={value!r} is not a setting ({error})", FIX_DATA_FILE
+        ) from None
 
 
 def imagenet_weights(backbone: Backbone, path: str | os.PathLike) -> dict[str, torch.Tensor]:
@@ -90,7 +149,9 @@ class TrainableDescriptor(TorchGlobalDescriptor):
     """``pooling`` (a class of ``model/pooling``, with its options: `pooling_settings`) on a
     ``backbone`` of ``model/backbone`` (`backbones`), optional FC whitening to ``whiten_dim``;
     images shrunk to ``max_side`` (or resized to ``size``, ``[width, height]``) and run at
-    ``scales``, normalised as the weights expect.
+    ``scales``, normalised as the weights expect. With a locretrieval checkpoint as ``weights``,
+    `FROM_CHECKPOINT` as ``max_side``, ``size`` or ``scales`` takes the value it was trained at,
+    and a value given that differs from it is logged (`trained_resize`).
 
     A subclass builds another network from the same settings (`build_network`, with the
     `architecture` it records) and reads its authors' weight file (`authors_weights`)."""
@@ -108,10 +169,10 @@ class TrainableDescriptor(TorchGlobalDescriptor):
         weights: str | os.PathLike | None,
         random_init: bool,
         seed: int,
-        max_side: int | None,
-        scales: Sequence[float],
+        max_side: int | str | None,
+        scales: Sequence[float] | str,
         extraction: ExtractionSettings | Mapping[str, Any],
-        size: Sequence[int] | None = None,
+        size: Sequence[int] | str | None = None,
     ) -> None:
         architecture = self.architecture_of(backbone, pooling_settings(pooling), whiten_dim)
         source = self.weight_source(architecture)
@@ -120,20 +181,21 @@ class TrainableDescriptor(TorchGlobalDescriptor):
                 f"model {name!r}: no model.weights path is set. Give {source.expected} ({source.publisher}) "
                 f"or a locretrieval checkpoint, or set model.random_init=true for random weights"
             )
-        state, path, normalization = initial_values(architecture["pooling"]), None, None
+        state, path, trained = initial_values(architecture["pooling"]), None, None
         if weights is not None:
             path = require_weights(weights, source, name)
-            stored, normalization = self.read_weights(path, architecture)
+            stored, trained = self.read_weights(path, architecture)
             state.update(stored)
+        resize = trained_resize(name, path, trained, max_side=max_side, size=size, scales=scales)
         network, info = load_weights(
             lambda: self.build_network(architecture), state or None, path, bool(random_init), int(seed)
         )
-        mean, std = normalization or self.input_normalization(architecture)
+        mean, std = (trained["mean"], trained["std"]) if trained else self.input_normalization(architecture)
         preprocessing = Preprocessing(
-            max_side=max_side,
-            size=tuple(size) if size is not None else None,
+            max_side=resize["max_side"],
+            size=tuple(resize["size"]) if resize["size"] is not None else None,
             multiple_of=self.multiple_of,
-            scales=tuple(scales),
+            scales=tuple(resize["scales"]),
             mean=mean,
             std=std,
         )
@@ -168,9 +230,9 @@ class TrainableDescriptor(TorchGlobalDescriptor):
 
     def read_weights(
         self, path: Path, architecture: Mapping[str, Any]
-    ) -> tuple[dict[str, torch.Tensor], Normalization | None]:
+    ) -> tuple[dict[str, torch.Tensor], Mapping[str, Any] | None]:
         """The state dict in ``path`` (our checkpoint, or what `authors_weights` reads) and the
-        normalisation a checkpoint was trained with."""
+        preprocessing a checkpoint was trained with."""
         return read_trainable_weights(path, self.model, architecture, self.authors_weights, self.upgrade_architecture)
 
     def authors_weights(self, path: Path, content: Any, architecture: Mapping[str, Any]) -> Weights:

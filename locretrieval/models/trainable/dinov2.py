@@ -214,9 +214,9 @@ class DinoV2Descriptor(TrainableDescriptor):
         weights: str | None,
         random_init: bool,
         seed: int,
-        size: Sequence[int] | None,
-        max_side: int | None,
-        scales: Sequence[float],
+        size: Sequence[int] | str | None,
+        max_side: int | str | None,
+        scales: Sequence[float] | str,
         extraction: ExtractionSettings | Mapping[str, Any],
     ) -> None:
         self.final_norm = bool(final_norm)

@@ -1,5 +1,10 @@
 import logging
 import math
+import os
+import platform
+import subprocess
+import sys
+from fractions import Fraction
 from pathlib import Path
 
 import helpers
@@ -12,7 +17,7 @@ from PIL import Image
 from scipy.ndimage import gaussian_filter
 
 from locretrieval.models import DenseVLAD
-from locretrieval.models.published import densevlad
+from locretrieval.models.published import densevlad, densevlad_kernels
 from locretrieval.models.published.dense_sift import (
     cpu_lattice,
     cpu_rootsift,
@@ -21,7 +26,7 @@ from locretrieval.models.published.dense_sift import (
     grid_layout,
     window_weights,
 )
-from locretrieval.models.published.vlad import normalize_vlad, vlad_residuals
+from locretrieval.models.published.vlad import kmeans_vocabulary, normalize_vlad, vlad_residuals
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.retrieval.index import search
 from locretrieval.scene import Camera, ImageSet, Scene
@@ -220,6 +225,131 @@ def test_vlad_intra_normalisation_and_global_norm():
     assert vlad.norm().item() == pytest.approx(1.0)
 
 
+def test_a_word_is_settled_exactly_whatever_the_float32_product_says():
+    """Word 2 is word 1 with one coordinate one float32 step larger: its score is ~1e-9 higher,
+    beneath float32's resolution. The product's scores lean the other way (within their error
+    bound); the word is the exact winner, found with Python's rational arithmetic."""
+    rng = np.random.default_rng(3)
+    centroids = rng.random((4, 128)).astype(np.float32)
+    centroids /= np.linalg.norm(centroids, axis=1, keepdims=True)
+    centroids[2] = centroids[1]
+    centroids[2, 7] = np.nextafter(centroids[1, 7], np.float32(1))
+    descriptors = np.stack([centroids[1] + 0.01 * rng.random(128, dtype=np.float32), centroids[3]])
+    half_norms = np.zeros(4)
+    scores = descriptors @ centroids.T
+    scores[0, 1], scores[0, 2] = scores[0, 2] + 1e-7, scores[0, 2] - 1e-7  # word 1 ahead in float32
+    sums, counts = np.zeros((4, 128)), np.zeros(4, dtype=np.int64)
+    densevlad_kernels.assign_to_words(
+        descriptors, scores, scores.argmax(1), centroids, half_norms, np.ones(2, dtype=bool), sums, counts
+    )
+    exact = [
+        [sum(Fraction(float(a)) * Fraction(float(b)) for a, b in zip(row, c)) for c in centroids] for row in descriptors
+    ]
+    assert exact[0][2] > exact[0][1] and scores[0].argmax() == 1
+    words = [int(np.argmax(row)) for row in exact]
+    assert words == [2, 3]
+    np.testing.assert_array_equal(counts, [0, 0, 1, 1])
+    np.testing.assert_array_equal(sums[words], descriptors)
+
+
+def reference_kmeans(points: np.ndarray, num_words: int, iterations: int, seed: int) -> tuple[np.ndarray, int]:
+    """`kmeans_vocabulary`'s algorithm in plain numpy (float64 argmax over every word, ``np.add.at``
+    sums), and how many words restarted empty."""
+    rng = np.random.default_rng(seed)
+    centroids = points[np.sort(rng.choice(len(points), num_words, replace=False))].astype(np.float64)
+    centroids /= np.linalg.norm(centroids, axis=1, keepdims=True)
+    restarts = 0
+    for iteration in range(iterations):
+        words = centroids.astype(np.float32).astype(np.float64)
+        assignment = (points.astype(np.float64) @ words.T).argmax(1)
+        sums = np.zeros_like(centroids)
+        np.add.at(sums, assignment, points.astype(np.float64))
+        empty = np.flatnonzero(np.bincount(assignment, minlength=num_words) == 0)
+        sums[empty] = points[np.random.default_rng([seed, iteration]).choice(len(points), len(empty), replace=False)]
+        restarts += len(empty)
+        centroids = sums / np.linalg.norm(sums, axis=1, keepdims=True)
+    return centroids.astype(np.float32), restarts
+
+
+def test_kmeans_vocabulary_is_spherical_kmeans_with_restarts_of_empty_words():
+    rng = np.random.default_rng(4)
+    points = rng.random((3000, 16), dtype=np.float32)
+    points[:1500] = points[0]  # the initial words are mostly copies of one point: all but one start empty
+    centroids = kmeans_vocabulary(points, 12, 6, seed=5)
+    expected, restarts = reference_kmeans(points, 12, 6, seed=5)
+    assert restarts >= 3
+    # the same assignments; float64 sums in another order: at most one float32 rounding apart
+    np.testing.assert_array_max_ulp(centroids, expected, maxulp=1)
+    np.testing.assert_allclose(np.linalg.norm(centroids, axis=1), 1.0, atol=1e-6)
+
+
+def test_word_assignments_do_not_follow_the_order_of_the_float32_sums():
+    """Descriptors halfway between two words (their scores ~1e-8 apart, below float32's resolution),
+    scored by float32 products summed in two orders as two machines' BLAS kernels would: the
+    argmaxes differ, the words `assign_to_words` settles do not, and they are plain float64's."""
+    rng = np.random.default_rng(6)
+    centroids = rng.random((16, 128), dtype=np.float32)
+    centroids /= np.linalg.norm(centroids, axis=1, keepdims=True)
+    pairs = rng.integers(0, 16, (2000, 2))
+    descriptors = (0.5 * (centroids[pairs[:, 0]] + centroids[pairs[:, 1]])).astype(np.float32)
+    half_norms = densevlad_kernels.half_squared_norms(centroids)
+    blas = descriptors @ centroids.T - half_norms.astype(np.float32)
+    backwards = np.zeros_like(blas)  # one product at a time, the last coordinate first
+    for k in reversed(range(128)):
+        backwards += descriptors[:, k, None] * centroids[None, :, k]
+    backwards -= half_norms.astype(np.float32)
+    assert (blas.argmax(1) != backwards.argmax(1)).sum() > 10
+
+    exact = descriptors.astype(np.float64) @ centroids.astype(np.float64).T - half_norms
+    top_two = np.sort(exact, axis=1)[:, -2:]
+    assert (top_two[:, 1] - top_two[:, 0] > 1e-12).all()  # float64 tells every row's word apart
+    expected_sums, words = np.zeros((16, 128)), exact.argmax(1)
+    np.add.at(expected_sums, words, descriptors.astype(np.float64))
+    for scores in (blas, backwards):
+        sums, counts = np.zeros((16, 128)), np.zeros(16, dtype=np.int64)
+        keep = np.ones(len(descriptors), dtype=bool)
+        densevlad_kernels.assign_to_words(
+            descriptors, scores, scores.argmax(1), centroids, half_norms, keep, sums, counts
+        )
+        np.testing.assert_array_equal(counts, np.bincount(words, minlength=16))
+        np.testing.assert_array_equal(sums, expected_sums)
+
+
+#: Another machine's kernels, emulated: OpenBLAS's for numpy (faiss's too), MKL's for torch's matrix
+#: products (its code path for any CPU) and numba's code for a CPU without AVX2 or FMA (x86-64 only).
+OTHER_MACHINE = {"OPENBLAS_CORETYPE": "Sandybridge", "MKL_CBWR": "COMPATIBLE", "NUMBA_CPU_NAME": "sandybridge"}
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")
+KMEANS = """
+import sys
+import numpy as np
+from locretrieval.models.published.vlad import kmeans_vocabulary
+rng = np.random.default_rng(0)
+points = rng.random((20_000, 128), dtype=np.float32) ** 4
+points = np.sqrt(points / points.sum(1, keepdims=True)).astype(np.float32)  # RootSIFT-like
+np.save(sys.argv[1], kmeans_vocabulary(points, 64, 25, seed=0))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(platform.machine() != "x86_64", reason="the kernels emulated are x86-64 ones")
+def test_the_vocabulary_does_not_depend_on_the_blas_kernels_or_the_thread_count(tmp_path):
+    """The k-means in one process with 1 thread and this machine's kernels, in another with 2 threads
+    and `OTHER_MACHINE`'s: the same centroids, bit for bit (faiss's k-means, single-threaded,
+    gave other centroids on these points under OpenBLAS's Sandybridge kernels than under Haswell's
+    or Zen's)."""
+    vocabularies = []
+    for threads, kernels in ((1, {}), (2, OTHER_MACHINE)):
+        environment = {**os.environ, **{variable: str(threads) for variable in THREAD_VARIABLES}, **kernels}
+        output = tmp_path / f"{threads}.npy"
+        done = subprocess.run(
+            [sys.executable, "-c", KMEANS, str(output)], env=environment, capture_output=True, text=True, timeout=300
+        )
+        assert done.returncode == 0, done.stderr[-2000:]
+        vocabularies.append(np.load(output))
+    assert vocabularies[0].shape == (64, 128)
+    np.testing.assert_array_equal(vocabularies[0], vocabularies[1])
+
+
 # -- the model -----------------------------------------------------------------------------
 
 
@@ -238,6 +368,8 @@ def test_fitted_model_shapes_norms_and_small_database_pca(textures_scene, fitted
     np.testing.assert_allclose(np.linalg.norm(state["centroids"], axis=1), 1.0, atol=1e-5)
     # Six database images: at most 5 principal components instead of 4096.
     assert state["pca_projection"].shape == (128 * 128, 5) and state["pca_mean"].shape == (128 * 128,)
+    largest = np.abs(state["pca_projection"]).argmax(axis=0)  # each component's sign: its largest entry positive
+    assert (state["pca_projection"][largest, np.arange(5)] > 0).all()
     queries = fitted.describe(textures_scene.queries)
     assert queries.shape == (3, 5) and queries.dtype == np.float32
     np.testing.assert_allclose(np.linalg.norm(queries, axis=1), 1.0, atol=1e-5)
@@ -396,27 +528,35 @@ def test_runs_on_the_configured_device(textures_scene, fitted):
 
 
 def _fit_with_threads(scene, threads: int, results) -> None:
-    import faiss
-
     torch.set_num_threads(threads)
-    faiss.omp_set_num_threads(threads)
     model = small_densevlad(vocabulary_samples=60_000)
     model.fit(scene.database)
-    results.put({**fitted_arrays(model), "queries": model.describe(scene.queries)})
+    results.put(
+        {**fitted_arrays(model), "vlads": model._vlads(scene.queries), "queries": model.describe(scene.queries)}
+    )
 
 
 @pytest.mark.slow
-def test_the_fit_and_the_descriptors_do_not_depend_on_the_thread_count(textures_scene):
-    """One process with 1 torch and faiss thread, one with 2: the same vocabulary, PCA and descriptors, bit for bit."""
+@pytest.mark.skipif(platform.machine() != "x86_64", reason="the kernels emulated are x86-64 ones")
+def test_the_fit_and_the_descriptors_do_not_depend_on_the_machine_or_the_thread_count(textures_scene, monkeypatch):
+    """One process with 1 thread and this machine's kernels, one with 2 threads and another machine's
+    (`OTHER_MACHINE`): the same dense RootSIFTs, vocabulary and VLADs, bit for bit (faiss's k-means,
+    numba's fastmath and an argmax of torch's product each differed); the float64 PCA's eigenvectors
+    follow LAPACK's kernels by ~1e-16, which may move a float32 value by one unit in the last place."""
     import multiprocessing
 
     context = multiprocessing.get_context("spawn")
     outcomes = []
-    for threads in (1, 2):
-        results = context.Queue()
-        job = context.Process(target=_fit_with_threads, args=(textures_scene, threads, results))
-        job.start()
+    for threads, environment in ((1, {}), (2, OTHER_MACHINE)):
+        with monkeypatch.context() as patch:
+            for name, value in environment.items():
+                patch.setenv(name, value)  # the spawned process starts with them, before any library loads
+            results = context.Queue()
+            job = context.Process(target=_fit_with_threads, args=(textures_scene, threads, results))
+            job.start()
         outcomes.append(results.get(timeout=300))
         job.join(60)
-    for name in outcomes[0]:
+    for name in ("centroids", "vlads"):
         np.testing.assert_array_equal(outcomes[0][name], outcomes[1][name], err_msg=name)
+    for name in ("pca_mean", "pca_projection", "queries"):
+        np.testing.assert_allclose(outcomes[0][name], outcomes[1][name], rtol=0, atol=1e-6, err_msg=name)
