@@ -26,7 +26,8 @@ from locretrieval.config import ConfigError
 from locretrieval.report import build_report
 from locretrieval.report.run_files import load_yaml, run_file
 from locretrieval.report.tables import find_run_dirs
-from locretrieval.training.summary import MULTIRUN_FILE, is_training_folder, write_summary
+from locretrieval.report.training_runs import MULTIRUN_FILE, is_training_folder
+from locretrieval.report.training_summary import write_summary
 
 
 def main() -> None:
