@@ -34,7 +34,7 @@ import locretrieval  # noqa: F401  (config resolvers)
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 #: (environment, seed) of the five validation scenes, named ``<environment>_<seed>`` as in docs/results.md.
 SCENES = (("mall", 0), ("mall", 1), ("mall", 2), ("street", 0), ("street", 1))
-#: The ranking names of the gap table's columns (`locretrieval.training.report.gap_table`).
+#: The ranking names of the gap table's columns (`locretrieval.report.training.gap_table`).
 UNTRAINED, TRAINED = "untrained", "trained"
 
 
@@ -75,9 +75,9 @@ def scene_gaps(cfg, trained_model, report, cache_dir: Path) -> tuple[pd.DataFram
     from locretrieval.build import benchmark_settings, scene_of
     from locretrieval.config import validated
     from locretrieval.groundtruth import GroundTruthSettings, compute_groundtruths
+    from locretrieval.report.training import gap_table
     from locretrieval.retrieval.descriptors import describe_scene
     from locretrieval.training.callbacks import VALIDATION_COLUMNS, figure_rows, query_outcomes
-    from locretrieval.training.report import gap_table
     from locretrieval.training.run import TrainingSettings
 
     settings = validated(TrainingSettings, cfg.training, "training").validation.settings(benchmark_settings(cfg))
@@ -120,7 +120,7 @@ def main() -> None:
     from hydra.utils import instantiate
 
     from locretrieval.config import validated
-    from locretrieval.training.report import TrainingReportSettings
+    from locretrieval.report.training import TrainingReportSettings
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("checkpoint", type=Path, help="a Lightning checkpoint of train.py (its default model)")

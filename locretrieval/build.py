@@ -36,6 +36,7 @@ from locretrieval.metrics.subsets import SubsetSettings
 from locretrieval.paradigms.base import Paradigms
 from locretrieval.report.gallery import GallerySettings
 from locretrieval.report.run_files import literal, load_yaml, mapping_at, run_file
+from locretrieval.report.training import TrainingReportSettings
 from locretrieval.retrieval.index import RetrievalSettings
 from locretrieval.scene import Scene
 from locretrieval.scene.datasets import load_synthetic_dataset
@@ -45,7 +46,6 @@ from locretrieval.training.callbacks import every_validation_metrics, validation
 from locretrieval.training.checkpoints import check_resume_checkpoint
 from locretrieval.training.objective import Objective
 from locretrieval.training.relevance import TrainingRelevanceSettings
-from locretrieval.training.report import TrainingReportSettings
 from locretrieval.training.run import (
     Training,
     TrainingSettings,

@@ -347,7 +347,7 @@ def report(args: argparse.Namespace) -> None:
     from locretrieval.report import build_report
     from locretrieval.report.run_files import load_yaml, run_file
     from locretrieval.report.tables import find_run_dirs
-    from locretrieval.training.summary import MULTIRUN_FILE, is_training_folder, write_summary
+    from locretrieval.report.training_summary import MULTIRUN_FILE, is_training_folder, write_summary
 
     for path in args.runs:  # its YAML within limits.yaml_nodes before the summary reads it
         if run_file(path, MULTIRUN_FILE).is_file():

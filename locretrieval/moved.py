@@ -1,5 +1,6 @@
-"""The module paths before 0.12 (#52) kept working: `locretrieval.models` grouped its modules, and
-``locretrieval.localization`` was split into `locretrieval.paradigms` and `locretrieval.sfm`.
+"""Module paths that moved keep working: `locretrieval.models` grouped its modules and
+``locretrieval.localization`` was split into `locretrieval.paradigms` and `locretrieval.sfm` (0.12);
+the reports of training runs moved from `locretrieval.training` into `locretrieval.report`.
 
 Saved run configs (``config.yaml``, ``.hydra/config.yaml``), checkpoints' architectures and code of
 other packages name modules such as ``locretrieval.models.netvlad`` or classes such as
@@ -23,12 +24,14 @@ import warnings
 from types import ModuleType
 from typing import Any
 
-#: Modules that moved (0.12): the old dotted name -> the new.
+#: Modules that moved: the old dotted name -> the new (0.12: models, localization; then training's reports).
 #: ``models.published``: the descriptors of the paper's benchmark with their authors' weights
 #: (DenseVLAD and its parts, NetVLAD, AP-GeM, DELG); ``models.trainable``: the networks train.py
 #: trains (trunks, heads, DINOv2); ``models.files``: weight files and descriptor feature files.
 #: ``localization``: the paradigms (and their base, once ``paradigm``) to `locretrieval.paradigms`, the
 #: SfM pipeline's modules to `locretrieval.sfm` (``sfm`` is now ``sfm.inputs``), ``estimates`` up.
+#: ``training``'s reports to `locretrieval.report`: the training report (``training.report``), the
+#: summary of runs and sweeps (``training.summary``) and the reader of their folders (``training.folders``).
 MOVED_MODULES = {
     **{
         f"locretrieval.models.{name}": f"locretrieval.models.{group}.{name}"
@@ -60,6 +63,9 @@ MOVED_MODULES = {
             },
         }.items()
     },
+    "locretrieval.training.report": "locretrieval.report.training",
+    "locretrieval.training.summary": "locretrieval.report.training_summary",
+    "locretrieval.training.folders": "locretrieval.report.training_runs",
 }
 
 

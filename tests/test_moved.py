@@ -1,6 +1,7 @@
-"""The module paths before 0.12 keep working (`locretrieval.moved`): those of `locretrieval.models`
-before its grouping and of ``locretrieval.localization`` before its split, through imports, Hydra's
-``_target_``, pickle's references, a saved run config and a checkpoint that name them."""
+"""Module paths that moved keep working (`locretrieval.moved`): those of `locretrieval.models`
+before its grouping, of ``locretrieval.localization`` before its split and of the reports of training
+runs before they joined `locretrieval.report`, through imports, Hydra's ``_target_``, pickle's
+references, a saved run config and a checkpoint that name them."""
 
 import importlib
 import pickle
@@ -12,7 +13,7 @@ from pathlib import Path
 import helpers
 import pytest
 import torch
-from hydra.utils import get_class, instantiate
+from hydra.utils import get_class, get_object, instantiate
 from omegaconf import OmegaConf
 
 import locretrieval.models
@@ -39,6 +40,10 @@ LOCALIZATION_MODULES = (
 ).split()
 #: The classes a trainable model's architecture recorded before the grouping (0.11 to 0.12).
 OLD_BACKBONE = "locretrieval.models.backbones.TorchvisionBackbone"
+#: The reports of training runs in locretrieval/training/ before they joined locretrieval/report/: old -> new module.
+TRAINING_REPORTS = {"report": "training", "summary": "training_summary", "folders": "training_runs"}
+#: A name each of them defines, as a saved config or other code may name it.
+REPORT_NAMES = {"report": "TrainingReportSettings", "summary": "write_summary", "folders": "is_training_folder"}
 OLD_HEAD = "locretrieval.models.heads.MixVPRHead"
 
 
@@ -55,8 +60,24 @@ def test_the_alias_table_names_exactly_the_modules_that_moved_each_at_its_new_pl
     for old, new in models.items():
         assert is_module_here(new) and new.rsplit(".", 1)[1] == old.rsplit(".", 1)[1]  # the same file, moved
     split = {f"locretrieval.localization.{name}" for name in LOCALIZATION_MODULES} | {"locretrieval.localization"}
-    assert set(MOVED_MODULES) == set(models) | split
+    reports = {f"locretrieval.training.{old}" for old in TRAINING_REPORTS}
+    assert set(MOVED_MODULES) == set(models) | split | reports
     assert not (PACKAGE.parent / "localization").exists()
+    for old, new in TRAINING_REPORTS.items():
+        assert not (PACKAGE.parent / "training" / f"{old}.py").exists()
+        assert (PACKAGE.parent / "report" / f"{new}.py").is_file()
+
+
+@pytest.mark.parametrize("old", sorted(TRAINING_REPORTS))
+def test_every_report_module_that_left_training_imports_its_module_in_report(old):
+    old, new = f"locretrieval.training.{old}", f"locretrieval.report.{TRAINING_REPORTS[old]}"
+    assert MOVED_MODULES[old] == new
+    module = importlib.import_module(new)
+    sys.modules.pop(old, None)  # as in a fresh interpreter: the first import of the old name
+    with pytest.warns(DeprecationWarning, match=f"{old} is now {new}"):
+        assert importlib.import_module(old) is module
+    name = REPORT_NAMES[old.rsplit(".", 1)[1]]
+    assert module.__name__ == new and get_object(f"{old}.{name}") is getattr(module, name)
 
 
 @pytest.mark.parametrize("name", LOCALIZATION_MODULES)

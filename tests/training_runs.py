@@ -84,7 +84,7 @@ def gap_run(
     with ``held_out`` (% localized), as many held-out queries again, the objective's metric on them at its
     best validation and every query's outcome there (``validation_queries.csv.gz``)."""
     from locretrieval.metrics.uncertainty import default_uncertainty, share_interval
-    from locretrieval.training.report import gap_row
+    from locretrieval.report.training import gap_row
 
     run = folder / label
     (run / ".hydra").mkdir(parents=True)

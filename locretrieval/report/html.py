@@ -1,4 +1,5 @@
-"""``report.html``: the Markdown report rendered for a browser, beside ``report.md``.
+"""``report.html``: the Markdown report rendered for a browser, beside ``report.md`` (`write_html`);
+a page of interactive plotly figures (`write_figures_page`: a sweep's Optuna figures).
 
 One self-contained page (style inline, no script, nothing fetched from the network) that
 references the report's ``figures/``, ``tables/`` and ``galleries/`` by relative paths, so the
@@ -17,8 +18,10 @@ from __future__ import annotations
 import base64
 import hashlib
 import re
+from collections.abc import Sequence
 from html import unescape
 from pathlib import Path
+from typing import Any
 
 import jinja2
 import markdown
@@ -90,6 +93,29 @@ def write_html(markdown_path: Path, html_path: Path | None = None) -> Path:
     page = PAGE.render(title=title, body=Markup(body), links=links, policy=Markup(CONTENT_SECURITY_POLICY))
     html_path.write_text(page)
     return html_path
+
+
+FIGURES_PAGE = jinja2.Environment(autoescape=True).from_string(
+    """<!DOCTYPE html>
+<html lang="en">
+<head><meta charset="utf-8"><title>{{ title }}</title></head>
+<body>
+<h1>{{ title }}</h1>
+{{ figures }}
+</body>
+</html>
+"""
+)
+
+
+def write_figures_page(path: Path, title: str, figures: Sequence[Any]) -> Path:
+    """Write the plotly ``figures`` under the heading ``title`` (text, escaped) as one self-contained
+    page: plotly.js embedded once, nothing fetched, its own scripts only (`with_script_policy`);
+    returns ``path``."""
+    parts = [figure.to_html(full_html=False, include_plotlyjs=index == 0) for index, figure in enumerate(figures)]
+    page = FIGURES_PAGE.render(title=title, figures=Markup("\n".join(parts)))
+    path.write_text(with_script_policy(page), encoding="utf-8")  # its own scripts only: names are data
+    return path
 
 
 #: An inline script of a page the project writes (plotly's: ``<script type="text/javascript">...</script>``).

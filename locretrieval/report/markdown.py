@@ -58,6 +58,12 @@ def md_link(label: object, target: str) -> str:
     return f"[{text}]({urllib.parse.quote(target)})"
 
 
+def md_image(label: object, target: str) -> str:
+    """A Markdown image of the relative path ``target`` (percent-encoded), its alternative text
+    ``label`` (`md_text`)."""
+    return f"!{md_link(label, target)}"
+
+
 def latex_text(value: object) -> str:
     """``value`` as literal LaTeX text (captions; `write_table` escapes cells and labels)."""
     return "".join(_LATEX.get(character, character) for character in _LINE_BREAK.sub(" ", str(value)))
@@ -85,9 +91,15 @@ class ReportWriter:
         for paragraph in paragraphs:
             self.lines += [paragraph, ""]
 
-    def bullets(self, items: dict[str, object]) -> None:
-        """A list of ``**key**: value``; both are Markdown (strings from data escaped by the caller)."""
-        self.lines += [f"- **{key}**: {value}" for key, value in items.items()] + [""]
+    def bullets(self, items: Mapping[str, object] | Sequence[tuple[str, object]]) -> None:
+        """A list of ``**key**: value`` (a key may repeat when given as pairs); both are Markdown
+        (strings from data escaped by the caller)."""
+        pairs = items.items() if isinstance(items, Mapping) else items
+        self.lines += [f"- **{key}**: {value}" for key, value in pairs] + [""]
+
+    def image(self, label: object, target: str) -> None:
+        """An image (`md_image`) of the relative path ``target``."""
+        self.lines += [md_image(label, target), ""]
 
     def figures(self, paths: Sequence[Path] | Future) -> None:
         """Links to the figures ``paths`` (or the future of a figure worker's, awaited by `write`)."""

@@ -23,13 +23,13 @@ from locretrieval.benchmark import BenchmarkSettings
 from locretrieval.config import ConfigError, require
 from locretrieval.errors import require_built
 from locretrieval.groundtruth import DefinitionContext, GroundTruthSettings
+from locretrieval.report.training import TrainingReportSettings, write_training_report
+from locretrieval.report.training_runs import CONFIG_FILE, FINISHED_FILE
 from locretrieval.scene import ImageSet, Scene
 from locretrieval.scene.kapture_io import concatenate_image_sets
 from locretrieval.training.callbacks import LocalizationValidation
-from locretrieval.training.folders import CONFIG_FILE, FINISHED_FILE
 from locretrieval.training.objective import Objective
 from locretrieval.training.relevance import TrainingPairs, TrainingRelevanceSettings, combined_pairs
-from locretrieval.training.report import TrainingReportSettings, write_training_report
 
 log = logging.getLogger(__name__)
 

@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from locretrieval.cli import Mistake
 from locretrieval.config import ConfigError, built, require, validated
-from locretrieval.training.folders import (
+from locretrieval.report.training_runs import (
     CHECKPOINTS_FOLDER,
     FAILURE,
     MULTIRUN_FILE,
@@ -178,7 +178,7 @@ def write_sweep_summary(config: DictConfig) -> Path:
     """`write_summary` of the multirun of ``config`` in its sweep folder; for the project's Optuna
     sweeper, its study from its file in the folder, or from the storage its command line named
     (`study_storage`)."""
-    from locretrieval.training.summary import write_summary
+    from locretrieval.report.training_summary import write_summary
 
     folder = Path(config.hydra.sweep.dir)
     storage = study_storage(config) if config.hydra.sweeper.get("_target_") == SWEEPER else None

@@ -130,7 +130,7 @@ def test_a_sweep_summary_and_its_optuna_figures_draw_with_their_own_scripts_only
     from omegaconf import OmegaConf
     from training_runs import gap_run
 
-    from locretrieval.training.summary import write_summary
+    from locretrieval.report.training_summary import write_summary
 
     hostile = "model.name=<img src=x onerror=window.__pwned=1>"
     study = optuna.create_study(study_name="s", storage=f"sqlite:///{tmp_path / 'optuna.db'}", direction="maximize")

@@ -119,7 +119,7 @@ def test_the_slurm_recipe_gives_lightning_the_rendezvous_and_the_sampler_its_glo
     settings = {**ddp_steps.SAMPLER, "batches_per_epoch": 8}
     data = TrainingData(images.paths, pairs, RelevanceBatchSampler(pairs, **settings), None, (48, 36), 0, tmp_path)
     with mock.patch.dict(os.environ, slurm):  # then as it was (Lightning adds MASTER_ADDR)
-        trainer = instantiate(cfg.trainer, callbacks=[], logger=False)
+        trainer = instantiate(cfg.trainer)(callbacks=[], logger=False)  # a partial: the build step adds them
         assert (trainer.global_rank, trainer.world_size, trainer.node_rank, trainer.local_rank) == (3, 4, 1, 1)
         assert trainer.strategy.cluster_environment.main_address == "node07"
         data.trainer = trainer

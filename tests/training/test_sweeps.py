@@ -21,8 +21,8 @@ from training_runs import METRIC, gap_run, validation_table
 
 from locretrieval.build import benchmark_settings
 from locretrieval.config import ConfigError
+from locretrieval.report.training_summary import write_summary
 from locretrieval.training.objective import Objective
-from locretrieval.training.summary import write_summary
 
 ROOT = helpers.CONFIGS.parent
 
@@ -329,7 +329,7 @@ def test_every_range_of_a_search_space_draws_values_its_training_config_accepts(
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.utils import get_object
 
-    from locretrieval.training.folders import trial_overrides
+    from locretrieval.report.training_runs import trial_overrides
     from locretrieval.training.sweeps import SearchSpace, suggest
 
     fixed = [f"hparams_search={search}", f"paths.root_dir={tmp_path}", f"output_dir={tmp_path}/run"]
@@ -412,7 +412,7 @@ def test_a_failed_trial_records_why_and_the_rerun_of_the_sweep_runs_it_again(tmp
     its place; rerunning the command runs its parameters again as a new trial."""
     import optuna
 
-    from locretrieval.training.summary import write_summary
+    from locretrieval.report.training_summary import write_summary
 
     marker, sweep = tmp_path / "fail", tmp_path / "sweep"
     (tmp_path / "conf").mkdir()

@@ -788,7 +788,7 @@ def test_the_gap_table_gives_the_share_of_the_gap_to_the_ground_truth_that_train
     from training_runs import outcomes
 
     from locretrieval.metrics.uncertainty import default_uncertainty
-    from locretrieval.training.report import TrainingReportSettings, gap_table
+    from locretrieval.report.training import TrainingReportSettings, gap_table
 
     p1, local, glob = "approximation/ewb/k3/5m_10deg", "local_sfm/pnp/k10/0.25m_2deg", "global_sfm/pnp/k5/0.25m_2deg"
     n = 50
@@ -1121,7 +1121,7 @@ def test_the_training_report_escapes_every_name_it_writes(tmp_path):
     from types import SimpleNamespace
 
     from locretrieval.metrics.uncertainty import default_uncertainty
-    from locretrieval.training.report import TrainingReportSettings, write_training_report
+    from locretrieval.report.training import TrainingReportSettings, write_training_report
 
     hostile = "<img src=x onerror=alert(1)>"
     metric = "val/approximation/ewb/k3/5m_10deg"

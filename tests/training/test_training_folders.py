@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 from training_runs import gap_run
 
 from locretrieval.errors import DataFileError
-from locretrieval.training.summary import write_summary
+from locretrieval.report.training_summary import write_summary
 from locretrieval.training.sweeps import SWEEPER
 
 ROW = [("approximation/ewb/k3/5m_10deg", 10.0, 40.0, 20.0, 60.0)]

@@ -5,8 +5,8 @@ from types import SimpleNamespace
 import pandas as pd
 from matplotlib.colors import to_hex
 
+from locretrieval.report.training import draw_validation
 from locretrieval.training.callbacks import HELD_OUT, SELECTION
-from locretrieval.training.report import draw_validation
 
 
 def test_validation_png_draws_each_line_in_its_own_colour_over_whole_epochs(tmp_path, monkeypatch):

@@ -1,5 +1,7 @@
-"""The training run's validation curves: ``validation.csv`` and ``report.md`` with one figure (every
-config or data string in it escaped as the evaluation report's, `locretrieval.report.markdown`)."""
+"""The report of a train.py run, written at its end (`write_training_report`): ``validation.csv``,
+``gap.csv`` and ``report.md`` with the validation curves, the gap table and the galleries, written
+by the evaluation report's writer (`locretrieval.report.markdown.ReportWriter`: every config or data
+string in it escaped)."""
 
 from __future__ import annotations
 
@@ -14,9 +16,9 @@ from locretrieval.benchmark import BenchmarkSettings
 from locretrieval.config import require
 from locretrieval.metrics.comparison import gap_closed
 from locretrieval.metrics.uncertainty import Uncertainty, share_interval
-from locretrieval.report.markdown import difference_text, interval_text, markdown_table, md_text
+from locretrieval.report.markdown import ReportWriter, difference_text, interval_text, markdown_table, md_text
+from locretrieval.report.training_runs import GAP_COLUMNS, GAP_FILE, VALIDATION_FILE, VALIDATION_QUERIES_FILE
 from locretrieval.training.callbacks import HELD_OUT, SELECTION, LocalizationValidation, localization_key
-from locretrieval.training.folders import GAP_COLUMNS
 
 
 @dataclass
@@ -178,22 +180,19 @@ GALLERIES = (
 )
 
 
-def gallery_lines(validation: LocalizationValidation, output_dir: Path) -> list[str]:
-    """Write the validation galleries (`LocalizationValidation.galleries`) and the report lines showing them."""
+def gallery_section(writer: ReportWriter, validation: LocalizationValidation) -> None:
+    """Write the validation galleries (`LocalizationValidation.galleries`) into the report's folder
+    and show them in its report."""
     from PIL import Image
 
-    lines = []
     for key, file, caption in GALLERIES:
         if key in validation.galleries:
-            Image.fromarray(validation.galleries[key]).save(output_dir / file, quality=85)
-            lines += [
+            Image.fromarray(validation.galleries[key]).save(writer.directory / file, quality=85)
+            writer.text(
                 f"Top {validation.gallery_k} of validation queries {caption} (query first; green: relevant, red: not, "
-                f"by the {md_text(validation.gallery_groundtruth)} ground truth):",
-                "",
-                f"![gallery {caption}]({file})",
-                "",
-            ]
-    return lines
+                f"by the {md_text(validation.gallery_groundtruth)} ground truth):"
+            )
+            writer.image(f"gallery {caption}", file)
 
 
 #: The validation queries a gap row is measured on, in words (``gap.csv``'s ``split``).
@@ -212,49 +211,46 @@ def write_training_report(
     a line per requested row it cannot fill (``unfilled``: metric -> why), the galleries of the fixed
     validation queries before training and at the last validation)."""
     table = validation.history_table()
-    table.to_csv(output_dir / "validation.csv", index=False)
-    validation.outcome_table().to_csv(output_dir / "validation_queries.csv.gz", index=False)
+    table.to_csv(output_dir / VALIDATION_FILE, index=False)
+    validation.outcome_table().to_csv(output_dir / VALIDATION_QUERIES_FILE, index=False)
     shown = [
         metric
         for row in settings.gap
         for metric in (row.metric, f"{HELD_OUT}/{row.key}")
         if metric in set(table["metric"])
     ]
-    lines = [
-        "# Training report",
-        "",
+    writer = ReportWriter(output_dir, "Training report")
+    writer.text(
         f"% of validation queries localized with its {100 * validation.settings.metrics.uncertainty.confidence:g} % "
-        f"interval (epoch -1: before training); {md_text(validation.resolution())}.",
-        "",
-    ]
+        f"interval (epoch -1: before training); {md_text(validation.resolution())}."
+    )
     if shown:
         rows = table[table["metric"].isin(shown)]
         text = [interval_text(v, lo, hi) for v, lo, hi in zip(rows["value"], rows["low"], rows["high"])]
         wide = rows.assign(text=text).pivot(index="epoch", columns="metric", values="text")[shown]
-        lines += [markdown_table(wide.fillna("not validated"), index=True), ""]
+        writer.text(markdown_table(wide.fillna("not validated"), index=True))
         draw_validation(table, validation, [m for m in shown if m.startswith(f"{SELECTION}/")], output_dir)
-        lines += ["![validation curves](validation.png)", ""]
+        writer.image("validation curves", "validation.png")
     gaps = gap_table(validation, settings)
-    gaps.to_csv(output_dir / "gap.csv", index=False)
+    gaps.to_csv(output_dir / GAP_FILE, index=False)
     if len(gaps):
-        lines += [
+        writer.text(
             f"What training bought, per paradigm: % localized on {SPLIT_WORDS[gaps['split'].iloc[0]]}, and "
             f"the share of the gap between {md_text(settings.baseline)} and the ground truth that training closed, "
             "where there is a gap (the ground truth distinguishably above the baseline):",
-            "",
             markdown_table(gap_markdown(gaps, settings.baseline), index=False),
-            "",
-        ]
-    lines += [
-        f"Requested row {md_text(metric.removeprefix(f'{SELECTION}/'))} (report.gap) is not filled: {md_text(why)}."
-        for metric, why in unfilled.items()
-    ]
-    lines += [""] if unfilled else []
+        )
+    writer.text(
+        *(
+            f"Requested row {md_text(metric.removeprefix(f'{SELECTION}/'))} (report.gap) is not filled: {md_text(why)}."
+            for metric, why in unfilled.items()
+        )
+    )
     references = reference_table(validation, shown)
     if len(references):
-        lines += ["Reference rankings:", "", markdown_table(references), ""]
-    lines += gallery_lines(validation, output_dir)
-    (output_dir / "report.md").write_text("\n".join(lines))
+        writer.text("Reference rankings:", markdown_table(references))
+    gallery_section(writer, validation)
+    writer.write(output_dir / "report.md")
     return table
 
 

@@ -16,7 +16,6 @@ the report) and, for a study, ``optuna.html`` (Optuna's plotly figures, plotly.j
 from __future__ import annotations
 
 import csv
-import html
 import json
 import math
 import re
@@ -29,9 +28,18 @@ import pandas as pd
 
 from locretrieval.errors import DataFileError
 from locretrieval.metrics.uncertainty import default_uncertainty, paired_difference
-from locretrieval.report.html import with_script_policy, write_html
-from locretrieval.report.markdown import difference_text, interval_text, markdown_table, md_code, md_link, md_text
-from locretrieval.training.folders import (
+from locretrieval.report.html import write_figures_page, write_html
+from locretrieval.report.markdown import (
+    ReportWriter,
+    difference_text,
+    interval_text,
+    markdown_table,
+    md_code,
+    md_link,
+    md_text,
+)
+from locretrieval.report.run_files import load_yaml
+from locretrieval.report.training_runs import (
     CONFIG_FILE,
     FAILURE,
     FINISHED_FILE,
@@ -48,7 +56,6 @@ from locretrieval.training.folders import (
     job_overrides,
     load_named_study,
     open_study,
-    read_as_written,
     run_objective_figures,
     study_file,
     trial_job,
@@ -143,7 +150,7 @@ def summarize(paths: Sequence[Path], storage: str | None = None) -> Summary:
         else:
             rows.append(run_row(path, path.name, job_overrides(path)))
     configs = [row.folder / CONFIG_FILE for row in rows if row.folder is not None]
-    config = next((read_as_written(path) for path in configs if path.is_file()), None)
+    config = next((load_yaml(path) for path in configs if path.is_file()), None)
     known = isinstance(config, dict) and {"optimized_metric", "optimized_validation"} <= set(config)
     objective = Objective.from_config(config) if known else None
     maximize = all(study.direction == "maximize" for study in studies)
@@ -445,9 +452,9 @@ def trial_markdown(summary: Summary) -> pd.DataFrame:
     return table if any(row.note for row in summary.rows) else table.drop(columns="note")
 
 
-def markdown_lines(summary: Summary, output_dir: Path) -> list[str]:
+def summary_report(summary: Summary, output_dir: Path) -> ReportWriter:
     """``summary.md``: what was summarised, the best trial against the next, the trial table and each
-    Optuna study's section."""
+    Optuna study's section (`study_section`)."""
     objective, best = summary.objective, summary.best()
     baseline = gap_baseline(summary.rows)
     aim = "higher is better" if summary.maximize else "lower is better"
@@ -458,69 +465,67 @@ def markdown_lines(summary: Summary, output_dir: Path) -> list[str]:
         else "unknown"
     )
     against = best_against_next(summary)
-    lines = [
-        f"# Sweep summary: {md_text(', '.join(folder.name for folder in summary.folders))}",
-        "",
-        f"- **folders**: {', '.join(md_code(folder) for folder in summary.folders)}",
-        f"- **trials**: {len(summary.rows)}",
-        f"- **objective**: {objective_line}",
-        f"- **overrides of every trial**: {', '.join(md_code(item) for item in shared) or 'none'}",
-        f"- **best trial**: {md_text(best.label)}, objective {md_text(objective_text(best.figures))}; held out: "
-        f"{md_text(held_out_text(best.figures))}"
-        if best
-        else "- **best trial**: none",
-        *([f"- **best against the next**: {md_text(against)}"] if against else []),
-        *(f"- **study not read**: {md_text(why)}" for why in summary.unread),
-        "",
-        "## Trials",
-        "",
+    writer = ReportWriter(output_dir, f"Sweep summary: {md_text(', '.join(folder.name for folder in summary.folders))}")
+    writer.bullets(
+        [
+            ("folders", ", ".join(md_code(folder) for folder in summary.folders)),
+            ("trials", len(summary.rows)),
+            ("objective", objective_line),
+            ("overrides of every trial", ", ".join(md_code(item) for item in shared) or "none"),
+            (
+                "best trial",
+                f"{md_text(best.label)}, objective {md_text(objective_text(best.figures))}; held out: "
+                f"{md_text(held_out_text(best.figures))}"
+                if best
+                else "none",
+            ),
+            *([("best against the next", md_text(against))] if against else []),
+            *(("study not read", md_text(why)) for why in summary.unread),
+        ]
+    )
+    writer.heading("Trials")
+    writer.text(
         "The objective is measured on the validation queries the sweep selects on (its interval, its queries and "
         "the validation it was taken at): the best trial's figure there is favoured by its own selection. The "
         "held-out column is the same metric at the same validation on the validation queries kept out of every "
         "selection (training.validation.held_out): the figure to report.",
-        "",
         f"Per gap row of the training report: {md_text(baseline)} / untrained / trained / ground truth, % of the "
         f"held-out validation queries localized (all of them without a held-out share), and the share of the gap "
         f"between {md_text(baseline)} and the ground truth that training closed with its interval, where the ground "
         "truth is distinguishably above the baseline; for several trials their mean and the gap of the means.",
-        "",
         markdown_table(trial_markdown(summary), index=False),
-        "",
-    ]
+    )
     for study in summary.studies:
-        lines += study_lines(study, output_dir)
-    return lines
+        study_section(writer, study, output_dir)
+    return writer
 
 
-def study_lines(study: Study, output_dir: Path) -> list[str]:
+def study_section(writer: ReportWriter, study: Study, output_dir: Path) -> None:
     """An Optuna study's section: its trials per state, its best trial, the parameter importances
     and a link to ``optuna.html`` (`write_study_figures`)."""
     states = pd.Series([trial.state.name.lower() for trial in study.trials]).value_counts()
-    lines = [
-        f"## Optuna study {md_code(study.name)}",
-        "",
-        f"- **storage**: {md_code(study.storage)}",
-        f"- **trials**: {', '.join(f'{count} {state}' for state, count in states.items()) or 'none'}",
-        f"- **direction**: {study.direction}",
+    writer.heading(f"Optuna study {md_code(study.name)}")
+    items = [
+        ("storage", md_code(study.storage)),
+        ("trials", ", ".join(f"{count} {state}" for state, count in states.items()) or "none"),
+        ("direction", study.direction),
     ]
     if study.complete():
         best = study.optuna_study.best_trial
-        lines.append(f"- **best trial**: {best.number}, value {best.value:.4g}")
+        items.append(("best trial", f"{best.number}, value {best.value:.4g}"))
+    writer.bullets(items)
     importances, why = parameter_importances(study)
     if importances is None:
-        lines += ["", f"No parameter importances: {why}."]
+        writer.text(f"No parameter importances: {why}.")
     else:
-        lines += [
-            "",
+        writer.text(
             f"Parameter importances over {len(study.complete())} finished trials (Optuna's fANOVA: the share of the "
             "objective's variance each parameter explains in a random forest fitted to them):",
-            "",
             markdown_table(importances.to_frame().reset_index(), index=False, floatfmt=".3f"),
-        ]
+        )
     if write_study_figures(study, importances is not None, output_dir / FILES["figures"]):
         shown = "optimization history" + (" and parameter importances" if importances is not None else "")
-        lines += ["", f"The study's {shown}, Optuna's figures: {md_link(FILES['figures'], FILES['figures'])}."]
-    return lines + [""]
+        writer.text(f"The study's {shown}, Optuna's figures: {md_link(FILES['figures'], FILES['figures'])}.")
 
 
 def parameter_importances(study: Study) -> tuple[pd.Series | None, str]:
@@ -549,9 +554,8 @@ def importance_evaluator() -> Any:
 
 
 def write_study_figures(study: Study, with_importances: bool, path: Path) -> Path | None:
-    """``optuna.html``: Optuna's optimization history (and parameter importances) of ``study``,
-    plotly.js embedded once, nothing fetched, its own scripts only (`with_script_policy`); None (no
-    file) without a finished trial."""
+    """``optuna.html``: Optuna's optimization history (and parameter importances) of ``study``
+    (`write_figures_page`); None (no file) without a finished trial."""
     import optuna.visualization as visualization
 
     if not study.complete():
@@ -559,12 +563,7 @@ def write_study_figures(study: Study, with_importances: bool, path: Path) -> Pat
     figures = [visualization.plot_optimization_history(study.optuna_study)]
     if with_importances:
         figures.append(visualization.plot_param_importances(study.optuna_study, evaluator=importance_evaluator()))
-    parts = [figure.to_html(full_html=False, include_plotlyjs=index == 0) for index, figure in enumerate(figures)]
-    title = html.escape(f"Optuna study {study.name}")
-    page = f'<!DOCTYPE html>\n<html lang="en">\n<head><meta charset="utf-8"><title>{title}</title></head>\n<body>\n'
-    page += f"<h1>{title}</h1>\n" + "\n".join(parts) + "\n</body>\n</html>\n"
-    path.write_text(with_script_policy(page), encoding="utf-8")  # its own scripts only: names are data
-    return path
+    return write_figures_page(path, f"Optuna study {study.name}", figures)
 
 
 def spreadsheet_safe(table: pd.DataFrame) -> pd.DataFrame:
@@ -583,7 +582,6 @@ def write_summary(paths: Sequence[Path], output_dir: Path, storage: str | None =
     summary = summarize([Path(path) for path in paths], storage)
     table = spreadsheet_safe(trial_table(summary))
     table.to_csv(output_dir / FILES["csv"], index=False, quoting=csv.QUOTE_NONNUMERIC)
-    markdown = output_dir / FILES["markdown"]
-    markdown.write_text("\n".join(markdown_lines(summary, output_dir)).rstrip() + "\n")
+    markdown = summary_report(summary, output_dir).write(output_dir / FILES["markdown"])
     write_html(markdown, output_dir / FILES["html"])
     return markdown

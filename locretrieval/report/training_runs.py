@@ -1,10 +1,11 @@
 """The files of train.py's run folders and sweep folders, and how they are read.
 
-``run.py`` writes a run folder, the sweeper (`locretrieval.training.sweeps`) a sweep folder of job
-folders and its Optuna study, ``summary.py`` reads both. A folder may be someone else's (a shared
-sweep): its YAML files are read as written (`read_as_written`: ``${oc.env:HOME}`` stays text, no
-resolver runs), a value that must be a number is checked (`DataFileError` naming the file and key),
-and its study is opened only from a file inside it, read-only, never created (`open_study`).
+`locretrieval.training.run` writes a run folder, the sweeper (`locretrieval.training.sweeps`) a sweep
+folder of job folders and its Optuna study; the sweeper and the summary
+(`locretrieval.report.training_summary`) read both. A folder may be someone else's (a shared sweep):
+its YAML files are read as written (`locretrieval.report.run_files.load_yaml`: ``${oc.env:HOME}``
+stays text, no resolver runs), a value that must be a number is checked (`DataFileError` naming the
+file and key), and its study is opened only from a file inside it, read-only, never created (`open_study`).
 """
 
 from __future__ import annotations
@@ -71,16 +72,10 @@ INTERRUPTED = "interrupted: the sweep stopped while it ran"
 NOT_RUN = "not run"
 
 
-def read_as_written(path: Path) -> Any:
-    """The YAML file ``path`` as plain values, its interpolations left as text (none resolved), within
-    ``limits.yaml_nodes`` (`locretrieval.report.run_files.load_yaml`)."""
-    return load_yaml(path)
-
-
 def written_value(path: Path, key: str) -> Any:
-    """The value at the dotted ``key`` of the YAML file ``path`` as written (`read_as_written`);
+    """The value at the dotted ``key`` of the YAML file ``path`` as written (`load_yaml`);
     None where the file lacks it."""
-    value = read_as_written(path)
+    value = load_yaml(path)
     for part in key.split("."):
         value = value.get(part) if isinstance(value, dict) else None
     return value
@@ -113,7 +108,7 @@ def job_folders(sweep_dir: Path) -> dict[int, Path]:
 def job_overrides(folder: Path) -> list[str]:
     """A job's command-line overrides (`OVERRIDES_FILE`) as written."""
     path = folder / OVERRIDES_FILE
-    overrides = read_as_written(path) if path.is_file() else []
+    overrides = load_yaml(path) if path.is_file() else []
     if not isinstance(overrides, list):
         raise DataFileError(path, f"a list of overrides expected, not {type(overrides).__name__}", FIX_DATA_FILE)
     return [str(item) for item in overrides]
@@ -142,7 +137,7 @@ def run_objective(folder: Path) -> float:
 def run_objective_figures(folder: Path) -> ObjectiveFigures:
     """`run_objective` with its interval and the held-out figure at its validation (`Objective.figures`)."""
     path = folder / CONFIG_FILE
-    config = read_as_written(path)
+    config = load_yaml(path)
     if not isinstance(config, dict) or not {"optimized_metric", "optimized_validation"} <= set(config):
         raise DataFileError(path, "not a train.py config: no optimized_metric and optimized_validation")
     return Objective.from_config(config).figures(pd.read_csv(folder / VALIDATION_FILE))
