@@ -134,8 +134,9 @@ def parsed_command_line(arguments: Sequence[str]) -> tuple[Any, list[Any]] | Non
 
 
 def override_values(override: Any) -> list[str]:
-    """The values ``override`` sets, as text: one, or each of a choice or range sweep; none for a
-    glob or interval sweep, a deletion or ``null``."""
+    """The option names ``override`` sets, as text: one, or each of a choice or range sweep; none for
+    a glob or interval sweep, a deletion, ``null`` or a mapping or list (a node's value, as
+    ``logger={}`` empties a group's node: no option of it)."""
     if override.is_delete():
         return []
     if override.is_sweep_override():
@@ -143,7 +144,7 @@ def override_values(override: Any) -> list[str]:
             return [str(value) for value in override.sweep_string_iterator()]
         return []
     value = override.value()
-    return [] if value is None else [str(value)]
+    return [] if value is None or isinstance(value, (dict, list)) else [str(value)]
 
 
 def group_override_problems(config_dir: Path, config_name: str, arguments: Sequence[str]) -> list[str]:

@@ -185,9 +185,16 @@ def hydra_command(name: str, arguments: list[str]) -> None:
     check_command_line(configs_dir(), name, arguments)
     import hydra
 
+    command_line, task = list(sys.argv), COMMANDS[name].task
+
+    def task_of_this_command_line(cfg: DictConfig) -> Any:
+        sys.argv = command_line  # what a relaunched process runs again (Lightning's DDP ranks): this command
+        return task(cfg)
+
+    task_of_this_command_line.__module__ = task.__module__  # Hydra names the job after it
     with dry_run_folder(arguments) as extra:
         sys.argv = [f"locretrieval {name}", *arguments, *extra]  # what Hydra parses
-        hydra.main(version_base="1.3", config_path=str(configs_dir()), config_name=name)(COMMANDS[name].task)()
+        hydra.main(version_base="1.3", config_path=str(configs_dir()), config_name=name)(task_of_this_command_line)()
 
 
 @contextlib.contextmanager

@@ -1,6 +1,7 @@
 """Every config key the README and docs name exists (a removed or renamed key fails here);
 the dated sections of docs/results.md and the changelog, which quote the commands of their
-version, are left out."""
+version, are left out. No doc under docs/ names a date, a commit or a past version: the
+changelog does."""
 
 import re
 from pathlib import Path
@@ -91,9 +92,9 @@ def named_keys(text: str) -> set[str]:
 
 def undated(text: str) -> str:
     """``text`` without its dated sections (`DATED_HEADING`), each up to the next heading of its
-    level or above, and without its rename notes (a paragraph ``Renamed in <version> ...``: the
-    spellings of before)."""
-    text = re.sub(r"(?ms)^Renamed in \d.*?(?:\n\s*\n|\Z)", "", text)
+    level or above, and without its rename notes (a paragraph ``Renamed keys ...``: the spellings
+    of before)."""
+    text = re.sub(r"(?ms)^Renamed keys\b.*?(?:\n\s*\n|\Z)", "", text)
     kept, dated_level = [], None
     for line in text.splitlines():
         heading = re.match(r"^(#+) ", line)
@@ -150,7 +151,7 @@ def test_dated_sections_are_left_out_up_to_the_next_heading_of_their_level():
         ]
     )
     assert named_keys(undated(text)) == {"sfm.kept", "sfm.also_kept"}
-    notes = "Renamed in 0.6.0: `training.batch.*` -> `sampler.*`.\n\n`sfm.kept`"
+    notes = "Renamed keys: `training.batch.*` -> `sampler.*`.\n\n`sfm.kept`"
     assert named_keys(undated(notes)) == {"sfm.kept"}
 
 
@@ -174,3 +175,100 @@ def test_every_option_of_the_command_line_groups_is_named_in_the_documents():
         if not any(re.search(rf"(?<![\w.]){re.escape(path.stem)}(?!\w)", span) for span in spans)
     ]
     assert unnamed == []
+
+
+#: A date (``2026-11-27``).
+DATE = re.compile(r"\b\d{4}-\d{2}-\d{2}\b")
+#: A commit hash: 7 to 40 hex digits with a digit and a letter (so no number and no word).
+COMMIT = re.compile(r"\b(?=[0-9a-f]*\d)(?=[0-9a-f]*[a-f])[0-9a-f]{7,40}\b")
+#: A published weight file named as torch.hub names them, ``<name>-<first hex digits of its SHA-256>.pth``
+#: (``resnet50-11ad3fa6.pth``): the digits are the file's hash, which torch.hub checks, not a commit.
+HUB_FILE_HASH = re.compile(r"(?<=-)[0-9a-f]+(?=\.pth?\b)")
+#: A version: ``0.11.0``; ``0.12`` after a word that dates it (``in 0.12``, ``since 0.12``, not a
+#: measure: ``in 0.25 m``); ``0.12 and earlier``; ``v0.12``.
+VERSION = re.compile(
+    r"(?i)(?<![\w.])(?P<full>v?\d+\.\d+\.\d+)(?!\.?\w)"
+    r"|\b(?:since|before|after|until|in|as of|version|release|locretrieval)\s+(?P<dated>v?0\.\d+)(?!\.?\d)"
+    r"(?!\s*(?:%|(?:s|ms|min|h|m|km|cm|mm|px|deg|points?|units?|x|[KMG]i?B)\b))"
+    r"|\b(?P<bounded>v?0\.\d+)\s+(?:and|or)\s+(?:earlier|later|before|after)\b"
+    r"|\b(?P<prefixed>v0\.\d+)\b"
+)
+#: Other packages and formats whose versions a document gives (``torch 2.13.0``, ``kapture 1.1``).
+THIRD_PARTY = (
+    "torch",
+    "torchvision",
+    "pycolmap",
+    "colmap",
+    "optuna",
+    "numpy",
+    "scipy",
+    "numba",
+    "timm",
+    "lightning",
+    "hydra-core",
+    "hydra",
+    "omegaconf",
+    "sqlalchemy",
+    "kapture-localization",
+    "kapture",
+    "onnxruntime",
+    "onnx",
+    "opset",
+    "python",
+    "cuda",
+)
+#: What a number a version pattern matched follows when it is not ours: a package of `THIRD_PARTY`
+#: (``torch>=2.13.0``) or a section of a paper (``Sec. 3.6.1``), then possibly other numbers of a
+#: list (``Sec. 3.6.1, 3.6.2``).
+NOT_OURS = re.compile(
+    r"(?i)(?:\b(?:%s)\s*(?:[<>=!~]=?\s*)?|\b(?:Sec\.|Section|Table|Fig\.|Eq\.)\s*)"
+    r"(?:v?\d+(?:\.\d+)*(?:'s)?(?:,\s*|\s+(?:and|or|to)\s+))*$" % "|".join(map(re.escape, THIRD_PARTY))
+)
+
+
+def history(text: str) -> list[tuple[int, str]]:
+    """The dates, commit hashes and versions of locretrieval ``text`` names, each with its line
+    (a match may span a line break): a document says what the code does now, and CHANGELOG.md
+    when it changed."""
+    hub_hashes = {m.span() for m in HUB_FILE_HASH.finditer(text)}
+    found = [*DATE.finditer(text), *(m for m in COMMIT.finditer(text) if m.span() not in hub_hashes)]
+    for m in VERSION.finditer(text):
+        name = next(group for group in ("full", "dated", "bounded", "prefixed") if m.group(group))
+        if not NOT_OURS.search(text[max(0, m.start(name) - 120) : m.start(name)]):
+            found.append(m)
+    return [
+        (text.count("\n", 0, m.start()) + 1, " ".join(m.group().split()))
+        for m in sorted(found, key=lambda m: m.start())
+    ]
+
+
+def test_no_document_names_a_date_a_commit_or_a_past_version():
+    named = [
+        f"{document.relative_to(ROOT)}:{line}: {found}"
+        for document in sorted((ROOT / "docs").rglob("*.md"))
+        for line, found in history(document.read_text())
+    ]
+    assert named == []
+
+
+def test_the_history_scan_finds_dates_commits_and_our_versions_only():
+    assert history("measured 2026-11-27 at 8d42c20,\nbefore 0.12 (as 0.11.0 and earlier)") == [
+        (1, "2026-11-27"),
+        (1, "8d42c20"),
+        (2, "before 0.12"),
+        (2, "0.11.0"),
+    ]
+    assert [
+        found for _, found in history("since 0.5.0, in\n0.12's layout, v0.9, 0.10 or later; locretrieval 0.12")
+    ] == [
+        "0.5.0",
+        "in 0.12",
+        "v0.9",
+        "0.10 or later",
+        "locretrieval 0.12",
+    ]
+    third_party = "torch 2.13.0 with torchvision 0.28.0, `pycolmap>=4.2.1`, Optuna 4.0.0, kapture 1.1, Python 3.11.4"
+    papers = "Sec. 3.6.1, 3.6.2 and 4.1.2's discussion; Table 1"
+    measures = "in 0.25 m, ratio 0.5 in the study, 0.1 to 0.6, (0.86), since 0.5 s, 10.4-13.2 images/s"
+    files = "`resnet50-11ad3fa6.pth`, `maskrcnn_resnet50_fpn_coco-bf2d0c1e.pth`, a 1234567-byte file, `decade`"
+    assert history(" ".join([third_party, papers, measures, files])) == []
