@@ -158,6 +158,7 @@ def group_override_problems(config_dir: Path, config_name: str, arguments: Seque
         return []
     parsed, overrides = found
     folders = [Path(parsed.config_dir).resolve(), config_dir] if parsed.config_dir else [config_dir]
+    folders += searchpath_folders(overrides)
     name = parsed.config_name or config_name
     groups = defaults_groups(next((f / f"{name}.yaml" for f in folders if (f / f"{name}.yaml").is_file()), None))
     problems = []
@@ -176,6 +177,18 @@ def group_override_problems(config_dir: Path, config_name: str, arguments: Seque
             if value not in options
         ]
     return problems
+
+
+def searchpath_folders(overrides: Sequence[Any]) -> list[Path]:
+    """The folders a command line's ``hydra.searchpath=[file://DIR, ...]`` adds to Hydra's config
+    search path (``pkg://`` entries name packages: their options are not looked up)."""
+    folders = []
+    for override in overrides:
+        if override.key_or_group == "hydra.searchpath" and not override.is_sweep_override():
+            value = override.value()
+            entries = value if isinstance(value, list) else [value]
+            folders += [Path(str(e).removeprefix("file://")) for e in entries if str(e).startswith("file://")]
+    return folders
 
 
 def defaults_groups(primary: Path | None) -> set[str] | None:
