@@ -155,9 +155,9 @@ def test_a_dry_run_of_the_command_line_keeps_no_run_folder(tmp_path):
 @pytest.mark.skipif(shutil.which("make") is None, reason="make is not installed")
 def test_make_evaluate_says_what_it_installs_and_shows_the_installation_as_it_goes(tmp_path):
     venv = tmp_path / "venv"  # a fresh environment: every installation step runs
-    completed = subprocess.run(
-        ["make", "--dry-run", "evaluate", f"VENV={venv}"], cwd=ROOT, capture_output=True, text=True, timeout=60
-    )
+    # --no-print-directory: under `make test` this make is a sub-make, which would name its folder last
+    make = ["make", "--dry-run", "--no-print-directory", "evaluate", f"VENV={venv}"]
+    completed = subprocess.run(make, cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert completed.returncode == 0, completed.stderr
     steps = completed.stdout.splitlines()
     sync = next(index for index, step in enumerate(steps) if "pip-sync" in step)

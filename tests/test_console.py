@@ -25,11 +25,13 @@ def terminal() -> Iterator[io.StringIO]:
     root = logging.getLogger()
     streams, handlers, level = (sys.stdout, sys.stderr), root.handlers, root.level
     sys.stdout = sys.stderr = screen
-    root.handlers, root.level = [console], logging.INFO
+    root.handlers = [console]
+    root.setLevel(logging.INFO)  # not `root.level =`: setLevel clears the loggers' cached levels
     try:
         yield screen
     finally:
-        (sys.stdout, sys.stderr), root.handlers, root.level = streams, handlers, level
+        (sys.stdout, sys.stderr), root.handlers = streams, handlers
+        root.setLevel(level)
 
 
 def test_a_log_line_is_written_above_the_bar_and_the_bar_drawn_again_below():
