@@ -3,7 +3,7 @@
 # 330 s (the steps' budgets), about 4 minutes expected, the machine's start-up excluded
 # (docs/performance.md, "On a GPU: the prepared scripts").
 #   bash benchmarks/gpu_check.sh              # on the GPU machine; figures also in $OUT/gpu_check.txt
-#   bash benchmarks/gpu_check.sh --rehearse   # the same steps at a tiny size on the CPU (tests/test_gpu_scripts.py)
+#   bash benchmarks/gpu_check.sh --rehearse   # the same steps at a tiny size on the CPU (tests/whole/test_gpu_scripts.py)
 # A GPU machine without a package index: run here, once, from the project's root,
 #   GPU_EXTRA_PACKAGES="nh3 loky" bash ../shared/tools/gpu/bundle.sh
 # (nh3: report.html's sanitizer, a runtime dependency the bundle's list predates; the machine's image
@@ -42,7 +42,7 @@ fi
 require_gpu
 versions
 step "CUDA tests" 45 "$PYTHON" -m pytest -q -p no:cacheprovider $collect_only \
-    tests/sfm/test_features_matching.py tests/models/published/test_densevlad.py -k "gpu or cuda or device"
+    tests/sfm/test_nearest_neighbours.py tests/sfm/test_matching.py tests/models/published/test_densevlad.py -k "gpu or cuda or device"
 step "bench_matching" 60 "$PYTHON" benchmarks/bench_matching.py $matching
 step "bench_scale baidu" 120 "$PYTHON" benchmarks/bench_scale.py --size baidu $scale
 step "bench_training" 55 "$PYTHON" benchmarks/bench_training.py $training device=$DEVICE $scene

@@ -5,7 +5,7 @@
 # validation scenes of docs/results.md (mall seeds 0, 1, 2 and street seeds 0, 1), against the
 # 15-minute CPU default there. At most 360 s (the steps' budgets), the machine's start-up excluded.
 #   bash benchmarks/gpu_training_gain.sh              # on the GPU machine; $OUT/gpu_training_gain.txt, training_gain.md
-#   bash benchmarks/gpu_training_gain.sh --rehearse   # the same steps at a tiny size on the CPU (tests/test_gpu_scripts.py)
+#   bash benchmarks/gpu_training_gain.sh --rehearse   # the same steps at a tiny size on the CPU (tests/whole/test_gpu_scripts.py)
 # A GPU machine without a package index: as benchmarks/gpu_check.sh says (the .gpu/ bundle with
 # GPU_EXTRA_PACKAGES="nh3 loky"), then: source .gpu/env.sh && bash benchmarks/gpu_training_gain.sh
 # Run it right after gpu_check.sh on the same machine: the mall seed 0 scene is then rendered already.

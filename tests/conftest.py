@@ -1,4 +1,5 @@
-"""Fixtures shared by test modules: an evaluation run of a hostile dataset (built once a session).
+"""Fixtures shared by test modules: an evaluation run of a hostile dataset (built once a session), a
+rendered scene the datasets' miniatures are installed from (once a module).
 
 The test processes of `make test` (pytest-xdist) share the machine's cores: each, and every process
 it starts, gets its share of threads for the threaded libraries (torch, OpenMP, BLAS), which would
@@ -80,3 +81,23 @@ def hostile_run(tmp_path_factory) -> HostileRun:
     config.data.mapping, config.data.queries, config.model.name = str(mapping), [str(query)], HOSTILE_MODEL
     evaluate(config, root / "run")
     return HostileRun(root, root / "run", root / "cache")
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """A tiny rendered scene and its local features, from which the datasets' miniatures are installed
+    (`published_layouts.install`): ``(scene, {image name: features})``."""
+    import helpers
+    from published_layouts import SCENE
+
+    from locretrieval.scene.kapture_io import load_kapture_scene
+    from locretrieval.scene.synthetic import render_synthetic_dataset
+    from locretrieval.sfm.features import extract_features
+
+    root = tmp_path_factory.mktemp("published_source")
+    render_synthetic_dataset(helpers.render_settings(SCENE), root)
+    scene = load_kapture_scene("rendered", [root / "mapping"], [root / "query"])
+    features = extract_features(scene.database, helpers.sfm_settings().features, root / "cache", 1)
+    query_features = extract_features(scene.queries, helpers.sfm_settings().features, root / "cache", 1)
+    local = {**features.load(scene.database.names), **query_features.load(scene.queries.names)}
+    return scene, local

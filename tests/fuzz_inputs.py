@@ -1,4 +1,4 @@
-"""Fuzzing of the files the benchmark reads (run by tests/test_fuzz_inputs.py in its own interpreter).
+"""Fuzzing of the files the benchmark reads (run by tests/whole/test_fuzz_inputs.py in its own interpreter).
 
 Seeded hypothesis strategies mutate, byte by byte and field by field, each kapture text file (and
 an image) of a small valid folder, a revisited ground-truth pickle and a cache ``.npz``, and build

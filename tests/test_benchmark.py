@@ -14,7 +14,7 @@ from helpers import evaluate_config, render_settings
 from PIL import Image
 from torch import nn
 
-from locretrieval.benchmark import benchmark, build_rankings, relevances
+from locretrieval.benchmark import benchmark, build_rankings, check_unique_names, relevances
 from locretrieval.build import benchmark_settings
 from locretrieval.config import ConfigError
 from locretrieval.estimates import PoseEstimates
@@ -24,6 +24,7 @@ from locretrieval.models import NetworkDescriptor
 from locretrieval.models.extraction import ExtractionSettings, Preprocessing, extract_descriptors
 from locretrieval.models.networks import GeMPooling, RetrievalNet, l2_normalize
 from locretrieval.paradigms.base import Paradigm
+from locretrieval.retrieval import random_ranking
 from locretrieval.retrieval.descriptors import describe_scene
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
@@ -469,3 +470,9 @@ def test_a_new_paradigm_is_one_class_and_one_config_section(scene, monkeypatch):
     ):
         with pytest.raises(ConfigError, match=message):
             benchmark_settings(evaluate_config(f"+paradigms.top_image={section}", "paths.root_dir=/nonexistent"))
+
+
+def test_rankings_sharing_a_name_are_an_error():
+    check_unique_names([random_ranking(3, 5, 2, seed=0)])
+    with pytest.raises(ValueError, match=r"\['random'\] are named twice"):
+        check_unique_names([random_ranking(3, 5, 2, seed=0), random_ranking(3, 5, 2, seed=1)])

@@ -1,6 +1,7 @@
 """What the training tests share: a tiny rendered scene, train.py's config for a short training of it,
-random training pairs, and a finished train.py run's files."""
+random training pairs, a finished train.py run's files, and relative-pose training relevance."""
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -10,7 +11,12 @@ import pandas as pd
 from omegaconf import OmegaConf
 from scipy import sparse
 
-from locretrieval.training.relevance import TrainingPairs
+from locretrieval.groundtruth import DefinitionContext
+from locretrieval.training.relevance import (
+    TrainingPairs,
+    TrainingRelevanceSettings,
+    UnrelatedNegatives,
+)
 
 SCENE = {"width": 96, "height": 72, "num_database": 24, "num_queries": 6, "texture_size": 64, "length": 20.0,
          "conditions": {"night": 0.0, "blur": 0.0, "dynamic": 0.0, "noise": 0.0}, "database_dynamic": 0.0,
@@ -134,3 +140,22 @@ def gap_run(
 
 #: The outcomes of a gap row, in `gap_run`'s order.
 GAP_OUTCOMES = ("untrained", "trained", "baseline", "groundtruth")
+
+
+RELATIVE_POSE = TrainingRelevanceSettings(
+    {
+        "_target_": "locretrieval.groundtruth.RelativePoseDefinition",
+        "position_threshold": 10.0,
+        "rotation_threshold": 30.0,
+        "ranked": "within_thresholds",
+    },
+    UnrelatedNegatives(0.1, None, None),
+)
+
+
+AT_25M = DefinitionContext(far=25.0)
+
+
+def negatives(rule=None, **changes):
+    """`RELATIVE_POSE` with another negatives ``rule``, or its rule with other settings."""
+    return dataclasses.replace(RELATIVE_POSE, negatives=rule or dataclasses.replace(RELATIVE_POSE.negatives, **changes))

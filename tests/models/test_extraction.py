@@ -1,4 +1,5 @@
-"""The extraction engine and the trainable heads: sizes, scales, determinism, caching, weights."""
+"""The extraction engine and the trainable heads: sizes, scales, determinism, caching, weights, each
+layer's own mode restored."""
 
 import hashlib
 import json
@@ -294,3 +295,13 @@ def test_weight_folder_hash_covers_relative_names_and_contents(tmp_path):
     assert [entry[:2] for entry in signature] == [["saved_model.pb", 5], [os.path.join("variables", "data"), 7]]
     assert tree_signature(folder / "saved_model.pb") == [("", 5, (folder / "saved_model.pb").stat().st_mtime_ns)]
     assert tree_signature(tmp_path / "absent") == []
+
+
+def test_evaluation_mode_restores_each_layers_own_mode():
+    from locretrieval.models.extraction import evaluation_mode
+
+    network = torch.nn.Sequential(torch.nn.Conv2d(3, 4, 3), torch.nn.BatchNorm2d(4), torch.nn.Dropout()).train()
+    network[1].eval()  # frozen batch norm in a training network
+    with evaluation_mode(network):
+        assert not any(layer.training for layer in network.modules())
+    assert [layer.training for layer in network.modules()] == [True, True, False, True]

@@ -1,24 +1,35 @@
-"""Dataset configs composed with Hydra and instantiated against tiny kapture layouts."""
+"""Dataset configs composed with Hydra and instantiated against tiny kapture layouts; real datasets as
+NAVER's downloader installs them: for each dataset, a miniature of its folder tree (kapture folders
+with the dataset's image naming, published global-feature names under
+``<dataset>/global_features/<name>/global_features``, R2D2-named local features under
+``<dataset>/local_features/r2d2_WASF-N8_20k/{keypoints,descriptors}``) built from a tiny rendered
+scene, and ``evaluate.py data=<name> model=precomputed model.feature_name=<name>`` end to end."""
 
 from __future__ import annotations
 
 import os
+import re
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
+import helpers
 import numpy as np
+import pandas as pd
 import pytest
-from helpers import render_settings
+from helpers import evaluate, render_settings
 from hydra import compose, initialize_config_dir
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from kapture_folders import PINHOLE, pose, write_kapture
+from published_layouts import LAYOUTS, install, split
 
 from locretrieval.build import scene_of
 from locretrieval.config import ConfigError
 from locretrieval.scene import Scene
 from locretrieval.scene.datasets import DatasetNotFoundError
 from locretrieval.scene.ltvl import KaptureNames, LtvlNames, WithoutFirstFolder, write_ltvl
+from locretrieval.sfm.pairs import database_pairs, overlapping_pairs
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 DATASETS = ["aachen", "baidu", "robotcar", "robotcar_v2", "gangnam", "inloc"]
@@ -284,3 +295,113 @@ def test_ltvl_names_from_outside_the_package_are_chosen_through_the_config(tmp_p
     assert [line.split()[0] for line in (tmp_path / "out.txt").read_text().splitlines()] == ["A.JPG", "B.JPG"]
     chosen = compose_data("aachen", f"paths.data_dir={tmp_path}", "data/ltvl_names=strip_prefix")
     assert scene_of(chosen.data).ltvl_names == WithoutFirstFolder()
+
+
+@pytest.mark.parametrize("dataset", sorted(LAYOUTS))
+def test_evaluate_runs_on_the_downloaders_layout(dataset, rendered, tmp_path):
+    layout = LAYOUTS[dataset]
+    install(layout, rendered, tmp_path / "data")
+    cfg = helpers.evaluate_config(
+        f"data={dataset}",
+        f"paths.data_dir={tmp_path / 'data'}",
+        f"paths.root_dir={tmp_path}",
+        "model=precomputed",
+        f"model.feature_name={layout.feature_name}",
+        "paradigms.approximation.k=[1,3]",
+        "paradigms.local_sfm.k=[3]",
+        "paradigms.global_sfm.k=[1,3]",
+        "sfm.workers=1",
+        "report.figure_formats=[]",
+        *helpers.QUIET_EXTRACTION[:1],
+    )
+    output = tmp_path / "run"
+    evaluate(cfg, output)
+    ltvl = sorted(path.stem for path in (output / "ltvl" / layout.feature_name).glob("*.txt"))
+    sfm = (
+        [] if dataset == "inloc" else ["global_sfm_pnp_k1", "global_sfm_pnp_k3", "local_sfm_pnp_k3"]
+    )  # InLoc: paradigm 1 only
+    assert ltvl == sorted([f"approximation_{m}_k{k}" for m in ("bdi", "csi", "ewb") for k in (1, 3)] + sfm)
+    for stem in ltvl:  # paradigm 1 poses every query; the SfM paradigms the ones they register
+        lines = (output / "ltvl" / layout.feature_name / f"{stem}.txt").read_text().splitlines()
+        assert len(lines) == 4 if stem.startswith("approximation") else len(lines) <= 4
+    results = pd.read_csv(output / "results.csv")
+    posed = sum(
+        len(rows)
+        for folder, rows in zip(layout.queries, split(4, len(layout.queries)))
+        if folder in layout.posed_queries
+    )
+    assert (results.loc[results["subset"] == "all", "num_queries"] == posed).all()
+    assert posed == 0 or set(results.loc[results["ranking"] == layout.feature_name, "paradigm"]) == {
+        "approximation",
+        "local_sfm",
+        "global_sfm",
+    }
+    assert (output / "report.md").is_file()
+
+
+def test_inloc_refuses_global_sfm_at_start_up(rendered, tmp_path):
+    install(LAYOUTS["inloc"], rendered, tmp_path / "data")
+    cfg = helpers.evaluate_config(
+        "data=inloc",
+        f"paths.data_dir={tmp_path / 'data'}",
+        f"paths.root_dir={tmp_path}",
+        "model=precomputed",
+        "model.feature_name=AP-GeM-LM18",
+        "paradigms.global_sfm.enabled=true",
+    )
+    with pytest.raises(
+        ConfigError, match="dataset 'inloc' does not support global_sfm: InLoc's global map comes from its depth scans"
+    ):
+        evaluate(cfg, tmp_path / "run")
+    assert not (tmp_path / ".cache").exists()  # refused before any work (nothing cached)
+
+
+def test_a_dry_run_logs_the_plan_and_its_forecast_and_writes_nothing(rendered, tmp_path, caplog):
+    install(LAYOUTS["baidu"], rendered, tmp_path / "data")
+    scene = rendered[0]
+    cfg = helpers.evaluate_config(
+        "data=baidu",
+        f"paths.data_dir={tmp_path / 'data'}",
+        f"paths.root_dir={tmp_path}",
+        "model=precomputed",
+        "model.feature_name=densevlad_multi",
+        "paradigms.local_sfm.k=[3]",
+        "paradigms.global_sfm.k=[1,3]",
+        "sfm.workers=1",
+        "baselines.random=false",  # the random ranking is drawn, so counted exactly: here every ranking is bounded
+        "dry_run=true",
+        *helpers.QUIET_EXTRACTION[:1],
+    )
+    before = {path for path in tmp_path.rglob("*")}
+    with caplog.at_level("INFO", logger="locretrieval"):
+        assert evaluate(cfg, tmp_path / "run").empty
+    plan = next(record.getMessage() for record in caplog.records if "SfM plan" in record.getMessage())
+    # no output folder: the unit costs it measured, kept in the cache and named in its log, and nothing else
+    [calibration] = re.findall(r"unit costs measured now and kept in (\S+\.npz) ", plan)
+    written = {Path(calibration), Path(calibration).parent, tmp_path / ".cache"}
+    assert {path for path in tmp_path.rglob("*")} == before | written
+    # 4 rankings none of which is cached (the model, 3 ground truths), 12 database images, 4 queries, each
+    # ranking's top 3 apart; the co-observation ground truth matches the global map's pairs and each query's
+    # overlapping images first
+    assert (
+        "not computed yet, their work bounded: densevlad_multi, gt_relative_pose, gt_frustum, gt_co_observation;"
+        in plan
+    )
+    rankings, queries, images = 4, 4, 12
+    query_pairs = min(rankings * queries * 3, queries * images)
+    selection = replace(helpers.sfm_settings().map_pairs, far=50.0, min_radius=10.0, max_per_image=None)
+    map_pairs = len(database_pairs(scene.database, selection))
+    joint = len(overlapping_pairs(scene.queries, scene.database, replace(selection, max_per_image=50), False))
+    assert map_pairs > 0 and joint > 0 and "local features of 16 (16 new) images" in plan
+    local_pairs = rankings * queries * 3
+    assert (
+        f"local_sfm: query pairs {query_pairs} ({min(query_pairs, queries * images - joint)} new), "
+        f"database pairs {local_pairs} ({min(local_pairs, 66 - map_pairs)} new), "
+        f"maps {rankings * queries} ({rankings * queries} new), registrations {rankings * queries}"
+    ) in plan
+    assert (
+        f"global_sfm: query pairs {query_pairs} ({min(query_pairs, queries * images - joint)} new), "
+        f"database pairs {map_pairs} (0 new), maps 1 (1 new), registrations {rankings * queries * 2}"
+    ) in plan
+    assert f"ground truth: pairs {map_pairs + joint} ({map_pairs + joint} new), matched first" in plan
+    assert "calibrated in" in plan and "forecast: features" in plan and "(x0.5-2)" in plan

@@ -135,7 +135,7 @@ def steps(tmp_path_factory):
     done = subprocess.run(
         [
             sys.executable,
-            str(ROOT / "tests" / "training" / "ddp_steps.py"),
+            str(ROOT / "tests" / "ddp_steps.py"),
             str(root / "scene"),
             str(root / "two"),
             "2",

@@ -1,5 +1,6 @@
-"""Sweeps of train.py: the objective it returns, the Optuna study of ``hparams_search=localization``
-(parallel, resumed after a kill), and the summary of a sweep's trials."""
+"""Sweeps of train.py (`locretrieval.training.sweeps`): the Optuna study of ``hparams_search=localization``
+(parallel, resumed after a kill), its search space, its failed trials, the checkpoints it keeps, and
+the summary it writes."""
 
 import math
 import os
@@ -16,51 +17,12 @@ import helpers
 import pandas as pd
 import pytest
 from omegaconf import OmegaConf
-from scipy import stats
-from training_runs import METRIC, gap_run, validation_table
+from training_runs import METRIC
 
-from locretrieval.build import benchmark_settings
 from locretrieval.config import ConfigError
 from locretrieval.report.training_summary import write_summary
-from locretrieval.training.objective import Objective
 
 ROOT = helpers.CONFIGS.parent
-
-
-def test_the_objective_is_the_metric_at_its_best_or_last_validation_after_training():
-    table = validation_table(
-        [(-1, METRIC, 90.0), (0, METRIC, 20.0), (1, METRIC, 40.0), (2, METRIC, 30.0), (1, "val/other", 99.0)]
-    )
-    assert Objective(METRIC, "best").value(table) == (1, 40.0)  # before training (90) does not count
-    assert Objective(METRIC, "last").value(table) == (2, 30.0)
-    sfm = "val/global_sfm/pnp/k5/0.25m_2deg"  # logged every sfm_every_n_epochs: its last validation is the last
-    assert Objective(sfm, "last").value(validation_table([(-1, sfm, 5.0), (1, sfm, 7.0), (2, METRIC, 1.0)])) == (1, 7.0)
-    with pytest.raises(ValueError, match=r"optimized_metric: 'val/missing' was not logged .* val/approximation/ewb/k3"):
-        Objective("val/missing", "best").value(table)
-    for bad in (float("nan"), float("-inf")):
-        broken = validation_table([(0, METRIC, 20.0), (1, METRIC, bad)])
-        with pytest.raises(ValueError, match=rf"optimized_metric: '{METRIC}' is {bad} .* epoch 1, not a finite"):
-            Objective(METRIC, "best").value(broken)
-    with pytest.raises(ConfigError, match=r"optimized_validation: 'first'; expected one of \['best', 'last'\]"):
-        Objective.from_config(OmegaConf.create({"optimized_metric": METRIC, "optimized_validation": "first"}))
-
-
-def test_an_objective_that_validation_never_logs_is_refused_before_the_scene_is_prepared(tmp_path):
-    from helpers import train
-    from training_runs import train_config
-
-    sfm = "val/global_sfm/pnp/k5/0.25m_2deg"  # the test config validates without the SfM paradigms
-    for metric in ("val/approximation/ewb/k4/5m_10deg", sfm):
-        cfg = train_config(tmp_path, f"optimized_metric={metric}")
-        with pytest.raises(
-            ConfigError, match=rf"optimized_metric: '{metric}' is not logged by validation; .* {METRIC}"
-        ):
-            train(cfg, tmp_path / "run")
-        assert not (Path(cfg.paths.cache_dir) / "synthetic").exists()
-    cfg = train_config(tmp_path, f"optimized_metric={sfm}", "callbacks.localization_validation.sfm_every_n_epochs=1")
-    from locretrieval.training.callbacks import validation_metrics  # accepted once the SfM paradigms are validated
-
-    assert sfm in validation_metrics(benchmark_settings(cfg), ["relative_pose"], with_sfm=True)
 
 
 def test_the_search_space_names_keys_of_the_training_config():
@@ -123,63 +85,6 @@ def test_a_study_started_by_another_command_is_refused_and_a_resumed_sampler_dra
         for sampler in (first, resumed, optuna.samplers.TPESampler(seed=2))
     ]
     assert draws[1] == draws[2] != draws[0]
-
-
-def test_the_summary_of_runs_marks_the_best_closes_the_gap_of_the_means_and_says_why_a_gap_is_undefined(tmp_path):
-    p1, sfm = "approximation/ewb/k3/5m_10deg", "global_sfm/pnp/k5/0.25m_2deg"
-    runs = [
-        gap_run(tmp_path, "a", 40.0, [(p1, 10.0, 40.0, 20.0, 60.0), (sfm, 50.0, 55.0, 50.0, 50.0)]),
-        gap_run(tmp_path, "b", 20.0, [(p1, 10.0, 20.0, 20.0, 30.0), (sfm, 50.0, 60.0, 40.0, 70.0)]),
-    ]
-    unfinished = tmp_path / "c"
-    (unfinished / ".hydra").mkdir(parents=True)
-    pd.DataFrame({"epoch": [-1], "metric": [METRIC], "value": [1.0]}).to_csv(unfinished / "validation.csv", index=False)
-    OmegaConf.save(OmegaConf.create(["seed=c", "debug=quick"]), unfinished / ".hydra" / "overrides.yaml")
-    markdown = write_summary([*runs, unfinished], tmp_path / "out").read_text()
-    lines = {line.split("|")[1].strip(): line for line in markdown.splitlines() if line.startswith("| ")}
-    # (40 - 20) / (60 - 20) of 100 queries, with its paired bootstrap interval
-    assert re.search(r"20\.0 / 10\.0 / 40\.0 / 60\.0 \(50 % \(\d+ to \d+\)\)", lines["a (best)"])
-    assert (
-        "50.0 / 50.0 / 55.0 / 50.0 (no gap to close: the ground truth (50.0 %) is not distinguishable from "
-        "densevlad (50.0 %) on these 100 queries)" in lines["a (best)"]
-    )
-    # 10 points of 100 queries, each localized by the ground truth only: a gap, of which nothing was closed
-    assert "20.0 / 10.0 / 20.0 / 30.0 (0 %" in lines["b"] and "40.0 / 50.0 / 60.0 / 70.0 (67 %" in lines["b"]
-    # the gap of the means, not the mean of 50 % and 0 %, where every run has a gap
-    assert (
-        "20.0 / 10.0 / 30.0 / 45.0 (gap of the means 40 %; no interval: the runs' queries differ)" in lines["mean of 2"]
-    )
-    assert "45.0 / 50.0 / 57.5 / 60.0 (no gap of the means: 1 of 2 runs have no gap to close)" in lines["mean of 2"]
-    assert "no summary.json: it did not finish" in lines["c"] and "seed=c" in lines["c"]
-    # the objective with its interval of 100 queries, and no held-out figure without held-out queries
-    interval = stats.binomtest(40, 100).proportion_ci(method="wilson")
-    assert f"40.0 ({100 * interval.low:.1f}–{100 * interval.high:.1f}), 100 queries, epoch 1" in lines["a (best)"]
-    assert "no held-out queries" in lines["a (best)"]
-    assert not re.search(r"\bnan\b|\binf\b", markdown, re.IGNORECASE)
-    table = pd.read_csv(tmp_path / "out" / "summary.csv")
-    assert table["best"].tolist() == [True, False, False] and table["objective"].tolist()[:2] == [40.0, 20.0]
-    assert table.loc[0, "objective_low"] == pytest.approx(100 * interval.low)
-    assert math.isnan(table.loc[0, f"{sfm} gap_closed_pct"]) and table.loc[0, f"{sfm} why"].startswith(
-        "no gap to close"
-    )
-    assert (tmp_path / "out" / "summary.html").read_text().count("<tr>") == 5  # header, 3 trials, the mean
-
-
-def test_the_summary_reports_the_held_out_figures_and_whether_the_best_trial_beats_the_next(tmp_path):
-    p1 = "approximation/ewb/k3/5m_10deg"
-    best = gap_run(tmp_path, "a", 60.0, [(p1, 10.0, 40.0, 20.0, 60.0)], queries=50, held_out=56.0)
-    runner = gap_run(tmp_path, "b", 50.0, [(p1, 10.0, 40.0, 20.0, 60.0)], queries=50, held_out=50.0)
-    markdown = write_summary([best, runner], tmp_path / "out").read_text()
-    # held out: 28 and 25 of 50 queries, nested, so 3 queries discordant, all the best trial's
-    p_value = stats.binomtest(3, 3, 0.5).pvalue
-    assert (
-        "trial a against the next, trial b, on the 50 held-out queries: +6.0 (" in markdown
-        and f"(exact McNemar p={p_value:.2g}): not distinguishable" in markdown
-    )
-    interval = stats.binomtest(28, 50).proportion_ci(method="wilson")
-    assert f"56.0 ({100 * interval.low:.1f}–{100 * interval.high:.1f}), 50 queries" in markdown
-    table = pd.read_csv(tmp_path / "out" / "summary.csv").set_index("trial")
-    assert table.loc["a", ["held_out", "held_out_queries", "objective_epoch"]].tolist() == [56.0, 50, 1]
 
 
 #: The documented study, three trials in parallel through the joblib launcher with its default workers,
@@ -384,6 +289,8 @@ def main(cfg):
 if __name__ == "__main__":
     main()
 """
+
+
 SWEEP_APP_CONFIG = """
 defaults:
   - override hydra/sweeper: optuna
@@ -411,8 +318,6 @@ def test_a_failed_trial_records_why_and_the_rerun_of_the_sweep_runs_it_again(tmp
     purpose, its reason is stored in the study and shown in the summary's state, another trial takes
     its place; rerunning the command runs its parameters again as a new trial."""
     import optuna
-
-    from locretrieval.report.training_summary import write_summary
 
     marker, sweep = tmp_path / "fail", tmp_path / "sweep"
     (tmp_path / "conf").mkdir()
@@ -532,7 +437,6 @@ def test_a_study_whose_trials_drew_a_parameter_from_other_choices_is_refused_by_
     other choices than a trial left running drew it from is refused naming the parameter and what to do."""
     import optuna
 
-    from locretrieval.config import ConfigError
     from locretrieval.training.sweeps import optimize
 
     storage = f"sqlite:///{tmp_path / 'optuna.db'}"
@@ -547,7 +451,6 @@ def test_a_study_whose_trials_drew_a_parameter_from_other_choices_is_refused_by_
 
 
 def test_the_study_stays_in_the_sweep_folder_unless_the_command_line_names_another_storage(tmp_path):
-    from locretrieval.config import ConfigError
     from locretrieval.training.sweeps import study_storage
 
     elsewhere = f"sqlite:///{tmp_path / 'elsewhere' / 'x.db'}"

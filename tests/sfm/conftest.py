@@ -1,0 +1,16 @@
+"""Fixtures of the SfM tests."""
+
+import helpers
+import pytest
+from local_features import SCENE
+
+import locretrieval  # noqa: F401  (imports zlib before pycolmap)
+from locretrieval.scene.kapture_io import load_kapture_scene
+from locretrieval.scene.synthetic import render_synthetic_dataset
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("features_scene")
+    render_synthetic_dataset(helpers.render_settings(SCENE), root)
+    return load_kapture_scene("tiny", [root / "mapping"], [root / "query"])
