@@ -16,9 +16,8 @@ import logging
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import lightning as L
 from omegaconf import OmegaConf
 
 from locretrieval import limits
@@ -36,24 +35,16 @@ from locretrieval.metrics.subsets import SubsetSettings
 from locretrieval.paradigms.base import Paradigms
 from locretrieval.report.gallery import GallerySettings
 from locretrieval.report.run_files import literal, load_yaml, mapping_at, run_file
-from locretrieval.report.training import TrainingReportSettings
 from locretrieval.retrieval.index import RetrievalSettings
 from locretrieval.scene import Scene
 from locretrieval.scene.datasets import load_synthetic_dataset
 from locretrieval.sfm.inputs import SfmSettings
 from locretrieval.shard import Shard
-from locretrieval.training.callbacks import every_validation_metrics, validation_metrics
-from locretrieval.training.checkpoints import check_resume_checkpoint
 from locretrieval.training.objective import Objective
 from locretrieval.training.relevance import TrainingRelevanceSettings
-from locretrieval.training.run import (
-    Training,
-    TrainingSettings,
-    check_monitors,
-    training_pairs,
-    training_worlds,
-    unfilled_report_rows,
-)
+
+if TYPE_CHECKING:
+    from locretrieval.training.run import Training, TrainingSettings
 
 log = logging.getLogger(__name__)
 
@@ -164,6 +155,21 @@ def build_training(cfg: Any, listed: Sequence[Any] = ()) -> Training:
     What needs no scene is checked first (the sections and object nodes, the run folder, the resumed
     checkpoint, the metrics checkpoints monitor, the ``optimized_metric``), then the scenes are
     loaded, the training pairs and the validation's ground truths prepared, every object built."""
+    # Lightning and what imports it, here and not at the top: an evaluation or an export does not pay
+    # for importing it (5 s of CPU with torchmetrics and scipy.signal in every process that builds).
+    import lightning as L
+
+    from locretrieval.report.training import TrainingReportSettings
+    from locretrieval.training.callbacks import validation_metrics
+    from locretrieval.training.checkpoints import check_resume_checkpoint
+    from locretrieval.training.run import (
+        Training,
+        TrainingSettings,
+        training_pairs,
+        training_worlds,
+        unfilled_report_rows,
+    )
+
     started = time.perf_counter()
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)  # the seed is in config.yaml
     use_limits(cfg)
@@ -289,6 +295,9 @@ def checked_callbacks(cfg: Any, settings: BenchmarkSettings, groundtruths: Groun
         raise ConfigError(
             "callbacks.localization_validation: missing; training is validated by localization (callbacks=default)"
         )
+    from locretrieval.training.callbacks import every_validation_metrics  # with Lightning (build_training)
+    from locretrieval.training.run import check_monitors
+
     callbacks = {
         name: built(node, f"callbacks.{name}")
         for name, node in cfg.callbacks.items()

@@ -128,6 +128,8 @@ def test_multirun_from_the_command_line(run):
         "output.ltvl=false",
         "report.figure_formats=[]",  # the jobs' own reports without figures: report.py below draws them
         "report.scene_view.enabled=false",
+        "paradigms.local_sfm.enabled=false",  # CSI's alpha is what the jobs differ by
+        "paradigms.global_sfm.enabled=false",
         *TINY_SCENE,
     ]
     completed = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)

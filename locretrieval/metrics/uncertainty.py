@@ -157,9 +157,13 @@ def percentile_interval(samples: np.ndarray, confidence: float) -> tuple[np.ndar
     """The ``(1 - confidence) / 2`` and ``(1 + confidence) / 2`` quantiles of ``samples [R, M]``
     over its rows, NaN rows (a resample without a query of the subset) left out."""
     tail = (1 - confidence) / 2
-    if not samples.size:
+    missing = np.isnan(samples)
+    if not samples.size or missing.all():
         return np.full(samples.shape[1:], np.nan), np.full(samples.shape[1:], np.nan)
-    low, high = np.nanquantile(samples, [tail, 1 - tail], axis=0)
+    if (missing == missing[:, :1]).all():  # NaN in whole rows only: one vectorised quantile over the others
+        low, high = np.quantile(samples[~missing[:, 0]], [tail, 1 - tail], axis=0)
+    else:  # numpy's nanquantile goes column by column (hundreds of times slower)
+        low, high = np.nanquantile(samples, [tail, 1 - tail], axis=0)
     return low, high
 
 

@@ -1,5 +1,7 @@
 """Intervals and paired tests of locretrieval.metrics.uncertainty, against scipy and explicit resamples."""
 
+import warnings
+
 import numpy as np
 import pytest
 from scipy import stats
@@ -10,6 +12,7 @@ from locretrieval.metrics.uncertainty import (
     default_uncertainty,
     exact_interval,
     paired_difference,
+    percentile_interval,
     share_interval,
 )
 
@@ -90,3 +93,22 @@ def test_uncertainty_settings_refuse_what_makes_no_interval():
     with pytest.raises(ValueError, match="resamples"):
         Uncertainty(confidence=0.95, resamples=10, seed=0)
     assert default_uncertainty() == Uncertainty(0.95, 1000, 0)  # configs/metrics/default.yaml's
+
+
+@pytest.mark.parametrize("missing", ["none", "rows", "scattered", "all"])
+def test_the_percentile_interval_is_numpys_nanquantile_over_the_resamples_that_have_a_value(missing):
+    """NaN in whole rows (a resample without a query of the subset) take the vectorised path, NaN
+    anywhere else numpy's column by column; both give nanquantile's bounds."""
+    rng = np.random.default_rng(7)
+    samples = np.round(rng.random((400, 9)) * 16) / 16  # ties, as shares of 16 queries have
+    if missing == "rows":
+        samples[rng.random(400) < 0.2] = np.nan
+    elif missing == "scattered":
+        samples[rng.random((400, 9)) < 0.1] = np.nan
+    elif missing == "all":
+        samples[:] = np.nan
+    low, high = percentile_interval(samples, 0.9)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns
+        expected = np.nanquantile(samples, [0.05, 0.95], axis=0)
+    np.testing.assert_allclose(np.stack([low, high]), expected, rtol=1e-12, atol=1e-15)

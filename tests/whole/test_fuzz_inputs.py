@@ -10,8 +10,8 @@ from helpers import run_python
 pytest.importorskip("hypothesis", reason="hypothesis is not installed: pip install -e '.[dev]'")
 
 #: Cases per target (kapture files, gnd pickles, cache files; the targets of #61 and #69 a share of it,
-#: fuzz_inputs.TARGETS): about 90 s of CPU in all on 2 cores.
-EXAMPLES = 1500
+#: fuzz_inputs.TARGETS): about 35 s of CPU in all on 2 cores; every target drawn 120 times at least).
+EXAMPLES = 600
 #: The fuzzing interpreter's address space (torch, h5py, scipy and pycolmap loaded: about 1.2 GiB resident).
 MEMORY_CAP = 6 * 2**30
 #: The most memory one case may take above what was resident before it (MiB): an input refused

@@ -130,3 +130,9 @@ def test_the_entry_points_resolve_every_config_resolver_before_importing_the_mod
         )
         weights = next(line for line in result.stdout.splitlines() if line.strip().startswith("weights:"))
         assert weights.strip().endswith(".pth") and Path(weights.split(":", 1)[1].strip()).is_file()
+
+
+def test_an_evaluation_or_an_export_is_built_without_lightning():
+    """Lightning (with torchmetrics and scipy.signal: seconds of CPU) is imported by a training run only."""
+    loaded = loaded_after("import locretrieval.build")
+    assert "locretrieval.build" in loaded and not loaded & {"lightning", "torchmetrics", "scipy.signal"}
