@@ -40,7 +40,7 @@ from locretrieval.report.training import TrainingReportSettings
 from locretrieval.retrieval.index import RetrievalSettings
 from locretrieval.scene import Scene
 from locretrieval.scene.datasets import load_synthetic_dataset
-from locretrieval.sfm.inputs import SfmSettings
+from locretrieval.sfm.settings import SfmSettings
 from locretrieval.shard import Shard
 from locretrieval.training.callbacks import every_validation_metrics, validation_metrics
 from locretrieval.training.checkpoints import check_resume_checkpoint
