@@ -55,7 +55,7 @@ def write_features(root: Path, keypoints: int) -> None:
     from locretrieval.models import export_global_features
     from locretrieval.scene.kapture_io import load_kapture_scene
     from locretrieval.sfm.features import extract_features
-    from locretrieval.sfm.inputs import SfmSettings
+    from locretrieval.sfm.settings import SfmSettings
 
     defaults = OmegaConf.load(REPOSITORY / "configs" / "sfm" / "default.yaml")
     settings = validated(

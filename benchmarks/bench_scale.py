@@ -28,7 +28,7 @@ Then the SfM paradigms (2a, 2b) with the dataset config's settings (``sfm``, fro
    of database images and a few queries) with the features of a generated world
    (`sfm_world.FeatureWorld`: points with descriptors, each image's features their projections
    plus clutter, written as R2D2 kapture files and read back);
-3. the full sweep's forecast (`locretrieval.sfm.forecast.forecast`, what ``dry_run=true`` logs) per stage;
+3. the full sweep's forecast (`locretrieval.paradigms.forecast.forecast`, what ``dry_run=true`` logs) per stage;
 4. **the forecast checked**: a slice of the work (the ``--slice`` share of the queries with the
    smallest x and the database images within 25 m of them, their own rankings, features of
    the generated world at ``--slice-keypoints``) forecast the same way, then run end to end
@@ -62,12 +62,13 @@ from locretrieval.metrics.retrieval import retrieval_tables
 from locretrieval.metrics.uncertainty import default_uncertainty
 from locretrieval.paradigms.approximation import PoseApproximation
 from locretrieval.paradigms.base import Paradigms
+from locretrieval.paradigms.forecast import BAND, Calibration, calibrate, calibration_sample, forecast
+from locretrieval.paradigms.sfm import SfmParadigm, count_work, run_sfm
 from locretrieval.retrieval import random_ranking
 from locretrieval.retrieval.index import search
 from locretrieval.scene import Camera, ImageSet, Scene
-from locretrieval.sfm.forecast import BAND, Calibration, calibrate, calibration_sample, forecast
-from locretrieval.sfm.inputs import SfmInputs, SfmSettings
-from locretrieval.sfm.pipeline import SfmStages, count_work, run_sfm
+from locretrieval.sfm.inputs import SfmInputs
+from locretrieval.sfm.settings import SfmSettings
 from locretrieval.sfm.triangulation import BatchedTriangulation, MapInput
 from locretrieval.sfm.work import SfmPlan
 
@@ -346,9 +347,9 @@ def approximation_paradigm() -> PoseApproximation:
     return default_paradigms([f"paradigms.approximation.k=[{','.join(map(str, KS))}]"]).approximation
 
 
-def sfm_paradigms() -> dict[str, SfmStages]:
+def sfm_paradigms() -> dict[str, SfmParadigm]:
     """The SfM paradigms ``python evaluate.py`` runs: name -> their stages."""
-    return default_paradigms([]).sfm_stages()
+    return default_paradigms([]).sfm_paradigms()
 
 
 def sfm_plan(scene: Scene, rankings, sfm: SfmSettings, cache: Path) -> SfmPlan:

@@ -30,9 +30,11 @@ from locretrieval.pool import resolve_workers
 from locretrieval.retrieval import random_ranking
 from locretrieval.scene import Scene
 from locretrieval.sfm.features import extract_features
-from locretrieval.sfm.inputs import SfmInputs, SfmSettings, query_tasks
+from locretrieval.sfm.inputs import SfmInputs
 from locretrieval.sfm.matching import PairMatcher
 from locretrieval.sfm.pose_cache import PoseCache
+from locretrieval.sfm.query_tasks import query_tasks
+from locretrieval.sfm.settings import SfmSettings
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 LOCAL_KS, GLOBAL_KS = [5, 10, 20], [1, 5, 10, 20, 50]

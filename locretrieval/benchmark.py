@@ -32,12 +32,13 @@ from locretrieval.metrics.localization import MetricsSettings, localization_tabl
 from locretrieval.metrics.retrieval import retrieval_tables
 from locretrieval.metrics.subsets import SubsetSettings, image_subsets, known_subsets
 from locretrieval.paradigms.base import Paradigms
+from locretrieval.paradigms.sfm import run_sfm
 from locretrieval.retrieval import Ranking, random_ranking
 from locretrieval.retrieval.descriptors import SceneDescriptors
 from locretrieval.retrieval.index import RetrievalSettings, search
 from locretrieval.scene import Scene
-from locretrieval.sfm.inputs import SfmSettings
-from locretrieval.sfm.pipeline import run_sfm, sfm_inputs
+from locretrieval.sfm.inputs import sfm_inputs
+from locretrieval.sfm.settings import SfmSettings
 from locretrieval.shard import Shard
 
 log = logging.getLogger(__name__)
@@ -143,7 +144,7 @@ def warn_whole_database_ks(scene: Scene, paradigms: Paradigms) -> None:
     """Warn about the ks of the SfM paradigms that reach the whole database (a small place of one's own):
     there every ranking, random included, hands the paradigm the same images, so no ranking can differ."""
     size = len(scene.database)
-    whole = {name: [k for k in getattr(paradigms, name).k if k >= size] for name in paradigms.sfm_stages()}
+    whole = {name: [k for k in getattr(paradigms, name).k if k >= size] for name in paradigms.sfm_paradigms()}
     whole = {name: ks for name, ks in whole.items() if ks}
     if whole:
         log.warning(
@@ -183,9 +184,9 @@ def run_sfm_shard(
     shard: Shard,
 ) -> None:
     """This job's ``shard`` of the enabled SfM paradigms' work, into the shared cache
-    (`locretrieval.sfm.pipeline`); the run without a shard then finds all of it."""
+    (`locretrieval.paradigms.sfm.run_sfm`); the run without a shard then finds all of it."""
     check_supported(scene, settings.paradigms.enabled())
-    paradigms = settings.paradigms.sfm_stages()
+    paradigms = settings.paradigms.sfm_paradigms()
     if not paradigms:
         log.info("shard=%s: no SfM paradigm is enabled, nothing to do", shard)
         return
@@ -212,7 +213,7 @@ def sfm_within_budget(
     the throughput measured so far: one query first, then as many as the time left holds (at most
     twice the last chunk), so the budget is overrun by one chunk at most. All queries at once
     without an SfM paradigm (the rest of a validation is vectorised: seconds at most)."""
-    paradigms = settings.paradigms.sfm_stages()
+    paradigms = settings.paradigms.sfm_paradigms()
     started = time.perf_counter()
     if not paradigms:
         return len(order), 0.0
@@ -247,7 +248,7 @@ def benchmark(
     warn_shallow_rankings(rankings, settings.paradigms.ks())
     warn_whole_database_ks(scene, settings.paradigms)
     depths = {ranking.name: ranking.depth for ranking in rankings}
-    sfm_paradigms = settings.paradigms.sfm_stages()
+    sfm_paradigms = settings.paradigms.sfm_paradigms()
     sfm_estimates, sfm_stages, sfm_seconds = {}, {}, 0.0
     if sfm_paradigms:
         run = run_sfm(sfm_inputs(scene, settings.sfm, cache_dir, sfm_paradigms), rankings, sfm_paradigms)

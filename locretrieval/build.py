@@ -38,7 +38,7 @@ from locretrieval.report.run_files import literal, load_yaml, mapping_at, run_fi
 from locretrieval.retrieval.index import RetrievalSettings
 from locretrieval.scene import Scene
 from locretrieval.scene.datasets import load_synthetic_dataset
-from locretrieval.sfm.inputs import SfmSettings
+from locretrieval.sfm.settings import SfmSettings
 from locretrieval.shard import Shard
 from locretrieval.training.objective import Objective
 from locretrieval.training.relevance import TrainingRelevanceSettings

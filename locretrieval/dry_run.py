@@ -1,5 +1,5 @@
 """A dry run (``locretrieval evaluate dry_run=true``): the SfM work a run would do and its time
-forecast (`locretrieval.sfm.forecast`), nothing of the run computed or written.
+forecast (`locretrieval.paradigms.forecast`), nothing of the run computed or written.
 
 The rankings the caches already hold (the model's descriptors, each ground truth) and the random
 baseline (drawn in no time) are read (`stored_rankings`): their work is counted exactly, what is
@@ -37,11 +37,11 @@ def dry_run(
     without one): exact for the rankings the
     caches hold, upper bounds for the others (`stored_rankings`); the ground truths not cached
     match their pairs first. No descriptor, ground truth or file of the run is computed or written."""
-    paradigms = settings.paradigms.sfm_stages()
+    paradigms = settings.paradigms.sfm_paradigms()
     if not paradigms:
         log.info("dry run: no SfM paradigm is enabled, nothing to match")
         return
-    from locretrieval.sfm.forecast import dry_run_forecast
+    from locretrieval.paradigms.forecast import dry_run_forecast
 
     posed = bool(scene.queries.has_pose.any())
     rankings, missing = stored_rankings(scene, model, settings, groundtruths if posed else None, random_seed, cache_dir)

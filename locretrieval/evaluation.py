@@ -214,7 +214,7 @@ def local_feature_inputs(scene: Scene, settings: BenchmarkSettings, groundtruths
     """The files the local features read (`LocalFeatures.missing_inputs`: e.g. the kapture
     features of both image sets) that are absent, if an SfM paradigm or a ground truth matching
     features needs them."""
-    sfm_paradigms = bool(settings.paradigms.sfm_stages())
+    sfm_paradigms = bool(settings.paradigms.sfm_paradigms())
     sfm_groundtruth = any(definition.uses_sfm for definition in groundtruths.parsed().values())
     if not (sfm_paradigms or sfm_groundtruth):
         return []

@@ -1,6 +1,7 @@
 """Module paths that moved keep working: `locretrieval.models` grouped its modules and
 ``locretrieval.localization`` was split into `locretrieval.paradigms` and `locretrieval.sfm` (0.12);
-the reports of training runs moved from `locretrieval.training` into `locretrieval.report`.
+the reports of training runs moved from `locretrieval.training` into `locretrieval.report`; the
+forecast of a dry run from `locretrieval.sfm` into `locretrieval.paradigms`.
 
 Saved run configs (``config.yaml``, ``.hydra/config.yaml``), checkpoints' architectures and code of
 other packages name modules such as ``locretrieval.models.netvlad`` or classes such as
@@ -32,6 +33,7 @@ from typing import Any
 #: SfM pipeline's modules to `locretrieval.sfm` (``sfm`` is now ``sfm.inputs``), ``estimates`` up.
 #: ``training``'s reports to `locretrieval.report`: the training report (``training.report``), the
 #: summary of runs and sweeps (``training.summary``) and the reader of their folders (``training.folders``).
+#: ``sfm.forecast``: the dry run's forecast of the SfM paradigms' work, beside the paradigms it runs.
 MOVED_MODULES = {
     **{
         f"locretrieval.models.{name}": f"locretrieval.models.{group}.{name}"
@@ -52,7 +54,7 @@ MOVED_MODULES = {
             "paradigm": "paradigms.base",
             "estimates": "estimates",
             "sfm": "sfm.inputs",
-            "plan": "sfm.work",  # the work counted (its forecast is gone: a dry run's, sfm.forecast)
+            "plan": "sfm.work",  # the work counted (its forecast is gone: a dry run's, paradigms.forecast)
             "workers": "pool",
             **{
                 name: f"sfm.{name}"
@@ -66,6 +68,7 @@ MOVED_MODULES = {
     "locretrieval.training.report": "locretrieval.report.training",
     "locretrieval.training.summary": "locretrieval.report.training_summary",
     "locretrieval.training.folders": "locretrieval.report.training_runs",
+    "locretrieval.sfm.forecast": "locretrieval.paradigms.forecast",
 }
 
 

@@ -2,7 +2,7 @@
 
 A property of the job, not an SfM setting: ``python evaluate.py -m 'shard=0/4,1/4,2/4,3/4'`` runs
 four jobs sharing the cache, each computing every 4th item of each stage's sorted work
-(`locretrieval.sfm.pipeline`); the same command without ``shard`` then writes the results.
+(`locretrieval.paradigms.sfm`); the same command without ``shard`` then writes the results.
 The value is parsed once, where the job starts (`Shard.parse`).
 """
 

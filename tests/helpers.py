@@ -14,7 +14,7 @@ from locretrieval.config import validated
 from locretrieval.scene import Scene
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import RenderSettings, render_synthetic_dataset
-from locretrieval.sfm.inputs import SfmSettings
+from locretrieval.sfm.settings import SfmSettings
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 #: The overrides of a tiny built-in scene for a run of the command line: 32 database images and 16 queries of

@@ -24,7 +24,7 @@ from locretrieval.models.published.netvlad import NetVLADDescriptor
 from locretrieval.models.trainable.backbones import TorchvisionBackbone
 from locretrieval.models.trainable.heads import MixVPRHead
 from locretrieval.moved import MOVED_MODULES, current_path
-from locretrieval.sfm.inputs import SfmSettings
+from locretrieval.sfm.settings import SfmSettings
 from locretrieval.training.checkpoints import check_resume_checkpoint
 
 PACKAGE = Path(locretrieval.models.__file__).parent
@@ -61,7 +61,8 @@ def test_the_alias_table_names_exactly_the_modules_that_moved_each_at_its_new_pl
         assert is_module_here(new) and new.rsplit(".", 1)[1] == old.rsplit(".", 1)[1]  # the same file, moved
     split = {f"locretrieval.localization.{name}" for name in LOCALIZATION_MODULES} | {"locretrieval.localization"}
     reports = {f"locretrieval.training.{old}" for old in TRAINING_REPORTS}
-    assert set(MOVED_MODULES) == set(models) | split | reports
+    assert set(MOVED_MODULES) == set(models) | split | reports | {"locretrieval.sfm.forecast"}
+    assert not (PACKAGE.parent / "sfm" / "forecast.py").exists()
     assert not (PACKAGE.parent / "localization").exists()
     for old, new in TRAINING_REPORTS.items():
         assert not (PACKAGE.parent / "training" / f"{old}.py").exists()
@@ -78,6 +79,15 @@ def test_every_report_module_that_left_training_imports_its_module_in_report(old
         assert importlib.import_module(old) is module
     name = REPORT_NAMES[old.rsplit(".", 1)[1]]
     assert module.__name__ == new and get_object(f"{old}.{name}") is getattr(module, name)
+
+
+def test_the_forecast_that_left_sfm_imports_its_module_in_paradigms():
+    old, new = "locretrieval.sfm.forecast", "locretrieval.paradigms.forecast"
+    module = importlib.import_module(new)
+    sys.modules.pop(old, None)  # as in a fresh interpreter: the first import of the old name
+    with pytest.warns(DeprecationWarning, match=f"{old} is now {new}"):
+        assert importlib.import_module(old) is module
+    assert get_object(f"{old}.dry_run_forecast") is module.dry_run_forecast
 
 
 @pytest.mark.parametrize("name", LOCALIZATION_MODULES)

@@ -24,7 +24,7 @@ from locretrieval.retrieval.descriptors import DescriptorSearch
 from locretrieval.retrieval.index import RetrievalSettings
 from locretrieval.retrieval.ranking import Ranking
 from locretrieval.scene import Scene
-from locretrieval.sfm.inputs import SfmSettings
+from locretrieval.sfm.settings import SfmSettings
 
 log = logging.getLogger(__name__)
 

@@ -19,7 +19,7 @@ from locretrieval.scene import ImageSet, Scene
 from locretrieval.scene.reconstruction import Observations
 
 if TYPE_CHECKING:
-    from locretrieval.sfm.inputs import SfmSettings
+    from locretrieval.sfm.settings import SfmSettings
 
 #: Query-database pairs scored at once; bounds the memory of every definition.
 PAIRS_PER_CHUNK = 1 << 17

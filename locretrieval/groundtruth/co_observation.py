@@ -31,9 +31,10 @@ from locretrieval.groundtruth.base import DefinitionContext, GradedRows, GroundT
 from locretrieval.paradigms.global_sfm import global_map
 from locretrieval.scene import ImageSet, Scene
 from locretrieval.sfm.features import extract_features
-from locretrieval.sfm.inputs import SfmInputs, SfmSettings
+from locretrieval.sfm.inputs import SfmInputs
 from locretrieval.sfm.matching import PairMatcher
 from locretrieval.sfm.pairs import database_pairs, overlapping_pairs
+from locretrieval.sfm.settings import SfmSettings
 from locretrieval.sfm.sparse_map import SparseMap
 
 

@@ -18,7 +18,7 @@ from locretrieval.groundtruth.base import Definition, DefinitionContext, GroundT
 from locretrieval.parts import import_part
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
-from locretrieval.sfm.inputs import SfmSettings
+from locretrieval.sfm.settings import SfmSettings
 
 log = logging.getLogger(__name__)
 

@@ -3,8 +3,8 @@
 `Paradigm` is the class every paradigm subclasses: its dataclass fields are its settings (the
 keys of its YAML, ``configs/paradigms/<name>.yaml``), `Paradigm.run` computes its pose estimates,
 and it says what it needs (`Paradigm.missing_inputs`, `Paradigm.uses_sfm`) and what map it built
-(`Paradigm.map_points`). An SfM paradigm (`SfmParadigm`) is also the `SfmStages` the SfM pipeline
-drives, and counts its work (`SfmStages.count`). `Paradigms` is the ``paradigms`` config group: the
+(`Paradigm.map_points`). An SfM paradigm subclasses `locretrieval.paradigms.sfm.SfmParadigm`, which
+says which pairs, maps and registrations it needs. `Paradigms` is the ``paradigms`` config group: the
 set and order of the paradigms are its sections', so a new paradigm is one class (in any package)
 and one section (``+paradigms.mine={_target_: my.module.Mine, enabled: true, k: [1, 5]}``).
 """
@@ -24,8 +24,7 @@ from locretrieval.config import ConfigError, require, validated
 from locretrieval.estimates import PoseEstimates
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
-from locretrieval.sfm.inputs import SfmSettings
-from locretrieval.sfm.pipeline import SfmStages, run_sfm, sfm_inputs
+from locretrieval.sfm.settings import SfmSettings
 
 
 @dataclass
@@ -34,10 +33,13 @@ class Paradigm(abc.ABC):
     top-ranked database images it uses (each a separate result; a value beyond a ranking's depth
     uses every ranked image and keeps its label, see `locretrieval.benchmark`). A subclass adds
     its own settings as fields (checked by `locretrieval.config.validated`), says which methods
-    it writes (`method_names`) and computes them (`run`)."""
+    it writes (`method_names`) and computes them (`run`). ``uses_sfm``: whether it reads the ``sfm``
+    group's local features and matches (a `locretrieval.paradigms.sfm.SfmParadigm`; its validation
+    in training then runs every ``sfm_every_n_epochs`` only)."""
 
     enabled: bool
     k: list[int]
+    uses_sfm: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
         require(len(self.k) > 0, "k", "must list at least one value, e.g. [1, 5, 10]")
@@ -55,17 +57,6 @@ class Paradigm(abc.ABC):
         group's settings, ``cache_dir``: where it may reuse what it computed; None only for a job
         of a shard, whose share is cached)."""
 
-    def sfm_stages(self) -> SfmStages | None:
-        """Its stages of the SfM pipeline, which the benchmark runs with every other enabled SfM
-        paradigm's (`run_sfm`), or None (default) when it needs no local features."""
-        return None
-
-    @property
-    def uses_sfm(self) -> bool:
-        """Whether it reads the ``sfm`` group's local features and matches (its validation in
-        training then runs every ``sfm_every_n_epochs`` only)."""
-        return self.sfm_stages() is not None
-
     def missing_inputs(self) -> list[str]:
         """The files it reads that are absent, each ``<key>: <problem>`` (default: none)."""
         return []
@@ -74,23 +65,6 @@ class Paradigm(abc.ABC):
         """The 3D points ``[P, 3]`` (world, metres) of a map it built, for the report's 3D view,
         or None (default; nothing is computed here)."""
         return None
-
-
-@dataclass
-class SfmParadigm(Paradigm, SfmStages):
-    """A paradigm whose work is stages of the SfM pipeline (`SfmStages`): run alone, it is the
-    pipeline with itself as the only paradigm. ``label``: its estimates' paradigm name there."""
-
-    label: ClassVar[str]
-
-    def sfm_stages(self) -> SfmStages:
-        return self
-
-    def run(
-        self, scene: Scene, rankings: Sequence[Ranking], sfm: SfmSettings, cache_dir: Path | None
-    ) -> list[PoseEstimates] | None:
-        estimates = run_sfm(sfm_inputs(scene, sfm, cache_dir, [self.label]), rankings, {self.label: self}).estimates
-        return None if estimates is None else estimates[self.label]
 
 
 @dataclass
@@ -126,10 +100,10 @@ class Paradigms:
         """Every k of an enabled paradigm, sorted."""
         return sorted({k for name in self.enabled() for k in self.sections[name].k})
 
-    def sfm_stages(self) -> dict[str, SfmStages]:
-        """The enabled SfM paradigms' stages, by name (`Paradigm.sfm_stages`)."""
-        stages = {name: self.sections[name].sfm_stages() for name in self.enabled()}
-        return {name: stage for name, stage in stages.items() if stage is not None}
+    def sfm_paradigms(self) -> dict[str, Paradigm]:
+        """The enabled SfM paradigms (`Paradigm.uses_sfm`), by name, which the benchmark runs together
+        (`locretrieval.paradigms.sfm.run_sfm`)."""
+        return {name: self.sections[name] for name in self.enabled() if self.sections[name].uses_sfm}
 
     def only(self, keep: Callable[[Paradigm], bool]) -> "Paradigms":
         """These paradigms with those ``keep`` refuses switched off."""

@@ -31,36 +31,20 @@ import numpy as np
 from filelock import FileLock
 
 from locretrieval.cache import config_key, tree_signature
-from locretrieval.estimates import PoseEstimates
-from locretrieval.paradigms.base import SfmParadigm
+from locretrieval.paradigms.sfm import Localize, SfmParadigm
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
 from locretrieval.sfm.colmap_model import missing_model_files, read_colmap_map
 from locretrieval.sfm.features import extract_features
-from locretrieval.sfm.inputs import (
-    SFM_METHOD,
-    Outcome,
-    QueryTask,
-    SfmInputs,
-    SfmSettings,
-    outcomes_per_image_set,
-    query_tasks,
-    register_query,
-    run_queries,
-)
+from locretrieval.sfm.inputs import SfmInputs
 from locretrieval.sfm.pairs import database_pairs
 from locretrieval.sfm.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS
-from locretrieval.sfm.pose_cache import PoseCache
+from locretrieval.sfm.pose_cache import Outcome, PoseCache
+from locretrieval.sfm.query_tasks import QueryTask, outcomes_per_image_set
+from locretrieval.sfm.registration import register_query
+from locretrieval.sfm.settings import SfmSettings
 from locretrieval.sfm.sparse_map import SparseMap
-from locretrieval.sfm.work import (
-    ParadigmWork,
-    Work,
-    database_pair_work,
-    queries_to_register,
-    query_pair_work,
-    registration_bound,
-    registration_work,
-)
+from locretrieval.sfm.work import Work, database_pair_work
 
 log = logging.getLogger(__name__)
 
@@ -72,14 +56,12 @@ CACHE_VERSION = 1
 class GlobalSfm(SfmParadigm):
     """Paradigm 2b (``configs/paradigms/global_sfm.yaml``). ``colmap_model``: an existing COLMAP
     model folder built from the same features (e.g. a published ``colmap-sfm`` map), or ``None``:
-    triangulate the database pairs of ``sfm.map_pairs``. Its stages: the global map, then each
+    triangulate the database pairs of ``sfm.map_pairs``. What it needs: the global map, then each
     query registered in it."""
 
     colmap_model: str | None
     label: ClassVar[str] = "global_sfm"
-
-    def method_names(self) -> list[str]:
-        return [SFM_METHOD]
+    shared_map: ClassVar[bool] = True
 
     def missing_inputs(self) -> list[str]:
         """The files of ``colmap_model`` that are absent, if one is given."""
@@ -95,55 +77,33 @@ class GlobalSfm(SfmParadigm):
         database = inputs.scene.database
         return [(database.names[a], database.names[b]) for a, b in database_pairs(database, inputs.map_pairs)]
 
-    def triangulate_shared_map(self, inputs: SfmInputs, cache_dir: Path) -> None:
+    def triangulate_shared_map(self, inputs: SfmInputs) -> None:
         """The global map triangulated (or read) and cached once, before any query is registered."""
-        global_map(inputs, self.colmap_model, cache_dir)
+        global_map(inputs, self.colmap_model, inputs.cache_dir)
 
-    def register(
+    def pose_cache(self, inputs: SfmInputs) -> PoseCache:
+        """The registration outcomes, keyed by the map (its cache file, or the COLMAP model's files)."""
+        model = self.colmap_model
+        source = [model, tree_signature(model)] if model else map_cache_path(inputs, inputs.cache_dir).stem
+        return inputs.pose_cache("global_sfm", [CACHE_VERSION, source], inputs.cache_dir)
+
+    def registration(self, inputs: SfmInputs) -> tuple[Localize, tuple[SfmInputs, SparseMap]]:
+        """Each query registered in the global map (`register_query_in_map`)."""
+        return register_query_in_map, (inputs, global_map(inputs, self.colmap_model, inputs.cache_dir))
+
+    def count_maps(
         self,
         inputs: SfmInputs,
-        rankings: Sequence[Ranking],
-        ks: Sequence[list[int]],
-        cache_dir: Path,
-        queries: Sequence[int] | None,
-    ) -> list[PoseEstimates] | None:
-        """Register every query in the global map (in worker processes)."""
-        sparse_map = global_map(inputs, self.colmap_model, cache_dir)
-        cache = _pose_cache(inputs, self, cache_dir)
-        return run_queries(
-            self.label,
-            rankings,
-            ks,
-            register_query_in_map,
-            (inputs, sparse_map),
-            inputs.settings.processes,
-            cache,
-            queries,
-        )
-
-    def count(self, inputs: SfmInputs, rankings: Sequence[Ranking] | None, num_rankings: int) -> ParadigmWork:
-        """The map's database pairs are exact either way (from the known poses) unless the map is
+        rankings: Sequence[Ranking] | None,
+        tasks: Sequence[QueryTask] | None,
+        num_rankings: int,
+    ) -> tuple[Work, Work, float]:
+        """The map's database pairs, exact either way (from the known poses) unless the map is
         cached or given."""
-        scene, cache_dir = inputs.scene, inputs.cache_dir
-        query_pairs = query_pair_work(inputs, rankings, self.k, num_rankings)
-        if self.colmap_model or map_cache_path(inputs, cache_dir).exists():
-            map_pairs, maps = Work(0, 0), Work(1, 0)
-        else:
-            pairs = database_pairs(scene.database, inputs.map_pairs)
-            names = scene.database.names
-            map_pairs = database_pair_work(inputs, [(names[a], names[b]) for a, b in pairs])
-            maps = Work(1, 1)
-        if rankings is None:
-            registrations = registration_bound(len(scene.queries), len(scene.database), self.k, num_rankings)
-            queries = Work(len(scene.queries), len(scene.queries))
-        else:
-            tasks = query_tasks(
-                rankings, [ranking.clamp_ks(self.k) for ranking in rankings], _pose_cache(inputs, self, cache_dir)
-            )
-            registrations, queries = registration_work(tasks), queries_to_register(tasks)
-        return ParadigmWork(
-            self.label, query_pairs, map_pairs, maps, map_pairs.total, *registrations, queries, shared_map=True
-        )
+        if self.colmap_model or map_cache_path(inputs, inputs.cache_dir).exists():
+            return Work(0, 0), Work(1, 0), 0
+        map_pairs = database_pair_work(inputs, self.shared_map_pairs(inputs))
+        return map_pairs, Work(1, 1), map_pairs.total
 
     def map_points(self, scene: Scene, sfm: SfmSettings, cache_dir: Path) -> np.ndarray | None:
         """The 3D points of the global map `run` used: the ``colmap_model``'s, or the triangulated
@@ -155,13 +115,6 @@ class GlobalSfm(SfmParadigm):
             return np.array([point.xyz for point in model.points3D.values()], dtype=np.float64).reshape(-1, 3)
         path = map_cache_path(SfmInputs.prepare(scene, sfm, Path(cache_dir), extract=False), Path(cache_dir))
         return SparseMap.load(path).points if path.exists() else None
-
-
-def _pose_cache(inputs: SfmInputs, settings: GlobalSfm, cache_dir: Path) -> PoseCache:
-    """The registration outcomes, keyed by the map (its cache file, or the COLMAP model's files)."""
-    model = settings.colmap_model
-    source = [model, tree_signature(model)] if model else map_cache_path(inputs, cache_dir).stem
-    return inputs.pose_cache("global_sfm", [CACHE_VERSION, source], cache_dir)
 
 
 def global_map(inputs: SfmInputs, colmap_model: str | None, cache_dir: Path) -> SparseMap:

@@ -41,34 +41,18 @@ import numpy as np
 
 from locretrieval.cache import config_key
 from locretrieval.config import part
-from locretrieval.estimates import PoseEstimates
-from locretrieval.paradigms.base import SfmParadigm
+from locretrieval.paradigms.sfm import Localize, SfmParadigm
 from locretrieval.pool import WORKERS
 from locretrieval.retrieval import EMPTY, Ranking
-from locretrieval.sfm.inputs import (
-    SFM_METHOD,
-    Outcome,
-    QueryTask,
-    SfmInputs,
-    outcomes_per_image_set,
-    query_tasks,
-    register_query,
-    run_queries,
-)
+from locretrieval.sfm.inputs import SfmInputs
 from locretrieval.sfm.pnp import EMPTY_RETRIEVAL, NO_3D_POINTS, TOO_FEW_IMAGES
-from locretrieval.sfm.pose_cache import PoseCache
+from locretrieval.sfm.pose_cache import Outcome, PoseCache
+from locretrieval.sfm.query_tasks import QueryTask, outcomes_per_image_set, query_tasks
+from locretrieval.sfm.registration import register_query
 from locretrieval.sfm.sparse_map import SparseMap
 from locretrieval.sfm.triangulation import MapInput
 from locretrieval.sfm.verification import VerificationBatch
-from locretrieval.sfm.work import (
-    ParadigmWork,
-    Work,
-    database_pair_work,
-    queries_to_register,
-    query_pair_work,
-    registration_bound,
-    registration_work,
-)
+from locretrieval.sfm.work import Work, database_pair_work
 
 #: Bump when the meaning of cached local maps changes.
 CACHE_VERSION = 1
@@ -171,18 +155,19 @@ class QueryMapMatches(MapMatches):
         return dict(zip(pairs, query.inputs.database_verification.verify(batch)))
 
 
+#: What every task of a query's local maps reads: the cached inputs, the map matches, the maps' folder.
+LocalMaps = tuple[SfmInputs, MapMatches, Path]
+
+
 @dataclass
 class LocalSfm(SfmParadigm):
     """Paradigm 2a (``configs/paradigms/local_sfm.yaml``). ``map_matches``: where the matches among
     a local map's images come from (a `MapMatches`, chosen by its ``_target_``:
-    ``paradigms/local_sfm/map_matches=database|query``). Its stages: no shared map, each query's
+    ``paradigms/local_sfm/map_matches=database|query``). What it needs: no shared map, each query's
     maps triangulated (in worker processes) before it is registered in them."""
 
     map_matches: Any = part(MapMatches, "paradigms/local_sfm/map_matches")
     label: ClassVar[str] = "local_sfm"
-
-    def method_names(self) -> list[str]:
-        return [SFM_METHOD]
 
     def query_map_pairs(
         self,
@@ -197,18 +182,13 @@ class LocalSfm(SfmParadigm):
         return [(names[a], names[b]) for a, b in self.map_matches.database_pairs(rankings, ks, queries)]
 
     def triangulate_query_maps(
-        self,
-        inputs: SfmInputs,
-        rankings: Sequence[Ranking],
-        ks: Sequence[list[int]],
-        cache_dir: Path,
-        queries: Sequence[int],
+        self, inputs: SfmInputs, rankings: Sequence[Ranking], ks: Sequence[list[int]], queries: Sequence[int]
     ) -> None:
         """The local maps of each query of ``queries`` whose registration is not cached and whose
         map is not either, triangulated and cached (`triangulate_query`, in worker processes)."""
-        shared = (inputs, self.map_matches, cache_dir / "local_maps")
+        shared = self.local_maps(inputs)
         tasks, owned, counted = [], {}, set()
-        for task in query_tasks(rankings, ks, _pose_cache(inputs, self, cache_dir), queries):
+        for task in query_tasks(rankings, ks, self.pose_cache(inputs), queries):
             new = {path for path in _map_paths(shared, task).values() if not path.is_file()}
             if new:  # its progress counts the maps no earlier task of the call builds (queries share maps)
                 tasks.append(task)
@@ -223,69 +203,50 @@ class LocalSfm(SfmParadigm):
         ):
             pass
 
-    def register(
+    def local_maps(self, inputs: SfmInputs) -> LocalMaps:
+        """What every task of a query's local maps reads (`LocalMaps`)."""
+        return inputs, self.map_matches, inputs.cache_dir / "local_maps"
+
+    def pose_cache(self, inputs: SfmInputs) -> PoseCache:
+        """The registration outcomes, keyed by what the local maps are keyed by."""
+        maps = [
+            CACHE_VERSION,
+            self.map_matches.identity(),
+            _database_matches(inputs),
+            inputs.settings.triangulation.identity(),
+        ]
+        return inputs.pose_cache("local_sfm", maps, inputs.cache_dir)
+
+    def registration(self, inputs: SfmInputs) -> tuple[Localize, LocalMaps]:
+        """Each query registered in its local maps (`register_query_in_maps`)."""
+        return register_query_in_maps, self.local_maps(inputs)
+
+    def count_maps(
         self,
         inputs: SfmInputs,
-        rankings: Sequence[Ranking],
-        ks: Sequence[list[int]],
-        cache_dir: Path,
-        queries: Sequence[int] | None,
-    ) -> list[PoseEstimates] | None:
-        """Each query registered in its local maps (`register_query_in_maps`, in worker
-        processes), outcomes cached."""
-        shared = (inputs, self.map_matches, cache_dir / "local_maps")
-        cache = _pose_cache(inputs, self, cache_dir)
-        return run_queries(
-            self.label, rankings, ks, register_query_in_maps, shared, inputs.settings.processes, cache, queries
-        )
-
-    def count(self, inputs: SfmInputs, rankings: Sequence[Ranking] | None, num_rankings: int) -> ParadigmWork:
-        k, scene, cache_dir = self.k, inputs.scene, inputs.cache_dir
-        query_pairs = query_pair_work(inputs, rankings, k, num_rankings)
+        rankings: Sequence[Ranking] | None,
+        tasks: Sequence[QueryTask] | None,
+        num_rankings: int,
+    ) -> tuple[Work, Work, float]:
+        """The database pairs of every local map (`MapMatches.database_pairs`, bounded by
+        `MapMatches.pair_bound`) and its maps of 2 images or more, distinct by their cache keys."""
+        k, scene = self.k, inputs.scene
         pairs_per_map = float(np.mean([comb(min(size, len(scene.database)), 2) for size in k if size >= 2] or [0]))
         if rankings is None:
             queries, depth = len(scene.queries), min(max(k), len(scene.database))
             bound = self.map_matches.pair_bound(comb(depth, 2), queries, num_rankings, len(scene.database))
             maps = num_rankings * queries * sum(1 for size in k if size >= 2)
-            return ParadigmWork(
-                self.label,
-                query_pairs,
-                Work(bound, bound),
-                Work(maps, maps),
-                pairs_per_map,
-                *registration_bound(queries, len(scene.database), k, num_rankings),
-                Work(queries, queries),
-            )
+            return Work(bound, bound), Work(maps, maps), pairs_per_map
         ks = [ranking.clamp_ks(k) for ranking in rankings]
         database_pairs = database_pair_work(inputs, self.query_map_pairs(inputs, rankings, ks, None))
-        tasks = query_tasks(rankings, ks, _pose_cache(inputs, self, cache_dir))
         maps = {
             _map_key(inputs, self.map_matches, task.query, images)
             for task in tasks
             for images in task.image_sets()
             if len(images) >= 2
         }
-        new_maps = {key for key in maps if not (cache_dir / "local_maps" / f"{key}.npz").is_file()}
-        return ParadigmWork(
-            self.label,
-            query_pairs,
-            database_pairs,
-            Work(len(maps), len(new_maps)),
-            pairs_per_map,
-            *registration_work(tasks),
-            queries_to_register(tasks),
-        )
-
-
-def _pose_cache(inputs: SfmInputs, settings: LocalSfm, cache_dir: Path) -> PoseCache:
-    """The registration outcomes, keyed by what the local maps are keyed by."""
-    maps = [
-        CACHE_VERSION,
-        settings.map_matches.identity(),
-        _database_matches(inputs),
-        inputs.settings.triangulation.identity(),
-    ]
-    return inputs.pose_cache("local_sfm", maps, cache_dir)
+        new_maps = {key for key in maps if not (inputs.cache_dir / "local_maps" / f"{key}.npz").is_file()}
+        return database_pairs, Work(len(maps), len(new_maps)), pairs_per_map
 
 
 def _database_matches(inputs: SfmInputs) -> str:
@@ -307,10 +268,6 @@ def local_map_pairs(
         valid = (a != EMPTY) & (b != EMPTY) & (a != b)
         pairs.append(np.column_stack([np.minimum(a, b), np.maximum(a, b)])[valid])
     return np.unique(np.concatenate(pairs), axis=0)
-
-
-#: What every task of a query's local maps reads: the cached inputs, the map matches, the maps' folder.
-LocalMaps = tuple[SfmInputs, MapMatches, Path]
 
 
 def _map_paths(shared: LocalMaps, task: QueryTask) -> dict[tuple[int, ...], Path]:

@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -25,7 +26,7 @@ from scipy import sparse
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval import geometry
-from locretrieval.config import build_part, validated
+from locretrieval.config import ConfigError, build_part, unknown_key, validated
 from locretrieval.errors import FIX_DATA_FILE, DataFileError
 from locretrieval.scene.colmap_files import check_model_files, check_reconstruction
 from locretrieval.scene.images import check_distinct_images, check_image_sizes, check_names, image_files
@@ -86,29 +87,13 @@ def missing_model_files(folder: str | Path) -> list[str]:
     ]
 
 
-def load_colmap_dataset(
-    name: str,
-    root: str | Path,
-    model: str | Path,
-    images: str | Path,
-    *,
-    split: Any,
-    metres_per_unit: float | None,
-    known_distance: Any,
-    unitless: bool,
-    gps_max_error: float,
-    frustum_far: float | None,
-    ltvl_names: Any,
-    unsupported: dict[str, str] | None,
-) -> Scene:
+def load_colmap_dataset(name: str, root: str | Path, model: str | Path, images: str | Path, **options: Any) -> Scene:
     """The `Scene` of the COLMAP ``model`` folder (``cameras``, ``images``, ``points3D``, binary or
     text) whose image names are relative to the ``images`` folder (both relative to ``root`` or
-    absolute). ``split`` (a `SceneSplit` or its ``data.split`` node) chooses the queries; the scale
-    keys are `ScaleSettings`'; ``frustum_far`` (metres), ``ltvl_names`` and ``unsupported`` are
-    dataset facts kept on the `Scene`, as for kapture data."""
+    absolute); the other keys of its ``data`` node are its `SceneOptions` (`SCENE_KEYS`)."""
     from locretrieval.scene.datasets import DatasetNotFoundError
 
-    parts = scene_parts(name, split, metres_per_unit, known_distance, unitless, gps_max_error, ltvl_names, frustum_far)
+    scene = SceneOptions.from_keys(name, options)
     model_folder, image_folder = Path(root).expanduser() / model, Path(root).expanduser() / images
     missing = missing_model_files(model_folder) + ([] if image_folder.is_dir() else [f"image folder {image_folder}"])
     if missing:
@@ -120,7 +105,7 @@ def load_colmap_dataset(
             f"{root} ($LOCRETRIEVAL_DATA or paths.data_dir)."
         )
     reconstruction = read_model(model_folder)
-    return reconstruction_scene(reconstruction, str(model_folder), image_folder, parts, unsupported)
+    return reconstruction_scene(reconstruction, str(model_folder), image_folder, scene)
 
 
 def read_model(folder: Path) -> pycolmap.Reconstruction:
@@ -137,54 +122,75 @@ def read_model(folder: Path) -> pycolmap.Reconstruction:
     return reconstruction
 
 
-def scene_parts(
-    name: str,
-    split: Any,
-    metres_per_unit: float | None,
-    known_distance: Any,
-    unitless: bool,
-    gps_max_error: float,
-    ltvl_names: Any,
-    frustum_far: float | None,
-) -> dict[str, Any]:
-    """The checked parts of a reconstruction's scene, before any file is read: its ``name``, the
-    ``split`` (`SceneSplit`), the ``scale`` (`ScaleSettings`, keys ``data.<key>``), ``ltvl_names``
-    and ``frustum_far``."""
-    ltvl_names = build_part(LtvlNames, ltvl_names, "data.ltvl_names", "data/ltvl_names")
-    Scene.check_facts(name, ltvl_names, frustum_far)
-    scale = validated(
-        ScaleSettings,
-        {
-            "metres_per_unit": metres_per_unit,
-            "known_distance": None,
-            "unitless": unitless,
-            "gps_max_error": gps_max_error,
-        },
-        "data",
-    )
-    if known_distance is not None:  # a section of its own (a nested optional one stays a mapping in `validated`)
-        scale = dataclasses.replace(
-            scale, known_distance=validated(KnownDistance, known_distance, "data.known_distance")
+#: The keys of a ``data`` node of a reconstruction (``data=colmap``, ``data=photos``) that are its
+#: `SceneOptions`: the split, the scale (`ScaleSettings`' keys and ``known_distance``) and dataset facts.
+SCENE_KEYS = (
+    "split",
+    "metres_per_unit",
+    "known_distance",
+    "unitless",
+    "gps_max_error",
+    "frustum_far",
+    "ltvl_names",
+    "unsupported",
+)
+
+
+@dataclass(frozen=True)
+class SceneOptions:
+    """What a scene read from a reconstruction is besides its files, checked before any file is
+    read: its ``name``, the ``split`` choosing its queries (`SceneSplit`), its ``scale``
+    (`ScaleSettings`, keys ``data.<key>``), and the dataset facts kept on the `Scene`, as for
+    kapture data: ``ltvl_names``, ``frustum_far`` (metres) and ``unsupported`` (paradigm or
+    ground truth -> why the dataset cannot run it)."""
+
+    name: str
+    split: SceneSplit
+    scale: ScaleSettings
+    ltvl_names: LtvlNames
+    frustum_far: float | None
+    unsupported: dict[str, str]
+
+    @classmethod
+    def from_keys(cls, name: str, keys: Mapping[str, Any]) -> SceneOptions:
+        """The options of a ``data`` node's ``keys`` (each of `SCENE_KEYS`); a key missing or
+        unknown is a `ConfigError` naming it."""
+        unknown = [key for key in keys if key not in SCENE_KEYS]
+        if unknown:
+            raise ConfigError(unknown_key(f"data.{unknown[0]}", SCENE_KEYS))
+        missing = [key for key in SCENE_KEYS if key not in keys]
+        if missing:
+            raise ConfigError(
+                f"data.{missing[0]}: missing; a reconstruction's data node sets each of {list(SCENE_KEYS)}"
+            )
+        ltvl_names = build_part(LtvlNames, keys["ltvl_names"], "data.ltvl_names", "data/ltvl_names")
+        Scene.check_facts(name, ltvl_names, keys["frustum_far"])
+        scale_keys = ("metres_per_unit", "unitless", "gps_max_error")
+        scale = validated(ScaleSettings, {"known_distance": None, **{key: keys[key] for key in scale_keys}}, "data")
+        # known_distance: a section of its own (a nested optional one stays a mapping in `validated`)
+        if keys["known_distance"] is not None:
+            scale = dataclasses.replace(
+                scale, known_distance=validated(KnownDistance, keys["known_distance"], "data.known_distance")
+            )
+        return cls(
+            name,
+            build_part(SceneSplit, keys["split"], "data.split", "data/split"),
+            scale,
+            ltvl_names,
+            keys["frustum_far"],
+            dict(keys["unsupported"] or {}),
         )
-    return {
-        "name": name,
-        "split": build_part(SceneSplit, split, "data.split", "data/split"),
-        "scale": scale,
-        "ltvl_names": ltvl_names,
-        "frustum_far": frustum_far,
-    }
 
 
 def reconstruction_scene(
     reconstruction: pycolmap.Reconstruction,
     model: str,
     image_folder: Path,
-    parts: dict[str, Any],
-    unsupported: dict[str, str] | None,
+    scene: SceneOptions,
 ) -> Scene:
     """The `Scene` of a pycolmap ``reconstruction`` (transformed to metres in place) whose images
-    are files of ``image_folder``; ``model`` names it in errors and in the quality report;
-    ``parts``: `scene_parts`."""
+    are files of ``image_folder``, with the ``scene``'s options; ``model`` names it in errors and in
+    the quality report."""
     folder_images = image_files(image_folder)
     by_name = {image.name: image for image in reconstruction.images.values()}
     registered = sorted(image.name for image in by_name.values() if image.has_pose)
@@ -211,10 +217,10 @@ def reconstruction_scene(
         )
     check_names(Path(model), registered)
     check_distinct_images(image_folder, registered)
-    alignment = metric_alignment(reconstruction, image_folder, registered, parts["scale"], model)
+    alignment = metric_alignment(reconstruction, image_folder, registered, scene.scale, model)
     reconstruction.transform(alignment.new_from_old)
     images = registered_images(reconstruction, [by_name[name] for name in registered], image_folder, model)
-    queries = parts["split"].split(registered, folder_images)
+    queries = scene.split.split(registered, folder_images)
     query_set = images.subset(queries)
     query_set.tags = [frozenset({QUERY_TAG}) for _ in query_set.names]
     residuals = alignment.gps_residuals
@@ -233,13 +239,13 @@ def reconstruction_scene(
     )
     log.info("%s", quality.describe())
     return Scene(
-        parts["name"],
+        scene.name,
         images.subset(~queries),
         query_set,
         sources=[Path(model), image_folder],
-        ltvl_names=parts["ltvl_names"],
-        frustum_far=parts["frustum_far"],
-        unsupported=dict(unsupported or {}),
+        ltvl_names=scene.ltvl_names,
+        frustum_far=scene.frustum_far,
+        unsupported=scene.unsupported,
         observations=track_observations(reconstruction, registered),
         quality=quality,
     )

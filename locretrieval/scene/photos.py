@@ -29,7 +29,7 @@ import locretrieval  # noqa: F401  (imports zlib before pycolmap)
 from locretrieval.cache import atomic_path, config_key, file_signature, temporary_folder
 from locretrieval.config import require, validated
 from locretrieval.errors import DELETE_CACHE_FILE, DataFileError
-from locretrieval.scene.colmap import read_model, reconstruction_scene, scene_parts
+from locretrieval.scene.colmap import SceneOptions, read_model, reconstruction_scene
 from locretrieval.scene.images import IMAGE_EXTENSIONS, check_distinct_images, check_names, image_files, image_size
 from locretrieval.scene.types import CAMERA_MODEL_PARAMS, CAMERA_MODELS, Scene
 
@@ -125,29 +125,16 @@ class ReconstructionSettings:
 
 
 def load_photos_dataset(
-    name: str,
-    root: str | Path,
-    images: str | Path,
-    cache_dir: str | Path,
-    *,
-    reconstruction: Any,
-    split: Any,
-    metres_per_unit: float | None,
-    known_distance: Any,
-    unitless: bool,
-    gps_max_error: float,
-    frustum_far: float | None,
-    ltvl_names: Any,
-    unsupported: dict[str, str] | None,
+    name: str, root: str | Path, images: str | Path, cache_dir: str | Path, *, reconstruction: Any, **options: Any
 ) -> Scene:
     """The `Scene` of a folder of photos (``images``, relative to ``root`` or absolute; subfolders
     are sequences), reconstructed by pycolmap as ``reconstruction`` (`ReconstructionSettings`) into
-    ``cache_dir`` and read as a COLMAP model (`locretrieval.scene.colmap.load_colmap_dataset`'s
-    other keys). Bad input is refused before any reconstruction: an empty folder, an unreadable or a
-    duplicated image."""
+    ``cache_dir`` and read as a COLMAP model; the other keys of its ``data`` node are its
+    `SceneOptions` (`SCENE_KEYS`), as ``data=colmap``'s. Bad input is refused before any
+    reconstruction: an empty folder, an unreadable or a duplicated image."""
     from locretrieval.scene.datasets import DatasetNotFoundError
 
-    parts = scene_parts(name, split, metres_per_unit, known_distance, unitless, gps_max_error, ltvl_names, frustum_far)
+    scene = SceneOptions.from_keys(name, options)
     settings = validated(ReconstructionSettings, reconstruction, "data.reconstruction")
     folder = Path(root).expanduser() / images
     if not folder.is_dir():
@@ -157,7 +144,7 @@ def load_photos_dataset(
         )
     names = checked_photos(folder)
     model = reconstruct(folder, names, settings, Path(cache_dir))
-    return reconstruction_scene(read_model(model), str(model), folder, parts, unsupported)
+    return reconstruction_scene(read_model(model), str(model), folder, scene)
 
 
 def checked_photos(folder: Path) -> list[str]:

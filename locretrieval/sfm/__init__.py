@@ -1,9 +1,11 @@
-"""The SfM pipeline the SfM paradigms (`locretrieval.paradigms.local_sfm`, `global_sfm`) run on.
+"""The SfM machinery the SfM paradigms (`locretrieval.paradigms.sfm`) call, as verbs on what they
+work on (hloc's style); it knows no paradigm.
 
-Its stages, in the order `pipeline.run_sfm` drives them: local `features`, `matching` (mutual
+Read top-down: the ``sfm`` config group (`settings`), local `features`, `matching` (mutual
 `nearest_neighbours` + ratio test, stored in `store`), `verification`, `triangulation` (maps of
-known poses, `sparse_map`; or a `colmap_model`), and registration (`pnp`, outcomes in
-`pose_cache`), in `workers` processes. `inputs` holds the ``sfm`` settings and the caches every
-stage reads; `plan` counts and forecasts the work. Import the modules you need: this package
-imports nothing on its own, so that reading settings does not load pycolmap.
+known poses, `sparse_map`; or a `colmap_model`), registration (`pnp`, `registration`, outcomes in
+`pose_cache`; one query's registrations, `query_tasks`), in worker processes. `inputs` holds the
+caches every verb reads; `work` counts the work; `pipeline` holds the verbs that stream the
+queries through matching and the paradigms' maps and registrations. Import the modules you need:
+this package imports nothing on its own, so that reading settings does not load pycolmap.
 """

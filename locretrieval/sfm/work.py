@@ -16,8 +16,9 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 from locretrieval.retrieval import Ranking
-from locretrieval.sfm.inputs import QueryTask, SfmInputs
+from locretrieval.sfm.inputs import SfmInputs
 from locretrieval.sfm.matching import pair_key
+from locretrieval.sfm.query_tasks import QueryTask
 
 #: The stages every run has, before each paradigm's two (`stage_names`), with their units.
 FEATURES, MATCHING = "features", "match + verify"

@@ -362,7 +362,7 @@ class LocalizationValidation(L.Callback):
     def _run_sfm_shards(self, rankings: list[Ranking], settings: BenchmarkSettings, ranks: Ranks) -> None:
         """Under DDP, each rank's share of the SfM paradigms' work on ``rankings`` (`Ranks.shard`:
         its rank of all), into the cache the benchmark then reads it from."""
-        if ranks.count == 1 or not settings.paradigms.sfm_stages():
+        if ranks.count == 1 or not settings.paradigms.sfm_paradigms():
             return
         ranks.gather(lambda: run_sfm_shard(self.scene, rankings, settings, self.cache_dir, ranks.shard))
 

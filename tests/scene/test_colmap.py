@@ -22,6 +22,8 @@ from locretrieval.build import scene_of
 from locretrieval.config import ConfigError
 from locretrieval.errors import DataFileError
 from locretrieval.groundtruth import compute_groundtruths
+from locretrieval.scene.colmap import SCENE_KEYS, SceneOptions
+from locretrieval.scene.split import EveryNth
 
 IMAGES = 15
 CO_OBSERVATION = {"_target_": "locretrieval.groundtruth.CoObservationDefinition", "min_shared": 1, "query_pairs": 5}
@@ -60,6 +62,22 @@ def load(root: Path, model: Path, images: Path, *overrides: str):
         "data=colmap", f"paths.root_dir={root}", f"data.model={model}", f"data.images={images}", *overrides
     )
     return scene_of(cfg.data)
+
+
+@pytest.mark.parametrize("data", ["colmap", "photos"])
+def test_the_scene_options_of_a_reconstruction_are_one_object_checked_before_any_file(tmp_path, data):
+    """``data=colmap`` and ``data=photos`` share their keys besides the files (`SceneOptions`): the
+    YAML's keys build it, and a key it does not take is named, with the nearest, before any file is read."""
+    files = (f"paths.root_dir={tmp_path}", "data.images=nowhere", *(["data.model=sparse"] if data == "colmap" else []))
+    keys = {key: helpers.evaluate_config(f"data={data}", *files, "data.unitless=true").data[key] for key in SCENE_KEYS}
+    options = SceneOptions.from_keys("mine", keys)
+    assert options.name == "mine" and options.scale.unitless and options.frustum_far == 50.0
+    assert isinstance(options.split, EveryNth) and options.unsupported == {}
+    with pytest.raises(ConfigError, match=r"^data.metres_per_unt: unknown key; .*did you mean metres_per_unit\?"):
+        scene_of(helpers.evaluate_config(f"data={data}", *files, "+data.metres_per_unt=1"))
+    with pytest.raises(ConfigError, match=r"^data.frustum_far: missing"):
+        SceneOptions.from_keys("mine", {key: value for key, value in keys.items() if key != "frustum_far"})
+    assert not list(tmp_path.rglob("*"))  # refused before any file is read or written
 
 
 @pytest.mark.parametrize("text", [False, True], ids=["binary", "text"])

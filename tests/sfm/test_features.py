@@ -16,8 +16,8 @@ from locretrieval.config import ConfigError, validated
 from locretrieval.scene import Camera, ImageSet
 from locretrieval.sfm import features as features_module
 from locretrieval.sfm.features import extract_features
-from locretrieval.sfm.inputs import SfmSettings
 from locretrieval.sfm.matching import PairMatcher
+from locretrieval.sfm.settings import SfmSettings
 from locretrieval.sfm.verification import PoseVerification
 
 

@@ -1,4 +1,4 @@
-"""The SfM pipeline (`locretrieval.sfm.pipeline`) as paradigms 2a (local SfM) and 2b (global SfM) run it,
+"""The SfM pipeline's verbs (`locretrieval.sfm.pipeline`) as paradigms 2a (local SfM) and 2b (global SfM) run them,
 and its building blocks, on a tiny rendered scene."""
 
 import dataclasses
@@ -20,6 +20,7 @@ from locretrieval.paradigms import global_sfm, local_sfm
 from locretrieval.paradigms.base import Paradigms
 from locretrieval.paradigms.global_sfm import GlobalSfm, global_map, map_cache_path
 from locretrieval.paradigms.local_sfm import LocalSfm, local_map_pairs
+from locretrieval.paradigms.sfm import run_sfm
 from locretrieval.retrieval import Ranking, random_ranking
 from locretrieval.scene.kapture_io import load_kapture_scene
 from locretrieval.scene.synthetic import render_synthetic_dataset
@@ -27,9 +28,8 @@ from locretrieval.sfm import matching, pipeline
 from locretrieval.sfm import triangulation as triangulation_module
 from locretrieval.sfm.colmap_model import read_colmap_map, to_pycolmap_camera, to_rigid3d
 from locretrieval.sfm.features import FeatureStore, extract_features
-from locretrieval.sfm.inputs import SfmInputs, SfmSettings
+from locretrieval.sfm.inputs import SfmInputs
 from locretrieval.sfm.pairs import PairSelection, database_pairs
-from locretrieval.sfm.pipeline import run_sfm
 from locretrieval.sfm.pnp import (
     NO_3D_POINTS,
     NO_KEYPOINTS,
@@ -37,6 +37,7 @@ from locretrieval.sfm.pnp import (
     TOO_FEW_MATCHES,
     estimate_absolute_pose,
 )
+from locretrieval.sfm.settings import SfmSettings
 from locretrieval.sfm.work import Work
 
 SCENE = {
@@ -400,9 +401,9 @@ class RecordedChunks(LocalSfm):
 
     chunks: list = dataclasses.field(default_factory=list)
 
-    def register(self, inputs, rankings, ks, cache_dir, queries):
+    def register(self, inputs, rankings, ks, queries):
         self.chunks.append(queries)
-        return super().register(inputs, rankings, ks, cache_dir, queries)
+        return super().register(inputs, rankings, ks, queries)
 
 
 def test_queries_streamed_in_chunks_give_the_results_of_one_pass(scene, cache, rankings, monkeypatch, tmp_path):

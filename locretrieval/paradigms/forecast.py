@@ -33,11 +33,12 @@ from typing import Any
 import numpy as np
 
 from locretrieval.cache import config_key, load_arrays, save_arrays, temporary_folder
+from locretrieval.paradigms.sfm import SfmParadigm, count_work, run_sfm
 from locretrieval.retrieval import Ranking
 from locretrieval.scene import Scene
-from locretrieval.sfm.inputs import SfmInputs, SfmSettings
+from locretrieval.sfm.inputs import SfmInputs
 from locretrieval.sfm.matching import pair_key
-from locretrieval.sfm.pipeline import SfmStages, count_work, run_sfm
+from locretrieval.sfm.settings import SfmSettings
 from locretrieval.sfm.work import FEATURES, MATCHING, ParadigmWork, SfmPlan, Work, stage_names
 from locretrieval.threads import single_threaded
 
@@ -102,7 +103,9 @@ def calibration_sample(scene: Scene) -> tuple[Scene, Ranking]:
     return sample, ranking
 
 
-def calibrate(scene: Scene, settings: SfmSettings, paradigms: Mapping[str, SfmStages], cache_dir: Path) -> Calibration:
+def calibrate(
+    scene: Scene, settings: SfmSettings, paradigms: Mapping[str, SfmParadigm], cache_dir: Path
+) -> Calibration:
     """Unit costs of the SfM stages, measured by running the pipeline (`run_sfm`) with
     ``paradigms`` on `calibration_sample`, in one process with one thread (as each worker runs
     its tasks), into a temporary folder of ``cache_dir`` deleted afterwards; then `CACHED_PASSES`
@@ -159,7 +162,7 @@ def stage_totals(plan: SfmPlan) -> dict[str, int]:
 
 
 def stored_calibration(
-    scene: Scene, settings: SfmSettings, paradigms: Mapping[str, SfmStages], cache_dir: Path
+    scene: Scene, settings: SfmSettings, paradigms: Mapping[str, SfmParadigm], cache_dir: Path
 ) -> tuple[Calibration, Path, bool]:
     """``(calibration, its file, whether it was stored)``: the `calibrate` of these settings on this
     scene's sample and this machine, measured once and kept in ``cache_dir/forecast/``."""
@@ -167,7 +170,7 @@ def stored_calibration(
     key = config_key(
         CALIBRATION_VERSION,
         repr(dataclasses.replace(settings, workers=1)),
-        {name: repr(stages) for name, stages in paradigms.items()},
+        {name: repr(paradigm) for name, paradigm in paradigms.items()},
         sample.database.fingerprint(),
         sample.queries.fingerprint(),
         platform.node(),
@@ -304,7 +307,7 @@ def describe_forecast(seconds: Mapping[str, float], calibration: Calibration, pr
 
 
 def counted_plan(
-    inputs: SfmInputs, rankings: Sequence[Ranking], paradigms: Mapping[str, SfmStages], num_rankings: int
+    inputs: SfmInputs, rankings: Sequence[Ranking], paradigms: Mapping[str, SfmParadigm], num_rankings: int
 ) -> SfmPlan:
     """The work of ``paradigms``: exact for ``rankings`` (cached work as cached, `count_work`),
     plus upper bounds for ``num_rankings`` more not computed yet (a map every query shares counted once)."""
@@ -327,7 +330,7 @@ def counted_plan(
 def dry_run_forecast(
     scene: Scene,
     settings: SfmSettings,
-    paradigms: Mapping[str, SfmStages],
+    paradigms: Mapping[str, SfmParadigm],
     cache_dir: Path,
     rankings: Sequence[Ranking],
     num_rankings: int,

@@ -1,7 +1,7 @@
-"""The SfM paradigms' query tasks (`locretrieval.sfm.inputs`): one localisation per distinct set of images."""
+"""The SfM paradigms' query tasks (`locretrieval.sfm.query_tasks`): one localisation per distinct set of images."""
 
 import locretrieval  # noqa: F401  (imports zlib before pycolmap)
-from locretrieval.sfm.inputs import QueryTask, outcomes_per_image_set
+from locretrieval.sfm.query_tasks import QueryTask, outcomes_per_image_set
 
 
 def test_a_query_is_localised_once_per_distinct_set_of_top_k_images():

@@ -1,4 +1,4 @@
-"""The dry run's forecast (`locretrieval.sfm.forecast`): the units of each stage times the unit costs
+"""The dry run's forecast (`locretrieval.paradigms.forecast`): the units of each stage times the unit costs
 one calibration measured, spread over the processes the pipeline gives the stage; the paradigms'
 counts less what the ground truth matches first; a calibration that leaves nothing behind."""
 
@@ -13,8 +13,7 @@ from locretrieval.benchmark import BenchmarkSettings
 from locretrieval.build import benchmark_settings
 from locretrieval.config import validated
 from locretrieval.groundtruth.compute import GroundTruthSettings, groundtruth_sfm_pairs
-from locretrieval.retrieval import Ranking, random_ranking
-from locretrieval.sfm.forecast import (
+from locretrieval.paradigms.forecast import (
     CALIBRATION_DATABASE,
     CALIBRATION_QUERIES,
     GROUNDTRUTH_MAP,
@@ -27,8 +26,9 @@ from locretrieval.sfm.forecast import (
     dry_run_forecast,
     forecast,
 )
+from locretrieval.paradigms.sfm import count_work, run_sfm
+from locretrieval.retrieval import Ranking, random_ranking
 from locretrieval.sfm.inputs import SfmInputs
-from locretrieval.sfm.pipeline import count_work, run_sfm
 from locretrieval.sfm.work import ParadigmWork, SfmPlan, Work
 
 SCENE = {"width": 160, "height": 120, "num_database": 24, "num_queries": 6, "texture_size": 64, "length": 20.0,
@@ -97,7 +97,7 @@ def settings() -> BenchmarkSettings:
 def test_the_paradigms_match_at_most_the_pairs_the_ground_truth_left_and_share_its_map(scene, tmp_path):
     benchmark = settings()
     inputs = SfmInputs.prepare(scene, benchmark.sfm, tmp_path, extract=False)
-    paradigms = benchmark.paradigms.sfm_stages()
+    paradigms = benchmark.paradigms.sfm_paradigms()
     bounds = count_work(inputs, None, paradigms, num_rankings=5)
     config = helpers.evaluate_config("groundtruth.enabled=[relative_pose,co_observation]")
     groundtruth = validated(GroundTruthSettings, config.groundtruth, "groundtruth")
@@ -126,7 +126,7 @@ def test_the_calibration_runs_the_pipeline_on_a_neighbourhood_and_leaves_nothing
     distances = np.linalg.norm(sample.queries.centers[:, None] - sample.database.centers[None], axis=2)
     assert np.array_equal(ranking.indices, np.argsort(distances, axis=1, kind="stable"))  # nearest first
     benchmark = settings()
-    calibration = calibrate(scene, benchmark.sfm, benchmark.paradigms.sfm_stages(), tmp_path / "cache")
+    calibration = calibrate(scene, benchmark.sfm, benchmark.paradigms.sfm_paradigms(), tmp_path / "cache")
     assert calibration.features > 0 and calibration.pairs > 0 and calibration.seconds > 0
     assert all(value > 0 for value in [*calibration.map_pairs.values(), *calibration.registered_images.values()])
     assert not any(path.is_file() for path in (tmp_path / "cache").rglob("*"))  # its scratch folder is gone
@@ -138,7 +138,7 @@ def test_cached_work_is_forecast_as_cached_and_two_dry_runs_forecast_the_same(sc
     reading it back, far below the forecast of the same work before it was done; the unit costs
     measured once and kept, so that a second dry run forecasts the same."""
     benchmark = settings()
-    paradigms = benchmark.paradigms.sfm_stages()
+    paradigms = benchmark.paradigms.sfm_paradigms()
     distances = np.linalg.norm(scene.queries.centers[:, None] - scene.database.centers[None], axis=2)
     nearest = np.argsort(distances, axis=1, kind="stable")[:, :10]
     rankings = [
@@ -160,7 +160,7 @@ def test_cached_work_is_forecast_as_cached_and_two_dry_runs_forecast_the_same(sc
 
 def test_the_rankings_known_are_counted_exactly_and_the_others_bounded_a_shared_map_once(scene, tmp_path):
     benchmark = settings()
-    paradigms = benchmark.paradigms.sfm_stages()
+    paradigms = benchmark.paradigms.sfm_paradigms()
     inputs = SfmInputs.prepare(scene, benchmark.sfm, tmp_path, extract=False)
     known = [random_ranking(len(scene.queries), len(scene.database), 10, 0)]
     exact, bound = count_work(inputs, known, paradigms), count_work(inputs, None, paradigms, 2)
