@@ -91,18 +91,18 @@ def test_a_backbone_from_outside_the_package_is_one_class_and_one_yaml(tmp_path,
     its file read through its own ``trunk_state_dict``."""
     folder = tmp_path / "configs" / "model" / "backbone"
     folder.mkdir(parents=True)
-    (folder / "strided.yaml").write_text("_target_: test_backbones.StridedConvolution\nchannels: 6\n")
+    (folder / "strided.yaml").write_text(f"_target_: {__name__}.StridedConvolution\nchannels: 6\n")
     config = helpers.evaluate_config(
         f"hydra.searchpath=[file://{tmp_path / 'configs'}]", "model=gem", "model/backbone=strided"
     )
-    assert config.model.backbone == {"_target_": "test_backbones.StridedConvolution", "channels": 6}
+    assert config.model.backbone == {"_target_": f"{__name__}.StridedConvolution", "channels": 6}
     torch.manual_seed(1)
     trunk, _ = StridedConvolution(6).build()
     torch.save(trunk.state_dict(), tmp_path / "strided.pth")
     model = helpers.zoo_model(
         "gem", backbone=config.model.backbone, weights=Path(tmp_path / "strided.pth"), max_side=None
     )
-    assert model.architecture["backbone"] == {"_target_": "test_backbones.StridedConvolution", "channels": 6}
+    assert model.architecture["backbone"] == {"_target_": f"{__name__}.StridedConvolution", "channels": 6}
     assert model.preprocessing.mean == (0.5, 0.5, 0.5) and model.network.output_dim == 6
     images = torch.rand(2, 3, 32, 48)
     features = torch.relu(torch.nn.functional.conv2d(images, trunk[0].weight, trunk[0].bias, stride=4))

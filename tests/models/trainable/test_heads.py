@@ -176,12 +176,12 @@ def test_a_pooling_from_outside_the_package_is_one_class_and_one_yaml(tmp_path, 
     """A test module's class, chosen by a YAML in a config folder of the user's (hydra.searchpath)."""
     folder = tmp_path / "configs" / "model" / "pooling"
     folder.mkdir(parents=True)
-    (folder / "max.yaml").write_text("_target_: test_heads.MaxPooling\n_partial_: true\nscale: 2.0\n")
+    (folder / "max.yaml").write_text(f"_target_: {__name__}.MaxPooling\n_partial_: true\nscale: 2.0\n")
     config = helpers.evaluate_config(
         f"hydra.searchpath=[file://{tmp_path / 'configs'}]", "model=gem", "model/pooling=max"
     )
     model = helpers.zoo_model("gem", pooling=config.model.pooling, random_init=True, backbone=RESNET18)
-    assert model.architecture["pooling"] == {"_target_": "test_heads.MaxPooling", "scale": 2.0}
+    assert model.architecture["pooling"] == {"_target_": f"{__name__}.MaxPooling", "scale": 2.0}
     images = torch.rand(2, 3, 64, 96)
     torch.testing.assert_close(
         model.network.eval()(images), l2_normalize(model.network.backbone(images).amax(dim=(2, 3)))
