@@ -20,9 +20,19 @@ from locretrieval.training.relevance import training_pairs
 from locretrieval.training.run import ValidationScope
 
 
-def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkpoint(tmp_path):
+@pytest.fixture(scope="module")
+def shared_cache(tmp_path_factory) -> str:
+    """The override putting a run's caches in one folder for the file: the tiny scene rendered, its
+    ground truths and reference descriptors computed by the first run, read by the others."""
+    return f"paths.cache_dir={tmp_path_factory.mktemp('cache')}"
+
+
+def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkpoint(tmp_path, shared_cache):
     cfg = train_config(
-        tmp_path, "callbacks.localization_validation.sfm_every_n_epochs=1", "paradigms.global_sfm.k=[1,3]"
+        tmp_path,
+        shared_cache,
+        "callbacks.localization_validation.sfm_every_n_epochs=1",
+        "paradigms.global_sfm.k=[1,3]",
     )
     validator = train(cfg, tmp_path / "run")
     logged = validator.history[-1]
@@ -90,10 +100,11 @@ def test_hard_negatives_are_the_highest_ranked_unrelated_images_by_the_current_n
         assert set(sampler.hard[int(anchor)].tolist()) == set(allowed[:3])
 
 
-def test_validation_on_a_seeded_subset_of_the_queries_with_capped_sfm_features(tmp_path):
+def test_validation_on_a_seeded_subset_of_the_queries_with_capped_sfm_features(tmp_path, shared_cache):
     scope = ValidationScope(max_queries=4, seed=3, sfm_max_keypoints=200, budget_minutes=None, held_out=0.0)
     cfg = train_config(
         tmp_path,
+        shared_cache,
         "training.validation.max_queries=4",
         "training.validation.seed=3",
         "training.validation.sfm_max_keypoints=200",
@@ -142,7 +153,7 @@ class FakeClock:
 
 @pytest.mark.parametrize("minutes, reached", [(0.5, 3), (0.9, 6)])
 def test_the_first_validation_settles_the_queries_the_budget_holds_and_every_validation_keeps_them(
-    tmp_path, monkeypatch, minutes, reached
+    tmp_path, monkeypatch, shared_cache, minutes, reached
 ):
     """10 s a query (a fake clock): 0.5 min reach 1, then 2 more (the 20 s left hold 2) = 30 s; 0.9 min
     reach 1, then 2 (at most twice the last chunk), 2 (24 s left), 1 (4 s left: one at least) = all 6."""
@@ -157,14 +168,14 @@ def test_the_first_validation_settles_the_queries_the_budget_holds_and_every_val
         "benchmark",
         lambda scene, *args: validated_on.append(scene.queries.names) or real_benchmark(scene, *args),
     )
-    cfg = train_config(
+    cfg = train_config(  # one epoch: the validation before training settles the queries, the one after keeps them
         tmp_path,
+        shared_cache,
         "callbacks.localization_validation.sfm_every_n_epochs=1",
         f"training.validation.budget_minutes={minutes}",
         "training.validation.seed=7",
         "paradigms.local_sfm.k=[2]",
         "paradigms.global_sfm.k=[1]",
-        "trainer.max_epochs=2",
     )
     validator = train(cfg, tmp_path / "run")
     order = np.random.default_rng(7).permutation(6)
@@ -174,15 +185,18 @@ def test_the_first_validation_settles_the_queries_the_budget_holds_and_every_val
     )
     names = [instantiate(cfg.data).queries.names[q] for q in np.sort(order[:reached])]
     assert validator.scene.queries.names == validator.validated_queries == names
-    # references, then epochs -1, 0 and 1: every validation on the same queries
-    assert len(validated_on) == 4 and all(queries == names for queries in validated_on)
-    assert sorted({entry["epoch"] for entry in validator.history}) == [-1, 0, 1]
+    # references, then epochs -1 and 0: every validation on the same queries
+    assert len(validated_on) == 3 and all(queries == names for queries in validated_on)
+    assert sorted({entry["epoch"] for entry in validator.history}) == [-1, 0]
 
 
-def test_a_budget_too_small_for_one_validation_query_is_a_clear_error(tmp_path, monkeypatch):
+def test_a_budget_too_small_for_one_validation_query_is_a_clear_error(tmp_path, monkeypatch, shared_cache):
     FakeClock(per_query=10.0).install(monkeypatch)
     cfg = train_config(
-        tmp_path, "callbacks.localization_validation.sfm_every_n_epochs=1", "training.validation.budget_minutes=0.1"
+        tmp_path,
+        shared_cache,
+        "callbacks.localization_validation.sfm_every_n_epochs=1",
+        "training.validation.budget_minutes=0.1",
     )
     with pytest.raises(
         ConfigError,

@@ -9,9 +9,26 @@ from helpers import train
 from hydra.utils import instantiate
 from training_runs import train_config
 
+#: Two epochs planned, the run stopped after the first (its last.ckpt: epoch 0), no augmentation.
+INTERRUPTED = ("~augmentation", "trainer.max_epochs=2")
+
+
+@pytest.fixture(scope="module")
+def interrupted_run(tmp_path_factory) -> Path:
+    """The folder of a train.py run of `INTERRUPTED` stopped after its first epoch, under a root
+    whose cache its resumption reads: trained once for the file, a checkpoint of this project for
+    one test and the run resumed (in place, as ``ckpt_path=<run>/checkpoints/last.ckpt`` is) by the
+    other, which leaves last.ckpt whole (what it asserts)."""
+    root = tmp_path_factory.mktemp("interrupted")
+    interrupt = "+callbacks.interrupt={_target_: helpers.StopAfterEpoch, epoch: 0}"
+    train(train_config(root, *INTERRUPTED, interrupt), root / "run")
+    return root / "run"
+
 
 @pytest.mark.slow
-def test_resuming_from_a_file_that_is_not_a_checkpoint_of_this_project_is_refused_before_any_work(tmp_path):
+def test_resuming_from_a_file_that_is_not_a_checkpoint_of_this_project_is_refused_before_any_work(
+    tmp_path, interrupted_run
+):
     from locretrieval.training.checkpoints import check_resume_checkpoint
 
     (tmp_path / "notes.txt").write_text("not a checkpoint")
@@ -28,10 +45,8 @@ def test_resuming_from_a_file_that_is_not_a_checkpoint_of_this_project_is_refuse
         assert "weights_only" not in str(error.value)
         assert not (tmp_path / path.stem / ".cache").exists()  # refused before the scene was rendered
     # a checkpoint of another architecture
-    first = train_config(tmp_path / "first")
-    train(first, tmp_path / "first" / "run")
-    descriptor = instantiate(first.model)
-    checkpoint = tmp_path / "first" / "run" / "checkpoints" / "last.ckpt"
+    descriptor = instantiate(train_config(tmp_path).model)
+    checkpoint = interrupted_run / "checkpoints" / "last.ckpt"  # train.py's, the same model
     check_resume_checkpoint(checkpoint, descriptor.model, descriptor.architecture)
     with pytest.raises(
         ValueError, match=r"ckpt_path: .*last.ckpt.*resume with the model settings of the run that wrote it"
@@ -44,19 +59,15 @@ class Killed(Exception):
 
 
 @pytest.mark.slow
-def test_a_run_killed_while_writing_last_ckpt_keeps_the_previous_checkpoint_whole(tmp_path, monkeypatch):
+def test_a_run_killed_while_writing_last_ckpt_keeps_the_previous_checkpoint_whole(interrupted_run, monkeypatch):
     import errno
     import os
     import shutil
 
     from locretrieval.training.checkpoints import check_resume_checkpoint
 
-    common = ("~augmentation", "trainer.max_epochs=2")
-    train(
-        train_config(tmp_path, *common, "+callbacks.interrupt={_target_: helpers.StopAfterEpoch, epoch: 0}"),
-        tmp_path / "run",
-    )
-    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    root = interrupted_run.parent  # the run's own root: its cache
+    last = interrupted_run / "checkpoints" / "last.ckpt"
     before = last.read_bytes()
     assert torch.load(last, weights_only=False)["epoch"] == 0
 
@@ -92,9 +103,9 @@ def test_a_run_killed_while_writing_last_ckpt_keeps_the_previous_checkpoint_whol
 
     monkeypatch.setattr(torch, "save", save_killed_half_way)
     with pytest.raises(Killed):
-        train(train_config(tmp_path, *common, f"ckpt_path={last}"), tmp_path / "run")
+        train(train_config(root, *INTERRUPTED, f"ckpt_path={last}"), interrupted_run)
     monkeypatch.undo()
     assert last.read_bytes() == before  # the previous checkpoint, whole: resumable
-    descriptor = instantiate(train_config(tmp_path).model)
+    descriptor = instantiate(train_config(root).model)
     check_resume_checkpoint(last, descriptor.model, descriptor.architecture)
     assert not [path.name for path in last.parent.iterdir() if path.name.startswith(".")]  # no temporary file left

@@ -29,9 +29,17 @@ from locretrieval.training.callbacks import every_validation_metrics
 from locretrieval.training.relevance import combined_pairs
 
 
+@pytest.fixture(scope="module")
+def shared_cache(tmp_path_factory) -> str:
+    """The override putting a run's caches in one folder for the file: the tiny scene rendered, its
+    ground truths and reference descriptors computed by the first run, read by the others (the
+    tests of a cold cache, or of a refusal before the scene is rendered, keep their own)."""
+    return f"paths.cache_dir={tmp_path_factory.mktemp('cache')}"
+
+
 @pytest.mark.smoke
-def test_fast_dev_run_of_train_py_through_hydra_compose(tmp_path):
-    cfg = train_config(tmp_path, "+trainer.fast_dev_run=true")
+def test_fast_dev_run_of_train_py_through_hydra_compose(tmp_path, shared_cache):
+    cfg = train_config(tmp_path, shared_cache, "+trainer.fast_dev_run=true")
     validator = train(cfg, tmp_path / "run")
     epochs = sorted({entry["epoch"] for entry in validator.history})
     assert epochs == [-1, 0]  # before training, and after the one batch
@@ -48,7 +56,7 @@ def test_fast_dev_run_of_train_py_through_hydra_compose(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def quick_run(tmp_path_factory):
+def quick_run(tmp_path_factory, shared_cache):
     """``python train.py debug=quick`` (its checkpoint and logging choices) on the tiny scene, with
     every gallery query: ``(validation callback, run folder, its log lines)``."""
     import logging
@@ -60,7 +68,7 @@ def quick_run(tmp_path_factory):
     logger.addHandler(handler)
     logger.setLevel(logging.INFO)
     try:
-        cfg = train_config(root, "debug=quick", "callbacks.localization_validation.gallery_queries=8")
+        cfg = train_config(root, shared_cache, "debug=quick", "callbacks.localization_validation.gallery_queries=8")
         validator = train(cfg, root / "run")
     finally:
         logger.removeHandler(handler)
@@ -118,8 +126,8 @@ def test_a_checkpoint_monitoring_a_metric_never_logged_fails_at_start_up_naming_
 
 
 @pytest.mark.slow
-def test_resuming_from_the_last_checkpoint_continues_the_same_curve(tmp_path, monkeypatch):
-    common = ("~augmentation", "trainer.deterministic=true")
+def test_resuming_from_the_last_checkpoint_continues_the_same_curve(tmp_path, shared_cache):
+    common = (shared_cache, "~augmentation", "trainer.deterministic=true")
     straight = train(
         train_config(tmp_path / "straight", *common, "trainer.max_epochs=2"), tmp_path / "straight" / "run"
     )
@@ -146,7 +154,7 @@ def test_resuming_from_the_last_checkpoint_continues_the_same_curve(tmp_path, mo
 
 
 @pytest.mark.slow
-def test_two_process_cpu_ddp_smoke_run(tmp_path):
+def test_two_process_cpu_ddp_smoke_run(tmp_path, shared_cache):
     import subprocess
     import sys
 
@@ -159,6 +167,7 @@ def test_two_process_cpu_ddp_smoke_run(tmp_path):
         "trainer.accelerator=cpu",
         "trainer.devices=2",
         f"paths.root_dir={tmp_path}",
+        shared_cache,  # the scene, its ground truths and references as the file's earlier runs left them
         f"hydra.run.dir={tmp_path}/run",
         "device=cpu",
         *tiny,
@@ -333,9 +342,10 @@ def test_every_object_node_is_checked_by_its_full_key_before_the_scene_is_prepar
     assert not (Path(cfg.paths.cache_dir) / "synthetic").exists()
 
 
-def test_the_report_says_which_requested_gap_row_it_cannot_fill(tmp_path, caplog):
+def test_the_report_says_which_requested_gap_row_it_cannot_fill(tmp_path, caplog, shared_cache):
     cfg = train_config(
         tmp_path,
+        shared_cache,
         "paradigms.approximation.k=[1,5]",
         "callbacks.localization_validation.sfm_every_n_epochs=null",
         "callbacks.best_checkpoint.monitor=val/approximation/ewb/k5/5m_10deg",
@@ -356,6 +366,7 @@ def test_the_report_says_which_requested_gap_row_it_cannot_fill(tmp_path, caplog
     assert "report.gap row approximation/ewb/k3/5m_10deg cannot be filled" in caplog.text
     moved = train_config(
         tmp_path / "moved",
+        shared_cache,
         "+trainer.fast_dev_run=true",
         "callbacks.localization_validation.sfm_every_n_epochs=null",
         "report.gap=[{paradigm: approximation, method: ewb, k: 1, "
@@ -374,8 +385,9 @@ def test_the_report_says_which_requested_gap_row_it_cannot_fill(tmp_path, caplog
         train(wrong, tmp_path / "wrong" / "run")
 
 
-def test_train_py_takes_a_step_with_a_pytorch_metric_learning_loss(tmp_path):
-    validator = train(train_config(tmp_path, "loss=multi_similarity", "+trainer.fast_dev_run=true"), tmp_path / "run")
+def test_train_py_takes_a_step_with_a_pytorch_metric_learning_loss(tmp_path, shared_cache):
+    cfg = train_config(tmp_path, shared_cache, "loss=multi_similarity", "+trainer.fast_dev_run=true")
+    validator = train(cfg, tmp_path / "run")
     assert [entry["epoch"] for entry in validator.history] == [-1, 0]
 
 

@@ -17,7 +17,7 @@ import helpers
 import pandas as pd
 import pytest
 from omegaconf import OmegaConf
-from training_runs import METRIC
+from training_runs import METRIC, SCENE
 
 from locretrieval.config import ConfigError
 from locretrieval.report.training_summary import write_summary
@@ -88,7 +88,9 @@ def test_a_study_started_by_another_command_is_refused_and_a_resumed_sampler_dra
 
 
 #: The documented study, three trials in parallel through the joblib launcher with its default workers,
-#: each a quick run cut to one epoch of two batches of small images, validated by paradigm 1 alone.
+#: each a quick run cut to one epoch of two batches of small images, validated by paradigm 1 alone, on
+#: the training tests' tiny scene (30 images of 96x72 px, rendered by the renderer's default workers:
+#: debug=quick's 96 of 240x180 px would only make each trial render, describe and validate longer).
 SWEEP = [
     "-m",
     "hparams_search=localization",
@@ -98,6 +100,9 @@ SWEEP = [
     "trainer.max_epochs=1",
     "sampler.batches_per_epoch=2",
     "datamodule.image_size=[96,72]",
+    "model.max_side=96",
+    *(f"data.render.{key}={value}" for key, value in SCENE.items() if key not in ("conditions", "workers")),
+    *(f"data.render.conditions.{key}={value}" for key, value in SCENE["conditions"].items()),
     "paradigms.local_sfm.enabled=false",
     "paradigms.global_sfm.enabled=false",
 ]
