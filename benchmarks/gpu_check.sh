@@ -32,7 +32,8 @@ if [ "$REHEARSE" = 1 ]; then
     matching="--keypoints 300 600 --repeats 1 --pipeline-images 3"
     scale="--scale 0.05 --dimension 256 --keypoints 1000 --slice-keypoints 300"
     training="--steps 4 --overrides datamodule.image_size=[96,72] sampler.anchors=3 sampler.negatives=2"
-    densevlad="model.step=4"
+    # a coarser DenseVLAD (a vocabulary of 20,000 RootSIFTs in 10 iterations), 100 bootstrap resamples
+    densevlad="model.step=4 model.vocabulary_samples=20000 model.kmeans_iterations=10 metrics.uncertainty.resamples=100"
 else
     scene="data.render.device=cpu data.render.workers=$(nproc)"  # the built-in scene, on every core
     collect_only="" matching="--keypoints 5000 20000 --repeats 5" scale="--slice 0.005"

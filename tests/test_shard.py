@@ -16,21 +16,29 @@ from locretrieval.config import ConfigError, refuse_moved_keys
 from locretrieval.shard import Shard
 
 ROOT = Path(__file__).resolve().parents[1]
-#: A small scene; every worker count (rendering, SfM, figures) left at its default.
+#: A small scene; every worker count (rendering, SfM, figures) left at its default. 8 queries: two
+#: shards of 4; 12 database images: local maps of the default ks and a global map. 100 bootstrap
+#: resamples and a vocabulary from 20,000 RootSIFTs in 10 iterations: the runs' tables at a
+#: fraction of the default's work (each of the 7 runs pays them).
 SCENE = [
     "data.render.width=160",
     "data.render.height=120",
-    "data.render.num_database=20",
+    "data.render.num_database=12",
     "data.render.num_queries=8",
     "data.render.texture_size=64",
     "data.render.length=20.0",
     "data.render.seed=5",
     "model.max_side=160",
     "model.step=4",
+    "model.vocabulary_samples=20000",
+    "model.kmeans_iterations=10",
+    "metrics.uncertainty.resamples=100",
     "subsets.blur_width=160",
 ]
 QUICK = [
     "groundtruth.enabled=[relative_pose]",
+    "paradigms.local_sfm.k=[3,5]",  # two ks each: maps and registrations of several sizes, at most 5 images
+    "paradigms.global_sfm.k=[1,5]",
     "output.ltvl=false",
     "report.figure_formats=[]",
     "report.scene_view.enabled=false",

@@ -13,17 +13,29 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 #: 24 queries: faiss searches 20 or more queries at once with a BLAS product (fewer: one by one).
+#: 16 database images: enough for local maps of 3 and a global map. The scene is rendered once, in
+#: the 1-thread run's own process (workers=1: no pool of renderers to start), and copied for the
+#: others (rendering is checked elsewhere). 100 bootstrap resamples and a vocabulary from 20,000
+#: RootSIFTs (5 k-means chunks of 4,096, which the threads share out) in 10 iterations: the same
+#: threaded code at a fraction of the default's work. The SfM in each run's own process (sfm.workers=1):
+#: its tasks run on one thread wherever they run, and a pool's workers (seconds of imports each) would
+#: add nothing to the comparison of thread counts.
 COMMAND = [
     "data.render.width=160",
     "data.render.height=120",
-    "data.render.num_database=24",
+    "data.render.num_database=16",
     "data.render.num_queries=24",
+    "data.render.workers=1",
     "data.render.texture_size=64",
     "data.render.length=20.0",
     "data.render.seed=7",
     "model.max_side=160",
     "model.step=4",
+    "model.vocabulary_samples=20000",
+    "model.kmeans_iterations=10",
+    "metrics.uncertainty.resamples=100",
     "subsets.blur_width=160",
+    "sfm.workers=1",
     "paradigms.local_sfm.k=[3]",
     "paradigms.global_sfm.k=[1,3]",
     "output.ltvl=false",

@@ -91,18 +91,23 @@ def test_concurrent_processes_saving_and_merging_lose_no_outcome(tmp_path, monke
 ROOT = Path(__file__).resolve().parents[2]
 
 
-#: Enough registrations (128 queries x 3 rankings x k = 5, 10, 15, 20) for local SfM's register stage,
-#: which reads maps triangulated before it, to run several save intervals (`SAVE_SECONDS`).
+#: Enough registrations (64 queries x 3 rankings x k = 5, 10, 15, 20) for local SfM's register stage,
+#: which reads maps triangulated before it, to run several save intervals (`SAVE_SECONDS`). 100
+#: bootstrap resamples and a vocabulary from 20,000 RootSIFTs in 10 iterations: the tables of each
+#: of the three runs at a fraction of the default's work.
 COMMAND = [
     "data.render.width=160",
     "data.render.height=120",
     "data.render.num_database=30",
-    "data.render.num_queries=128",
+    "data.render.num_queries=64",
     "data.render.texture_size=64",
     "data.render.length=24.0",
     "data.render.seed=3",
     "model.max_side=160",
     "model.step=4",
+    "model.vocabulary_samples=20000",
+    "model.kmeans_iterations=10",
+    "metrics.uncertainty.resamples=100",
     "subsets.blur_width=160",
     "groundtruth.enabled=[relative_pose]",
     "paradigms.global_sfm.enabled=false",

@@ -1,6 +1,7 @@
 import logging
 import math
 import os
+import pickle
 import platform
 import subprocess
 import sys
@@ -35,12 +36,16 @@ from locretrieval.scene import Camera, ImageSet, Scene
 SMALL = dict(max_side=128, step=3, vocabulary_samples=20_000, kmeans_iterations=10, device="cpu")
 
 
-def small_densevlad(kind: type = DenseVLAD, **options) -> DenseVLAD:
-    """``kind`` (DenseVLAD or a subclass) with the values of ``configs/model/densevlad.yaml``,
-    `SMALL` and ``options`` over them."""
+def small_densevlad_options(**options) -> dict:
+    """The values of ``configs/model/densevlad.yaml``, `SMALL` and ``options`` over them."""
     values = OmegaConf.to_container(OmegaConf.load(helpers.CONFIGS / "model" / "densevlad.yaml"))
     values.pop("_target_")
-    return kind(**{**values, **SMALL, **options})
+    return {**values, **SMALL, **options}
+
+
+def small_densevlad(kind: type = DenseVLAD, **options) -> DenseVLAD:
+    """``kind`` (DenseVLAD or a subclass) with `small_densevlad_options`."""
+    return kind(**small_densevlad_options(**options))
 
 
 def texture(seed: int, size: int = 176) -> np.ndarray:
@@ -527,35 +532,47 @@ def test_runs_on_the_configured_device(textures_scene, fitted):
     np.testing.assert_allclose(gpu.describe(textures_scene.queries), fitted.describe(textures_scene.queries), atol=1e-3)
 
 
-def _fit_with_threads(scene, threads: int, results) -> None:
-    torch.set_num_threads(threads)
-    model = small_densevlad(vocabulary_samples=60_000)
-    model.fit(scene.database)
-    results.put(
-        {**fitted_arrays(model), "vlads": model._vlads(scene.queries), "queries": model.describe(scene.queries)}
-    )
+#: The fit and descriptors of `small_densevlad_options` in a process of its own, with ``threads`` torch
+#: threads: a script importing DenseVLAD alone (this test module would import Lightning, Hydra and
+#: kornia first, seconds of CPU for each process).
+FIT = """
+import pickle, sys
+import numpy as np
+import torch
+from locretrieval.models import DenseVLAD
+with open(sys.argv[1], "rb") as job:  # written by the test that started this process
+    threads, options, scene = pickle.load(job)
+torch.set_num_threads(threads)
+model = DenseVLAD(**options)
+model.fit(scene.database)
+fitted = {"centroids": model._centroids, "pca_mean": model._pca_mean, "pca_projection": model._pca_projection}
+fitted = {name: array.cpu().numpy() for name, array in fitted.items()}
+np.savez(sys.argv[2], **fitted, vlads=model._vlads(scene.queries), queries=model.describe(scene.queries))
+"""
 
 
 @pytest.mark.slow
 @pytest.mark.skipif(platform.machine() != "x86_64", reason="the kernels emulated are x86-64 ones")
-def test_the_fit_and_the_descriptors_do_not_depend_on_the_machine_or_the_thread_count(textures_scene, monkeypatch):
+def test_the_fit_and_the_descriptors_do_not_depend_on_the_machine_or_the_thread_count(textures_scene, tmp_path):
     """One process with 1 thread and this machine's kernels, one with 2 threads and another machine's
     (`OTHER_MACHINE`): the same dense RootSIFTs, vocabulary and VLADs, bit for bit (faiss's k-means,
     numba's fastmath and an argmax of torch's product each differed); the float64 PCA's eigenvectors
     follow LAPACK's kernels by ~1e-16, which may move a float32 value by one unit in the last place."""
-    import multiprocessing
-
-    context = multiprocessing.get_context("spawn")
+    options = small_densevlad_options(vocabulary_samples=60_000)
     outcomes = []
-    for threads, environment in ((1, {}), (2, OTHER_MACHINE)):
-        with monkeypatch.context() as patch:
-            for name, value in environment.items():
-                patch.setenv(name, value)  # the spawned process starts with them, before any library loads
-            results = context.Queue()
-            job = context.Process(target=_fit_with_threads, args=(textures_scene, threads, results))
-            job.start()
-        outcomes.append(results.get(timeout=300))
-        job.join(60)
+    for threads, kernels in ((1, {}), (2, OTHER_MACHINE)):
+        job, output = tmp_path / f"{threads}.pickle", tmp_path / f"{threads}.npz"
+        job.write_bytes(pickle.dumps((threads, options, textures_scene)))
+        done = subprocess.run(  # the kernels' variables set before any library loads
+            [sys.executable, "-c", FIT, str(job), str(output)],
+            env={**os.environ, **kernels},
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert done.returncode == 0, done.stderr[-2000:]
+        with np.load(output) as arrays:
+            outcomes.append(dict(arrays))
     for name in ("centroids", "vlads"):
         np.testing.assert_array_equal(outcomes[0][name], outcomes[1][name], err_msg=name)
     for name in ("pca_mean", "pca_projection", "queries"):
