@@ -1,4 +1,5 @@
-"""Fixtures shared by test modules: an evaluation run of a hostile dataset (built once a session), a
+"""Fixtures shared by test modules: an evaluation run of a hostile dataset (built once a session, by
+the first of the test processes that asks: `once_per_session`), a
 rendered scene the datasets' miniatures are installed from (once a module).
 
 The test processes of `make test` (pytest-xdist) share the machine's cores: each, and every process
@@ -7,8 +8,10 @@ otherwise each take every core and spin against one another. The files with the 
 handed out first (`pytest_collection_modifyitems`), so that the two processes end together."""
 
 import collections
+import fcntl
 import os
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,7 +54,7 @@ def hostile_dataset(root: Path) -> tuple[Path, Path]:
     from locretrieval.scene.synthetic import render_synthetic_dataset
 
     render = root / "render"
-    settings = {"width": 160, "height": 120, "num_database": 32, "num_queries": 16, "texture_size": 64}
+    settings = {"width": 160, "height": 120, "num_database": 16, "num_queries": 8, "texture_size": 64}
     render_synthetic_dataset(render_settings({**settings, "length": 20.0, "workers": 1, "seed": 3}), render)
     query = root / "data" / HOSTILE_QUERY_FOLDER
     shutil.copytree(render / "query", query)
@@ -66,12 +69,37 @@ def hostile_dataset(root: Path) -> tuple[Path, Path]:
     return render / "mapping", query
 
 
+def once_per_session(tmp_path_factory: pytest.TempPathFactory, name: str, build: Callable[[Path], None]) -> Path:
+    """The folder ``name`` filled by ``build(folder)`` once for the whole session: under pytest-xdist
+    each test process runs a session fixture, so the first one that asks builds it in the folder the
+    processes share, under a lock, and the others wait and read it (pytest-xdist's documented pattern,
+    with `fcntl.flock` for its lock). A build that fails is retried by the next process that asks."""
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent  # the session's folder, above each process's own
+    folder, done = base / name, base / f"{name}.done"
+    with (base / f"{name}.lock").open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            build(folder)
+            done.touch()
+    return folder
+
+
 @pytest.fixture(scope="session")
 def hostile_run(tmp_path_factory) -> HostileRun:
-    """`evaluate` of `hostile_dataset` with ``model.name`` `HOSTILE_MODEL`, the approximation paradigm only."""
+    """`evaluate` of `hostile_dataset` with ``model.name`` `HOSTILE_MODEL`, the approximation paradigm
+    only (read, never changed, by tests/whole/test_hostile_input.py and tests/report/test_html.py)."""
+    root = once_per_session(tmp_path_factory, "hostile", hostile_evaluation)
+    return HostileRun(root, root / "run", root / "cache")
+
+
+def hostile_evaluation(root: Path) -> None:
+    """`hostile_run`'s evaluation, everything it writes under ``root``."""
     from helpers import evaluate
 
-    root = tmp_path_factory.mktemp("hostile")
     mapping, query = hostile_dataset(root)
     config = evaluate_config(
         "data=kapture", f"paths.root_dir={root}", f"paths.cache_dir={root / 'cache'}", "device=cpu",
@@ -80,7 +108,6 @@ def hostile_run(tmp_path_factory) -> HostileRun:
     )  # fmt: skip
     config.data.mapping, config.data.queries, config.model.name = str(mapping), [str(query)], HOSTILE_MODEL
     evaluate(config, root / "run")
-    return HostileRun(root, root / "run", root / "cache")
 
 
 @pytest.fixture(scope="module")
