@@ -21,12 +21,18 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 KS = [1, 2, 5, 10]
+#: What no test here reads, at a fraction of the default's work: a DenseVLAD vocabulary from 20,000
+#: RootSIFTs in 10 iterations (its ranking is one of the table's rows whatever its quality; the
+#: multirun's jobs read its descriptors from the cache, so they are given the same model) and 100
+#: bootstrap resamples (the intervals are not checked; every table, figure and section is still written).
+CHEAP = ["model.vocabulary_samples=20000", "model.kmeans_iterations=10", "metrics.uncertainty.resamples=100"]
 
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     root = tmp_path_factory.mktemp("evaluate")
-    overrides = [f"paths.root_dir={root}", f"paradigms.approximation.k=[{','.join(map(str, KS))}]", *TINY_SCENE]
+    overrides = [f"paths.root_dir={root}", f"paradigms.approximation.k=[{','.join(map(str, KS))}]", *TINY_SCENE, *CHEAP]
+    overrides.append("report.scene_view.enabled=false")  # the 3D view: no test here reads it (tests/report has its own)
     with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
         cfg = compose(config_name="evaluate", overrides=overrides)
     output = root / "run"
@@ -131,6 +137,7 @@ def test_multirun_from_the_command_line(run):
         "paradigms.local_sfm.enabled=false",  # CSI's alpha is what the jobs differ by
         "paradigms.global_sfm.enabled=false",
         *TINY_SCENE,
+        *CHEAP,  # the fixture's model: its cached descriptors are read, not computed again
     ]
     completed = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert completed.returncode == 0, completed.stderr[-3000:]
@@ -222,6 +229,7 @@ def test_a_model_from_outside_the_package_is_evaluated_through_the_config(tmp_pa
         f"paths.root_dir={tmp_path}", *SMALL_SCENE, "~model", f"+model={node}", "groundtruth=none",
         "paradigms.local_sfm.enabled=false", "paradigms.global_sfm.enabled=false", "paradigms.approximation.k=[1]",
         "report.figure_formats=[]", "report.scene_view.enabled=false", "baselines.random=false",
+        "metrics.uncertainty.resamples=100",  # the intervals are not checked here
     )  # fmt: skip
     with pytest.raises(FileNotFoundError, match=rf"1 missing input.*\n- model.marker: {marker} not found"):
         evaluate(cfg, tmp_path / "run")

@@ -1,5 +1,10 @@
 """Worker pools (`locretrieval.pool`): small workloads stay in this process, a worker's death names
-the stage and its signal, progress counts each task's units, and a pool runs inside a joblib job."""
+the stage and its signal, progress counts each task's units, and a pool runs inside a joblib job.
+
+The tasks below are this module's functions, which every worker process (and every job of the joblib
+scripts) imports to unpickle them: the module imports no torch (seconds of CPU per process; torch only
+in the tests that use it), so each worker start costs what a worker of the tested pool costs, not torch's import.
+"""
 
 import os
 import signal
@@ -9,7 +14,6 @@ import time
 from pathlib import Path
 
 import pytest
-import torch
 
 from locretrieval.pool import MIN_TASKS_PER_WORKER, WorkerPool, WorkerPoolError, cpu_time, progress_to
 from locretrieval.processes import dataloader_workers
@@ -173,8 +177,10 @@ def test_dataloader_workers_leave_a_plain_process_s_start_method_alone_and_take_
     assert done.stdout.strip() == "None", done.stderr  # other libraries' pools keep their platform default
 
 
-class Budgets(torch.utils.data.Dataset):
-    """Each item: the image budget its worker process sees (`locretrieval.limits.current`)."""
+class Budgets:
+    """Each item: the image budget its worker process sees (`locretrieval.limits.current`). A map-style
+    dataset as the DataLoader reads one (``__len__`` and ``__getitem__``), not a subclass of torch's
+    `Dataset`: this module imports no torch (see the module's docstring)."""
 
     def __len__(self) -> int:
         return 4
@@ -194,6 +200,7 @@ def image_budget(_: int) -> int:
 def test_the_run_s_budgets_reach_every_worker_with_its_start(monkeypatch):
     """The budgets the build step sets (`limits.use`) are what two DataLoader workers and two pool
     workers read, not the defaults: they are handed over as the workers start."""
+    import torch
     from helpers import set_limits
 
     set_limits(monkeypatch, image_pixels=12345)

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import evaluate as evaluate_here
 from helpers import evaluate_config
 
 from locretrieval import build
@@ -80,11 +81,20 @@ def table(path: Path) -> bytes:
     return gzip.decompress(path.read_bytes()) if path.suffix == ".gz" else path.read_bytes()
 
 
+#: The reference run's own worker counts: everything in its process (see `unsharded`).
+IN_THIS_PROCESS = ["data.render.workers=1", "sfm.workers=1"]
+
+
 @pytest.fixture(scope="module")
 def unsharded(tmp_path_factory) -> Path:
-    """The run folder of one plain run from an empty cache."""
+    """The run folder of one plain run from an empty cache: the reference the tables are compared with,
+    run in this process (what evaluate.py runs, `helpers.evaluate`) and without worker processes: the
+    launchers' jobs and the plain run that assembles their work are evaluate.py's processes with the
+    default worker counts, as the README documents them; the reference only has to hold the same
+    numbers, which do not depend on the worker processes (tests/test_threads.py, tests/sfm/test_pipeline.py),
+    and it spares a process and its workers their imports (seconds each)."""
     root = tmp_path_factory.mktemp("unsharded")
-    evaluate(f"paths.root_dir={root}", f"hydra.run.dir={root / 'run'}")
+    evaluate_here(evaluate_config(f"paths.root_dir={root}", *SCENE, *QUICK, *IN_THIS_PROCESS), root / "run")
     return root / "run"
 
 
