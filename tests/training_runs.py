@@ -31,6 +31,21 @@ TINY_TRAINING = (
     "callbacks.localization_validation.sfm_every_n_epochs=null",
 )
 
+#: Validation's DenseVLAD reference of the tiny scene, cheap: one scale of dense SIFT every 4 px on
+#: images halved to 48 px, 16 words learned from 2,000 descriptors (the published settings take
+#: seconds of CPU per validation that a test of the training loop does not need).
+SMALL_DENSEVLAD = (
+    "validation_references.densevlad.max_side=48",
+    "validation_references.densevlad.step=4",
+    "validation_references.densevlad.bin_sizes=[4]",
+    "validation_references.densevlad.num_words=16",
+    "validation_references.densevlad.vocabulary_samples=2000",
+    "validation_references.densevlad.kmeans_iterations=10",
+)
+#: A run whose validations are cheap: the tiny scene with half its database and 2 queries (each
+#: validation describes every image with the trained network), `SMALL_DENSEVLAD`.
+SMALL_VALIDATION = ("data.render.num_database=12", "data.render.num_queries=2", *SMALL_DENSEVLAD)
+
 
 def train_config(root, *overrides, image_side="model.max_side=96"):
     """configs/train.yaml on a tiny rendered scene, everything under ``root``; ``image_side``:

@@ -261,13 +261,17 @@ def test_every_preset_composes_and_without_its_hub_code_names_the_repo(preset, t
 def test_train_py_trains_a_researchers_module_and_evaluate_reads_it_back(tmp_path, monkeypatch):
     from helpers import train
     from hydra.utils import instantiate
-    from training_runs import train_config
+    from training_runs import SMALL_VALIDATION, train_config
 
     (tmp_path / "my_descriptors.py").write_text(MODULE)
     monkeypatch.syspath_prepend(str(tmp_path))
     model = ("model=callable", "model.target=my_descriptors:build", "+model.kwargs={dim: 16}")
-    cfg = train_config(
-        tmp_path, *model, "paradigms.approximation.k=[1,3]", image_side="model.preprocessing.max_side=96"
+    cfg = train_config(  # SMALL_VALIDATION: the point is the trained weights read back, not validation
+        tmp_path,
+        *model,
+        "paradigms.approximation.k=[1,3]",
+        *SMALL_VALIDATION,
+        image_side="model.preprocessing.max_side=96",
     )
     untrained = instantiate(cfg.model).network.state_dict()
     validator = train(cfg, tmp_path / "run")
@@ -329,7 +333,7 @@ def test_a_timm_backbone_loads_its_own_state_dict_without_the_classifier(scene, 
 
 def test_train_py_trains_a_timm_backbone(tmp_path):
     from helpers import train
-    from training_runs import train_config
+    from training_runs import SMALL_VALIDATION, train_config
 
     cfg = train_config(
         tmp_path,
@@ -339,6 +343,7 @@ def test_train_py_trains_a_timm_backbone(tmp_path):
         "model.random_init=true",
         "+trainer.fast_dev_run=true",
         "paradigms.approximation.k=[1,3]",
+        *SMALL_VALIDATION,
     )
     assert sorted({entry["epoch"] for entry in train(cfg, tmp_path / "run").history}) == [-1, 0]
 
