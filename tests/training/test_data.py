@@ -9,6 +9,7 @@ import helpers
 import numpy as np
 import pytest
 import torch
+from decoding_jobs import decode_into
 from omegaconf import OmegaConf
 from PIL import Image
 from torchvision.transforms import v2
@@ -52,16 +53,13 @@ def test_the_cache_holds_each_image_as_a_step_decodes_it_and_a_changed_image_is_
     assert other_size.shape == (6, 24, 32, 3)
 
 
-def _decode_into(paths, cache, results) -> None:
-    results.put(np.asarray(decoded_images(paths, (40, 30), cache, workers=1)).sum())
-
-
 @pytest.mark.slow
 def test_two_processes_decoding_the_same_images_share_one_file(tmp_path, monkeypatch):
     paths = write_images(tmp_path / "images", count=24)
     context = multiprocessing.get_context("spawn")
     results = context.Queue()
-    jobs = [context.Process(target=_decode_into, args=(paths, tmp_path / "cache", results)) for _ in range(2)]
+    # the target lives in a light module: a spawned process imports it, not this test module's torch and Hydra
+    jobs = [context.Process(target=decode_into, args=(paths, (40, 30), tmp_path / "cache", results)) for _ in range(2)]
     for job in jobs:
         job.start()
     totals = [results.get(timeout=120) for _ in jobs]

@@ -11,7 +11,7 @@ import pytest
 import torch
 from helpers import train
 from hydra.utils import instantiate
-from training_runs import train_config
+from training_runs import SMALL_VALIDATION, train_config
 
 from locretrieval.config import ConfigError, SettingError
 from locretrieval.models.files.weights import embedded_checkpoint, load_torch_file
@@ -74,6 +74,10 @@ PRESETS = {
 }
 #: preset -> overrides that shrink its head for the training step: MegaLoc's whitening holds 16,640 x 8,448 weights.
 SMALL_HEADS = {"megaloc": ("model.whiten_dim=256",)}
+#: The fine-tuning runs' data: `SMALL_VALIDATION` (each validation describes every image with the
+#: preset's network, a ViT-B for three of them) and a step of 5 images (2 anchors, a positive and a
+#: negative), enough for every trainable part to get a gradient.
+SMALL_FINETUNING = (*SMALL_VALIDATION, "sampler.anchors=2", "sampler.positives=1", "sampler.negatives=1")
 
 
 @pytest.fixture
@@ -120,17 +124,18 @@ def test_each_preset_builds_and_takes_training_steps_with_its_fixed_parts_unchan
         f"finetune={preset}",
         *overrides,
         *SMALL_HEADS.get(preset, ()),
+        *SMALL_FINETUNING,
         "datamodule.image_size=[126,126]" if vit else "datamodule.image_size=[96,72]",
         "sampler.batches_per_epoch=1",
         "paradigms.approximation.k=[1,3]",
         image_side="model.size=[126,126]" if vit else "model.preprocessing.max_side=96",
     )
-    initial = instantiate(cfg.model).network.state_dict()
+    network = instantiate(cfg.model).network  # the weights training starts from (seeded), built once here
+    initial = network.state_dict()
+    frozen = set(freeze_parameters(network, list(cfg.module.frozen)))  # names only: the values stay as built
     validator = train(cfg, tmp_path / "run")
     assert sorted({entry["epoch"] for entry in validator.history}) == [-1, 0]
     trained = embedded_checkpoint(load_torch_file(tmp_path / "run" / "checkpoints" / "last.ckpt"))["state_dict"]
-    network = instantiate(cfg.model).network
-    frozen = set(freeze_parameters(network, list(cfg.module.frozen)))
     trainable = {name for name, _ in network.named_parameters()} - frozen
     assert frozen and trainable
     assert all(torch.equal(trained[name], initial[name]) for name in frozen)
@@ -179,7 +184,8 @@ def test_lr_scales_from_the_command_line(tmp_path):
 def test_frozen_batch_norm_keeps_the_pretrained_statistics_while_the_weights_learn(tmp_path, frozen):
     from locretrieval.models.files.weights import EMBEDDED_CHECKPOINT_KEY
 
-    cfg = train_config(tmp_path, f"module.freeze_batch_norm={frozen}")
+    # SMALL_VALIDATION: the point is the training steps' effect on the batch norms, not validation
+    cfg = train_config(tmp_path, f"module.freeze_batch_norm={frozen}", *SMALL_VALIDATION)
     train(cfg, tmp_path / "run")
     trained = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", weights_only=False)[EMBEDDED_CHECKPOINT_KEY][
         "state_dict"
@@ -197,7 +203,7 @@ def test_frozen_parameters_keep_their_pretrained_values(tmp_path):
     from locretrieval.models.files.weights import EMBEDDED_CHECKPOINT_KEY
 
     patterns = "module.frozen=['backbone.timm.conv_stem.*','backbone.timm.blocks.[0-3].*']"
-    cfg = train_config(tmp_path, patterns)
+    cfg = train_config(tmp_path, patterns, *SMALL_VALIDATION)  # the steps matter here, not validation
     train(cfg, tmp_path / "run")
     trained = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", weights_only=False)[EMBEDDED_CHECKPOINT_KEY][
         "state_dict"
@@ -214,13 +220,22 @@ def test_frozen_parameters_keep_their_pretrained_values(tmp_path):
         for name in ("backbone.timm.conv_head.weight", "backbone.timm.blocks.6.0.conv_pwl.weight")
     )
     with pytest.raises(ConfigError, match=r"module.frozen: 'backbone.trunk.\*' matches no parameter"):
-        train(train_config(tmp_path / "bad", "module.frozen=['backbone.trunk.*']"), tmp_path / "bad" / "run")
+        train(
+            train_config(tmp_path / "bad", "module.frozen=['backbone.trunk.*']", *SMALL_VALIDATION),
+            tmp_path / "bad" / "run",
+        )
 
 
 def test_a_diverging_run_stops_at_the_step_naming_the_loss_and_the_learning_rate(tmp_path):
     from locretrieval.training.module import TrainingDiverged
 
-    cfg = train_config(tmp_path, "module.optimizer.lr=1e6", "trainer.max_epochs=3", "sampler.batches_per_epoch=3")
+    cfg = train_config(
+        tmp_path,
+        "module.optimizer.lr=1e6",
+        "trainer.max_epochs=3",
+        "sampler.batches_per_epoch=3",
+        *SMALL_VALIDATION,  # the divergence is in the training steps: a cheap validation before them
+    )
     with pytest.raises(
         TrainingDiverged,
         match=r"training diverged at step \d+ \(epoch \d\): (the loss is nan|the loss is inf|the gradient "

@@ -54,6 +54,11 @@ def test_training_benchmark_prints_the_loop_on_one_and_on_two_ddp_processes(tmp_
         "model.backbone.name=resnet18",
         "model.weights=null",
         "model.random_init=true",
+        # the loop's figures, not its speed, are checked: half the scene's database, no validation
+        # queries to speak of, and 48 x 36 training images (a quarter of the pixels of each step)
+        "data.render.num_database=12",
+        "data.render.num_queries=2",
+        "datamodule.image_size=[48,36]",
     ]
     result = subprocess.run(
         [sys.executable, str(BENCHMARKS / "bench_training.py"), "--ranks", "2", "--steps", "4", "--overrides"]

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from helpers import train
 from omegaconf import OmegaConf
-from training_runs import train_config
+from training_runs import SMALL_VALIDATION, train_config
 
 from locretrieval.models.files.weights import save_checkpoint
 from locretrieval.models.networks import (
@@ -214,7 +214,7 @@ def test_train_py_trains_each_head(head, tmp_path):
     model = (
         ["model=lite0_gem_pyramid"] if head == "gem_pyramid" else [f"model/pooling={head}", "model.random_init=true"]
     )
-    overrides = [*model, "+trainer.fast_dev_run=true", "paradigms.approximation.k=[1,3]"]
+    overrides = [*model, "+trainer.fast_dev_run=true", "paradigms.approximation.k=[1,3]", *SMALL_VALIDATION]
     if head == "salad":
         overrides.append("model.pooling.clusters=4")  # 96 x 72 images: 3 x 2 local features of EfficientNet-Lite0
     validator = train(train_config(tmp_path, *overrides), tmp_path / "run")
