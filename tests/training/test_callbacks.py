@@ -8,7 +8,7 @@ from helpers import train
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from training_runs import AT_25M, RELATIVE_POSE
-from training_runs import train_config as tiny_training
+from training_runs import cheap_train_config as train_config
 
 from locretrieval.benchmark import benchmark, build_rankings, relevances
 from locretrieval.build import benchmark_settings
@@ -19,30 +19,6 @@ from locretrieval.training.callbacks import TRAINED, metric_rows
 from locretrieval.training.data import RelevanceBatchSampler
 from locretrieval.training.relevance import training_pairs
 from locretrieval.training.run import ValidationScope
-
-#: DenseVLAD, the validation reference, on a vocabulary of 16 words k-means learns from 2000 RootSIFTs of
-#: one bin size on 48 px images: the same kind of reference ranking, in a fraction of the default's k-means.
-CHEAP_DENSEVLAD = tuple(
-    f"validation_references.densevlad.{setting}"
-    for setting in (
-        "max_side=48",
-        "step=4",
-        "bin_sizes=[4]",
-        "num_words=16",
-        "vocabulary_samples=2000",
-        "kmeans_iterations=10",
-    )
-)
-
-#: Validation images shrunk to 64 px (the tiny scene's are 96 x 72): describing every image of the scene at
-#: each validation is most of a run's time, and what these tests check of a validation holds at any size.
-VALIDATION_SIDE = "model.max_side=64"
-
-
-def train_config(root, *overrides):
-    """`training_runs.train_config` with `CHEAP_DENSEVLAD` and `VALIDATION_SIDE` (what these tests
-    read is the trained descriptor's validation, not the reference's)."""
-    return tiny_training(root, *CHEAP_DENSEVLAD, *overrides, image_side=VALIDATION_SIDE)
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +40,7 @@ def test_callback_metrics_equal_a_direct_benchmark_and_evaluate_reads_the_checkp
     checkpoint = tmp_path / "run" / "checkpoints" / "last.ckpt"
     assert checkpoint.exists()
     # evaluate.py's path: the zoo model reads the Lightning checkpoint unchanged
-    model_cfg = OmegaConf.merge(cfg.model, {"weights": str(checkpoint), "max_side": 64})  # VALIDATION_SIDE
+    model_cfg = OmegaConf.merge(cfg.model, {"weights": str(checkpoint), "max_side": 64})  # SMALL_VALIDATION_SIDE
     model = instantiate(model_cfg)
     settings = benchmark_settings(cfg)
     scene = instantiate(cfg.data)

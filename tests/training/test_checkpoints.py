@@ -7,32 +7,7 @@ import pytest
 import torch
 from helpers import train
 from hydra.utils import instantiate
-from training_runs import train_config as tiny_training
-
-#: DenseVLAD, the validation reference, on a vocabulary of 16 words k-means learns from 2000 RootSIFTs of
-#: one bin size on 48 px images: the same kind of reference ranking, in a fraction of the default's k-means.
-CHEAP_DENSEVLAD = tuple(
-    f"validation_references.densevlad.{setting}"
-    for setting in (
-        "max_side=48",
-        "step=4",
-        "bin_sizes=[4]",
-        "num_words=16",
-        "vocabulary_samples=2000",
-        "kmeans_iterations=10",
-    )
-)
-
-#: Validation images shrunk to 64 px (the tiny scene's are 96 x 72): describing every image of the scene at
-#: each validation is most of a run's time, and what these tests check of a validation holds at any size.
-VALIDATION_SIDE = "model.max_side=64"
-
-
-def train_config(root, *overrides):
-    """`training_runs.train_config` with `CHEAP_DENSEVLAD` and `VALIDATION_SIDE` (what these tests
-    read is the trained descriptor's validation, not the reference's)."""
-    return tiny_training(root, *CHEAP_DENSEVLAD, *overrides, image_side=VALIDATION_SIDE)
-
+from training_runs import cheap_train_config as train_config
 
 #: Two epochs planned, the run stopped after the first (its last.ckpt: epoch 0), no augmentation.
 INTERRUPTED = ("~augmentation", "trainer.max_epochs=2")

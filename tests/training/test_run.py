@@ -17,8 +17,8 @@ from hydra.utils import instantiate
 from own_place import render_walk, write_model
 from published_layouts import LAYOUTS, install, write_kapture_folder
 from published_layouts import SCENE as LAYOUTS_SCENE
-from training_runs import AT_25M, METRIC, RELATIVE_POSE, SCENE, TINY_TRAINING
-from training_runs import train_config as tiny_training
+from training_runs import AT_25M, METRIC, RELATIVE_POSE, SCENE, SMALL_DENSEVLAD, SMALL_VALIDATION_SIDE, TINY_TRAINING
+from training_runs import cheap_train_config as train_config
 
 from locretrieval.build import benchmark_settings, build_training
 from locretrieval.cli import composed_training_scenes
@@ -28,28 +28,6 @@ from locretrieval.scene.synthetic import render_synthetic_dataset
 from locretrieval.sfm.features import extract_features
 from locretrieval.training.callbacks import every_validation_metrics
 from locretrieval.training.relevance import combined_pairs
-
-#: DenseVLAD, the validation reference, on a vocabulary of 16 words k-means learns from 2000 RootSIFTs
-#: of a single bin size on 48 px images: a reference ranking of the same kind (what the tests read of it
-#: is that it is computed, cached and named as report.baseline), in a fraction of the default's k-means.
-CHEAP_DENSEVLAD = (
-    "validation_references.densevlad.max_side=48",
-    "validation_references.densevlad.step=4",
-    "validation_references.densevlad.bin_sizes=[4]",
-    "validation_references.densevlad.num_words=16",
-    "validation_references.densevlad.vocabulary_samples=2000",
-    "validation_references.densevlad.kmeans_iterations=10",
-)
-
-#: Validation images shrunk to 64 px (the tiny scene's are 96 x 72): describing every image of the scene at
-#: each validation is most of a run's time, and what these tests check of a validation holds at any size.
-VALIDATION_SIDE = "model.max_side=64"
-
-
-def train_config(root, *overrides):
-    """`training_runs.train_config` with `CHEAP_DENSEVLAD` and `VALIDATION_SIDE`: every run of the
-    file (and the shared cache's references) on the same cheap reference."""
-    return tiny_training(root, *CHEAP_DENSEVLAD, *overrides, image_side=VALIDATION_SIDE)
 
 
 @pytest.fixture(scope="module")
@@ -194,9 +172,9 @@ def test_two_process_cpu_ddp_smoke_run(tmp_path, shared_cache):
         f"hydra.run.dir={tmp_path}/run",
         "device=cpu",
         *tiny,
-        VALIDATION_SIDE,
+        SMALL_VALIDATION_SIDE,
         *TINY_TRAINING,
-        *CHEAP_DENSEVLAD,  # the references of the shared cache
+        *SMALL_DENSEVLAD,  # the references of the shared cache
         "trainer.max_epochs=1",
         "trainer.enable_progress_bar=false",
         "model/backbone=torchvision",
@@ -271,7 +249,7 @@ def test_a_parallel_training_multirun_as_documented_shares_one_cache_without_cor
         f"paths.cache_dir={tmp_path}/cache",
         "device=cpu",
         *tiny,
-        VALIDATION_SIDE,
+        SMALL_VALIDATION_SIDE,
         *(override for override in TINY_TRAINING if not override.startswith("datamodule.num_workers")),
         "callbacks.localization_validation.sfm_every_n_epochs=1",
         "paradigms.global_sfm.k=[1,3]",
@@ -279,7 +257,7 @@ def test_a_parallel_training_multirun_as_documented_shares_one_cache_without_cor
         "trainer.max_epochs=1",
         "trainer.enable_progress_bar=false",
         "~logger",
-        *CHEAP_DENSEVLAD,  # as the run alone's: the jobs' references cached for it
+        *SMALL_DENSEVLAD,  # as the run alone's: the jobs' references cached for it
     ]
     command = [
         sys.executable,
@@ -446,10 +424,10 @@ def test_train_py_trains_on_a_colmap_scene_beside_another_with_relevance_from_it
     listed = f"{{config: colmap, name: other, model: {other_model}, images: {other_images}, metres_per_unit: 1.0}}"
     cfg = helpers.compose_config(
         "train", f"paths.root_dir={tmp_path}", f"output_dir={tmp_path}/run", "device=cpu", "data=colmap",
-        f"data.model={model}", f"data.images={images}", "data.metres_per_unit=1.0", VALIDATION_SIDE,
+        f"data.model={model}", f"data.images={images}", "data.metres_per_unit=1.0", SMALL_VALIDATION_SIDE,
         *TINY_TRAINING, "datamodule.image_size=[96,72]", "trainer.max_epochs=1", "trainer.enable_progress_bar=false",
         "+trainer.fast_dev_run=true", "train_relevance=co_observation", "train_relevance.definition.min_shared=1",
-        f"training.scenes=[{listed}]", "sampler.anchors=4", *CHEAP_DENSEVLAD,
+        f"training.scenes=[{listed}]", "sampler.anchors=4", *SMALL_DENSEVLAD,
     )  # fmt: skip
     scene = instantiate(cfg.data)
     run = build_training(cfg, composed_training_scenes(cfg))  # what train.py builds

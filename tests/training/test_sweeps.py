@@ -17,7 +17,7 @@ import helpers
 import pandas as pd
 import pytest
 from omegaconf import OmegaConf
-from training_runs import METRIC, SCENE
+from training_runs import METRIC, SCENE, SMALL_DENSEVLAD
 
 from locretrieval.config import ConfigError
 from locretrieval.report.training_summary import write_summary
@@ -87,21 +87,6 @@ def test_a_study_started_by_another_command_is_refused_and_a_resumed_sampler_dra
     assert draws[1] == draws[2] != draws[0]
 
 
-#: DenseVLAD, the validation reference, on a vocabulary of 16 words k-means learns from 2000 RootSIFTs of
-#: one bin size on 48 px images: the same kind of reference ranking, in a fraction of the default's k-means.
-CHEAP_DENSEVLAD = tuple(
-    f"validation_references.densevlad.{setting}"
-    for setting in (
-        "max_side=48",
-        "step=4",
-        "bin_sizes=[4]",
-        "num_words=16",
-        "vocabulary_samples=2000",
-        "kmeans_iterations=10",
-    )
-)
-
-
 #: The documented study, three trials in parallel through the joblib launcher with its default workers,
 #: each a quick run cut to one epoch of two batches of small images, validated by paradigm 1 alone, on
 #: the training tests' tiny scene (30 images of 96x72 px, rendered by the renderer's default workers:
@@ -120,7 +105,7 @@ SWEEP = [
     *(f"data.render.conditions.{key}={value}" for key, value in SCENE["conditions"].items()),
     "paradigms.local_sfm.enabled=false",
     "paradigms.global_sfm.enabled=false",
-    *CHEAP_DENSEVLAD,  # each trial's reference (the study is of the trained descriptor's metric)
+    *SMALL_DENSEVLAD,  # each trial's reference (the study is of the trained descriptor's metric)
 ]
 
 
